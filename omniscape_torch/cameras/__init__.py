@@ -1,0 +1,34 @@
+"""Camera models: one registry, pure ``project``/``unproject`` functions, one ``Camera`` module.
+
+Every model maps between points ``(..., 3)`` in the OpenCV camera frame (x right, y down,
+z forward) and pixels ``(..., 2)`` = (u, v) = (column, row), integer coordinates at pixel
+centres, with parameters ``(..., P)`` broadcasting over the leading dimensions::
+
+    pixels, valid = ot.cameras.get_model("kannala_brandt").project(points, params)
+    rays, valid = ot.cameras.get_model("kannala_brandt").unproject(pixels, params)
+
+========================= ==============================================================
+name                      params
+========================= ==============================================================
+pinhole                   fx, fy, cx, cy
+equidistant               fx, fy, cx, cy
+equisolid                 fx, fy, cx, cy
+stereographic             fx, fy, cx, cy
+orthographic              fx, fy, cx, cy
+kannala_brandt            fx, fy, cx, cy, k1, k2, k3, k4
+unified                   fx, fy, cx, cy, xi, k1, k2, p1, p2
+eucm                      fx, fy, cx, cy, alpha, beta
+double_sphere             fx, fy, cx, cy, xi, alpha
+scaramuzza                cx, cy, c, d, e, a0, a1, ..., aN
+equirectangular           fx, fy, cx, cy
+========================= ==============================================================
+"""
+
+from __future__ import annotations
+
+from ._base import CameraModel
+from .camera import Camera
+from .registry import MODELS, get_model
+from .unified import unified_from_mirror
+
+__all__ = ["Camera", "CameraModel", "MODELS", "get_model", "unified_from_mirror"]

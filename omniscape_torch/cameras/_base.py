@@ -1,0 +1,289 @@
+"""What every camera model shares: the model record, entry checks and the numerical helpers.
+
+A model is a record of two pure functions over tensors that broadcast over leading dimensions:
+
+    project(points (..., 3), params (..., P)) -> (pixels (..., 2), valid (...))
+    unproject(pixels (..., 2), params (..., P)) -> (rays (..., 3) unit norm, valid (...))
+
+plus ``max_angle(params) -> (...)``, the supremum of the angle between a ray of the model's domain
+and the optical axis (radians). Invalid lanes hold finite values with finite gradients: unsafe
+denominators and radicands are replaced with ``torch.where`` *before* the operation, never after.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Callable, Mapping
+
+import torch
+from torch import Tensor
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """One camera model of the registry.
+
+    Attributes:
+        name: registry key, e.g. ``"kannala_brandt"``.
+        param_names: names of the flat parameter vector, in order. For a ``variadic`` model the
+            last name is the first of a series that may go on (``a0, a1, ..., aN``).
+        project: ``(points (..., 3), params (..., P)) -> (pixels (..., 2), valid (...))``.
+        unproject: ``(pixels (..., 2), params (..., P)) -> (unit rays (..., 3), valid (...))``.
+        max_angle: ``params (..., P) -> (...)``: supremum of the angle to the optical axis over the
+            model's domain, radians; no gradient.
+        groups: parameter groups (``focal``, ``center``, ``distortion``, ``affine``) as index
+            tuples, so that a fit can freeze a group.
+        variadic: the polynomial at the end of ``param_names`` has any length >= 1.
+        check_values: raises ``ValueError`` for parameter values outside the model's range.
+    """
+
+    name: str
+    param_names: tuple[str, ...]
+    project: Callable[..., tuple[Tensor, Tensor]]
+    unproject: Callable[..., tuple[Tensor, Tensor]]
+    max_angle: Callable[[Tensor], Tensor]
+    groups: Mapping[str, tuple[int, ...]] = field(default_factory=dict)
+    variadic: bool = False
+    check_values: Callable[[Tensor], None] | None = None
+
+    @property
+    def num_params(self) -> int:
+        """Number of parameters (the minimum for a variadic model)."""
+        return len(self.param_names)
+
+    def names_for(self, num_params: int) -> tuple[str, ...]:
+        """Parameter names for a parameter vector of length ``num_params``."""
+        self.check_num_params(num_params, "params")
+        if not self.variadic:
+            return self.param_names
+        stem = self.param_names[-1].rstrip("0123456789")
+        first = int(self.param_names[-1][len(stem):])
+        return self.param_names[:-1] + tuple(
+            f"{stem}{first + i}" for i in range(num_params - len(self.param_names) + 1))
+
+    def check_num_params(self, num_params: int, what: str = "params") -> None:
+        ok = num_params >= self.num_params if self.variadic else num_params == self.num_params
+        if not ok:
+            expected = (f"at least {self.num_params}" if self.variadic else str(self.num_params))
+            raise ValueError(
+                f"{what}: the {self.name} model takes {expected} parameters "
+                f"({', '.join(self.param_names)}{', ...' if self.variadic else ''}), "
+                f"got {num_params}")
+
+    def validate_params(self, params: Tensor, what: str = "params") -> None:
+        """Full check of a parameter tensor: type, length, finiteness and the model's ranges."""
+        if not isinstance(params, Tensor):
+            raise TypeError(f"{what}: expected a torch.Tensor, got {type(params).__name__}")
+        if not params.is_floating_point():
+            raise TypeError(f"{what}: expected a floating-point tensor, got {params.dtype}")
+        if params.dim() == 0:
+            raise ValueError(f"{what}: expected shape (..., P), got a scalar")
+        self.check_num_params(params.shape[-1], what)
+        if not bool(torch.isfinite(params).all()):
+            raise ValueError(f"{what}: parameters of the {self.name} model must be finite, "
+                             f"got {params.detach().cpu().tolist()}")
+        if self.check_values is not None:
+            self.check_values(params.detach())
+
+    def __repr__(self) -> str:
+        return f"CameraModel({self.name!r}, params={self.param_names})"
+
+
+# --------------------------------------------------------------------------------------------
+# Entry checks (one per public function; shapes only: values are checked once, in Camera).
+# --------------------------------------------------------------------------------------------
+
+def check_inputs(model_name: str, values: Tensor, params: Tensor, dim: int, num_params: int,
+                 what: str, variadic: bool = False) -> None:
+    """Shape and dtype check at the entry of ``project``/``unproject``."""
+    for name, t in ((what, values), ("params", params)):
+        if not isinstance(t, Tensor):
+            raise TypeError(f"{name}: expected a torch.Tensor, got {type(t).__name__}")
+        if not t.is_floating_point():
+            raise TypeError(f"{name}: expected a floating-point tensor, got {t.dtype}")
+    if values.dim() == 0 or values.shape[-1] != dim:
+        raise ValueError(f"{what}: expected shape (..., {dim}), got {tuple(values.shape)}")
+    n = params.shape[-1] if params.dim() else 0
+    if (n < num_params) if variadic else (n != num_params):
+        expected = f"at least {num_params}" if variadic else str(num_params)
+        raise ValueError(f"params: the {model_name} model takes {expected} parameters on the "
+                         f"last axis, got shape {tuple(params.shape)}")
+    if values.dtype != params.dtype:
+        raise TypeError(f"{what} and params must have the same dtype, got {values.dtype} and "
+                        f"{params.dtype}")
+    if values.device != params.device:
+        raise ValueError(f"{what} and params must be on the same device, got {values.device} "
+                         f"and {params.device}")
+    try:
+        torch.broadcast_shapes(values.shape[:-1], params.shape[:-1])
+    except RuntimeError:
+        raise ValueError(f"{what} of shape {tuple(values.shape)} and params of shape "
+                         f"{tuple(params.shape)} do not broadcast over their leading dimensions"
+                         ) from None
+
+
+def check_positive(params: Tensor, index: tuple[int, ...], names: tuple[str, ...],
+                   model: str) -> None:
+    bad = (params[..., list(index)] <= 0).any(dim=tuple(range(params.dim() - 1)))
+    for i, b in zip(index, bad.tolist() if bad.dim() else [bool(bad)]):
+        if b:
+            raise ValueError(f"params: {names[i]} of the {model} model must be > 0, got "
+                             f"{params[..., i].cpu().tolist()}")
+
+
+def check_range(params: Tensor, i: int, lo: float, hi: float, names: tuple[str, ...],
+                model: str) -> None:
+    p = params[..., i]
+    if bool(((p < lo) | (p > hi)).any()):
+        raise ValueError(f"params: {names[i]} of the {model} model must lie in [{lo}, {hi}], got "
+                         f"{p.cpu().tolist()}")
+
+
+# --------------------------------------------------------------------------------------------
+# NaN-safe building blocks.
+# --------------------------------------------------------------------------------------------
+
+def near_zero_radius(rho2: Tensor, scale2: Tensor | float) -> Tensor:
+    """True where a squared radius ``rho2`` is too small to divide by, relative to ``scale2``.
+
+    Below ``eps**2 * scale2`` the first-order series of every radial model is exact to rounding,
+    so the caller switches to it; the absolute floor keeps ``sqrt`` away from denormals.
+    """
+    info = torch.finfo(rho2.dtype)
+    threshold = info.eps * info.eps * scale2
+    if isinstance(threshold, Tensor):
+        return rho2 <= torch.clamp(threshold, min=info.tiny)
+    return rho2 <= max(threshold, info.tiny)
+
+
+def polar(points: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``rho = |(x, y)|``, ``theta = atan2(rho, z)`` and ``axis`` (rho too small to divide by).
+
+    On the axis, ``rho`` is 0 and ``theta`` is 0 in front (z > 0) and pi behind, without ever
+    evaluating ``atan2(0, .)``, whose gradient is NaN at the origin.
+    """
+    x, y, z = points.unbind(-1)
+    rho2 = x * x + y * y
+    axis = near_zero_radius(rho2, z * z)
+    rho = safe_sqrt(rho2, ~axis)
+    ones = torch.ones_like(rho)
+    theta = torch.where(axis, torch.where(z > 0, 0.0 * ones, math.pi * ones),
+                        torch.atan2(torch.where(axis, ones, rho), z))
+    return rho, theta, axis
+
+
+def safe_sqrt(x: Tensor, ok: Tensor) -> Tensor:
+    """``sqrt(x)`` where ``ok``, 0 elsewhere, with a finite gradient everywhere."""
+    return torch.where(ok, torch.sqrt(torch.where(ok, x, torch.ones_like(x))), torch.zeros_like(x))
+
+
+def safe_div(num: Tensor, den: Tensor, ok: Tensor) -> Tensor:
+    """``num / den`` where ``ok``, 0 elsewhere, with a finite gradient everywhere."""
+    return torch.where(ok, num / torch.where(ok, den, torch.ones_like(den)), torch.zeros_like(num))
+
+
+def polyval(coeffs: Tensor, x: Tensor) -> Tensor:
+    """Evaluate ``sum_i coeffs[..., i] * x**i`` (Horner), broadcasting ``coeffs (..., N)``."""
+    out = coeffs[..., -1]
+    for i in range(coeffs.shape[-1] - 2, -1, -1):
+        out = out * x + coeffs[..., i]
+    return out
+
+
+def polyder(coeffs: Tensor) -> Tensor:
+    """Coefficients (ascending) of the derivative of an ascending-order polynomial."""
+    n = coeffs.shape[-1]
+    if n == 1:
+        return torch.zeros_like(coeffs)
+    k = torch.arange(1, n, dtype=coeffs.dtype, device=coeffs.device)
+    return coeffs[..., 1:] * k
+
+
+def smallest_positive_root(coeffs: Tensor, scale: Tensor | float = 1.0) -> Tensor:
+    """Smallest positive real root of ``c0 + c1 t + ... + cn t**n`` with ``c0 != 0``; inf if none.
+
+    The roots are the reciprocals of the eigenvalues of the companion matrix of the reversed
+    polynomial ``c0 s**n + ... + cn``, whose leading coefficient ``c0`` is never zero, so vanishing
+    high-order coefficients need no special case. ``t`` is rescaled by ``scale`` first so that the
+    coefficients are of order one (a radius in pixels otherwise spans 30 orders of magnitude).
+    Computed in float64 without gradient: it decides validity, it is not differentiated.
+
+    Args:
+        coeffs: ``(..., n + 1)`` ascending coefficients.
+        scale: typical magnitude of ``t`` (broadcasts over ``...``).
+
+    Returns:
+        ``(...)`` tensor, dtype and device of ``coeffs``.
+    """
+    with torch.no_grad():
+        c = coeffs.detach().to(torch.float64)
+        scale = torch.as_tensor(scale, dtype=torch.float64, device=c.device)
+        n = c.shape[-1] - 1
+        out_shape = torch.broadcast_shapes(c.shape[:-1], scale.shape)
+        if n == 0:
+            return torch.full(out_shape, math.inf, dtype=coeffs.dtype, device=coeffs.device)
+        powers = scale.unsqueeze(-1) ** torch.arange(n + 1, dtype=torch.float64, device=c.device)
+        c = c * powers
+        c = c / c[..., :1]
+        comp = torch.zeros(c.shape[:-1] + (n, n), dtype=torch.float64, device=c.device)
+        comp[..., 0, :] = -c[..., 1:]
+        if n > 1:
+            idx = torch.arange(n - 1, device=c.device)
+            comp[..., idx + 1, idx] = 1.0
+        s = torch.linalg.eigvals(comp)
+        real = (s.imag.abs() <= 1e-7 * s.abs().clamp(min=1e-300)) & (s.real > 0)
+        s_max = torch.where(real, s.real, torch.zeros_like(s.real)).amax(dim=-1)
+        t = torch.where(s_max > 0, 1.0 / s_max.clamp(min=1e-300), math.inf) * scale
+        return t.to(coeffs.dtype)
+
+
+def invert_monotone(f: Callable[[Tensor], tuple[Tensor, Tensor]], target: Tensor, hi: Tensor,
+                    iterations: int, tol: float) -> tuple[Tensor, Tensor]:
+    """Solve ``f(x) = target`` for ``x`` in ``[0, hi]`` where ``f`` increases; no gradient.
+
+    Safeguarded Newton: a Newton step that leaves the bracket is replaced by bisection, so each
+    iteration at least halves the bracket or converges quadratically; at most ``iterations`` steps,
+    ending early once every lane has converged.
+
+    Args:
+        f: ``x -> (f(x), f'(x))``, broadcasting.
+        target: ``(...)`` values to reach.
+        hi: ``(...)`` upper end of the bracket (finite).
+        iterations: maximum number of iterations.
+        tol: tolerance on ``|f(x) - target|``, relative to ``1 + |target|``.
+
+    Returns:
+        ``x (...)`` and ``converged (...)``.
+    """
+    with torch.no_grad():
+        bound = tol * (1 + target.abs())
+        lo = torch.zeros_like(target)
+        hi = torch.broadcast_to(hi, target.shape).clone()
+        x = 0.5 * (lo + hi)
+        for _ in range(iterations):
+            fx, dfx = f(x)
+            res = fx - target
+            converged = res.abs() <= bound
+            if bool(converged.all()):
+                break
+            below = res < 0
+            lo = torch.where(below, x, lo)
+            hi = torch.where(below, hi, x)
+            step = res / torch.where(dfx > 0, dfx, torch.ones_like(dfx))
+            newton = x - step
+            inside = (dfx > 0) & (newton > lo) & (newton < hi)
+            x = torch.where(converged, x, torch.where(inside, newton, 0.5 * (lo + hi)))
+        fx, _ = f(x)
+        return x, (fx - target).abs() <= bound
+
+
+def implicit_step(x_star: Tensor, residual: Tensor, slope: Tensor) -> Tensor:
+    """One Newton step from a detached root ``x_star``: ``x_star - residual / slope``.
+
+    ``residual`` is ``f(x_star) - target`` computed *with* gradient; at a converged root it is zero
+    in value, so this adds nothing to ``x_star`` but carries the implicit-function-theorem
+    gradient ``-(d residual) / slope`` to the parameters and the target.
+    """
+    ok = slope.detach().abs() > 0
+    return x_star - safe_div(residual, slope.detach(), ok)

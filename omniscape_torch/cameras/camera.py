@@ -1,0 +1,290 @@
+"""``Camera``: one camera, or a batch of cameras of one model, as an ``nn.Module``."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Sequence
+
+import torch
+from torch import Tensor, nn
+
+from ._base import CameraModel
+from .registry import get_model
+
+
+class Camera(nn.Module):
+    """A camera of a registered model with fixed or learnable intrinsics.
+
+    Validity combines the model's domain, the image bounds (u in [-0.5, W - 0.5], v in
+    [-0.5, H - 0.5], pixel centres at integers) and, when given, the field of view ``fov``: the
+    full cone angle around the optical axis (+z), in radians.
+
+    Args:
+        model: a model name of ``ot.cameras.MODELS`` or a ``CameraModel``.
+        params: ``(P,)`` for one camera or ``(*B, P)`` for a batch; sequences are converted with
+            the default dtype. The values are checked (finite, inside the model's ranges).
+        image_size: ``(H, W)`` in pixels.
+        fov: optional full field of view in radians (degrees only at the CLI), in (0, 2 pi].
+        learnable: hold ``params`` as an ``nn.Parameter`` (else a buffer).
+
+    Example:
+        >>> import omniscape_torch as ot, torch
+        >>> cam = ot.Camera("equidistant", [300.0, 300.0, 319.5, 319.5], (640, 640))
+        >>> rays, valid = cam.ray_grid()
+        >>> rays.shape, valid.shape
+        (torch.Size([640, 640, 3]), torch.Size([640, 640]))
+    """
+
+    def __init__(self, model: str | CameraModel, params: Tensor | Sequence[float],
+                 image_size: tuple[int, int], fov: float | None = None,
+                 learnable: bool = False) -> None:
+        super().__init__()
+        self.model = get_model(model)
+        if not isinstance(params, Tensor):
+            try:
+                params = torch.tensor(params, dtype=torch.get_default_dtype())
+            except (TypeError, ValueError) as err:
+                raise TypeError(f"params: expected a tensor or a sequence of numbers ({err})"
+                                ) from None
+        self.model.validate_params(params, "params")
+        self.image_size = _check_image_size(image_size)
+        self.fov = _check_fov(fov)
+        params = params.detach().clone()
+        self.invpol: Tensor | None = None  # OCamCalib's inverse polynomial, set by from_ocamcalib
+        if learnable:
+            self.params = nn.Parameter(params)
+        else:
+            self.register_buffer("params", params)
+
+    # ---------------------------------------------------------------------------------------
+    @property
+    def batch_shape(self) -> torch.Size:
+        """Leading shape of ``params``: () for one camera."""
+        return self.params.shape[:-1]
+
+    @property
+    def learnable(self) -> bool:
+        return isinstance(self.params, nn.Parameter)
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        return self.model.names_for(self.params.shape[-1])
+
+    def extra_repr(self) -> str:
+        h, w = self.image_size
+        fov = "" if self.fov is None else f", fov={math.degrees(self.fov):.1f} deg"
+        return (f"model={self.model.name!r}, batch={tuple(self.batch_shape)}, image_size=({h}, "
+                f"{w}){fov}, learnable={self.learnable}")
+
+    def _params_for(self, values: Tensor, what: str) -> Tensor:
+        """``params`` viewed as ``(*B, 1, ..., 1, P)`` to broadcast against ``values``."""
+        b = len(self.batch_shape)
+        if values.dim() - 1 < b or values.shape[:b] != self.batch_shape:
+            raise ValueError(f"{what}: a camera batch of shape {tuple(self.batch_shape)} needs "
+                             f"{what} of shape ({', '.join(map(str, self.batch_shape))}, ..., "
+                             f"{values.shape[-1] if values.dim() else '?'}), got "
+                             f"{tuple(values.shape)}")
+        extra = values.dim() - 1 - b
+        return self.params.reshape(self.batch_shape + (1,) * extra + self.params.shape[-1:])
+
+    def in_image(self, pixels: Tensor) -> Tensor:
+        """``(...)`` True where ``pixels (..., 2)`` lie in the image (pixel edges included)."""
+        h, w = self.image_size
+        u, v = pixels[..., 0], pixels[..., 1]
+        return (u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5)
+
+    def within_fov(self, directions: Tensor) -> Tensor:
+        """``(...)`` True where ``directions (..., 3)`` are inside the ``fov`` cone (all True
+        without ``fov``)."""
+        if self.fov is None:
+            return torch.ones(directions.shape[:-1], dtype=torch.bool, device=directions.device)
+        rho = torch.linalg.vector_norm(directions[..., :2].detach(), dim=-1)
+        return torch.atan2(rho, directions[..., 2].detach()) <= 0.5 * self.fov
+
+    def project(self, points: Tensor) -> tuple[Tensor, Tensor]:
+        """Project ``points (*B, ..., 3)`` to ``pixels (*B, ..., 2)`` and ``valid (*B, ...)``."""
+        pixels, valid = self.model.project(points, self._params_for(points, "points"))
+        return pixels, valid & self.in_image(pixels) & self.within_fov(points)
+
+    def unproject(self, pixels: Tensor) -> tuple[Tensor, Tensor]:
+        """Unit rays ``(*B, ..., 3)`` and ``valid (*B, ...)`` of ``pixels (*B, ..., 2)``."""
+        rays, valid = self.model.unproject(pixels, self._params_for(pixels, "pixels"))
+        return rays, valid & self.in_image(pixels) & self.within_fov(rays)
+
+    def pixel_grid(self) -> Tensor:
+        """``(H, W, 2)`` pixel centres (u, v), in the dtype and device of ``params``."""
+        h, w = self.image_size
+        kw = dict(dtype=self.params.dtype, device=self.params.device)
+        v, u = torch.meshgrid(torch.arange(h, **kw), torch.arange(w, **kw), indexing="ij")
+        return torch.stack((u, v), dim=-1)
+
+    def ray_grid(self) -> tuple[Tensor, Tensor]:
+        """Unit ray of every pixel centre and its validity.
+
+        Returns:
+            ``rays (*B, H, W, 3)`` and ``valid (*B, H, W)``: model domain, inside the image,
+            within ``fov``. Differentiable with respect to ``params``.
+        """
+        grid = self.pixel_grid().expand(self.batch_shape + self.pixel_grid().shape)
+        return self.unproject(grid)
+
+    # ---------------------------------------------------------------------------------------
+    def max_angle(self) -> Tensor:
+        """``(*B)`` supremum of the angle to the optical axis of the model's domain and ``fov``
+        (radians), whatever the image bounds."""
+        angle = self.model.max_angle(self.params.detach())
+        return angle if self.fov is None else angle.clamp(max=0.5 * self.fov)
+
+    @torch.no_grad()
+    def field_of_view(self) -> Tensor:
+        """``(*B)`` full field of view in radians: twice the largest angle to the optical axis
+        among the valid pixel centres."""
+        rays, valid = self.ray_grid()
+        theta = torch.atan2(torch.linalg.vector_norm(rays[..., :2], dim=-1), rays[..., 2])
+        theta = torch.where(valid, theta, torch.zeros_like(theta))
+        return 2 * theta.flatten(-2).amax(dim=-1)
+
+    @torch.no_grad()
+    def pixels_per_radian(self, step: float = 1e-3) -> tuple[Tensor, Tensor]:
+        """Angular sampling density at every pixel centre.
+
+        The Jacobian ``J = d ray / d (u, v)`` (central differences of ``unproject`` with
+        ``step`` pixels, in float64) has singular values ``s_min <= s_max`` (radians per pixel);
+        ``1 / s_min`` is the density in the direction where pixels are finest, ``1 / s_max``
+        where they are coarsest. A cube face of F texels samples ``F / 2`` pixels per radian at
+        its centre.
+
+        Returns:
+            ``finest (*B, H, W)`` and ``coarsest (*B, H, W)`` in pixels per radian, 0 where the
+            pixel or its neighbourhood is invalid.
+        """
+        params = self.params.detach().double()
+        params = params.reshape(self.batch_shape + (1, 1) + params.shape[-1:])
+        grid = self.pixel_grid().double()
+        columns = []
+        valid = None
+        for axis in (0, 1):
+            offset = torch.zeros(2, dtype=torch.float64, device=grid.device)
+            offset[axis] = step
+            plus, vp = self.model.unproject(grid + offset, params)
+            minus, vm = self.model.unproject(grid - offset, params)
+            columns.append((plus - minus) / (2 * step))
+            valid = vp & vm if valid is None else valid & vp & vm
+        # Singular values of the 3 x 2 Jacobian from the eigenvalues of J^T J (closed form).
+        a = (columns[0] * columns[0]).sum(-1)
+        b = (columns[0] * columns[1]).sum(-1)
+        c = (columns[1] * columns[1]).sum(-1)
+        mean, dev = 0.5 * (a + c), torch.sqrt((0.5 * (a - c)) ** 2 + b * b)
+        s_max, s_min = torch.sqrt(mean + dev), torch.sqrt((mean - dev).clamp(min=0))
+        ok = valid & (s_min > 0)
+        _, in_valid = self.unproject(self.pixel_grid().expand(self.batch_shape + grid.shape))
+        ok = ok & in_valid
+        finest = torch.where(ok, 1 / s_min.clamp(min=1e-300), torch.zeros_like(s_min))
+        coarsest = torch.where(ok, 1 / s_max.clamp(min=1e-300), torch.zeros_like(s_max))
+        return finest.to(self.params.dtype), coarsest.to(self.params.dtype)
+
+    @torch.no_grad()
+    def angular_resolution(self) -> dict[str, Tensor]:
+        """Pixels per radian at the optical axis and at the edge of the valid area.
+
+        Returns:
+            ``center``: density at the valid pixel nearest to the optical axis (finest direction);
+            ``edge_finest``/``edge_coarsest``: at the valid pixels farthest from the axis (the
+            tangential and radial directions of a radially symmetric lens); ``finest``: the
+            largest density anywhere. Each ``(*B)`` in pixels per radian.
+        """
+        finest, coarsest = self.pixels_per_radian()
+        rays, valid = self.ray_grid()
+        theta = torch.atan2(torch.linalg.vector_norm(rays[..., :2], dim=-1), rays[..., 2])
+        ok = valid & (finest > 0)
+        flat = lambda t: t.flatten(-2)  # noqa: E731
+        near = torch.where(flat(ok), flat(theta), torch.full_like(flat(theta), math.inf))
+        far = torch.where(flat(ok), flat(theta), torch.full_like(flat(theta), -math.inf))
+        i_near = near.argmin(-1, keepdim=True)
+        i_far = far.argmax(-1, keepdim=True)
+        return {
+            "center": flat(finest).gather(-1, i_near).squeeze(-1),
+            "edge_angle": flat(theta).gather(-1, i_far).squeeze(-1),
+            "edge_finest": flat(finest).gather(-1, i_far).squeeze(-1),
+            "edge_coarsest": flat(coarsest).gather(-1, i_far).squeeze(-1),
+            "finest": flat(finest).amax(-1),
+        }
+
+    # ---------------------------------------------------------------------------------------
+    # Other formats (the I/O lives in omniscape_torch.io.calibration).
+    @classmethod
+    def from_ocamcalib(cls, path: str | Path, **kwargs) -> "Camera":
+        """Load OCamCalib's ``calib_results.txt`` as a ``scaramuzza`` camera (centre converted
+        from (row, column) to (u, v)); the file's inverse polynomial is kept as ``invpol``."""
+        from ..io.calibration import read_ocamcalib
+        return read_ocamcalib(path, **kwargs)
+
+    def to_ocamcalib(self, path: str | Path, **kwargs) -> None:
+        """Write OCamCalib's ``calib_results.txt``, fitting ``invpol`` the way OCamCalib does."""
+        from ..io.calibration import write_ocamcalib
+        write_ocamcalib(self, path, **kwargs)
+
+    @classmethod
+    def from_opencv_fisheye(cls, K, D, image_size: tuple[int, int], **kwargs) -> "Camera":
+        """``cv2.fisheye`` (K 3x3, D 4) as a ``kannala_brandt`` camera."""
+        from ..io.calibration import from_opencv_fisheye
+        return from_opencv_fisheye(K, D, image_size, **kwargs)
+
+    def to_opencv_fisheye(self):
+        """``(K (3, 3), D (4,))`` numpy arrays for ``cv2.fisheye``."""
+        from ..io.calibration import to_opencv_fisheye
+        return to_opencv_fisheye(self)
+
+    @classmethod
+    def from_opencv_omnidir(cls, K, D, xi, image_size: tuple[int, int], **kwargs) -> "Camera":
+        """``cv2.omnidir`` (K 3x3, D 4, xi) as a ``unified`` camera."""
+        from ..io.calibration import from_opencv_omnidir
+        return from_opencv_omnidir(K, D, xi, image_size, **kwargs)
+
+    def to_opencv_omnidir(self):
+        """``(K (3, 3), D (1, 4), xi (1,))`` numpy arrays for ``cv2.omnidir``."""
+        from ..io.calibration import to_opencv_omnidir
+        return to_opencv_omnidir(self)
+
+    def to_dict(self) -> dict:
+        """A JSON-ready dict (one camera, or a list of cameras under ``"cameras"``)."""
+        from ..io.calibration import camera_to_dict
+        return camera_to_dict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict, **kwargs) -> "Camera":
+        from ..io.calibration import camera_from_dict
+        return camera_from_dict(data, **kwargs)
+
+    def save_json(self, path: str | Path) -> None:
+        """Write ``to_dict()`` as JSON (atomically)."""
+        from ..io.calibration import save_json
+        save_json(self, path)
+
+    @classmethod
+    def load_json(cls, path: str | Path, **kwargs) -> "Camera":
+        from ..io.calibration import load_json
+        return load_json(path, **kwargs)
+
+
+def _check_image_size(image_size) -> tuple[int, int]:
+    try:
+        h, w = image_size
+    except (TypeError, ValueError):
+        raise ValueError(f"image_size: expected (H, W), got {image_size!r}") from None
+    for name, value in (("H", h), ("W", w)):
+        if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+            raise ValueError(f"image_size: {name} must be a positive int, got {value!r}")
+    return int(h), int(w)
+
+
+def _check_fov(fov) -> float | None:
+    if fov is None:
+        return None
+    if isinstance(fov, bool) or not isinstance(fov, (int, float)) or not math.isfinite(fov):
+        raise ValueError(f"fov: expected a number of radians, got {fov!r}")
+    if not 0 < fov <= 2 * math.pi:
+        hint = f"; in radians, did you mean math.radians({fov})?" if fov > 2 * math.pi else ""
+        raise ValueError(f"fov: expected a full angle in (0, 2 pi] radians, got {fov}{hint}")
+    return float(fov)

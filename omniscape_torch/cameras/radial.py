@@ -1,0 +1,216 @@
+"""Radially symmetric fisheye models: r = f(theta), theta = atan2(sqrt(x**2 + y**2), z).
+
+With ``(mx, my) = ((u - cx) / fx, (v - cy) / fy)`` and ``r = |(mx, my)|`` in focal units, a point
+at angle ``theta`` from the optical axis lands at radius ``r(theta)`` in the direction of its
+``(x, y)``. ``theta`` comes from ``atan2``, so points behind the camera (z < 0) keep their angle
+(> 90 degrees) and never fold onto the front; each model is valid up to its own limit:
+
+=============== ============================================= ===================================
+model           r(theta)                                      valid
+=============== ============================================= ===================================
+equidistant     theta                                         theta < pi
+equisolid       2 sin(theta / 2)                              theta < pi
+stereographic   2 tan(theta / 2)                              theta < pi
+orthographic    sin(theta)                                    theta <= pi / 2
+kannala_brandt  theta (1 + k1 t + k2 t^2 + k3 t^3 + k4 t^4),  theta < min(pi, fold), fold: the
+                t = theta^2                                   first zero of dr/dtheta
+=============== ============================================= ===================================
+
+Kannala-Brandt is OpenCV's ``cv2.fisheye`` (Kannala and Brandt, "A generic camera model and
+calibration method for conventional, wide-angle, and fish-eye lenses", TPAMI 2006), here with
+``atan2`` instead of ``atan(r / z)`` so that it is valid past 90 degrees; with k = 0 it is the
+equidistant model. Its inverse is safeguarded Newton with a fixed maximum iteration count.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from ._base import (CameraModel, check_inputs, check_positive, implicit_step, invert_monotone,
+                    near_zero_radius, polar, polyder, polyval, safe_div, safe_sqrt,
+                    smallest_positive_root)
+
+_FOCAL_NAMES = ("fx", "fy", "cx", "cy")
+_GROUPS = {"focal": (0, 1), "center": (2, 3)}
+
+#: Default maximum number of Newton iterations of the Kannala-Brandt inverse. Safeguarded Newton
+#: converges quadratically away from the fold and at least halves its bracket near it; 60 steps
+#: reach the float64 tolerance everywhere the inverse is well-defined (tests/test_cameras.py).
+KB_ITERATIONS = 60
+
+
+def _project_radial(points: Tensor, params: Tensor, r_of_theta: Callable[[Tensor], Tensor],
+                    valid_theta: Callable[[Tensor], Tensor]) -> tuple[Tensor, Tensor]:
+    fx, fy, cx, cy = params[..., 0], params[..., 1], params[..., 2], params[..., 3]
+    x, y, z = points.unbind(-1)
+    rho, theta, axis = polar(points)
+    ones = torch.ones_like(rho)
+    valid = valid_theta(theta)
+    r = r_of_theta(torch.where(valid, theta, torch.zeros_like(theta)))
+    # r(theta) / rho, whose limit on the axis is r'(0) / z = 1 / z for every model here.
+    scale = torch.where(axis, safe_div(ones, z, axis & valid), safe_div(r, rho, ~axis))
+    pixels = torch.stack((fx * x * scale + cx, fy * y * scale + cy), dim=-1)
+    return pixels, valid
+
+
+def _unproject_radial(pixels: Tensor, params: Tensor,
+                      theta_of_r: Callable[[Tensor], tuple[Tensor, Tensor]]
+                      ) -> tuple[Tensor, Tensor]:
+    fx, fy, cx, cy = params[..., 0], params[..., 1], params[..., 2], params[..., 3]
+    mx = (pixels[..., 0] - cx) / fx
+    my = (pixels[..., 1] - cy) / fy
+    r2 = mx * mx + my * my
+    axis = near_zero_radius(r2, 1.0)
+    r = safe_sqrt(r2, ~axis)
+    theta, valid = theta_of_r(r)
+    theta = torch.where(valid, theta, torch.zeros_like(theta))
+    # sin(theta) / r -> theta'(0) = 1 on the axis.
+    sin_over_r = torch.where(axis, torch.ones_like(r), safe_div(torch.sin(theta), r, ~axis))
+    rays = torch.stack((mx * sin_over_r, my * sin_over_r, torch.cos(theta)), dim=-1)
+    return rays, valid
+
+
+def _check_focal(params: Tensor, name: str) -> None:
+    check_positive(params, (0, 1), _FOCAL_NAMES, name)
+
+
+def _closed_form_model(name: str, r_of_theta, theta_of_r, r_limit: float, theta_limit: float,
+                       inclusive: bool, doc: str) -> CameraModel:
+    """A parameter-free radial law ``r(theta)`` scaled by (fx, fy) and shifted by (cx, cy)."""
+
+    def valid_theta(theta: Tensor) -> Tensor:
+        return theta <= theta_limit if inclusive else theta < theta_limit
+
+    def project(points: Tensor, params: Tensor) -> tuple[Tensor, Tensor]:
+        check_inputs(name, points, params, 3, 4, "points")
+        return _project_radial(points, params, r_of_theta, valid_theta)
+
+    def unproject(pixels: Tensor, params: Tensor) -> tuple[Tensor, Tensor]:
+        check_inputs(name, pixels, params, 2, 4, "pixels")
+
+        def inverse(r: Tensor) -> tuple[Tensor, Tensor]:
+            valid = r <= r_limit if inclusive else r < r_limit
+            return theta_of_r(torch.where(valid, r, torch.zeros_like(r))), valid
+
+        return _unproject_radial(pixels, params, inverse)
+
+    def max_angle(params: Tensor) -> Tensor:
+        return torch.full(params.shape[:-1], theta_limit, dtype=params.dtype, device=params.device)
+
+    project.__doc__ = unproject.__doc__ = doc
+    return CameraModel(name, _FOCAL_NAMES, project, unproject, max_angle, _GROUPS,
+                       check_values=lambda p: _check_focal(p, name))
+
+
+def _orthographic_theta(r: Tensor) -> Tensor:
+    # asin has an infinite slope at r = 1 (the image-circle edge); pin the gradient there finite.
+    edge = r >= 1.0
+    return torch.where(edge, math.pi / 2 * torch.ones_like(r),
+                       torch.asin(torch.where(edge, torch.zeros_like(r), r)))
+
+
+def _equisolid_theta(r: Tensor) -> Tensor:
+    return 2.0 * torch.asin(0.5 * r)
+
+
+EQUIDISTANT = _closed_form_model(
+    "equidistant", lambda t: t, lambda r: r, math.pi, math.pi, False,
+    "Equidistant fisheye: r = f theta, valid for theta < pi.")
+EQUISOLID = _closed_form_model(
+    "equisolid", lambda t: 2.0 * torch.sin(0.5 * t), _equisolid_theta, 2.0, math.pi, False,
+    "Equisolid-angle fisheye: r = 2 f sin(theta / 2), valid for theta < pi.")
+STEREOGRAPHIC = _closed_form_model(
+    "stereographic", lambda t: 2.0 * torch.tan(0.5 * t), lambda r: 2.0 * torch.atan(0.5 * r),
+    math.inf, math.pi, False,
+    "Stereographic fisheye: r = 2 f tan(theta / 2), valid for theta < pi.")
+ORTHOGRAPHIC = _closed_form_model(
+    "orthographic", torch.sin, _orthographic_theta, 1.0, math.pi / 2, True,
+    "Orthographic fisheye: r = f sin(theta), valid for theta <= pi / 2.")
+
+
+# --------------------------------------------------------------------------------------------
+# Kannala-Brandt
+# --------------------------------------------------------------------------------------------
+
+_KB_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4")
+
+
+def _kb_poly(params: Tensor) -> Tensor:
+    """Coefficients of r(theta) = theta * P(theta^2), as P's ascending coefficients (1, k1..k4)."""
+    return torch.cat((torch.ones_like(params[..., :1]), params[..., 4:8]), dim=-1)
+
+
+def kannala_brandt_max_angle(params: Tensor) -> Tensor:
+    """min(pi, fold): the fold is the first theta > 0 with dr/dtheta = 0, i.e. the smallest
+    positive root t of ``1 + 3 k1 t + 5 k2 t^2 + 7 k3 t^3 + 9 k4 t^4`` at t = theta^2."""
+    odd = torch.tensor([1.0, 3.0, 5.0, 7.0, 9.0], dtype=params.dtype, device=params.device)
+    t_fold = smallest_positive_root(_kb_poly(params) * odd)
+    return torch.sqrt(t_fold).clamp(max=math.pi)
+
+
+def _kb_r(theta: Tensor, coeffs: Tensor) -> tuple[Tensor, Tensor]:
+    """r(theta) and dr/dtheta for ``coeffs = (1, k1, ..., k4)``."""
+    t = theta * theta
+    p = polyval(coeffs, t)
+    dp = polyval(polyder(coeffs), t)
+    return theta * p, p + 2.0 * t * dp
+
+
+def kannala_brandt_project(points: Tensor, params: Tensor) -> tuple[Tensor, Tensor]:
+    """Kannala-Brandt projection, ``r = theta (1 + k1 theta^2 + ... + k4 theta^8)``.
+
+    Args:
+        points: ``(..., 3)`` points in the camera frame (OpenCV: x right, y down, z forward).
+        params: ``(..., 8)`` fx, fy, cx, cy, k1, k2, k3, k4.
+
+    Returns:
+        ``pixels (..., 2)`` and ``valid (...)``: ``theta < min(pi, fold)``.
+    """
+    check_inputs("kannala_brandt", points, params, 3, 8, "points")
+    coeffs = _kb_poly(params)
+    limit = kannala_brandt_max_angle(params)
+    return _project_radial(points, params, lambda th: _kb_r(th, coeffs)[0],
+                           lambda th: th < limit)
+
+
+def kannala_brandt_unproject(pixels: Tensor, params: Tensor, *,
+                             iterations: int = KB_ITERATIONS) -> tuple[Tensor, Tensor]:
+    """Kannala-Brandt unprojection: solve ``r(theta) = r`` by safeguarded Newton on [0, limit].
+
+    Args:
+        pixels: ``(..., 2)`` pixel coordinates (u, v).
+        params: ``(..., 8)`` fx, fy, cx, cy, k1, k2, k3, k4.
+        iterations: maximum Newton iterations (fixed; see ``KB_ITERATIONS``).
+
+    Returns:
+        ``rays (..., 3)`` unit norm and ``valid (...)``: ``r < r(limit)`` and Newton converged.
+    """
+    check_inputs("kannala_brandt", pixels, params, 2, 8, "pixels")
+    coeffs = _kb_poly(params)
+    limit = kannala_brandt_max_angle(params)
+    r_limit = _kb_r(limit, coeffs)[0]
+    tol = 4 * torch.finfo(params.dtype).eps
+
+    def theta_of_r(r: Tensor) -> tuple[Tensor, Tensor]:
+        inside = r < r_limit
+        target = torch.where(inside, r, torch.zeros_like(r)).detach()
+        theta, converged = invert_monotone(lambda th: _kb_r(th, coeffs.detach()), target,
+                                           limit, iterations, tol)
+        value, slope = _kb_r(theta, coeffs)
+        theta = implicit_step(theta, value - torch.where(inside, r, torch.zeros_like(r)), slope)
+        return theta, inside & converged
+
+    return _unproject_radial(pixels, params, theta_of_r)
+
+
+def _check_kb(params: Tensor) -> None:
+    _check_focal(params, "kannala_brandt")
+
+
+KANNALA_BRANDT = CameraModel(
+    "kannala_brandt", _KB_NAMES, kannala_brandt_project, kannala_brandt_unproject,
+    kannala_brandt_max_angle, {**_GROUPS, "distortion": (4, 5, 6, 7)}, check_values=_check_kb)

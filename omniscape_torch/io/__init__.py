@@ -1,0 +1,13 @@
+"""Input and output: calibration files, and (later) images, depth and datasets.
+
+I/O never leaks into the maths: these functions read and write, then call the pure functions.
+"""
+
+from .atomic import atomic_write_bytes, atomic_write_text
+from .calibration import (camera_from_dict, camera_to_dict, from_opencv_fisheye,
+                          from_opencv_omnidir, load_json, read_ocamcalib, save_json,
+                          to_opencv_fisheye, to_opencv_omnidir, write_ocamcalib)
+
+__all__ = ["atomic_write_bytes", "atomic_write_text", "camera_from_dict", "camera_to_dict",
+           "from_opencv_fisheye", "from_opencv_omnidir", "load_json", "read_ocamcalib",
+           "save_json", "to_opencv_fisheye", "to_opencv_omnidir", "write_ocamcalib"]

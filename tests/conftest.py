@@ -1,0 +1,84 @@
+"""Shared test data: the real files beside the project and one parameter set list per model."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED_DATA = ROOT.parent / "shared" / "data"
+OCAMCALIB_FILE = SHARED_DATA / "ocamcalib_real" / "calib_results_0.txt"
+
+
+def _real_scaramuzza() -> list[float]:
+    """The real OCamCalib calibration as scaramuzza params, read independently of the library."""
+    lines = [ln.split() for ln in OCAMCALIB_FILE.read_text().splitlines()
+             if ln.strip() and not ln.startswith("#")]
+    pol = [float(v) for v in lines[0][1:]]
+    row, col = map(float, lines[2])
+    c, d, e = map(float, lines[3])
+    return [col, row, c, d, e, *pol]
+
+
+#: (model, params, image_size (H, W)) cases covering each model's regimes: an undistorted
+#: reference, realistic lenses, and the regimes where methods fail (xi > 1, folds before 180).
+CASES = {
+    "pinhole": [([500.0, 480.0, 319.5, 239.5], (480, 640))],
+    "equidistant": [([200.0, 205.0, 319.5, 299.5], (600, 640))],
+    "equisolid": [([210.0, 200.0, 320.0, 300.0], (600, 640))],
+    "stereographic": [([150.0, 150.0, 319.5, 319.5], (640, 640))],
+    "orthographic": [([300.0, 290.0, 319.5, 309.5], (620, 640))],
+    "kannala_brandt": [
+        ([200.0, 200.0, 319.5, 319.5, 0.0, 0.0, 0.0, 0.0], (640, 640)),
+        ([190.0, 191.0, 320.3, 318.7, -0.02, 0.004, -0.001, 0.0002], (640, 640)),
+        # folds at 111 degrees (dr/dtheta = 0 there): valid only below the fold
+        ([200.0, 200.0, 319.5, 319.5, -0.12, 0.005, 0.0, 0.0], (640, 640)),
+    ],
+    "unified": [
+        ([400.0, 400.0, 319.5, 319.5, 0.0, 0.0, 0.0, 0.0, 0.0], (640, 640)),
+        ([300.0, 305.0, 320.0, 318.0, 0.8, 0.0, 0.0, 0.0, 0.0], (640, 640)),
+        ([250.0, 250.0, 319.5, 319.5, 1.0, 0.0, 0.0, 0.0, 0.0], (640, 640)),
+        ([600.0, 600.0, 319.5, 319.5, 1.6, 0.0, 0.0, 0.0, 0.0], (640, 640)),
+        ([330.0, 331.0, 321.0, 317.0, 0.9, -0.15, 0.02, 1e-3, -5e-4], (640, 640)),
+    ],
+    "eucm": [
+        ([260.0, 262.0, 319.5, 319.5, 0.3, 1.0], (640, 640)),
+        ([220.0, 221.0, 320.5, 318.5, 0.6, 1.1], (640, 640)),
+    ],
+    "double_sphere": [
+        ([160.0, 161.0, 319.5, 319.5, -0.2, 0.6], (640, 640)),
+        ([200.0, 200.0, 320.0, 320.0, 0.5, 0.3], (640, 640)),
+    ],
+    "scaramuzza": [
+        (_real_scaramuzza(), (1600, 1600)),
+        # a synthetic lens whose polynomial folds: theta stops growing near rho = 430 px,
+        # inside the image corners
+        ([320.0, 310.0, 1.0, 0.0, 0.0, -200.0, 0.0, 1.5e-3, -3e-6], (640, 640)),
+    ],
+    "equirectangular": [([256 / (2 * math.pi), 128 / math.pi, 127.5, 63.5], (128, 256))],
+}
+
+
+def all_cases() -> list:
+    return [pytest.param(model, params, size, id=f"{model}-{i}")
+            for model, cases in CASES.items() for i, (params, size) in enumerate(cases)]
+
+
+def fibonacci_sphere(n: int, dtype=torch.float64) -> torch.Tensor:
+    """``(n, 3)`` nearly uniform unit directions (deterministic)."""
+    i = torch.arange(n, dtype=dtype) + 0.5
+    z = 1 - 2 * i / n
+    phi = math.pi * (3 - math.sqrt(5)) * i
+    r = torch.sqrt(1 - z * z)
+    return torch.stack((r * torch.cos(phi), r * torch.sin(phi), z), -1)
+
+
+def directions_at(theta: torch.Tensor, n_azimuth: int = 16) -> torch.Tensor:
+    """Unit directions at angles ``theta (T,)`` from +z, ``n_azimuth`` azimuths each: (T*A, 3)."""
+    phi = torch.arange(n_azimuth, dtype=theta.dtype) * (2 * math.pi / n_azimuth) + 0.1
+    t, p = torch.meshgrid(theta, phi, indexing="ij")
+    return torch.stack((torch.sin(t) * torch.cos(p), torch.sin(t) * torch.sin(p), torch.cos(t)),
+                       -1).reshape(-1, 3)
