@@ -429,18 +429,19 @@ def markdown(result: dict) -> str:
     lines = [f"cameras: {result['points']:,} points, {result['dtype']}, "
              f"{result['threads']} threads, {result['device']}, commit {result['commit'][:12]}"
              f"{' (dirty)' if result['dirty'] else ''}", "",
-             "| model | op | impl | input | median ms | IQR ms | Mpoints/s | valid % | "
+             "| model | op | impl | input | median ms | IQR ms | min ms | Mpoints/s | valid % | "
              "ours / this |",
-             "|---|---|---|---|---:|---:|---:|---:|---:|"]
+             "|---|---|---|---|---:|---:|---:|---:|---:|---:|"]
     for r in result["rows"]:
         if r.get("error"):
             lines.append(f"| {r['model']} | {r['op']} | {r['impl']} | {r['input_dtype']} | "
-                         f"ERROR: {r['error'][:90]} | | | | |")
+                         f"ERROR: {r['error'][:90]} | | | | | |")
             continue
         valid = "" if r["valid_fraction"] is None else f"{100 * r['valid_fraction']:.1f}"
         ratio = r.get("ratio_ours_over_this")
         lines.append(f"| {r['model']} | {r['op']} | {r['impl']} | {r['input_dtype']} | "
-                     f"{ms(r['median_s'])} | {ms(r['iqr_s'])} | {r['points_per_s'] / 1e6:.1f} | "
+                     f"{ms(r['median_s'])} | {ms(r['iqr_s'])} | {ms(r['min_s'])} | "
+                     f"{r['points_per_s'] / 1e6:.1f} | "
                      f"{valid} | {'' if ratio is None else f'{ratio:.2f}'} |")
     if result["ratios"]:
         lines += ["", "| ratio ours/peer | model | op | peer | peer input | target |",

@@ -625,3 +625,20 @@ def test_scaramuzza_invpol_is_ocamcalib_world2cam_formula():
                                    invpol=cam.invpol)
     assert bool(valid)
     assert px.tolist() == pytest.approx([pu + e * pv + cx, d * pu + c * pv + cy], abs=1e-9)
+
+
+def test_blind_fov_masks_the_central_cone():
+    """A catadioptric camera's own reflection: the disc r < f * blind/2 is invalid (equidistant:
+    theta = r / f exactly), the annulus up to fov/2 valid."""
+    params = torch.tensor([100.0, 100.0, 99.5, 99.5], dtype=F64)
+    cam = ot.Camera("equidistant", params, (200, 200), fov=math.radians(150),
+                    blind_fov=math.radians(40))
+    _, valid = cam.ray_grid()
+    v, u = torch.meshgrid(torch.arange(200, dtype=F64), torch.arange(200, dtype=F64),
+                          indexing="ij")
+    r = torch.hypot(u - 99.5, v - 99.5)
+    expected = (r > 100 * math.radians(20) + 1e-9) & (r <= 100 * math.radians(75) + 1e-9)
+    assert torch.equal(valid, expected)
+    assert "blind_fov=40.0 deg" in repr(cam)
+    with pytest.raises(ValueError, match="blind_fov: must be smaller than fov"):
+        ot.Camera("equidistant", params, (200, 200), fov=1.0, blind_fov=1.5)

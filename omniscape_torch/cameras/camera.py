@@ -18,7 +18,9 @@ class Camera(nn.Module):
 
     Validity combines the model's domain, the image bounds (u in [-0.5, W - 0.5], v in
     [-0.5, H - 0.5], pixel centres at integers) and, when given, the field of view ``fov``: the
-    full cone angle around the optical axis (+z), in radians.
+    full cone angle around the optical axis (+z), in radians, and ``blind_fov``, the full cone
+    angle around the axis that the camera cannot see (a catadioptric camera's own reflection in
+    its mirror).
 
     Args:
         model: a model name of ``ot.cameras.MODELS`` or a ``CameraModel``.
@@ -27,6 +29,7 @@ class Camera(nn.Module):
         image_size: ``(H, W)`` in pixels.
         fov: optional full field of view in radians (degrees only at the CLI), in (0, 2 pi].
         learnable: hold ``params`` as an ``nn.Parameter`` (else a buffer).
+        blind_fov: optional full angle in radians of the central blind cone, below ``fov``.
 
     Example:
         >>> import omniscape_torch as ot, torch
@@ -38,7 +41,7 @@ class Camera(nn.Module):
 
     def __init__(self, model: str | CameraModel, params: Tensor | Sequence[float],
                  image_size: tuple[int, int], fov: float | None = None,
-                 learnable: bool = False) -> None:
+                 learnable: bool = False, *, blind_fov: float | None = None) -> None:
         super().__init__()
         self.model = get_model(model)
         if not isinstance(params, Tensor):
@@ -50,6 +53,9 @@ class Camera(nn.Module):
         self.model.validate_params(params, "params")
         self.image_size = _check_image_size(image_size)
         self.fov = _check_fov(fov)
+        self.blind_fov = _check_fov(blind_fov, "blind_fov")
+        if self.blind_fov is not None and self.blind_fov >= (self.fov or 2 * math.pi):
+            raise ValueError(f"blind_fov: must be smaller than fov, got {blind_fov} >= {fov}")
         params = params.detach().clone()
         self.invpol: Tensor | None = None  # OCamCalib's inverse polynomial, set by from_ocamcalib
         if learnable:
@@ -74,6 +80,8 @@ class Camera(nn.Module):
     def extra_repr(self) -> str:
         h, w = self.image_size
         fov = "" if self.fov is None else f", fov={math.degrees(self.fov):.1f} deg"
+        if self.blind_fov is not None:
+            fov += f", blind_fov={math.degrees(self.blind_fov):.1f} deg"
         return (f"model={self.model.name!r}, batch={tuple(self.batch_shape)}, image_size=({h}, "
                 f"{w}){fov}, learnable={self.learnable}")
 
@@ -95,12 +103,18 @@ class Camera(nn.Module):
         return (u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5)
 
     def within_fov(self, directions: Tensor) -> Tensor:
-        """``(...)`` True where ``directions (..., 3)`` are inside the ``fov`` cone (all True
-        without ``fov``)."""
-        if self.fov is None:
-            return torch.ones(directions.shape[:-1], dtype=torch.bool, device=directions.device)
+        """``(...)`` True where ``directions (..., 3)`` are inside the ``fov`` cone and outside the
+        ``blind_fov`` cone (all True without either)."""
+        inside = torch.ones(directions.shape[:-1], dtype=torch.bool, device=directions.device)
+        if self.fov is None and self.blind_fov is None:
+            return inside
         rho = torch.linalg.vector_norm(directions[..., :2].detach(), dim=-1)
-        return torch.atan2(rho, directions[..., 2].detach()) <= 0.5 * self.fov
+        theta = torch.atan2(rho, directions[..., 2].detach())
+        if self.fov is not None:
+            inside = inside & (theta <= 0.5 * self.fov)
+        if self.blind_fov is not None:
+            inside = inside & (theta > 0.5 * self.blind_fov)
+        return inside
 
     def project(self, points: Tensor) -> tuple[Tensor, Tensor]:
         """Project ``points (*B, ..., 3)`` to ``pixels (*B, ..., 2)`` and ``valid (*B, ...)``."""
@@ -279,12 +293,12 @@ def _check_image_size(image_size) -> tuple[int, int]:
     return int(h), int(w)
 
 
-def _check_fov(fov) -> float | None:
+def _check_fov(fov, name: str = "fov") -> float | None:
     if fov is None:
         return None
     if isinstance(fov, bool) or not isinstance(fov, (int, float)) or not math.isfinite(fov):
-        raise ValueError(f"fov: expected a number of radians, got {fov!r}")
+        raise ValueError(f"{name}: expected a number of radians, got {fov!r}")
     if not 0 < fov <= 2 * math.pi:
         hint = f"; in radians, did you mean math.radians({fov})?" if fov > 2 * math.pi else ""
-        raise ValueError(f"fov: expected a full angle in (0, 2 pi] radians, got {fov}{hint}")
+        raise ValueError(f"{name}: expected a full angle in (0, 2 pi] radians, got {fov}{hint}")
     return float(fov)

@@ -267,7 +267,8 @@ def to_opencv_omnidir(camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarra
 # --------------------------------------------------------------------------------------------
 
 def camera_to_dict(camera: Camera) -> dict:
-    """``{"model", "image_size": [H, W], "fov_deg", "params": {name: value}}``; for a batch,
+    """``{"model", "image_size": [H, W], "fov_deg", "blind_fov_deg", "params": {name: value}}``;
+    for a batch,
     ``"params"`` is a list of such objects. Angles are in degrees in the file."""
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a Camera, got {type(camera).__name__}")
@@ -276,6 +277,8 @@ def camera_to_dict(camera: Camera) -> dict:
     params = [dict(zip(names, row)) for row in rows]
     out = {"model": camera.model.name, "image_size": list(camera.image_size),
            "fov_deg": None if camera.fov is None else math.degrees(camera.fov),
+           "blind_fov_deg": (None if camera.blind_fov is None
+                             else math.degrees(camera.blind_fov)),
            "params": params[0] if camera.batch_shape == () else params}
     if camera.batch_shape not in ((), (len(rows),)):
         out["batch_shape"] = list(camera.batch_shape)
@@ -308,9 +311,10 @@ def camera_from_dict(data: dict, *, dtype: torch.dtype = torch.float64, **kwargs
         params = params[0]
     elif "batch_shape" in data:
         params = params.reshape(*data["batch_shape"], params.shape[-1])
-    fov = data.get("fov_deg")
+    fov, blind = data.get("fov_deg"), data.get("blind_fov_deg")
     camera = Camera(model, params, tuple(data["image_size"]),
-                    fov=None if fov is None else math.radians(fov), **kwargs)
+                    fov=None if fov is None else math.radians(fov),
+                    blind_fov=None if blind is None else math.radians(blind), **kwargs)
     if data.get("invpol") is not None:
         camera.invpol = torch.tensor(data["invpol"], dtype=dtype)
     return camera
