@@ -56,6 +56,21 @@ def _axis_sign_to_face() -> tuple[int, ...]:
 _AXIS_SIGN_TO_FACE = _axis_sign_to_face()
 
 
+def _signed_axes() -> tuple[tuple[int, ...], ...]:
+    """Per face, the (axis, sign) of r and of b: ``r . ray = sign * ray[axis]``. Every face
+    vector is a signed coordinate axis, so ``ray_to_face`` selects components instead of
+    multiplying 3 x 3 matrices."""
+    rows = []
+    for _, b, r in _FACE_AXES:
+        ir = next(i for i, x in enumerate(r) if x != 0)
+        ib = next(i for i, x in enumerate(b) if x != 0)
+        rows.append((ir, r[ir], ib, b[ib]))
+    return tuple(rows)
+
+
+_R_B_AXES = _signed_axes()
+
+
 def _check_face_size(face_size: int, name: str = "face_size") -> int:
     if isinstance(face_size, bool) or not isinstance(face_size, int):
         raise TypeError(f"{name} must be an int, got {type(face_size).__name__}")
@@ -251,9 +266,12 @@ def ray_to_face(rays: Tensor, face_size: int) -> tuple[Tensor, Tensor]:
     # The dominant component is zero only for the zero ray.
     face = torch.where(comp == 0, torch.zeros_like(face), face)
 
-    axes = face_axes(rays.dtype, rays.device)[face]  # [..., 3, 3]
-    depth = (axes[..., 0, :] * rays).sum(-1)  # > 0 except for the zero ray
-    depth = torch.where(depth > 0, depth, torch.ones_like(depth))  # safe before dividing
-    u = c + f * (axes[..., 2, :] * rays).sum(-1) / depth
-    v = c + f * (axes[..., 1, :] * rays).sum(-1) / depth
-    return face, torch.stack([u, v], dim=-1)
+    # r, b and a are signed coordinate axes: select components instead of matrix products.
+    lut = torch.tensor(_R_B_AXES, device=rays.device)[face]  # [..., 4]: ir, sr, ib, sb
+    num = rays.gather(-1, lut[..., 0::2]) * lut[..., 1::2].to(rays.dtype)  # [..., 2]: r., b.
+    # a . ray = |dominant component| (> 0 except for the zero ray: made safe before dividing)
+    sign = torch.where(comp < 0, -1.0, 1.0).to(rays.dtype)
+    depth = rays.gather(-1, axis.unsqueeze(-1)).squeeze(-1) * sign
+    depth = torch.where(comp != 0, depth, torch.ones_like(depth))
+    uv = c + f * num / depth.unsqueeze(-1)
+    return face, uv

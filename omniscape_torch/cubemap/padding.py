@@ -264,25 +264,51 @@ def _resolve_plan(cubemap: Tensor, pad: int, mode: str, plan: BorderPlan | None)
             f"plan is for (face_size, pad, mode) = {(plan.face_size, plan.pad, plan.mode)}, "
             f"the call needs {(face_size, pad, mode)}"
         )
-    dtype = cubemap.dtype if cubemap.is_floating_point() else None
-    return plan.to(cubemap.device, dtype)
+    return plan
+
+
+@functools.lru_cache(maxsize=64)
+def _applied(plan: BorderPlan, device: torch.device, dtype: torch.dtype | None
+             ) -> tuple[Tensor, Tensor, Tensor | None]:
+    """``(dst, src, weight)`` ready to apply: ``src`` re-indexed into the padded layout (the
+    interior of the output, already filled), flattened; ``weight`` None for one-tap plans."""
+    f, p = plan.face_size, plan.pad
+    n = f + 2 * p
+    src = plan.src_index
+    face, pix = src // (f * f), src % (f * f)
+    src = face * n * n + (pix // f + p) * n + (pix % f + p)
+    if plan.mode == "nearest":
+        return plan.dst_index.to(device), src[:, 0].to(device).contiguous(), None
+    weight = plan.weight.to(device=device, dtype=dtype)
+    return plan.dst_index.to(device), src.reshape(-1).to(device), weight
 
 
 def _pad_flat(cubemap: Tensor, pad: int, mode: str, plan: BorderPlan | None) -> Tensor:
-    """Padded cube as ``(B, C, 6 (F + 2p) (F + 2p))``, faces outermost after C."""
+    """Padded cube as ``(B, C, 6 (F + 2p) (F + 2p))``, faces outermost after C.
+
+    One strided copy writes the interior in channel-major order; the border is then gathered
+    from that interior and written in place.
+    """
     batch, _, channels, face_size, _ = cubemap.shape
     n = face_size + 2 * pad
     per_channel = cubemap.transpose(1, 2)  # [B, C, 6, F, F]
     if pad == 0:
         return per_channel.reshape(batch, channels, 6 * n * n)
     plan = _resolve_plan(cubemap, pad, mode, plan)
-    flat = per_channel.reshape(batch, channels, 6 * face_size * face_size)
-    if plan.mode == "nearest":
-        border = flat[..., plan.src_index[:, 0]]  # [B, C, N]
+    dtype = cubemap.dtype if cubemap.is_floating_point() else None
+    dst, src, weight = _applied(plan, cubemap.device, dtype)
+    out = cubemap.new_empty(batch, channels, 6, n, n)
+    out[..., pad:pad + face_size, pad:pad + face_size] = per_channel
+    flat = out.view(batch, channels, 6 * n * n)
+    taps = flat.index_select(-1, src)  # [B, C, N K] or [B, C, N]
+    if weight is None:
+        border = taps
     else:
-        border = (flat[..., plan.src_index] * plan.weight).sum(-1)  # [B, C, N]
-    padded = F_nn.pad(per_channel, (pad, pad, pad, pad))  # [B, C, 6, n, n], zero border
-    return padded.reshape(batch, channels, 6 * n * n).index_copy(-1, plan.dst_index, border)
+        border = (taps.view(batch, channels, *weight.shape) * weight).sum(-1)
+    # Out of place when autograd records: the border is computed from the same tensor.
+    if torch.is_grad_enabled() and cubemap.requires_grad:
+        return flat.index_copy(-1, dst, border)
+    return flat.index_copy_(-1, dst, border)
 
 
 def pad_faces(

@@ -1,0 +1,403 @@
+"""``OmniProjection``: the paper's cubemap -> omnidirectional lookup table as a batched layer.
+
+    camera params --(unproject)--> rays (H, W, 3) --(rotate)--> cube frame
+        --> grid on the padded cube atlas --> grid_sample per modality --> image + valid mask
+
+The rays of a fixed camera are computed once and cached; the grid too while no rotation is
+given. Learnable intrinsics or a rotation batch rebuild the grid on every call, with gradients.
+RGB is sampled with ``grid_sample`` (nearest, bilinear or bicubic) on an atlas whose faces carry
+borders resampled from their neighbours, so sampling is continuous across seams and corners.
+Depth is converted from the cube's planar depth to range (view-independent) before sampling,
+labels are sampled nearest and never blended.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from . import cubemap as cm
+from .cameras import Camera
+
+INTERPOLATIONS = ("nearest", "bilinear", "bicubic")
+DEPTH_INTERPOLATIONS = ("nearest", "bilinear", "edge_aware")
+BORDERS = ("resampled", "copied", "none")
+#: Border width of the atlas per interpolation: the texels a kernel reads beyond a face edge.
+_PAD = {"nearest": 1, "bilinear": 1, "bicubic": 2}
+
+
+def _check_rotation(rotation: Tensor | None, batch: int, device, name: str = "rotation"):
+    if rotation is None:
+        return None
+    if not isinstance(rotation, Tensor):
+        raise TypeError(f"{name}: expected a tensor (B, 3, 3), got {type(rotation).__name__}")
+    if not rotation.is_floating_point():
+        raise TypeError(f"{name}: expected a floating-point tensor, got {rotation.dtype}")
+    if rotation.shape == (3, 3):
+        rotation = rotation.unsqueeze(0)
+    if rotation.dim() != 3 or rotation.shape[1:] != (3, 3) or rotation.shape[0] not in (1, batch):
+        raise ValueError(f"{name}: expected shape ({batch}, 3, 3) or (3, 3), got "
+                         f"{tuple(rotation.shape)}")
+    if rotation.device != device:
+        raise ValueError(f"{name}: on {rotation.device}, the cubemap is on {device}")
+    return rotation
+
+
+def _parallel_grid_sample(atlas: Tensor, grid: Tensor, mode: str) -> Tensor:
+    """``grid_sample`` split into row blocks: PyTorch's CPU kernel parallelises over the batch
+    only, so a batch smaller than the thread count leaves cores idle. The rows of the output
+    become a pseudo-batch over a stride-0 expanded atlas (no copy); the result is identical."""
+    batch, height = grid.shape[0], grid.shape[1]
+    threads = torch.get_num_threads()
+    if grid.device.type != "cpu" or batch >= threads or threads < 2 or height < 2 * threads:
+        return F.grid_sample(atlas, grid, mode=mode, padding_mode="border", align_corners=False)
+    k = max(d for d in range(1, threads // batch + 1) if height % d == 0) if height else 1
+    if k == 1:
+        return F.grid_sample(atlas, grid, mode=mode, padding_mode="border", align_corners=False)
+    grid_k = grid.reshape(batch * k, height // k, *grid.shape[2:])
+    atlas_k = atlas.unsqueeze(1).expand(batch, k, *atlas.shape[1:]).reshape(
+        batch * k, *atlas.shape[1:])
+    out = F.grid_sample(atlas_k, grid_k, mode=mode, padding_mode="border", align_corners=False)
+    return out.reshape(batch, k, out.shape[1], height // k, -1).permute(0, 2, 1, 3, 4).reshape(
+        batch, out.shape[1], height, -1)
+
+
+class OmniProjection(nn.Module):
+    """Render a cubemap batch into a fisheye, catadioptric or any other registered camera.
+
+    Args:
+        camera: the target camera (one, or a batch of ``B`` cameras of one model).
+        face_size: ``F``, texels per cube face side.
+        interpolation: ``"nearest"``, ``"bilinear"`` (default) or ``"bicubic"`` for RGB.
+        supersample: ``s``: average ``s x s`` rays per pixel (anti-aliasing when the cube is much
+            finer than the output); labels and nearest depth use the pixel centre.
+        depth_interpolation: ``"nearest"`` (default), ``"bilinear"``, or ``"edge_aware"``:
+            bilinear, falling back to the nearest texel where the four taps disagree by more than
+            ``depth_edge_threshold`` (relative), so no "flying pixels" appear across depth edges.
+        depth_edge_threshold: relative spread of the four taps that marks a depth edge.
+        ignore_index: label of pixels outside the valid area.
+        border: how faces are padded: ``"resampled"`` from the neighbours (default; continuous
+            across seams), ``"copied"`` (edge texels repeated, what a naive atlas does; for
+            comparison), ``"none"`` (no padding; for comparison).
+
+    Shapes:
+        cubemap ``(B, 6, C, F, F)``; rotation ``(B, 3, 3)`` or ``(3, 3)`` mapping camera rays into
+        the cube frame; output ``image (B, C, H, W)`` and ``valid (B, 1, H, W)``.
+    """
+
+    def __init__(self, camera: Camera, face_size: int, *, interpolation: str = "bilinear",
+                 supersample: int = 1, depth_interpolation: str = "nearest",
+                 depth_edge_threshold: float = 0.05, ignore_index: int = 255,
+                 border: str = "resampled") -> None:
+        super().__init__()
+        if not isinstance(camera, Camera):
+            raise TypeError(f"camera: expected an ot.Camera, got {type(camera).__name__}")
+        if isinstance(face_size, bool) or not isinstance(face_size, int) or face_size < 1:
+            raise ValueError(f"face_size: expected a positive int, got {face_size!r}")
+        if interpolation not in INTERPOLATIONS:
+            raise ValueError(f"interpolation: expected one of {INTERPOLATIONS}, got "
+                             f"{interpolation!r}")
+        if depth_interpolation not in DEPTH_INTERPOLATIONS:
+            raise ValueError(f"depth_interpolation: expected one of {DEPTH_INTERPOLATIONS}, got "
+                             f"{depth_interpolation!r}")
+        if isinstance(supersample, bool) or not isinstance(supersample, int) or supersample < 1:
+            raise ValueError(f"supersample: expected a positive int, got {supersample!r}")
+        if border not in BORDERS:
+            raise ValueError(f"border: expected one of {BORDERS}, got {border!r}")
+        if not depth_edge_threshold > 0:
+            raise ValueError(f"depth_edge_threshold: expected > 0, got {depth_edge_threshold}")
+        self.camera = camera
+        self.face_size = face_size
+        self.interpolation = interpolation
+        self.supersample = supersample
+        self.depth_interpolation = depth_interpolation
+        self.depth_edge_threshold = float(depth_edge_threshold)
+        self.ignore_index = int(ignore_index)
+        self.border = border
+        self.pad = 0 if border == "none" else _PAD[interpolation]
+        self._rays_cache: tuple | None = None
+        self._grid_cache: tuple | None = None
+
+    def extra_repr(self) -> str:
+        return (f"face_size={self.face_size}, interpolation={self.interpolation!r}, "
+                f"supersample={self.supersample}, depth={self.depth_interpolation!r}, "
+                f"border={self.border!r}")
+
+    # ---------------------------------------------------------------------------------------
+    # Rays and grids
+    # ---------------------------------------------------------------------------------------
+    def _sub_pixels(self) -> Tensor:
+        """``(H s, W s, 2)`` sub-pixel sample positions, centred in their pixels."""
+        s = self.supersample
+        grid = self.camera.pixel_grid()
+        if s == 1:
+            return grid
+        kw = dict(dtype=grid.dtype, device=grid.device)
+        offsets = (torch.arange(s, **kw) + 0.5) / s - 0.5
+        h, w = self.camera.image_size
+        u = (grid[..., 0].unsqueeze(-1) + offsets).reshape(h, w * s)
+        v = (grid[..., 1].unsqueeze(1) + offsets.view(s, 1)).reshape(h * s, w)
+        return torch.stack((u.repeat_interleave(s, 0), v.repeat_interleave(s, 1)), -1)
+
+    def _fixed(self) -> bool:
+        return not (torch.is_grad_enabled() and self.camera.params.requires_grad)
+
+    def camera_rays(self) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Rays in the camera frame: ``(rays (*Bc, Hs, Ws, 3), valid_sub (*Bc, Hs, Ws),
+        centre_rays (*Bc, H, W, 3), valid (*Bc, H, W))``; cached while the camera is fixed."""
+        params = self.camera.params
+        key = (params.data_ptr(), params._version, params.device, params.dtype,
+               self.supersample)
+        if self._fixed() and self._rays_cache is not None and self._rays_cache[0] == key:
+            return self._rays_cache[1]
+        batch = self.camera.batch_shape
+        centre = self.camera.pixel_grid()
+        rays_c, valid_c = self.camera.unproject(centre.expand(batch + centre.shape))
+        if self.supersample == 1:
+            rays_s, valid_s = rays_c, valid_c
+        else:
+            sub = self._sub_pixels()
+            rays_s, valid_s = self.camera.unproject(sub.expand(batch + sub.shape))
+        out = (rays_s, valid_s, rays_c, valid_c)
+        if self._fixed():
+            self._rays_cache = (key, tuple(t.detach() for t in out))
+        return out
+
+    def _grid(self, rays: Tensor, rotation: Tensor | None, dtype: torch.dtype) -> Tensor:
+        """Atlas grid ``(B', h, w, 2)`` of camera-frame ``rays (*Bc, h, w, 3)``."""
+        if rays.dim() == 3:
+            rays = rays.unsqueeze(0)
+        if rotation is not None:
+            rays = torch.einsum("bij,bhwj->bhwi", rotation.to(rays.dtype), rays)
+        return cm.rays_to_grid(rays.to(dtype), self.face_size, self.pad)
+
+    def sampling_grid(self, rotation: Tensor | None = None, dtype: torch.dtype = torch.float32
+                      ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Grids for the sub-pixel samples and the pixel centres, and the validity.
+
+        Returns:
+            ``grid_sub (B', Hs, Ws, 2)``, ``valid_sub (B', Hs, Ws)``, ``grid_centre
+            (B', H, W, 2)``, ``valid (B', H, W)``; ``B'`` is 1 for one camera and no rotation.
+            Cached while the camera is fixed and ``rotation`` is None.
+        """
+        rays_s, valid_s, rays_c, valid_c = self.camera_rays()
+        cacheable = rotation is None and self._fixed()
+        key = (self._rays_cache[0] if self._rays_cache else None, dtype)
+        if cacheable and self._grid_cache is not None and self._grid_cache[0] == key:
+            return self._grid_cache[1]
+        grid_s = self._grid(rays_s, rotation, dtype)
+        grid_c = grid_s if self.supersample == 1 else self._grid(rays_c, rotation, dtype)
+        out = (grid_s, _batched(valid_s), grid_c, _batched(valid_c))
+        if cacheable:
+            self._grid_cache = (key, out)
+        return out
+
+    # ---------------------------------------------------------------------------------------
+    # Sampling
+    # ---------------------------------------------------------------------------------------
+    def _atlas(self, cube: Tensor, mode: str) -> Tensor:
+        if self.border == "resampled" or self.pad == 0:
+            return cm.cubemap_to_atlas(cube, self.pad, mode)
+        # "copied": every face padded with its own edge texels (the naive atlas)
+        b, _, c, f, _ = cube.shape
+        flat = cube.reshape(b * 6, c, f, f)
+        if not flat.is_floating_point():
+            padded = F.pad(flat.float(), (self.pad,) * 4, mode="replicate").to(flat.dtype)
+        else:
+            padded = F.pad(flat, (self.pad,) * 4, mode="replicate")
+        return cm.faces_to_atlas(padded.reshape(b, 6, c, f + 2 * self.pad, f + 2 * self.pad))
+
+    def _sample(self, atlas: Tensor, grid: Tensor, mode: str) -> Tensor:
+        batch = atlas.shape[0]
+        if grid.shape[0] != batch:
+            grid = grid.expand(batch, *grid.shape[1:])
+        return _parallel_grid_sample(atlas, grid, mode)
+
+    def _sample_float(self, cube: Tensor, grid: Tensor, mode: str, pad_mode: str) -> Tensor:
+        """Sample a floating cube; half precision is sampled in float32 (the grid stays float32:
+        a bfloat16 grid is off by pixels on a 512 face) and returned in its own dtype."""
+        work = cube if cube.dtype in (torch.float32, torch.float64) else cube.float()
+        atlas = self._atlas(work, pad_mode)
+        out = self._sample(atlas, grid.to(atlas.dtype), mode)
+        return out.to(cube.dtype)
+
+    def _average(self, image: Tensor, valid_sub: Tensor) -> Tensor:
+        """Mean over each pixel's valid ``s x s`` sub-samples."""
+        s = self.supersample
+        if s == 1:
+            return image
+        weight = valid_sub.unsqueeze(1).to(image.dtype)
+        total = F.avg_pool2d(image * weight, s)
+        count = F.avg_pool2d(weight, s)
+        return total / count.clamp(min=1.0 / (s * s))
+
+    def forward(self, cubemap: Tensor, rotation: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """Render ``cubemap (B, 6, C, F, F)`` (RGB or any float channels).
+
+        Returns:
+            ``image (B, C, H, W)`` (0 outside the valid area) and ``valid (B, 1, H, W)`` bool.
+        """
+        out = self.render(rgb=cubemap, rotation=rotation)
+        return out["rgb"], out["valid"]
+
+    def render(self, *, rgb: Tensor | None = None, depth: Tensor | None = None,
+               labels: Tensor | None = None, rotation: Tensor | None = None,
+               depth_output: str = "range", soft_labels: int | None = None) -> dict[str, Tensor]:
+        """Render several modalities of one cubemap batch through the same grid.
+
+        Args:
+            rgb: ``(B, 6, C, F, F)`` floating (any channels).
+            depth: ``(B, 6, F, F)`` or ``(B, 6, 1, F, F)`` planar depth per face (distance along
+                the face axis, metres), as a simulator's depth camera renders it.
+            labels: ``(B, 6, F, F)`` or ``(B, 6, 1, F, F)`` integer class ids.
+            rotation: ``(B, 3, 3)`` or ``(3, 3)``: camera rays -> cube frame.
+            depth_output: ``"range"`` (distance along the ray, default) or ``"z"`` (along the
+                omni camera's optical axis).
+            soft_labels: number of classes K: also return per-class probabilities
+                ``(B, K, H, W)``, bilinearly sampled one-hot labels (soft-label training).
+
+        Returns:
+            dict with ``valid (B, 1, H, W)`` and, for each input, ``rgb (B, C, H, W)``,
+            ``depth (B, 1, H, W)`` (0 where invalid), ``labels (B, H, W)`` int64
+            (``ignore_index`` where invalid), ``soft_labels (B, K, H, W)``.
+        """
+        given = [t for t in (rgb, depth, labels) if t is not None]
+        if not given:
+            raise ValueError("render: pass at least one of rgb, depth, labels")
+        if depth_output not in ("range", "z"):
+            raise ValueError(f"depth_output: expected 'range' or 'z', got {depth_output!r}")
+        if rgb is not None:
+            cm.check_cubemap(rgb, "rgb")
+            if not rgb.is_floating_point():
+                raise TypeError(f"rgb: expected a floating-point cubemap, got {rgb.dtype}")
+        depth = _as_cube(depth, "depth")
+        labels = _as_cube(labels, "labels")
+        if depth is not None and not depth.is_floating_point():
+            raise TypeError(f"depth: expected a floating-point cubemap, got {depth.dtype}")
+        if labels is not None and (labels.is_floating_point() or labels.is_complex()):
+            raise TypeError(f"labels: expected an integer cubemap, got {labels.dtype}")
+        ref = next(t for t in (rgb, depth, labels) if t is not None)
+        batch, size = ref.shape[0], ref.shape[-1]
+        for name, t in (("rgb", rgb), ("depth", depth), ("labels", labels)):
+            if t is None:
+                continue
+            if t.shape[0] != batch or t.shape[-1] != size:
+                raise ValueError(f"{name}: shape {tuple(t.shape)} does not match the batch and "
+                                 f"face size of the other modalities {tuple(ref.shape)}")
+            if t.device != ref.device:
+                raise ValueError(f"{name}: on {t.device}, other modalities on {ref.device}")
+        if size != self.face_size:
+            raise ValueError(f"cubemap: face size {size} does not match the layer's face_size "
+                             f"{self.face_size}")
+        if ref.device != self.camera.params.device:
+            raise ValueError(f"cubemap: on {ref.device}, the camera is on "
+                             f"{self.camera.params.device}")
+        cams = self.camera.batch_shape
+        if cams not in ((), (batch,)):
+            raise ValueError(f"cubemap: batch {batch} does not match the camera batch "
+                             f"{tuple(cams)}")
+        rotation = _check_rotation(rotation, batch, ref.device)
+
+        grid_dtype = torch.float64 if ref.dtype == torch.float64 else torch.float32
+        grid_s, valid_s, grid_c, valid_c = self.sampling_grid(rotation, grid_dtype)
+        valid = valid_c.expand(batch, *valid_c.shape[1:]).unsqueeze(1)
+        out: dict[str, Tensor] = {"valid": valid}
+
+        if rgb is not None:
+            image = self._sample_float(rgb, grid_s, self.interpolation, "bilinear")
+            image = self._average(image, valid_s.expand(batch, *valid_s.shape[1:]))
+            out["rgb"] = torch.where(valid, image, torch.zeros_like(image))
+
+        if depth is not None:
+            rng = cm.depth_to_range(depth.squeeze(2)).unsqueeze(2)
+            sampled = self._sample_depth(rng, grid_c)
+            if depth_output == "z":
+                rays_c = self.camera_rays()[2]
+                z = rays_c[..., 2] if rays_c.dim() == 4 else rays_c[..., 2].unsqueeze(0)
+                sampled = sampled * z.unsqueeze(1).to(sampled.dtype)
+            out["depth"] = torch.where(valid, sampled, torch.zeros_like(sampled))
+
+        if labels is not None:
+            atlas = self._atlas(labels.to(torch.float32), "nearest")
+            ids = self._sample(atlas, grid_c.to(torch.float32), "nearest").round().long()
+            out["labels"] = torch.where(valid[:, 0], ids[:, 0],
+                                        torch.full_like(ids[:, 0], self.ignore_index))
+            if soft_labels is not None:
+                if isinstance(soft_labels, bool) or not isinstance(soft_labels, int) \
+                        or soft_labels < 1:
+                    raise ValueError(f"soft_labels: expected a number of classes, got "
+                                     f"{soft_labels!r}")
+                if bool((labels < 0).any()) or bool((labels >= soft_labels).any()):
+                    raise ValueError(f"labels: ids must lie in [0, {soft_labels}) for "
+                                     f"soft_labels={soft_labels}")
+                onehot = F.one_hot(labels[:, :, 0], soft_labels).permute(0, 1, 4, 2, 3)
+                probs = self._sample_float(onehot.to(grid_dtype), grid_s, "bilinear", "bilinear")
+                probs = self._average(probs, valid_s.expand(batch, *valid_s.shape[1:]))
+                out["soft_labels"] = torch.where(valid, probs, torch.zeros_like(probs))
+        elif soft_labels is not None:
+            raise ValueError("soft_labels: needs labels")
+        return out
+
+    def _sample_depth(self, rng: Tensor, grid: Tensor) -> Tensor:
+        """Sample range ``(B, 6, 1, F, F)``; the border is padded nearest so that no depth is
+        ever blended across a face seam."""
+        work = rng if rng.dtype in (torch.float32, torch.float64) else rng.float()
+        atlas = self._atlas(work, "nearest")
+        grid = grid.to(atlas.dtype)
+        mode = self.depth_interpolation
+        if mode == "nearest":
+            out = self._sample(atlas, grid, "nearest")
+        elif mode == "bilinear":
+            out = self._sample(atlas, grid, "bilinear")
+        else:
+            out = _edge_aware(atlas, grid.expand(atlas.shape[0], *grid.shape[1:]),
+                              self.depth_edge_threshold)
+        return out.to(rng.dtype)
+
+
+def _edge_aware(atlas: Tensor, grid: Tensor, threshold: float) -> Tensor:
+    """Bilinear interpolation of ``atlas (B, 1, Ha, Wa)`` at ``grid (B, h, w, 2)`` that returns the
+    nearest tap where the four taps spread by more than ``threshold`` relative to their minimum."""
+    b, _, ha, wa = atlas.shape
+    # pixel coordinates of align_corners=False: x = ((gx + 1) W - 1) / 2
+    x = ((grid[..., 0] + 1) * wa - 1) / 2
+    y = ((grid[..., 1] + 1) * ha - 1) / 2
+    x0 = torch.floor(x.detach()).clamp(0, wa - 2)
+    y0 = torch.floor(y.detach()).clamp(0, ha - 2)
+    fx, fy = (x - x0).clamp(0, 1), (y - y0).clamp(0, 1)
+    x0, y0 = x0.long(), y0.long()
+    flat = atlas.reshape(b, ha * wa)
+    idx = (y0 * wa + x0).reshape(b, -1)
+
+    def tap(dy: int, dx: int) -> Tensor:
+        return flat.gather(1, idx + dy * wa + dx).reshape(x.shape)
+
+    t00, t01, t10, t11 = tap(0, 0), tap(0, 1), tap(1, 0), tap(1, 1)
+    w00, w01 = (1 - fx) * (1 - fy), fx * (1 - fy)
+    w10, w11 = (1 - fx) * fy, fx * fy
+    blend = t00 * w00 + t01 * w01 + t10 * w10 + t11 * w11
+    taps = torch.stack((t00, t01, t10, t11), -1)
+    weights = torch.stack((w00, w01, w10, w11), -1)
+    lo, hi = taps.detach().amin(-1), taps.detach().amax(-1)
+    edge = (hi - lo) > threshold * lo.abs()
+    nearest = taps.gather(-1, weights.detach().argmax(-1, keepdim=True)).squeeze(-1)
+    return torch.where(edge, nearest, blend).unsqueeze(1)
+
+
+def _as_cube(t: Tensor | None, name: str) -> Tensor | None:
+    """Accept ``(B, 6, F, F)`` or ``(B, 6, 1, F, F)``; return ``(B, 6, 1, F, F)``."""
+    if t is None:
+        return None
+    if not isinstance(t, Tensor):
+        raise TypeError(f"{name}: expected a tensor, got {type(t).__name__}")
+    if t.dim() == 4:
+        t = t.unsqueeze(2)
+    if t.dim() != 5 or t.shape[1] != 6 or t.shape[2] != 1 or t.shape[3] != t.shape[4]:
+        raise ValueError(f"{name}: expected shape (B, 6, F, F) or (B, 6, 1, F, F), got "
+                         f"{tuple(t.shape)}")
+    return t
+
+
+def _batched(valid: Tensor) -> Tensor:
+    return valid.unsqueeze(0) if valid.dim() == 2 else valid
