@@ -340,12 +340,13 @@ class OmniProjection(nn.Module):
         return out
 
     def _sample_depth(self, rng: Tensor, grid: Tensor) -> Tensor:
-        """Sample range ``(B, 6, 1, F, F)``; the border is padded nearest so that no depth is
-        ever blended across a face seam."""
+        """Sample range ``(B, 6, 1, F, F)``. For nearest and edge-aware sampling the border is
+        padded nearest, so that no depth is blended across a seam either; plain bilinear pads
+        bilinear (smooth across seams, blends across depth edges like everywhere else)."""
         work = rng if rng.dtype in (torch.float32, torch.float64) else rng.float()
-        atlas = self._atlas(work, "nearest")
-        grid = grid.to(atlas.dtype)
         mode = self.depth_interpolation
+        atlas = self._atlas(work, "bilinear" if mode == "bilinear" else "nearest")
+        grid = grid.to(atlas.dtype)
         if mode == "nearest":
             out = self._sample(atlas, grid, "nearest")
         elif mode == "bilinear":
