@@ -176,11 +176,17 @@ class OmniProjection(nn.Module):
                       ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Grids for the sub-pixel samples and the pixel centres, and the validity.
 
+        Args:
+            rotation: ``(B, 3, 3)`` or ``(3, 3)`` camera -> cube frame, or None.
+            dtype: dtype of the grids.
+
         Returns:
             ``grid_sub (B', Hs, Ws, 2)``, ``valid_sub (B', Hs, Ws)``, ``grid_centre
             (B', H, W, 2)``, ``valid (B', H, W)``; ``B'`` is 1 for one camera and no rotation.
             Cached while the camera is fixed and ``rotation`` is None.
         """
+        if rotation is not None and rotation.dim() == 2:
+            rotation = rotation.unsqueeze(0)
         rays_s, valid_s, rays_c, valid_c = self.camera_rays()
         cacheable = rotation is None and self._fixed()
         key = (self._rays_cache[0] if self._rays_cache else None, dtype)
@@ -201,11 +207,10 @@ class OmniProjection(nn.Module):
             return cm.cubemap_to_atlas(cube, self.pad, mode)
         # "copied": every face padded with its own edge texels (the naive atlas)
         b, _, c, f, _ = cube.shape
-        flat = cube.reshape(b * 6, c, f, f)
-        if not flat.is_floating_point():
-            padded = F.pad(flat.float(), (self.pad,) * 4, mode="replicate").to(flat.dtype)
-        else:
-            padded = F.pad(flat, (self.pad,) * 4, mode="replicate")
+        p = self.pad
+        # replicate by indexing (exact for any dtype): padded texel i reads clamp(i - p, 0, F-1)
+        idx = (torch.arange(f + 2 * p, device=cube.device) - p).clamp(0, f - 1)
+        padded = cube.reshape(b * 6, c, f, f)[:, :, idx][:, :, :, idx]
         return cm.faces_to_atlas(padded.reshape(b, 6, c, f + 2 * self.pad, f + 2 * self.pad))
 
     def _sample(self, atlas: Tensor, grid: Tensor, mode: str) -> Tensor:
@@ -319,8 +324,8 @@ class OmniProjection(nn.Module):
             out["depth"] = torch.where(valid, sampled, torch.zeros_like(sampled))
 
         if labels is not None:
-            atlas = self._atlas(labels.to(torch.float32), "nearest")
-            ids = self._sample(atlas, grid_c.to(torch.float32), "nearest").round().long()
+            # gathered, not grid-sampled: ids of any integer dtype and size come back exact
+            ids = _nearest_gather(self._atlas(labels, "nearest"), grid_c).long()
             out["labels"] = torch.where(valid[:, 0], ids[:, 0],
                                         torch.full_like(ids[:, 0], self.ignore_index))
             if soft_labels is not None:
@@ -355,6 +360,23 @@ class OmniProjection(nn.Module):
             out = _edge_aware(atlas, grid.expand(atlas.shape[0], *grid.shape[1:]),
                               self.depth_edge_threshold)
         return out.to(rng.dtype)
+
+
+def _nearest_gather(atlas: Tensor, grid: Tensor) -> Tensor:
+    """``grid_sample(mode="nearest", align_corners=False)`` as a gather, for any dtype:
+    ``x = ((gx + 1) W - 1) / 2`` rounded half to even, as ``grid_sample`` rounds.
+
+    Args:
+        atlas: ``(B, C, Ha, Wa)``; grid ``(B' in {1, B}, h, w, 2)``.
+
+    Returns:
+        ``(B, C, h, w)`` in the dtype of ``atlas``.
+    """
+    b, c, ha, wa = atlas.shape
+    x = torch.round(((grid[..., 0].detach() + 1) * wa - 1) / 2).clamp(0, wa - 1).long()
+    y = torch.round(((grid[..., 1].detach() + 1) * ha - 1) / 2).clamp(0, ha - 1).long()
+    idx = (y * wa + x).reshape(grid.shape[0], 1, -1).expand(b, c, -1)
+    return atlas.reshape(b, c, ha * wa).gather(-1, idx).reshape(b, c, *grid.shape[1:3])
 
 
 def _edge_aware(atlas: Tensor, grid: Tensor, threshold: float) -> Tensor:
