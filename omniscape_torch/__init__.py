@@ -3,10 +3,13 @@
 Import as ``import omniscape_torch as ot``. Importing has no side effects.
 """
 
-from . import cameras, cubemap, io
+from . import cameras, cubemap, io, presets, sizing
 from .cameras import Camera
 from .projection import OmniProjection
+from .rig import StereoRig
+from .sizing import required_face_size, visible_faces
 
 __version__ = "0.1.0"
 
-__all__ = ["Camera", "OmniProjection", "cameras", "cubemap", "io"]
+__all__ = ["Camera", "OmniProjection", "StereoRig", "cameras", "cubemap", "io", "presets",
+           "required_face_size", "sizing", "visible_faces"]
