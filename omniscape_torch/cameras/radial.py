@@ -200,6 +200,8 @@ def kannala_brandt_unproject(pixels: Tensor, params: Tensor, *,
         target = torch.where(inside, r, torch.zeros_like(r)).detach()
         theta, converged = invert_monotone(lambda th: _kb_r(th, coeffs.detach()), target,
                                            limit, iterations, tol)
+        # one more Newton step, with gradient: polishes the root and carries the implicit
+        # function theorem's derivative to r and the coefficients
         value, slope = _kb_r(theta, coeffs)
         theta = implicit_step(theta, value - torch.where(inside, r, torch.zeros_like(r)), slope)
         return theta, inside & converged

@@ -100,6 +100,7 @@ def scaramuzza_project(points: Tensor, params: Tensor, *, invpol: Tensor | None 
         tol = 4 * torch.finfo(points.dtype).eps
         r, converged = invert_monotone(lambda q: _theta_of_rho(q, poly.detach()),
                                        target.detach(), rho_max, iterations, tol)
+        # one more Newton step, with gradient (polish + implicit-function derivative)
         value, slope = _theta_of_rho(r, poly)
         r = implicit_step(r, value - target, slope)
         valid = valid & converged

@@ -44,7 +44,8 @@ _DS_NAMES = ("fx", "fy", "cx", "cy", "xi", "alpha")
 
 def _norm(points: Tensor) -> tuple[Tensor, Tensor]:
     """|X| and ``nonzero``; |X| = 0 with a finite gradient at the origin."""
-    n2 = (points * points).sum(-1)
+    x, y, z = points.unbind(-1)
+    n2 = x * x + y * y + z * z
     nonzero = n2 > torch.finfo(points.dtype).tiny
     return safe_sqrt(n2, nonzero), nonzero
 
