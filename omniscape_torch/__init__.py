@@ -6,10 +6,12 @@ Import as ``import omniscape_torch as ot``. Importing has no side effects.
 from . import cameras, cubemap, io, presets, sizing
 from .cameras import Camera
 from .projection import OmniProjection
+from .reproject import equirect_to_cubemap, equirectangular_camera, reproject
 from .rig import StereoRig
 from .sizing import required_face_size, visible_faces
 
 __version__ = "0.1.0"
 
-__all__ = ["Camera", "OmniProjection", "StereoRig", "cameras", "cubemap", "io", "presets",
-           "required_face_size", "sizing", "visible_faces"]
+__all__ = ["Camera", "OmniProjection", "StereoRig", "cameras", "cubemap", "equirect_to_cubemap",
+           "equirectangular_camera", "io", "presets", "reproject", "required_face_size", "sizing",
+           "visible_faces"]

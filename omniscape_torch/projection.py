@@ -19,6 +19,7 @@ from torch import Tensor, nn
 
 from . import cubemap as cm
 from .cameras import Camera
+from .sampling import grid_sample, nearest_gather
 
 INTERPOLATIONS = ("nearest", "bilinear", "bicubic")
 DEPTH_INTERPOLATIONS = ("nearest", "bilinear", "edge_aware")
@@ -42,25 +43,6 @@ def _check_rotation(rotation: Tensor | None, batch: int, device, name: str = "ro
     if rotation.device != device:
         raise ValueError(f"{name}: on {rotation.device}, the cubemap is on {device}")
     return rotation
-
-
-def _parallel_grid_sample(atlas: Tensor, grid: Tensor, mode: str) -> Tensor:
-    """``grid_sample`` split into row blocks: PyTorch's CPU kernel parallelises over the batch
-    only, so a batch smaller than the thread count leaves cores idle. The rows of the output
-    become a pseudo-batch over a stride-0 expanded atlas (no copy); the result is identical."""
-    batch, height = grid.shape[0], grid.shape[1]
-    threads = torch.get_num_threads()
-    if grid.device.type != "cpu" or batch >= threads or threads < 2 or height < 2 * threads:
-        return F.grid_sample(atlas, grid, mode=mode, padding_mode="border", align_corners=False)
-    k = max(d for d in range(1, threads // batch + 1) if height % d == 0) if height else 1
-    if k == 1:
-        return F.grid_sample(atlas, grid, mode=mode, padding_mode="border", align_corners=False)
-    grid_k = grid.reshape(batch * k, height // k, *grid.shape[2:])
-    atlas_k = atlas.unsqueeze(1).expand(batch, k, *atlas.shape[1:]).reshape(
-        batch * k, *atlas.shape[1:])
-    out = F.grid_sample(atlas_k, grid_k, mode=mode, padding_mode="border", align_corners=False)
-    return out.reshape(batch, k, out.shape[1], height // k, -1).permute(0, 2, 1, 3, 4).reshape(
-        batch, out.shape[1], height, -1)
 
 
 class OmniProjection(nn.Module):
@@ -217,7 +199,7 @@ class OmniProjection(nn.Module):
         batch = atlas.shape[0]
         if grid.shape[0] != batch:
             grid = grid.expand(batch, *grid.shape[1:])
-        return _parallel_grid_sample(atlas, grid, mode)
+        return grid_sample(atlas, grid, mode)
 
     def _sample_float(self, cube: Tensor, grid: Tensor, mode: str, pad_mode: str) -> Tensor:
         """Sample a floating cube; half precision is sampled in float32 (the grid stays float32:
@@ -325,7 +307,7 @@ class OmniProjection(nn.Module):
 
         if labels is not None:
             # gathered, not grid-sampled: ids of any integer dtype and size come back exact
-            ids = _nearest_gather(self._atlas(labels, "nearest"), grid_c).long()
+            ids = nearest_gather(self._atlas(labels, "nearest"), grid_c).long()
             out["labels"] = torch.where(valid[:, 0], ids[:, 0],
                                         torch.full_like(ids[:, 0], self.ignore_index))
             if soft_labels is not None:
@@ -360,23 +342,6 @@ class OmniProjection(nn.Module):
             out = _edge_aware(atlas, grid.expand(atlas.shape[0], *grid.shape[1:]),
                               self.depth_edge_threshold)
         return out.to(rng.dtype)
-
-
-def _nearest_gather(atlas: Tensor, grid: Tensor) -> Tensor:
-    """``grid_sample(mode="nearest", align_corners=False)`` as a gather, for any dtype:
-    ``x = ((gx + 1) W - 1) / 2`` rounded half to even, as ``grid_sample`` rounds.
-
-    Args:
-        atlas: ``(B, C, Ha, Wa)``; grid ``(B' in {1, B}, h, w, 2)``.
-
-    Returns:
-        ``(B, C, h, w)`` in the dtype of ``atlas``.
-    """
-    b, c, ha, wa = atlas.shape
-    x = torch.round(((grid[..., 0].detach() + 1) * wa - 1) / 2).clamp(0, wa - 1).long()
-    y = torch.round(((grid[..., 1].detach() + 1) * ha - 1) / 2).clamp(0, ha - 1).long()
-    idx = (y * wa + x).reshape(grid.shape[0], 1, -1).expand(b, c, -1)
-    return atlas.reshape(b, c, ha * wa).gather(-1, idx).reshape(b, c, *grid.shape[1:3])
 
 
 def _edge_aware(atlas: Tensor, grid: Tensor, threshold: float) -> Tensor:

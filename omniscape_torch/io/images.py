@@ -1,0 +1,54 @@
+"""Images on disk: 8-bit PNG/JPEG in and out (written atomically), and float conversion."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .atomic import atomic_write_bytes
+
+
+def read_image(path: str | Path) -> Tensor:
+    """``(H, W, 3)`` uint8 RGB (or ``(H, W)`` for a grey image) of a PNG or JPEG file."""
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such image")
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise ValueError(f"{path}: not an image OpenCV can read")
+    if image.ndim == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_BGRA2RGB if image.shape[2] == 4
+                             else cv2.COLOR_BGR2RGB)
+    return torch.from_numpy(np.ascontiguousarray(image))
+
+
+def write_image(path: str | Path, image: Tensor | np.ndarray) -> Path:
+    """Write ``(H, W, 3)`` RGB or ``(H, W)`` grey uint8 (or uint16 PNG) atomically."""
+    import cv2
+
+    if isinstance(image, Tensor):
+        image = image.detach().cpu().numpy()
+    image = np.asarray(image)
+    if image.dtype not in (np.uint8, np.uint16):
+        raise TypeError(f"image: expected uint8 or uint16, got {image.dtype}")
+    if image.ndim == 3 and image.shape[2] == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+    elif image.ndim != 2:
+        raise ValueError(f"image: expected (H, W, 3) or (H, W), got {image.shape}")
+    path = Path(path)
+    ok, data = cv2.imencode(path.suffix or ".png", image)
+    if not ok:
+        raise ValueError(f"{path}: OpenCV cannot encode {path.suffix!r}")
+    return atomic_write_bytes(path, data.tobytes())
+
+
+def to_float(image: Tensor) -> Tensor:
+    """``(H, W, C)`` uint8 -> ``(C, H, W)`` float32 in [0, 1]."""
+    if image.dim() == 2:
+        image = image.unsqueeze(-1)
+    return image.permute(2, 0, 1).float() / 255.0

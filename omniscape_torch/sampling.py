@@ -1,0 +1,62 @@
+"""Sampling an image at continuous pixel positions: the ``grid_sample`` conventions, written once.
+
+Pixel ``(u, v)`` of an image W wide and H tall (integer coordinates at pixel centres) is
+``grid_sample`` coordinate ``((2 u + 1) / W - 1, (2 v + 1) / H - 1)`` with
+``align_corners=False``.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+
+def pixels_to_grid(pixels: Tensor, width: int, height: int) -> Tensor:
+    """``grid_sample`` coordinates (``align_corners=False``) of ``pixels (..., 2)``."""
+    return torch.stack(((2 * pixels[..., 0] + 1) / width - 1,
+                        (2 * pixels[..., 1] + 1) / height - 1), dim=-1)
+
+
+def grid_sample(image: Tensor, grid: Tensor, mode: str) -> Tensor:
+    """``F.grid_sample(align_corners=False, padding_mode="border")``, split into row blocks on
+    the CPU when the batch is smaller than the thread count.
+
+    PyTorch's CPU kernel parallelises over the batch only; the output rows become a
+    pseudo-batch over a stride-0 expanded image (no copy), and the result is identical.
+
+    Args:
+        image: ``(B, C, Hi, Wi)``; grid ``(B, H, W, 2)``.
+    """
+    batch, height = grid.shape[0], grid.shape[1]
+    threads = torch.get_num_threads()
+    plain = (grid.device.type != "cpu" or batch >= threads or height < 2 * threads)
+    k = 1 if plain else max(d for d in range(1, threads // batch + 1) if height % d == 0)
+    if k == 1:
+        return F.grid_sample(image, grid, mode=mode, padding_mode="border",
+                             align_corners=False)
+    outs = []
+    for b in range(batch):  # per sample: expanding (1, ...) to (k, ...) is a view
+        img = image[b:b + 1].expand(k, *image.shape[1:])
+        g = grid[b].reshape(k, height // k, *grid.shape[2:])
+        out = F.grid_sample(img, g, mode=mode, padding_mode="border", align_corners=False)
+        outs.append(out.permute(1, 0, 2, 3).reshape(1, image.shape[1], height, -1))
+    return torch.cat(outs)
+
+
+def nearest_gather(image: Tensor, grid: Tensor) -> Tensor:
+    """``grid_sample(mode="nearest", align_corners=False, padding_mode="border")`` as a gather,
+    exact for any dtype (integer labels of any size): ``x = ((gx + 1) W - 1) / 2`` rounded half to
+    even, as ``grid_sample`` rounds.
+
+    Args:
+        image: ``(B, C, Hi, Wi)``; grid ``(B' in {1, B}, H, W, 2)``.
+
+    Returns:
+        ``(B, C, H, W)`` in the dtype of ``image``.
+    """
+    b, c, hi, wi = image.shape
+    x = torch.round(((grid[..., 0].detach() + 1) * wi - 1) / 2).clamp(0, wi - 1).long()
+    y = torch.round(((grid[..., 1].detach() + 1) * hi - 1) / 2).clamp(0, hi - 1).long()
+    idx = (y * wi + x).reshape(grid.shape[0], 1, -1).expand(b, c, -1)
+    return image.reshape(b, c, hi * wi).gather(-1, idx).reshape(b, c, *grid.shape[1:3])
