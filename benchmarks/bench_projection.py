@@ -1,0 +1,459 @@
+"""Cubemap -> fisheye rendering: ``OmniProjection`` against ``cv2.remap`` on the same atlas.
+
+Renders a ``6 x F x F`` RGB float32 cube into a ``2F x 2F`` equidistant fisheye of 190 degrees
+(``f = 2F / radians(190)``, principal point at the image centre; F = 512 -> 1024 x 1024) at
+batch 1 and 8, and times in one run, round-robin:
+
+* ``forward_cached``: ``OmniProjection(cube)``, the grid cached (atlas build, sampling, mask);
+* ``forward_rebuilt_eager``: ``OmniProjection(cube, rotation)`` with a new random rotation per
+  sample and call, the grid rebuilt eagerly (``einsum`` + ``cubemap.rays_to_grid``: the
+  layer's original path);
+* ``forward_rebuilt_fused``: the same with the fused, compiled grid
+  (``fastgrid.rotated_rays_to_grid``);
+* the parts apart: ``atlas`` (``cubemap_to_atlas``), ``sample`` (the layer's ``grid_sample``
+  on a prebuilt atlas with the cached grid), ``grid_eager`` / ``grid_fused`` (the grid of B
+  rotations), ``grid_once`` (the cached grid's one-off eager build);
+* the peer ``remap_float32`` / ``remap_uint8``: ``cv2.remap`` (bilinear, border replicate) of
+  each sample's padded atlas, HWC, with precomputed float32 maps in atlas pixel coordinates
+  ``x = ((gx + 1) W - 1) / 2`` (``align_corners=False``), the atlas prebuilt (not timed).
+
+The two layers differ only by their ``_grid`` (set on the instance here, so the benchmark
+measures both paths whatever ``projection.py`` uses by default). Headline ratios, against
+``remap_float32`` per batch: ``forward_cached`` (target <= 1.5) and ``forward_rebuilt_*``
+(target <= 2.5); also ``sample`` / remap, which compares the sampling alone.
+
+Timing: ``--warmup`` untimed calls of each, then ``--repeats`` timed calls round-robin (one call
+of each per repeat, so a change of load hits every row alike), ``time.perf_counter`` around
+single calls (``torch.cuda.synchronize`` around them on CUDA); median and inter-quartile range.
+The fused grid's first call (compilation; inductor also caches it on disk) is timed apart.
+Inputs come from a seeded ``torch.Generator``.
+
+Batch 8 allocates tensors above glibc's largest mmap threshold (32 MB: the 64 MB grid, the
+atlas, the 96 MB image): each is a fresh ``mmap`` whose pages fault on first touch, which on a
+small VM costs more than the arithmetic. ``MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=<large>``
+(or jemalloc/tcmalloc via ``LD_PRELOAD``) removes that; the ``environment`` field of the JSON
+records such settings, so compare runs only with the same one.
+
+Usage::
+
+    python benchmarks/bench_projection.py            # F = 512, batch 1 and 8, 2 threads
+    python benchmarks/bench_projection.py --quick    # F = 128, batch 1 and 2, a few repeats
+    python benchmarks/bench_projection.py --device cuda
+
+Results: a markdown table on stdout and JSON (``--out``, default
+``benchmarks/results/projection.json``, written atomically) with the machine, versions, commit,
+thread count and every raw time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+# Benchmark the checkout this script lives in, not whatever copy is installed.
+sys.path.insert(0, str(ROOT))
+
+import omniscape_torch as ot  # noqa: E402
+from omniscape_torch import cubemap as cm  # noqa: E402
+from omniscape_torch import fastgrid  # noqa: E402
+
+try:
+    import cv2
+except ImportError:  # the OpenCV peer is skipped, our rows still run
+    cv2 = None
+
+SEED = 20240611
+FOV = math.radians(190.0)
+TARGETS = {"forward_cached": 1.5, "forward_rebuilt_eager": 2.5, "forward_rebuilt_fused": 2.5}
+
+
+# --------------------------------------------------------------------------------------------
+# Environment
+# --------------------------------------------------------------------------------------------
+
+def git_commit() -> tuple[str, bool | None]:
+    """(HEAD commit or "unknown", working tree dirty or None)."""
+    try:
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True,
+                                text=True, timeout=10)
+        if commit.returncode != 0:
+            return "unknown", None
+        status = subprocess.run(["git", "status", "--porcelain"], cwd=ROOT, capture_output=True,
+                                text=True, timeout=10)
+        return commit.stdout.strip(), bool(status.stdout.strip())
+    except (OSError, subprocess.SubprocessError):
+        return "unknown", None
+
+
+def machine_info(device: torch.device) -> dict:
+    info = {
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "python": platform.python_version(),
+    }
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    info["cpu_model"] = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    if device.type == "cuda":
+        info["gpu"] = torch.cuda.get_device_name(device)
+    return info
+
+
+def write_json_atomic(data: dict, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(data, f, indent=2)
+            f.write("\n")
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def loadavg() -> list[float] | None:
+    return list(os.getloadavg()) if hasattr(os, "getloadavg") else None
+
+
+# --------------------------------------------------------------------------------------------
+# Timing
+# --------------------------------------------------------------------------------------------
+
+def measure(fns: list[Callable[[], object]], repeats: int, warmup: int,
+            device: torch.device) -> list[dict]:
+    """Median and IQR (seconds) of ``repeats`` timed calls of each of ``fns``, after ``warmup``
+    untimed calls of each, timed round-robin (one call of each per repeat)."""
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    for fn in fns:
+        for _ in range(warmup):
+            fn()
+    sync()
+    times: list[list[float]] = [[] for _ in fns]
+    for _ in range(repeats):
+        for fn, t in zip(fns, times):
+            sync()
+            start = time.perf_counter()
+            fn()
+            sync()
+            t.append(time.perf_counter() - start)
+    out = []
+    for t in times:
+        q1, median, q3 = np.percentile(t, [25, 50, 75])
+        out.append({"median_s": float(median), "iqr_s": float(q3 - q1), "min_s": float(min(t)),
+                    "times_s": [float(x) for x in t]})
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Data
+# --------------------------------------------------------------------------------------------
+
+def random_rotations(n: int, gen: torch.Generator) -> torch.Tensor:
+    """``(n, 3, 3)`` float64 rotations, uniform (QR of a Gaussian, signs fixed, det +1)."""
+    q, r = torch.linalg.qr(torch.randn(n, 3, 3, generator=gen, dtype=torch.float64))
+    q = q * torch.sign(torch.diagonal(r, dim1=-2, dim2=-1)).unsqueeze(-2)
+    flip = torch.linalg.det(q) < 0
+    q[flip, :, 0] = -q[flip, :, 0]
+    return q
+
+
+class RotationPool:
+    """A new batch of rotations per call (cycling through a seeded pool): no grid can be
+    reused between calls."""
+
+    def __init__(self, batch: int, calls: int, gen: torch.Generator, device, dtype) -> None:
+        self.pool = random_rotations(batch * calls, gen).to(device, dtype).reshape(
+            calls, batch, 3, 3)
+        self.i = 0
+
+    def __call__(self) -> torch.Tensor:
+        rot = self.pool[self.i % len(self.pool)]
+        self.i += 1
+        return rot
+
+
+def remap_maps(grid: torch.Tensor, atlas_hw: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """``cv2.remap`` maps (atlas pixels, float32) of a ``grid (H, W, 2)`` for
+    ``align_corners=False``: ``x = ((gx + 1) W - 1) / 2``."""
+    h_atlas, w_atlas = atlas_hw
+    g = grid.detach().to("cpu", torch.float64)
+    map_x = ((g[..., 0] + 1) * w_atlas - 1) / 2
+    map_y = ((g[..., 1] + 1) * h_atlas - 1) / 2
+    return (np.ascontiguousarray(map_x.numpy().astype(np.float32)),
+            np.ascontiguousarray(map_y.numpy().astype(np.float32)))
+
+
+# --------------------------------------------------------------------------------------------
+# The benchmark
+# --------------------------------------------------------------------------------------------
+
+def run(args: argparse.Namespace) -> dict:
+    load_start = loadavg()
+    if load_start is not None and load_start[0] > 0.5:
+        print(f"# warning: 1-minute load average {load_start[0]:.2f} > 0.5: timings are "
+              "unreliable on a busy machine", file=sys.stderr)
+    torch.set_num_threads(args.threads)
+    if cv2 is not None:
+        cv2.setNumThreads(args.threads)
+    device = torch.device(args.device)
+    dtype = torch.float32
+    face, size = args.face, 2 * args.face
+    focal, centre = size / FOV, (size - 1) / 2
+    camera = ot.Camera("equidistant", torch.tensor([focal, focal, centre, centre], dtype=dtype),
+                       (size, size), fov=FOV).to(device)
+
+    # Two layers that differ only by how a rotated grid is built.
+    def make_layer(grid_fn: Callable) -> ot.OmniProjection:
+        layer = ot.OmniProjection(camera, face)
+
+        def _grid(rays: torch.Tensor, rotation: torch.Tensor | None, dt: torch.dtype):
+            return grid_fn(rays, rotation, face, layer.pad, dtype=dt)
+
+        layer._grid = _grid  # instance attribute: this layer's grid path, whatever the default
+        return layer
+
+    eager = make_layer(fastgrid.rotated_rays_to_grid_reference)
+    fused = make_layer(lambda *a, **k: fastgrid.rotated_rays_to_grid(
+        *a, compiled=not args.no_fused, **k))
+    pad = eager.pad
+    rays, valid = eager.camera_rays()[:2]  # [H, W, 3], [H, W]
+    grid = eager.sampling_grid()[0][0]  # [H, W, 2], cached
+    n_pad = face + 2 * pad
+    atlas_hw = (6 * n_pad, n_pad)
+    map_x, map_y = remap_maps(grid, atlas_hw)
+
+    # The fused grid's first call: compilation (and its check against the eager grid).
+    gen = torch.Generator().manual_seed(SEED)
+    rot0 = random_rotations(max(args.batches), gen).to(device, dtype)
+    compile_s = {}
+    fused_max_diff = 0.0
+    with torch.no_grad():
+        for b in sorted(set(args.batches)):  # B = 1 and B > 1 are separate kernels
+            start = time.perf_counter()
+            got = fastgrid.rotated_rays_to_grid(rays, rot0[:b], face, pad,
+                                                compiled=not args.no_fused)
+            if device.type == "cuda":
+                torch.cuda.synchronize()
+            compile_s[f"batch_{b}"] = time.perf_counter() - start
+            ref = fastgrid.rotated_rays_to_grid_reference(rays, rot0[:b], face, pad)
+            fused_max_diff = max(fused_max_diff, float((got - ref).abs().max()))
+    failures = {str(k): v for k, v in fastgrid.compile_failures().items()}
+
+    rows: list[dict] = []
+    ratios: list[dict] = []
+    agreement: dict[str, float] = {}
+    for batch in args.batches:
+        cube = torch.rand(batch, 6, 3, face, face, generator=gen, dtype=dtype).to(device)
+        atlas = cm.cubemap_to_atlas(cube, pad, "bilinear")  # [B, 3, 6n, n]
+        atlas_hwc = [np.ascontiguousarray(a.permute(1, 2, 0).cpu().numpy()) for a in atlas]
+        atlas_u8 = [(a * 255).round().astype(np.uint8) for a in atlas_hwc]
+        calls = args.warmup + args.repeats + 1
+        rot_eager = RotationPool(batch, calls, gen, device, dtype)
+        rot_fused = RotationPool(batch, calls, gen, device, dtype)
+        rot_ge = RotationPool(batch, calls, gen, device, dtype)
+        rot_gf = RotationPool(batch, calls, gen, device, dtype)
+        grid_b = grid.unsqueeze(0)
+
+        cases: list[tuple[str, str, Callable[[], object]]] = [
+            ("forward_cached", "ours", lambda: eager(cube)),
+            ("forward_rebuilt_eager", "ours", lambda: eager(cube, rot_eager())),
+            ("forward_rebuilt_fused", "ours", lambda: fused(cube, rot_fused())),
+            ("atlas", "part", lambda: cm.cubemap_to_atlas(cube, pad, "bilinear")),
+            ("sample", "part", lambda: eager._sample(atlas, grid_b, "bilinear")),
+            ("grid_eager", "part",
+             lambda: fastgrid.rotated_rays_to_grid_reference(rays, rot_ge(), face, pad)),
+            ("grid_fused", "part",
+             lambda: fastgrid.rotated_rays_to_grid(rays, rot_gf(), face, pad,
+                                                   compiled=not args.no_fused)),
+            ("grid_once", "part",
+             lambda: fastgrid.rotated_rays_to_grid_reference(rays, None, face, pad)),
+        ]
+        if cv2 is not None:
+            def remap(images: list[np.ndarray]) -> list[np.ndarray]:
+                return [cv2.remap(img, map_x, map_y, cv2.INTER_LINEAR,
+                                  borderMode=cv2.BORDER_REPLICATE) for img in images]
+
+            cases += [("remap_float32", "peer", lambda: remap(atlas_hwc)),
+                      ("remap_uint8", "peer", lambda: remap(atlas_u8))]
+            # What the ratio compares: the same image, to remap's 1/32-pixel weights.
+            ours = eager(cube)[0].permute(0, 2, 3, 1).cpu().numpy()  # [B, H, W, 3]
+            peer = np.stack(remap(atlas_hwc))
+            mask = valid.cpu().numpy()
+            agreement[f"batch_{batch}_max_abs_diff"] = float(np.abs(ours - peer)[:, mask].max())
+
+        with torch.no_grad():
+            results = measure([fn for _, _, fn in cases], args.repeats, args.warmup, device)
+        by_name = {}
+        for (name, kind, _), res in zip(cases, results):
+            row = {"name": name, "kind": kind, "batch": batch, **res,
+                   "median_per_sample_s": res["median_s"] / batch}
+            rows.append(row)
+            by_name[name] = row
+        if "remap_float32" in by_name:
+            peer_s = by_name["remap_float32"]["median_s"]
+            for name in ("forward_cached", "forward_rebuilt_eager", "forward_rebuilt_fused",
+                         "sample", "atlas", "grid_eager", "grid_fused"):
+                ratio = by_name[name]["median_s"] / peer_s
+                target = TARGETS.get(name)
+                ratios.append({"batch": batch, "ours": name, "peer": "remap_float32",
+                               "ratio": ratio, "target": target,
+                               "meets_target": None if target is None else ratio <= target})
+        for ours_name, ref_name in (("forward_rebuilt_fused", "forward_rebuilt_eager"),
+                                    ("forward_rebuilt_fused", "forward_cached"),
+                                    ("grid_fused", "grid_eager")):
+            ratios.append({"batch": batch, "ours": ours_name, "peer": ref_name,
+                           "ratio": by_name[ours_name]["median_s"]
+                           / by_name[ref_name]["median_s"],
+                           "target": None, "meets_target": None})
+        print(f"# batch {batch}: done", file=sys.stderr, flush=True)
+
+    commit, dirty = git_commit()
+    return {
+        "benchmark": "projection",
+        "commit": commit,
+        "dirty": dirty,
+        "machine": machine_info(device),
+        "versions": {"torch": torch.__version__, "numpy": np.__version__,
+                     "cv2": None if cv2 is None else cv2.__version__,
+                     "omniscape_torch": getattr(ot, "__version__", None)},
+        "environment": {k: v for k, v in sorted(os.environ.items())
+                        if k.startswith(("OMP_", "MKL_", "KMP_", "MALLOC_", "OPENCV_",
+                                         "TORCHINDUCTOR_"))
+                        or k in ("LD_PRELOAD", "ATEN_CPU_CAPABILITY")},
+        "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
+        "threads": args.threads,
+        "torch_num_threads": torch.get_num_threads(),
+        "cv2_num_threads": None if cv2 is None else cv2.getNumThreads(),
+        "device": str(device),
+        "dtype": "float32",
+        "setup": {"face_size": face, "image_size": [size, size], "model": "equidistant",
+                  "focal_px": focal, "centre_px": centre, "fov_deg": 190.0, "pad": pad,
+                  "interpolation": eager.interpolation, "channels": 3,
+                  "valid_fraction": float(valid.float().mean())},
+        "batches": args.batches,
+        "repeats": args.repeats,
+        "warmup": args.warmup,
+        "seed": SEED,
+        "fused": {"enabled": not args.no_fused, "first_call_s": compile_s,
+                  "max_abs_diff_vs_eager_grid": fused_max_diff,
+                  "compile_failures": failures},
+        "peer_agreement": agreement,
+        "timer": ("time.perf_counter around single calls, after warm-up, all rows of one batch "
+                  "round-robin; median and IQR"),
+        "timestamp_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "loadavg_start": load_start,
+        "loadavg_end": loadavg(),
+        "rows": rows,
+        "ratios": ratios,
+    }
+
+
+def markdown(result: dict) -> str:
+    def ms(s: float) -> str:
+        return f"{1e3 * s:.2f}"
+
+    s = result["setup"]
+    lines = [f"projection: 6 x {s['face_size']} -> {s['image_size'][0]} x {s['image_size'][1]} "
+             f"equidistant 190 deg, RGB float32, {result['threads']} threads, {result['device']}, "
+             f"commit {result['commit'][:12]}{' (dirty)' if result['dirty'] else ''}", "",
+             "| batch | row | kind | median ms | IQR ms | min ms | ms / sample |",
+             "|---:|---|---|---:|---:|---:|---:|"]
+    for r in result["rows"]:
+        lines.append(f"| {r['batch']} | {r['name']} | {r['kind']} | {ms(r['median_s'])} | "
+                     f"{ms(r['iqr_s'])} | {ms(r['min_s'])} | {ms(r['median_per_sample_s'])} |")
+    lines += ["", "| batch | ours / peer | ratio | target |", "|---:|---|---:|---|"]
+    for q in result["ratios"]:
+        target = ("" if q["target"] is None else
+                  f"<= {q['target']:.1f} {'ok' if q['meets_target'] else 'MISSED'}")
+        lines.append(f"| {q['batch']} | {q['ours']} / {q['peer']} | {q['ratio']:.2f} | "
+                     f"{target} |")
+    fused = result["fused"]
+    first = ", ".join(f"{k} {v:.1f} s" for k, v in fused["first_call_s"].items())
+    lines += ["", f"fused grid: first calls (compilation) {first}; max |fused - eager| grid "
+              f"{fused['max_abs_diff_vs_eager_grid']:.2e}"
+              + (f"; compile failures {fused['compile_failures']}"
+                 if fused["compile_failures"] else "")]
+    if result["peer_agreement"]:
+        lines.append("peer agreement (valid pixels, max |ours - remap|): " + ", ".join(
+            f"{k} {v:.2e}" for k, v in result["peer_agreement"].items()))
+    return "\n".join(lines)
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--face", type=int, default=None,
+                        help="cube face size F; the image is 2F x 2F (default 512; 128 quick)")
+    parser.add_argument("--batches", type=int, nargs="+", default=None,
+                        help="batch sizes (default 1 8; 1 2 with --quick)")
+    parser.add_argument("--threads", type=int, default=2,
+                        help="torch and OpenCV thread count (default 2)")
+    parser.add_argument("--repeats", type=int, default=None,
+                        help="timed calls per row (default 15; 3 with --quick)")
+    parser.add_argument("--warmup", type=int, default=None,
+                        help="untimed calls before timing (default 2; 1 with --quick)")
+    parser.add_argument("--quick", action="store_true",
+                        help="F = 128, batch 1 and 2, few repeats: a smoke run (seconds once "
+                             "the fused kernel is in inductor's disk cache)")
+    parser.add_argument("--no-fused", action="store_true",
+                        help="skip compilation: the fused rows run the eager reference")
+    parser.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
+                        help="device of our layer (OpenCV always runs on the CPU)")
+    parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" /
+                        "projection.json",
+                        help="JSON output (default benchmarks/results/projection.json)")
+    args = parser.parse_args(argv)
+    if args.face is None:
+        args.face = 128 if args.quick else 512
+    if args.batches is None:
+        args.batches = [1, 2] if args.quick else [1, 8]
+    if args.repeats is None:
+        args.repeats = 3 if args.quick else 15
+    if args.warmup is None:
+        args.warmup = 1 if args.quick else 2
+    for name in ("face", "threads", "repeats"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name} must be >= 1")
+    if args.warmup < 0:
+        parser.error("--warmup must be >= 0")
+    if any(b < 1 for b in args.batches):
+        parser.error("--batches must be >= 1")
+    if args.device == "cuda" and not torch.cuda.is_available():
+        parser.error("--device cuda: CUDA is not available in this torch build or machine")
+    return args
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    result = run(args)
+    print(markdown(result))
+    write_json_atomic(result, args.out)
+    print(f"\nwrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
