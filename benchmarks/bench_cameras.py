@@ -36,13 +36,9 @@ thread count, dtype and one row per measurement.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
-import platform
-import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Callable
@@ -55,6 +51,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import omniscape_torch as ot  # noqa: E402
+from common import git_commit, machine_info, measure, write_json_atomic  # noqa: E402
 from omniscape_torch.cameras.scaramuzza import scaramuzza_project  # noqa: E402
 
 try:
@@ -97,91 +94,9 @@ SPECS: dict[str, dict] = {
 # Environment
 # --------------------------------------------------------------------------------------------
 
-def git_commit() -> tuple[str, bool | None]:
-    """(HEAD commit or "unknown", working tree dirty or None)."""
-    try:
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True,
-                                text=True, timeout=10)
-        if commit.returncode != 0:
-            return "unknown", None
-        status = subprocess.run(["git", "status", "--porcelain"], cwd=ROOT, capture_output=True,
-                                text=True, timeout=10)
-        return commit.stdout.strip(), bool(status.stdout.strip())
-    except (OSError, subprocess.SubprocessError):
-        return "unknown", None
-
-
-def machine_info(device: torch.device) -> dict:
-    info = {
-        "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
-        "cpu_count": os.cpu_count(),
-        "python": platform.python_version(),
-    }
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    info["cpu_model"] = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    if device.type == "cuda":
-        info["gpu"] = torch.cuda.get_device_name(device)
-    return info
-
-
-def write_json_atomic(data: dict, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes it 0600; a result file is for everyone
-        with os.fdopen(fd, "w") as f:
-            json.dump(data, f, indent=2)
-            f.write("\n")
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 # --------------------------------------------------------------------------------------------
 # Timing
 # --------------------------------------------------------------------------------------------
-
-def measure(fns: list[Callable[[], object]], repeats: int, warmup: int,
-            device: torch.device) -> list[dict]:
-    """Median and IQR (seconds) of ``repeats`` timed calls of each of ``fns``, after ``warmup``
-    untimed calls of each.
-
-    The functions are timed round-robin (one call of each per repeat), so that a change of load
-    during the run affects ours and the peer alike and their ratio stays meaningful.
-    """
-    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
-    for fn in fns:
-        for _ in range(warmup):
-            fn()
-    sync()
-    times: list[list[float]] = [[] for _ in fns]
-    for _ in range(repeats):
-        for fn, t in zip(fns, times):
-            sync()
-            start = time.perf_counter()
-            fn()
-            sync()
-            t.append(time.perf_counter() - start)
-    out = []
-    for t in times:
-        q1, median, q3 = np.percentile(t, [25, 50, 75])
-        out.append({"median_s": float(median), "iqr_s": float(q3 - q1), "min_s": float(min(t)),
-                    "times_s": [float(x) for x in t]})
-    return out
-
 
 # --------------------------------------------------------------------------------------------
 # Data: seeded, over each model's valid domain

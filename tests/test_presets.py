@@ -7,7 +7,6 @@ import math
 import pytest
 import torch
 
-import omniscape_torch as ot
 from omniscape_torch.cubemap import FACES, face_axes, face_rotations
 from omniscape_torch.presets import (FISHEYE_DEFAULTS, catadioptric, fisheye,
                                      matrix_to_yaw_pitch_roll, yaw_pitch_roll_to_matrix)

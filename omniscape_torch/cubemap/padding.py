@@ -41,7 +41,6 @@ import functools
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F_nn
 from torch import Tensor
 
 from .faces import _check_face_size, _check_pad, face_rays, ray_to_face
