@@ -180,9 +180,13 @@ class OmniProjection(nn.Module):
         key = (self._rays_cache[0] if self._rays_cache else None, dtype)
         if cacheable and self._grid_cache is not None and self._grid_cache[0] == key:
             return self._grid_cache[1]
-        grid_s = self._grid(rays_s, rotation, dtype)
-        grid_c = grid_s if self.supersample == 1 else self._grid(rays_c, rotation, dtype)
-        out = (grid_s, _batched(valid_s), grid_c, _batched(valid_c))
+        valid_s, valid_c = _batched(valid_s), _batched(valid_c)
+        # Invalid rays point outside the atlas: sampled with zero padding they read 0, so the
+        # image needs no mask afterwards (their gradient is 0 too).
+        grid_s = _outside(self._grid(rays_s, rotation, dtype), valid_s)
+        grid_c = grid_s if self.supersample == 1 else _outside(
+            self._grid(rays_c, rotation, dtype), valid_c)
+        out = (grid_s, valid_s, grid_c, valid_c)
         if cacheable:
             self._grid_cache = (key, out)
         return out
@@ -202,10 +206,12 @@ class OmniProjection(nn.Module):
         return cm.faces_to_atlas(padded.reshape(b, 6, c, f + 2 * self.pad, f + 2 * self.pad))
 
     def _sample(self, atlas: Tensor, grid: Tensor, mode: str) -> Tensor:
+        """``grid_sample`` with zero padding: 0 at the invalid pixels (see ``_outside``);
+        every valid sample lies inside its padded face, where the padding mode plays no part."""
         batch = atlas.shape[0]
         if grid.shape[0] != batch:
             grid = grid.expand(batch, *grid.shape[1:])
-        return grid_sample(atlas, grid, mode)
+        return grid_sample(atlas, grid, mode, padding_mode="zeros")
 
     def _sample_float(self, cube: Tensor, grid: Tensor, mode: str, pad_mode: str) -> Tensor:
         """Sample a floating cube; half precision is sampled in float32 (the grid stays float32:
@@ -299,8 +305,10 @@ class OmniProjection(nn.Module):
 
         if rgb is not None:
             image = self._sample_float(rgb, grid_s, self.interpolation, "bilinear")
-            image = self._average(image, valid_s.expand(batch, *valid_s.shape[1:]))
-            out["rgb"] = torch.where(valid, image, torch.zeros_like(image))
+            if self.supersample > 1:  # a pixel whose centre is invalid may have valid samples
+                image = self._average(image, valid_s.expand(batch, *valid_s.shape[1:]))
+                image = torch.where(valid, image, torch.zeros_like(image))
+            out["rgb"] = image
 
         if depth is not None:
             rng = cm.depth_to_range(depth.squeeze(2)).unsqueeze(2)
@@ -377,6 +385,11 @@ def _edge_aware(atlas: Tensor, grid: Tensor, threshold: float) -> Tensor:
     edge = (hi - lo) > threshold * lo.abs()
     nearest = taps.gather(-1, weights.detach().argmax(-1, keepdim=True)).squeeze(-1)
     return torch.where(edge, nearest, blend).unsqueeze(1)
+
+
+def _outside(grid: Tensor, valid: Tensor) -> Tensor:
+    """``grid (B, h, w, 2)`` with the invalid entries moved outside the atlas (-2, -2)."""
+    return torch.where(valid.unsqueeze(-1), grid, torch.full_like(grid, -2.0))
 
 
 def _as_cube(t: Tensor | None, name: str) -> Tensor | None:

@@ -18,9 +18,9 @@ def pixels_to_grid(pixels: Tensor, width: int, height: int) -> Tensor:
                         (2 * pixels[..., 1] + 1) / height - 1), dim=-1)
 
 
-def grid_sample(image: Tensor, grid: Tensor, mode: str) -> Tensor:
-    """``F.grid_sample(align_corners=False, padding_mode="border")``, split into row blocks on
-    the CPU when the batch is smaller than the thread count.
+def grid_sample(image: Tensor, grid: Tensor, mode: str, padding_mode: str = "border") -> Tensor:
+    """``F.grid_sample(align_corners=False)``, split into row blocks on the CPU when the batch is
+    smaller than the thread count.
 
     PyTorch's CPU kernel parallelises over the batch only; the output rows become a
     pseudo-batch over a stride-0 expanded image (no copy), and the result is identical.
@@ -33,13 +33,13 @@ def grid_sample(image: Tensor, grid: Tensor, mode: str) -> Tensor:
     plain = (grid.device.type != "cpu" or batch >= threads or height < 2 * threads)
     k = 1 if plain else max(d for d in range(1, threads // batch + 1) if height % d == 0)
     if k == 1:
-        return F.grid_sample(image, grid, mode=mode, padding_mode="border",
+        return F.grid_sample(image, grid, mode=mode, padding_mode=padding_mode,
                              align_corners=False)
     outs = []
     for b in range(batch):  # per sample: expanding (1, ...) to (k, ...) is a view
         img = image[b:b + 1].expand(k, *image.shape[1:])
         g = grid[b].reshape(k, height // k, *grid.shape[2:])
-        out = F.grid_sample(img, g, mode=mode, padding_mode="border", align_corners=False)
+        out = F.grid_sample(img, g, mode=mode, padding_mode=padding_mode, align_corners=False)
         outs.append(out.permute(1, 0, 2, 3).reshape(1, image.shape[1], height, -1))
     return torch.cat(outs)
 
