@@ -3,7 +3,7 @@
 Import as ``import omniscape_torch as ot``. Importing has no side effects.
 """
 
-from . import cameras, cubemap, io, presets, ride, sizing
+from . import cameras, cubemap, io, presets, ride, scenes, sizing
 from .cameras import Camera
 from .projection import OmniProjection
 from .reproject import equirect_to_cubemap, equirectangular_camera, reproject
@@ -13,5 +13,5 @@ from .sizing import required_face_size, visible_faces
 __version__ = "0.1.0"
 
 __all__ = ["Camera", "OmniProjection", "StereoRig", "cameras", "cubemap", "equirect_to_cubemap",
-           "equirectangular_camera", "io", "presets", "reproject", "required_face_size", "ride", "sizing",
+           "equirectangular_camera", "io", "presets", "reproject", "required_face_size", "ride", "scenes", "sizing",
            "visible_faces"]
