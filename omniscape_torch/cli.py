@@ -63,6 +63,83 @@ def cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def _image_size(text: str) -> tuple[int, int]:
+    """``N`` (square) or ``HxW`` pixels."""
+    parts = text.lower().replace(",", "x").split("x")
+    try:
+        size = tuple(int(p) for p in parts)
+    except ValueError:
+        size = ()
+    if len(size) == 1:
+        size = size * 2
+    if len(size) != 2 or min(size) < 8:
+        raise argparse.ArgumentTypeError(f"expected N or HxW pixels, each at least 8, got "
+                                         f"{text!r}")
+    return size
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+    return value
+
+
+def _names(choices, what: str):
+    def parse(text: str) -> list[str]:
+        names = [n.strip() for n in text.split(",") if n.strip()]
+        bad = [n for n in names if n not in choices]
+        if bad or not names:
+            shown = ", ".join(map(repr, bad)) if bad else repr(text)
+            raise argparse.ArgumentTypeError(f"unknown {what} {shown}; choose from "
+                                             f"{', '.join(choices)}")
+        return names
+    return parse
+
+
+def cmd_generate(args: argparse.Namespace) -> int:
+    import time
+    from .dataset import DatasetConfig, generate
+
+    cameras = [n for group in args.cameras for n in group]
+    weather = [n for group in args.weather for n in group]
+    config = DatasetConfig(frames=args.frames, fps=args.fps, image_size=args.image_size,
+                           face_size=args.face_size, max_face_size=args.max_face_size,
+                           cameras=tuple(dict.fromkeys(cameras)),
+                           weather=tuple(dict.fromkeys(weather)), seed=args.seed,
+                           save_cubemaps=args.save_cubemaps, save_panorama=args.save_panorama)
+    start = time.perf_counter()
+    result = generate(args.out, config, workers=args.workers,
+                      progress=None if not args.no_progress else False,
+                      log=lambda msg: print(msg, file=sys.stderr))
+    print(f"wrote {len(result['rendered'])} frame(s), skipped {len(result['skipped'])} "
+          f"finished, to {args.out} in {time.perf_counter() - start:.1f} s")
+    return 0
+
+
+def cmd_stats(args: argparse.Namespace) -> int:
+    from .dataset import format_stats, stats
+
+    result = stats(args.dir, plot=not args.no_plot)
+    print(format_stats(result))
+    print(f"\nwrote {args.dir / 'stats.json'}" + ("" if args.no_plot else
+                                                   f" and {args.dir / 'stats.png'}"))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="omniscape-torch", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -72,6 +149,46 @@ def build_parser() -> argparse.ArgumentParser:
                         help=f"OCamCalib calib_results.txt (default: {DEFAULT_OCAMCALIB})")
     source.add_argument("--json", type=Path, default=None, help="camera JSON (Camera.save_json)")
     info.set_defaults(func=cmd_info)
+
+    from .dataset import CAMERAS
+    from .scenes.town import WEATHERS
+    gen = sub.add_parser("generate", help="write an OmniScape-like dataset (see "
+                                          "omniscape_torch/dataset.py for the layout)")
+    gen.add_argument("--out", type=Path, required=True, help="dataset folder (created; a "
+                     "rerun completes an interrupted run)")
+    gen.add_argument("--frames", type=_positive_int, default=8, help="frames (default 8)")
+    gen.add_argument("--fps", type=_positive_float, default=2.0, help="frames per second "
+                     "(default 2)")
+    gen.add_argument("--image-size", type=_image_size, default=(256, 256), metavar="N|HxW",
+                     help="image size in pixels (default 256)")
+    gen.add_argument("--face-size", type=_positive_int, default=None, help="cube face size "
+                     "for every camera (default: each camera's required_face_size)")
+    gen.add_argument("--max-face-size", type=_positive_int, default=1024,
+                     help="cap on the default face sizes (default 1024)")
+    gen.add_argument("--cameras", type=_names(CAMERAS, "camera"), nargs="+",
+                     default=[list(CAMERAS)], metavar="NAME[,NAME]",
+                     help=f"cameras to render (default all: {', '.join(CAMERAS)})")
+    gen.add_argument("--weather", type=_names(tuple(WEATHERS), "weather"), nargs="+",
+                     default=[["clear_noon"]], metavar="NAME[,NAME]",
+                     help=f"weather preset(s), drawn per frame when several "
+                          f"({', '.join(WEATHERS)}; default clear_noon)")
+    gen.add_argument("--workers", type=_positive_int, default=1, help="processes (default 1)")
+    gen.add_argument("--seed", type=int, default=0, help="town, route and ride seed "
+                     "(default 0)")
+    gen.add_argument("--save-cubemaps", action="store_true", help="also write the rendered "
+                     "cube faces")
+    gen.add_argument("--save-panorama", action="store_true", help="also write an "
+                     "equirectangular panorama per frame")
+    gen.add_argument("--no-progress", action="store_true", help="no progress bar")
+    gen.set_defaults(func=cmd_generate)
+
+    st = sub.add_parser("stats", help="Table I and class shares of a generated dataset")
+    st.add_argument("dir", type=Path, help="dataset folder")
+    st.add_argument("--no-plot", action="store_true", help="do not write stats.png")
+    st.set_defaults(func=cmd_stats)
+
+    from .convert import add_convert_parser
+    add_convert_parser(sub)
     return parser
 
 

@@ -1,0 +1,336 @@
+"""Convert cubemap captures made in a simulator (CARLA) into fisheye and catadioptric images.
+
+Folder layout read (what ``scripts/capture_carla.py`` writes)::
+
+    CUBEMAPS/
+      <capture_id>/                     one folder per capture (one point, one instant)
+        front_rgb.png    front_depth.png    front_labels.png
+        back_rgb.png     back_depth.png     back_labels.png
+        left_...  right_...  up_...  down_...
+
+``CUBEMAPS`` may also be a single capture folder itself. Each face is the square image of a
+90-degree camera at the ``DESIGN.md`` rig rotation (front none, back yaw 180, left yaw -90,
+right yaw +90, up pitch +90, down pitch -90). Per face and modality:
+
+* ``<face>_rgb.png``: 8-bit colour (grey is repeated to three channels).
+* ``<face>_depth.png``: CARLA's depth camera saved with the ``Raw`` converter: planar depth
+  packed in 24 bits of R, G, B (:func:`omniscape_torch.io.carla.decode_depth`).
+* ``<face>_labels.png``: CARLA's semantic camera saved with the ``Raw`` converter: the tag in
+  the red channel (a one-channel PNG is read as the tags themselves), mapped to the 13 classes
+  of the paper from ``label_set`` (:func:`omniscape_torch.io.carla.to_13`).
+
+A modality may be absent (no face file of it), but a modality with some faces and not others,
+or faces of different sizes, is an error that names the file.
+
+Written per capture and camera (``fisheye``, ``catadioptric``)::
+
+    OUT/<capture_id>/<camera>_rgb.png          8-bit RGB
+    OUT/<capture_id>/<camera>_depth.exr        float32 metres: range (default) or z; 0 invalid
+    OUT/<capture_id>/<camera>_labels.png       8-bit class ids, 255 outside the valid area
+    OUT/<capture_id>/<camera>_labels_color.png the ids in CARLA's palette
+    OUT/<capture_id>/<camera>_valid.png        255 where the pixel sees the scene
+    OUT/cameras.json                           the cameras (Camera JSON) and their rotations
+
+Every file is written atomically (temporary file then rename).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .cubemap.faces import FACES
+from .io.atomic import atomic_write_text
+from .io.carla import LABEL_SETS, decode_depth, decode_labels, to_13
+from .io.exr import write_exr
+from .io.images import read_image, write_image
+from .io.labels import colorize
+
+__all__ = ["MODALITIES", "CAMERAS", "add_convert_parser", "build_cameras", "cmd_convert",
+           "convert_captures", "find_captures", "load_capture", "render_capture"]
+
+MODALITIES = ("rgb", "depth", "labels")
+CAMERAS = ("fisheye", "catadioptric")
+
+
+def _face_file(capture: Path, face: str, modality: str) -> Path:
+    return capture / f"{face}_{modality}.png"
+
+
+def _is_capture(folder: Path) -> bool:
+    return any(_face_file(folder, f, m).is_file() for f in FACES for m in MODALITIES)
+
+
+def find_captures(cubemaps_dir: str | Path) -> list[Path]:
+    """The capture folders under ``cubemaps_dir`` (sorted), or ``[cubemaps_dir]`` if it is one.
+
+    Raises:
+        FileNotFoundError: no such folder. ValueError: no capture in it.
+    """
+    root = Path(cubemaps_dir)
+    if not root.is_dir():
+        raise FileNotFoundError(f"{root}: no such folder of captures")
+    if _is_capture(root):
+        return [root]
+    captures = sorted(p for p in root.iterdir() if p.is_dir() and _is_capture(p))
+    if not captures:
+        raise ValueError(f"{root}: no capture found (expected folders holding "
+                         f"{{{','.join(FACES)}}}_{{{','.join(MODALITIES)}}}.png)")
+    return captures
+
+
+def load_capture(path: str | Path, *, label_set: str = "13",
+                 modalities: Sequence[str] | None = None,
+                 unknown_label: int | None = None) -> dict[str, Tensor | int]:
+    """Read one capture folder into cubemaps, faces in ``FACES`` order, batch of one.
+
+    Args:
+        path: the capture folder (layout in the module docstring).
+        label_set: the simulator's tag set, ``"13"`` (CARLA <= 0.9.9), ``"23"`` (0.9.10 to
+            0.9.13) or ``"new"`` (Cityscapes-ordered tags of later versions).
+        modalities: those required (default: whichever are there; at least one).
+        unknown_label: class given to tags outside ``label_set`` (default: an error).
+
+    Returns:
+        dict with ``face_size`` and, for each modality found: ``rgb (1, 6, 3, F, F)`` float32 in
+        [0, 1], ``depth (1, 6, F, F)`` float32 planar metres, ``labels (1, 6, F, F)`` int64
+        class ids 0..12.
+
+    Raises:
+        ValueError: a face missing (names the file), faces not square or of different sizes,
+        no face image at all, an unknown tag.
+    """
+    capture = Path(path)
+    if not capture.is_dir():
+        raise FileNotFoundError(f"{capture}: no such capture folder")
+    if label_set not in LABEL_SETS:
+        raise ValueError(f"label_set: expected one of {tuple(LABEL_SETS)}, got {label_set!r}")
+    wanted = MODALITIES if modalities is None else tuple(modalities)
+    for m in wanted:
+        if m not in MODALITIES:
+            raise ValueError(f"modalities: expected some of {MODALITIES}, got {m!r}")
+    out: dict[str, Tensor | int] = {}
+    size: tuple[int, Path] | None = None
+    for modality in wanted:
+        files = [_face_file(capture, face, modality) for face in FACES]
+        present = [f.is_file() for f in files]
+        if not any(present):
+            if modalities is not None:
+                raise ValueError(f"{capture}: no {modality} faces (expected {files[0].name}, "
+                                 f"...)")
+            continue
+        if not all(present):
+            missing = [f for f, ok in zip(files, present) if not ok]
+            raise ValueError(f"{capture}: missing face image {missing[0]}"
+                             + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""))
+        faces = []
+        for file in files:
+            image = read_image(file).numpy()
+            h, w = image.shape[:2]
+            if h != w:
+                raise ValueError(f"{file}: a cube face must be square, got {w} x {h} (W x H)")
+            if size is None:
+                size = (h, file)
+            elif h != size[0]:
+                raise ValueError(f"{file}: face of {h} x {h} pixels, but {size[1]} is "
+                                 f"{size[0]} x {size[0]}")
+            faces.append(_decode(image, modality, file, label_set, unknown_label))
+        out[modality] = torch.stack(faces).unsqueeze(0)
+    if size is None:
+        raise ValueError(f"{capture}: no face image (expected files like "
+                         f"{_face_file(capture, FACES[0], 'rgb').name})")
+    out["face_size"] = size[0]
+    return out
+
+
+def _decode(image: np.ndarray, modality: str, file: Path, label_set: str,
+            unknown_label: int | None) -> Tensor:
+    if image.dtype != np.uint8:
+        raise ValueError(f"{file}: expected 8-bit pixels, got {image.dtype}")
+    if modality == "rgb":
+        if image.ndim == 2:
+            image = np.repeat(image[..., None], 3, axis=-1)
+        return torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1).float() / 255.0
+    if modality == "depth":
+        if image.ndim != 3:
+            raise ValueError(f"{file}: a CARLA depth image has 3 channels (24-bit depth), got "
+                             "a one-channel image")
+        return decode_depth(image, "RGB")
+    tags = torch.from_numpy(image.astype(np.int64)) if image.ndim == 2 \
+        else decode_labels(image, "RGB")
+    try:
+        return to_13(tags, label_set, unknown=unknown_label)
+    except ValueError as err:
+        raise ValueError(f"{file}: {err}") from None
+
+
+def build_cameras(cameras: Sequence[str] = CAMERAS, *, image_size: tuple[int, int] = (1024, 1024),
+                  fisheye_model: str = "equidistant", fisheye_fov: float = math.radians(190),
+                  catadioptric_xi: float | None = None,
+                  catadioptric_fov: float = math.radians(220),
+                  catadioptric_blind_fov: float | None = math.radians(40),
+                  catadioptric_looking: str = "down") -> dict[str, tuple]:
+    """``{name: (Camera, rotation (3, 3) or None)}`` from the presets (angles in radians)."""
+    from . import presets
+
+    built: dict[str, tuple] = {}
+    for name in cameras:
+        if name == "fisheye":
+            built[name] = (presets.fisheye(image_size, fov=fisheye_fov, model=fisheye_model),
+                           None)
+        elif name == "catadioptric":
+            built[name] = presets.catadioptric(image_size, xi=catadioptric_xi,
+                                               fov=catadioptric_fov,
+                                               blind_fov=catadioptric_blind_fov,
+                                               looking=catadioptric_looking)
+        else:
+            raise ValueError(f"cameras: expected some of {CAMERAS}, got {name!r}")
+    if not built:
+        raise ValueError("cameras: none given")
+    return built
+
+
+def render_capture(cube: dict, cameras: dict[str, tuple], out_dir: str | Path, *,
+                   depth_output: str = "range", interpolation: str = "bilinear",
+                   device: str | torch.device = "cpu",
+                   _layers: dict | None = None) -> list[Path]:
+    """Render the cubemaps of :func:`load_capture` through each camera and write the files
+    (layout in the module docstring) into ``out_dir``. Returns the paths written."""
+    from .projection import OmniProjection
+
+    out_dir = Path(out_dir)
+    face_size = int(cube["face_size"])
+    written: list[Path] = []
+    for name, (camera, rotation) in cameras.items():
+        key = (name, face_size)
+        layer = None if _layers is None else _layers.get(key)
+        if layer is None:
+            layer = OmniProjection(camera.to(device), face_size, interpolation=interpolation,
+                                   fused_grid=False)
+            if _layers is not None:
+                _layers[key] = layer
+        kwargs = {m: cube[m].to(device) for m in MODALITIES if m in cube}
+        rot = None if rotation is None else rotation.to(device)
+        with torch.no_grad():
+            result = layer.render(**kwargs, rotation=rot, depth_output=depth_output)
+        valid = result["valid"][0, 0].cpu()
+        written.append(write_image(out_dir / f"{name}_valid.png",
+                                   valid.to(torch.uint8) * 255))
+        if "rgb" in result:
+            rgb = (result["rgb"][0].clamp(0, 1) * 255).round().to(torch.uint8)
+            written.append(write_image(out_dir / f"{name}_rgb.png", rgb.permute(1, 2, 0).cpu()))
+        if "depth" in result:
+            written.append(write_exr(out_dir / f"{name}_depth.exr",
+                                     result["depth"][0, 0].float().cpu().contiguous()))
+        if "labels" in result:
+            labels = result["labels"][0].cpu()
+            written.append(write_image(out_dir / f"{name}_labels.png",
+                                       labels.clamp(0, 255).to(torch.uint8)))
+            written.append(write_image(out_dir / f"{name}_labels_color.png", colorize(labels)))
+    return written
+
+
+def convert_captures(cubemaps_dir: str | Path, out_dir: str | Path, *, label_set: str = "13",
+                     cameras: Sequence[str] = CAMERAS,
+                     image_size: tuple[int, int] = (1024, 1024),
+                     fisheye_model: str = "equidistant", fisheye_fov: float = math.radians(190),
+                     catadioptric_xi: float | None = None,
+                     catadioptric_fov: float = math.radians(220),
+                     catadioptric_blind_fov: float | None = math.radians(40),
+                     catadioptric_looking: str = "down", depth_output: str = "range",
+                     interpolation: str = "bilinear", unknown_label: int | None = None,
+                     device: str | torch.device = "cpu") -> dict[str, list[Path]]:
+    """Convert every capture under ``cubemaps_dir`` into omni images under ``out_dir``.
+
+    Angles are radians. Cameras come from :func:`omniscape_torch.presets.fisheye` (optical
+    axis forward) and :func:`~omniscape_torch.presets.catadioptric` (axis down or up); their
+    JSON and rotations go to ``out_dir/cameras.json``.
+
+    Returns:
+        ``{capture_id: [paths written]}``.
+    """
+    if depth_output not in ("range", "z"):
+        raise ValueError(f"depth_output: expected 'range' or 'z', got {depth_output!r}")
+    if label_set not in LABEL_SETS:
+        raise ValueError(f"label_set: expected one of {tuple(LABEL_SETS)}, got {label_set!r}")
+    captures = find_captures(cubemaps_dir)
+    built = build_cameras(cameras, image_size=image_size, fisheye_model=fisheye_model,
+                          fisheye_fov=fisheye_fov, catadioptric_xi=catadioptric_xi,
+                          catadioptric_fov=catadioptric_fov,
+                          catadioptric_blind_fov=catadioptric_blind_fov,
+                          catadioptric_looking=catadioptric_looking)
+    out_dir = Path(out_dir)
+    meta = {name: {"camera": cam.to_dict(),
+                   "rotation": None if rot is None else rot.double().tolist(),
+                   "depth": depth_output}
+            for name, (cam, rot) in built.items()}
+    atomic_write_text(out_dir / "cameras.json", json.dumps(meta, indent=2) + "\n")
+    layers: dict = {}
+    results: dict[str, list[Path]] = {}
+    for capture in captures:
+        cube = load_capture(capture, label_set=label_set, unknown_label=unknown_label)
+        results[capture.name] = render_capture(
+            cube, built, out_dir / capture.name, depth_output=depth_output,
+            interpolation=interpolation, device=device, _layers=layers)
+    return results
+
+
+# --------------------------------------------------------------------------------------------
+# Command line: omniscape-torch convert --cubemaps DIR --out DIR
+# --------------------------------------------------------------------------------------------
+
+def add_convert_parser(subparsers) -> argparse.ArgumentParser:
+    """Register ``convert`` on an ``argparse`` sub-parsers object (angles in degrees)."""
+    p = subparsers.add_parser(
+        "convert", help="render simulator cubemap captures into fisheye / catadioptric images",
+        description="Read DIR/<capture>/{front,back,left,right,up,down}_{rgb,depth,labels}.png "
+                    "(CARLA raw depth and semantic images) and write fisheye and catadioptric "
+                    "renderings (rgb png, depth exr, labels png) per capture.")
+    p.add_argument("--cubemaps", type=Path, required=True, help="folder of capture folders")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--label-set", choices=tuple(LABEL_SETS), default="13",
+                   help="the simulator's tag set: 13 (CARLA <= 0.9.9), 23 (0.9.10-0.9.13), "
+                        "new (Cityscapes-ordered tags of later versions); default 13")
+    p.add_argument("--unknown-label", type=int, default=None,
+                   help="class id for tags outside the label set (default: error)")
+    p.add_argument("--cameras", nargs="+", choices=CAMERAS, default=list(CAMERAS))
+    p.add_argument("--size", type=int, nargs=2, default=(1024, 1024), metavar=("H", "W"),
+                   help="output image size (default 1024 1024)")
+    p.add_argument("--fisheye-model", default="equidistant",
+                   help="fisheye preset model (default equidistant)")
+    p.add_argument("--fisheye-fov", type=float, default=190.0, help="degrees (default 190)")
+    p.add_argument("--cata-xi", type=float, default=None, help="mirror xi (default 0.9)")
+    p.add_argument("--cata-fov", type=float, default=220.0, help="degrees (default 220)")
+    p.add_argument("--cata-blind-fov", type=float, default=40.0,
+                   help="degrees, 0 for none (default 40)")
+    p.add_argument("--cata-looking", choices=("down", "up"), default="down")
+    p.add_argument("--depth-output", choices=("range", "z"), default="range")
+    p.add_argument("--interpolation", choices=("nearest", "bilinear", "bicubic"),
+                   default="bilinear", help="for rgb")
+    p.add_argument("--device", default="cpu")
+    p.set_defaults(func=cmd_convert)
+    return p
+
+
+def cmd_convert(args: argparse.Namespace) -> int:
+    results = convert_captures(
+        args.cubemaps, args.out, label_set=args.label_set, cameras=tuple(args.cameras),
+        image_size=tuple(args.size), fisheye_model=args.fisheye_model,
+        fisheye_fov=math.radians(args.fisheye_fov), catadioptric_xi=args.cata_xi,
+        catadioptric_fov=math.radians(args.cata_fov),
+        catadioptric_blind_fov=(math.radians(args.cata_blind_fov) if args.cata_blind_fov > 0
+                                else None),
+        catadioptric_looking=args.cata_looking, depth_output=args.depth_output,
+        interpolation=args.interpolation, unknown_label=args.unknown_label,
+        device=args.device)
+    for capture, paths in results.items():
+        print(f"{capture}: {len(paths)} files -> {Path(args.out) / capture}")
+    print(f"cameras: {Path(args.out) / 'cameras.json'}")
+    return 0

@@ -1,0 +1,654 @@
+"""Write an OmniScape-like dataset: a motorcycle ride through the built-in town, seen by a rig of
+stereo fisheye and stereo catadioptric cameras, with range depth, labels, intrinsics,
+extrinsics and vehicle dynamics (``omniscape-torch generate``), and its statistics
+(``omniscape-torch stats``).
+
+The rig
+-------
+Four cameras on the two front sides of the motorcycle (rig frame: OpenCV axes, x right, y down,
+z forward, origin on the ground under the motorcycle's reference point, the point whose
+location ``dynamics.json`` gives; metres):
+
+================== ======================== ==========================================
+camera             position (x, y, z)        model and attitude
+================== ======================== ==========================================
+fisheye_left       (-0.4, -0.8, 0.6)         ``presets.fisheye``: equidistant, 190 deg,
+fisheye_right      (+0.4, -0.8, 0.6)         looking forward (cam -> rig = I)
+catadioptric_left  (-0.4, -1.0, 0.4)         ``presets.catadioptric(looking="down")``:
+catadioptric_right (+0.4, -1.0, 0.4)         unified, xi 0.9, 220 deg, axis down
+================== ======================== ==========================================
+
+So the stereo baselines are 0.8 m, the fisheyes 0.8 m above the ground, the catadioptric
+cameras 1.0 m. Each frame, the motorcycle's attitude ``R_bike`` (rig -> world,
+``ride.camera_rotation``: yaw, pitch, lean) places and turns every camera: camera centre
+``c = location + R_bike @ position``, and its rays go to the world by ``R_bike @ R_cam``. Each
+camera gets its own cubemap rendered at ``c`` with the cube axes along the world axes (x east,
+y down, z north), only the faces it sees (``sizing.visible_faces``), at the face size it needs
+(``sizing.required_face_size`` over all the ride's attitudes, capped by ``max_face_size``;
+or ``face_size`` for all). The built-in town is flat, so the ride is made with
+``random_route(seed, max_grade_deg=0)``: pitch comes from the suspension only.
+
+Layout of ``DIR``
+-----------------
+::
+
+    DIR/
+      dataset.json                 manifest: config, versions, cameras, layout, conventions
+      dynamics.json                per-frame vehicle state, ride.records(): CARLA names, frame
+                                   and units (x north, y east, z up, metres; degrees)
+      dynamics.csv                 the same, one row per frame (flattened columns)
+      <camera>/                    fisheye_left, fisheye_right, catadioptric_left, ...
+        camera.json                intrinsics (Camera.save_json)
+        extrinsics.json            T_rig_camera (camera -> rig, 4 x 4), and per frame
+                                   T_world_camera (camera -> world) and the faces rendered
+        rgb/NNNNNN.png             8-bit RGB
+        depth/NNNNNN.exr           range (Euclidean distance along the ray), float32 metres,
+                                   channel "Z"; 0 where not valid; sky: 1000 m (town.far)
+        labels/NNNNNN.png          8-bit class ids 0..12 (CARLA's 13 classes), 255 not valid
+        labels_color/NNNNNN.png    labels in CARLA's palette (white: not valid)
+        valid/NNNNNN.png           8-bit mask: 255 valid, 0 not (valid == labels != 255)
+        cubemap/                   only with --save-cubemaps, only the faces rendered:
+          rgb/NNNNNN_<face>.png      faces as rendered (DESIGN.md face table), cube axes =
+          depth/NNNNNN_<face>.exr    world axes; depth is planar (along the face's axis), m
+          labels/NNNNNN_<face>.png
+      panorama/                    only with --save-panorama: an equirectangular view
+        rgb/NNNNNN.png             (H x 2H, H = image height) from the rig origin raised
+        depth/NNNNNN.exr           0.9 m, turned with the motorcycle (centre column: its
+        labels/NNNNNN.png          heading); range depth
+      .done/NNNNNN                 written last, atomically, when all files of a frame exist
+
+``NNNNNN`` is the frame number (zero-padded to 6 digits). Every file is written atomically
+(temporary file + rename). A frame is finished when its ``.done`` marker and all its files
+exist; a rerun with the same configuration skips finished frames (and leaves their files and
+the unchanged per-run files untouched), so an interrupted run resumes where it stopped. A rerun
+with another configuration in the same folder is refused. Frames are independent: ``workers``
+processes each render whole frames; nothing uses a global random state (the weather of a frame,
+when several are given, is drawn from ``numpy.random.default_rng([seed, frame])``), so the
+files do not depend on the number of workers.
+"""
+
+from __future__ import annotations
+
+import csv
+import io as _io
+import json
+import math
+import platform
+import sys
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import asdict, dataclass
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from . import ride as _ride
+from .cubemap.faces import FACES
+from .io import (CLASSES, IGNORE_INDEX, atomic_write_bytes, atomic_write_text, camera_to_dict,
+                 colorize, read_image, write_exr, write_image)
+from .io.labels import PALETTE
+from .presets import catadioptric, fisheye
+from .projection import OmniProjection
+from .reproject import equirectangular_camera
+from .scenes.town import WEATHERS, Town
+from .sizing import required_face_size, visible_faces
+
+__all__ = ["CAMERAS", "DatasetConfig", "generate", "stats", "RIG_POSITIONS", "MODALITIES"]
+
+#: The rig's cameras, in this order.
+CAMERAS = ("fisheye_left", "fisheye_right", "catadioptric_left", "catadioptric_right")
+
+#: Camera centres in the rig frame (x right, y down, z forward), metres.
+RIG_POSITIONS = {
+    "fisheye_left": (-0.4, -0.8, 0.6),
+    "fisheye_right": (0.4, -0.8, 0.6),
+    "catadioptric_left": (-0.4, -1.0, 0.4),
+    "catadioptric_right": (0.4, -1.0, 0.4),
+}
+
+#: Centre of the panorama in the rig frame, metres.
+PANORAMA_POSITION = (0.0, -0.9, 0.0)
+
+#: Per-frame files of each camera: folder -> extension.
+MODALITIES = {"rgb": "png", "depth": "exr", "labels": "png", "labels_color": "png",
+              "valid": "png"}
+
+FORMAT = "omniscape_torch dataset"
+FORMAT_VERSION = 1
+
+
+@dataclass
+class DatasetConfig:
+    """What ``generate`` writes (everything that changes the files; not ``workers``)."""
+
+    frames: int = 8
+    fps: float = 2.0
+    image_size: tuple[int, int] = (256, 256)      # (H, W)
+    face_size: int | None = None                  # None: per camera, required_face_size
+    max_face_size: int = 1024
+    cameras: tuple[str, ...] = CAMERAS
+    weather: tuple[str, ...] = ("clear_noon",)
+    seed: int = 0
+    save_cubemaps: bool = False
+    save_panorama: bool = False
+
+    def __post_init__(self):
+        self.image_size = tuple(int(s) for s in self.image_size)
+        self.cameras = tuple(self.cameras)
+        self.weather = tuple(self.weather)
+        self.validate()
+
+    def validate(self) -> None:
+        def positive_int(name, value):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name}: expected a positive integer, got {value!r}")
+        positive_int("frames", self.frames)
+        positive_int("max_face_size", self.max_face_size)
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"seed: expected an integer >= 0, got {self.seed!r}")
+        if self.face_size is not None:
+            positive_int("face_size", self.face_size)
+        if not (isinstance(self.fps, (int, float)) and math.isfinite(self.fps) and self.fps > 0):
+            raise ValueError(f"fps: expected a positive number, got {self.fps!r}")
+        if len(self.image_size) != 2 or min(self.image_size) < 8:
+            raise ValueError(f"image_size: expected (H, W), both at least 8 pixels, got "
+                             f"{self.image_size!r}")
+        if not self.cameras:
+            raise ValueError("cameras: expected at least one camera")
+        for name in self.cameras:
+            if name not in CAMERAS:
+                raise ValueError(f"cameras: unknown camera {name!r}; expected some of "
+                                 f"{', '.join(CAMERAS)}")
+        if len(set(self.cameras)) != len(self.cameras):
+            raise ValueError(f"cameras: duplicates in {self.cameras}")
+        if not self.weather:
+            raise ValueError("weather: expected at least one weather")
+        for name in self.weather:
+            if name not in WEATHERS:
+                raise ValueError(f"weather: unknown weather {name!r}; expected some of "
+                                 f"{', '.join(WEATHERS)}")
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["image_size"] = list(self.image_size)
+        d["cameras"] = list(self.cameras)
+        d["weather"] = list(self.weather)
+        return d
+
+
+# --------------------------------------------------------------------------------------------
+# The plan: ride, cameras, face sizes (cheap; computed identically in every process)
+# --------------------------------------------------------------------------------------------
+
+def _make_camera(name: str, image_size: tuple[int, int]):
+    if name.startswith("fisheye"):
+        return fisheye(image_size), torch.eye(3)
+    return catadioptric(image_size, looking="down")
+
+
+def _make_ride(config: DatasetConfig) -> dict:
+    route = _ride.random_route(config.seed, max_grade_deg=0.0)
+    return _ride.simulate(route, float(config.fps), frames=config.frames, seed=config.seed)
+
+
+def _frame_weather(config: DatasetConfig, frame: int) -> str:
+    if len(config.weather) == 1:
+        return config.weather[0]
+    rng = np.random.default_rng([config.seed, frame])
+    return config.weather[int(rng.integers(len(config.weather)))]
+
+
+def _name(frame: int) -> str:
+    return f"{frame:06d}"
+
+
+class _Plan:
+    """Everything a process needs to render any frame."""
+
+    def __init__(self, config: DatasetConfig):
+        self.config = config
+        self.frames = _make_ride(config)
+        self.R_bike = _ride.camera_rotation(self.frames).double()          # (N, 3, 3)
+        self.location = _ride.carla_to_world(self.frames["location"]).double()  # (N, 3)
+        self.cameras = {}
+        self._faces: dict[tuple[str, int], torch.Tensor] = {}
+        for name in config.cameras:
+            camera, r_cam = _make_camera(name, config.image_size)
+            r_cam = r_cam.double()
+            if config.face_size is not None:
+                size = config.face_size
+            else:
+                rot = (self.R_bike @ r_cam).float()
+                size = min(required_face_size(camera, rot), config.max_face_size)
+            self.cameras[name] = dict(camera=camera, r_cam=r_cam, face_size=int(size),
+                                      position=torch.tensor(RIG_POSITIONS[name],
+                                                            dtype=torch.float64))
+        h = config.image_size[0]
+        self.panorama_size = (h, 2 * h)
+        self.panorama_face = max(8, min(config.max_face_size, (2 * h) // 4 * 2))
+
+    def rotation(self, name: str, k: int) -> torch.Tensor:
+        """Camera -> world (= cube) rotation of camera ``name`` at frame ``k``, float64."""
+        return self.R_bike[k] @ self.cameras[name]["r_cam"]
+
+    def centre(self, name: str, k: int) -> torch.Tensor:
+        return self.location[k] + self.R_bike[k] @ self.cameras[name]["position"]
+
+    def faces(self, name: str, k: int) -> torch.Tensor:
+        """``(6,)`` bool: the faces camera ``name`` sees at frame ``k`` (cached)."""
+        if (name, k) not in self._faces:
+            c = self.cameras[name]
+            self._faces[name, k] = visible_faces(c["camera"], self.rotation(name, k).float(),
+                                                 face_size=c["face_size"])
+        return self._faces[name, k]
+
+    def files(self, k: int) -> list[str]:
+        """Relative paths of every file of frame ``k`` (the marker excluded)."""
+        n = _name(k)
+        out = []
+        for name in self.config.cameras:
+            out += [f"{name}/{m}/{n}.{ext}" for m, ext in MODALITIES.items()]
+            if self.config.save_cubemaps:
+                for face, need in zip(FACES, self.faces(name, k).tolist()):
+                    if need:
+                        out += [f"{name}/cubemap/rgb/{n}_{face}.png",
+                                f"{name}/cubemap/depth/{n}_{face}.exr",
+                                f"{name}/cubemap/labels/{n}_{face}.png"]
+        if self.config.save_panorama:
+            out += [f"panorama/rgb/{n}.png", f"panorama/depth/{n}.exr",
+                    f"panorama/labels/{n}.png"]
+        return out
+
+
+def _marker(out: Path, k: int) -> Path:
+    return out / ".done" / _name(k)
+
+
+def _finished(plan: _Plan, out: Path, k: int) -> bool:
+    return _marker(out, k).is_file() and all((out / f).is_file() for f in plan.files(k))
+
+
+# --------------------------------------------------------------------------------------------
+# Rendering one frame (in a worker process or in the main one)
+# --------------------------------------------------------------------------------------------
+
+_STATE: dict = {}
+
+
+def _state(config: DatasetConfig) -> dict:
+    key = json.dumps(config.to_dict(), sort_keys=True)
+    if _STATE.get("key") != key:
+        _STATE.clear()
+        _STATE.update(key=key, plan=_Plan(config), town=Town(config.seed), layers={})
+    return _STATE
+
+
+def _init_worker(config_dict: dict) -> None:
+    torch.set_num_threads(1)
+    _state(DatasetConfig(**config_dict))
+
+
+def _to_uint8(rgb: torch.Tensor) -> np.ndarray:
+    """``(3, H, W)`` float in [0, 1] -> ``(H, W, 3)`` uint8."""
+    return (rgb.clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()
+
+
+def _layer(state: dict, key, camera, face_size: int) -> OmniProjection:
+    layers = state["layers"]
+    if key not in layers:
+        # fused_grid=False: the eager grid, no torch.compile start-up in every worker.
+        layers[key] = OmniProjection(camera, face_size, fused_grid=False)
+    return layers[key]
+
+
+def render_frame(config: DatasetConfig, out: str | Path, k: int) -> int:
+    """Render and write every file of frame ``k``, then its ``.done`` marker. Returns ``k``."""
+    out = Path(out)
+    state = _state(config)
+    plan: _Plan = state["plan"]
+    town: Town = state["town"]
+    n = _name(k)
+    t = float(plan.frames["time"][k])
+    weather = _frame_weather(config, k)
+    with torch.no_grad():
+        for name in config.cameras:
+            c = plan.cameras[name]
+            F = c["face_size"]
+            faces = plan.faces(name, k)
+            rot = plan.rotation(name, k).float()
+            cube = town.render_cubemap(plan.centre(name, k).float(), None, F, faces=faces, t=t,
+                                       weather=weather)
+            layer = _layer(state, name, c["camera"], F)
+            res = layer.render(rgb=cube["rgb"], depth=cube["depth"], labels=cube["labels"],
+                               rotation=rot)
+            labels = res["labels"][0]
+            valid = res["valid"][0, 0]
+            base = out / name
+            write_image(base / "rgb" / f"{n}.png", _to_uint8(res["rgb"][0]))
+            write_exr(base / "depth" / f"{n}.exr", res["depth"][0, 0].float())
+            write_image(base / "labels" / f"{n}.png", labels.to(torch.uint8).numpy())
+            write_image(base / "labels_color" / f"{n}.png", colorize(labels))
+            write_image(base / "valid" / f"{n}.png", (valid.to(torch.uint8) * 255).numpy())
+            if config.save_cubemaps:
+                for i, (face, need) in enumerate(zip(FACES, faces.tolist())):
+                    if not need:
+                        continue
+                    write_image(base / "cubemap" / "rgb" / f"{n}_{face}.png",
+                                _to_uint8(cube["rgb"][0, i]))
+                    write_exr(base / "cubemap" / "depth" / f"{n}_{face}.exr",
+                              cube["depth"][0, i].float())
+                    write_image(base / "cubemap" / "labels" / f"{n}_{face}.png",
+                                cube["labels"][0, i].to(torch.uint8).numpy())
+        if config.save_panorama:
+            centre = plan.location[k] + plan.R_bike[k] @ torch.tensor(PANORAMA_POSITION,
+                                                                      dtype=torch.float64)
+            F = plan.panorama_face
+            cube = town.render_cubemap(centre.float(), None, F, t=t, weather=weather)
+            h, w = plan.panorama_size
+            layer = _layer(state, "panorama", equirectangular_camera(w, h), F)
+            res = layer.render(rgb=cube["rgb"], depth=cube["depth"], labels=cube["labels"],
+                               rotation=plan.R_bike[k].float())
+            base = out / "panorama"
+            write_image(base / "rgb" / f"{n}.png", _to_uint8(res["rgb"][0]))
+            write_exr(base / "depth" / f"{n}.exr", res["depth"][0, 0].float())
+            write_image(base / "labels" / f"{n}.png", res["labels"][0].to(torch.uint8).numpy())
+    atomic_write_text(_marker(out, k), json.dumps({"frame": k, "weather": weather}) + "\n")
+    return k
+
+
+def _render_in_worker(out: str, k: int) -> int:
+    return render_frame(DatasetConfig(**json.loads(_STATE["key"])), out, k)
+
+
+# --------------------------------------------------------------------------------------------
+# Per-run files
+# --------------------------------------------------------------------------------------------
+
+def _write_if_changed(path: Path, text: str) -> None:
+    """Atomic write, skipped when the file already holds ``text`` (a rerun keeps its mtime)."""
+    try:
+        if path.read_text(encoding="utf-8") == text:
+            return
+    except (FileNotFoundError, UnicodeDecodeError):
+        pass
+    atomic_write_text(path, text)
+
+
+def _dumps(obj) -> str:
+    return json.dumps(obj, indent=2) + "\n"
+
+
+def _matrix(t: torch.Tensor) -> list:
+    return [[float(x) for x in row] for row in t.tolist()]
+
+
+def _pose(rotation: torch.Tensor, centre: torch.Tensor) -> list:
+    t = torch.eye(4, dtype=torch.float64)
+    t[:3, :3], t[:3, 3] = rotation, centre
+    return _matrix(t)
+
+
+def _versions() -> dict:
+    from . import __version__
+    out = {"omniscape_torch": __version__, "torch": torch.__version__, "numpy": np.__version__,
+           "python": platform.python_version()}
+    try:
+        import cv2
+        out["opencv"] = cv2.__version__
+    except ImportError:  # pragma: no cover
+        pass
+    return out
+
+
+def _dynamics_csv(recs: list[dict]) -> str:
+    columns = ["frame", "timestamp"]
+    for key in ("location", "velocity", "acceleration", "angular_velocity"):
+        columns += [f"{key}_{a}" for a in "xyz"]
+    columns += ["rotation_pitch", "rotation_yaw", "rotation_roll", "speed"]
+    buf = _io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(columns)
+    for r in recs:
+        row = [r["frame"], repr(r["timestamp"])]
+        for key in ("location", "velocity", "acceleration", "angular_velocity"):
+            row += [repr(r[key][a]) for a in "xyz"]
+        row += [repr(r["rotation"][a]) for a in ("pitch", "yaw", "roll")]
+        row.append(repr(r["speed"]))
+        writer.writerow(row)
+    return buf.getvalue()
+
+
+def _layout(config: DatasetConfig) -> dict:
+    layout = {"dataset.json": "this manifest",
+              "dynamics.json": "ride.records(): per-frame vehicle state, CARLA names/frame/units",
+              "dynamics.csv": "dynamics.json flattened, one row per frame",
+              "<camera>/camera.json": "intrinsics, Camera.save_json",
+              "<camera>/extrinsics.json": "T_rig_camera and per-frame T_world_camera",
+              "<camera>/rgb/NNNNNN.png": "8-bit RGB",
+              "<camera>/depth/NNNNNN.exr": "range along the ray, float32 metres, channel Z, "
+                                           "0 where not valid",
+              "<camera>/labels/NNNNNN.png": "class ids 0..12, 255 not valid",
+              "<camera>/labels_color/NNNNNN.png": "labels in CARLA's palette",
+              "<camera>/valid/NNNNNN.png": "255 valid, 0 not",
+              ".done/NNNNNN": "frame finished marker, written last"}
+    if config.save_cubemaps:
+        layout["<camera>/cubemap/{rgb,depth,labels}/NNNNNN_<face>.{png,exr,png}"] = \
+            "rendered cube faces (planar depth), cube axes = world axes"
+    if config.save_panorama:
+        layout["panorama/{rgb,depth,labels}/NNNNNN.{png,exr,png}"] = \
+            "equirectangular view from the rig, turned with the motorcycle (range depth)"
+    return layout
+
+
+def _write_run_files(plan: _Plan, out: Path) -> None:
+    config = plan.config
+    recs = _ride.records(plan.frames)
+    _write_if_changed(out / "dynamics.json", _dumps(recs))
+    _write_if_changed(out / "dynamics.csv", _dynamics_csv(recs))
+    cameras = {}
+    for name, c in plan.cameras.items():
+        base = out / name
+        base.mkdir(parents=True, exist_ok=True)
+        _write_if_changed(base / "camera.json", _dumps(camera_to_dict(c["camera"])))
+        t_rig = _pose(c["r_cam"], c["position"])
+        poses = []
+        for k in range(config.frames):
+            poses.append({"frame": k,
+                          "T_world_camera": _pose(plan.rotation(name, k), plan.centre(name, k)),
+                          "faces": [f for f, v in zip(FACES, plan.faces(name, k).tolist())
+                                    if v]})
+        extr = {"frames": {"rig": "x right, y down, z forward (OpenCV), origin on the ground "
+                                  "under the motorcycle's reference point, metres",
+                           "world": "x east, y down, z north, metres (town frame; CARLA "
+                                    "location (x, y, z) = world (z, x, -y))",
+                           "camera": "OpenCV, x right, y down, z forward"},
+                "T_rig_camera": t_rig, "face_size": c["face_size"], "poses": poses}
+        _write_if_changed(base / "extrinsics.json", _dumps(extr))
+        cameras[name] = {"model": c["camera"].model.name,
+                         "image_size": list(config.image_size),
+                         "face_size": c["face_size"],
+                         "position_rig": list(RIG_POSITIONS[name]),
+                         "rotation_rig_camera": _matrix(c["r_cam"])}
+    manifest = {"format": FORMAT, "format_version": FORMAT_VERSION,
+                "config": config.to_dict(), "versions": _versions(),
+                "frames": config.frames, "cameras": cameras,
+                "classes": list(CLASSES), "ignore_index": IGNORE_INDEX,
+                "palette": PALETTE.tolist(),
+                "weather_per_frame": [_frame_weather(config, k) for k in range(config.frames)],
+                "layout": _layout(config),
+                "conventions": {"depth": "range (Euclidean, along the ray), metres",
+                                "angles": "degrees in dynamics.json (CARLA)",
+                                "pixels": "(u, v) = (column, row), (0, 0) the centre of the "
+                                          "top-left pixel"}}
+    _write_if_changed(out / "dataset.json", _dumps(manifest))
+
+
+# --------------------------------------------------------------------------------------------
+# generate
+# --------------------------------------------------------------------------------------------
+
+def generate(out: str | Path, config: DatasetConfig | None = None, *, workers: int = 1,
+             progress: bool | None = None, log: Callable[[str], None] | None = None) -> dict:
+    """Write (or complete) the dataset of ``config`` in ``out``.
+
+    Args:
+        out: the dataset folder (created).
+        config: a :class:`DatasetConfig` (default: all defaults).
+        workers: processes rendering frames in parallel (1: in this process).
+        progress: show a tqdm bar on stderr (default: when stderr is a terminal).
+        log: called with one-line messages (default: nothing).
+
+    Returns:
+        ``{"rendered": [frame numbers], "skipped": [frame numbers], "face_sizes": {camera: F}}``.
+
+    Raises:
+        ValueError: bad configuration, or ``out`` holds a dataset of another configuration.
+    """
+    config = DatasetConfig() if config is None else config
+    config.validate()
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers: expected a positive integer, got {workers!r}")
+    log = log or (lambda msg: None)
+    out = Path(out)
+    manifest = out / "dataset.json"
+    if manifest.is_file():
+        try:
+            old = json.loads(manifest.read_text(encoding="utf-8")).get("config")
+        except (ValueError, AttributeError):
+            old = None
+        if old != config.to_dict():
+            raise ValueError(f"{out} holds a dataset of another configuration ({manifest}); "
+                             f"use another --out folder or remove it")
+    out.mkdir(parents=True, exist_ok=True)
+    plan = _state(config)["plan"]
+    _write_run_files(plan, out)
+    todo = [k for k in range(config.frames) if not _finished(plan, out, k)]
+    skipped = [k for k in range(config.frames) if k not in todo]
+    sizes = {n: c["face_size"] for n, c in plan.cameras.items()}
+    log(f"{len(todo)} frame(s) to render, {len(skipped)} finished; face sizes "
+        + ", ".join(f"{n} {s}" for n, s in sizes.items()))
+    if progress is None:
+        progress = sys.stderr.isatty()
+    from tqdm import tqdm
+    bar = tqdm(total=config.frames, initial=len(skipped), disable=not progress, file=sys.stderr,
+               unit="frame", desc="generate")
+    rendered = []
+    try:
+        if workers == 1 or len(todo) <= 1:
+            for k in todo:
+                rendered.append(render_frame(config, out, k))
+                bar.update(1)
+        else:
+            ctx = get_context("spawn")
+            with ProcessPoolExecutor(min(workers, len(todo)), mp_context=ctx,
+                                     initializer=_init_worker,
+                                     initargs=(config.to_dict(),)) as pool:
+                futures = [pool.submit(_render_in_worker, str(out), k) for k in todo]
+                try:
+                    for fut in as_completed(futures):
+                        rendered.append(fut.result())
+                        bar.update(1)
+                except BaseException:
+                    for fut in futures:
+                        fut.cancel()
+                    raise
+    finally:
+        bar.close()
+    return {"rendered": sorted(rendered), "skipped": skipped, "face_sizes": sizes}
+
+
+# --------------------------------------------------------------------------------------------
+# stats
+# --------------------------------------------------------------------------------------------
+
+def stats(root: str | Path, *, plot: bool = True) -> dict:
+    """Table I (yaw, pitch, roll over the ride) and the per-class pixel share (valid pixels)
+    of the fisheye and catadioptric images of the dataset in ``root``; writes
+    ``root/stats.json`` and (``plot``) the bar chart ``root/stats.png``.
+
+    Returns:
+        ``{"table_one": {angle: {mean, std, min, median, max}}, "class_share": {kind:
+        {class: share}}, "pixels": {kind: valid pixel count}, "frames": N}``.
+    """
+    root = Path(root)
+    manifest_path = root / "dataset.json"
+    if not manifest_path.is_file():
+        raise FileNotFoundError(f"{root}: no dataset.json (not a dataset written by "
+                                f"'omniscape-torch generate')")
+    manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
+    recs = json.loads((root / "dynamics.json").read_text(encoding="utf-8"))
+    rotation = torch.tensor([[r["rotation"]["roll"], r["rotation"]["pitch"],
+                              r["rotation"]["yaw"]] for r in recs], dtype=torch.float64)
+    table = _ride.table_one(rotation)
+    counts = {}
+    for name in manifest["cameras"]:
+        kind = name.split("_")[0]
+        acc = counts.setdefault(kind, np.zeros(len(CLASSES), dtype=np.int64))
+        for path in sorted((root / name / "labels").glob("*.png")):
+            labels = read_image(path).numpy()
+            valid_path = root / name / "valid" / path.name
+            valid = read_image(valid_path).numpy() > 0 if valid_path.is_file() \
+                else labels != IGNORE_INDEX
+            ids = labels[valid & (labels < len(CLASSES))]
+            acc += np.bincount(ids.astype(np.int64), minlength=len(CLASSES))
+    share = {kind: {c: (float(v[i]) / float(v.sum()) if v.sum() else 0.0)
+                    for i, c in enumerate(CLASSES)} for kind, v in counts.items()}
+    result = {"frames": len(recs), "table_one": table, "class_share": share,
+              "pixels": {kind: int(v.sum()) for kind, v in counts.items()}}
+    atomic_write_text(root / "stats.json", _dumps(result))
+    if plot:
+        _plot(result, root / "stats.png")
+    return result
+
+
+def _plot(result: dict, path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg", force=False)
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(11, 4.5), layout="constrained")
+    ax0, ax1 = fig.subplots(1, 2, width_ratios=(3, 1))
+    kinds = list(result["class_share"])
+    x = np.arange(len(CLASSES))
+    width = 0.8 / max(1, len(kinds))
+    for i, kind in enumerate(kinds):
+        values = [100 * result["class_share"][kind][c] for c in CLASSES]
+        ax0.bar(x + (i - (len(kinds) - 1) / 2) * width, values, width, label=kind)
+    ax0.set_xticks(x, CLASSES, rotation=60, ha="right")
+    ax0.set_ylabel("share of valid pixels (%)")
+    ax0.set_title("class share")
+    if kinds:
+        ax0.legend()
+    names = ("yaw", "pitch", "roll")
+    table = result["table_one"]
+    ax1.bar(names, [table[n]["mean"] for n in names],
+            yerr=[table[n]["std"] for n in names], capsize=4, color="grey")
+    ax1.scatter(names, [table[n]["min"] for n in names], marker="v", color="k", label="min")
+    ax1.scatter(names, [table[n]["max"] for n in names], marker="^", color="k", label="max")
+    ax1.set_ylabel("degrees")
+    ax1.set_title("attitude (mean, std)")
+    ax1.legend()
+    buf = _io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def format_stats(result: dict) -> str:
+    """The text ``omniscape-torch stats`` prints."""
+    lines = [f"Table I: vehicle attitude over {result['frames']} frames (degrees)",
+             f"{'':8}{'mean':>10}{'std':>10}{'min':>10}{'median':>10}{'max':>10}"]
+    for name in ("yaw", "pitch", "roll"):
+        row = result["table_one"][name]
+        lines.append(f"{name:8}" + "".join(f"{row[k]:10.3f}" for k in
+                                           ("mean", "std", "min", "median", "max")))
+    kinds = list(result["class_share"])
+    lines.append("")
+    lines.append("class share of valid pixels (%)")
+    lines.append(f"{'class':14}" + "".join(f"{k:>14}" for k in kinds))
+    for c in CLASSES:
+        lines.append(f"{c:14}" + "".join(f"{100 * result['class_share'][k][c]:14.2f}"
+                                         for k in kinds))
+    lines.append(f"{'valid pixels':14}" + "".join(f"{result['pixels'][k]:14d}" for k in kinds))
+    return "\n".join(lines)

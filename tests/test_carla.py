@@ -1,0 +1,253 @@
+"""CARLA decoders (depth, semantic tags, label sets) and the cubemap-capture converter."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+import pytest
+import torch
+
+import omniscape_torch as ot
+from omniscape_torch.convert import (add_convert_parser, cmd_convert, convert_captures,
+                                     find_captures, load_capture)
+from omniscape_torch.cubemap import FACES, face_rays
+from omniscape_torch.io.carla import (EXT23_TO_13, NEW_CLASSES, NEW_TO_13, decode_depth,
+                                      decode_labels, encode_depth, map_labels, to_13)
+
+STEP = 1000.0 / (256 ** 3 - 1)   # one depth code, metres
+
+
+def _encode(depth_m: np.ndarray) -> np.ndarray:
+    """CARLA's depth encoding, written independently of the library: (H, W, 3) uint8 RGB."""
+    code = np.rint(np.asarray(depth_m, np.float64) / 1000.0 * (256 ** 3 - 1)).astype(np.int64)
+    r, g, b = code % 256, (code // 256) % 256, code // 65536
+    return np.stack([r, g, b], -1).astype(np.uint8)
+
+
+# ---------------------------------------------------------------------------- decoders
+
+def test_decode_depth_round_trip_rgb_and_bgra():
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(0, 1000, size=(7, 9))
+    depth[0, 0], depth[0, 1], depth[0, 2] = 0.0, 1000.0, 1.0
+    rgb = _encode(depth)
+    got = decode_depth(rgb, "RGB")
+    assert got.dtype == torch.float32 and got.shape == (7, 9)
+    # half a code step, plus float32 rounding at 1000 m
+    np.testing.assert_allclose(got.numpy(), depth, atol=STEP / 2 + 1e-4)
+    assert float(got[0, 0]) == 0.0 and float(got[0, 1]) == 1000.0
+    bgra = np.concatenate([rgb[..., ::-1], np.full((7, 9, 1), 255, np.uint8)], -1)
+    assert torch.equal(decode_depth(bgra, "BGRA"), got)
+    assert torch.equal(decode_depth(torch.from_numpy(bgra), "BGRA"), got)
+    # the library's encoder agrees with the test's
+    assert np.array_equal(encode_depth(depth, "RGB"), rgb)
+
+
+def test_decode_depth_known_codes():
+    img = np.zeros((1, 3, 3), np.uint8)
+    img[0, 0] = (1, 0, 0)        # R is the low byte
+    img[0, 1] = (0, 1, 0)        # G: 256
+    img[0, 2] = (0, 0, 1)        # B: 65536
+    got = decode_depth(img, "RGB").double().numpy()[0]
+    np.testing.assert_allclose(got, np.array([1, 256, 65536]) * STEP, rtol=1e-6)
+
+
+def test_decode_errors():
+    with pytest.raises(TypeError, match="uint8"):
+        decode_depth(np.zeros((2, 2, 3), np.uint16), "RGB")
+    with pytest.raises(ValueError, match="channel_order"):
+        decode_depth(np.zeros((2, 2, 3), np.uint8), "GRB")
+    with pytest.raises(ValueError, match=r"\(H, W, 3\)"):
+        decode_labels(np.zeros((2, 2), np.uint8))
+
+
+def test_decode_labels_red_channel():
+    rgb = np.zeros((2, 3, 3), np.uint8)
+    rgb[..., 0] = np.arange(6).reshape(2, 3) + 20
+    rgb[..., 1:] = 7   # ignored
+    got = decode_labels(rgb, "RGB")
+    assert got.dtype == torch.int64
+    assert got.tolist() == [[20, 21, 22], [23, 24, 25]]
+    bgra = np.concatenate([rgb[..., ::-1], np.full((2, 3, 1), 255, np.uint8)], -1)
+    assert torch.equal(decode_labels(bgra, "BGRA"), got)
+
+
+def test_mappings_are_total_into_13_classes():
+    assert len(NEW_CLASSES) == 29
+    assert sorted(NEW_TO_13) == list(range(29))
+    assert sorted(EXT23_TO_13) == list(range(23))
+    for mapping in (NEW_TO_13, EXT23_TO_13):
+        assert all(0 <= v <= 12 for v in mapping.values())
+        assert set(mapping.values()) == set(range(13))   # every class reachable
+    ids = torch.arange(29)
+    assert to_13(ids, "new").tolist() == [NEW_TO_13[i] for i in range(29)]
+    # spot checks of the documented choices (ObjectLabel.h ids -> paper classes)
+    c = {n: i for i, n in enumerate(ot.io.CLASSES)}
+    assert NEW_TO_13[1] == c["Road"] and NEW_TO_13[24] == c["RoadLine"]
+    assert NEW_TO_13[14] == NEW_TO_13[19] == c["Vehicle"]
+    assert NEW_TO_13[12] == c["Pedestrian"] and NEW_TO_13[11] == c["Unlabeled"]
+    assert to_13(torch.arange(13), "13").tolist() == list(range(13))
+
+
+def test_map_labels_unknown():
+    with pytest.raises(ValueError, match=r"\[29, 255\]"):
+        map_labels(torch.tensor([1, 29, 255]), NEW_TO_13)
+    got = map_labels(np.array([[1, 29], [-1, 3]]), NEW_TO_13, unknown=255)
+    assert got.tolist() == [[7, 255], [255, 1]]
+    with pytest.raises(ValueError, match="not in the mapping"):
+        to_13(torch.tensor([13]), "13")
+    with pytest.raises(TypeError):
+        map_labels(torch.tensor([1.0]), NEW_TO_13)
+
+
+# ---------------------------------------------------------------------------- captures
+
+F = 16
+
+
+def _scene():
+    """Analytic faces from the direction of every texel: rgb, planar depth, new-set tags."""
+    rays = face_rays(F, dtype=torch.float64).numpy()           # [6, F, F, 3], axis part 1
+    norm = np.linalg.norm(rays, axis=-1)
+    d = rays / norm[..., None]
+    rgb = np.rint(255 * (d + 1) / 2).astype(np.uint8)           # [6, F, F, 3]
+    rng = 5.0 + 2.0 * d[..., 0] + d[..., 1]                    # range, metres
+    depth = rng / norm                                          # planar depth along the face axis
+    v, u = np.meshgrid(np.arange(F), np.arange(F), indexing="ij")
+    tags = (np.arange(6)[:, None, None] * 5 + (u + 2 * v)[None]) % 29
+    return rgb, depth, tags.astype(np.int64)
+
+
+def _write_capture(folder, rgb, depth, tags):
+    for k, face in enumerate(FACES):
+        ot.io.write_image(folder / f"{face}_rgb.png", rgb[k])
+        ot.io.write_image(folder / f"{face}_depth.png", _encode(depth[k]))
+        lab = np.zeros((F, F, 3), np.uint8)
+        lab[..., 0] = tags[k]
+        ot.io.write_image(folder / f"{face}_labels.png", lab)
+
+
+@pytest.fixture
+def capture_root(tmp_path):
+    root = tmp_path / "cubemaps"
+    rgb, depth, tags = _scene()
+    _write_capture(root / "000042", rgb, depth, tags)
+    return root, (rgb, depth, tags)
+
+
+def test_load_capture_gives_expected_cubemaps(capture_root):
+    root, (rgb, depth, tags) = capture_root
+    assert find_captures(root) == [root / "000042"]
+    cube = load_capture(root / "000042", label_set="new")
+    assert cube["face_size"] == F
+    assert cube["rgb"].shape == (1, 6, 3, F, F) and cube["rgb"].dtype == torch.float32
+    expected_rgb = torch.from_numpy(rgb).permute(0, 3, 1, 2).float() / 255
+    assert torch.equal(cube["rgb"][0], expected_rgb)
+    assert cube["depth"].shape == (1, 6, F, F) and cube["depth"].dtype == torch.float32
+    np.testing.assert_allclose(cube["depth"][0].double().numpy(), depth, atol=STEP / 2 + 1e-5)
+    expected_labels = np.vectorize(NEW_TO_13.get)(tags)
+    assert cube["labels"].shape == (1, 6, F, F) and cube["labels"].dtype == torch.int64
+    assert np.array_equal(cube["labels"][0].numpy(), expected_labels)
+    # a folder that is itself a capture is accepted
+    assert find_captures(root / "000042") == [root / "000042"]
+
+
+def test_convert_writes_fisheye_and_catadioptric(capture_root, tmp_path):
+    root, (rgb, depth, tags) = capture_root
+    out = tmp_path / "out"
+    results = convert_captures(root, out, label_set="new", image_size=(48, 48))
+    assert set(results) == {"000042"}
+    cap = out / "000042"
+    for cam in ("fisheye", "catadioptric"):
+        for suffix in ("rgb.png", "depth.exr", "labels.png", "labels_color.png", "valid.png"):
+            assert (cap / f"{cam}_{suffix}").is_file(), f"{cam}_{suffix}"
+    assert not list(cap.glob(".*"))   # no temporary files left
+    meta = json.loads((out / "cameras.json").read_text())
+    assert meta["fisheye"]["camera"]["model"] == "equidistant"
+    # the fisheye looks forward: range near the centre ~ 5 + 2 dx + dy with d ~ +z
+    rng = ot.io.read_exr(cap / "fisheye_depth.exr")
+    assert rng.shape == (48, 48)
+    assert abs(float(rng[23:25, 23:25].mean()) - 5.0) < 0.3
+    valid = ot.io.read_image(cap / "fisheye_valid.png") > 0
+    assert bool((rng[valid] > 2.5).all()) and bool((rng[~valid] == 0).all())
+    labels = ot.io.read_image(cap / "fisheye_labels.png")
+    assert bool((labels[valid] <= 12).all()) and bool((labels[~valid] == 255).all())
+    # the catadioptric (looking down) sees the down face around its centre, range ~ 5 + dy = 6
+    cata = ot.io.read_exr(cap / "catadioptric_depth.exr")
+    cvalid = ot.io.read_image(cap / "catadioptric_valid.png") > 0
+    assert bool(cvalid.any()) and not bool(cvalid[23:25, 23:25].any())   # blind centre
+    assert bool((cata[cvalid] > 2.5).all())
+
+
+def test_missing_face_names_the_file(capture_root):
+    root, _ = capture_root
+    (root / "000042" / "up_depth.png").unlink()
+    with pytest.raises(ValueError, match="up_depth.png"):
+        load_capture(root / "000042")
+
+
+def test_mismatched_face_size(capture_root):
+    root, _ = capture_root
+    ot.io.write_image(root / "000042" / "left_rgb.png", np.zeros((8, 8, 3), np.uint8))
+    with pytest.raises(ValueError, match="left_rgb.png"):
+        load_capture(root / "000042", label_set="new")
+    ot.io.write_image(root / "000042" / "left_rgb.png", np.zeros((16, 12, 3), np.uint8))
+    with pytest.raises(ValueError, match="square"):
+        load_capture(root / "000042", label_set="new")
+
+
+def test_unknown_tag_names_the_file(capture_root):
+    root, _ = capture_root
+    with pytest.raises(ValueError, match="labels.png"):   # tags up to 28 are not 13-class ids
+        load_capture(root / "000042", label_set="13")
+
+
+def test_no_capture(tmp_path):
+    with pytest.raises(ValueError, match="no capture"):
+        find_captures(tmp_path)
+    with pytest.raises(FileNotFoundError):
+        find_captures(tmp_path / "nope")
+
+
+def test_cli_convert(capture_root, tmp_path, capsys):
+    root, _ = capture_root
+    parser = argparse.ArgumentParser()
+    add_convert_parser(parser.add_subparsers(dest="command", required=True))
+    out = tmp_path / "cli"
+    args = parser.parse_args(["convert", "--cubemaps", str(root), "--out", str(out),
+                              "--label-set", "new", "--size", "32", "32",
+                              "--cameras", "fisheye"])
+    assert args.func is cmd_convert
+    assert args.func(args) == 0
+    assert (out / "000042" / "fisheye_rgb.png").is_file()
+    assert not (out / "000042" / "catadioptric_rgb.png").exists()
+    assert "000042" in capsys.readouterr().out
+
+
+# ---------------------------------------------------------------------------- capture script
+
+def test_capture_script_compiles_and_rig_matches_faces():
+    """The script imports without CARLA, and its rig rotations are the cube faces'."""
+    import importlib.util
+    import math
+    import py_compile
+    from pathlib import Path
+
+    from omniscape_torch.cubemap import face_rotations
+    from omniscape_torch.presets import yaw_pitch_roll_to_matrix
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "capture_carla.py"
+    py_compile.compile(str(path), doraise=True)
+    spec = importlib.util.spec_from_file_location("capture_carla", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    assert module.FACES == FACES
+    rotations = face_rotations(torch.float64)
+    for k, face in enumerate(FACES):
+        pitch, yaw, roll = module.RIG[face]
+        yaw, pitch, roll = (torch.tensor(math.radians(a), dtype=torch.float64)
+                            for a in (yaw, pitch, roll))
+        r = yaw_pitch_roll_to_matrix(yaw, pitch, roll)
+        torch.testing.assert_close(r, rotations[k], atol=1e-12, rtol=0)

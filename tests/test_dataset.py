@@ -1,0 +1,229 @@
+"""The dataset writer (``omniscape-torch generate``) and its statistics (``stats``)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+import omniscape_torch as ot
+from omniscape_torch import cli
+from omniscape_torch.dataset import CAMERAS, MODALITIES, DatasetConfig, format_stats, generate
+from omniscape_torch.io import read_exr, read_image
+from omniscape_torch.scenes.town import Town
+
+SIZE = (48, 48)
+FRAMES = 2
+
+
+def _config(**kw):
+    base = dict(frames=FRAMES, fps=2.0, image_size=SIZE, max_face_size=48, seed=0,
+                weather=("clear_noon", "sunset"))
+    base.update(kw)
+    return DatasetConfig(**base)
+
+
+def _files(root):
+    return {p.relative_to(root).as_posix(): p for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    out = tmp_path_factory.mktemp("ds") / "data"
+    result = generate(out, _config(), workers=1, progress=False)
+    assert result["rendered"] == list(range(FRAMES)) and result["skipped"] == []
+    return out
+
+
+def test_layout(dataset):
+    files = _files(dataset)
+    for name in ("dataset.json", "dynamics.json", "dynamics.csv"):
+        assert name in files
+    for k in range(FRAMES):
+        assert f".done/{k:06d}" in files
+        for cam in CAMERAS:
+            for modality, ext in MODALITIES.items():
+                assert f"{cam}/{modality}/{k:06d}.{ext}" in files
+    for cam in CAMERAS:
+        assert f"{cam}/camera.json" in files and f"{cam}/extrinsics.json" in files
+    assert not [f for f in files if f.endswith(".tmp") or ".tmp." in f]
+    manifest = json.loads(files["dataset.json"].read_text())
+    assert manifest["config"] == _config().to_dict()
+    assert set(manifest["cameras"]) == set(CAMERAS)
+    assert "layout" in manifest and "torch" in manifest["versions"]
+    recs = json.loads(files["dynamics.json"].read_text())
+    assert [r["frame"] for r in recs] == list(range(FRAMES))
+    assert set(recs[0]) >= {"timestamp", "location", "rotation", "velocity", "speed"}
+    lines = files["dynamics.csv"].read_text().splitlines()
+    assert len(lines) == FRAMES + 1 and lines[0].startswith("frame,timestamp,location_x")
+
+
+def test_files_readable_and_consistent(dataset):
+    for cam in CAMERAS:
+        camera = ot.Camera.load_json(dataset / cam / "camera.json")
+        assert camera.image_size == SIZE
+        for k in range(FRAMES):
+            n = f"{k:06d}"
+            rgb = read_image(dataset / cam / "rgb" / f"{n}.png")
+            labels = read_image(dataset / cam / "labels" / f"{n}.png")
+            colour = read_image(dataset / cam / "labels_color" / f"{n}.png")
+            valid = read_image(dataset / cam / "valid" / f"{n}.png")
+            depth = read_exr(dataset / cam / "depth" / f"{n}.exr")
+            assert rgb.shape == SIZE + (3,) and colour.shape == SIZE + (3,)
+            assert labels.shape == SIZE and valid.shape == SIZE and depth.shape == SIZE
+            assert set(valid.unique().tolist()) <= {0, 255}
+            v = valid == 255
+            assert v.any() and (~v).any()       # omni images have a rim
+            assert ((labels == 255) == ~v).all()
+            assert (labels[v] <= 12).all()
+            assert depth.dtype == torch.float32 and torch.isfinite(depth).all()
+            assert (depth[v] > 0).all() and (depth[~v] == 0).all()
+            assert (colour[~v] == 255).all()
+
+
+def test_depth_is_the_rendered_range(dataset):
+    """Re-render one camera from the written intrinsics and extrinsics: the EXR holds exactly
+    the layer's range; and that range is the town's ray-cast range (nearest texel)."""
+    manifest = json.loads((dataset / "dataset.json").read_text())
+    town = Town(0)
+    recs = json.loads((dataset / "dynamics.json").read_text())
+    for cam in ("fisheye_left", "catadioptric_right"):
+        camera = ot.Camera.load_json(dataset / cam / "camera.json")
+        extr = json.loads((dataset / cam / "extrinsics.json").read_text())
+        k = 1
+        pose = torch.tensor(extr["poses"][k]["T_world_camera"], dtype=torch.float64)
+        rot, centre = pose[:3, :3].float(), pose[:3, 3].float()
+        F = extr["face_size"]
+        faces = ot.visible_faces(camera, rot, face_size=F)
+        assert [f for f, v in zip(ot.cubemap.FACES, faces.tolist()) if v] == \
+            extr["poses"][k]["faces"]
+        cube = town.render_cubemap(centre, None, F, faces=faces, t=recs[k]["timestamp"],
+                                   weather=manifest["weather_per_frame"][k])
+        layer = ot.OmniProjection(camera, F, fused_grid=False)
+        res = layer.render(depth=cube["depth"], labels=cube["labels"], rotation=rot)
+        depth = read_exr(dataset / cam / "depth" / f"{k:06d}.exr")
+        assert torch.equal(depth, res["depth"][0, 0])
+        labels = read_image(dataset / cam / "labels" / f"{k:06d}.png")
+        assert torch.equal(labels.long(), res["labels"][0])
+        # against the exact ray cast of the pixel rays (nearest-texel depth: a few pixels on
+        # object edges differ, the bulk agrees closely)
+        rays, valid = camera.ray_grid()
+        truth = town.render_rays(centre, rays.float() @ rot.T, t=recs[k]["timestamp"])["range"]
+        v = valid & (truth < 900)
+        rel = ((depth[v] - truth[v]).abs() / truth[v])
+        assert float(rel.median()) < 0.02
+
+
+def test_rerun_is_noop_and_resume_completes(dataset, tmp_path):
+    out = tmp_path / "copy"
+    shutil.copytree(dataset, out)
+    before = {f: p.stat().st_mtime_ns for f, p in _files(out).items()}
+    result = generate(out, _config(), workers=1, progress=False)
+    assert result["rendered"] == [] and result["skipped"] == list(range(FRAMES))
+    assert {f: p.stat().st_mtime_ns for f, p in _files(out).items()} == before
+    # interrupt frame 1: its marker and one of its files are gone
+    (out / ".done" / "000001").unlink()
+    (out / "catadioptric_left" / "depth" / "000001.exr").unlink()
+    result = generate(out, _config(), workers=1, progress=False)
+    assert result["rendered"] == [1] and result["skipped"] == [0]
+    after = _files(out)
+    assert set(after) == set(before)
+    for f in before:       # frame 0 untouched; frame 1 rewritten with identical bytes
+        if "000000" in f:
+            assert after[f].stat().st_mtime_ns == before[f]
+        assert after[f].read_bytes() == (dataset / f).read_bytes(), f
+    # a marker without its files is not a finished frame either
+    (out / "fisheye_right" / "rgb" / "000000.png").unlink()
+    assert generate(out, _config(), workers=1, progress=False)["rendered"] == [0]
+
+
+def test_other_config_refused(dataset, tmp_path):
+    out = tmp_path / "copy"
+    shutil.copytree(dataset, out)
+    with pytest.raises(ValueError, match="another configuration"):
+        generate(out, _config(frames=3), progress=False)
+
+
+def test_workers_give_identical_files(dataset, tmp_path):
+    out = tmp_path / "par"
+    result = generate(out, _config(), workers=2, progress=False)
+    assert result["rendered"] == list(range(FRAMES))
+    a, b = _files(dataset), _files(out)
+    assert set(a) == set(b)
+    for f in a:
+        assert a[f].read_bytes() == b[f].read_bytes(), f
+
+
+def test_cubemaps_panorama_and_subset(tmp_path):
+    out = tmp_path / "extra"
+    config = _config(frames=1, cameras=("fisheye_right",), weather=("night",),
+                     save_cubemaps=True, save_panorama=True, face_size=16)
+    generate(out, config, progress=False)
+    files = _files(out)
+    assert not any(f.startswith("fisheye_left") or f.startswith("catadioptric") for f in files)
+    faces = json.loads((out / "fisheye_right" / "extrinsics.json").read_text())
+    faces = faces["poses"][0]["faces"]
+    assert faces and "back" not in faces
+    for face in faces:
+        assert read_image(out / f"fisheye_right/cubemap/rgb/000000_{face}.png").shape == \
+            (16, 16, 3)
+        assert read_exr(out / f"fisheye_right/cubemap/depth/000000_{face}.exr").shape == (16, 16)
+    assert read_image(out / "panorama/rgb/000000.png").shape == (48, 96, 3)
+    pano_depth = read_exr(out / "panorama/depth/000000.exr")
+    assert pano_depth.shape == (48, 96) and (pano_depth > 0).all()
+
+
+def test_stats(dataset, tmp_path, capsys):
+    out = tmp_path / "copy"
+    shutil.copytree(dataset, out)
+    assert cli.main(["stats", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "Table I" in text and "Road" in text and "catadioptric" in text
+    for angle in ("yaw", "pitch", "roll"):
+        assert angle in text
+    png = (out / "stats.png").read_bytes()
+    assert png.startswith(b"\x89PNG")
+    result = json.loads((out / "stats.json").read_text())
+    recs = json.loads((out / "dynamics.json").read_text())
+    rolls = np.array([r["rotation"]["roll"] for r in recs])
+    assert result["table_one"]["roll"]["mean"] == pytest.approx(rolls.mean())
+    assert result["table_one"]["roll"]["max"] == pytest.approx(rolls.max())
+    for kind in ("fisheye", "catadioptric"):
+        assert sum(result["class_share"][kind].values()) == pytest.approx(1.0)
+        assert result["class_share"][kind]["Road"] > 0
+    assert format_stats(result).splitlines()[0].startswith("Table I")
+    # the shares count valid pixels only
+    n_valid = sum(int((read_image(p) == 255).sum()) for cam in ("fisheye_left", "fisheye_right")
+                  for p in (out / cam / "valid").glob("*.png"))
+    assert result["pixels"]["fisheye"] == n_valid
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--cameras", "fisheye_center"], "unknown camera 'fisheye_center'"),
+    (["--image-size", "0"], "expected N or HxW"),
+    (["--image-size", "abc"], "expected N or HxW"),
+    (["--weather", "rainy"], "unknown weather 'rainy'"),
+    (["--frames", "0"], "positive integer"),
+])
+def test_cli_errors(tmp_path, capsys, argv, message):
+    with pytest.raises(SystemExit) as err:
+        cli.main(["generate", "--out", str(tmp_path / "x"), *argv])
+    assert err.value.code == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
+
+
+def test_cli_generate_and_stats_missing(tmp_path, capsys):
+    out = tmp_path / "cli"
+    argv = ["generate", "--out", str(out), "--frames", "1", "--image-size", "32x40",
+            "--face-size", "16", "--cameras", "fisheye_left", "catadioptric_left",
+            "--no-progress"]
+    assert cli.main(argv) == 0
+    assert "wrote 1 frame(s)" in capsys.readouterr().out
+    assert read_image(out / "catadioptric_left/rgb/000000.png").shape == (32, 40, 3)
+    assert not (out / "fisheye_right").exists()
+    assert cli.main(["stats", str(tmp_path / "nothing")]) == 2
+    assert "no dataset.json" in capsys.readouterr().err
