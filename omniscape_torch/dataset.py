@@ -56,6 +56,10 @@ Layout of ``DIR``
         depth/NNNNNN.exr           0.9 m, turned with the motorcycle (centre column: its
         labels/NNNNNN.png          heading); range depth
       .done/NNNNNN                 written last, atomically, when all files of a frame exist
+      contact_sheet.png            a look at the middle finished frame: one row per camera,
+                                   columns rgb, depth (log colour map, black not valid),
+                                   labels_color, valid; 200 x 200 pixels per cell; rewritten
+                                   only when its bytes change
 
 ``NNNNNN`` is the frame number (zero-padded to 6 digits). Every file is written atomically
 (temporary file + rename). A frame is finished when its ``.done`` marker and all its files
@@ -95,7 +99,8 @@ from .reproject import equirectangular_camera
 from .scenes.town import WEATHERS, Town
 from .sizing import required_face_size, visible_faces
 
-__all__ = ["CAMERAS", "DatasetConfig", "generate", "stats", "RIG_POSITIONS", "MODALITIES"]
+__all__ = ["CAMERAS", "CONTACT_SHEET", "DatasetConfig", "contact_sheet", "generate", "stats",
+           "RIG_POSITIONS", "MODALITIES"]
 
 #: The rig's cameras, in this order.
 CAMERAS = ("fisheye_left", "fisheye_right", "catadioptric_left", "catadioptric_right")
@@ -432,7 +437,9 @@ def _layout(config: DatasetConfig) -> dict:
               "<camera>/labels/NNNNNN.png": "class ids 0..12, 255 not valid",
               "<camera>/labels_color/NNNNNN.png": "labels in CARLA's palette",
               "<camera>/valid/NNNNNN.png": "255 valid, 0 not",
-              ".done/NNNNNN": "frame finished marker, written last"}
+              ".done/NNNNNN": "frame finished marker, written last",
+              "contact_sheet.png": "middle finished frame: a row per camera, columns rgb, "
+                                   "depth, labels_color, valid"}
     if config.save_cubemaps:
         layout["<camera>/cubemap/{rgb,depth,labels}/NNNNNN_<face>.{png,exr,png}"] = \
             "rendered cube faces (planar depth), cube axes = world axes"
@@ -556,7 +563,71 @@ def generate(out: str | Path, config: DatasetConfig | None = None, *, workers: i
                     raise
     finally:
         bar.close()
+    sheet = out / CONTACT_SHEET
+    if rendered or not sheet.is_file():
+        finished = [k for k in range(config.frames) if _finished(plan, out, k)]
+        if finished:
+            data = contact_sheet(out, config.cameras, finished[len(finished) // 2])
+            if not sheet.is_file() or sheet.read_bytes() != data:
+                atomic_write_bytes(sheet, data)
     return {"rendered": sorted(rendered), "skipped": skipped, "face_sizes": sizes}
+
+
+#: The contact sheet's file name, and the size of one of its cells (pixels).
+CONTACT_SHEET = "contact_sheet.png"
+SHEET_CELL = 200
+SHEET_COLUMNS = ("rgb", "depth", "labels_color", "valid")
+
+
+def contact_sheet(root: str | Path, cameras, frame: int) -> bytes:
+    """PNG bytes of frame ``frame`` of the dataset in ``root``: one row per camera of
+    ``cameras``, columns ``SHEET_COLUMNS`` (depth on a log colour map, black where not valid);
+    ``SHEET_CELL`` pixels square per cell, so ``(len(cameras) * SHEET_CELL, 4 * SHEET_CELL)``."""
+    import matplotlib
+    matplotlib.use("Agg", force=False)
+    from matplotlib.figure import Figure
+
+    from .io import read_exr
+
+    root = Path(root)
+    n = _name(frame)
+    rows, cols = len(cameras), len(SHEET_COLUMNS)
+    dpi = 100
+    fig = Figure(figsize=(cols * SHEET_CELL / dpi, rows * SHEET_CELL / dpi), dpi=dpi)
+    axes = np.asarray(fig.subplots(rows, cols, squeeze=False))
+    fig.subplots_adjust(left=0.06, right=0.99, top=1 - 0.12 / rows, bottom=0.01,
+                        wspace=0.05, hspace=0.12)
+    for r, name in enumerate(cameras):
+        base = root / name
+        valid = read_image(base / "valid" / f"{n}.png").numpy() > 0
+        depth = read_exr(base / "depth" / f"{n}.exr").numpy()
+        log_depth = np.where(valid, np.log10(np.maximum(depth, 1e-3)), np.nan)
+        images = {"rgb": read_image(base / "rgb" / f"{n}.png").numpy(),
+                  "labels_color": read_image(base / "labels_color" / f"{n}.png").numpy(),
+                  "valid": valid.astype(np.uint8) * 255}
+        for c, modality in enumerate(SHEET_COLUMNS):
+            ax = axes[r, c]
+            if modality == "depth":
+                cmap = matplotlib.colormaps["turbo"].with_extremes(bad="black")
+                finite = log_depth[np.isfinite(log_depth)]
+                lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0, 1)
+                ax.imshow(log_depth, cmap=cmap, vmin=lo, vmax=max(hi, lo + 1e-6),
+                          interpolation="nearest")
+            elif modality == "valid":
+                ax.imshow(images[modality], cmap="gray", vmin=0, vmax=255,
+                          interpolation="nearest")
+            else:
+                ax.imshow(images[modality], interpolation="nearest")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if r == 0:
+                ax.set_title(modality if modality != "depth" else "depth (log)", fontsize=9)
+            if c == 0:
+                ax.set_ylabel(name, fontsize=8)
+    fig.suptitle(f"frame {n}", fontsize=9, x=0.02, ha="left", y=0.999, va="top")
+    buf = _io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    return buf.getvalue()
 
 
 # --------------------------------------------------------------------------------------------

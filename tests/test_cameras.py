@@ -642,3 +642,14 @@ def test_blind_fov_masks_the_central_cone():
     assert "blind_fov=40.0 deg" in repr(cam)
     with pytest.raises(ValueError, match="blind_fov: must be smaller than fov"):
         ot.Camera("equidistant", params, (200, 200), fov=1.0, blind_fov=1.5)
+
+
+def test_cameras_pickle_for_dataloader_workers():
+    """A Camera crosses process boundaries (DataLoader workers): models pickle by name."""
+    import pickle
+    for name, cases in CASES.items():
+        cam = ot.Camera(name, torch.tensor(cases[0][0], dtype=F64), cases[0][1])
+        back = pickle.loads(pickle.dumps(cam))
+        assert back.model is cam.model and torch.equal(back.params, cam.params)
+        pts = fibonacci_sphere(50)
+        assert torch.equal(back.project(pts)[0], cam.project(pts)[0])

@@ -1,0 +1,173 @@
+"""PyTorch datasets over what this package writes and reads.
+
+* :class:`OmniDataset`: a dataset written by ``omniscape-torch generate`` (layout in
+  :mod:`omniscape_torch.dataset`), one item per (finished frame, camera).
+* :class:`CubemapCaptureDataset`: simulator cubemap captures (layout in
+  :mod:`omniscape_torch.convert`), one item per capture folder.
+
+Both hold only plain data (paths, tensors, dicts): they pickle, so they work with
+``DataLoader(num_workers=N)`` and the default collate function.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import torch
+from torch.utils.data import Dataset
+
+from .io.calibration import camera_from_dict
+from .io.readers import (FRAME_MODALITIES, list_cameras, list_frames, read_camera_dict,
+                         read_dynamics, read_extrinsics, read_frame, read_manifest)
+
+__all__ = ["CubemapCaptureDataset", "OmniDataset", "collate"]
+
+_DEFAULT = ("rgb", "depth", "labels", "valid")
+
+
+def collate(batch: list[dict]) -> dict:
+    """``default_collate`` key by key, keeping a plain list for a key whose values do not
+    stack (``intrinsics`` of cameras of different models, images of different sizes). Use as
+    ``DataLoader(..., collate_fn=collate)`` when a batch mixes cameras."""
+    from torch.utils.data import default_collate
+    out = {}
+    for key in batch[0]:
+        values = [b[key] for b in batch]
+        try:
+            out[key] = default_collate(values)
+        except (RuntimeError, TypeError):
+            out[key] = values
+    return out
+
+
+class OmniDataset(Dataset):
+    """The finished frames of a generated dataset, one item per (frame, camera).
+
+    Items are ordered frame-major: ``(frame 0, camera 0), (frame 0, camera 1), ...``
+    (:attr:`items` lists them). Each item is a dict::
+
+        frame          int
+        camera         str
+        rgb, depth, labels, labels_color, valid   as in :func:`omniscape_torch.io.read_frame`
+                       (those of ``modalities``)
+        model          str, the camera model's name
+        intrinsics     (P,) float64, the model's parameters (``camera.json``'s params)
+        image_size     (2,) int64, (H, W)
+        T_world_camera (4, 4) float64, camera -> world at this frame
+        T_rig_camera   (4, 4) float64, camera -> rig
+        dynamics       the frame's record of ``dynamics.json`` (nested dict of floats)
+        weather        str (when ``dataset.json`` names it)
+
+    :meth:`camera` gives the :class:`omniscape_torch.Camera` of a camera name. Batches of
+    cameras of different models (or sizes) need ``collate_fn=``:func:`collate`: their
+    ``intrinsics`` differ in length.
+
+    Args:
+        root: the dataset folder.
+        cameras: the cameras to serve (default: all, in the writer's order).
+        modalities: the images to read, some of ``rgb, depth, labels, labels_color, valid``.
+        frames: the frames to serve (default: all the finished ones, listed once here).
+        rgb_uint8: rgb as ``(3, H, W)`` uint8 rather than float in [0, 1].
+    """
+
+    def __init__(self, root: str | Path, cameras: Sequence[str] | None = None,
+                 modalities: Sequence[str] = _DEFAULT, *, frames: Sequence[int] | None = None,
+                 rgb_uint8: bool = False):
+        self.root = Path(root)
+        available = list_cameras(self.root)
+        self.cameras = list(available if cameras is None else cameras)
+        for name in self.cameras:
+            if name not in available:
+                raise ValueError(f"cameras: {name!r} is not in {self.root} (has "
+                                 f"{', '.join(available)})")
+        self.modalities = tuple(modalities)
+        for m in self.modalities:
+            if m not in FRAME_MODALITIES:
+                raise ValueError(f"modalities: expected some of {tuple(FRAME_MODALITIES)}, "
+                                 f"got {m!r}")
+        finished = list_frames(self.root, self.cameras, modalities=self.modalities)
+        if frames is None:
+            self.frames = finished
+        else:
+            self.frames = [int(k) for k in frames]
+            missing = sorted(set(self.frames) - set(finished))
+            if missing:
+                raise ValueError(f"frames: {missing} not finished in {self.root}")
+        self.rgb_uint8 = bool(rgb_uint8)
+        self._intrinsics = {c: read_camera_dict(self.root, c) for c in self.cameras}
+        self._extrinsics = {c: read_extrinsics(self.root, c) for c in self.cameras}
+        self._dynamics = read_dynamics(self.root)
+        try:
+            weather = read_manifest(self.root).get("weather_per_frame")
+        except FileNotFoundError:
+            weather = None
+        self._weather = weather
+        self.items = [(k, c) for k in self.frames for c in self.cameras]
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def camera(self, name: str, **kwargs):
+        """The :class:`omniscape_torch.Camera` of ``name`` (float64 unless ``dtype=``)."""
+        return camera_from_dict(self._intrinsics[name], **kwargs)
+
+    def __getitem__(self, index: int) -> dict:
+        if index < 0:
+            index += len(self)
+        if not 0 <= index < len(self):
+            raise IndexError(f"index {index} out of range for {len(self)} items")
+        k, name = self.items[index]
+        item = {"frame": k, "camera": name}
+        item.update(read_frame(self.root, name, k, self.modalities, rgb_uint8=self.rgb_uint8))
+        intr = self._intrinsics[name]
+        extr = self._extrinsics[name]
+        item["model"] = intr["model"]
+        item["intrinsics"] = torch.tensor(list(intr["params"].values()), dtype=torch.float64)
+        item["image_size"] = torch.tensor(intr["image_size"], dtype=torch.int64)
+        item["T_world_camera"] = extr["T_world_camera"][k].clone()
+        item["T_rig_camera"] = extr["T_rig_camera"].clone()
+        item["dynamics"] = self._dynamics[k]
+        if self._weather is not None and k < len(self._weather):
+            item["weather"] = self._weather[k]
+        return item
+
+
+class CubemapCaptureDataset(Dataset):
+    """Simulator cubemap captures (``convert`` layout), one item per capture folder.
+
+    Each item is :func:`omniscape_torch.convert.load_capture`'s dict without its batch
+    dimension (``rgb (6, 3, F, F)`` float32 in [0, 1], ``depth (6, F, F)`` float32 planar
+    metres, ``labels (6, F, F)`` int64, those present), plus ``face_size`` (int) and
+    ``capture`` (the folder's name). Faces in ``cubemap.FACES`` order.
+
+    Args:
+        root: a folder of capture folders, or one capture folder.
+        label_set: the simulator's tag set, ``"13"``, ``"23"`` or ``"new"``.
+        modalities: those required (default: whichever are there).
+        unknown_label: class given to tags outside ``label_set`` (default: an error).
+    """
+
+    def __init__(self, root: str | Path, label_set: str = "13", *,
+                 modalities: Sequence[str] | None = None, unknown_label: int | None = None):
+        from .convert import find_captures
+        from .io.carla import LABEL_SETS
+        if label_set not in LABEL_SETS:
+            raise ValueError(f"label_set: expected one of {tuple(LABEL_SETS)}, got {label_set!r}")
+        self.root = Path(root)
+        self.captures = find_captures(self.root)
+        self.label_set = label_set
+        self.modalities = None if modalities is None else tuple(modalities)
+        self.unknown_label = unknown_label
+
+    def __len__(self) -> int:
+        return len(self.captures)
+
+    def __getitem__(self, index: int) -> dict:
+        from .convert import load_capture
+        path = self.captures[index]
+        cube = load_capture(path, label_set=self.label_set, modalities=self.modalities,
+                            unknown_label=self.unknown_label)
+        item = {k: (v[0] if isinstance(v, torch.Tensor) else v) for k, v in cube.items()}
+        item["capture"] = path.name
+        return item

@@ -1,0 +1,178 @@
+"""Read a dataset written by ``omniscape-torch generate`` (layout: :mod:`omniscape_torch.dataset`).
+
+Everything is read from the files alone (nothing is re-rendered): frames, intrinsics,
+extrinsics and the vehicle dynamics. A frame counts as written only when it is *finished*: its
+``.done/NNNNNN`` marker exists (written last by the writer) and so do its per-camera files.
+
+Returned types::
+
+    rgb           (3, H, W) float32 in [0, 1]  (or uint8 with ``rgb_uint8=True``)
+    depth         (H, W) float32, range in metres, 0 where not valid, 1000 m for the sky
+    labels        (H, W) int64 class ids 0..12, 255 (IGNORE_INDEX) where not valid
+    labels_color  (3, H, W) uint8, the labels in CARLA's palette
+    valid         (H, W) bool
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Sequence
+
+import torch
+from torch import Tensor
+
+from .calibration import camera_from_dict
+from .exr import read_exr
+from .images import read_image
+
+__all__ = ["FRAME_MODALITIES", "frame_name", "list_cameras", "list_frames", "read_camera",
+           "read_camera_dict", "read_dynamics", "read_extrinsics", "read_frame",
+           "read_manifest"]
+
+#: Per-frame files of each camera: folder -> extension (as the writer's ``MODALITIES``).
+FRAME_MODALITIES = {"rgb": "png", "depth": "exr", "labels": "png", "labels_color": "png",
+                    "valid": "png"}
+
+_DEFAULT = ("rgb", "depth", "labels", "valid")
+
+
+def frame_name(frame: int | str) -> str:
+    """``7`` or ``"000007"`` -> ``"000007"``."""
+    if isinstance(frame, str):
+        if not frame.isdigit():
+            raise ValueError(f"frame: expected a frame number, got {frame!r}")
+        frame = int(frame)
+    if isinstance(frame, bool) or not isinstance(frame, int) or frame < 0:
+        raise ValueError(f"frame: expected an integer >= 0, got {frame!r}")
+    return f"{frame:06d}"
+
+
+def _root(root: str | Path) -> Path:
+    root = Path(root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"{root}: no such dataset folder")
+    return root
+
+
+def _json(path: Path):
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: missing (not a dataset written by "
+                                f"'omniscape-torch generate'?)")
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path}, line {err.lineno}: not valid JSON ({err.msg})") from None
+
+
+def read_manifest(root: str | Path) -> dict:
+    """``dataset.json``: config, versions, cameras, classes, weather per frame, layout."""
+    return _json(_root(root) / "dataset.json")
+
+
+def list_cameras(root: str | Path) -> list[str]:
+    """The cameras of the dataset, in the writer's order (``dataset.json``); without a manifest,
+    the sorted sub-folders holding a ``camera.json``."""
+    root = _root(root)
+    if (root / "dataset.json").is_file():
+        return list(read_manifest(root)["cameras"])
+    return sorted(p.name for p in root.iterdir() if (p / "camera.json").is_file())
+
+
+def list_frames(root: str | Path, cameras: Sequence[str] | None = None, *,
+                modalities: Sequence[str] = tuple(FRAME_MODALITIES),
+                check_files: bool = True) -> list[int]:
+    """The finished frames (sorted): a ``.done`` marker and (``check_files``) the files of
+    ``modalities`` for every camera of ``cameras`` (default: all)."""
+    root = _root(root)
+    done = root / ".done"
+    if not done.is_dir():
+        return []
+    frames = sorted(int(p.name) for p in done.iterdir() if p.is_file() and p.name.isdigit())
+    if not check_files:
+        return frames
+    cameras = list_cameras(root) if cameras is None else list(cameras)
+    for m in modalities:
+        if m not in FRAME_MODALITIES:
+            raise ValueError(f"modalities: expected some of {tuple(FRAME_MODALITIES)}, got {m!r}")
+    return [k for k in frames
+            if all((root / c / m / f"{k:06d}.{FRAME_MODALITIES[m]}").is_file()
+                   for c in cameras for m in modalities)]
+
+
+def read_frame(root: str | Path, camera: str, frame: int | str,
+               modalities: Sequence[str] = _DEFAULT, *, rgb_uint8: bool = False
+               ) -> dict[str, Tensor]:
+    """The images of one camera at one frame, as tensors (types in the module docstring).
+
+    Raises:
+        ValueError: an unknown modality. FileNotFoundError: a missing file (names it).
+    """
+    root = _root(root)
+    n = frame_name(frame)
+    out: dict[str, Tensor] = {}
+    for m in modalities:
+        if m not in FRAME_MODALITIES:
+            raise ValueError(f"modalities: expected some of {tuple(FRAME_MODALITIES)}, got {m!r}")
+        path = root / camera / m / f"{n}.{FRAME_MODALITIES[m]}"
+        if m == "depth":
+            out[m] = read_exr(path)
+            continue
+        image = read_image(path)
+        if m in ("rgb", "labels_color"):
+            if image.dim() == 2:
+                image = image.unsqueeze(-1).expand(-1, -1, 3)
+            image = image.permute(2, 0, 1).contiguous()
+            out[m] = image.float() / 255.0 if (m == "rgb" and not rgb_uint8) else image
+        elif m == "labels":
+            out[m] = _grey(image, path).long()
+        else:  # valid
+            out[m] = _grey(image, path) > 0
+    return out
+
+
+def _grey(image: Tensor, path: Path) -> Tensor:
+    if image.dim() != 2:
+        raise ValueError(f"{path}: expected a one-channel image, got shape {tuple(image.shape)}")
+    return image
+
+
+def read_camera_dict(root: str | Path, camera: str) -> dict:
+    """``<camera>/camera.json`` as a dict (``Camera`` JSON: model, image_size, params, ...)."""
+    return _json(_root(root) / camera / "camera.json")
+
+
+def read_camera(root: str | Path, camera: str, **kwargs):
+    """The intrinsics of ``camera``: a :class:`omniscape_torch.Camera` (float64 by default;
+    ``kwargs`` go to ``camera_from_dict``)."""
+    path = _root(root) / camera / "camera.json"
+    try:
+        return camera_from_dict(_json(path), **kwargs)
+    except (ValueError, TypeError) as err:
+        raise type(err)(f"{path}: {err}") from None
+
+
+def read_extrinsics(root: str | Path, camera: str) -> dict:
+    """``<camera>/extrinsics.json`` with the poses as float64 tensors.
+
+    Returns:
+        ``{"T_rig_camera": (4, 4), "T_world_camera": {frame: (4, 4)}, "faces": {frame: [face
+        names]}, "face_size": int, "frames": {frame name: description}}`` (camera -> rig and
+        camera -> world; rig and world axes described in ``"frames"``).
+    """
+    data = _json(_root(root) / camera / "extrinsics.json")
+    f64 = torch.float64
+    return {"T_rig_camera": torch.tensor(data["T_rig_camera"], dtype=f64),
+            "T_world_camera": {int(p["frame"]): torch.tensor(p["T_world_camera"], dtype=f64)
+                               for p in data["poses"]},
+            "faces": {int(p["frame"]): list(p["faces"]) for p in data["poses"]},
+            "face_size": int(data["face_size"]),
+            "frames": data.get("frames", {})}
+
+
+def read_dynamics(root: str | Path) -> dict[int, dict]:
+    """``dynamics.json`` by frame number: ``{frame: record}``, each record with CARLA's names
+    and units (``timestamp`` s, ``location``/``velocity``/``acceleration``/``angular_velocity``
+    as ``{x, y, z}``, ``rotation`` as ``{pitch, yaw, roll}`` degrees, ``speed`` m/s)."""
+    recs = _json(_root(root) / "dynamics.json")
+    return {int(r["frame"]): r for r in recs}

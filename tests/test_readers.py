@@ -1,0 +1,257 @@
+"""Readers of generated datasets (``io.readers``), the torch datasets (``datasets``) and the
+writer's contact sheet."""
+
+from __future__ import annotations
+
+import json
+import pickle
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+import omniscape_torch as ot
+from omniscape_torch.cubemap import FACES
+from omniscape_torch.dataset import DatasetConfig, generate
+from omniscape_torch.datasets import CubemapCaptureDataset, OmniDataset, collate
+from omniscape_torch.io.readers import (list_cameras, list_frames, read_camera, read_dynamics,
+                                        read_extrinsics, read_frame, read_manifest)
+
+SIZE = (32, 32)
+FRAMES = 2
+CAMERAS = ("fisheye_left", "catadioptric_right")
+
+
+@pytest.fixture(scope="module")
+def root(tmp_path_factory):
+    out = tmp_path_factory.mktemp("readers") / "data"
+    config = DatasetConfig(frames=FRAMES, fps=2.0, image_size=SIZE, max_face_size=32,
+                           cameras=CAMERAS, weather=("clear_noon", "sunset"), seed=0)
+    result = generate(out, config, workers=1, progress=False)
+    assert result["rendered"] == list(range(FRAMES))
+    return out
+
+
+def _exr_direct(path):
+    import OpenEXR
+    channels = OpenEXR.File(str(path), separate_channels=True).channels()
+    assert list(channels) == ["Z"]
+    return np.asarray(channels["Z"].pixels)
+
+
+def test_listing(root):
+    assert list_cameras(root) == list(CAMERAS)
+    assert list_frames(root) == list(range(FRAMES))
+    assert read_manifest(root)["frames"] == FRAMES
+
+
+def test_unfinished_frames_are_not_listed(root, tmp_path):
+    import shutil
+    copy = tmp_path / "copy"
+    shutil.copytree(root, copy)
+    (copy / ".done" / "000001").unlink()
+    assert list_frames(copy) == [0]
+    (copy / CAMERAS[1] / "depth" / "000000.exr").unlink()  # marker but a file missing
+    assert list_frames(copy) == []
+    assert list_frames(copy, cameras=[CAMERAS[0]]) == [0]
+    assert list_frames(copy, check_files=False) == [0]
+    assert len(OmniDataset(copy, cameras=[CAMERAS[0]])) == 1
+
+
+def test_read_frame_matches_files_decoded_directly(root):
+    for cam in CAMERAS:
+        for k in range(FRAMES):
+            n = f"{k:06d}"
+            item = read_frame(root, cam, k, ("rgb", "depth", "labels", "labels_color", "valid"))
+            bgr = cv2.imread(str(root / cam / "rgb" / f"{n}.png"), cv2.IMREAD_UNCHANGED)
+            rgb = torch.from_numpy(bgr[..., ::-1].copy()).permute(2, 0, 1)
+            assert item["rgb"].shape == (3,) + SIZE and item["rgb"].dtype == torch.float32
+            assert torch.equal(item["rgb"], rgb.float() / 255)
+            assert torch.equal(read_frame(root, cam, n, ("rgb",), rgb_uint8=True)["rgb"], rgb)
+            labels = cv2.imread(str(root / cam / "labels" / f"{n}.png"), cv2.IMREAD_UNCHANGED)
+            assert item["labels"].dtype == torch.int64
+            assert np.array_equal(item["labels"].numpy(), labels.astype(np.int64))
+            valid = cv2.imread(str(root / cam / "valid" / f"{n}.png"), cv2.IMREAD_UNCHANGED)
+            assert item["valid"].dtype == torch.bool
+            assert np.array_equal(item["valid"].numpy(), valid == 255)
+            assert torch.equal(item["valid"], item["labels"] != 255)
+            assert item["valid"].any() and (~item["valid"]).any()
+            depth = _exr_direct(root / cam / "depth" / f"{n}.exr")
+            assert item["depth"].dtype == torch.float32 and depth.dtype == np.float32
+            assert np.array_equal(item["depth"].numpy(), depth)            # bit-exact
+            colour = cv2.imread(str(root / cam / "labels_color" / f"{n}.png"))[..., ::-1]
+            colour = torch.from_numpy(colour.copy()).permute(2, 0, 1)
+            assert torch.equal(item["labels_color"], colour)
+            assert torch.equal(item["labels_color"].permute(1, 2, 0),
+                               torch.from_numpy(ot.io.colorize(item["labels"])))
+
+
+def test_read_frame_errors(root):
+    with pytest.raises(ValueError, match="modalities"):
+        read_frame(root, CAMERAS[0], 0, ("normals",))
+    with pytest.raises(FileNotFoundError, match="000007"):
+        read_frame(root, CAMERAS[0], 7)
+    with pytest.raises(ValueError, match="frame"):
+        read_frame(root, CAMERAS[0], -1)
+
+
+def test_reader_equals_a_rerender(root):
+    """The reader's labels and depth are what the public layer renders from the written
+    intrinsics and extrinsics (bit-exact; float32 depth)."""
+    from omniscape_torch.scenes.town import Town
+    town = Town(0)
+    dyn = read_dynamics(root)
+    weather = read_manifest(root)["weather_per_frame"]
+    cam = "catadioptric_right"
+    camera = read_camera(root, cam)
+    assert camera.image_size == SIZE
+    extr = read_extrinsics(root, cam)
+    for k in range(FRAMES):
+        pose = extr["T_world_camera"][k]
+        rot, centre = pose[:3, :3].float(), pose[:3, 3].float()
+        faces = ot.visible_faces(camera, rot, face_size=extr["face_size"])
+        assert [f for f, v in zip(FACES, faces.tolist()) if v] == extr["faces"][k]
+        cube = town.render_cubemap(centre, None, extr["face_size"], faces=faces,
+                                   t=dyn[k]["timestamp"], weather=weather[k])
+        res = ot.OmniProjection(camera, extr["face_size"], fused_grid=False).render(
+            depth=cube["depth"], labels=cube["labels"], rotation=rot)
+        item = read_frame(root, cam, k)
+        assert torch.equal(item["depth"], res["depth"][0, 0].float())
+        assert torch.equal(item["labels"], res["labels"][0])
+        assert torch.equal(item["valid"], res["valid"][0, 0].bool())
+
+
+def test_camera_extrinsics_dynamics(root):
+    extr = read_extrinsics(root, "fisheye_left")
+    t = extr["T_rig_camera"]
+    assert t.dtype == torch.float64
+    assert torch.allclose(t[:3, 3], torch.tensor([-0.4, -0.8, 0.6], dtype=torch.float64))
+    assert set(extr["T_world_camera"]) == set(range(FRAMES))
+    for pose in extr["T_world_camera"].values():
+        r = pose[:3, :3]
+        assert torch.allclose(r @ r.T, torch.eye(3, dtype=torch.float64), atol=1e-12)
+    dyn = read_dynamics(root)
+    assert sorted(dyn) == list(range(FRAMES))
+    assert dyn[1]["timestamp"] == pytest.approx(0.5)
+    raw = json.loads((root / "dynamics.json").read_text())
+    assert dyn[0] == raw[0]
+
+
+def test_omni_dataset_items(root):
+    ds = OmniDataset(root)
+    assert len(ds) == FRAMES * len(CAMERAS)
+    assert ds.items == [(k, c) for k in range(FRAMES) for c in CAMERAS]
+    item = ds[3]
+    assert item["frame"] == 1 and item["camera"] == CAMERAS[1]
+    direct = read_frame(root, CAMERAS[1], 1)
+    for m in ("rgb", "depth", "labels", "valid"):
+        assert torch.equal(item[m], direct[m])
+    camera = ds.camera(CAMERAS[1])
+    assert item["model"] == camera.model.name
+    assert torch.equal(item["intrinsics"], camera.params)
+    assert item["image_size"].tolist() == list(SIZE)
+    assert torch.equal(item["T_world_camera"],
+                       read_extrinsics(root, CAMERAS[1])["T_world_camera"][1])
+    assert item["dynamics"] == read_dynamics(root)[1]
+    assert item["weather"] == read_manifest(root)["weather_per_frame"][1]
+    sub = OmniDataset(root, cameras=["fisheye_left"], modalities=("labels",), frames=[1])
+    assert len(sub) == 1 and set(sub[0]) >= {"labels"} and "rgb" not in sub[0]
+    with pytest.raises(ValueError, match="cameras"):
+        OmniDataset(root, cameras=["fisheye_right"])
+    with pytest.raises(ValueError, match="frames"):
+        OmniDataset(root, frames=[5])
+    with pytest.raises(IndexError):
+        ds[len(ds)]
+
+
+def _same(a, b):
+    if isinstance(a, torch.Tensor):
+        return isinstance(b, torch.Tensor) and a.dtype == b.dtype and torch.equal(a, b)
+    if isinstance(a, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    if isinstance(a, (list, tuple)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    return a == b
+
+
+def test_omni_dataset_dataloader_workers(root):
+    ds = OmniDataset(root, modalities=("rgb", "depth", "labels", "labels_color", "valid"))
+    pickle.loads(pickle.dumps(ds))
+    serial = [ds[i] for i in range(len(ds))]
+    loader = DataLoader(ds, batch_size=None, num_workers=2, shuffle=False)
+    parallel = list(loader)
+    assert len(parallel) == len(serial)
+    for a, b in zip(serial, parallel):
+        assert _same(a, b)
+    batches = list(DataLoader(ds, batch_size=2, num_workers=2, collate_fn=collate))
+    assert len(batches) == FRAMES
+    assert batches[0]["rgb"].shape == (2, 3) + SIZE
+    assert isinstance(batches[0]["intrinsics"], list)      # 4 and 9 parameters: not stacked
+    assert _same(batches[1]["intrinsics"], [serial[2]["intrinsics"], serial[3]["intrinsics"]])
+    one = OmniDataset(root, cameras=["fisheye_left"])       # one model: the default collate
+    batch = next(iter(DataLoader(one, batch_size=2, num_workers=2)))
+    assert batch["intrinsics"].shape == (2, 4) and batch["frame"].tolist() == [0, 1]
+    assert batches[0]["camera"] == list(CAMERAS)
+    assert batches[0]["T_world_camera"].shape == (2, 4, 4)
+    assert batches[0]["dynamics"]["location"]["x"].shape == (2,)
+
+
+# ---------------------------------------------------------------------------- captures
+
+F = 8
+
+
+def _write_capture(folder, seed):
+    """A CARLA-like capture written without the library's encoders: rgb, depth (24-bit code
+    in R, G, B), tags of the 13-class set in the red channel."""
+    rng = np.random.default_rng(seed)
+    rgb = rng.integers(0, 256, (6, F, F, 3), dtype=np.uint8)
+    code = rng.integers(1, 256 ** 3, (6, F, F), dtype=np.int64)
+    tags = rng.integers(0, 13, (6, F, F), dtype=np.int64)
+    folder.mkdir(parents=True)
+    for i, face in enumerate(FACES):
+        cv2.imwrite(str(folder / f"{face}_rgb.png"), rgb[i][..., ::-1])
+        packed = np.stack([code[i] % 256, (code[i] // 256) % 256, code[i] // 65536], -1)
+        cv2.imwrite(str(folder / f"{face}_depth.png"), packed.astype(np.uint8)[..., ::-1])
+        lab = np.zeros((F, F, 3), np.uint8)
+        lab[..., 0] = tags[i]
+        cv2.imwrite(str(folder / f"{face}_labels.png"), lab[..., ::-1])
+    depth = (code * (1000.0 / (256 ** 3 - 1))).astype(np.float32)
+    return rgb, depth, tags
+
+
+def test_cubemap_capture_dataset(tmp_path):
+    root = tmp_path / "cubemaps"
+    truth = {name: _write_capture(root / name, i) for i, name in enumerate(("000001", "000002"))}
+    ds = CubemapCaptureDataset(root, label_set="13")
+    pickle.loads(pickle.dumps(ds))
+    assert len(ds) == 2
+    items = [ds[i] for i in range(len(ds))]
+    for item in items:
+        rgb, depth, tags = truth[item["capture"]]
+        assert item["face_size"] == F
+        assert item["rgb"].shape == (6, 3, F, F) and item["rgb"].dtype == torch.float32
+        assert torch.equal(item["rgb"], torch.from_numpy(rgb).permute(0, 3, 1, 2).float() / 255)
+        assert item["depth"].shape == (6, F, F) and item["depth"].dtype == torch.float32
+        np.testing.assert_allclose(item["depth"].numpy(), depth, rtol=1e-6)
+        assert item["labels"].dtype == torch.int64
+        assert torch.equal(item["labels"], torch.from_numpy(tags))   # set "13": identity
+    loaded = list(DataLoader(ds, batch_size=None, num_workers=2))
+    for a, b in zip(items, loaded):
+        assert _same(a, b)
+    with pytest.raises(ValueError, match="label_set"):
+        CubemapCaptureDataset(root, label_set="99")
+
+
+# ---------------------------------------------------------------------------- contact sheet
+
+def test_contact_sheet(root):
+    from omniscape_torch.dataset import SHEET_CELL, SHEET_COLUMNS
+    path = root / "contact_sheet.png"
+    assert path.is_file()
+    image = ot.io.read_image(path)
+    assert tuple(image.shape[:2]) == (len(CAMERAS) * SHEET_CELL, len(SHEET_COLUMNS) * SHEET_CELL)
+    assert image.float().std() > 10          # not blank
+    assert "contact_sheet.png" in read_manifest(root)["layout"]
