@@ -1,6 +1,6 @@
 """Convert cubemap captures made in a simulator (CARLA) into fisheye and catadioptric images.
 
-Folder layout read (what ``scripts/capture_carla.py`` writes)::
+Folder layout read (what ``examples/carla_capture.py`` writes)::
 
     CUBEMAPS/
       <capture_id>/                     one folder per capture (one point, one instant)
@@ -14,13 +14,21 @@ right yaw +90, up pitch +90, down pitch -90). Per face and modality:
 
 * ``<face>_rgb.png``: 8-bit colour (grey is repeated to three channels).
 * ``<face>_depth.png``: CARLA's depth camera saved with the ``Raw`` converter: planar depth
-  packed in 24 bits of R, G, B (:func:`omniscape_torch.io.carla.decode_depth`).
+  packed in 24 bits of R, G, B (:func:`omniscape_torch.io.carla.decode_depth`); or
+  ``<face>_depth.exr``: planar depth in metres, one float channel (the PNG wins if both exist).
 * ``<face>_labels.png``: CARLA's semantic camera saved with the ``Raw`` converter: the tag in
   the red channel (a one-channel PNG is read as the tags themselves), mapped to the 13 classes
   of the paper from ``label_set`` (:func:`omniscape_torch.io.carla.to_13`).
 
 A modality may be absent (no face file of it), but a modality with some faces and not others,
-or faces of different sizes, is an error that names the file.
+faces of different sizes, an unreadable (corrupt) image or an unknown tag is an error that
+names the file.
+
+Bad captures do not stop a conversion: :func:`convert_captures` converts every capture it can,
+writes nothing for a capture that fails (its files are rendered into a hidden staging folder
+and moved into place only once all of them are written), and at the end raises
+:class:`ConvertError` listing the failures (``omniscape-torch convert`` prints them and exits
+with status 1).
 
 Written per capture and camera (``fisheye``, ``catadioptric``)::
 
@@ -39,6 +47,9 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
+import shutil
+import tempfile
 from pathlib import Path
 from typing import Sequence
 
@@ -49,19 +60,42 @@ from torch import Tensor
 from .cubemap.faces import FACES
 from .io.atomic import atomic_write_text
 from .io.carla import LABEL_SETS, decode_depth, decode_labels, to_13
-from .io.exr import write_exr
+from .io.exr import read_exr, write_exr
 from .io.images import read_image, write_image
 from .io.labels import colorize
 
-__all__ = ["MODALITIES", "CAMERAS", "add_convert_parser", "build_cameras", "cmd_convert",
+__all__ = ["MODALITIES", "CAMERAS", "ConvertError", "add_convert_parser", "build_cameras", "cmd_convert",
            "convert_captures", "find_captures", "load_capture", "render_capture"]
 
 MODALITIES = ("rgb", "depth", "labels")
 CAMERAS = ("fisheye", "catadioptric")
 
 
+class ConvertError(RuntimeError):
+    """Some captures failed to convert; the others were converted.
+
+    Attributes:
+        failures: ``{capture_id: message}`` of the captures that failed (each message names the
+            offending file where there is one); nothing was written for them.
+        results: ``{capture_id: [paths written]}`` of the captures converted.
+    """
+
+    def __init__(self, failures: dict[str, str], results: dict[str, list[Path]]):
+        self.failures = dict(failures)
+        self.results = dict(results)
+        lines = [f"{len(failures)} of {len(failures) + len(results)} captures failed to "
+                 "convert:"]
+        lines += [f"  {capture}: {message}" for capture, message in failures.items()]
+        super().__init__("\n".join(lines))
+
+
 def _face_file(capture: Path, face: str, modality: str) -> Path:
-    return capture / f"{face}_{modality}.png"
+    png = capture / f"{face}_{modality}.png"
+    if modality == "depth" and not png.is_file():
+        exr = png.with_suffix(".exr")
+        if exr.is_file():
+            return exr
+    return png
 
 
 def _is_capture(folder: Path) -> bool:
@@ -105,7 +139,8 @@ def load_capture(path: str | Path, *, label_set: str = "13",
 
     Raises:
         ValueError: a face missing (names the file), faces not square or of different sizes,
-        no face image at all, an unknown tag.
+        an unreadable image, no face image at all, an unknown tag. Every message about one
+        face names its file.
     """
     capture = Path(path)
     if not capture.is_dir():
@@ -132,7 +167,19 @@ def load_capture(path: str | Path, *, label_set: str = "13",
                              + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""))
         faces = []
         for file in files:
-            image = read_image(file).numpy()
+            try:
+                if file.suffix == ".exr":
+                    face_image = read_exr(file).float()
+                    if not bool(torch.isfinite(face_image).all()) or \
+                            bool((face_image < 0).any()):
+                        raise ValueError("depth must be finite and >= 0 metres")
+                    image = face_image.numpy()
+                else:
+                    image = read_image(file).numpy()
+            except Exception as err:   # corrupt file: name it whatever the reader said
+                message = str(err)
+                raise ValueError(message if str(file) in message else f"{file}: {message}") \
+                    from err
             h, w = image.shape[:2]
             if h != w:
                 raise ValueError(f"{file}: a cube face must be square, got {w} x {h} (W x H)")
@@ -141,7 +188,10 @@ def load_capture(path: str | Path, *, label_set: str = "13",
             elif h != size[0]:
                 raise ValueError(f"{file}: face of {h} x {h} pixels, but {size[1]} is "
                                  f"{size[0]} x {size[0]}")
-            faces.append(_decode(image, modality, file, label_set, unknown_label))
+            if file.suffix == ".exr":
+                faces.append(face_image)
+            else:
+                faces.append(_decode(image, modality, file, label_set, unknown_label))
         out[modality] = torch.stack(faces).unsqueeze(0)
     if size is None:
         raise ValueError(f"{capture}: no face image (expected files like "
@@ -202,10 +252,35 @@ def render_capture(cube: dict, cameras: dict[str, tuple], out_dir: str | Path, *
                    device: str | torch.device = "cpu",
                    _layers: dict | None = None) -> list[Path]:
     """Render the cubemaps of :func:`load_capture` through each camera and write the files
-    (layout in the module docstring) into ``out_dir``. Returns the paths written."""
+    (layout in the module docstring) into ``out_dir``. Returns the paths written.
+
+    All or nothing: the files are written into a hidden staging folder beside ``out_dir`` and
+    moved into it (each with ``os.replace``) only once every one is written; on an error the
+    staging folder is removed and ``out_dir`` is left as it was.
+    """
+    out_dir = Path(out_dir)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".partial",
+                                    dir=out_dir.parent))
+    try:
+        staged = _render_into(cube, cameras, staging, depth_output=depth_output,
+                              interpolation=interpolation, device=device, _layers=_layers)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        written = []
+        for path in staged:
+            target = out_dir / path.name
+            os.replace(path, target)
+            written.append(target)
+        return written
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+def _render_into(cube: dict, cameras: dict[str, tuple], out_dir: Path, *, depth_output: str,
+                 interpolation: str, device: str | torch.device,
+                 _layers: dict | None) -> list[Path]:
     from .projection import OmniProjection
 
-    out_dir = Path(out_dir)
     face_size = int(cube["face_size"])
     written: list[Path] = []
     for name, (camera, rotation) in cameras.items():
@@ -253,8 +328,18 @@ def convert_captures(cubemaps_dir: str | Path, out_dir: str | Path, *, label_set
     axis forward) and :func:`~omniscape_torch.presets.catadioptric` (axis down or up); their
     JSON and rotations go to ``out_dir/cameras.json``.
 
+    A capture that fails (missing, corrupt or mismatched face, unknown tag, an error while
+    rendering or writing) is skipped with nothing written for it, and the others are still
+    converted; the failures are raised together at the end.
+
     Returns:
         ``{capture_id: [paths written]}``.
+
+    Raises:
+        ConvertError: some captures failed (``.failures`` ``{capture_id: message}``, each
+            message naming the file at fault; ``.results`` the captures converted).
+        FileNotFoundError, ValueError: no captures at all, or bad arguments (before anything
+            is converted).
     """
     if depth_output not in ("range", "z"):
         raise ValueError(f"depth_output: expected 'range' or 'z', got {depth_output!r}")
@@ -274,11 +359,20 @@ def convert_captures(cubemaps_dir: str | Path, out_dir: str | Path, *, label_set
     atomic_write_text(out_dir / "cameras.json", json.dumps(meta, indent=2) + "\n")
     layers: dict = {}
     results: dict[str, list[Path]] = {}
+    failures: dict[str, str] = {}
     for capture in captures:
-        cube = load_capture(capture, label_set=label_set, unknown_label=unknown_label)
-        results[capture.name] = render_capture(
-            cube, built, out_dir / capture.name, depth_output=depth_output,
-            interpolation=interpolation, device=device, _layers=layers)
+        try:
+            cube = load_capture(capture, label_set=label_set, unknown_label=unknown_label)
+            results[capture.name] = render_capture(
+                cube, built, out_dir / capture.name, depth_output=depth_output,
+                interpolation=interpolation, device=device, _layers=layers)
+        except (KeyboardInterrupt, SystemExit):
+            raise
+        except Exception as err:   # noqa: BLE001 - reported per capture below
+            failures[capture.name] = f"{type(err).__name__}: {err}" \
+                if not isinstance(err, (ValueError, FileNotFoundError)) else str(err)
+    if failures:
+        raise ConvertError(failures, results)
     return results
 
 
@@ -320,17 +414,29 @@ def add_convert_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def cmd_convert(args: argparse.Namespace) -> int:
-    results = convert_captures(
-        args.cubemaps, args.out, label_set=args.label_set, cameras=tuple(args.cameras),
-        image_size=tuple(args.size), fisheye_model=args.fisheye_model,
-        fisheye_fov=math.radians(args.fisheye_fov), catadioptric_xi=args.cata_xi,
-        catadioptric_fov=math.radians(args.cata_fov),
-        catadioptric_blind_fov=(math.radians(args.cata_blind_fov) if args.cata_blind_fov > 0
-                                else None),
-        catadioptric_looking=args.cata_looking, depth_output=args.depth_output,
-        interpolation=args.interpolation, unknown_label=args.unknown_label,
-        device=args.device)
+    import sys
+
+    failures: dict[str, str] = {}
+    try:
+        results = convert_captures(
+            args.cubemaps, args.out, label_set=args.label_set, cameras=tuple(args.cameras),
+            image_size=tuple(args.size), fisheye_model=args.fisheye_model,
+            fisheye_fov=math.radians(args.fisheye_fov), catadioptric_xi=args.cata_xi,
+            catadioptric_fov=math.radians(args.cata_fov),
+            catadioptric_blind_fov=(math.radians(args.cata_blind_fov) if args.cata_blind_fov > 0
+                                    else None),
+            catadioptric_looking=args.cata_looking, depth_output=args.depth_output,
+            interpolation=args.interpolation, unknown_label=args.unknown_label,
+            device=args.device)
+    except ConvertError as err:
+        results, failures = err.results, err.failures
     for capture, paths in results.items():
         print(f"{capture}: {len(paths)} files -> {Path(args.out) / capture}")
     print(f"cameras: {Path(args.out) / 'cameras.json'}")
+    if failures:
+        print(f"convert: {len(failures)} of {len(failures) + len(results)} captures failed "
+              "(nothing written for them):", file=sys.stderr)
+        for capture, message in failures.items():
+            print(f"  {capture}: {message}", file=sys.stderr)
+        return 1
     return 0

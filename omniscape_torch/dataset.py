@@ -43,7 +43,8 @@ Layout of ``DIR``
                                    T_world_camera (camera -> world) and the faces rendered
         rgb/NNNNNN.png             8-bit RGB
         depth/NNNNNN.exr           range (Euclidean distance along the ray), float32 metres,
-                                   channel "Z"; 0 where not valid; sky: 1000 m (town.far)
+                                   channel "Z"; 0 where not valid; sky: the town's far
+                                   plane (planar 1000 m on its face: range >= 1000 m)
         labels/NNNNNN.png          8-bit class ids 0..12 (CARLA's 13 classes), 255 not valid
         labels_color/NNNNNN.png    labels in CARLA's palette (white: not valid)
         valid/NNNNNN.png           8-bit mask: 255 valid, 0 not (valid == labels != 255)
@@ -529,6 +530,11 @@ def generate(out: str | Path, config: DatasetConfig | None = None, *, workers: i
             raise ValueError(f"{out} holds a dataset of another configuration ({manifest}); "
                              f"use another --out folder or remove it")
     out.mkdir(parents=True, exist_ok=True)
+    # A run killed mid-write leaves its temporaries (the finished files are whole: written by
+    # rename); nothing else writes here before the workers start (one generate per folder).
+    for stale in out.rglob(".*.tmp*"):
+        if stale.is_file() and stale.name.endswith((".tmp", ".tmp.exr")):
+            stale.unlink()
     plan = _state(config)["plan"]
     _write_run_files(plan, out)
     todo = [k for k in range(config.frames) if not _finished(plan, out, k)]

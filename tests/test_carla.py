@@ -4,19 +4,21 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
 import omniscape_torch as ot
-from omniscape_torch.convert import (add_convert_parser, cmd_convert, convert_captures,
-                                     find_captures, load_capture)
+from omniscape_torch.convert import (ConvertError, add_convert_parser, cmd_convert,
+                                     convert_captures, find_captures, load_capture)
 from omniscape_torch.cubemap import FACES, face_rays
 from omniscape_torch.io.carla import (EXT23_TO_13, NEW_CLASSES, NEW_TO_13, decode_depth,
                                       decode_labels, encode_depth, map_labels, to_13)
 
 STEP = 1000.0 / (256 ** 3 - 1)   # one depth code, metres
+CAPTURE_SCRIPT = Path(__file__).resolve().parents[1] / "examples" / "carla_capture.py"
 
 
 def _encode(depth_m: np.ndarray) -> np.ndarray:
@@ -233,14 +235,13 @@ def test_capture_script_compiles_and_rig_matches_faces():
     import importlib.util
     import math
     import py_compile
-    from pathlib import Path
 
     from omniscape_torch.cubemap import face_rotations
     from omniscape_torch.presets import yaw_pitch_roll_to_matrix
 
-    path = Path(__file__).resolve().parents[1] / "scripts" / "capture_carla.py"
+    path = CAPTURE_SCRIPT
     py_compile.compile(str(path), doraise=True)
-    spec = importlib.util.spec_from_file_location("capture_carla", path)
+    spec = importlib.util.spec_from_file_location("carla_capture", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     assert module.FACES == FACES
@@ -251,3 +252,156 @@ def test_capture_script_compiles_and_rig_matches_faces():
                             for a in (yaw, pitch, roll))
         r = yaw_pitch_roll_to_matrix(yaw, pitch, roll)
         torch.testing.assert_close(r, rotations[k], atol=1e-12, rtol=0)
+
+
+def _load_capture_script():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("carla_capture", CAPTURE_SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_rig_face_vectors_in_carla():
+    """With the CARLA client library: each rig camera's forward, right and up vectors (CARLA's
+    left-handed x forward, y right, z up), taken to our OpenCV frame by (x, y, z)_ours =
+    (y, -z, x)_carla, are the face's a (looks along), r (image right) and -b (image up)."""
+    carla = pytest.importorskip("carla", reason="the CARLA client library (pip install carla)")
+    from omniscape_torch.cubemap import face_axes
+
+    module = _load_capture_script()
+    axes = face_axes(torch.float64)
+
+    def ours(v):
+        return torch.tensor([v.y, -v.z, v.x], dtype=torch.float64)
+
+    for k, face in enumerate(FACES):
+        pitch, yaw, roll = module.RIG[face]
+        t = carla.Transform(carla.Location(), carla.Rotation(pitch=pitch, yaw=yaw, roll=roll))
+        a, b, r = axes[k]
+        torch.testing.assert_close(ours(t.get_forward_vector()), a, atol=1e-6, rtol=0,
+                                   msg=lambda m: f"{face} forward: {m}")
+        torch.testing.assert_close(ours(t.get_right_vector()), r, atol=1e-6, rtol=0,
+                                   msg=lambda m: f"{face} right: {m}")
+        torch.testing.assert_close(ours(t.get_up_vector()), -b, atol=1e-6, rtol=0,
+                                   msg=lambda m: f"{face} up: {m}")
+
+
+# ---------------------------------------------------------------------------- bad captures
+
+def _three_captures(root):
+    """Captures 000001 (good), 000002 (to be broken by the test), 000003 (good)."""
+    rgb, depth, tags = _scene()
+    for name in ("000001", "000002", "000003"):
+        _write_capture(root / name, rgb, depth, tags)
+    return root / "000002"
+
+
+def _truncate(path):
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 3])
+
+
+def _garbage(path):
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + b"not really a png" * 10)
+
+
+def _out_of_range(path):
+    lab = np.zeros((F, F, 3), np.uint8)
+    lab[..., 0] = 200   # no tag 200 in any label set
+    ot.io.write_image(path, lab)
+
+
+def _smaller(path):
+    ot.io.write_image(path, np.zeros((F // 2, F // 2, 3), np.uint8))
+
+
+BREAKAGES = {
+    "missing face": ("up_depth.png", lambda p: p.unlink()),
+    "different size": ("left_rgb.png", _smaller),
+    "truncated png": ("back_rgb.png", _truncate),
+    "garbage png": ("right_depth.png", _garbage),
+    "labels out of range": ("down_labels.png", _out_of_range),
+}
+
+
+@pytest.mark.parametrize("breakage", sorted(BREAKAGES))
+def test_convert_skips_a_bad_capture_and_reports_it(tmp_path, breakage):
+    filename, breaker = BREAKAGES[breakage]
+    bad = _three_captures(tmp_path / "cubemaps")
+    breaker(bad / filename)
+    out = tmp_path / "out"
+    with pytest.raises(ConvertError) as info:
+        convert_captures(tmp_path / "cubemaps", out, label_set="new", image_size=(24, 24))
+    err = info.value
+    assert set(err.failures) == {"000002"} and set(err.results) == {"000001", "000003"}
+    assert filename in err.failures["000002"]            # the message names the file
+    assert "000002" in str(err) and filename in str(err)
+    # the good captures are complete, the bad one has nothing, and no staging folder is left
+    for name in ("000001", "000003"):
+        assert len(list((out / name).iterdir())) == 10
+        assert sorted(p.name for p in err.results[name]) == sorted(
+            p.name for p in (out / name).iterdir())
+    assert not (out / "000002").exists()
+    assert sorted(p.name for p in out.iterdir()) == ["000001", "000003", "cameras.json"]
+
+
+def test_corrupt_exr_depth_face_names_the_file(tmp_path):
+    """Depth faces may be float EXR (metres); a corrupt one fails that capture only."""
+    bad = _three_captures(tmp_path / "cubemaps")
+    _, depth, _ = _scene()
+    for k, face in enumerate(FACES):
+        (bad / f"{face}_depth.png").unlink()
+        ot.io.write_exr(bad / f"{face}_depth.exr", depth[k].astype(np.float32))
+    cube = load_capture(bad, label_set="new")             # good EXR faces load
+    np.testing.assert_allclose(cube["depth"][0].numpy(), depth, rtol=1e-6)
+    _truncate(bad / "front_depth.exr")
+    with pytest.raises(ValueError, match="front_depth.exr"):
+        load_capture(bad, label_set="new")
+    with pytest.raises(ConvertError) as info:
+        convert_captures(tmp_path / "cubemaps", tmp_path / "out", label_set="new",
+                         image_size=(16, 16), cameras=("fisheye",))
+    assert "front_depth.exr" in info.value.failures["000002"]
+    assert set(info.value.results) == {"000001", "000003"}
+
+
+def test_render_failure_leaves_nothing_half_written(tmp_path, monkeypatch):
+    """An error while writing (here the third file) leaves no file of that capture."""
+    import omniscape_torch.convert as convert
+
+    _three_captures(tmp_path / "cubemaps")
+    real = convert.write_exr
+    calls = {"n": 0}
+
+    def flaky(path, *args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 2:     # the second capture's fisheye depth
+            raise OSError(f"{path}: disk full (simulated)")
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr(convert, "write_exr", flaky)
+    out = tmp_path / "out"
+    with pytest.raises(ConvertError) as info:
+        convert_captures(tmp_path / "cubemaps", out, label_set="new", image_size=(16, 16),
+                         cameras=("fisheye",))
+    assert set(info.value.failures) == {"000002"}
+    assert "disk full" in info.value.failures["000002"]
+    assert sorted(p.name for p in out.iterdir()) == ["000001", "000003", "cameras.json"]
+
+
+def test_cli_convert_reports_failures_and_exits_non_zero(tmp_path, capsys):
+    bad = _three_captures(tmp_path / "cubemaps")
+    _garbage(bad / "front_labels.png")
+    parser = argparse.ArgumentParser()
+    add_convert_parser(parser.add_subparsers(dest="command", required=True))
+    out = tmp_path / "cli"
+    args = parser.parse_args(["convert", "--cubemaps", str(tmp_path / "cubemaps"),
+                              "--out", str(out), "--label-set", "new", "--size", "16", "16",
+                              "--cameras", "fisheye"])
+    assert args.func(args) == 1
+    captured = capsys.readouterr()
+    assert "000001" in captured.out and "000003" in captured.out
+    assert "1 of 3 captures failed" in captured.err
+    assert "000002" in captured.err and "front_labels.png" in captured.err
+    assert (out / "000001" / "fisheye_rgb.png").is_file() and not (out / "000002").exists()

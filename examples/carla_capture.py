@@ -21,7 +21,7 @@ Then::
     (--label-set 23 for CARLA 0.9.10 to 0.9.13, 13 for 0.9.0 to 0.9.9)
 
 Example:
-    python scripts/capture_carla.py --host localhost --town Town01 --frames 100 --out caps
+    python examples/carla_capture.py --host localhost --town Town01 --frames 100 --out caps
 """
 
 from __future__ import annotations
@@ -154,7 +154,7 @@ def _vehicle_state(vehicle, snapshot) -> dict:
 def main(argv=None) -> int:
     args = parse_args(argv)
     if carla is None:
-        print("capture_carla: the CARLA Python API is not installed (pip install carla==<your "
+        print("carla_capture: the CARLA Python API is not installed (pip install carla==<your "
               "server's version>, or add its egg to PYTHONPATH)", file=sys.stderr)
         return 1
     random.seed(args.seed)
