@@ -26,7 +26,8 @@ camera gets its own cubemap rendered at ``c`` with the cube axes along the world
 y down, z north), only the faces it sees (``sizing.visible_faces``), at the face size it needs
 (``sizing.required_face_size`` over all the ride's attitudes, capped by ``max_face_size``;
 or ``face_size`` for all). The built-in town is flat, so the ride is made with
-``random_route(seed, max_grade_deg=0)``: pitch comes from the suspension only.
+``town_route(seed)``, S-bends between the lanes of its straight road: pitch comes from the
+suspension only, and the leans stay moderate.
 
 Layout of ``DIR``
 -----------------
@@ -194,9 +195,31 @@ def _make_camera(name: str, image_size: tuple[int, int]):
     return catadioptric(image_size, looking="down")
 
 
+#: Half the built-in town's length along its road (``Town.length / 2``, metres) and its lanes.
+_TOWN_HALF_LENGTH, _LANE = 80.0, 1.75
+
+
+def town_route(seed: int) -> _ride.Route:
+    """A ride along the built-in town's road: it starts in the right-hand lane at the south end,
+    heading north, and weaves between the lanes (S-bends of two opposite arcs, radius 60 to
+    120 m) so that the lean and yaw change, without leaving the road; about 140 m long. The
+    town's road is straight, so the leans stay moderate (a few degrees at 10 m/s)."""
+    rng = np.random.default_rng([seed, 7])
+    segments = [_ride.straight(10.0)]
+    side = -1.0  # first to the left lane, then back
+    while sum(seg.length for seg in segments) < 2 * _TOWN_HALF_LENGTH - 60.0:
+        radius = float(rng.uniform(60.0, 120.0))
+        # two opposite arcs of angle t shift the path sideways by 2 R (1 - cos t) = one lane
+        turn = math.degrees(math.acos(1 - 2 * _LANE / (2 * radius)))
+        segments += [_ride.arc(radius, side * turn), _ride.arc(radius, -side * turn),
+                     _ride.straight(float(rng.uniform(8.0, 20.0)))]
+        side = -side
+    return _ride.Route(segments, start=(_LANE, 0.0, -_TOWN_HALF_LENGTH + 5.0), heading_deg=0.0)
+
+
 def _make_ride(config: DatasetConfig) -> dict:
-    route = _ride.random_route(config.seed, max_grade_deg=0.0)
-    return _ride.simulate(route, float(config.fps), frames=config.frames, seed=config.seed)
+    return _ride.simulate(town_route(config.seed), float(config.fps), frames=config.frames,
+                          seed=config.seed)
 
 
 def _frame_weather(config: DatasetConfig, frame: int) -> str:
