@@ -11,12 +11,13 @@ only move arrays.
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import torch
 from torch import Tensor
+
+from .atomic import atomic_path
 
 __all__ = ["read_exr", "write_exr", "DEFAULT_CHANNEL"]
 
@@ -77,24 +78,9 @@ def write_exr(path: str | os.PathLike, depth: Tensor | np.ndarray, *,
     array = _as_float32_2d(depth)
     OpenEXR = _openexr()
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp.exr", dir=path.parent)
-    os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; a written file is for everyone
-    try:
-        header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-        OpenEXR.File(header, {channel: array}).write(tmp)
-        with open(tmp, "rb+") as f:
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with atomic_path(path, suffix=".tmp.exr") as tmp:
+        OpenEXR.File(header, {channel: array}).write(str(tmp))
     return path
 
 
