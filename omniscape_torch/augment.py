@@ -1,0 +1,496 @@
+"""Random omnidirectional cameras and vehicle attitudes: cubemap batch -> augmented omni batch.
+
+``RandomOmniCamera`` draws, per sample of a cubemap batch, a camera (a fisheye of a chosen model,
+or a catadioptric camera; field of view, focal, distortion and centre in configurable ranges)
+and an attitude (roll, pitch, yaw), renders RGB, labels, depth and the valid mask through
+:class:`~omniscape_torch.OmniProjection`, and returns them with the drawn parameters, so that a
+run can be replayed and geometry-aware losses can use the cameras.
+
+Conventions follow kornia's augmentations: ``forward(input, params=None)`` draws parameters
+with ``forward_parameters`` (or reuses the given ones) and applies them with ``render``; ``p``
+and ``same_on_batch`` have kornia's meaning (see the class docstring for what ``p`` gates here).
+
+Randomness comes only from a ``torch.Generator``: the one passed to a call, else the module's
+own, created on first use from ``seed`` (module docstring of ``RandomOmniCamera``). Parameters
+are drawn in float64 on the CPU, so a seed gives the same cameras on any device.
+
+Attitude (rig convention of :mod:`omniscape_torch.presets`): ``R = R_att @ R_mount`` with
+``R_att = yaw_pitch_roll_to_matrix(yaw, pitch, roll)`` the vehicle's attitude relative to the
+cube frame and ``R_mount`` the camera's mount on the vehicle (identity for a forward fisheye,
+the "down" or "up" face's rotation for a catadioptric camera), ``ray_cube = R @ ray_cam``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import torch
+from torch import Tensor, nn
+
+from .cameras import Camera
+from .cameras.registry import get_model
+from .cubemap.faces import FACES, face_rotations
+from .presets import yaw_pitch_roll_to_matrix
+from .projection import OmniProjection
+
+__all__ = ["ApplyToKey", "RandomOmniCamera"]
+
+FISHEYE_MODELS = ("equidistant", "equisolid", "stereographic", "kannala_brandt")
+MODES = ("fisheye", "catadioptric", "mixed")
+_DEG = math.pi / 180
+#: Largest parameter count of the models drawn here (unified: fx, fy, cx, cy, xi, k1, k2, p1, p2).
+_MAX_P = 9
+#: Kannala-Brandt coefficients are halved (at most this many times, then zeroed) until the
+#: polynomial stays monotonic past the drawn half field of view.
+_KB_SHRINK_STEPS = 8
+#: Margin (radians) kept between the drawn half field of view and a model's ``max_angle``.
+_ANGLE_MARGIN = 1e-3
+
+
+def _check_range(value, name: str, low: float = -math.inf, high: float = math.inf
+                 ) -> tuple[float, float]:
+    try:
+        a, b = (float(v) for v in value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected a (min, max) pair of numbers, got {value!r}") from None
+    if not (math.isfinite(a) and math.isfinite(b)) or a > b or a < low or b > high:
+        raise ValueError(f"{name}: expected finite min <= max within [{low}, {high}], got "
+                         f"{(a, b)}")
+    return a, b
+
+
+def _uniform(n: int, bounds: tuple[float, float], generator: torch.Generator) -> Tensor:
+    """``(n,)`` float64 uniform draws in ``[lo, hi]`` (exactly ``lo`` when ``lo == hi``)."""
+    lo, hi = bounds
+    u = torch.rand(n, generator=generator, dtype=torch.float64)
+    return lo + (hi - lo) * u
+
+
+def _unit_radius(model: str, extra: Tensor, theta: Tensor) -> tuple[Tensor, Tensor]:
+    """Image radius at focal 1 of rays ``theta (n,)`` from the axis, and its validity, for the
+    model's parameters after (fx, fy, cx, cy) ``extra (n, E)`` (float64)."""
+    n = theta.shape[0]
+    head = torch.tensor([1.0, 1.0, 0.0, 0.0], dtype=torch.float64).expand(n, 4)
+    params = torch.cat((head, extra), dim=-1)
+    points = torch.stack((torch.sin(theta), torch.zeros_like(theta), torch.cos(theta)), -1)
+    pixels, valid = get_model(model).project(points, params)
+    radius = torch.linalg.vector_norm(pixels, dim=-1)
+    return radius, valid & (radius > 0) & torch.isfinite(radius)
+
+
+class RandomOmniCamera(nn.Module):
+    """Per sample, a random omnidirectional camera and attitude; renders the cubemap through it.
+
+    Cameras: the image circle of the drawn field of view ``fov`` is inscribed in the image (as in
+    :func:`~omniscape_torch.presets.fisheye` and :func:`~omniscape_torch.presets.catadioptric`):
+    ``f = s (min(H, W) / 2 - 0.5) / r1(fov / 2)`` with ``r1`` the model's radius at focal 1 and
+    ``s`` drawn in ``focal_scale_range`` (``s > 1`` zooms in and crops the circle); the centre is
+    the image centre plus a uniform jitter of at most ``center_jitter`` pixels on each axis.
+
+    * ``mode="fisheye"``: a model drawn uniformly among ``fisheye_models`` (``equidistant``,
+      ``equisolid``, ``stereographic``, ``kannala_brandt``). Kannala-Brandt draws
+      ``k1..k4`` uniformly in ``[-kb_distortion, kb_distortion]`` and halves them until the
+      model stays monotonic past ``fov / 2`` (its ``max_angle``; zero, i.e. equidistant, at
+      worst), so the distortion is always within the model's valid range.
+    * ``mode="catadioptric"``: a ``unified`` camera (xi drawn in ``xi_range``, no lens
+      distortion) under or over its mirror (``looking``), with a central ``blind_fov`` cone.
+    * ``mode="mixed"``: catadioptric with probability ``catadioptric_prob``, else a fisheye.
+
+    Attitude: roll, pitch, yaw drawn uniformly in their ranges (defaults from the OmniScape
+    paper's Table I: roll +-25 deg, pitch +-10 deg, any yaw); ``R = R_att @ R_mount`` (module
+    docstring).
+
+    ``p``: the probability, per sample, that the attitude is random; otherwise it is the
+    nominal one (roll = pitch = yaw = 0). The camera itself is always drawn (the output is a
+    different image from the input in any case). ``same_on_batch``: one draw for the batch.
+
+    Randomness: ``generator`` passed to a call, else the module's own generator, created on its
+    first use with ``seed`` (plus ``1_000_003 * worker_id`` inside a ``DataLoader`` worker, so
+    workers draw different streams, reproducibly); with ``seed=None`` it is seeded from
+    ``torch.initial_seed()``, which PyTorch sets per process and per ``DataLoader`` worker
+    (``base_seed + worker_id``, reproducible with ``DataLoader(generator=...)``). No global RNG
+    is consumed. The module (and its generator state) pickles.
+
+    Args:
+        image_size: ``(H, W)`` of the output.
+        face_size: ``F``, texels per cube face side of the input.
+        mode: ``"fisheye"``, ``"catadioptric"`` or ``"mixed"``.
+        fisheye_models: fisheye model names drawn from.
+        fov_range: ``(min, max)`` full fisheye field of view, radians (default 160-200 deg).
+        kb_distortion: bound of the Kannala-Brandt coefficients.
+        cata_fov_range: ``(min, max)`` full catadioptric field of view, radians (default 200-230
+            deg; must stay below ``2 acos(-xi)`` for every xi in ``xi_range``).
+        xi_range: ``(min, max)`` mirror parameter of the unified model (default 0.7-1.0).
+        blind_fov: full angle of the catadioptric blind cone, radians, or None.
+        looking: catadioptric mount, ``"down"`` (under its mirror, roof mount) or ``"up"``.
+        catadioptric_prob: probability of a catadioptric camera in ``"mixed"`` mode.
+        focal_scale_range: ``(min, max)`` focal multiplier.
+        center_jitter: maximum centre offset in pixels, on each axis.
+        roll_range, pitch_range, yaw_range: ``(min, max)`` radians.
+        p: probability of a random attitude per sample.
+        same_on_batch: draw one camera and attitude for the whole batch.
+        interpolation: RGB interpolation of ``OmniProjection``.
+        depth_output: ``"range"`` or ``"z"`` (see ``OmniProjection.render``).
+        ignore_index: label of invalid pixels.
+        seed: seed of the module's generator (see above).
+
+    Shapes:
+        cubemap ``(B, 6, C, F, F)``, labels ``(B, 6, F, F)``, depth ``(B, 6, F, F)`` planar ->
+        ``rgb (B, C, H, W)``, ``labels (B, H, W)`` int64, ``depth (B, 1, H, W)``,
+        ``valid (B, 1, H, W)`` bool.
+
+    Example:
+        >>> aug = RandomOmniCamera((32, 32), 16, seed=0)
+        >>> out = aug(torch.rand(2, 6, 3, 16, 16))
+        >>> out["rgb"].shape, out["params"]["camera_params"].shape
+        (torch.Size([2, 3, 32, 32]), torch.Size([2, 4]))
+    """
+
+    def __init__(self, image_size: tuple[int, int], face_size: int, *, mode: str = "fisheye",
+                 fisheye_models: Sequence[str] = ("equidistant",),
+                 fov_range: tuple[float, float] = (160 * _DEG, 200 * _DEG),
+                 kb_distortion: float = 0.02,
+                 cata_fov_range: tuple[float, float] = (200 * _DEG, 230 * _DEG),
+                 xi_range: tuple[float, float] = (0.7, 1.0),
+                 blind_fov: float | None = 40 * _DEG, looking: str = "down",
+                 catadioptric_prob: float = 0.5,
+                 focal_scale_range: tuple[float, float] = (1.0, 1.0),
+                 center_jitter: float = 0.0,
+                 roll_range: tuple[float, float] = (-25 * _DEG, 25 * _DEG),
+                 pitch_range: tuple[float, float] = (-10 * _DEG, 10 * _DEG),
+                 yaw_range: tuple[float, float] = (-math.pi, math.pi),
+                 p: float = 1.0, same_on_batch: bool = False,
+                 interpolation: str = "bilinear", depth_output: str = "range",
+                 ignore_index: int = 255, seed: int | None = None) -> None:
+        super().__init__()
+        try:
+            h, w = (int(v) for v in image_size)
+        except (TypeError, ValueError):
+            raise ValueError(f"image_size: expected (H, W), got {image_size!r}") from None
+        if min(h, w) < 2:
+            raise ValueError(f"image_size: needs at least 2 x 2 pixels, got {(h, w)}")
+        if isinstance(face_size, bool) or not isinstance(face_size, int) or face_size < 1:
+            raise ValueError(f"face_size: expected a positive int, got {face_size!r}")
+        if mode not in MODES:
+            raise ValueError(f"mode: expected one of {MODES}, got {mode!r}")
+        if isinstance(fisheye_models, str):
+            fisheye_models = (fisheye_models,)
+        fisheye_models = tuple(fisheye_models)
+        if not fisheye_models or any(m not in FISHEYE_MODELS for m in fisheye_models):
+            raise ValueError(f"fisheye_models: expected names among {FISHEYE_MODELS}, got "
+                             f"{fisheye_models!r}")
+        if looking not in ("down", "up"):
+            raise ValueError(f"looking: expected 'down' or 'up', got {looking!r}")
+        for name, value in (("p", p), ("catadioptric_prob", catadioptric_prob)):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) \
+                    or not 0 <= value <= 1:
+                raise ValueError(f"{name}: expected a probability in [0, 1], got {value!r}")
+        if not (isinstance(kb_distortion, (int, float)) and 0 <= kb_distortion < 1):
+            raise ValueError(f"kb_distortion: expected a number in [0, 1), got {kb_distortion!r}")
+        if not (isinstance(center_jitter, (int, float)) and 0 <= center_jitter < min(h, w) / 2):
+            raise ValueError(f"center_jitter: expected pixels in [0, min(H, W) / 2), got "
+                             f"{center_jitter!r}")
+        if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int)):
+            raise TypeError(f"seed: expected an int or None, got {seed!r}")
+        self.image_size = (h, w)
+        self.face_size = face_size
+        self.mode = mode
+        self.fisheye_models = fisheye_models
+        self.fov_range = _check_range(fov_range, "fov_range", 0.0, 2 * math.pi)
+        self.kb_distortion = float(kb_distortion)
+        self.cata_fov_range = _check_range(cata_fov_range, "cata_fov_range", 0.0, 2 * math.pi)
+        self.xi_range = _check_range(xi_range, "xi_range", 0.0, 1.0)
+        self.blind_fov = None if blind_fov is None else float(blind_fov)
+        self.looking = looking
+        self.catadioptric_prob = float(catadioptric_prob)
+        self.focal_scale_range = _check_range(focal_scale_range, "focal_scale_range", 1e-3)
+        self.center_jitter = float(center_jitter)
+        self.roll_range = _check_range(roll_range, "roll_range")
+        self.pitch_range = _check_range(pitch_range, "pitch_range")
+        self.yaw_range = _check_range(yaw_range, "yaw_range")
+        self.p = float(p)
+        self.same_on_batch = bool(same_on_batch)
+        self.interpolation = interpolation
+        self.depth_output = depth_output
+        self.ignore_index = int(ignore_index)
+        self.seed = seed
+        self._generator: torch.Generator | None = None
+        self._check_ranges()
+
+    def _check_ranges(self) -> None:
+        """Fail at construction, not mid-training, if a range leaves a model's domain."""
+        if self.mode != "catadioptric":
+            half = torch.tensor([0.5 * self.fov_range[1]], dtype=torch.float64)
+            for name in self.fisheye_models:
+                extra = torch.zeros(1, 4 if name == "kannala_brandt" else 0, dtype=torch.float64)
+                _, ok = _unit_radius(name, extra, half)
+                limit = float(get_model(name).max_angle(
+                    torch.cat((torch.ones(1, 4, dtype=torch.float64), extra), -1)))
+                if not bool(ok) or half.item() > limit - _ANGLE_MARGIN:
+                    raise ValueError(f"fov_range: the {name} model sees at most "
+                                     f"{2 * limit / _DEG:.1f} deg, fov_range reaches "
+                                     f"{2 * half.item() / _DEG:.1f} deg")
+        if self.mode != "fisheye":
+            xi = self.xi_range[0]   # the smallest xi sees the least far
+            limit = math.acos(-xi)
+            if 0.5 * self.cata_fov_range[1] > limit - _ANGLE_MARGIN:
+                raise ValueError(f"cata_fov_range: a unified camera with xi = {xi} sees at most "
+                                 f"{2 * limit / _DEG:.1f} deg, the range reaches "
+                                 f"{self.cata_fov_range[1] / _DEG:.1f} deg")
+            if self.blind_fov is not None and not 0 < self.blind_fov < self.cata_fov_range[0]:
+                raise ValueError(f"blind_fov: expected in (0, min cata fov), got {self.blind_fov}")
+
+    def extra_repr(self) -> str:
+        return (f"image_size={self.image_size}, face_size={self.face_size}, mode={self.mode!r}, "
+                f"p={self.p}, same_on_batch={self.same_on_batch}, seed={self.seed}")
+
+    # ---------------------------------------------------------------------------------------
+    # Randomness
+    # ---------------------------------------------------------------------------------------
+    @property
+    def generator(self) -> torch.Generator:
+        """The module's CPU generator, created on first use (class docstring)."""
+        if self._generator is None:
+            info = torch.utils.data.get_worker_info()
+            if self.seed is None:
+                seed = torch.initial_seed()
+            else:
+                seed = self.seed + (0 if info is None else 1_000_003 * info.id)
+            self._generator = torch.Generator().manual_seed(seed)
+        return self._generator
+
+    def reseed(self, seed: int) -> None:
+        """Restart the module's generator from ``seed`` (e.g. in a ``worker_init_fn``)."""
+        self.seed = int(seed)
+        self._generator = torch.Generator().manual_seed(self.seed)
+
+    # ---------------------------------------------------------------------------------------
+    # Parameters
+    # ---------------------------------------------------------------------------------------
+    @torch.no_grad()
+    def forward_parameters(self, batch_size: int, *, generator: torch.Generator | None = None
+                           ) -> dict:
+        """Draw cameras and attitudes for ``batch_size`` samples (kornia's name for it).
+
+        Returns:
+            dict, tensors float64 on the CPU: ``model`` (tuple of ``B`` model names),
+            ``camera_params (B, P)`` (zero-padded to the largest model's ``P`` in use),
+            ``num_params (B,)``, ``fov (B,)`` and ``blind_fov (B,)`` (radians, 0 for none),
+            ``yaw``, ``pitch``, ``roll (B,)``, ``applied (B,)`` bool (random attitude),
+            ``rotation (B, 3, 3)`` camera -> cube frame.
+        """
+        if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
+            raise ValueError(f"batch_size: expected a positive int, got {batch_size!r}")
+        g = self.generator if generator is None else generator
+        n = 1 if self.same_on_batch else batch_size
+        f64 = dict(dtype=torch.float64)
+        # Every draw below happens for every sample whatever its model, so the stream (and hence
+        # a seed's batch) does not depend on which branch a sample takes.
+        u_model = torch.rand(n, generator=g, **f64)
+        fish_fov = _uniform(n, self.fov_range, g)
+        cata_fov = _uniform(n, self.cata_fov_range, g)
+        xi = _uniform(n, self.xi_range, g)
+        k = (2 * torch.rand(n, 4, generator=g, **f64) - 1) * self.kb_distortion
+        scale = _uniform(n, self.focal_scale_range, g)
+        jitter = (2 * torch.rand(n, 2, generator=g, **f64) - 1) * self.center_jitter
+        yaw = _uniform(n, self.yaw_range, g)
+        pitch = _uniform(n, self.pitch_range, g)
+        roll = _uniform(n, self.roll_range, g)
+        applied = torch.rand(n, generator=g, **f64) < self.p
+
+        if self.mode == "fisheye":
+            cata = torch.zeros(n, dtype=torch.bool)
+        elif self.mode == "catadioptric":
+            cata = torch.ones(n, dtype=torch.bool)
+        else:
+            cata = u_model < self.catadioptric_prob
+        n_fish = len(self.fisheye_models)
+        # the same uniform picks the fisheye model, rescaled to [0, 1) on the fisheye branch
+        u_fish = u_model if self.mode == "fisheye" else (
+            (u_model - self.catadioptric_prob) / max(1 - self.catadioptric_prob, 1e-12))
+        fish_index = (u_fish.clamp(0, 1 - 1e-12) * n_fish).long()
+        models = tuple("unified" if c else self.fisheye_models[i]
+                       for c, i in zip(cata.tolist(), fish_index.tolist()))
+
+        h, w = self.image_size
+        rim = min(h, w) / 2 - 0.5
+        fov = torch.where(cata, cata_fov, fish_fov)
+        blind = torch.where(cata, torch.full_like(fov, self.blind_fov or 0.0),
+                            torch.zeros_like(fov))
+        params = torch.zeros(n, _MAX_P, **f64)
+        num_params = torch.zeros(n, dtype=torch.long)
+        for name in sorted(set(models)):
+            idx = torch.tensor([i for i, m in enumerate(models) if m == name])
+            half = 0.5 * fov[idx]
+            if name == "unified":
+                extra = torch.cat((xi[idx, None], torch.zeros(len(idx), 4, **f64)), -1)
+            elif name == "kannala_brandt":
+                extra = self._monotonic_kb(k[idx], half)
+            else:
+                extra = torch.zeros(len(idx), 0, **f64)
+            radius, ok = _unit_radius(name, extra, half)
+            if not bool(ok.all()):   # guarded by _check_ranges; a bug if it fires
+                raise RuntimeError(f"{name}: drawn field of view outside the model's domain")
+            focal = scale[idx] * rim / radius
+            cx = (w - 1) / 2 + jitter[idx, 0]
+            cy = (h - 1) / 2 + jitter[idx, 1]
+            row = torch.cat((torch.stack((focal, focal, cx, cy), -1), extra), -1)
+            params[idx, :row.shape[-1]] = row
+            num_params[idx] = row.shape[-1]
+        params = params[:, :int(num_params.max())]
+
+        zero = torch.zeros_like(yaw)
+        yaw, pitch, roll = (torch.where(applied, a, zero) for a in (yaw, pitch, roll))
+        mount = torch.eye(3, **f64).expand(n, 3, 3).clone()
+        mount[cata] = face_rotations(torch.float64)[FACES.index(self.looking)]
+        rotation = yaw_pitch_roll_to_matrix(yaw, pitch, roll) @ mount
+
+        out = dict(model=models, camera_params=params, num_params=num_params, fov=fov,
+                   blind_fov=blind, yaw=yaw, pitch=pitch, roll=roll, applied=applied,
+                   rotation=rotation)
+        if n != batch_size:   # same_on_batch
+            out = {key: (value * batch_size if key == "model"
+                         else value.expand(batch_size, *value.shape[1:]).clone())
+                   for key, value in out.items()}
+        return out
+
+    def _monotonic_kb(self, k: Tensor, half: Tensor) -> Tensor:
+        """``(n, 4)`` coefficients halved until ``max_angle > half + margin`` (zero at worst)."""
+        head = torch.ones(k.shape[0], 4, dtype=k.dtype)
+        model = get_model("kannala_brandt")
+        for _ in range(_KB_SHRINK_STEPS):
+            bad = model.max_angle(torch.cat((head, k), -1)) <= half + _ANGLE_MARGIN
+            if not bool(bad.any()):
+                return k
+            k = torch.where(bad[:, None], 0.5 * k, k)
+        bad = model.max_angle(torch.cat((head, k), -1)) <= half + _ANGLE_MARGIN
+        return torch.where(bad[:, None], torch.zeros_like(k), k)
+
+    # ---------------------------------------------------------------------------------------
+    # Rendering
+    # ---------------------------------------------------------------------------------------
+    def cameras(self, params: dict, dtype: torch.dtype = torch.float32,
+                device: torch.device | str | None = None) -> dict[str, tuple[Tensor, Camera]]:
+        """One batched :class:`~omniscape_torch.Camera` per model in ``params``:
+        ``{model: (sample indices (n,), camera with params (n, P))}``, without ``fov`` (the
+        per-sample cones are applied by ``render``)."""
+        out = {}
+        models = params["model"]
+        for name in sorted(set(models)):
+            idx = torch.tensor([i for i, m in enumerate(models) if m == name], dtype=torch.long)
+            p = int(params["num_params"][idx[0]])
+            cam_params = params["camera_params"][idx, :p].to(dtype=dtype, device=device)
+            out[name] = (idx, Camera(name, cam_params, self.image_size))
+        return out
+
+    def render(self, cubemap: Tensor | None, params: dict, *, labels: Tensor | None = None,
+               depth: Tensor | None = None) -> dict:
+        """Render the modalities through the cameras and rotations of ``params``.
+
+        Returns:
+            dict ``valid`` and, for each given input, ``rgb``, ``labels``, ``depth`` (class
+            docstring), plus ``params``.
+        """
+        ref = next((t for t in (cubemap, depth, labels) if t is not None), None)
+        if ref is None:
+            raise ValueError("render: pass at least one of cubemap, labels, depth")
+        batch = ref.shape[0]
+        if len(params["model"]) != batch:
+            raise ValueError(f"params: drawn for {len(params['model'])} samples, the batch has "
+                             f"{batch}")
+        dtype = ref.dtype if ref.is_floating_point() and ref.dtype == torch.float64 \
+            else torch.float32
+        device = ref.device
+        parts = []
+        for name, (idx, camera) in self.cameras(params, dtype, device).items():
+            proj = OmniProjection(camera, self.face_size, interpolation=self.interpolation,
+                                  ignore_index=self.ignore_index, fused_grid=False)
+            take = (lambda t: None if t is None else t[idx.to(device)]) if len(idx) < batch \
+                else (lambda t: t)
+            rotation = params["rotation"][idx].to(dtype=dtype, device=device)
+            out = proj.render(rgb=take(cubemap), labels=take(labels), depth=take(depth),
+                              rotation=rotation, depth_output=self.depth_output)
+            # per-sample field-of-view cones, computed as Camera.within_fov does
+            rays = proj.camera_rays()[2].detach()
+            theta = torch.atan2(torch.linalg.vector_norm(rays[..., :2], dim=-1), rays[..., 2])
+            half = (0.5 * params["fov"][idx]).to(dtype=theta.dtype, device=device)
+            blind = (0.5 * params["blind_fov"][idx]).to(dtype=theta.dtype, device=device)
+            cone = (theta <= half[:, None, None]) & (theta > blind[:, None, None])
+            valid = out["valid"] & cone[:, None]
+            out["valid"] = valid
+            if "rgb" in out:
+                out["rgb"] = torch.where(valid, out["rgb"], torch.zeros_like(out["rgb"]))
+            if "depth" in out:
+                out["depth"] = torch.where(valid, out["depth"], torch.zeros_like(out["depth"]))
+            if "labels" in out:
+                out["labels"] = torch.where(valid[:, 0], out["labels"],
+                                            torch.full_like(out["labels"], self.ignore_index))
+            parts.append((idx, out))
+        if len(parts) == 1:
+            result = parts[0][1]
+        else:   # mixed models: scatter each group back into batch order
+            result = {}
+            for key in parts[0][1]:
+                first = parts[0][1][key]
+                full = first.new_empty((batch,) + first.shape[1:])
+                order = torch.cat([idx for idx, _ in parts]).to(device)
+                full = full.index_copy(0, order, torch.cat([o[key] for _, o in parts]))
+                result[key] = full
+        result["params"] = params
+        return result
+
+    def forward(self, cubemap: Tensor | dict | None, labels: Tensor | None = None,
+                depth: Tensor | None = None, *, params: dict | None = None,
+                generator: torch.Generator | None = None) -> dict:
+        """Draw (or reuse ``params``, kornia style) and render.
+
+        Args:
+            cubemap: ``(B, 6, C, F, F)`` floating, or a dict with keys ``rgb`` and optionally
+                ``labels`` and ``depth`` (so the module can start an ``nn.Sequential``).
+            labels: ``(B, 6, F, F)`` integer class ids.
+            depth: ``(B, 6, F, F)`` planar depth, metres.
+            params: parameters from ``forward_parameters`` or a previous output, to replay.
+            generator: the generator of this call (else the module's).
+
+        Returns:
+            dict ``rgb``, ``labels``, ``depth`` (those given), ``valid`` and ``params``.
+        """
+        if isinstance(cubemap, dict):
+            unknown = set(cubemap) - {"rgb", "labels", "depth"}
+            if unknown:
+                raise ValueError(f"cubemap: unknown keys {sorted(unknown)}")
+            labels = cubemap.get("labels", labels)
+            depth = cubemap.get("depth", depth)
+            cubemap = cubemap.get("rgb")
+        ref = next((t for t in (cubemap, labels, depth) if t is not None), None)
+        if ref is None:
+            raise ValueError("forward: pass at least one of cubemap, labels, depth")
+        if params is None:
+            params = self.forward_parameters(ref.shape[0], generator=generator)
+        return self.render(cubemap, params, labels=labels, depth=depth)
+
+
+class ApplyToKey(nn.Module):
+    """Apply an image augmentation (e.g. kornia's ``ColorJitter``) to one entry of the dict that
+    :class:`RandomOmniCamera` returns, so both compose in an ``nn.Sequential``::
+
+        nn.Sequential(RandomOmniCamera(...), ApplyToKey(kornia.augmentation.ColorJitter(...)))
+
+    The invalid pixels are zeroed again afterwards (``mask_invalid``). Note that kornia's own
+    augmentations draw from torch's global RNG, not from this package's generators.
+    """
+
+    def __init__(self, module: nn.Module, key: str = "rgb", mask_invalid: bool = True) -> None:
+        super().__init__()
+        self.module = module
+        self.key = key
+        self.mask_invalid = bool(mask_invalid)
+
+    def forward(self, batch: dict) -> dict:
+        out = dict(batch)
+        value = self.module(batch[self.key])
+        if self.mask_invalid and "valid" in batch:
+            value = torch.where(batch["valid"], value, torch.zeros_like(value))
+        out[self.key] = value
+        return out
