@@ -1,0 +1,378 @@
+"""Random omni-camera augmentation: ``RandomOmniCamera`` against per-sample ``cv2.remap``.
+
+Issue 5's throughput benchmark: images per second, on the CPU with ``--threads`` (default 2)
+threads, for batches of ``B`` cubemaps ``6 x F x F`` (RGB float32 + uint8 labels) rendered to
+``S x S`` equidistant fisheyes (default B = 16, F = 256, S = 512), with a new random camera
+(fov uniform in 160-200 deg, image circle inscribed) and attitude (roll +-25 deg, pitch +-10 deg,
+any yaw) per sample and call. Timed round-robin in one run:
+
+* ``ours``: ``RandomOmniCamera((S, S), F, mode="fisheye")(cube, labels=labels)`` (drawing,
+  cameras, rays, grid, atlases, RGB bilinear sampling, label gather, fov cones and masking);
+* ``peer``: what a user would write without this package, per sample: draw the same kind of
+  camera and attitude with numpy, compute every pixel's ray (numpy, float32), rotate it, pick the
+  cube face (argmax of the six face axes of DESIGN.md's table) and its face (u, v), build
+  ``map_x``/``map_y`` into an atlas of the 6 faces stacked vertically, each face padded by one
+  texel by edge replication (``np.pad(mode="edge")``, rebuilt per sample, timed), then
+  ``cv2.remap`` the RGB atlas (HWC float32, ``INTER_LINEAR``) and the label atlas (uint8,
+  ``INTER_NEAREST``), invalid pixels mapped outside (``BORDER_CONSTANT`` 0 / 255). Its inputs
+  are numpy HWC arrays converted once, untimed (as a numpy user would hold them);
+* our parts apart (``part`` rows): ``params`` (``forward_parameters``), ``grid`` (cameras,
+  rays and the rotated atlas grid of a fresh ``OmniProjection``: what ``render`` rebuilds per
+  call), ``atlas_rgb`` / ``atlas_labels`` (padded atlases), ``sample_rgb`` (``grid_sample`` on
+  the prebuilt atlas and grid), ``gather_labels`` (nearest gather); and the peer's
+  ``peer_maps`` (numpy maps only) and ``peer_remap`` (atlas padding + the two remaps, maps
+  prebuilt).
+
+Headline: ``ours`` images/s over ``peer`` images/s (target >= 2). A check renders the peer with
+our drawn parameters and reports how far the two outputs agree (label agreement on pixels both
+call valid, RGB mean / max abs difference; ours pads faces from their neighbours, the peer by
+edge replication, so texels next to a seam differ slightly).
+
+Timing: ``common.measure``: ``--warmup`` untimed calls of each, then ``--repeats`` timed calls
+round-robin, median and IQR. Randomness: seeded (``torch.Generator`` for the inputs and our
+module, ``numpy.random.default_rng`` for the peer).
+
+Usage::
+
+    python benchmarks/bench_augment.py            # B = 16, 6 x 256 -> 512 x 512, 2 threads
+    python benchmarks/bench_augment.py --quick    # B = 4, 6 x 64 -> 128 x 128, seconds
+
+Results: a markdown table on stdout and JSON (``--out``, default
+``benchmarks/results/augment.json``, written atomically).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+# Benchmark the checkout this script lives in, not whatever copy is installed.
+sys.path.insert(0, str(ROOT))
+
+import omniscape_torch as ot  # noqa: E402
+from common import git_commit, loadavg, machine_info, measure, write_json_atomic  # noqa: E402
+from omniscape_torch.augment import RandomOmniCamera  # noqa: E402
+from omniscape_torch.projection import OmniProjection  # noqa: E402
+from omniscape_torch.sampling import nearest_gather  # noqa: E402
+
+try:
+    import cv2
+except ImportError:  # the OpenCV peer is skipped, our rows still run
+    cv2 = None
+
+SEED = 20240611
+TARGET = 2.0  # ours / peer throughput
+_DEG = math.pi / 180
+FOV_RANGE = (160 * _DEG, 200 * _DEG)
+ROLL_RANGE = (-25 * _DEG, 25 * _DEG)
+PITCH_RANGE = (-10 * _DEG, 10 * _DEG)
+YAW_RANGE = (-math.pi, math.pi)
+
+# --------------------------------------------------------------------------------------------
+# The peer: numpy maps + cv2.remap, per sample
+# --------------------------------------------------------------------------------------------
+
+# DESIGN.md's face table, in FACES order (front, back, left, right, up, down):
+# a (looks along), b (image down), r (image right); face pixel (u, v) is the ray
+# r (u - c) / f + b (v - c) / f + a with f = F / 2, c = (F - 1) / 2.
+FACE_A = np.array([[0, 0, 1], [0, 0, -1], [-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0]],
+                  np.float32)
+FACE_B = np.array([[0, 1, 0], [0, 1, 0], [0, 1, 0], [0, 1, 0], [0, 0, 1], [0, 0, -1]],
+                  np.float32)
+FACE_R = np.array([[1, 0, 0], [-1, 0, 0], [0, 0, 1], [0, 0, -1], [1, 0, 0], [1, 0, 0]],
+                  np.float32)
+
+
+def np_yaw_pitch_roll(yaw: float, pitch: float, roll: float) -> np.ndarray:
+    """``R_yaw R_pitch R_roll`` (camera -> cube frame), the rig convention of DESIGN.md."""
+    cy, sy, cp, sp, cr, sr = (math.cos(yaw), math.sin(yaw), math.cos(pitch), math.sin(pitch),
+                              math.cos(roll), math.sin(roll))
+    r_yaw = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    r_pitch = np.array([[1, 0, 0], [0, cp, -sp], [0, sp, cp]])
+    r_roll = np.array([[cr, -sr, 0], [sr, cr, 0], [0, 0, 1]])
+    return r_yaw @ r_pitch @ r_roll
+
+
+def peer_draw(rng: np.random.Generator) -> tuple[float, np.ndarray]:
+    """A random fisheye fov and attitude, as a numpy user would draw them."""
+    fov = rng.uniform(*FOV_RANGE)
+    yaw, pitch, roll = rng.uniform(*YAW_RANGE), rng.uniform(*PITCH_RANGE), rng.uniform(*ROLL_RANGE)
+    return fov, np_yaw_pitch_roll(yaw, pitch, roll)
+
+
+def peer_maps(fov: float, rotation: np.ndarray, size: int, face: int
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """``cv2.remap`` maps (float32, atlas pixels) of an ``size x size`` equidistant fisheye of
+    ``fov`` (circle inscribed), rotated by ``rotation``; invalid pixels map outside the atlas."""
+    focal = (size / 2 - 0.5) / (fov / 2)
+    centre = (size - 1) / 2
+    coords = (np.arange(size, dtype=np.float32) - centre) / focal
+    x, y = np.meshgrid(coords, coords)  # x along columns (u), y along rows (v)
+    theta = np.hypot(x, y)
+    scale = np.sinc(theta / np.pi)  # sin(theta) / theta, 1 at 0
+    rays = np.stack((x * scale, y * scale, np.cos(theta)), axis=-1)  # (S, S, 3)
+    rays = rays @ rotation.astype(np.float32).T  # ray_cube = R @ ray_cam
+    dots = rays @ FACE_A.T  # (S, S, 6)
+    k = np.argmax(dots, axis=-1)
+    along = np.take_along_axis(dots, k[..., None], axis=-1)[..., 0]
+    right = np.einsum("hwc,hwc->hw", rays, FACE_R[k])
+    down = np.einsum("hwc,hwc->hw", rays, FACE_B[k])
+    half, c_face, n_pad = face / 2, (face - 1) / 2, face + 2
+    map_x = (c_face + 1 + half * right / along).astype(np.float32)
+    map_y = (k * n_pad + c_face + 1 + half * down / along).astype(np.float32)
+    invalid = theta > fov / 2
+    map_x[invalid] = -10.0
+    map_y[invalid] = -10.0
+    return map_x, map_y
+
+
+def peer_atlas(faces: np.ndarray) -> np.ndarray:
+    """``(6, F, F[, C])`` faces -> ``(6 (F + 2), F + 2[, C])``, each face edge-padded by 1."""
+    pad = ((0, 0), (1, 1), (1, 1)) + ((0, 0),) * (faces.ndim - 3)
+    padded = np.pad(faces, pad, mode="edge")
+    return padded.reshape((-1,) + padded.shape[2:])
+
+
+def peer_remap(rgb_faces: np.ndarray, label_faces: np.ndarray, map_x: np.ndarray,
+               map_y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    rgb = cv2.remap(peer_atlas(rgb_faces), map_x, map_y, cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0))
+    labels = cv2.remap(peer_atlas(label_faces), map_x, map_y, cv2.INTER_NEAREST,
+                       borderMode=cv2.BORDER_CONSTANT, borderValue=255)
+    return rgb, labels
+
+
+def peer_batch(rgb: list[np.ndarray], labels: list[np.ndarray], rng: np.random.Generator,
+               size: int, face: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    out = []
+    for rgb_faces, label_faces in zip(rgb, labels):
+        fov, rotation = peer_draw(rng)
+        map_x, map_y = peer_maps(fov, rotation, size, face)
+        out.append(peer_remap(rgb_faces, label_faces, map_x, map_y))
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# The benchmark
+# --------------------------------------------------------------------------------------------
+
+def run(args: argparse.Namespace) -> dict:
+    load_start = loadavg()
+    if load_start is not None and load_start[0] > 0.5:
+        print(f"# warning: 1-minute load average {load_start[0]:.2f} > 0.5: timings are "
+              "unreliable on a busy machine", file=sys.stderr)
+    torch.set_num_threads(args.threads)
+    if cv2 is not None:
+        cv2.setNumThreads(args.threads)
+    device = torch.device("cpu")
+    batch, face, size = args.batch, args.face, args.size
+
+    gen = torch.Generator().manual_seed(SEED)
+    cube = torch.rand(batch, 6, 3, face, face, generator=gen)
+    labels = torch.randint(0, 13, (batch, 6, face, face), generator=gen, dtype=torch.uint8)
+    rgb_np = [np.ascontiguousarray(c.permute(0, 2, 3, 1).numpy()) for c in cube]  # (6, F, F, 3)
+    labels_np = [np.ascontiguousarray(lab.numpy()) for lab in labels]
+
+    aug = RandomOmniCamera((size, size), face, mode="fisheye", seed=SEED)
+    part_gen = torch.Generator().manual_seed(SEED + 1)
+
+    # Our parts, on one fixed draw (a fresh layer per call: render builds one per call).
+    params0 = aug.forward_parameters(batch, generator=torch.Generator().manual_seed(SEED + 2))
+    (_, camera0), = aug.cameras(params0).values()
+    rotation0 = params0["rotation"].float()
+
+    def new_proj() -> OmniProjection:
+        return OmniProjection(camera0, face, interpolation=aug.interpolation,
+                              ignore_index=aug.ignore_index, fused_grid=False)
+
+    proj0 = new_proj()
+    grid_s, _, grid_c, _ = proj0.sampling_grid(rotation0, torch.float32)
+    atlas_rgb = proj0._atlas(cube, "bilinear")
+    atlas_lab = proj0._atlas(labels.unsqueeze(2), "nearest")
+
+    rng_peer = np.random.default_rng(SEED)
+    rng_maps = np.random.default_rng(SEED + 1)
+    maps0 = [peer_maps(*peer_draw(np.random.default_rng(SEED + 2 + i)), size, face)
+             for i in range(batch)]
+
+    cases: list[tuple[str, str, Callable[[], object]]] = [
+        ("ours", "ours", lambda: aug(cube, labels=labels)),
+        ("params", "part", lambda: aug.forward_parameters(batch, generator=part_gen)),
+        ("grid", "part", lambda: new_proj().sampling_grid(rotation0, torch.float32)),
+        ("atlas_rgb", "part", lambda: proj0._atlas(cube, "bilinear")),
+        ("atlas_labels", "part", lambda: proj0._atlas(labels.unsqueeze(2), "nearest")),
+        ("sample_rgb", "part", lambda: proj0._sample(atlas_rgb, grid_s, "bilinear")),
+        ("gather_labels", "part", lambda: nearest_gather(atlas_lab, grid_c)),
+    ]
+    agreement: dict[str, float] = {}
+    if cv2 is not None:
+        cases += [
+            ("peer", "peer", lambda: peer_batch(rgb_np, labels_np, rng_peer, size, face)),
+            ("peer_maps", "peer part",
+             lambda: [peer_maps(*peer_draw(rng_maps), size, face) for _ in range(batch)]),
+            ("peer_remap", "peer part",
+             lambda: [peer_remap(r, lab, *m) for r, lab, m in zip(rgb_np, labels_np, maps0)]),
+        ]
+        # Agreement: the peer rendered with our drawn fov and rotation.
+        out = aug(cube, labels=labels, params=params0)
+        ours_rgb = out["rgb"].permute(0, 2, 3, 1).numpy()
+        ours_lab = out["labels"].numpy()
+        ours_valid = out["valid"][:, 0].numpy()
+        same, both, diffs, max_diff = 0, 0, [], 0.0
+        for i in range(batch):
+            rot = params0["rotation"][i].numpy()
+            mx, my = peer_maps(float(params0["fov"][i]), rot, size, face)
+            p_rgb, p_lab = peer_remap(rgb_np[i], labels_np[i], mx, my)
+            mask = ours_valid[i] & (p_lab != 255)
+            both += int(mask.sum())
+            same += int((p_lab[mask] == ours_lab[i][mask]).sum())
+            d = np.abs(p_rgb[mask] - ours_rgb[i][mask])
+            diffs.append(d.mean())
+            max_diff = max(max_diff, float(d.max()))
+            agreement.setdefault("valid_mismatch_fraction", 0.0)
+            agreement["valid_mismatch_fraction"] += float(
+                (ours_valid[i] != (p_lab != 255)).mean()) / batch
+        agreement["label_agreement"] = same / max(both, 1)
+        agreement["rgb_mean_abs_diff"] = float(np.mean(diffs))
+        agreement["rgb_max_abs_diff"] = max_diff
+
+    with torch.no_grad():
+        results = measure([fn for _, _, fn in cases], args.repeats, args.warmup, device)
+    rows = []
+    by_name = {}
+    for (name, kind, _), res in zip(cases, results):
+        row = {"name": name, "kind": kind, "batch": batch, **res,
+               "images_per_s": batch / res["median_s"],
+               "median_per_sample_s": res["median_s"] / batch}
+        rows.append(row)
+        by_name[name] = row
+    parts = ("params", "grid", "atlas_rgb", "atlas_labels", "sample_rgb", "gather_labels")
+    parts_sum = sum(by_name[p]["median_s"] for p in parts)
+    breakdown = {p: by_name[p]["median_s"] / by_name["ours"]["median_s"] for p in parts}
+    breakdown["rest (cones, masking, other)"] = 1 - parts_sum / by_name["ours"]["median_s"]
+    headline = None
+    if "peer" in by_name:
+        ratio = by_name["ours"]["images_per_s"] / by_name["peer"]["images_per_s"]
+        headline = {"ours_images_per_s": by_name["ours"]["images_per_s"],
+                    "peer_images_per_s": by_name["peer"]["images_per_s"],
+                    "throughput_ratio_ours_over_peer": ratio, "target": TARGET,
+                    "meets_target": ratio >= TARGET}
+
+    commit, dirty = git_commit()
+    return {
+        "benchmark": "augment",
+        "commit": commit,
+        "dirty": dirty,
+        "machine": machine_info(device),
+        "versions": {"torch": torch.__version__, "numpy": np.__version__,
+                     "cv2": None if cv2 is None else cv2.__version__,
+                     "omniscape_torch": getattr(ot, "__version__", None)},
+        "environment": {k: v for k, v in sorted(os.environ.items())
+                        if k.startswith(("OMP_", "MKL_", "KMP_", "MALLOC_", "OPENCV_"))
+                        or k in ("LD_PRELOAD", "ATEN_CPU_CAPABILITY")},
+        "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
+        "threads": args.threads,
+        "torch_num_threads": torch.get_num_threads(),
+        "cv2_num_threads": None if cv2 is None else cv2.getNumThreads(),
+        "device": "cpu",
+        "setup": {"batch": batch, "face_size": face, "image_size": [size, size],
+                  "mode": "fisheye", "model": "equidistant", "fov_deg": [160.0, 200.0],
+                  "roll_deg": [-25.0, 25.0], "pitch_deg": [-10.0, 10.0],
+                  "yaw_deg": [-180.0, 180.0], "rgb": "float32, 3 channels",
+                  "labels": "uint8 (ours returns int64)", "pad_ours": proj0.pad,
+                  "border_ours": proj0.border, "pad_peer": 1, "border_peer": "edge replication",
+                  "peer_float": "float32 numpy maps"},
+        "repeats": args.repeats,
+        "warmup": args.warmup,
+        "seed": SEED,
+        "peer_agreement": agreement,
+        "timer": ("time.perf_counter around single calls, after warm-up, all rows round-robin; "
+                  "median and IQR"),
+        "timestamp_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "loadavg_start": load_start,
+        "loadavg_end": loadavg(),
+        "rows": rows,
+        "breakdown_fraction_of_ours": breakdown,
+        "headline": headline,
+    }
+
+
+def markdown(result: dict) -> str:
+    def ms(s: float) -> str:
+        return f"{1e3 * s:.1f}"
+
+    s = result["setup"]
+    lines = [f"augment: B = {s['batch']}, 6 x {s['face_size']} -> {s['image_size'][0]} x "
+             f"{s['image_size'][1]} fisheye (random camera + attitude per sample), RGB + labels, "
+             f"{result['threads']} threads, commit {result['commit'][:12]}"
+             f"{' (dirty)' if result['dirty'] else ''}", "",
+             "| row | kind | median ms / batch | IQR ms | min ms | images/s |",
+             "|---|---|---:|---:|---:|---:|"]
+    for r in result["rows"]:
+        lines.append(f"| {r['name']} | {r['kind']} | {ms(r['median_s'])} | {ms(r['iqr_s'])} | "
+                     f"{ms(r['min_s'])} | {r['images_per_s']:.1f} |")
+    lines += ["", "where our time goes (part medians / ours median): " + ", ".join(
+        f"{k} {100 * v:.0f}%" for k, v in result["breakdown_fraction_of_ours"].items())]
+    h = result["headline"]
+    if h is not None:
+        lines.append(f"throughput ours / peer: {h['throughput_ratio_ours_over_peer']:.2f}x "
+                     f"({h['ours_images_per_s']:.1f} vs {h['peer_images_per_s']:.1f} images/s; "
+                     f"target >= {h['target']:.0f}x: {'ok' if h['meets_target'] else 'MISSED'})")
+    if result["peer_agreement"]:
+        lines.append("peer agreement (same draws): " + ", ".join(
+            f"{k} {v:.4g}" for k, v in result["peer_agreement"].items()))
+    return "\n".join(lines)
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--batch", type=int, default=None, help="batch size (16; 4 quick)")
+    parser.add_argument("--face", type=int, default=None, help="cube face size F (256; 64 quick)")
+    parser.add_argument("--size", type=int, default=None,
+                        help="output image side S (512; 128 quick)")
+    parser.add_argument("--threads", type=int, default=2,
+                        help="torch and OpenCV thread count (default 2)")
+    parser.add_argument("--repeats", type=int, default=None,
+                        help="timed calls per row (default 10; 3 with --quick)")
+    parser.add_argument("--warmup", type=int, default=None,
+                        help="untimed calls before timing (default 2; 1 with --quick)")
+    parser.add_argument("--quick", action="store_true",
+                        help="B = 4, 6 x 64 -> 128 x 128, few repeats: a smoke run (seconds)")
+    parser.add_argument("--out", type=Path,
+                        default=ROOT / "benchmarks" / "results" / "augment.json",
+                        help="JSON output (default benchmarks/results/augment.json)")
+    args = parser.parse_args(argv)
+    defaults = {"batch": (16, 4), "face": (256, 64), "size": (512, 128), "repeats": (10, 3),
+                "warmup": (2, 1)}
+    for name, (full, quick) in defaults.items():
+        if getattr(args, name) is None:
+            setattr(args, name, quick if args.quick else full)
+    for name in ("batch", "face", "size", "threads", "repeats"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name} must be >= 1")
+    if args.warmup < 0:
+        parser.error("--warmup must be >= 0")
+    return args
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    result = run(args)
+    print(markdown(result))
+    write_json_atomic(result, args.out)
+    print(f"\nwrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
