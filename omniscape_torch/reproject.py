@@ -1,8 +1,13 @@
 """Reprojection between any two cameras of the registry, and equirectangular panoramas.
 
 For every pixel of the destination camera: its ray (``dst_camera.ray_grid()``), rotated into the
-source camera's frame, projected by the source camera, sampled from the source image. A real
-fisheye image becomes a pinhole or equirectangular view; a panorama becomes a cubemap.
+source camera's frame, projected by the source camera, sampled from the source image with
+``grid_sample(align_corners=False)`` (pixel ``u`` is grid ``(2 u + 1) / W - 1``). A real fisheye
+image becomes a pinhole or equirectangular view; a panorama becomes a cubemap.
+
+A full (360 degree) equirectangular source wraps around in longitude: two columns of the far
+side are added on each side before sampling, so bilinear and bicubic interpolation are
+continuous across the +-180 degree seam; at the poles the rows are clamped (``border``).
 """
 
 from __future__ import annotations
@@ -19,38 +24,68 @@ from .sampling import grid_sample, nearest_gather, pixels_to_grid
 
 INTERPOLATIONS = ("nearest", "bilinear", "bicubic")
 
+#: Columns added on each side of a full panorama: bicubic reads 2 texels left and right of u.
+_WRAP = 2
+#: Relative tolerance on ``2 pi fx = W`` for a panorama to count as full (and wrap).
+_FULL_CIRCLE_RTOL = 1e-6
+
 
 def equirectangular_camera(width: int, height: int, *, dtype: torch.dtype = torch.float32
                            ) -> Camera:
     """A full 360 x 180 degree panorama of ``width x height`` pixels (longitude 0 at the
-    centre column, latitude positive downwards)."""
+    centre column, latitude positive downwards): ``fx = W / (2 pi)``, ``fy = H / pi``,
+    ``cx = (W - 1) / 2``, ``cy = (H - 1) / 2``."""
     params = torch.tensor([width / (2 * math.pi), height / math.pi, (width - 1) / 2,
                            (height - 1) / 2], dtype=dtype)
     return Camera("equirectangular", params, (height, width))
 
 
+def wraps_in_longitude(camera: Camera) -> bool:
+    """True for an equirectangular camera whose ``W`` columns span 360 degrees
+    (``2 pi fx = W``, every camera of a batch): its left and right edges are the same meridian."""
+    if camera.model.name != "equirectangular":
+        return False
+    width = camera.image_size[1]
+    fx = camera.params.detach()[..., 0]
+    return bool(((2 * math.pi * fx - width).abs() <= _FULL_CIRCLE_RTOL * width).all())
+
+
+def _is_labels(image: Tensor, labels: bool | None) -> bool:
+    if labels is None:
+        return not image.is_floating_point()
+    if labels and (image.is_floating_point() or image.is_complex()):
+        raise TypeError(f"image: labels=True needs integer class ids, got {image.dtype}")
+    if not labels and not image.is_floating_point():
+        raise TypeError(f"image: expected a floating image (labels=False), got {image.dtype}; "
+                        f"convert with ot.io.to_float, or pass labels=True for class ids")
+    return bool(labels)
+
+
 def sample_camera(image: Tensor, camera: Camera, rays: Tensor, *,
-                  interpolation: str = "bilinear", ignore_index: int = IGNORE_INDEX
-                  ) -> tuple[Tensor, Tensor]:
+                  interpolation: str = "bilinear", labels: bool | None = None,
+                  ignore_index: int = IGNORE_INDEX) -> tuple[Tensor, Tensor]:
     """Sample ``image`` seen by ``camera`` along ``rays`` given in that camera's frame.
 
     Args:
-        image: ``(B, C, H, W)`` floating, or integer labels ``(B, H, W)`` / ``(B, 1, H, W)``
-            (nearest only, never blended).
+        image: ``(B, C, H, W)`` floating, or integer labels ``(B, H, W)`` / ``(B, C, H, W)``
+            (nearest only, never blended). A batch of 1 is shared by every ray batch.
         camera: the camera that took ``image`` (one, or a batch of ``B``).
         rays: ``(h, w, 3)`` or ``(B, h, w, 3)`` directions in the camera frame.
-        interpolation: ``"nearest"``, ``"bilinear"`` or ``"bicubic"`` (floating images).
+        interpolation: ``"nearest"``, ``"bilinear"`` or ``"bicubic"`` (floating images; bicubic
+            may overshoot the input's range).
+        labels: treat ``image`` as integer class ids; ``None`` decides by its dtype.
         ignore_index: label of invalid pixels.
 
     Returns:
-        ``values (B, C, h, w)`` (labels: ``(B, h, w)`` int64) and ``valid (B, 1, h, w)``; invalid
-        pixels are 0 (labels: ``ignore_index``). An equirectangular source wraps around in
-        longitude, so sampling is continuous across its +-180 degree seam.
+        ``values (B, C, h, w)`` (labels: int64, ``(B, h, w)`` for ``(B, H, W)`` input) and
+        ``valid (B, 1, h, w)``: the source camera's validity (model domain, image bounds, fov).
+        Invalid pixels are 0 (labels: ``ignore_index``).
     """
     if not isinstance(image, Tensor):
         raise TypeError(f"image: expected a tensor, got {type(image).__name__}")
-    labels = not image.is_floating_point()
-    if labels and image.dim() == 3:
+    labels = _is_labels(image, labels)
+    squeeze = labels and image.dim() == 3
+    if squeeze:
         image = image.unsqueeze(1)
     if image.dim() != 4:
         raise ValueError(f"image: expected (B, C, H, W) (labels: (B, H, W)), got "
@@ -58,90 +93,132 @@ def sample_camera(image: Tensor, camera: Camera, rays: Tensor, *,
     if interpolation not in INTERPOLATIONS:
         raise ValueError(f"interpolation: expected one of {INTERPOLATIONS}, got "
                          f"{interpolation!r}")
-    batch, _, height, width = image.shape
+    if rays.dim() not in (3, 4) or rays.shape[-1] != 3:
+        raise ValueError(f"rays: expected (h, w, 3) or (B, h, w, 3), got {tuple(rays.shape)}")
+    height, width = image.shape[-2:]
     if (height, width) != camera.image_size:
         raise ValueError(f"image: size {(height, width)} does not match the camera's "
                          f"image_size {camera.image_size}")
-    if camera.batch_shape not in ((), (batch,)):
-        raise ValueError(f"image: batch {batch} does not match the camera batch "
+    if len(camera.batch_shape) > 1:
+        raise ValueError(f"camera: expected one camera or a batch (B,), got batch "
                          f"{tuple(camera.batch_shape)}")
+    batches = {("image", image.shape[0])} | {("camera", n) for n in camera.batch_shape}
+    if rays.dim() == 4:
+        batches.add(("rays", rays.shape[0]))
+    sizes = {n for what, n in batches if what != "image" or n != 1}
+    if len(sizes) > 1:
+        raise ValueError("batch sizes disagree: " + ", ".join(
+            f"{what} {n}" for what, n in sorted(batches)))
+    batch = sizes.pop() if sizes else 1
+
     if camera.batch_shape and rays.dim() == 3:
         rays = rays.expand(batch, *rays.shape)
     pixels, valid = camera.project(rays.to(camera.params.dtype))
-    if camera.model.name == "equirectangular":
-        # wrap in longitude: two columns of the far side on each side of the panorama
-        image = torch.cat((image[..., -2:], image, image[..., :2]), dim=-1)
-        pixels = pixels + torch.tensor([2.0, 0.0], dtype=pixels.dtype, device=pixels.device)
-        width += 4
+    if wraps_in_longitude(camera):
+        # valid u lie in [-0.5, W - 0.5]; the padded columns hold their neighbours across the seam
+        pixels = pixels + torch.tensor([float(_WRAP), 0.0], dtype=pixels.dtype,
+                                       device=pixels.device)
+        image = torch.cat((image[..., -_WRAP:], image, image[..., :_WRAP]), dim=-1)
+        width += 2 * _WRAP
     grid = pixels_to_grid(pixels, width, height)
+    # invalid lanes may project far away: keep their grid finite and their gradient zero
+    grid = torch.where(valid.unsqueeze(-1), grid, torch.zeros_like(grid))
     if grid.dim() == 3:
         grid, valid = grid.unsqueeze(0), valid.unsqueeze(0)
+    grid = grid.expand(batch, *grid.shape[1:])
     valid = valid.expand(batch, *valid.shape[1:]).unsqueeze(1)
+    image = image.expand(batch, *image.shape[1:])
     if labels:
-        out = nearest_gather(image, grid)[:, 0]
-        return torch.where(valid[:, 0], out.long(), torch.full_like(out.long(), ignore_index)), valid
-    grid = grid.to(image.dtype).expand(batch, *grid.shape[1:])
-    out = grid_sample(image, grid, interpolation)
+        out = nearest_gather(image, grid).long()
+        out = torch.where(valid, out, torch.full_like(out, ignore_index))
+        return (out[:, 0] if squeeze else out), valid
+    out = grid_sample(image, grid.to(image.dtype), interpolation)
     return torch.where(valid, out, torch.zeros_like(out)), valid
 
 
 def reproject(image: Tensor, src_camera: Camera, dst_camera: Camera, *,
               rotation: Tensor | None = None, interpolation: str = "bilinear",
-              ignore_index: int = IGNORE_INDEX) -> tuple[Tensor, Tensor]:
+              labels: bool | None = None, ignore_index: int = IGNORE_INDEX
+              ) -> tuple[Tensor, Tensor]:
     """Resample ``image`` taken by ``src_camera`` into ``dst_camera`` (same centre).
 
+    ``out[b, :, v, u] = image[b]`` sampled at ``src.project(R @ dst.unproject(u, v))``.
+
     Args:
-        image: ``(B, C, H_src, W_src)`` floating, or integer labels ``(B, H_src, W_src)``.
+        image: ``(B, C, H_src, W_src)`` floating, or integer labels ``(B, H_src, W_src)`` /
+            ``(B, C, H_src, W_src)``. A batch of 1 is shared by a batch of cameras/rotations.
         src_camera, dst_camera: any cameras of the registry (one, or a batch of ``B``).
         rotation: optional ``(3, 3)`` or ``(B, 3, 3)`` mapping destination-camera rays into the
-            source camera's frame (default: the same orientation).
-        interpolation: ``"nearest"``, ``"bilinear"`` or ``"bicubic"``.
+            source camera's frame, ``ray_src = R @ ray_dst`` (default: the same orientation).
+        interpolation: ``"nearest"``, ``"bilinear"`` or ``"bicubic"``; labels are always nearest.
+        labels: treat ``image`` as integer class ids; ``None`` decides by its dtype.
+        ignore_index: label of invalid pixels.
 
     Returns:
-        ``image (B, C, H_dst, W_dst)`` (labels ``(B, H_dst, W_dst)``) and ``valid
-        (B, 1, H_dst, W_dst)``: valid in both cameras. Differentiable with respect to the image,
-        both cameras' parameters and the rotation.
+        ``image (B, C, H_dst, W_dst)`` (labels: int64, ``(B, H_dst, W_dst)`` for
+        ``(B, H_src, W_src)`` input) and ``valid (B, 1, H_dst, W_dst)``: valid in both cameras.
+        Invalid pixels are 0 (labels: ``ignore_index``). Differentiable with respect to the
+        image, both cameras' parameters and the rotation (bilinear and bicubic). The sampling
+        grid is built in the cameras' dtype and cast to the image's.
+
+    Example:
+        >>> import omniscape_torch as ot, torch
+        >>> pano = torch.rand(1, 3, 64, 128)
+        >>> fisheye = ot.Camera("equidistant", [20.0, 20.0, 31.5, 31.5], (64, 64))
+        >>> out, valid = ot.reproject(pano, ot.equirectangular_camera(128, 64), fisheye)
+        >>> out.shape, valid.shape
+        (torch.Size([1, 3, 64, 64]), torch.Size([1, 1, 64, 64]))
     """
-    rays, valid_dst = dst_camera.ray_grid()
+    rays, valid_dst = dst_camera.ray_grid()  # [(B,) h, w, 3]
     if rotation is not None:
-        if not isinstance(rotation, Tensor) or rotation.shape[-2:] != (3, 3) \
-                or rotation.dim() not in (2, 3):
+        if not isinstance(rotation, Tensor) or rotation.dim() not in (2, 3) \
+                or rotation.shape[-2:] != (3, 3):
             raise ValueError(f"rotation: expected (3, 3) or (B, 3, 3), got "
                              f"{tuple(getattr(rotation, 'shape', ()))}")
+        if rotation.dim() == 3 and rays.dim() == 4 and len(rotation) != len(rays):
+            raise ValueError(f"batch sizes disagree: rotation {len(rotation)}, dst_camera "
+                             f"{len(rays)}")
         rot = rotation.to(rays.dtype)
         rays = (torch.einsum("ij,...hwj->...hwi", rot, rays) if rot.dim() == 2
                 else torch.einsum("bij,bhwj->bhwi", rot, rays.expand(len(rot), *rays.shape[-3:])))
     values, valid = sample_camera(image, src_camera, rays, interpolation=interpolation,
-                                  ignore_index=ignore_index)
+                                  labels=labels, ignore_index=ignore_index)
     valid_dst = valid_dst.unsqueeze(0) if valid_dst.dim() == 2 else valid_dst
     valid = valid & valid_dst.unsqueeze(1)
     if values.is_floating_point():
         return torch.where(valid, values, torch.zeros_like(values)), valid
-    return torch.where(valid[:, 0], values, torch.full_like(values, ignore_index)), valid
+    mask = valid[:, 0] if values.dim() == 3 else valid
+    return torch.where(mask, values, torch.full_like(values, ignore_index)), valid
 
 
 def equirect_to_cubemap(panorama: Tensor, face_size: int, *, interpolation: str = "bilinear",
-                        ignore_index: int = IGNORE_INDEX) -> Tensor:
+                        labels: bool | None = None, ignore_index: int = IGNORE_INDEX) -> Tensor:
     """The six faces (``FACES`` order, DESIGN.md's orientation) of a full equirectangular
     panorama.
+
+    Face ``k`` is ``reproject(panorama, equirectangular_camera(W, H), face_pinhole,
+    rotation=face_rotations()[k])`` with the face pinhole ``fx = fy = F / 2``,
+    ``cx = cy = (F - 1) / 2``; the six faces are sampled in one call, the geometry in float64.
 
     Args:
         panorama: ``(B, C, H, W)`` floating, or integer labels ``(B, H, W)`` (nearest).
         face_size: ``F``.
+        interpolation: ``"nearest"``, ``"bilinear"`` or ``"bicubic"``.
+        labels: treat ``panorama`` as integer class ids; ``None`` decides by its dtype.
 
     Returns:
-        ``(B, 6, C, F, F)`` (labels ``(B, 6, F, F)``).
+        ``(B, 6, C, F, F)`` (labels ``(B, 6, F, F)`` int64, or ``(B, 6, C, F, F)`` for
+        ``(B, C, H, W)`` labels). Every texel is valid.
     """
     if not isinstance(face_size, int) or isinstance(face_size, bool) or face_size < 1:
         raise ValueError(f"face_size: expected a positive int, got {face_size!r}")
     height, width = panorama.shape[-2:]
-    dtype = panorama.dtype if panorama.is_floating_point() else torch.float32
-    camera = equirectangular_camera(width, height, dtype=torch.float64)
-    camera = camera.to(panorama.device)
+    camera = equirectangular_camera(width, height, dtype=torch.float64).to(panorama.device)
     rays = cm.face_rays(face_size, dtype=torch.float64, device=panorama.device, normalize=True)
     values, _ = sample_camera(panorama, camera, rays.reshape(6 * face_size, face_size, 3),
-                              interpolation=interpolation, ignore_index=ignore_index)
+                              interpolation=interpolation, labels=labels,
+                              ignore_index=ignore_index)
     if values.dim() == 3:  # labels (B, 6F, F)
         return values.reshape(-1, 6, face_size, face_size)
     return values.reshape(values.shape[0], values.shape[1], 6, face_size, face_size) \
-        .transpose(1, 2).to(dtype)
+        .transpose(1, 2)

@@ -47,8 +47,17 @@ def write_image(path: str | Path, image: Tensor | np.ndarray) -> Path:
     return atomic_write_bytes(path, data.tobytes())
 
 
-def to_float(image: Tensor) -> Tensor:
-    """``(H, W, C)`` uint8 -> ``(C, H, W)`` float32 in [0, 1]."""
+def to_float(image: Tensor | np.ndarray, *, dtype: torch.dtype = torch.float32) -> Tensor:
+    """``(H, W, C)`` or ``(H, W)`` uint8/uint16 -> ``(C, H, W)`` floating in [0, 1] (divided by
+    255, or 65535 for uint16)."""
+    if isinstance(image, np.ndarray):
+        image = torch.from_numpy(image)
+    scale = {torch.uint8: 255.0, torch.uint16: 65535.0}.get(image.dtype)
+    if scale is None:
+        raise TypeError(f"image: expected uint8 or uint16, got {image.dtype}")
     if image.dim() == 2:
         image = image.unsqueeze(-1)
-    return image.permute(2, 0, 1).float() / 255.0
+    if image.dim() != 3:
+        raise ValueError(f"image: expected (H, W, C) or (H, W), got {tuple(image.shape)}")
+    # uint16 has few kernels in torch: widen before converting
+    return image.permute(2, 0, 1).to(torch.int32).to(dtype) / scale

@@ -1,8 +1,15 @@
 """Semantic labels: CARLA's 13 classes of the OmniScape paper, their palette, conversions.
 
 Ids 0..12 and colours are CARLA's ``CITYSCAPES_PALETTE_MAP`` of its 13-class label set
-(``LibCarla/source/carla/image/CityScapesPalette.h``, CARLA 0.9.0 to 0.9.9, the version of the
-OmniScape dataset). Pixels outside a camera's valid area get ``IGNORE_INDEX``.
+(carla-simulator/carla, ``LibCarla/source/carla/image/CityScapesPalette.h``, CARLA 0.9.0 to
+0.9.9, e.g. commit 1be6b86c5098b0082cba9320963f84076fdbd6cb), the version of the OmniScape
+dataset. CARLA 0.9.10 and later renumbered the tags and recoloured Fence (100, 40, 40) and Other
+(55, 90, 80); those colours are not used here. Pixels outside a camera's valid area get
+``IGNORE_INDEX``.
+
+The OmniScape demo frames draw the ego motorcycle in (0, 0, 228), outside this palette (close
+to Cityscapes' motorcycle, (0, 0, 230)): :func:`palette_to_labels` maps it to its nearest colour,
+Vehicle (0, 0, 142), at distance 86, or to ``IGNORE_INDEX`` with ``max_distance`` below that.
 """
 
 from __future__ import annotations
@@ -41,23 +48,45 @@ def colorize(labels: Tensor | np.ndarray, palette: np.ndarray = PALETTE) -> np.n
 
 def palette_to_labels(rgb: Tensor | np.ndarray, palette: np.ndarray = PALETTE,
                       max_distance: float | None = None) -> Tensor:
-    """Class ids of an RGB label picture ``(H, W, 3)``: the nearest palette colour per pixel.
+    """Class ids of an RGB label picture ``(..., 3)``: the nearest palette colour per pixel.
 
     Meant for label pictures whose colours were perturbed (the OmniScape demo GIFs are
     quantized and dithered). Pixels farther than ``max_distance`` (Euclidean, in 0..255 units)
-    from every palette colour get ``IGNORE_INDEX``.
+    from every palette colour get ``IGNORE_INDEX``. Ties go to the lower id. Distances are
+    computed once per distinct colour (a few hundred in a GIF frame), not once per pixel.
+
+    Args:
+        rgb: ``(..., 3)`` RGB in 0..255, integer dtype (numpy array or tensor), e.g.
+            ``(H, W, 3)`` uint8.
+        palette: ``(K, 3)`` colours of ids ``0..K-1``.
+        max_distance: optional largest accepted distance to a palette colour.
 
     Returns:
-        ``(H, W)`` int64 tensor.
+        ``(...)`` int64 tensor.
     """
     if isinstance(rgb, Tensor):
         rgb = rgb.detach().cpu().numpy()
     rgb = np.asarray(rgb)
-    if rgb.ndim != 3 or rgb.shape[-1] != 3:
-        raise ValueError(f"rgb: expected an (H, W, 3) picture, got shape {rgb.shape}")
-    diff = rgb[:, :, None, :].astype(np.int32) - np.asarray(palette, np.int32)[None, None]
-    dist2 = (diff * diff).sum(-1)
+    if rgb.ndim < 1 or rgb.shape[-1] != 3:
+        raise ValueError(f"rgb: expected an (..., 3) RGB picture, got shape {rgb.shape}")
+    if not np.issubdtype(rgb.dtype, np.integer):
+        raise TypeError(f"rgb: expected integer colours in 0..255, got {rgb.dtype}")
+    if rgb.size and (rgb.min() < 0 or rgb.max() > 255):
+        raise ValueError(f"rgb: colours must lie in 0..255, got {rgb.min()}..{rgb.max()}")
+    palette = np.asarray(palette, np.int64).reshape(-1, 3)
+    if len(palette) > IGNORE_INDEX:
+        raise ValueError(f"palette: at most {IGNORE_INDEX} colours, got {len(palette)}")
+    flat = rgb.reshape(-1, 3).astype(np.int32)
+    codes = (flat[:, 0] << 16) | (flat[:, 1] << 8) | flat[:, 2]
+    # a lookup table over the 2^24 colours, filled only for the colours present: O(pixels)
+    present = np.zeros(1 << 24, dtype=bool)
+    present[codes] = True
+    colours = np.flatnonzero(present)
+    rgb_of = np.stack((colours >> 16, (colours >> 8) & 255, colours & 255), axis=-1)
+    dist2 = ((rgb_of[:, None, :] - palette[None]) ** 2).sum(-1)  # [distinct colours, K]
     ids = dist2.argmin(-1)
     if max_distance is not None:
         ids = np.where(dist2.min(-1) <= max_distance ** 2, ids, IGNORE_INDEX)
-    return torch.from_numpy(ids.astype(np.int64))
+    lut = np.empty(1 << 24, dtype=np.uint8)
+    lut[colours] = ids
+    return torch.from_numpy(lut[codes].reshape(rgb.shape[:-1]).astype(np.int64))
