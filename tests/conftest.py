@@ -23,6 +23,18 @@ def _real_scaramuzza() -> list[float]:
     return [col, row, c, d, e, *pol]
 
 
+#: DESIGN.md, "Cube faces", written out once for the tests (independently of the package):
+#: (a looks along, b image down, r image right) per face, in DESIGN.md's face order.
+DESIGN_TABLE = {
+    "front": ((0, 0, 1), (0, 1, 0), (1, 0, 0)),
+    "back": ((0, 0, -1), (0, 1, 0), (-1, 0, 0)),
+    "left": ((-1, 0, 0), (0, 1, 0), (0, 0, 1)),
+    "right": ((1, 0, 0), (0, 1, 0), (0, 0, -1)),
+    "up": ((0, -1, 0), (0, 0, 1), (1, 0, 0)),
+    "down": ((0, 1, 0), (0, 0, -1), (1, 0, 0)),
+}
+FACE_ORDER = tuple(DESIGN_TABLE)
+
 #: (model, params, image_size (H, W)) cases covering each model's regimes: an undistorted
 #: reference, realistic lenses, and the regimes where methods fail (xi > 1, folds before 180).
 CASES = {

@@ -15,17 +15,10 @@ import torch.nn.functional as F_nn
 
 import omniscape_torch.cubemap as cubemap
 
+from conftest import DESIGN_TABLE
+
 f64 = torch.float64
 
-# DESIGN.md, "Cube faces": (a looks along, b image down, r image right), written out again.
-DESIGN_TABLE = {
-    "front": ((0, 0, 1), (0, 1, 0), (1, 0, 0)),
-    "back": ((0, 0, -1), (0, 1, 0), (-1, 0, 0)),
-    "left": ((-1, 0, 0), (0, 1, 0), (0, 0, 1)),
-    "right": ((1, 0, 0), (0, 1, 0), (0, 0, -1)),
-    "up": ((0, -1, 0), (0, 0, 1), (1, 0, 0)),
-    "down": ((0, 1, 0), (0, 0, -1), (1, 0, 0)),
-}
 
 
 def table(dtype=f64):

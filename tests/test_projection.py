@@ -18,18 +18,10 @@ from torch.func import functional_call
 
 import omniscape_torch as ot
 
+from conftest import DESIGN_TABLE, FACE_ORDER
+
 f64, f32 = torch.float64, torch.float32
 
-# DESIGN.md, "Cube faces": (a looks along, b image down, r image right), written out again.
-DESIGN_TABLE = {
-    "front": ((0, 0, 1), (0, 1, 0), (1, 0, 0)),
-    "back": ((0, 0, -1), (0, 1, 0), (-1, 0, 0)),
-    "left": ((-1, 0, 0), (0, 1, 0), (0, 0, 1)),
-    "right": ((1, 0, 0), (0, 1, 0), (0, 0, -1)),
-    "up": ((0, -1, 0), (0, 0, 1), (1, 0, 0)),
-    "down": ((0, 1, 0), (0, 0, -1), (1, 0, 0)),
-}
-FACE_ORDER = ("front", "back", "left", "right", "up", "down")  # DESIGN.md, written again
 
 # Rig rotations of six simulator cameras, as the columns (r, b, a) of R: the face camera's
 # OpenCV axes (right, down, forward) in the cube frame, written literally.

@@ -17,19 +17,10 @@ import torch
 import omniscape_torch as ot
 from omniscape_torch.io import IGNORE_INDEX, read_image, to_float
 
-from conftest import OCAMCALIB_FILE
+from conftest import DESIGN_TABLE, OCAMCALIB_FILE
 
 F64 = torch.float64
 
-# DESIGN.md, "Cube faces": (a looks along, b image down, r image right), written out again.
-DESIGN_TABLE = {
-    "front": ((0, 0, 1), (0, 1, 0), (1, 0, 0)),
-    "back": ((0, 0, -1), (0, 1, 0), (-1, 0, 0)),
-    "left": ((-1, 0, 0), (0, 1, 0), (0, 0, 1)),
-    "right": ((1, 0, 0), (0, 1, 0), (0, 0, -1)),
-    "up": ((0, -1, 0), (0, 0, 1), (1, 0, 0)),
-    "down": ((0, 1, 0), (0, 0, -1), (1, 0, 0)),
-}
 
 
 def texture(d):
