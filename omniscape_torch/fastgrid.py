@@ -33,6 +33,7 @@ reference.
 
 from __future__ import annotations
 
+import math
 import threading
 import types
 import warnings
@@ -41,6 +42,8 @@ from typing import Callable
 import torch
 from torch import Tensor
 
+from .cameras.registry import get_model
+from .cameras.unified import unified_unproject_undistorted
 from .cubemap.atlas import rays_to_grid
 from .cubemap.faces import (
     _AXIS_SIGN_TO_FACE,
@@ -50,7 +53,8 @@ from .cubemap.faces import (
     _check_pad,
 )
 
-__all__ = ["rotated_rays_to_grid", "rotated_rays_to_grid_reference", "compile_failures"]
+__all__ = ["camera_grid", "rotated_rays_to_grid", "rotated_rays_to_grid_reference",
+           "compile_failures"]
 
 # Per case 2 * axis + (1 if the dominant component is negative), the face looking that way and
 # its (r axis, r sign, b axis, b sign); the zero ray goes to face 0 (as in ``ray_to_face``).
@@ -154,13 +158,19 @@ def _fresh_copy(fn: Callable) -> Callable:
                               fn.__defaults__, fn.__closure__)
 
 
+def _target(key: tuple) -> Callable:
+    if key[0] == "camera":
+        return _camera_kernel(key[1])
+    return _TARGETS[key[:2]]
+
+
 def _compiled_for(key: tuple, stacklevel: int) -> Callable | None:
     fn = _COMPILED.get(key)
     if fn is not None or key in _COMPILED:
         return fn
     with _LOCK:
         if key not in _COMPILED:
-            target = _fresh_copy(_TARGETS[key[:2]])
+            target = _fresh_copy(_target(key))
             try:
                 _COMPILED[key] = torch.compile(target, dynamic=key[-1], fullgraph=True)
             except Exception as exc:  # torch.compile unsupported here (Python version, ...)
@@ -173,20 +183,22 @@ def _fail(key: tuple, exc: BaseException, stacklevel: int) -> None:
     ``rotated_rays_to_grid`` (for a backward kernel, at the autograd engine)."""
     _COMPILED[key] = None
     _FAILURES[key] = f"{type(exc).__name__}: {exc}"
-    kind, rotated, in_dtype, dtype, device, dynamic = key
+    kind, variant, in_dtype, dtype, device, dynamic = key
+    if kind != "camera":
+        variant = "rotated" if variant else "plain"
+    caller = "camera_grid" if kind == "camera" else "rotated_rays_to_grid"
     first = str(exc).strip().splitlines()[0][:300] if str(exc).strip() else ""
     warnings.warn(
-        f"rotated_rays_to_grid: torch.compile failed ({kind}, "
-        f"{'rotated' if rotated else 'plain'}, {in_dtype} -> {dtype}, {device}, "
+        f"{caller}: torch.compile failed ({kind}, {variant}, {in_dtype} -> {dtype}, {device}, "
         f"dynamic={dynamic}): {type(exc).__name__}: {first}. Using the eager path for these "
         "inputs from now on (see fastgrid.compile_failures()).",
         UserWarning, stacklevel=stacklevel + 1)
 
 
 def compile_failures() -> dict[tuple, str]:
-    """The compilations that failed in this process: ``{(kind "grid" or "vjp", rotated,
-    rays dtype, grid dtype, device type, dynamic): "Error: message"}``; empty when every
-    compilation worked."""
+    """The compilations that failed in this process: ``{(kind "grid" or "vjp", rotated, rays
+    dtype, grid dtype, device type, dynamic) or ("camera", model, params dtype, grid dtype,
+    device type, dynamic): "Error: message"}``; empty when every compilation worked."""
     return dict(_FAILURES)
 
 
@@ -351,3 +363,135 @@ def rotated_rays_to_grid(rays: Tensor, rotation: Tensor | None, face_size: int, 
         with _LOCK:
             _fail(key, exc, stacklevel=2)
         return _reference(rays, rotation, face_size, pad, dtype)
+
+
+# ------------------------------------------------------------------------------------------
+# Cameras: pixel centres -> rays -> rotated atlas grid, in one kernel (forward only)
+# ------------------------------------------------------------------------------------------
+
+#: The closed-form unprojections compiled whole into the camera kernel: those of the cameras
+#: ``augment.RandomOmniCamera`` draws (``unified`` only without lens distortion). The others
+#: unproject eagerly (the Newton inverses of kannala_brandt, scaramuzza and distorted unified
+#: have data-dependent loops); each entry costs a compilation (~5-10 s) in the tests.
+_CLOSED_FORM: dict[str, Callable] = {
+    **{name: get_model(name).unproject
+       for name in ("equidistant", "equisolid", "stereographic")},
+    "unified": unified_unproject_undistorted,
+}
+
+
+def _camera_grid_math(params: Tensor, rotation: Tensor, cone: Tensor, face_size, pad, height,
+                      width, dtype: torch.dtype, unproject: Callable, to_grid: Callable
+                      ) -> tuple[Tensor, Tensor]:
+    """``params (B, P)``, ``rotation (B, 3, 3)``, ``cone (B, 2)`` (half fov, half blind fov)
+    -> ``grid (B, H, W, 2)`` (invalid pixels at (-2, -2)) and ``valid (B, H, W)``: the
+    operations of ``Camera.ray_grid``, ``Camera.within_fov`` and :func:`rotated_rays_to_grid`."""
+    kw = dict(dtype=params.dtype, device=params.device)
+    v, u = torch.meshgrid(torch.arange(height, **kw), torch.arange(width, **kw), indexing="ij")
+    rays, valid = unproject(torch.stack((u, v), dim=-1), params[:, None, None])
+    theta = torch.atan2(torch.linalg.vector_norm(rays[..., :2], dim=-1), rays[..., 2])
+    valid = valid & (theta <= cone[:, None, None, 0]) & (theta > cone[:, None, None, 1])
+    grid = to_grid(rays, rotation, face_size, pad, dtype)
+    return torch.where(valid.unsqueeze(-1), grid, torch.full_like(grid, -2.0)), valid
+
+
+def _camera_kernel(model: str) -> Callable:
+    unproject = _CLOSED_FORM[model]
+
+    def camera_grid_kernel(params, rotation, cone, face_size, pad, height, width, dtype):
+        return _camera_grid_math(params, rotation, cone, face_size, pad, height, width, dtype,
+                                 unproject, _fused_rotated)
+
+    return camera_grid_kernel
+
+
+def camera_grid(model: str, params: Tensor, image_size: tuple[int, int], face_size: int,
+                pad: int, *, rotation: Tensor | None = None, fov: Tensor | None = None,
+                blind_fov: Tensor | None = None, dtype: torch.dtype | None = None,
+                compiled: bool = True) -> tuple[Tensor, Tensor]:
+    """Atlas grid of every pixel centre of ``B`` cameras of one model, each with its own
+    rotation and field-of-view cone: the whole chain in one compiled kernel, without gradient.
+
+    The same result as ``Camera(model, params, image_size, fov=..., blind_fov=...).ray_grid()``
+    followed by :func:`rotated_rays_to_grid` and moving the invalid pixels to (-2, -2) (outside
+    the atlas, so that ``grid_sample`` with zero padding reads 0 there), to float32 rounding;
+    for per-sample random cameras (``augment.RandomOmniCamera``), where building the rays and
+    the grid eagerly costs more than sampling the images. The models of ``_CLOSED_FORM``
+    compile whole (a kernel per model, dtypes and device type, any shapes); the others
+    unproject eagerly and go through the compiled :func:`rotated_rays_to_grid`. A compilation
+    failure is warned about once and the eager path used from then on, as there.
+
+    Forward only: the result carries no gradient to ``params`` or ``rotation`` (for learnable
+    intrinsics use :class:`~omniscape_torch.OmniProjection`, whose grid is differentiable);
+    images sampled with it still pass gradients to the cubemap.
+
+    Args:
+        model: a registered camera model name.
+        params: ``(B, P)`` parameters, one row per camera (``P`` of ``model``).
+        image_size: ``(H, W)``.
+        face_size: ``F``, texels per cube face side.
+        pad: atlas border ``p``.
+        rotation: ``(B, 3, 3)`` camera -> cube frame, or None (identity).
+        fov: ``(B,)`` full field of view per camera (radians), or None (the model's domain).
+        blind_fov: ``(B,)`` full angle of a central blind cone per camera (0: none), or None.
+        dtype: floating dtype of the grid (default: that of ``params``).
+        compiled: False runs the same maths eagerly.
+
+    Returns:
+        ``grid (B, H, W, 2)`` in ``dtype`` and ``valid (B, H, W)`` bool.
+    """
+    unproject = get_model(model).unproject  # raises for an unknown name
+    if not isinstance(params, Tensor) or not params.is_floating_point() or params.dim() != 2:
+        raise ValueError(f"params: expected a floating tensor (B, P), got "
+                         f"{getattr(params, 'shape', type(params).__name__)}")
+    batch = params.shape[0]
+    kw = dict(dtype=params.dtype, device=params.device)
+    try:
+        h, w = (int(s) for s in image_size)
+    except (TypeError, ValueError):
+        raise ValueError(f"image_size: expected (H, W), got {image_size!r}") from None
+    if min(h, w) < 1:
+        raise ValueError(f"image_size: expected positive sizes, got {(h, w)}")
+    _check_face_size(face_size)
+    _check_pad(pad)
+    dtype = params.dtype if dtype is None else dtype
+    if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
+        raise TypeError(f"dtype: expected a floating torch.dtype, got {dtype!r}")
+    if rotation is None:
+        rotation = torch.eye(3, **kw).expand(batch, 3, 3)
+    elif not isinstance(rotation, Tensor) or rotation.shape != (batch, 3, 3):
+        raise ValueError(f"rotation: expected a tensor ({batch}, 3, 3), got "
+                         f"{getattr(rotation, 'shape', type(rotation).__name__)}")
+    cone = []
+    for name, angle, default in (("fov", fov, math.inf), ("blind_fov", blind_fov, -1.0)):
+        if angle is None:
+            cone.append(torch.full((batch,), default, **kw))
+        elif not isinstance(angle, Tensor) or angle.shape != (batch,):
+            raise ValueError(f"{name}: expected a tensor ({batch},) of angles, got "
+                             f"{getattr(angle, 'shape', type(angle).__name__)}")
+        else:   # a blind cone of angle 0 is empty (the axis pixel stays valid)
+            half = 0.5 * angle.to(**kw)
+            cone.append(half if name == "fov" else torch.where(half > 0, half, -1.0))
+    args = (params.detach(), rotation.detach().to(**kw), torch.stack(cone, -1), face_size, pad,
+            h, w, dtype)
+    if model == "unified" and bool(params[:, 5:].ne(0).any()):
+        fused = None   # lens distortion: Newton undistortion, eagerly
+    else:
+        fused = _CLOSED_FORM.get(model)
+    with torch.no_grad():
+        if compiled and fused is not None:
+            key = ("camera", model, params.dtype, dtype, params.device.type, True)
+            kernel = _compiled_for(key, stacklevel=2)
+            if kernel is not None:
+                try:
+                    return kernel(*args)
+                except torch.OutOfMemoryError:
+                    raise
+                except Exception as exc:
+                    with _LOCK:
+                        _fail(key, exc, stacklevel=2)
+
+        def to_grid(rays, rot, f, p, dt):
+            return rotated_rays_to_grid(rays, rot, f, p, dtype=dt, compiled=compiled)
+
+        return _camera_grid_math(*args, unproject, to_grid)

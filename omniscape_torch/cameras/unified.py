@@ -193,15 +193,25 @@ def unified_unproject(pixels: Tensor, params: Tensor, *,
         distortion's fold, undistortion converged.
     """
     check_inputs("unified", pixels, params, 2, 9, "pixels")
-    xi = params[..., 4]
+    if not (bool(params[..., 5:9].detach().ne(0).any()) or params.requires_grad):
+        return unified_unproject_undistorted(pixels, params)
+    mx, my, valid = _undistort(*_normalised(pixels, params), params, iterations)
+    valid = valid & (mx * mx + my * my < unified_distortion_fold(params))
+    return _lift(mx, my, params[..., 4], valid)
+
+
+def unified_unproject_undistorted(pixels: Tensor, params: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`unified_unproject` of a camera without lens distortion (k = p = 0, which this does
+    not check): the closed form alone, without the data-dependent branch, so ``torch.compile``
+    traces it whole (``fastgrid.camera_grid``)."""
+    check_inputs("unified", pixels, params, 2, 9, "pixels")
     mx, my = _normalised(pixels, params)
-    distorted = params[..., 5:9].detach().ne(0).any()
-    if bool(distorted) or params.requires_grad:
-        mx, my, valid = _undistort(mx, my, params, iterations)
-    else:
-        valid = torch.ones_like(mx, dtype=torch.bool)
+    return _lift(mx, my, params[..., 4], torch.ones_like(mx, dtype=torch.bool))
+
+
+def _lift(mx: Tensor, my: Tensor, xi: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]:
+    """Undistorted normalised coordinates -> unit rays on the sphere (and their validity)."""
     r2 = mx * mx + my * my
-    valid = valid & (r2 < unified_distortion_fold(params))
     rad = 1 + (1 - xi * xi) * r2
     valid = valid & (rad > 0)
     eta = (xi + safe_sqrt(rad, valid)) / (1 + r2)

@@ -1,0 +1,167 @@
+"""Tests of ``fastgrid.camera_grid``: every pixel of ``B`` cameras -> rotated atlas grid, fused.
+
+The oracle is the chain it replaces, built from public pieces: ``ot.Camera(model, params,
+fov=..., blind_fov=...).ray_grid()`` (rays and validity: model domain, image, cones), then
+``rotated_rays_to_grid_reference`` (einsum + ``cubemap.rays_to_grid``), invalid pixels at
+(-2, -2). Images are small: compilation dominates (a kernel per model; inductor caches them).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import pytest
+import torch
+
+import omniscape_torch as ot
+from omniscape_torch import fastgrid as fg
+
+from conftest import CASES
+from test_fastgrid import random_rotations
+
+FACE, PAD = 16, 1
+SIZE = (24, 32)
+
+
+def scaled(params: list[float], size: tuple[int, int], model: str) -> list[float]:
+    """``params`` of a CASES entry rescaled from its image size to ``SIZE``."""
+    s = SIZE[1] / size[1]
+    p = list(params)
+    if model == "scaramuzza":   # cx, cy in pixels; the polynomial maps pixels -> z
+        return p   # not closed form, not scaled: used at its own size below
+    p[0:4] = [p[0] * s, p[1] * s, (p[2] + 0.5) * s - 0.5, (p[3] + 0.5) * s - 0.5]
+    return p
+
+
+def reference(model, params, size, rotation, fov, blind):
+    grids, valids = [], []
+    for i in range(params.shape[0]):
+        cam = ot.Camera(model, params[i], size,
+                        fov=None if fov is None else float(fov[i]),
+                        blind_fov=None if blind is None or blind[i] == 0 else float(blind[i]))
+        rays, valid = cam.ray_grid()
+        grid = fg.rotated_rays_to_grid_reference(rays, rotation[i], FACE, PAD)[0]
+        grids.append(torch.where(valid[..., None], grid, torch.full_like(grid, -2.0)))
+        valids.append(valid)
+    return torch.stack(grids), torch.stack(valids)
+
+
+def theta_of(model, params, size) -> torch.Tensor:
+    """Angle from the axis of every pixel's ray, per camera (to excuse cone-edge rounding)."""
+    out = []
+    for i in range(params.shape[0]):
+        rays, _ = ot.Camera(model, params[i], size).ray_grid()
+        out.append(torch.atan2(torch.linalg.vector_norm(rays[..., :2], dim=-1), rays[..., 2]))
+    return torch.stack(out)
+
+
+def batch_of(model: str, dtype):
+    params, size = CASES[model][-1]
+    if model != "scaramuzza":
+        params, size = scaled(params, size, model), SIZE
+    batch = 3
+    p = torch.tensor(params, dtype=torch.float64).repeat(batch, 1)
+    cx = 0 if model == "scaramuzza" else 2
+    p[:, cx] += torch.tensor([0.0, 0.7, -1.3])   # a different camera per sample
+    return p.to(dtype), size
+
+
+@pytest.mark.parametrize("model", sorted(CASES))
+@pytest.mark.parametrize("compiled", [False, True])
+def test_matches_the_camera_chain(model, compiled):
+    params, size = batch_of(model, torch.float32)
+    if compiled and model not in fg._CLOSED_FORM:
+        pytest.skip("not closed form: the eager unprojection, tested with compiled=False")
+    rot = random_rotations(3, torch.float32, seed=4)
+    fov = torch.tensor([3.0, 2.5, 1.9])
+    blind = torch.tensor([0.2, 0.0, 0.4])
+    grid, valid = fg.camera_grid(model, params, size, FACE, PAD, rotation=rot, fov=fov,
+                                 blind_fov=blind, compiled=compiled)
+    ref_grid, ref_valid = reference(model, params, size, rot, fov, blind)
+    assert grid.shape == ref_grid.shape and grid.dtype == torch.float32
+    # the cones are compared with atan2 of float32 rays: a pixel within rounding of a cone's
+    # edge may fall either way, nowhere else
+    theta = theta_of(model, params, size)
+    edge = ((theta - 0.5 * fov[:, None, None]).abs() < 1e-5) \
+        | ((theta - 0.5 * blind[:, None, None]).abs() < 1e-5)
+    assert torch.equal(valid & ~edge, ref_valid & ~edge)
+    assert bool(valid.any()) and not bool(valid.all())
+    both = valid & ref_valid
+    assert torch.allclose(grid[both], ref_grid[both], rtol=0, atol=2e-5)
+    assert bool((grid[~valid] == -2).all())
+
+
+def test_defaults_are_the_models_domain_and_identity():
+    params, size = batch_of("equidistant", torch.float64)
+    grid, valid = fg.camera_grid("equidistant", params, size, FACE, PAD, compiled=False)
+    eye = torch.eye(3, dtype=torch.float64).expand(3, 3, 3)
+    ref_grid, ref_valid = reference("equidistant", params, size, eye, None, None)
+    assert torch.equal(valid, ref_valid) and torch.equal(grid, ref_grid)
+
+
+def test_unified_with_distortion_goes_eager_and_matches():
+    params, size = batch_of("unified", torch.float64)
+    assert bool(params[:, 5:].ne(0).any())
+    rot = random_rotations(3, torch.float64, seed=5)
+    grid, valid = fg.camera_grid("unified", params, size, FACE, PAD, rotation=rot)
+    ref_grid, ref_valid = reference("unified", params, size, rot, None, None)
+    assert torch.equal(valid, ref_valid)
+    assert torch.allclose(grid, ref_grid, rtol=0, atol=1e-12)
+
+
+def test_zero_blind_cone_keeps_the_axis_pixel():
+    params = torch.tensor([[10.0, 10.0, 15.0, 11.0]])   # the axis through pixel (15, 11)
+    _, valid = fg.camera_grid("equidistant", params, SIZE, FACE, PAD,
+                              fov=torch.tensor([3.0]), blind_fov=torch.tensor([0.0]))
+    assert bool(valid[0, 11, 15])
+    _, valid = fg.camera_grid("equidistant", params, SIZE, FACE, PAD,
+                              blind_fov=torch.tensor([0.05]))
+    assert not bool(valid[0, 11, 15]) and bool(valid[0, 11, 17])
+
+
+def test_forward_only_even_with_grad_inputs():
+    params, size = batch_of("equisolid", torch.float32)
+    params.requires_grad_(True)
+    grid, valid = fg.camera_grid("equisolid", params, size, FACE, PAD)
+    assert not grid.requires_grad and not valid.requires_grad
+
+
+def test_compile_failure_warns_once_and_falls_back(monkeypatch):
+    monkeypatch.setattr(fg, "_COMPILED", {})
+    monkeypatch.setattr(fg, "_FAILURES", {})
+
+    def broken_compile(*args, **kwargs):
+        raise RuntimeError("no compiler here")
+
+    monkeypatch.setattr(fg.torch, "compile", broken_compile)
+    params, size = batch_of("stereographic", torch.float32)
+    expected = fg.camera_grid("stereographic", params, size, FACE, PAD, compiled=False)
+    with pytest.warns(UserWarning) as rec:   # the camera kernel, then the rotated grid's
+        got = fg.camera_grid("stereographic", params, size, FACE, PAD)
+    assert [str(w.message).split(":")[0] for w in rec] == ["camera_grid", "rotated_rays_to_grid"]
+    assert "stereographic" in str(rec[0].message) and rec[0].filename == __file__
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        again = fg.camera_grid("stereographic", params, size, FACE, PAD)
+    for a, b in ((got, expected), (again, expected)):
+        assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+    assert ("camera", "stereographic", torch.float32, torch.float32, "cpu", True) \
+        in fg.compile_failures()
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(model="nope"), "nope"),
+    (dict(params=torch.ones(4)), "params"),
+    (dict(image_size=(0, 4)), "image_size"),
+    (dict(rotation=torch.eye(3)), "rotation"),
+    (dict(fov=torch.ones(2)), "fov"),
+    (dict(blind_fov=[0.1, 0.1, 0.1]), "blind_fov"),
+    (dict(dtype=torch.int32), "dtype"),
+])
+def test_bad_inputs_raise(kwargs, match):
+    params, size = batch_of("equidistant", torch.float32)
+    args = dict(model="equidistant", params=params, image_size=size, face_size=FACE, pad=PAD)
+    args.update(kwargs)
+    with pytest.raises((ValueError, TypeError, KeyError), match=match):
+        fg.camera_grid(**args)
