@@ -32,6 +32,7 @@ from .cameras import Camera
 from .cameras.registry import get_model
 from .cubemap.faces import FACES, face_rotations
 from .presets import yaw_pitch_roll_to_matrix
+from .fastgrid import camera_grid
 from .projection import OmniProjection
 
 __all__ = ["ApplyToKey", "RandomOmniCamera"]
@@ -404,28 +405,18 @@ class RandomOmniCamera(nn.Module):
         device = ref.device
         parts = []
         for name, (idx, camera) in self.cameras(params, dtype, device).items():
-            proj = OmniProjection(camera, self.face_size, interpolation=self.interpolation,
-                                  ignore_index=self.ignore_index, fused_grid=False)
+            proj = _GivenGrid(camera, self.face_size, interpolation=self.interpolation,
+                              ignore_index=self.ignore_index)
+            # the grid of every pixel, with the sample's rotation and field-of-view cones
+            proj.grid = camera_grid(
+                name, camera.params, self.image_size, self.face_size, proj.pad,
+                rotation=params["rotation"][idx].to(dtype=dtype, device=device),
+                fov=params["fov"][idx].to(dtype=dtype, device=device),
+                blind_fov=params["blind_fov"][idx].to(dtype=dtype, device=device))
             take = (lambda t: None if t is None else t[idx.to(device)]) if len(idx) < batch \
                 else (lambda t: t)
-            rotation = params["rotation"][idx].to(dtype=dtype, device=device)
             out = proj.render(rgb=take(cubemap), labels=take(labels), depth=take(depth),
-                              rotation=rotation, depth_output=self.depth_output)
-            # per-sample field-of-view cones, computed as Camera.within_fov does
-            rays = proj.camera_rays()[2].detach()
-            theta = torch.atan2(torch.linalg.vector_norm(rays[..., :2], dim=-1), rays[..., 2])
-            half = (0.5 * params["fov"][idx]).to(dtype=theta.dtype, device=device)
-            blind = (0.5 * params["blind_fov"][idx]).to(dtype=theta.dtype, device=device)
-            cone = (theta <= half[:, None, None]) & (theta > blind[:, None, None])
-            valid = out["valid"] & cone[:, None]
-            out["valid"] = valid
-            if "rgb" in out:
-                out["rgb"] = torch.where(valid, out["rgb"], torch.zeros_like(out["rgb"]))
-            if "depth" in out:
-                out["depth"] = torch.where(valid, out["depth"], torch.zeros_like(out["depth"]))
-            if "labels" in out:
-                out["labels"] = torch.where(valid[:, 0], out["labels"],
-                                            torch.full_like(out["labels"], self.ignore_index))
+                              depth_output=self.depth_output)
             parts.append((idx, out))
         if len(parts) == 1:
             result = parts[0][1]
@@ -469,6 +460,20 @@ class RandomOmniCamera(nn.Module):
         if params is None:
             params = self.forward_parameters(ref.shape[0], generator=generator)
         return self.render(cubemap, params, labels=labels, depth=depth)
+
+
+class _GivenGrid(OmniProjection):
+    """``OmniProjection`` that samples through a grid given from outside (``grid``: the
+    ``(grid (B, H, W, 2), valid (B, H, W))`` of ``fastgrid.camera_grid``, invalid pixels outside
+    the atlas) instead of building one; the modalities are rendered by the layer's own rules."""
+
+    grid: tuple[Tensor, Tensor]
+
+    def sampling_grid(self, rotation: Tensor | None = None, dtype: torch.dtype = torch.float32
+                      ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        grid, valid = self.grid
+        grid = grid.to(dtype)
+        return grid, valid, grid, valid
 
 
 class ApplyToKey(nn.Module):
