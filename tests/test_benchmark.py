@@ -1,0 +1,156 @@
+"""The speed-vs-accuracy benchmark (omniscape_torch/benchmark.py): its references, its Pareto
+front, its outputs, and its rows for missing peers."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+
+import omniscape_torch as ot
+from omniscape_torch import benchmark as bm
+from omniscape_torch.cli import main as cli_main
+
+#: A tiny run: 24 x 24 pixels, the headline face 12, batch 2, two timed calls per row.
+TINY = ["--size", "24", "--batch", "2", "--repeats", "2", "--warmup", "0", "--no-fused",
+        "--town-pixels", "300", "--reference-samples", "3", "--no-progress"]
+
+
+def _pinhole_face(face_size: int, dtype=torch.float64) -> ot.Camera:
+    """The front face's own camera (DESIGN.md: f = F / 2, c = (F - 1) / 2)."""
+    f, c = face_size / 2, (face_size - 1) / 2
+    return ot.Camera("pinhole", torch.tensor([f, f, c, c], dtype=dtype), (face_size, face_size))
+
+
+def _front_rays(u: torch.Tensor, v: torch.Tensor, face_size: int) -> torch.Tensor:
+    """Unit rays of front-face pixels, written out from DESIGN.md (r = +x, b = +y, a = +z)."""
+    f, c = face_size / 2, (face_size - 1) / 2
+    rays = torch.stack(((u - c) / f, (v - c) / f, torch.ones_like(u)), -1)
+    return rays / rays.norm(dim=-1, keepdim=True)
+
+
+# --------------------------------------------------------------------------------------------
+# References
+# --------------------------------------------------------------------------------------------
+
+def test_texture_reference_is_exact_for_the_face_camera():
+    """A pinhole identical to the front face sees the cube's texel centres: its centre-ray
+    reference equals the cube's front face, and OmniProjection's nearest rendering of the cube
+    reproduces it (PSNR > 60 dB; float32 rounding only)."""
+    size, ppr = 32, 16.0  # the finest wave: 1.5 pixels of this camera's axis
+    camera = _pinhole_face(size)
+    reference, valid = bm.texture_reference(camera, ppr, samples=1)
+    cube = bm.texture_cubemap(size, ppr)
+    assert bool(valid.all())
+    torch.testing.assert_close(reference.float(), cube[0, 0], atol=1e-6, rtol=0)
+    layer = ot.OmniProjection(_pinhole_face(size, torch.float32), size, interpolation="nearest")
+    image, _ = layer(cube)
+    assert bm._psnr(image[0], reference, valid) > 60
+
+
+def test_texture_reference_averages_the_pixel_footprint():
+    """samples = s: the mean of the texture over s x s sub-pixel rays, the rays written out
+    independently of the camera model."""
+    size, ppr, s = 8, 6.0, 3
+    reference, _ = bm.texture_reference(_pinhole_face(size), ppr, samples=s)
+    offsets = (torch.arange(s, dtype=torch.float64) + 0.5) / s - 0.5  # (0.5 + k) / s - 0.5
+    v, u = torch.meshgrid(torch.arange(size, dtype=torch.float64),
+                          torch.arange(size, dtype=torch.float64), indexing="ij")
+    total = sum(bm.sphere_texture(_front_rays(u + du, v + dv, size), ppr)
+                for du in offsets for dv in offsets)
+    torch.testing.assert_close(reference, (total / s**2).permute(2, 0, 1), atol=1e-12, rtol=0)
+    # the footprint average differs from the centre rays (the finest wave is 1.5 pixels)
+    centre, _ = bm.texture_reference(_pinhole_face(size), ppr, samples=1)
+    assert float((centre - reference).abs().max()) > 0.01
+
+
+def test_label_accuracy_known_case():
+    labels = torch.tensor([[1, 2, 3], [4, 5, 6]])
+    reference = torch.tensor([[1, 2, 0], [4, 0, 6]])
+    assert bm.label_accuracy(labels, reference) == pytest.approx(4 / 6)
+    with pytest.raises(ValueError, match="labels"):
+        bm.label_accuracy(labels, reference[:1])
+
+
+def test_pareto_front_hand_made():
+    #          0     1     2     3     4         5     6     7
+    cost = [1.0, 2.0, 3.0, 2.5, 0.5, math.nan, 4.0, 2.0]
+    score = [10.0, 30.0, 20.0, 40.0, 5.0, 99.0, math.inf, 30.0]
+    # 4 (fastest), 0, 1 (7 is its duplicate), 3; 2 is beaten by 3; NaN / inf never on it
+    assert bm.pareto_front(cost, score) == [4, 0, 1, 3]
+    assert bm.pareto_front([], []) == []
+    with pytest.raises(ValueError, match="same length"):
+        bm.pareto_front([1.0], [])
+
+
+# --------------------------------------------------------------------------------------------
+# The runner
+# --------------------------------------------------------------------------------------------
+
+def test_runner_outputs(tmp_path):
+    required = ot.required_face_size(ot.presets.fisheye((24, 24)))
+    fine = f"bilinear F{2 * required}"  # a cube much finer than the image
+    only = ["bilinear F12", fine, "cv2.remap float maps float32", "py360convert"]
+    assert bm.main([*TINY, "--out-dir", str(tmp_path), "--only", *only]) == 0
+    result = json.loads((tmp_path / "bench.json").read_text())
+    for key in ("machine", "threads", "commit", "dirty", "versions", "devices", "setup",
+                "rows", "pareto", "loadavg_start", "loadavg_end"):
+        assert key in result
+    assert result["threads"] == 2 and result["devices"] == ["cpu"]
+    assert {"torch", "numpy", "cv2", "py360convert"} <= set(result["versions"])
+    assert result["setup"]["required_face_size"] == required
+    rows = {r["name"]: r for r in result["rows"]}
+    assert "cv2.remap float maps float32" in rows and "py360convert c2e + cv2.remap" in rows
+    for r in rows.values():
+        assert len(r["timing"]["times_s"]) == 2
+        assert r["ms_per_frame"] == pytest.approx(1e3 * r["timing"]["median_s"]
+                                                  / r["settings"]["batch"])
+        assert math.isfinite(r["accuracy"]["psnr_db"])
+    assert rows["cv2.remap float maps float32"]["ratio_to_remap"] == 1.0
+    assert result["pareto"]["cpu"] and all(result["rows"][i].get("pareto")
+                                           for i in result["pareto"]["cpu"])
+
+    # what the table must show: failing seams, aliasing, wrong labels
+    head = rows["bilinear F12"]["accuracy"]
+    assert rows["bilinear F12 border none"]["accuracy"]["seam_max_err"] > 3 * head["seam_max_err"]
+    assert any("seams visible" in n for n in rows["bilinear F12 border none"]["notes"])
+    assert rows[f"{fine} ss2"]["accuracy"]["psnr_db"] > rows[fine]["accuracy"]["psnr_db"] + 3
+    assert any(n.startswith("aliased") for n in rows[fine]["notes"])
+    assert 0.5 < head["label_accuracy"] <= 1 and head["town_psnr_db"] > 10
+    assert rows[fine]["accuracy"]["town_psnr_db"] is None  # beyond F_req: no town cube
+
+    table = (tmp_path / "bench.md").read_text()
+    assert "| row | device |" in table
+    assert all(f"| {name}" in table for name in rows)
+    assert (tmp_path / "bench.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_missing_peers_are_skipped(tmp_path, monkeypatch):
+    real = bm._optional
+    missing = ("cv2", "py360convert", "pytorch360convert")
+    monkeypatch.setattr(bm, "_optional", lambda name: None if name in missing else real(name))
+    only = ["bilinear F12 b2", "cv2.remap", "py360convert", "pytorch360convert"]
+    assert bm.main([*TINY, "--out-dir", str(tmp_path), "--only", *only]) == 0
+    rows = json.loads((tmp_path / "bench.json").read_text())["rows"]
+    skipped = [r for r in rows if r["skipped"]]
+    assert {r["family"] for r in skipped} == {"cv2.remap", "py360convert", "pytorch360convert"}
+    assert all("not installed" in r["notes"][0] and r["accuracy"] is None and "timing" not in r
+               for r in skipped)
+    ours = [r for r in rows if not r["skipped"]]
+    assert [r["name"] for r in ours] == ["bilinear F12 b2"] and ours[0]["ratio_to_remap"] is None
+    assert "not installed" in (tmp_path / "bench.md").read_text()
+
+
+def test_bad_arguments(monkeypatch, capsys):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(ValueError, match="--device cuda"):
+        bm._devices(["cuda"])
+    assert bm._devices(["auto", "cpu"]) == [torch.device("cpu")]
+    assert cli_main(["bench", "--town-samples", "2"]) == 2
+    assert "--town-samples: expected an odd number" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="pixels_per_radian"):
+        bm.sphere_texture(torch.zeros(3, 3), -1.0)
+    with pytest.raises(ValueError, match="directions"):
+        bm.sphere_texture(torch.zeros(3, 2), 1.0)
