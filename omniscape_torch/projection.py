@@ -9,6 +9,12 @@ RGB is sampled with ``grid_sample`` (nearest, bilinear or bicubic) on an atlas w
 borders resampled from their neighbours, so sampling is continuous across seams and corners.
 Depth is converted from the cube's planar depth to range (view-independent) before sampling,
 labels are sampled nearest and never blended.
+
+When no gradient is needed (grad disabled, or neither the cubemaps, the camera parameters nor
+the rotation require it) and the cube is on the CPU, nearest and bilinear sampling take the
+fast path of :mod:`omniscape_torch.fastsample` (same output to float32 rounding, no atlas
+built; a frozen camera's lookup table is cached with its grid); ``fast=False`` forces
+``grid_sample`` everywhere.
 """
 
 from __future__ import annotations
@@ -18,6 +24,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from . import cubemap as cm
+from . import fastsample
 from .cameras import Camera
 from .fastgrid import rotated_rays_to_grid
 from .sampling import grid_sample, nearest_gather
@@ -67,6 +74,10 @@ class OmniProjection(nn.Module):
             ``torch.compile`` kernel of ``omniscape_torch.fastgrid`` (2x faster per call; the
             first call compiles for a few seconds; falls back to eager torch, with a warning,
             where compilation is unavailable). The output is the same either way.
+        fast: sample with :mod:`omniscape_torch.fastsample` (lookup table on the cube, no atlas;
+            CPU, nearest and bilinear) whenever no gradient is needed; False forces the
+            reference ``grid_sample`` path. Same output to float32 rounding either way, and
+            gradients are unchanged (they always come from the reference path).
 
     Shapes:
         cubemap ``(B, 6, C, F, F)``; rotation ``(B, 3, 3)`` or ``(3, 3)`` mapping camera rays into
@@ -76,7 +87,8 @@ class OmniProjection(nn.Module):
     def __init__(self, camera: Camera, face_size: int, *, interpolation: str = "bilinear",
                  supersample: int = 1, depth_interpolation: str = "nearest",
                  depth_edge_threshold: float = 0.05, ignore_index: int = 255,
-                 border: str = "resampled", fused_grid: bool = True) -> None:
+                 border: str = "resampled", fused_grid: bool = True,
+                 fast: bool = True) -> None:
         super().__init__()
         if not isinstance(camera, Camera):
             raise TypeError(f"camera: expected an ot.Camera, got {type(camera).__name__}")
@@ -103,14 +115,17 @@ class OmniProjection(nn.Module):
         self.ignore_index = int(ignore_index)
         self.border = border
         self.fused_grid = bool(fused_grid)
+        self.fast = bool(fast)
+        self._fast_now = False  # set per render call
         self.pad = 0 if border == "none" else _PAD[interpolation]
         self._rays_cache: tuple | None = None
         self._grid_cache: tuple | None = None
+        self._lut_cache: dict = {}  # lookup tables of the cached grids (fastsample)
 
     def extra_repr(self) -> str:
         return (f"face_size={self.face_size}, interpolation={self.interpolation!r}, "
                 f"supersample={self.supersample}, depth={self.depth_interpolation!r}, "
-                f"border={self.border!r}")
+                f"border={self.border!r}, fast={self.fast}")
 
     # ---------------------------------------------------------------------------------------
     # Rays and grids
@@ -205,6 +220,27 @@ class OmniProjection(nn.Module):
         padded = cube.reshape(b * 6, c, f, f)[:, :, idx][:, :, :, idx]
         return cm.faces_to_atlas(padded.reshape(b, 6, c, f + 2 * self.pad, f + 2 * self.pad))
 
+    def _fast_sample(self, cube: Tensor, grid: Tensor, mode: str, pad_mode: str
+                     ) -> Tensor | None:
+        """:func:`fastsample.sample_cube` of ``cube`` where the fast path applies (see
+        ``render``), else None. The lookup table of a cached grid is kept with it."""
+        if not (self._fast_now and mode in fastsample.MODES and cube.device.type == "cpu"):
+            return None
+        border = "copied" if self.border == "copied" else pad_mode
+        cube = cube.contiguous()  # the layout the lookup tables are built for
+        lut = None
+        cache = self._grid_cache
+        if cache is not None and any(grid is g for g in cache[1]):
+            key = (cache[0], id(grid), mode, cube.shape[2], cube.dtype)
+            if self._lut_cache and next(iter(self._lut_cache))[0] != cache[0]:
+                self._lut_cache.clear()  # the grids changed: drop their tables
+            lut = self._lut_cache.get(key)
+            if lut is None:
+                lut_grid = grid.to(cube.dtype) if cube.is_floating_point() else grid
+                lut = self._lut_cache[key] = fastsample.build_lut(
+                    lut_grid, self.face_size, self.pad, mode, channels=cube.shape[2])
+        return fastsample.sample_cube(cube, grid, mode, pad=self.pad, border=border, lut=lut)
+
     def _sample(self, atlas: Tensor, grid: Tensor, mode: str) -> Tensor:
         """``grid_sample`` with zero padding: 0 at the invalid pixels (see ``_outside``);
         every valid sample lies inside its padded face, where the padding mode plays no part."""
@@ -217,8 +253,10 @@ class OmniProjection(nn.Module):
         """Sample a floating cube; half precision is sampled in float32 (the grid stays float32:
         a bfloat16 grid is off by pixels on a 512 face) and returned in its own dtype."""
         work = cube if cube.dtype in (torch.float32, torch.float64) else cube.float()
-        atlas = self._atlas(work, pad_mode)
-        out = self._sample(atlas, grid.to(atlas.dtype), mode)
+        out = self._fast_sample(work, grid, mode, pad_mode)
+        if out is None:
+            atlas = self._atlas(work, pad_mode)
+            out = self._sample(atlas, grid.to(atlas.dtype), mode)
         return out.to(cube.dtype)
 
     def _average(self, image: Tensor, valid_sub: Tensor) -> Tensor:
@@ -297,6 +335,10 @@ class OmniProjection(nn.Module):
             raise ValueError(f"cubemap: batch {batch} does not match the camera batch "
                              f"{tuple(cams)}")
         rotation = _check_rotation(rotation, batch, ref.device)
+        # the fast path only where no gradient is asked for: gradients come from grid_sample
+        self._fast_now = self.fast and not (torch.is_grad_enabled() and any(
+            t is not None and t.requires_grad
+            for t in (rgb, depth, labels, rotation, self.camera.params)))
 
         grid_dtype = torch.float64 if ref.dtype == torch.float64 else torch.float32
         grid_s, valid_s, grid_c, valid_c = self.sampling_grid(rotation, grid_dtype)
@@ -321,7 +363,10 @@ class OmniProjection(nn.Module):
 
         if labels is not None:
             # gathered, not grid-sampled: ids of any integer dtype and size come back exact
-            ids = nearest_gather(self._atlas(labels, "nearest"), grid_c).long()
+            ids = self._fast_sample(labels, grid_c, "nearest", "nearest")
+            if ids is None:
+                ids = nearest_gather(self._atlas(labels, "nearest"), grid_c)
+            ids = ids.long()
             out["labels"] = torch.where(valid[:, 0], ids[:, 0],
                                         torch.full_like(ids[:, 0], self.ignore_index))
             if soft_labels is not None:
@@ -346,7 +391,11 @@ class OmniProjection(nn.Module):
         bilinear (smooth across seams, blends across depth edges like everywhere else)."""
         work = rng if rng.dtype in (torch.float32, torch.float64) else rng.float()
         mode = self.depth_interpolation
-        atlas = self._atlas(work, "bilinear" if mode == "bilinear" else "nearest")
+        pad_mode = "bilinear" if mode == "bilinear" else "nearest"
+        out = self._fast_sample(work, grid, mode, pad_mode)
+        if out is not None:
+            return out.to(rng.dtype)
+        atlas = self._atlas(work, pad_mode)
         grid = grid.to(atlas.dtype)
         if mode == "nearest":
             out = self._sample(atlas, grid, "nearest")

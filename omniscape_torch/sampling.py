@@ -18,6 +18,16 @@ def pixels_to_grid(pixels: Tensor, width: int, height: int) -> Tensor:
                         (2 * pixels[..., 1] + 1) / height - 1), dim=-1)
 
 
+def unnormalize(coord: Tensor, size: int) -> Tensor:
+    """Pixel coordinate ``((g + 1) size - 1) / 2`` of grid coordinates, as ``grid_sample``'s CPU
+    kernel computes it (``align_corners=False``): one fused multiply-add,
+    ``fma(g + 1, size / 2, -0.5)``, reproduced for float32 by computing in float64 and rounding
+    once (exact). Nearest and bilinear taps computed from it are ``grid_sample``'s own."""
+    if coord.dtype == torch.float64:
+        return (coord + 1) * (size / 2) - 0.5
+    return ((coord + 1).double() * (size / 2) - 0.5).to(coord.dtype)
+
+
 def grid_sample(image: Tensor, grid: Tensor, mode: str, padding_mode: str = "border") -> Tensor:
     """``F.grid_sample(align_corners=False)``, split into row blocks on the CPU when the batch is
     smaller than the thread count.
@@ -46,8 +56,8 @@ def grid_sample(image: Tensor, grid: Tensor, mode: str, padding_mode: str = "bor
 
 def nearest_gather(image: Tensor, grid: Tensor) -> Tensor:
     """``grid_sample(mode="nearest", align_corners=False, padding_mode="border")`` as a gather,
-    exact for any dtype (integer labels of any size): ``x = ((gx + 1) W - 1) / 2`` rounded half to
-    even, as ``grid_sample`` rounds.
+    exact for any dtype (integer labels of any size): ``x = ((gx + 1) W - 1) / 2``
+    (:func:`unnormalize`) rounded half to even, as ``grid_sample`` rounds.
 
     Args:
         image: ``(B, C, Hi, Wi)``; grid ``(B' in {1, B}, H, W, 2)``.
@@ -56,7 +66,7 @@ def nearest_gather(image: Tensor, grid: Tensor) -> Tensor:
         ``(B, C, H, W)`` in the dtype of ``image``.
     """
     b, c, hi, wi = image.shape
-    x = torch.round(((grid[..., 0].detach() + 1) * wi - 1) / 2).clamp(0, wi - 1).long()
-    y = torch.round(((grid[..., 1].detach() + 1) * hi - 1) / 2).clamp(0, hi - 1).long()
+    x = torch.round(unnormalize(grid[..., 0].detach(), wi)).clamp(0, wi - 1).long()
+    y = torch.round(unnormalize(grid[..., 1].detach(), hi)).clamp(0, hi - 1).long()
     idx = (y * wi + x).reshape(grid.shape[0], 1, -1).expand(b, c, -1)
     return image.reshape(b, c, hi * wi).gather(-1, idx).reshape(b, c, *grid.shape[1:3])

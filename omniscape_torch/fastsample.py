@@ -1,0 +1,421 @@
+"""Forward-only fast sampling of a cube through an atlas grid: the paper's lookup table.
+
+``OmniProjection``'s reference path pads the cube into an atlas (a copy of every texel) and
+calls ``grid_sample``. Without gradients the same image is computed here with no atlas at all:
+
+    grid (B', H, W, 2) --(once per frozen camera, or per call)--> lookup table: per pixel
+        the flat offset of its top-left tap in the cube (B, 6, C, F, F) and its two bilinear
+        fractions (nearest: the offset of its texel)
+    image = 4 taps per channel gathered from the cube and blended (one compiled loop)
+
+A pixel whose taps are not all interior texels of one face ("edge" pixels: within a texel of
+a seam, about 1% of them) reads the atlas border, which the cube does not hold: those few
+pixels are sampled afterwards from the border texels they need, computed from the border plan
+exactly as :func:`~omniscape_torch.cubemap.cubemap_to_atlas` computes them. Pixels whose taps
+all lie outside the atlas (the invalid ones, grid ``(-2, -2)``) read 0, as with zero padding.
+
+The pixel coordinates are those of ``grid_sample`` (``align_corners=False``) bit for bit:
+PyTorch's CPU kernel unnormalises with a fused multiply-add, ``x = fma(gx + 1, W / 2, -0.5)``,
+which is reproduced by computing it in float64 and rounding once (exact for float32 grids);
+the weights are then identical and the blend differs from ``grid_sample`` by float32 rounding
+(one or two ulps: ``grid_sample`` blends with fused multiply-adds too).
+
+The blend runs in a ``torch.compile`` (inductor) kernel, compiled on first use per
+(dtype, channels per call) for any size; where compilation is unavailable or fails the same
+maths runs eagerly (a warning, once; see :func:`compile_failures`). Nearest sampling is a
+single gather, eager, exact for any dtype (integer labels).
+
+CPU only; other devices keep ``grid_sample``. Timings: ``benchmarks/bench_projection.py``.
+"""
+
+from __future__ import annotations
+
+import functools
+import threading
+import warnings
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from .cubemap.atlas import atlas_to_faces
+from .cubemap.padding import border_plan, check_cubemap
+from .fastgrid import _fresh_copy
+from .sampling import unnormalize
+
+__all__ = ["CubeLUT", "build_lut", "sample_cube", "sample_atlas", "compile_failures",
+           "MODES", "BORDERS"]
+
+MODES = ("nearest", "bilinear")
+#: How the atlas border is filled: resampled from the neighbours with the ``"bilinear"`` or
+#: ``"nearest"`` border plan, ``"copied"`` from the face's own edge texels, or no border
+#: (``pad = 0``).
+BORDERS = ("bilinear", "nearest", "copied")
+#: Codes of the lookup table's ``base`` for pixels that do not read 4 interior texels.
+_OUTSIDE, _EDGE = -1, -2
+#: Channels per kernel call (the kernel is unrolled over them): more channels take several calls.
+_CHUNK = 4
+#: Inductor options: the indices are in bounds by construction (no per-tap bounds check), and
+#: the loop is vectorised although it is gather-heavy (measured faster).
+_OPTIONS = {"assert_indirect_indexing": False, "cpp.enable_tiling_heuristics": False}
+
+
+@dataclass(frozen=True)
+class CubeLUT:
+    """Lookup table of a grid for one cube layout (see :func:`build_lut`).
+
+    Attributes:
+        mode: ``"nearest"`` or ``"bilinear"``.
+        face_size: ``F``. pad: the atlas border ``p`` the grid was made for.
+        face_stride: elements between faces of one channel in the cube (``C F F`` for a
+            contiguous cube).
+        base: ``(B', P)`` int32, ``P = H W``: per pixel the offset of the top-left tap
+            (nearest: the texel) within one sample of the cube, or -1 (all taps outside the
+            atlas: 0) or -2 (an edge pixel).
+        frac: ``(2, B', P)`` the bilinear fractions ``(x - floor x, y - floor y)`` (empty for
+            nearest).
+        edge: ``(E, 2)`` int64, the ``(b', p)`` of the edge pixels.
+        grid: ``(B', P, 2)`` the grid (the edge pixels are resampled from it).
+        size: ``(H, W)``.
+    """
+
+    mode: str
+    face_size: int
+    pad: int
+    face_stride: int
+    base: Tensor
+    frac: Tensor
+    edge: Tensor
+    grid: Tensor
+    size: tuple[int, int]
+
+
+# ------------------------------------------------------------------------------------------
+# The maths (compiled, or run eagerly as the fallback)
+# ------------------------------------------------------------------------------------------
+
+def _lut_math(grid: Tensor, face_size, pad, face_stride, bilinear: bool):
+    """``grid (B', P, 2)`` -> ``base (B', P)`` int32 and fractions ``x - x0``, ``y - y0``."""
+    n = face_size + 2 * pad
+    x = unnormalize(grid[..., 0], n)
+    y = unnormalize(grid[..., 1], 6 * n)
+    x0 = torch.floor(x) if bilinear else torch.round(x)  # round: half to even, as grid_sample
+    y0 = torch.floor(y) if bilinear else torch.round(y)
+    span = 1 if bilinear else 0
+    # beyond the atlas by more than a texel (or NaN): outside; keeps the int casts small
+    near = (x0 >= -2) & (x0 <= n + 1) & (y0 >= -2) & (y0 <= 6 * n + 1)
+    j = torch.where(near, x0, -2.0).to(torch.int32)
+    r = torch.where(near, y0, -2.0).to(torch.int32)
+    k = torch.floor((r.to(torch.float32) + 0.5) / n).to(torch.int32)  # face of row r
+    i = r - k * n
+    interior = ((k >= 0) & (k < 6) & (i >= pad) & (i + span < pad + face_size)
+                & (j >= pad) & (j + span < pad + face_size))
+    outside = (j + span < 0) | (j >= n) | (r + span < 0) | (r >= 6 * n)
+    code = torch.where(outside, _OUTSIDE, _EDGE).to(torch.int32)
+    base = torch.where(interior, k * face_stride + (i - pad) * face_size + (j - pad), code)
+    return base, x - x0, y - y0
+
+
+def _blend_math(src: Tensor, base: Tensor, fx: Tensor, fy: Tensor, batch: int,
+                batch_stride, offset, chan_stride, chans: int, face_size) -> Tensor:
+    """Bilinear blend of ``chans`` channels: ``(batch, chans, P)``; 0 where ``base < 0``.
+
+    ``src`` is the flat cube; tap offsets are ``b * batch_stride + offset + c * chan_stride +
+    base + (0, 1, F, F + 1)``. Weights and their order are ``grid_sample``'s (nw, ne, sw, se).
+    """
+    ok = base >= 0
+    off = (torch.arange(batch, device=src.device)[:, None] * batch_stride + offset
+           + torch.where(ok, base, 0))  # [B, P] int64
+    e, s = 1 - fx, 1 - fy
+    taps = ((0, s * e), (1, s * fx), (face_size, fy * e), (face_size + 1, fy * fx))
+    outs = []
+    for c in range(chans):
+        acc = None
+        for shift, weight in taps:
+            term = src[off + (c * chan_stride + shift)] * weight
+            acc = term if acc is None else acc + term
+        outs.append(torch.where(ok, acc, 0))
+    return torch.stack(outs, 1)
+
+
+# ------------------------------------------------------------------------------------------
+# Compilation, with the eager fallback
+# ------------------------------------------------------------------------------------------
+
+_COMPILED: dict[tuple, Callable | None] = {}
+_FAILURES: dict[tuple, str] = {}
+_LOCK = threading.Lock()
+_TARGETS = {"lut": _lut_math, "blend": _blend_math}
+
+
+def compile_failures() -> dict[tuple, str]:
+    """The compilations that failed in this process: ``{(kernel, dtype): "Error: message"}``;
+    empty when every compilation worked (or none was tried)."""
+    return dict(_FAILURES)
+
+
+def _fail(key: tuple, exc: BaseException) -> None:
+    _COMPILED[key] = None
+    _FAILURES[key] = f"{type(exc).__name__}: {exc}"
+    first = str(exc).strip().splitlines()[0][:300] if str(exc).strip() else ""
+    warnings.warn(f"fastsample: torch.compile failed ({key[0]}, {key[1]}): "
+                  f"{type(exc).__name__}: {first}. Using the eager path for these inputs from "
+                  "now on (see fastsample.compile_failures()).", UserWarning, stacklevel=4)
+
+
+def _call(name: str, dtype: torch.dtype, *args):
+    """``_TARGETS[name](*args)``, compiled once per (name, dtype); eager after a failure."""
+    key = (name, dtype)
+    if key not in _COMPILED:
+        with _LOCK:
+            if key not in _COMPILED:
+                try:
+                    _COMPILED[key] = torch.compile(_fresh_copy(_TARGETS[name]), dynamic=True,
+                                                   options=_OPTIONS)
+                except Exception as exc:  # torch.compile unsupported here
+                    _fail(key, exc)
+    fn = _COMPILED[key]
+    if fn is not None:
+        try:
+            return fn(*args)
+        except torch.OutOfMemoryError:
+            raise
+        except Exception as exc:  # inductor, a missing C++ compiler, ...
+            with _LOCK:
+                _fail(key, exc)
+    return _TARGETS[name](*args)
+
+
+# ------------------------------------------------------------------------------------------
+# The border ring (the padded texels) and the edge pixels
+# ------------------------------------------------------------------------------------------
+
+@functools.lru_cache(maxsize=16)
+def _ring_plan(face_size: int, pad: int, border: str, dtype: torch.dtype
+               ) -> tuple[Tensor, Tensor | None]:
+    """Sources of the ring texels, in ``border_plan`` order (row-major over ``(6, n, n)``):
+    ``src (N, K)`` flat indices into ``(6, F, F)`` and ``weight (N, K)`` in ``dtype``, or None
+    for one tap."""
+    if border != "copied":
+        plan = border_plan(face_size, pad, border)
+        return plan.src_index, (None if border == "nearest" else plan.weight.to(dtype))
+    n = face_size + 2 * pad
+    t = torch.arange(n)
+    inside = (t >= pad) & (t < pad + face_size)
+    ring = ~(inside[:, None] & inside[None, :])
+    i, j = torch.nonzero(ring, as_tuple=True)
+    face = torch.arange(6).repeat_interleave(i.numel())
+    src_i, src_j = ((x - pad).clamp(0, face_size - 1).repeat(6) for x in (i, j))
+    return ((face * face_size + src_i) * face_size + src_j).unsqueeze(1), None
+
+
+def _ring_position(k: Tensor, i: Tensor, j: Tensor, face_size: int, pad: int) -> Tensor:
+    """Index among the ring texels (row-major over ``(6, n, n)``) of padded texel ``(k, i, j)``."""
+    n, f = face_size + 2 * pad, face_size
+    top = i * n + j
+    middle = pad * n + (i - pad) * 2 * pad + torch.where(j < pad, j, j - f)
+    bottom = pad * n + f * 2 * pad + (i - pad - f) * n + j
+    pos = torch.where(i < pad, top, torch.where(i < pad + f, middle, bottom))
+    return k * (n * n - f * f) + pos
+
+
+def _edge_values(cube: Tensor, lut: CubeLUT, border: str, bsel: Tensor, grid: Tensor
+                 ) -> Tensor:
+    """Values ``(E, C)`` of the edge pixels of samples ``bsel (E,)`` at ``grid (E, 2)``: the
+    taps of the virtual atlas, interior texels read from the cube, border texels computed
+    from the ring plan (only those these pixels read) as ``cubemap_to_atlas`` computes them."""
+    batch, _, chans, f, _ = cube.shape
+    p = lut.pad
+    n = f + 2 * p
+    x = unnormalize(grid[:, 0], n)
+    y = unnormalize(grid[:, 1], 6 * n)
+    if lut.mode == "bilinear":
+        x0, y0 = torch.floor(x), torch.floor(y)
+        fx, fy = x - x0, y - y0
+        e, s = 1 - fx, 1 - fy
+        offsets = ((0, 0, s * e), (1, 0, s * fx), (0, 1, fy * e), (1, 1, fy * fx))
+    else:
+        x0, y0 = torch.round(x), torch.round(y)
+        offsets = ((0, 0, None),)
+    faces = cube.reshape(batch, 6, chans, f * f)
+    taps = []
+    for dx, dy, weight in offsets:
+        j, r = x0.long() + dx, y0.long() + dy
+        inside = (j >= 0) & (j < n) & (r >= 0) & (r < 6 * n)
+        j, r = torch.where(inside, j, p), torch.where(inside, r, p)
+        k = torch.div(r, n, rounding_mode="floor")
+        i = r - k * n
+        interior = (i >= p) & (i < p + f) & (j >= p) & (j < p + f)
+        ring = torch.where(interior, -1, _ring_position(k, i, j, f, p) if p else -1)
+        pix = torch.where(interior, (i - p) * f + (j - p), 0)
+        taps.append((inside, interior, k, pix, ring, weight))
+    if p > 0:  # the border texels these pixels read, computed once each
+        needed, where_ring = torch.unique(torch.stack([t[4] for t in taps]),
+                                          return_inverse=True)
+        src, weight = _ring_plan(f, p, border, cube.dtype if cube.is_floating_point()
+                                 else torch.float64)
+        src = src[needed.clamp(min=0)]  # [U, K]
+        gathered = faces[:, torch.div(src, f * f, rounding_mode="floor"), :, src % (f * f)]
+        gathered = gathered.permute(2, 3, 0, 1)  # [B, C, U, K]
+        ring_values = gathered[..., 0] if weight is None else (
+            gathered * weight[needed.clamp(min=0)]).sum(-1)
+    out = None
+    for t, (inside, interior, k, pix, ring, weight) in enumerate(taps):
+        value = faces[bsel, k, :, pix]  # [E, C]
+        if p > 0:
+            value = torch.where(interior[:, None], value, ring_values[bsel, :, where_ring[t]])
+        value = torch.where(inside[:, None], value, torch.zeros_like(value))
+        term = value if weight is None else value * weight[:, None]
+        out = term if out is None else out + term
+    return out
+
+
+# ------------------------------------------------------------------------------------------
+# Public functions
+# ------------------------------------------------------------------------------------------
+
+def _check_grid(grid: Tensor, batch: int | None = None) -> None:
+    """A floating ``(B', H, W, 2)`` grid, ``B'`` in ``(1, batch)`` when ``batch`` is given."""
+    if not isinstance(grid, Tensor) or not grid.is_floating_point():
+        raise TypeError(f"grid: expected a floating tensor (B, H, W, 2), got "
+                        f"{getattr(grid, 'dtype', type(grid).__name__)}")
+    if grid.dim() != 4 or grid.shape[-1] != 2 or (
+            batch is not None and grid.shape[0] not in (1, batch)):
+        raise ValueError(f"grid: expected shape ({'B' if batch is None else f'1 or {batch}'}, "
+                         f"H, W, 2), got {tuple(grid.shape)}")
+
+
+def _check_mode(mode: str, border: str) -> None:
+    if mode not in MODES:
+        raise ValueError(f"mode: expected one of {MODES}, got {mode!r}")
+    if border not in BORDERS:
+        raise ValueError(f"border: expected one of {BORDERS}, got {border!r}")
+
+
+def _lut(grid: Tensor, face_size: int, pad: int, mode: str, face_stride: int) -> CubeLUT:
+    if 6 * face_stride >= 2 ** 31:
+        raise ValueError(f"cube too large for int32 offsets: face stride {face_stride}")
+    flat = grid.reshape(grid.shape[0], -1, 2)
+    base, fx, fy = _call("lut", grid.dtype, flat, face_size, pad, face_stride,
+                         mode == "bilinear")
+    frac = torch.stack((fx, fy)) if mode == "bilinear" else flat.new_empty(0)
+    edge = torch.nonzero(base == _EDGE)
+    return CubeLUT(mode, face_size, pad, face_stride, base, frac, edge, flat,
+                   tuple(grid.shape[1:3]))
+
+
+def build_lut(grid: Tensor, face_size: int, pad: int, mode: str = "bilinear", *,
+              channels: int) -> CubeLUT:
+    """Lookup table of an atlas ``grid`` for contiguous cubes ``(B, 6, channels, F, F)``.
+
+    Build it once for a frozen camera and pass it to :func:`sample_cube` on every call.
+
+    Args:
+        grid: ``(B', H, W, 2)`` atlas grid (``cubemap.rays_to_grid``, ``align_corners=False``),
+            float32 or float64 (the dtype the cube is sampled in).
+        face_size: ``F``. pad: the atlas border ``p`` of the grid.
+        mode: ``"nearest"`` or ``"bilinear"``.
+        channels: ``C`` of the cubes it will sample.
+
+    Returns:
+        The :class:`CubeLUT`.
+    """
+    _check_grid(grid)
+    _check_mode(mode, "bilinear")
+    if isinstance(channels, bool) or not isinstance(channels, int) or channels < 1:
+        raise ValueError(f"channels: expected a positive int, got {channels!r}")
+    return _lut(grid, face_size, pad, mode, channels * face_size * face_size)
+
+
+def _sample(faces: Tensor, grid: Tensor, mode: str, pad: int, border: str,
+            lut: CubeLUT | None) -> Tensor:
+    """Sample ``faces (B, 6, C, F, F)`` (any strides with unit texel stride in a face row)."""
+    batch, _, chans, f, _ = faces.shape
+    sb, sk, sc, sf, _ = faces.stride()
+    if lut is None:
+        lut = _lut(grid, f, pad, mode, sk)
+    elif (lut.mode, lut.face_size, lut.pad, lut.face_stride) != (mode, f, pad, sk) \
+            or lut.base.shape[0] not in (1, batch):
+        raise ValueError(f"lut: built for (mode, F, pad, face stride, batch) = "
+                         f"{(lut.mode, lut.face_size, lut.pad, lut.face_stride, lut.base.shape[0])}"
+                         f", the call needs {(mode, f, pad, sk, batch)}")
+    span = sum((size - 1) * stride for size, stride in zip(faces.shape, faces.stride())) + 1
+    src = faces.as_strided((span,), (1,))
+    if mode == "nearest":
+        ok = lut.base >= 0
+        off = (torch.arange(batch)[:, None, None] * sb + torch.arange(chans)[:, None] * sc
+               + torch.where(ok, lut.base, 0)[:, None])  # [B, C, P]
+        out = torch.where(ok[:, None], src[off], torch.zeros((), dtype=faces.dtype))
+    else:
+        fx, fy = lut.frac.to(faces.dtype)
+        parts = [_call("blend", faces.dtype, src, lut.base, fx, fy, batch, sb, c * sc, sc,
+                       min(_CHUNK, chans - c), f) for c in range(0, chans, _CHUNK)]
+        out = parts[0] if len(parts) == 1 else torch.cat(parts, 1)
+    if lut.edge.numel():
+        bsel, psel = lut.edge.unbind(1)
+        points = lut.grid[bsel, psel].to(torch.float64 if faces.dtype == torch.float64
+                                         else lut.grid.dtype)
+        if lut.base.shape[0] == 1 and batch > 1:  # one grid for the whole batch
+            psel, points = psel.repeat(batch), points.repeat(batch, 1)
+            bsel = torch.arange(batch).repeat_interleave(lut.edge.shape[0])
+        out[bsel, :, psel] = _edge_values(faces, lut, border, bsel, points).to(out.dtype)
+    return out.view(batch, chans, *lut.size)
+
+
+def sample_cube(cubemap: Tensor, grid: Tensor, mode: str = "bilinear", *, pad: int,
+                border: str = "bilinear", lut: CubeLUT | None = None) -> Tensor:
+    """``grid_sample`` of the padded atlas of a cube, without building the atlas; forward only.
+
+    Equal, to float32 rounding, to ``F.grid_sample(cubemap_to_atlas(cubemap, pad, border),
+    grid, mode, padding_mode="zeros", align_corners=False)`` (``border="copied"``: every face
+    padded with its own edge texels; ``pad=0``: no border). Nearest sampling is exact for any
+    dtype (integer labels). Nothing is recorded for autograd: use ``grid_sample`` where a
+    gradient is needed.
+
+    Args:
+        cubemap: ``(B, 6, C, F, F)`` on the CPU: float32 or float64 (half precision is sampled
+            in float32), or any dtype for ``"nearest"``.
+        grid: ``(B' in {1, B}, H, W, 2)`` atlas grid (``cubemap.rays_to_grid``), floating.
+        mode: ``"nearest"`` or ``"bilinear"``.
+        pad: the atlas border ``p`` the grid was made for.
+        border: ``"bilinear"`` or ``"nearest"`` (the border resampled from the neighbouring
+            faces with that ``cubemap.border_plan``), or ``"copied"``.
+        lut: a :func:`build_lut` of ``grid`` for this layout (a frozen camera), else built here.
+
+    Returns:
+        ``(B, C, H, W)`` in the cubemap's dtype; 0 where every tap is outside the atlas.
+    """
+    check_cubemap(cubemap)
+    _check_grid(grid, cubemap.shape[0])
+    _check_mode(mode, border)
+    if cubemap.device.type != "cpu" or grid.device.type != "cpu":
+        raise ValueError(f"cubemap, grid: the fast path runs on the CPU, got {cubemap.device} "
+                         f"and {grid.device}")
+    if mode == "bilinear" and not cubemap.is_floating_point():
+        raise TypeError(f"cubemap: bilinear sampling needs a floating cubemap, got "
+                        f"{cubemap.dtype}")
+    half = cubemap.is_floating_point() and cubemap.dtype not in (torch.float32, torch.float64)
+    f = cubemap.shape[-1]
+    rows_ok = cubemap.stride(-1) == 1 and (cubemap.stride(-2) == f or f == 1)
+    work = cubemap.float() if half else (cubemap if rows_ok else cubemap.contiguous())
+    if work.is_floating_point():
+        grid = grid.to(work.dtype)
+    with torch.no_grad():
+        return _sample(work, grid, mode, pad, border, lut).to(cubemap.dtype)
+
+
+def sample_atlas(atlas: Tensor, grid: Tensor, mode: str = "bilinear") -> Tensor:
+    """``F.grid_sample(atlas, grid, mode, padding_mode="zeros", align_corners=False)`` of an
+    atlas ``(B, C, 6 n, n)``, forward only, to float32 rounding (nearest: exactly, any dtype).
+
+    Args:
+        atlas: ``(B, C, 6 n, n)`` on the CPU (``cubemap_to_atlas``), contiguous.
+        grid: ``(B' in {1, B}, H, W, 2)`` floating.
+        mode: ``"nearest"`` or ``"bilinear"``.
+
+    Returns:
+        ``(B, C, H, W)``.
+    """
+    faces = atlas_to_faces(atlas.contiguous())  # (B, 6, C, n, n) view: an atlas without border
+    return sample_cube(faces, grid, mode, pad=0)

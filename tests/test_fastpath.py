@@ -1,0 +1,249 @@
+"""The CPU fast path (``omniscape_torch.fastsample``) against the reference path (``grid_sample``).
+
+Every fast path must give ``F.grid_sample(atlas, grid, align_corners=False)``'s output to
+float32 rounding: ``sample_cube`` (no atlas), ``sample_atlas``, the lookup table of a frozen
+camera, and ``OmniProjection`` with ``fast=True`` (against ``fast=False``) for RGB, depth and
+labels, with and without rotations, and its eager fallback; gradients still come from
+``grid_sample``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+import torch.nn.functional as F_nn
+
+import omniscape_torch as ot
+from omniscape_torch import cubemap as cm
+from omniscape_torch import fastsample
+
+f32, f64 = torch.float32, torch.float64
+#: Rounding of a blend of 4 texels in [0, 1]. float32: the weights are grid_sample's bit for bit,
+#: the sums may be rounded in another order (grid_sample uses fused multiply-adds): a few ulps.
+#: float64: the pixel coordinate ``fma(g + 1, n / 2, -0.5)`` is rounded twice (nothing wider to
+#: emulate the fma in): one ulp of a coordinate below 128 (the test atlases) moves the blend by
+#: up to 128 eps.
+ATOL = {f32: 4 * torch.finfo(f32).eps, f64: 128 * torch.finfo(f64).eps}
+
+
+def make_cube(batch: int, channels: int, size: int, dtype=f32, seed: int = 0) -> torch.Tensor:
+    gen = torch.Generator().manual_seed(seed)
+    return torch.rand(batch, 6, channels, size, size, generator=gen, dtype=dtype)
+
+
+def make_grid(batch: int, dtype=f32, seed: int = 1, h: int = 23, w: int = 17) -> torch.Tensor:
+    """Atlas grid over the whole atlas and a little beyond, with some invalid pixels (-2, -2)
+    and exact texel centres and seams of an 8-texel, pad-1 atlas (ties for nearest)."""
+    gen = torch.Generator().manual_seed(seed)
+    grid = torch.rand(batch, h, w, 2, generator=gen, dtype=dtype) * 2.3 - 1.15
+    grid[:, ::5, ::3] = -2.0
+    n = 10  # 8 + 2 * 1
+    grid[:, 1, :n, 0] = (2 * torch.arange(n, dtype=dtype) + 1) / n - 1  # texel centres
+    grid[:, 2, :n, 1] = (2 * torch.arange(n, dtype=dtype) * 6) / (6 * n) - 1  # face seams
+    return grid
+
+
+def reference(atlas: torch.Tensor, grid: torch.Tensor, mode: str) -> torch.Tensor:
+    return F_nn.grid_sample(atlas, grid.expand(atlas.shape[0], -1, -1, -1), mode=mode,
+                            padding_mode="zeros", align_corners=False)
+
+
+def copied_atlas(cube: torch.Tensor, pad: int) -> torch.Tensor:
+    """The naive atlas: every face padded with its own edge texels."""
+    f = cube.shape[-1]
+    idx = (torch.arange(f + 2 * pad) - pad).clamp(0, f - 1)
+    return cm.faces_to_atlas(cube[..., idx, :][..., idx])
+
+
+# ------------------------------------------------------------------------------------------
+# sample_cube / sample_atlas against grid_sample on the atlas
+# ------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("mode", ["nearest", "bilinear"])
+@pytest.mark.parametrize("dtype", [f32, f64])
+@pytest.mark.parametrize("size,pad,channels,batch,grid_batch,border", [
+    (8, 1, 3, 2, 1, "bilinear"),  # one grid for the batch (a frozen camera)
+    (7, 2, 1, 2, 2, "nearest"),  # odd size, pad 2, a grid per sample
+    (5, 1, 5, 1, 1, "copied"),  # 5 channels: two kernel calls
+    (6, 0, 2, 1, 1, "bilinear"),  # no border: taps across the stacked faces
+])
+def test_sample_cube_equals_grid_sample(mode, dtype, size, pad, channels, batch, grid_batch,
+                                        border):
+    cube = make_cube(batch, channels, size, dtype)
+    grid = make_grid(grid_batch, dtype)
+    if border == "copied":
+        atlas = copied_atlas(cube, pad)
+    else:
+        atlas = cm.cubemap_to_atlas(cube, pad, border) if pad else cm.faces_to_atlas(cube)
+    expect = reference(atlas, grid, mode)
+    lut = fastsample.build_lut(grid, size, pad, mode, channels=channels)
+    for got in (fastsample.sample_cube(cube, grid, mode, pad=pad, border=border),
+                fastsample.sample_cube(cube, grid, mode, pad=pad, border=border, lut=lut)):
+        assert got.shape == expect.shape and got.dtype == dtype
+        torch.testing.assert_close(got, expect, atol=ATOL[dtype], rtol=0)
+    invalid = (grid[..., 0] == -2).expand(batch, -1, -1)
+    assert bool(invalid.any()) and bool((got.permute(0, 2, 3, 1)[invalid] == 0).all())
+    assert lut.edge.numel() > 0 or pad == 0  # the seam pixels were exercised
+
+
+@pytest.mark.parametrize("mode", ["nearest", "bilinear"])
+def test_sample_atlas_equals_grid_sample(mode):
+    atlas = cm.cubemap_to_atlas(make_cube(2, 3, 9), 1)
+    grid = make_grid(2, seed=3)
+    torch.testing.assert_close(fastsample.sample_atlas(atlas, grid, mode),
+                               reference(atlas, grid, mode), atol=ATOL[f32], rtol=0)
+
+
+def test_nearest_is_exact_for_integer_labels():
+    gen = torch.Generator().manual_seed(5)
+    labels = torch.randint(0, 2 ** 40, (2, 6, 1, 8, 8), generator=gen)  # beyond float precision
+    grid = make_grid(1, f64)
+    atlas = cm.cubemap_to_atlas(labels, 1, "nearest")
+    expect = reference(atlas.double(), grid, "nearest")  # exact: ids < 2^53
+    got = fastsample.sample_cube(labels, grid, "nearest", pad=1, border="nearest")
+    assert got.dtype == torch.int64
+    assert torch.equal(got.double(), expect)
+
+
+def test_half_precision_is_sampled_in_float32():
+    cube = make_cube(1, 3, 8).half()
+    grid = make_grid(1)
+    expect = reference(cm.cubemap_to_atlas(cube.float(), 1), grid, "bilinear").half()
+    got = fastsample.sample_cube(cube, grid, pad=1)
+    assert got.dtype == torch.float16
+    torch.testing.assert_close(got, expect, atol=torch.finfo(torch.float16).eps, rtol=0)
+
+
+def test_eager_fallback_when_compilation_is_unavailable(monkeypatch):
+    cube, grid = make_cube(2, 3, 8), make_grid(1)
+    compiled = fastsample.sample_cube(cube, grid, pad=1)
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("no compiler here")
+
+    monkeypatch.setattr(fastsample, "_COMPILED", {})
+    monkeypatch.setattr(fastsample, "_FAILURES", {})
+    monkeypatch.setattr(torch, "compile", broken)
+    with pytest.warns(UserWarning, match="torch.compile failed"):
+        eager = fastsample.sample_cube(cube, grid, pad=1)
+    assert set(fastsample.compile_failures()) == {("lut", f32), ("blend", f32)}
+    torch.testing.assert_close(eager, compiled, atol=ATOL[f32], rtol=0)
+    torch.testing.assert_close(eager, reference(cm.cubemap_to_atlas(cube, 1), grid, "bilinear"),
+                               atol=ATOL[f32], rtol=0)
+
+
+@pytest.mark.parametrize("kwargs,error,match", [
+    (dict(grid=torch.zeros(3, 4, 4, 2)), ValueError, "grid: expected shape"),
+    (dict(grid=torch.zeros(1, 4, 4, 2, dtype=torch.int64)), TypeError, "grid: expected a float"),
+    (dict(mode="bicubic"), ValueError, "mode: expected one of"),
+    (dict(border="none"), ValueError, "border: expected one of"),
+    (dict(cubemap=torch.zeros(2, 6, 3, 8, 8, dtype=torch.int64)), TypeError, "bilinear"),
+    (dict(cubemap=torch.zeros(2, 5, 3, 8, 8)), ValueError, "cubemap must have shape"),
+])
+def test_bad_input(kwargs, error, match):
+    args = dict(cubemap=make_cube(2, 3, 8), grid=make_grid(1), mode="bilinear",
+                border="bilinear")
+    args.update(kwargs)
+    with pytest.raises(error, match=match):
+        fastsample.sample_cube(args.pop("cubemap"), args.pop("grid"), args.pop("mode"), pad=1,
+                               **args)
+
+
+def test_lut_of_another_layout_is_refused():
+    cube, grid = make_cube(1, 3, 8), make_grid(1)
+    lut = fastsample.build_lut(grid, 8, 1, "bilinear", channels=1)
+    with pytest.raises(ValueError, match="lut: built for"):
+        fastsample.sample_cube(cube, grid, pad=1, lut=lut)
+
+
+# ------------------------------------------------------------------------------------------
+# OmniProjection: fast=True against fast=False
+# ------------------------------------------------------------------------------------------
+def fisheye(size: int = 24, fov_deg: float = 190.0, learnable: bool = False) -> ot.Camera:
+    """Equidistant fisheye whose image circle (the fov edge) lies inside the image."""
+    fov = math.radians(fov_deg)
+    focal, centre = (size - 2) / fov, (size - 1) / 2
+    return ot.Camera("equidistant", torch.tensor([focal, focal, centre, centre], dtype=f64),
+                     (size, size), fov=fov, learnable=learnable)
+
+
+def rotations(batch: int) -> torch.Tensor:
+    gen = torch.Generator().manual_seed(7)
+    q, _ = torch.linalg.qr(torch.randn(batch, 3, 3, generator=gen, dtype=f64))
+    return q * torch.linalg.det(q)[:, None, None]  # proper rotations
+
+
+def render_both(kwargs: dict, inputs: dict, **render_kwargs) -> tuple[dict, dict]:
+    outs = []
+    for fast in (True, False):
+        layer = ot.OmniProjection(fisheye(), 8, fast=fast, **kwargs)
+        with torch.no_grad():
+            outs.append(layer.render(**inputs, **render_kwargs))
+    return outs[0], outs[1]
+
+
+@pytest.mark.parametrize("batch,rotated", [(1, False), (2, False), (2, True)])
+@pytest.mark.parametrize("interpolation", ["nearest", "bilinear"])
+def test_layer_fast_equals_reference(batch, rotated, interpolation):
+    cube = make_cube(batch, 3, 8, f64)
+    depth = 1 + 9 * make_cube(batch, 1, 8, f64, seed=2)
+    labels = (make_cube(batch, 1, 8, seed=3) * 13).long()
+    inputs = dict(rgb=cube, depth=depth, labels=labels,
+                  rotation=rotations(batch) if rotated else None)
+    fast, ref = render_both(dict(interpolation=interpolation,
+                                 depth_interpolation=interpolation), inputs)
+    assert torch.equal(fast["valid"], ref["valid"])
+    assert bool(fast["valid"].any()) and not bool(fast["valid"].all())  # the fov edge is in
+    for key in ("rgb", "depth"):
+        torch.testing.assert_close(fast[key], ref[key], atol=ATOL[f64] * 10, rtol=0)
+        assert bool((fast[key].masked_select(~fast["valid"]) == 0).all())
+    assert torch.equal(fast["labels"], ref["labels"])
+
+
+@pytest.mark.parametrize("kwargs", [dict(border="copied"), dict(border="none"),
+                                    dict(supersample=2), dict(interpolation="bicubic")])
+def test_layer_options_fast_equals_reference(kwargs):
+    cube = make_cube(2, 3, 8)
+    fast, ref = render_both(kwargs, dict(rgb=cube), soft_labels=None)
+    torch.testing.assert_close(fast["rgb"], ref["rgb"], atol=ATOL[f32], rtol=0)
+
+
+def test_layer_half_precision_and_soft_labels():
+    cube = make_cube(1, 3, 8).half()
+    labels = (make_cube(1, 1, 8, seed=3) * 5).long()
+    fast, ref = render_both({}, dict(rgb=cube, labels=labels), soft_labels=5)
+    assert fast["rgb"].dtype == torch.float16
+    torch.testing.assert_close(fast["rgb"], ref["rgb"], atol=torch.finfo(torch.float16).eps,
+                               rtol=0)
+    torch.testing.assert_close(fast["soft_labels"], ref["soft_labels"], atol=ATOL[f32], rtol=0)
+
+
+def test_frozen_camera_lookup_table_is_cached_and_reused():
+    layer = ot.OmniProjection(fisheye(), 8)
+    cube = make_cube(2, 3, 8)
+    with torch.no_grad():
+        first, _ = layer(cube)
+        (table,) = layer._lut_cache.values()
+        second, _ = layer(cube)
+        assert next(iter(layer._lut_cache.values())) is table
+        layer(cube, rotations(2).float())  # a rotation: its table is not kept
+    assert len(layer._lut_cache) == 1
+    assert torch.equal(first, second)
+
+
+@pytest.mark.parametrize("what", ["cube", "camera", "rotation"])
+def test_gradients_flow_through_the_reference_path(what):
+    cam = fisheye(learnable=what == "camera")
+    cube = make_cube(1, 3, 8, f64).requires_grad_(what == "cube")
+    rotation = rotations(1).requires_grad_(what == "rotation")
+    grads, images = [], []
+    for fast in (True, False):
+        layer = ot.OmniProjection(cam, 8, fast=fast, fused_grid=False)  # no compile here
+        image, _ = layer(cube, rotation)
+        leaf = {"cube": cube, "camera": cam.params, "rotation": rotation}[what]
+        (grad,) = torch.autograd.grad(image.square().sum(), leaf)
+        grads.append(grad)
+        images.append(image.detach())
+    assert torch.equal(images[0], images[1])  # both took grid_sample
+    assert torch.equal(grads[0], grads[1]) and bool((grads[0] != 0).any())
