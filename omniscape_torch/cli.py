@@ -22,8 +22,8 @@ def _load_camera(args: argparse.Namespace):
         return Camera.load_json(args.json), str(args.json)
     path = args.ocamcalib if args.ocamcalib is not None else DEFAULT_OCAMCALIB
     if not path.is_file():
-        raise SystemExit(f"omniscape-torch info: no calibration file at {path} (run from the "
-                         f"project root, or pass --ocamcalib PATH or --json PATH)")
+        raise SystemExit(f"omniscape-torch {args.command}: no calibration file at {path} (run "
+                         f"from the project root, or pass --ocamcalib PATH or --json PATH)")
     return Camera.from_ocamcalib(path), str(path)
 
 
@@ -140,6 +140,57 @@ def cmd_stats(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_fit(args: argparse.Namespace) -> int:
+    from .calibration import fit, read_correspondences, save_result
+
+    data = read_correspondences(args.correspondences)
+    result = fit(data.object_points, data.image_points, args.model, data.image_size,
+                 method=args.method, degree=args.degree, freeze=args.freeze,
+                 fov=None if args.fov is None else math.radians(args.fov), loss=args.loss,
+                 loss_scale=args.loss_scale, max_iterations=args.max_iterations,
+                 progress=False if args.no_progress else None)
+    print(f"{args.model} ({args.method}): rms {result.rms:.4f} px over "
+          f"{result.num_observations} points in {len(data.names)} views, "
+          f"{result.iterations} iterations; {result.reason}")
+    for name, value, std in zip(result.param_names, result.params.tolist(),
+                                result.std.tolist()):
+        print(f"  {name:6s} {value:16.9g} +- {std:.3g}")
+    if not result.converged:
+        print(f"omniscape-torch fit: did not converge ({result.reason}); nothing written",
+              file=sys.stderr)
+        return 1
+    written = [save_result(result.camera, result.to_dict(), "fit", args.out / "camera.json")]
+    if args.model == "scaramuzza":
+        written.append(args.out / "calib_results.txt")
+        result.camera.to_ocamcalib(written[-1])
+    print("wrote " + ", ".join(map(str, written)))
+    return 0
+
+
+def cmd_convert_model(args: argparse.Namespace) -> int:
+    from .calibration import convert, save_result
+
+    camera, source = _load_camera(args)
+    print(f"source {source} ({camera.model.name}); errors on held-out pixels")
+    print(f"{'model':16s} {'params':>6s} {'max px':>9s} {'rms px':>9s} {'max deg':>9s} "
+          f"{'rms deg':>9s} {'outside':>8s}  converged")
+    failed = 0
+    for model in args.to:
+        result = convert(camera, model, degree=args.degree, grid=args.grid)
+        print(f"{model:16s} {result.num_params:6d} {result.max_px:9.4f} {result.rms_px:9.4f} "
+              f"{math.degrees(result.max_angle):9.5f} {math.degrees(result.rms_angle):9.5f} "
+              f"{100 * result.unrepresentable:7.2f}%  "
+              f"{'yes' if result.converged else 'NO: ' + result.fit.reason}")
+        failed += not result.converged
+        if args.out is not None and result.converged:
+            save_result(result.camera, result.to_dict(), "conversion", args.out / f"{model}.json")
+            if model == "scaramuzza":
+                result.camera.to_ocamcalib(args.out / "calib_results.txt")
+    if args.out is not None:
+        print(f"wrote the converged cameras to {args.out}")
+    return 1 if failed else 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="omniscape-torch", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -189,6 +240,48 @@ def build_parser() -> argparse.ArgumentParser:
 
     from .convert import add_convert_parser
     add_convert_parser(sub)
+
+    from .benchmark import add_bench_parser
+    add_bench_parser(sub)
+
+    from .calibration.fit import METHODS
+    from .calibration.lm import LOSSES
+    from .cameras import MODELS
+    lenses = [m for m in MODELS if m != "equirectangular"]
+    fit = sub.add_parser("fit", help="calibrate a camera from target points and their pixels "
+                                     "(file format: omniscape_torch/calibration/files.py)")
+    fit.add_argument("correspondences", type=Path, help="correspondence file")
+    fit.add_argument("--model", choices=lenses, required=True, help="camera model")
+    fit.add_argument("--degree", type=_positive_int, default=4,
+                     help="scaramuzza polynomial degree (default 4)")
+    fit.add_argument("--method", choices=METHODS, default="lm", help="default lm")
+    fit.add_argument("--loss", choices=tuple(LOSSES), default="linear", help="default linear")
+    fit.add_argument("--loss-scale", type=_positive_float, default=1.0,
+                     help="robust loss scale, pixels (default 1)")
+    fit.add_argument("--freeze", type=lambda t: [n.strip() for n in t.split(",") if n.strip()],
+                     default=None, metavar="NAME[,NAME]", help="parameter groups (focal, center, "
+                     "distortion, affine) or names to hold at their start")
+    fit.add_argument("--fov", type=_positive_float, default=None,
+                     help="full field of view in degrees, for the start of non-polynomial models")
+    fit.add_argument("--max-iterations", type=_positive_int, default=None)
+    fit.add_argument("--out", type=Path, required=True, help="folder for camera.json (and "
+                     "calib_results.txt for scaramuzza)")
+    fit.add_argument("--no-progress", action="store_true", help="no progress bar")
+    fit.set_defaults(func=cmd_fit)
+
+    conv = sub.add_parser("convert-model", help="fit cameras of other models to a camera")
+    source = conv.add_mutually_exclusive_group()
+    source.add_argument("--ocamcalib", type=Path, default=None,
+                        help=f"OCamCalib calib_results.txt (default: {DEFAULT_OCAMCALIB})")
+    source.add_argument("--json", type=Path, default=None, help="camera JSON (Camera.save_json)")
+    conv.add_argument("--to", type=_names(lenses, "model"), required=True,
+                      metavar="MODEL[,MODEL]", help=f"target models ({', '.join(lenses)})")
+    conv.add_argument("--degree", type=_positive_int, default=4,
+                      help="scaramuzza target degree (default 4)")
+    conv.add_argument("--grid", type=_positive_int, default=48,
+                      help="samples per image side (default 48)")
+    conv.add_argument("--out", type=Path, default=None, help="folder for <model>.json")
+    conv.set_defaults(func=cmd_convert_model)
     return parser
 
 

@@ -1,0 +1,328 @@
+"""Calibration from correspondences (issue 6, items 1 and 5): ot.calibration.fit, the linear
+OCamCalib solution, the correspondence file and ``omniscape-torch fit``.
+
+The truth is synthetic: a known camera sees a checkerboard from random poses and Gaussian noise
+of SIGMA pixels is added to every coordinate; a least-squares fit must then reach the noise
+floor ``SIGMA sqrt((2 M - n) / (2 M))`` (M points, n free variables) and land within three of
+its own standard deviations of the truth.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import omniscape_torch as ot
+from omniscape_torch import cli
+from omniscape_torch.calibration import (Correspondences, checkerboard, fit, random_views,
+                                         read_correspondences, scaramuzza_linear,
+                                         write_correspondences)
+from omniscape_torch.calibration.params import IntrinsicsMap
+
+from conftest import CASES, OCAMCALIB_FILE, fibonacci_sphere
+
+SIGMA = 0.2  # pixels, per coordinate
+D = torch.float64
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """The fits work on small matrices (at most ~2000 x 70), where a second OpenMP thread only
+    adds synchronisation: 5x slower on a loaded 2-core machine. Restored afterwards."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def _truth(model: str) -> tuple[torch.Tensor, tuple[int, int]]:
+    """A realistic camera of each model from conftest.CASES (the first distorted case)."""
+    params, size = CASES[model][1 if model in ("kannala_brandt", "unified") else 0]
+    params = torch.tensor(params, dtype=D)
+    if model == "scaramuzza":
+        # e is the sensor's roll about the optical axis, which the poses absorb: the fit holds
+        # it (DEFAULT_FREEZE), so the comparable truth has e = 0
+        params[4] = 0.0
+    return params, size
+
+
+def _views(model: str, n_views: int = 8, rows: int = 10, cols: int = 13, seed: int = 1,
+           noise: float = SIGMA, **kwargs):
+    params, size = _truth(model)
+    camera = ot.Camera(model, params, size)
+    board = checkerboard(rows, cols, 0.04)
+    pixels, poses, clean = random_views(camera, board, n_views, noise=noise,
+                                        generator=torch.Generator().manual_seed(seed), **kwargs)
+    return params, size, board, pixels, poses, clean
+
+
+LENS_MODELS = [m for m in ot.cameras.MODELS if m != "equirectangular"]
+
+
+@pytest.mark.parametrize("model", LENS_MODELS)
+def test_fit_reaches_the_noise_floor_and_the_truth(model):
+    """Every model with intrinsics to fit (equirectangular is skipped: it is the panorama
+    projection of a sphere, not a lens; there is nothing to calibrate from a board)."""
+    truth, size, board, pixels, _, _ = _views(model)
+    result = fit(board, pixels, model, size, degree=len(truth) - 6 if model == "scaramuzza" else 4)
+    assert result.converged, result.reason
+    m, n = result.num_observations, result.num_free
+    assert m == 8 * 130 and n == len(result.free_names) + 6 * 8
+    floor = SIGMA * math.sqrt((2 * m - n) / (2 * m))
+    # 5%: the spread of the RMS of 2M - n ~ 2000 squared Gaussians is 1.6%
+    assert abs(result.rms - floor) <= 0.05 * floor, (result.rms, floor)
+    free = [result.param_names.index(name) for name in result.free_names]
+    err = (result.params - truth)[free]
+    std = result.std[free]
+    assert bool((std > 0).all()) and bool(torch.isfinite(std).all())
+    assert bool((err.abs() <= 3 * std).all()), dict(zip(result.free_names, (err / std).tolist()))
+    held = [i for i in range(len(truth)) if i not in free]
+    assert torch.equal(result.params[held], truth[held])  # frozen at the truth (a1 = e = 0)
+    assert [r.shape for r in result.residuals] == [(130, 2)] * 8
+
+
+def test_kannala_brandt_fit_matches_opencv_fisheye_calibrate():
+    """The same data through cv2.fisheye.calibrate (same model for z > 0, same cost): the two
+    minima agree to a small fraction of the estimate's standard deviation."""
+    cv2 = pytest.importorskip("cv2")
+    truth, size, board, pixels, _, _ = _views("kannala_brandt", rows=6, cols=8,
+                                              max_angle=math.radians(60))
+    ours = fit(board, pixels, "kannala_brandt", size)
+    assert ours.converged, ours.reason
+    k = np.array([[200.0, 0, 319.5], [0, 200.0, 319.5], [0, 0, 1]])
+    flags = cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW | cv2.CALIB_USE_INTRINSIC_GUESS
+    _, k, dist, _, _ = cv2.fisheye.calibrate(
+        [board.numpy().reshape(1, -1, 3)] * len(pixels),
+        [p.numpy().reshape(1, -1, 2) for p in pixels], size[::-1], k, np.zeros(4),
+        flags=flags, criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-14))
+    theirs = torch.tensor([k[0, 0], k[1, 1], k[0, 2], k[1, 2], *dist.ravel()], dtype=D)
+    assert bool(((ours.params - theirs).abs() <= 1e-3 * ours.std).all()), \
+        ((ours.params - theirs) / ours.std).tolist()
+
+
+def test_linear_solution_is_exact_on_noise_free_data():
+    """OCamCalib's linear solution recovers a camera with the centre at the image centre and
+    no affine part exactly (checks the sign and axis conventions against the truth)."""
+    truth = torch.tensor([319.5, 239.5, 1.0, 0.0, 0.0, -180.0, 0.0, 1.2e-3, -1.5e-6, 2e-9],
+                         dtype=D)
+    camera = ot.Camera("scaramuzza", truth, (480, 640))
+    board = checkerboard(6, 8, 0.05)
+    pixels, poses, _ = random_views(camera, board, 5, generator=torch.Generator().manual_seed(3))
+    params, est = scaramuzza_linear([board] * 5, pixels, (480, 640), degree=4)
+    assert torch.allclose(params, truth, rtol=1e-9, atol=1e-12)
+    assert torch.allclose(est, poses, atol=1e-9)
+
+
+def test_linear_method_is_reported_as_unrefined_and_lm_improves_on_it():
+    truth, size, board, pixels, _, _ = _views("scaramuzza", n_views=5, rows=6, cols=8)
+    linear = fit(board, pixels, "scaramuzza", size, method="linear")
+    refined = fit(board, pixels, "scaramuzza", size)
+    assert linear.converged and linear.iterations == 0 and "not refined" in linear.reason
+    assert refined.converged
+    assert refined.rms < linear.rms
+
+
+def test_lbfgs_reaches_the_lm_minimum():
+    _, size, board, pixels, _, _ = _views("equidistant", n_views=3, rows=6, cols=8)
+    lm = fit(board, pixels, "equidistant", size)
+    lbfgs = fit(board, pixels, "equidistant", size, method="lbfgs", max_iterations=1500)
+    assert lm.converged and lbfgs.converged, lbfgs.reason
+    assert lbfgs.cost <= lm.cost * (1 + 1e-8)
+    assert bool(((lbfgs.params - lm.params).abs() <= 1e-2 * lm.std).all())
+
+
+@pytest.mark.parametrize("method", ["lbfgs", "adam"])
+def test_a_method_stopped_early_says_it_did_not_converge(method):
+    _, size, board, pixels, _, _ = _views("equidistant", n_views=3, rows=6, cols=8)
+    lm = fit(board, pixels, "equidistant", size)
+    for iterations in (5, 200):
+        short = fit(board, pixels, "equidistant", size, method=method,
+                    max_iterations=iterations)
+        assert not short.converged and f"{iterations} iterations" in short.reason
+        assert "not at a minimum" in short.reason and short.cost > lm.cost
+        assert short.camera is not None  # the result is there to inspect, flagged
+
+
+def test_frozen_groups_stay_put_with_zero_std():
+    truth, size, board, pixels, _, _ = _views("kannala_brandt", n_views=4, rows=6, cols=8)
+    start = truth.clone()
+    start[4:] = 0.0
+    result = fit(board, pixels, "kannala_brandt", size, init=start,
+                 freeze=("center", "distortion"))
+    assert result.free_names == ("fx", "fy")
+    assert torch.equal(result.params[2:], start[2:])
+    assert torch.equal(result.std[2:], torch.zeros(6, dtype=D))
+    assert bool((result.std[:2] > 0).all())
+    with pytest.raises(ValueError, match="freeze: 'lens'"):
+        fit(board, pixels, "kannala_brandt", size, freeze=("lens",))
+
+
+@pytest.mark.parametrize("model", ["unified", "eucm", "double_sphere"])
+def test_reparametrisation_keeps_any_free_vector_in_the_model_range(model):
+    params = torch.tensor(CASES[model][1][0], dtype=D)  # inside the ranges, off their edges
+    mapping = IntrinsicsMap(ot.cameras.get_model(model), params, (640, 640))
+    z = 30 * torch.randn(200, len(mapping.free), generator=torch.Generator().manual_seed(0),
+                         dtype=D)
+    for row in z:
+        natural = mapping.natural(row)
+        if bool(torch.isfinite(natural).all()):  # exp may overflow: that is not a range error
+            mapping.model.validate_params(natural)
+    assert torch.allclose(mapping.natural(mapping.z0()), params)
+
+
+def test_robust_losses_resist_gross_outliers():
+    truth, size, board, pixels, _, _ = _views("equidistant", n_views=6, rows=6, cols=8)
+    gen = torch.Generator().manual_seed(5)
+    corrupted = []
+    for p in pixels:
+        bad = torch.rand(len(p), generator=gen) < 0.05
+        corrupted.append(p + bad[:, None] * 40.0 * torch.sign(torch.randn(p.shape, generator=gen,
+                                                                          dtype=D)))
+    plain = fit(board, corrupted, "equidistant", size)
+    clean = fit(board, pixels, "equidistant", size)
+    for loss in ("huber", "cauchy"):
+        robust = fit(board, corrupted, "equidistant", size, loss=loss, loss_scale=1.0)
+        assert robust.converged, robust.reason
+        err = (robust.params - truth).abs()
+        assert bool((err <= 4 * clean.std).all()), (loss, (err / clean.std).tolist())
+    assert float(((plain.params - truth).abs() / clean.std).max()) > 10
+
+
+@pytest.mark.parametrize("model, seed", [("pinhole", 1), ("scaramuzza", 0)])
+def test_degenerate_views_are_reported_as_not_converged(model, seed):
+    """All boards fronto-parallel: the focal length (the polynomial's scale) trades off against
+    the distance, exactly for a pinhole, nearly for the polynomial lens (huge error bars)."""
+    _, size, board, pixels, _, _ = _views(model, n_views=5, rows=6, cols=8, seed=seed,
+                                          fronto_parallel=True)
+    result = fit(board, pixels, model, size, max_iterations=30)
+    assert not result.converged
+    assert "degenerate data" in result.reason
+
+
+def test_projections_outside_the_domain_are_counted_not_dropped():
+    """A Kannala-Brandt lens folding at 111 degrees, held fixed, cannot see the points of a room
+    that an equidistant camera sees up to 120 degrees all around its axis."""
+    truth = ot.Camera("equidistant", torch.tensor([150.0, 150.0, 399.5, 399.5], dtype=D),
+                      (800, 800))
+    dirs = fibonacci_sphere(400)
+    dirs = dirs[dirs[:, 2] > math.cos(math.radians(120))]
+    points = 2.0 * dirs
+    pixels, valid = truth.project(points)
+    assert bool(valid.all())
+    init = torch.tensor([150.0, 150.0, 399.5, 399.5, -0.12, 0.005, 0.0, 0.0], dtype=D)
+    result = fit(points, pixels[None], "kannala_brandt", (800, 800), init=init,
+                 poses=torch.zeros(1, 6, dtype=D), freeze=("distortion",))
+    beyond = int((torch.atan2(dirs[:, :2].norm(dim=-1), dirs[:, 2])
+                  > ot.cameras.get_model("kannala_brandt").max_angle(init)).sum())
+    assert beyond > 0 and result.num_invalid >= beyond // 2
+    assert not result.converged and "outside the model's domain" in result.reason
+
+
+# --------------------------------------------------------------------------------------------
+# Bad input
+# --------------------------------------------------------------------------------------------
+
+def test_bad_input_raises_clear_errors():
+    truth, size, board, pixels, _, _ = _views("equidistant", n_views=2, rows=4, cols=5)
+    with pytest.raises(ValueError, match="not more than the 20 free parameters"):
+        fit(board[:4], [p[:4] for p in pixels], "kannala_brandt", size)
+    nan = [pixels[0].clone(), pixels[1]]
+    nan[0][3, 1] = math.nan
+    with pytest.raises(ValueError, match=r"image_points\[0\].*point 3"):
+        fit(board, nan, "equidistant", size)
+    with pytest.raises(ValueError, match="view 1: 20 target points but 19 pixels"):
+        fit(board, [pixels[0], pixels[1][:-1]], "equidistant", size)
+    with pytest.raises(ValueError, match="3 views of target points but 2 views of pixels"):
+        fit([board] * 3, pixels, "equidistant", size)
+    with pytest.raises(ValueError, match=r"image_points\[0\]: expected shape \(N, 2\)"):
+        fit(board, [p[:, :1] for p in pixels], "equidistant", size)
+    with pytest.raises(TypeError, match="image_points"):
+        fit(board, "pixels", "equidistant", size)
+    with pytest.raises(ValueError, match="method"):
+        fit(board, pixels, "equidistant", size, method="newton")
+    with pytest.raises(ValueError, match="method: 'linear'"):
+        fit(board, pixels, "equidistant", size, method="linear")
+    with pytest.raises(ValueError, match="loss"):
+        fit(board, pixels, "equidistant", size, loss="l1")
+    with pytest.raises(ValueError, match="loss_scale"):
+        fit(board, pixels, "equidistant", size, loss="huber", loss_scale=0)
+    with pytest.raises(ValueError, match="equirectangular"):
+        fit(board, pixels, "equirectangular", size)
+    with pytest.raises(ValueError, match="init"):
+        fit(board, pixels, "equidistant", size, init=[200.0, -1.0, 300.0, 300.0])
+    with pytest.raises(ValueError, match="planar"):
+        fit(board + torch.tensor([0.0, 0.0, 1.0], dtype=D) * board[:, :1], pixels,
+            "scaramuzza", size)
+
+
+# --------------------------------------------------------------------------------------------
+# The correspondence file and the command line
+# --------------------------------------------------------------------------------------------
+
+def _write(tmp_path, model="scaramuzza", **kwargs):
+    truth, size, board, pixels, _, _ = _views(model, **kwargs)
+    path = tmp_path / "corr.txt"
+    write_correspondences(path, Correspondences([board] * len(pixels), pixels, size,
+                                                [f"v{i}" for i in range(len(pixels))]))
+    return truth, size, path
+
+
+def test_correspondence_file_round_trip(tmp_path):
+    truth, size, path = _write(tmp_path, n_views=3, rows=4, cols=5)
+    text = path.read_text().splitlines()
+    assert text[0] == "omniscape-torch correspondences 1" and text[1] == f"image_size {size[0]} " \
+        f"{size[1]}" and text[2] == "view v0" and len(text[3].split()) == 5
+    data = read_correspondences(path)
+    assert data.image_size == size and data.names == ["v0", "v1", "v2"]
+    _, _, board, pixels, _, _ = _views("scaramuzza", n_views=3, rows=4, cols=5)
+    for a, b in zip(data.image_points, pixels):
+        assert torch.equal(a, b)  # 17 significant digits: exact
+    assert torch.equal(data.object_points[0], board)
+
+
+@pytest.mark.parametrize("text, match", [
+    ("# calib_results.txt\n5 -1 0 1\n", "line 2: expected the header"),
+    ("omniscape-torch correspondences 1\nview a\n0 0 0 1 1\n", "no 'image_size"),
+    ("omniscape-torch correspondences 1\nimage_size 10\n", "line 2: image_size"),
+    ("omniscape-torch correspondences 1\nimage_size 10 10\n0 0 0 1 1\n", "line 3: a point"),
+    ("omniscape-torch correspondences 1\nimage_size 10 10\nview a\n0 0 0 1\n", "line 4: expected"),
+    ("omniscape-torch correspondences 1\nimage_size 10 10\nview a\n0 0 0 1 nan\n", "5 finite"),
+    ("omniscape-torch correspondences 1\nimage_size 10 10\nview a\n0 0 0 1 1\n", "at least 4"),
+    ("", "empty"),
+])
+def test_correspondence_file_in_the_wrong_format_is_refused(tmp_path, text, match):
+    path = tmp_path / "bad.txt"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=match):
+        read_correspondences(path)
+
+
+def test_cli_fit_writes_json_and_calib_results(tmp_path, capsys):
+    truth, size, path = _write(tmp_path, n_views=5, rows=6, cols=8)
+    out = tmp_path / "out"
+    assert cli.main(["fit", str(path), "--model", "scaramuzza", "--out", str(out),
+                        "--no-progress"]) == 0
+    report = json.loads((out / "camera.json").read_text())
+    assert report["fit"]["converged"] and report["model"] == "scaramuzza"
+    std = torch.tensor(list(report["fit"]["std"].values()), dtype=D)
+    for camera in (ot.Camera.load_json(out / "camera.json"),
+                   ot.Camera.from_ocamcalib(out / "calib_results.txt")):
+        err = (camera.params.double() - truth).abs()
+        assert bool((err <= 3 * std + 1e-12 * truth.abs()).all()), (err / std).tolist()
+    assert "rms" in capsys.readouterr().out
+
+
+def test_cli_fit_failure_writes_nothing(tmp_path, capsys):
+    _, _, path = _write(tmp_path, n_views=3, rows=4, cols=5)
+    out = tmp_path / "out"
+    assert cli.main(["fit", str(path), "--model", "scaramuzza", "--method", "adam",
+                        "--max-iterations", "3", "--out", str(out), "--no-progress"]) == 1
+    assert not out.exists() and "did not converge" in capsys.readouterr().err
+    # an OCamCalib calib_results.txt is not a correspondence file
+    assert cli.main(["fit", str(OCAMCALIB_FILE), "--model", "scaramuzza", "--out",
+                     str(out)]) == 2
+    assert "line 3: expected the header" in capsys.readouterr().err
