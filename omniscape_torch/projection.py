@@ -150,8 +150,8 @@ class OmniProjection(nn.Module):
         """Rays in the camera frame: ``(rays (*Bc, Hs, Ws, 3), valid_sub (*Bc, Hs, Ws),
         centre_rays (*Bc, H, W, 3), valid (*Bc, H, W))``; cached while the camera is fixed."""
         params = self.camera.params
-        key = (params.data_ptr(), params._version, params.device, params.dtype,
-               self.supersample)
+        # id() of a tensor the cache keeps alive (below): no other tensor can take it over
+        key = (id(params), params._version, params.device, params.dtype, self.supersample)
         if self._fixed() and self._rays_cache is not None and self._rays_cache[0] == key:
             return self._rays_cache[1]
         batch = self.camera.batch_shape
@@ -164,7 +164,9 @@ class OmniProjection(nn.Module):
             rays_s, valid_s = self.camera.unproject(sub.expand(batch + sub.shape))
         out = (rays_s, valid_s, rays_c, valid_c)
         if self._fixed():
-            self._rays_cache = (key, tuple(t.detach() for t in out))
+            self._rays_cache = (key, tuple(t.detach() for t in out), params)
+            self._grid_cache = None   # grids and lookup tables of other rays are stale
+            self._lut_cache.clear()
         return out
 
     def _grid(self, rays: Tensor, rotation: Tensor | None, dtype: torch.dtype) -> Tensor:

@@ -826,3 +826,24 @@ def test_bad_constructor_args(kwargs, error, match):
     camera, face_size = args.pop("camera"), args.pop("face_size")
     with pytest.raises(error, match=match):
         ot.OmniProjection(camera, face_size, **args)
+
+
+def test_cache_follows_a_replaced_params_tensor():
+    """Cached rays, grid and lookup table belong to one params tensor: a replaced one gets its
+    own (the cache is keyed by the tensor's identity, kept alive by the cache, so that a new
+    tensor allocated where a freed one was is not mistaken for it)."""
+    cam = ot.presets.fisheye((24, 24), fov=math.radians(180))
+    layer = ot.OmniProjection(cam, 8)
+    cube = torch.rand(1, 6, 3, 8, 8, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        layer(cube)
+        for scale in (0.8, 1.3):
+            values = cam.params.tolist()
+            values[0] *= scale
+            values[1] *= scale
+            cam.params = None   # the old tensor is freed: the new one may take its storage
+            cam.params = torch.tensor(values)
+            got, _ = layer(cube)
+            expected, _ = ot.OmniProjection(ot.Camera(cam.model, values, (24, 24),
+                                                      fov=cam.fov), 8)(cube)
+            assert torch.equal(got, expected)

@@ -6,6 +6,8 @@
 * :func:`convert`: a camera of another model (or polynomial degree) fitted to an existing one
   over its valid area, with held-out pixel and angular errors.
 * :func:`select_model`: the fewest parameters whose held-out error is within a tolerance.
+* :func:`fit_photometric`: intrinsics (and attitude) from a target image, by rendering a cubemap
+  through the camera and matching the target, coarse to fine.
 * :func:`read_correspondences` / :func:`write_correspondences`: the text format of
   ``omniscape-torch fit``.
 * :func:`checkerboard` / :func:`random_views`: synthetic data of a known camera.
@@ -30,9 +32,10 @@ from .lm import LOSSES
 from .select import Candidate, Selection, select_model
 from .synthetic import checkerboard, random_views
 
-# --- photometric fitting (issue 6, item 4): the lead adds `from .photometric import ...` here ---
+from .photometric import PHOTOMETRIC_LOSSES, PhotometricResult, fit_photometric, photometric_error
 
 __all__ = ["Candidate", "ConversionResult", "Correspondences", "FitResult", "LOSSES", "METHODS",
-           "Selection", "checkerboard", "convert", "default_intrinsics", "fit", "planar_pose",
+           "PHOTOMETRIC_LOSSES", "PhotometricResult", "Selection", "fit_photometric",
+           "photometric_error", "checkerboard", "convert", "default_intrinsics", "fit", "planar_pose",
            "random_views", "read_correspondences", "save_result", "scaramuzza_linear",
            "select_model", "write_correspondences"]
