@@ -75,9 +75,13 @@ class OmniProjection(nn.Module):
             first call compiles for a few seconds; falls back to eager torch, with a warning,
             where compilation is unavailable). The output is the same either way.
         fast: sample with :mod:`omniscape_torch.fastsample` (lookup table on the cube, no atlas;
-            CPU, nearest and bilinear) whenever no gradient is needed; False forces the
-            reference ``grid_sample`` path. Same output to float32 rounding either way, and
-            gradients are unchanged (they always come from the reference path).
+            CPU) whenever no gradient is needed and it measured faster: nearest sampling
+            (labels, nearest depth) always, bilinear through a cached grid (the table is built
+            once); a grid rebuilt per call (rotations) samples bilinear with ``grid_sample``,
+            since building its table costs more than it saves
+            (``benchmarks/bench_projection.py``). False forces the reference ``grid_sample``
+            path. Same output to float32 rounding either way, and gradients are unchanged
+            (they always come from the reference path).
 
     Shapes:
         cubemap ``(B, 6, C, F, F)``; rotation ``(B, 3, 3)`` or ``(3, 3)`` mapping camera rays into
@@ -228,11 +232,14 @@ class OmniProjection(nn.Module):
         ``render``), else None. The lookup table of a cached grid is kept with it."""
         if not (self._fast_now and mode in fastsample.MODES and cube.device.type == "cpu"):
             return None
+        cache = self._grid_cache
+        cached = cache is not None and any(grid is g for g in cache[1])
+        if mode == "bilinear" and not cached:
+            return None   # a table per call costs more than grid_sample (class docstring)
         border = "copied" if self.border == "copied" else pad_mode
         cube = cube.contiguous()  # the layout the lookup tables are built for
         lut = None
-        cache = self._grid_cache
-        if cache is not None and any(grid is g for g in cache[1]):
+        if cached:
             key = (cache[0], id(grid), mode, cube.shape[2], cube.dtype)
             if self._lut_cache and next(iter(self._lut_cache))[0] != cache[0]:
                 self._lut_cache.clear()  # the grids changed: drop their tables
