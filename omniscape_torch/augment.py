@@ -111,7 +111,9 @@ class RandomOmniCamera(nn.Module):
     workers draw different streams, reproducibly); with ``seed=None`` it is seeded from
     ``torch.initial_seed()``, which PyTorch sets per process and per ``DataLoader`` worker
     (``base_seed + worker_id``, reproducible with ``DataLoader(generator=...)``). No global RNG
-    is consumed. The module (and its generator state) pickles.
+    is consumed. The module (and its generator state) pickles. Inside ``DataLoader`` workers
+    the grid kernel runs eagerly (compiling in a forked worker can deadlock; see
+    ``fastgrid.in_dataloader_worker``): render in the main process, or on the GPU, for speed.
 
     Args:
         image_size: ``(H, W)`` of the output.

@@ -41,7 +41,7 @@ from torch import Tensor
 
 from .cubemap.atlas import atlas_to_faces
 from .cubemap.padding import border_plan, check_cubemap
-from .fastgrid import _fresh_copy
+from .fastgrid import _fresh_copy, in_dataloader_worker
 from .sampling import unnormalize
 
 __all__ = ["CubeLUT", "build_lut", "sample_cube", "sample_atlas", "compile_failures",
@@ -166,6 +166,8 @@ def _fail(key: tuple, exc: BaseException) -> None:
 
 def _call(name: str, dtype: torch.dtype, *args):
     """``_TARGETS[name](*args)``, compiled once per (name, dtype); eager after a failure."""
+    if in_dataloader_worker():   # compiling in a forked worker can deadlock
+        return _TARGETS[name](*args)
     key = (name, dtype)
     if key not in _COMPILED:
         with _LOCK:
