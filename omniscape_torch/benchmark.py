@@ -1003,20 +1003,12 @@ def _devices(names: list[str]) -> list[torch.device]:
     return out
 
 
-def _positive(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return value
-
-
 def add_arguments(parser: argparse.ArgumentParser,
                   out_dir: Path = Path("benchmarks") / "results") -> None:
     """The benchmark's flags (``--quick`` fills the ones left unset); ``out_dir`` is the default
     of ``--out-dir``."""
+    from .cli import _positive_int as _positive   # the CLI imports this module
+
     parser.add_argument("--quick", action="store_true",
                         help="smoke run: 256 x 256 from 6 x 128, batch 2, 5 repeats (~1 min)")
     parser.add_argument("--size", type=_positive, default=None,

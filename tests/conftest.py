@@ -94,3 +94,14 @@ def directions_at(theta: torch.Tensor, n_azimuth: int = 16) -> torch.Tensor:
     t, p = torch.meshgrid(theta, phi, indexing="ij")
     return torch.stack((torch.sin(t) * torch.cos(p), torch.sin(t) * torch.sin(p), torch.cos(t)),
                        -1).reshape(-1, 3)
+
+
+@pytest.fixture(scope="module")
+def one_thread():
+    """torch on one thread for a test module, restored afterwards: for fits on small matrices
+    (at most ~2000 x 70), where a second OpenMP thread only adds synchronisation (5x slower on
+    a loaded 2-core machine)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)

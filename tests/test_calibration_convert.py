@@ -18,14 +18,7 @@ from conftest import OCAMCALIB_FILE
 D = torch.float64
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """The fits work on small matrices (at most ~2000 x 70), where a second OpenMP thread only
-    adds synchronisation: 5x slower on a loaded 2-core machine. Restored afterwards."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 #: A polynomial lens of true degree 3 (a0, a1 = 0, a2, a3), folding near rho = 430 px.
 POLY3 = [320.0, 310.0, 1.0, 0.0, 0.0, -200.0, 0.0, 1.5e-3, -3e-6]

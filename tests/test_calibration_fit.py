@@ -29,14 +29,7 @@ SIGMA = 0.2  # pixels, per coordinate
 D = torch.float64
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """The fits work on small matrices (at most ~2000 x 70), where a second OpenMP thread only
-    adds synchronisation: 5x slower on a loaded 2-core machine. Restored afterwards."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _truth(model: str) -> tuple[torch.Tensor, tuple[int, int]]:

@@ -39,7 +39,8 @@ DEFAULT_CANDIDATES = (
 
 @dataclass
 class Candidate:
-    """One row of the selection table (errors in pixels)."""
+    """One row of the selection table: ``fit_rms`` and ``heldout_rms`` are both RMS errors per
+    pixel coordinate (as ``FitResult.rms``; a conversion's RMS distance over sqrt 2)."""
 
     model: str
     degree: int | None
@@ -95,12 +96,13 @@ def select_model(source, tolerance: float, *, image_size: tuple[int, int] | None
     Args:
         source: an ``ot.Camera`` (conversion), or ``(object_points, image_points)`` as
             :func:`~omniscape_torch.calibration.fit.fit` takes them (calibration).
-        tolerance: largest held-out RMS error, pixels.
+        tolerance: largest held-out RMS error per coordinate, pixels.
         image_size: ``(H, W)``, for correspondences.
         candidates: ``(model, degree)`` pairs (``DEFAULT_CANDIDATES``).
         holdout: with correspondences, every ``holdout``-th point of a view is held out.
         progress: show a tqdm bar over the candidates (``None``: when stderr is a terminal).
-        **fit_kwargs: passed to ``fit`` (``method``, ``loss``, ``fov``...).
+        **fit_kwargs: passed to ``fit`` for correspondences (``method``, ``loss``, ``fov``...),
+            to ``convert`` for a camera (``grid``, ``freeze``).
 
     Returns:
         A :class:`Selection` with the table of all candidates.
@@ -128,8 +130,9 @@ def select_model(source, tolerance: float, *, image_size: tuple[int, int] | None
                                                        else progress),
                               desc="select_model", file=sys.stderr):
         if from_camera:
-            conv = convert(source, model, degree=degree or 4)
-            result, held = conv.fit, conv.rms_px
+            conv = convert(source, model, degree=degree or 4, **fit_kwargs)
+            # per coordinate, as fit's rms: the mean squared distance is twice its mean
+            result, held = conv.fit, conv.rms_px / math.sqrt(2)
         else:
             result, held = _heldout_fit(object_points, image_points, image_size, model, degree,
                                         holdout, fit_kwargs)
