@@ -7,7 +7,7 @@ threads, for batches of ``B`` cubemaps ``6 x F x F`` (RGB float32 + uint8 labels
 any yaw) per sample and call. Timed round-robin in one run:
 
 * ``ours``: ``RandomOmniCamera((S, S), F, mode="fisheye")(cube, labels=labels)`` (drawing,
-  cameras, rays, grid, atlases, RGB bilinear sampling, label gather, fov cones and masking);
+  cameras, rays, fov cones, grid, RGB bilinear sampling, label gather, masking);
 * ``peer``: what a user would write without this package, per sample: draw the same kind of
   camera and attitude with numpy, compute every pixel's ray (numpy, float32), rotate it, pick the
   cube face (argmax of the six face axes of DESIGN.md's table) and its face (u, v), build
@@ -16,10 +16,10 @@ any yaw) per sample and call. Timed round-robin in one run:
   ``cv2.remap`` the RGB atlas (HWC float32, ``INTER_LINEAR``) and the label atlas (uint8,
   ``INTER_NEAREST``), invalid pixels mapped outside (``BORDER_CONSTANT`` 0 / 255). Its inputs
   are numpy HWC arrays converted once, untimed (as a numpy user would hold them);
-* our parts apart (``part`` rows): ``params`` (``forward_parameters``), ``grid`` (cameras,
-  rays and the rotated atlas grid of a fresh ``OmniProjection``: what ``render`` rebuilds per
-  call), ``atlas_rgb`` / ``atlas_labels`` (padded atlases), ``sample_rgb`` (``grid_sample`` on
-  the prebuilt atlas and grid), ``gather_labels`` (nearest gather); and the peer's
+* our parts apart (``part`` rows): ``params`` (``forward_parameters``), ``grid``
+  (``fastgrid.camera_grid``: rays, attitude, cones and the atlas grid of every pixel, one
+  compiled kernel), ``sample`` (the layer's rendering of RGB and labels through that grid, on
+  the fast path: no gradient is needed); and the peer's
   ``peer_maps`` (numpy maps only) and ``peer_remap`` (atlas padding + the two remaps, maps
   prebuilt).
 
@@ -60,9 +60,8 @@ sys.path.insert(0, str(ROOT))
 
 import omniscape_torch as ot  # noqa: E402
 from common import git_commit, loadavg, machine_info, measure, write_json_atomic  # noqa: E402
-from omniscape_torch.augment import RandomOmniCamera  # noqa: E402
-from omniscape_torch.projection import OmniProjection  # noqa: E402
-from omniscape_torch.sampling import nearest_gather  # noqa: E402
+from omniscape_torch.augment import RandomOmniCamera, _GivenGrid  # noqa: E402
+from omniscape_torch.fastgrid import camera_grid  # noqa: E402
 
 try:
     import cv2
@@ -185,19 +184,22 @@ def run(args: argparse.Namespace) -> dict:
     aug = RandomOmniCamera((size, size), face, mode="fisheye", seed=SEED)
     part_gen = torch.Generator().manual_seed(SEED + 1)
 
-    # Our parts, on one fixed draw (a fresh layer per call: render builds one per call).
+    # Our parts, on one fixed draw (a fresh layer per call, as render builds one per call).
     params0 = aug.forward_parameters(batch, generator=torch.Generator().manual_seed(SEED + 2))
-    (_, camera0), = aug.cameras(params0).values()
-    rotation0 = params0["rotation"].float()
+    (name0, (_, camera0)), = aug.cameras(params0).items()
+    geometry0 = dict(rotation=params0["rotation"].float(), fov=params0["fov"].float(),
+                     blind_fov=params0["blind_fov"].float())
 
-    def new_proj() -> OmniProjection:
-        return OmniProjection(camera0, face, interpolation=aug.interpolation,
-                              ignore_index=aug.ignore_index, fused_grid=False)
+    def new_proj() -> _GivenGrid:
+        return _GivenGrid(camera0, face, interpolation=aug.interpolation,
+                          ignore_index=aug.ignore_index)
+
+    def grid() -> tuple[torch.Tensor, torch.Tensor]:
+        return camera_grid(name0, camera0.params, (size, size), face, new_proj().pad,
+                           **geometry0)
 
     proj0 = new_proj()
-    grid_s, _, grid_c, _ = proj0.sampling_grid(rotation0, torch.float32)
-    atlas_rgb = proj0._atlas(cube, "bilinear")
-    atlas_lab = proj0._atlas(labels.unsqueeze(2), "nearest")
+    proj0.grid = grid()
 
     rng_peer = np.random.default_rng(SEED)
     rng_maps = np.random.default_rng(SEED + 1)
@@ -207,11 +209,8 @@ def run(args: argparse.Namespace) -> dict:
     cases: list[tuple[str, str, Callable[[], object]]] = [
         ("ours", "ours", lambda: aug(cube, labels=labels)),
         ("params", "part", lambda: aug.forward_parameters(batch, generator=part_gen)),
-        ("grid", "part", lambda: new_proj().sampling_grid(rotation0, torch.float32)),
-        ("atlas_rgb", "part", lambda: proj0._atlas(cube, "bilinear")),
-        ("atlas_labels", "part", lambda: proj0._atlas(labels.unsqueeze(2), "nearest")),
-        ("sample_rgb", "part", lambda: proj0._sample(atlas_rgb, grid_s, "bilinear")),
-        ("gather_labels", "part", lambda: nearest_gather(atlas_lab, grid_c)),
+        ("grid", "part", grid),
+        ("sample", "part", lambda: proj0.render(rgb=cube, labels=labels)),
     ]
     agreement: dict[str, float] = {}
     if cv2 is not None:
@@ -255,10 +254,10 @@ def run(args: argparse.Namespace) -> dict:
                "median_per_sample_s": res["median_s"] / batch}
         rows.append(row)
         by_name[name] = row
-    parts = ("params", "grid", "atlas_rgb", "atlas_labels", "sample_rgb", "gather_labels")
+    parts = ("params", "grid", "sample")
     parts_sum = sum(by_name[p]["median_s"] for p in parts)
     breakdown = {p: by_name[p]["median_s"] / by_name["ours"]["median_s"] for p in parts}
-    breakdown["rest (cones, masking, other)"] = 1 - parts_sum / by_name["ours"]["median_s"]
+    breakdown["rest (cameras, batching, other)"] = 1 - parts_sum / by_name["ours"]["median_s"]
     headline = None
     if "peer" in by_name:
         ratio = by_name["ours"]["images_per_s"] / by_name["peer"]["images_per_s"]
