@@ -13,8 +13,10 @@ from typing import Callable
 import torch
 
 from omniscape_torch import benchmark as _bench
-from omniscape_torch.benchmark import git_commit  # noqa: F401  (re-exported)
+from omniscape_torch.benchmark import git_commit
 from omniscape_torch.io import atomic_write_text
+
+__all__ = ["ROOT", "git_commit", "loadavg", "machine_info", "measure", "write_json_atomic"]
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -31,8 +31,8 @@ from torch import Tensor, nn
 from .cameras import Camera
 from .cameras.registry import get_model
 from .cubemap.faces import FACES, face_rotations
-from .presets import yaw_pitch_roll_to_matrix
 from .fastgrid import camera_grid
+from .presets import yaw_pitch_roll_to_matrix
 from .projection import OmniProjection
 
 __all__ = ["ApplyToKey", "RandomOmniCamera"]

@@ -8,7 +8,6 @@ fov=..., blind_fov=...).ray_grid()`` (rays and validity: model domain, image, co
 
 from __future__ import annotations
 
-import math
 import warnings
 
 import pytest
