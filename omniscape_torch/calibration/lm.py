@@ -11,10 +11,11 @@ Damping (Marquardt 1963, as in MINPACK): the step solves
 invariant to the scale of each variable. ``lambda`` starts at ``lambda0 = 1e-3``, is divided by
 10 after a step that lowers the cost (accepted) and multiplied by 10 after one that does not
 (rejected, the point stays). The run stops as converged when an accepted step lowers the cost
-by less than ``ftol`` relatively, or the step is below ``xtol`` relative to ``|z|``, or the
-largest cosine between the residual and a column of ``J`` is below ``gtol``; it stops as not
-converged after ``max_iterations`` Jacobians or when ``lambda`` exceeds ``1e16`` (no step
-lowers the cost). A cost below ``cost_floor`` (residuals at rounding level, where relative
+by less than ``ftol`` relatively, or a step (accepted, or rejected after damping) is below
+``xtol`` relative to ``|z|`` (at a minimum, the damped steps shrink until no step lowers the
+cost any more: the minimum to rounding), or the largest cosine between the residual and a
+column of ``J`` is below ``gtol``; it stops as not converged after ``max_iterations``
+Jacobians or when ``lambda`` exceeds ``1e16`` with steps still above ``xtol``. A cost below ``cost_floor`` (residuals at rounding level, where relative
 tests mean nothing) is converged too.
 """
 
@@ -147,6 +148,11 @@ def levenberg_marquardt(evaluate: Evaluate, z0: Tensor, *, loss: str = "linear",
                                 "lambda": lam, "accepted": accepted})
                 if accepted:
                     break
+                if float(delta.norm()) <= xtol * (float(z.norm()) + xtol):
+                    # damped down to a step below xtol and still no decrease: the minimum, to
+                    # rounding (MINPACK's xtol test, on the rejected step)
+                    return LMState(z, float(cost), True, f"no step above xtol ({xtol:g}) lowers "
+                                   f"the cost", iteration, history)
                 lam *= 10
             lam = max(lam / 10, 1e-15)
             small_step = float(delta.norm()) <= xtol * (float(z.norm()) + xtol)
