@@ -96,7 +96,8 @@ class FitResult:
         num_observations: ``M`` (points over all views).
         num_free: ``n``: free intrinsics plus 6 per view.
         cost: final robust cost (pixels squared).
-        history: per iteration ``{"iteration", "cost", ...}``.
+        history: per iteration ``{"iteration", "cost", ...}`` (L-BFGS: per cost evaluation,
+            ``{"evaluation", "cost"}``, several per iteration with its line search).
     """
 
     camera: Camera | None
@@ -301,7 +302,7 @@ def _lbfgs(problem: Problem, z0: Tensor, loss: str, scale: float, max_iterations
         opt.zero_grad()
         cost, _ = robust_cost(problem.residuals(z)[0], loss, scale)
         cost.backward()
-        history.append({"iteration": len(history) + 1, "cost": float(cost.detach())})
+        history.append({"evaluation": len(history) + 1, "cost": float(cost.detach())})
         bar.update(1)
         return cost
 
