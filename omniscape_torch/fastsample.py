@@ -33,7 +33,7 @@ from __future__ import annotations
 import functools
 import threading
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable
 
 import torch
@@ -78,6 +78,8 @@ class CubeLUT:
         edge: ``(E, 2)`` int64, the ``(b', p)`` of the edge pixels.
         grid: ``(B', P, 2)`` the grid (the edge pixels are resampled from it).
         size: ``(H, W)``.
+        plans: per (border, dtype), the texels and weights each edge pixel reads, computed on
+            first use and kept (a frozen camera's table pays for them once).
     """
 
     mode: str
@@ -89,6 +91,7 @@ class CubeLUT:
     edge: Tensor
     grid: Tensor
     size: tuple[int, int]
+    plans: dict = field(default_factory=dict, compare=False, repr=False)
 
 
 # ------------------------------------------------------------------------------------------
@@ -222,55 +225,63 @@ def _ring_position(k: Tensor, i: Tensor, j: Tensor, face_size: int, pad: int) ->
     return k * (n * n - f * f) + pos
 
 
-def _edge_values(cube: Tensor, lut: CubeLUT, border: str, bsel: Tensor, grid: Tensor
-                 ) -> Tensor:
-    """Values ``(E, C)`` of the edge pixels of samples ``bsel (E,)`` at ``grid (E, 2)``: the
-    taps of the virtual atlas, interior texels read from the cube, border texels computed
-    from the ring plan (only those these pixels read) as ``cubemap_to_atlas`` computes them."""
-    batch, _, chans, f, _ = cube.shape
-    p = lut.pad
+def _edge_plan(lut: CubeLUT, border: str, dtype: torch.dtype, grid: Tensor
+               ) -> tuple[Tensor, Tensor]:
+    """What the edge pixels at ``grid (E, 2)`` read: per pixel the offsets of the cube texels
+    (within one sample and channel: ``k * face_stride + row * F + col``) and their weights,
+    ``(E, T)`` each (zero weights for unused slots): the taps of the virtual atlas, an interior
+    texel read from the cube, a border texel through the ring plan, as ``cubemap_to_atlas``
+    computes it. Cached in the table (``CubeLUT.plans``) for a frozen grid."""
+    f, p = lut.face_size, lut.pad
     n = f + 2 * p
     x = unnormalize(grid[:, 0], n)
     y = unnormalize(grid[:, 1], 6 * n)
     if lut.mode == "bilinear":
         x0, y0 = torch.floor(x), torch.floor(y)
-        fx, fy = x - x0, y - y0
+        fx, fy = (x - x0).to(dtype), (y - y0).to(dtype)
         e, s = 1 - fx, 1 - fy
-        offsets = ((0, 0, s * e), (1, 0, s * fx), (0, 1, fy * e), (1, 1, fy * fx))
+        taps = ((0, 0, s * e), (1, 0, s * fx), (0, 1, fy * e), (1, 1, fy * fx))
     else:
         x0, y0 = torch.round(x), torch.round(y)
-        offsets = ((0, 0, None),)
-    faces = cube.reshape(batch, 6, chans, f * f)
-    taps = []
-    for dx, dy, weight in offsets:
+        taps = ((0, 0, torch.ones_like(x, dtype=dtype)),)
+    if p > 0:
+        src, weight = _ring_plan(f, p, border, dtype)
+        src = torch.div(src, f * f, rounding_mode="floor") * lut.face_stride + src % (f * f)
+        weight = torch.ones(src.shape, dtype=dtype) if weight is None else weight
+    width = 1 if p == 0 else src.shape[1]
+    offsets, weights = [], []
+    for dx, dy, tap_weight in taps:
         j, r = x0.long() + dx, y0.long() + dy
         inside = (j >= 0) & (j < n) & (r >= 0) & (r < 6 * n)
         j, r = torch.where(inside, j, p), torch.where(inside, r, p)
         k = torch.div(r, n, rounding_mode="floor")
         i = r - k * n
         interior = (i >= p) & (i < p + f) & (j >= p) & (j < p + f)
-        ring = torch.where(interior, -1, _ring_position(k, i, j, f, p) if p else -1)
-        pix = torch.where(interior, (i - p) * f + (j - p), 0)
-        taps.append((inside, interior, k, pix, ring, weight))
-    if p > 0:  # the border texels these pixels read, computed once each
-        needed, where_ring = torch.unique(torch.stack([t[4] for t in taps]),
-                                          return_inverse=True)
-        src, weight = _ring_plan(f, p, border, cube.dtype if cube.is_floating_point()
-                                 else torch.float64)
-        src = src[needed.clamp(min=0)]  # [U, K]
-        gathered = faces[:, torch.div(src, f * f, rounding_mode="floor"), :, src % (f * f)]
-        gathered = gathered.permute(2, 3, 0, 1)  # [B, C, U, K]
-        ring_values = gathered[..., 0] if weight is None else (
-            gathered * weight[needed.clamp(min=0)]).sum(-1)
-    out = None
-    for t, (inside, interior, k, pix, ring, weight) in enumerate(taps):
-        value = faces[bsel, k, :, pix]  # [E, C]
+        texel = k * lut.face_stride + torch.where(interior, (i - p) * f + (j - p), 0)
+        off = torch.zeros(x.shape[0], width, dtype=torch.long)
+        wgt = torch.zeros(x.shape[0], width, dtype=dtype)
+        off[:, 0], wgt[:, 0] = texel, 1
         if p > 0:
-            value = torch.where(interior[:, None], value, ring_values[bsel, :, where_ring[t]])
-        value = torch.where(inside[:, None], value, torch.zeros_like(value))
-        term = value if weight is None else value * weight[:, None]
-        out = term if out is None else out + term
-    return out
+            ring = _ring_position(k, i, j, f, p).clamp(0, src.shape[0] - 1)
+            off = torch.where(interior[:, None], off, src[ring])
+            wgt = torch.where(interior[:, None], wgt, weight[ring])
+        offsets.append(off)
+        weights.append(wgt * (tap_weight * inside)[:, None])
+    return torch.cat(offsets, 1), torch.cat(weights, 1)
+
+
+def _edge_values(src: Tensor, strides: tuple[int, int], chans: int, bsel: Tensor,
+                 plan: tuple[Tensor, Tensor]) -> Tensor:
+    """Values ``(E, C)`` of the edge pixels of samples ``bsel (E,)`` through their ``plan``
+    (:func:`_edge_plan`) from the flat cube ``src`` (sample and channel ``strides``). Nearest
+    reads one texel (exact for any dtype); bilinear sums the weighted texels."""
+    offsets, weights = plan
+    start = bsel[:, None, None] * strides[0] + torch.arange(chans)[:, None] * strides[1]
+    values = src[start + offsets[:, None, :]]  # [E, C, T]
+    if not src.is_floating_point():  # nearest: the one texel of weight 1 (0 outside)
+        return torch.where(weights[:, None, 0] > 0, values[..., 0], torch.zeros_like(
+            values[..., 0]))
+    return (values * weights[:, None, :]).sum(-1)
 
 
 # ------------------------------------------------------------------------------------------
@@ -356,12 +367,18 @@ def _sample(faces: Tensor, grid: Tensor, mode: str, pad: int, border: str,
         out = parts[0] if len(parts) == 1 else torch.cat(parts, 1)
     if lut.edge.numel():
         bsel, psel = lut.edge.unbind(1)
-        points = lut.grid[bsel, psel].to(torch.float64 if faces.dtype == torch.float64
-                                         else lut.grid.dtype)
+        dtype = faces.dtype if faces.is_floating_point() else torch.float64
+        key = (border, dtype)
+        plan = lut.plans.get(key)
+        if plan is None:
+            points = lut.grid[bsel, psel].to(torch.float64 if faces.dtype == torch.float64
+                                             else lut.grid.dtype)
+            plan = lut.plans[key] = _edge_plan(lut, border, dtype, points)
         if lut.base.shape[0] == 1 and batch > 1:  # one grid for the whole batch
-            psel, points = psel.repeat(batch), points.repeat(batch, 1)
+            plan = tuple(t.repeat(batch, 1) for t in plan)
+            psel = psel.repeat(batch)
             bsel = torch.arange(batch).repeat_interleave(lut.edge.shape[0])
-        out[bsel, :, psel] = _edge_values(faces, lut, border, bsel, points).to(out.dtype)
+        out[bsel, :, psel] = _edge_values(src, (sb, sc), chans, bsel, plan).to(out.dtype)
     return out.view(batch, chans, *lut.size)
 
 
