@@ -45,7 +45,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import sys
 import time
 from pathlib import Path
@@ -58,8 +57,7 @@ ROOT = Path(__file__).resolve().parents[1]
 # Benchmark the checkout this script lives in, not whatever copy is installed.
 sys.path.insert(0, str(ROOT))
 
-import omniscape_torch as ot  # noqa: E402
-from common import git_commit, loadavg, machine_info, measure, write_json_atomic  # noqa: E402
+from common import loadavg, measure, run_record, write_json_atomic  # noqa: E402
 from omniscape_torch.augment import RandomOmniCamera, _GivenGrid  # noqa: E402
 from omniscape_torch.fastgrid import camera_grid  # noqa: E402
 
@@ -266,23 +264,8 @@ def run(args: argparse.Namespace) -> dict:
                     "throughput_ratio_ours_over_peer": ratio, "target": TARGET,
                     "meets_target": ratio >= TARGET}
 
-    commit, dirty = git_commit()
     return {
-        "benchmark": "augment",
-        "commit": commit,
-        "dirty": dirty,
-        "machine": machine_info(device),
-        "versions": {"torch": torch.__version__, "numpy": np.__version__,
-                     "cv2": None if cv2 is None else cv2.__version__,
-                     "omniscape_torch": getattr(ot, "__version__", None)},
-        "environment": {k: v for k, v in sorted(os.environ.items())
-                        if k.startswith(("OMP_", "MKL_", "KMP_", "MALLOC_", "OPENCV_"))
-                        or k in ("LD_PRELOAD", "ATEN_CPU_CAPABILITY")},
-        "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
-        "threads": args.threads,
-        "torch_num_threads": torch.get_num_threads(),
-        "cv2_num_threads": None if cv2 is None else cv2.getNumThreads(),
-        "device": "cpu",
+        **run_record("augment", device, args.threads, cv2),
         "setup": {"batch": batch, "face_size": face, "image_size": [size, size],
                   "mode": "fisheye", "model": "equidistant", "fov_deg": [160.0, 200.0],
                   "roll_deg": [-25.0, 25.0], "pitch_deg": [-10.0, 10.0],

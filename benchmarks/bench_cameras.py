@@ -51,7 +51,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import omniscape_torch as ot  # noqa: E402
-from common import git_commit, machine_info, measure, write_json_atomic  # noqa: E402
+from common import measure, run_record, write_json_atomic  # noqa: E402
 from omniscape_torch.cameras.scaramuzza import scaramuzza_project  # noqa: E402
 
 try:
@@ -315,24 +315,8 @@ def run(args: argparse.Namespace) -> dict:
         rows.extend(r for r, _, _ in cases)
         print(f"# {name}: done", file=sys.stderr, flush=True)
 
-    commit, dirty = git_commit()
     return {
-        "benchmark": "cameras",
-        "commit": commit,
-        "dirty": dirty,
-        "machine": machine_info(device),
-        "versions": {"torch": torch.__version__, "numpy": np.__version__,
-                     "cv2": None if cv2 is None else cv2.__version__,
-                     "omniscape_torch": getattr(ot, "__version__", None)},
-        # Knobs that change the timings without changing the code (threads, allocator).
-        "environment": {k: v for k, v in sorted(os.environ.items())
-                        if k.startswith(("OMP_", "MKL_", "KMP_", "MALLOC_", "OPENCV_"))
-                        or k in ("LD_PRELOAD", "ATEN_CPU_CAPABILITY")},
-        "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
-        "threads": args.threads,
-        "torch_num_threads": torch.get_num_threads(),
-        "cv2_num_threads": None if cv2 is None else cv2.getNumThreads(),
-        "device": str(device),
+        **run_record("cameras", device, args.threads, cv2),
         "dtype": args.dtype,
         "points": n,
         "repeats": repeats,

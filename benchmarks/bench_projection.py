@@ -54,7 +54,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import sys
 import time
 from pathlib import Path
@@ -68,7 +67,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import omniscape_torch as ot  # noqa: E402
-from common import git_commit, loadavg, machine_info, measure, write_json_atomic  # noqa: E402
+from common import loadavg, measure, run_record, write_json_atomic  # noqa: E402
 from omniscape_torch import cubemap as cm  # noqa: E402
 from omniscape_torch import fastgrid, fastsample  # noqa: E402
 
@@ -277,24 +276,8 @@ def run(args: argparse.Namespace) -> dict:
 
     failures = {str(k): v for k, v in {**fastgrid.compile_failures(),
                                         **fastsample.compile_failures()}.items()}
-    commit, dirty = git_commit()
     return {
-        "benchmark": "projection",
-        "commit": commit,
-        "dirty": dirty,
-        "machine": machine_info(device),
-        "versions": {"torch": torch.__version__, "numpy": np.__version__,
-                     "cv2": None if cv2 is None else cv2.__version__,
-                     "omniscape_torch": getattr(ot, "__version__", None)},
-        "environment": {k: v for k, v in sorted(os.environ.items())
-                        if k.startswith(("OMP_", "MKL_", "KMP_", "MALLOC_", "OPENCV_",
-                                         "TORCHINDUCTOR_"))
-                        or k in ("LD_PRELOAD", "ATEN_CPU_CAPABILITY")},
-        "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
-        "threads": args.threads,
-        "torch_num_threads": torch.get_num_threads(),
-        "cv2_num_threads": None if cv2 is None else cv2.getNumThreads(),
-        "device": str(device),
+        **run_record("projection", device, args.threads, cv2),
         "dtype": "float32",
         "setup": {"face_size": face, "image_size": [size, size], "model": "equidistant",
                   "focal_px": focal, "centre_px": centre, "fov_deg": 190.0, "pad": pad,
