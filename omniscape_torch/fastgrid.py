@@ -43,7 +43,7 @@ import torch
 from torch import Tensor
 
 from .cameras.registry import get_model
-from .cameras.unified import unified_unproject_undistorted
+from .cameras.unified import unified_unproject_undistorted_xyz
 from .cubemap.atlas import rays_to_grid
 from .cubemap.faces import (
     _AXIS_SIGN_TO_FACE,
@@ -72,6 +72,11 @@ def _grid_math(x: Tensor, y: Tensor, z: Tensor, face_size, pad) -> Tensor:
     ``ray_to_face`` followed by ``face_uv_to_grid``, same operations in the same order, with
     the gathers replaced by selections. ``face_size`` and ``pad`` may be symbolic ints.
     """
+    return torch.stack(_grid_xy(x, y, z, face_size, pad), dim=-1)
+
+
+def _grid_xy(x: Tensor, y: Tensor, z: Tensor, face_size, pad) -> tuple[Tensor, Tensor]:
+    """:func:`_grid_math` as its two components ``(gx, gy)``."""
     f, c, n = face_size / 2.0, (face_size - 1) / 2.0, face_size + 2 * pad  # face_intrinsics
     comps = (x, y, z)
     ax, ay, az = x.detach().abs(), y.detach().abs(), z.detach().abs()
@@ -102,7 +107,7 @@ def _grid_math(x: Tensor, y: Tensor, z: Tensor, face_size, pad) -> Tensor:
     row0 = face.to(x.dtype) * n  # a small integer: exact, as ``(face * n).to(dtype)``
     gx = (2 * (u + pad) + 1) / n - 1
     gy = (2 * (v + pad + row0) + 1) / (6 * n) - 1
-    return torch.stack((gx, gy), dim=-1)
+    return gx, gy
 
 
 def _fused_plain(rays: Tensor, face_size, pad, dtype: torch.dtype) -> Tensor:
@@ -113,13 +118,19 @@ def _fused_plain(rays: Tensor, face_size, pad, dtype: torch.dtype) -> Tensor:
 
 def _fused_rotated(rays: Tensor, rotation: Tensor, face_size, pad, dtype: torch.dtype) -> Tensor:
     """``rays (Br, H, W, 3)``, ``rotation (Bq, 3, 3)`` -> grid ``(max(Br, Bq), H, W, 2)``."""
-    r = rotation.to(rays.dtype)[:, None, None]  # [Bq, 1, 1, 3, 3]
     x, y, z = rays[..., 0], rays[..., 1], rays[..., 2]  # [Br, H, W]
+    return torch.stack(_rotated_grid_xy(x, y, z, rotation, face_size, pad, dtype), dim=-1)
+
+
+def _rotated_grid_xy(x: Tensor, y: Tensor, z: Tensor, rotation: Tensor, face_size, pad,
+                     dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+    """Ray components ``(Br, H, W)`` rotated by ``rotation (Bq, 3, 3)`` -> ``(gx, gy)``."""
+    r = rotation.to(x.dtype)[:, None, None]  # [Bq, 1, 1, 3, 3]
     # in the rays' dtype, summed in einsum's order, then cast (as ``_grid`` does)
     px = (r[..., 0, 0] * x + r[..., 0, 1] * y + r[..., 0, 2] * z).to(dtype)
     py = (r[..., 1, 0] * x + r[..., 1, 1] * y + r[..., 1, 2] * z).to(dtype)
     pz = (r[..., 2, 0] * x + r[..., 2, 1] * y + r[..., 2, 2] * z).to(dtype)
-    return _grid_math(px, py, pz, face_size, pad)
+    return _grid_xy(px, py, pz, face_size, pad)
 
 
 def _vjp_plain(rays: Tensor, grad: Tensor, face_size, pad, dtype: torch.dtype
@@ -149,6 +160,15 @@ _FAILURES: dict[tuple, str] = {}
 _LOCK = threading.Lock()
 _TARGETS = {("grid", False): _fused_plain, ("grid", True): _fused_rotated,
             ("vjp", False): _vjp_plain, ("vjp", True): _vjp_rotated}
+
+
+#: Inductor options of every compiled kernel of the package. ``cpp.dynamic_threads``: the C++
+#: kernels take their thread count from OpenMP at run time. Without it inductor bakes the thread
+#: count of the compiling process, and decides from the first call's sizes whether to run in
+#: parallel at all, into code that is then cached (on disk too) and reused for every size: a
+#: kernel first compiled on a small input ran on one thread ever after (measured: the bilinear
+#: blend of 16 x 512 x 512 pixels took 65 ms on 1 or 2 threads, 34 ms once parallel).
+COMPILE_OPTIONS = {"cpp.dynamic_threads": True}
 
 
 def _fresh_copy(fn: Callable) -> Callable:
@@ -181,7 +201,8 @@ def _compiled_for(key: tuple, stacklevel: int) -> Callable | None:
         if key not in _COMPILED:
             target = _fresh_copy(_target(key))
             try:
-                _COMPILED[key] = torch.compile(target, dynamic=key[-1], fullgraph=True)
+                _COMPILED[key] = torch.compile(target, dynamic=key[-1], fullgraph=True,
+                                               options=COMPILE_OPTIONS)
             except Exception as exc:  # torch.compile unsupported here (Python version, ...)
                 _fail(key, exc, stacklevel + 1)
         return _COMPILED[key]
@@ -383,36 +404,37 @@ def rotated_rays_to_grid(rays: Tensor, rotation: Tensor | None, face_size: int, 
 #: unproject eagerly (the Newton inverses of kannala_brandt, scaramuzza and distorted unified
 #: have data-dependent loops); each entry costs a compilation (~5-10 s) in the tests.
 _CLOSED_FORM: dict[str, Callable] = {
-    **{name: get_model(name).unproject
+    **{name: get_model(name).unproject_xyz
        for name in ("equidistant", "equisolid", "stereographic")},
-    "unified": unified_unproject_undistorted,
+    "unified": unified_unproject_undistorted_xyz,
 }
 
 
 def _camera_grid_math(params: Tensor, rotation: Tensor, cone: Tensor, face_size, pad, height,
-                      width, dtype: torch.dtype, unproject: Callable, to_grid: Callable
+                      width, dtype: torch.dtype, unproject_xyz: Callable, to_grid_xy: Callable
                       ) -> tuple[Tensor, Tensor]:
     """``params (B, P)``, ``rotation (B, 3, 3)``, ``cone (B, 2)`` (cosines of the half fov
     and of the half blind fov) -> ``grid (B, H, W, 2)`` (invalid pixels at (-2, -2)) and
     ``valid (B, H, W)``: the operations of ``Camera.ray_grid`` and :func:`rotated_rays_to_grid`;
     the cones of ``Camera.within_fov`` (``theta <= fov / 2``, ``theta > blind_fov / 2``) as
     ``z >= cos(fov / 2)``, ``z < cos(blind_fov / 2)`` on the unit rays (no ``atan2``: a third
-    of the kernel's time)."""
+    of the kernel's time). Ray and grid components stay apart until the end: compiled, the
+    whole chain is one loop that writes nothing but the grid and the mask."""
     kw = dict(dtype=params.dtype, device=params.device)
-    v, u = torch.meshgrid(torch.arange(height, **kw), torch.arange(width, **kw), indexing="ij")
-    rays, valid = unproject(torch.stack((u, v), dim=-1), params[:, None, None])
-    z = rays[..., 2]
+    u = torch.arange(width, **kw).view(1, 1, width)
+    v = torch.arange(height, **kw).view(1, height, 1)
+    x, y, z, valid = unproject_xyz(u, v, params[:, None, None])
     valid = valid & (z >= cone[:, None, None, 0]) & (z < cone[:, None, None, 1])
-    grid = to_grid(rays, rotation, face_size, pad, dtype)
-    return torch.where(valid.unsqueeze(-1), grid, torch.full_like(grid, -2.0)), valid
+    gx, gy = to_grid_xy(x, y, z, rotation, face_size, pad, dtype)
+    return torch.stack((torch.where(valid, gx, -2.0), torch.where(valid, gy, -2.0)), -1), valid
 
 
 def _camera_kernel(model: str) -> Callable:
-    unproject = _CLOSED_FORM[model]
+    unproject_xyz = _CLOSED_FORM[model]
 
     def camera_grid_kernel(params, rotation, cone, face_size, pad, height, width, dtype):
         return _camera_grid_math(params, rotation, cone, face_size, pad, height, width, dtype,
-                                 unproject, _fused_rotated)
+                                 unproject_xyz, _rotated_grid_xy)
 
     return camera_grid_kernel
 
@@ -503,7 +525,12 @@ def camera_grid(model: str, params: Tensor, image_size: tuple[int, int], face_si
                     with _LOCK:
                         _fail(key, exc, stacklevel=2)
 
-        def to_grid(rays, rot, f, p, dt):
-            return rotated_rays_to_grid(rays, rot, f, p, dtype=dt, compiled=compiled)
+        def unproject_xyz(u, v, p):   # any model, through its own unproject
+            rays, ok = unproject(torch.stack(torch.broadcast_tensors(u, v), -1), p)
+            return (*rays.unbind(-1), ok)
 
-        return _camera_grid_math(*args, unproject, to_grid)
+        def to_grid_xy(x, y, z, rot, f, p, dt):
+            rays = torch.stack((x, y, z), -1)
+            return rotated_rays_to_grid(rays, rot, f, p, dtype=dt, compiled=compiled).unbind(-1)
+
+        return _camera_grid_math(*args, unproject_xyz, to_grid_xy)

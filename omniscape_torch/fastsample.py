@@ -3,27 +3,31 @@
 ``OmniProjection``'s reference path pads the cube into an atlas (a copy of every texel) and
 calls ``grid_sample``. Without gradients the same image is computed here with no atlas at all:
 
-    grid (B', H, W, 2) --(once per frozen camera, or per call)--> lookup table: per pixel
-        the flat offset of its top-left tap in the cube (B, 6, C, F, F) and its two bilinear
-        fractions (nearest: the offset of its texel)
-    image = 4 taps per channel gathered from the cube and blended (one compiled loop)
+    grid (B', H, W, 2) --> per pixel the flat offset of its top-left tap in the cube
+        (B, 6, C, F, F) and its two bilinear fractions (nearest: the offset of its texel)
+    image = 4 taps per channel gathered from the cube and blended
+
+For a frozen camera the offsets and fractions are a lookup table, built once
+(:func:`build_lut`) and read on every call; for a grid used once (a rotation per call) they are
+computed in the sampling pass itself and never stored.
 
 A pixel whose taps are not all interior texels of one face ("edge" pixels: within a texel of
 a seam, about 1% of them) reads the atlas border, which the cube does not hold: those few
-pixels are sampled afterwards from the border texels they need, computed from the border plan
-exactly as :func:`~omniscape_torch.cubemap.cubemap_to_atlas` computes them. Pixels whose taps
-all lie outside the atlas (the invalid ones, grid ``(-2, -2)``) read 0, as with zero padding.
+pixels are sampled afterwards from a virtual atlas, the cube's interior plus its ring of border
+texels, computed from the border plan exactly as
+:func:`~omniscape_torch.cubemap.cubemap_to_atlas` computes them. Pixels whose taps all lie
+outside the atlas (the invalid ones, grid ``(-2, -2)``) read 0, as with zero padding.
 
 The pixel coordinates are those of ``grid_sample`` (``align_corners=False``) bit for bit:
 PyTorch's CPU kernel unnormalises with a fused multiply-add, ``x = fma(gx + 1, W / 2, -0.5)``,
 which is reproduced by computing it in float64 and rounding once (exact for float32 grids);
 the weights are then identical and the blend differs from ``grid_sample`` by float32 rounding
-(one or two ulps: ``grid_sample`` blends with fused multiply-adds too).
+(one or two ulps: ``grid_sample`` blends with fused multiply-adds too). Nearest sampling
+gathers one texel, exact for any dtype (integer labels).
 
-The blend runs in a ``torch.compile`` (inductor) kernel, compiled on first use per
-(dtype, channels per call) for any size; where compilation is unavailable or fails the same
-maths runs eagerly (a warning, once; see :func:`compile_failures`). Nearest sampling is a
-single gather, eager, exact for any dtype (integer labels).
+Every step runs in a ``torch.compile`` (inductor) kernel, compiled on first use per (step,
+dtype) for any size; where compilation is unavailable or fails the same maths runs eagerly (a
+warning, once; see :func:`compile_failures`).
 
 CPU only; other devices keep ``grid_sample``. Timings: ``benchmarks/bench_projection.py``.
 """
@@ -33,7 +37,7 @@ from __future__ import annotations
 import functools
 import threading
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable
 
 import torch
@@ -41,7 +45,7 @@ from torch import Tensor
 
 from .cubemap.atlas import atlas_to_faces
 from .cubemap.padding import border_plan, check_cubemap
-from .fastgrid import _fresh_copy, in_dataloader_worker
+from .fastgrid import COMPILE_OPTIONS, _fresh_copy, in_dataloader_worker
 from .sampling import unnormalize
 
 __all__ = ["CubeLUT", "build_lut", "sample_cube", "sample_atlas", "compile_failures",
@@ -58,7 +62,8 @@ _OUTSIDE, _EDGE = -1, -2
 _CHUNK = 4
 #: Inductor options: the indices are in bounds by construction (no per-tap bounds check), and
 #: the loop is vectorised although it is gather-heavy (measured faster).
-_OPTIONS = {"assert_indirect_indexing": False, "cpp.enable_tiling_heuristics": False}
+_OPTIONS = {**COMPILE_OPTIONS, "assert_indirect_indexing": False,
+            "cpp.enable_tiling_heuristics": False}
 
 
 @dataclass(frozen=True)
@@ -78,8 +83,6 @@ class CubeLUT:
         edge: ``(E, 2)`` int64, the ``(b', p)`` of the edge pixels.
         grid: ``(B', P, 2)`` the grid (the edge pixels are resampled from it).
         size: ``(H, W)``.
-        plans: per (border, dtype), the texels and weights each edge pixel reads, computed on
-            first use and kept (a frozen camera's table pays for them once).
     """
 
     mode: str
@@ -91,7 +94,6 @@ class CubeLUT:
     edge: Tensor
     grid: Tensor
     size: tuple[int, int]
-    plans: dict = field(default_factory=dict, compare=False, repr=False)
 
 
 # ------------------------------------------------------------------------------------------
@@ -142,6 +144,32 @@ def _blend_math(src: Tensor, base: Tensor, fx: Tensor, fy: Tensor, batch: int,
     return torch.stack(outs, 1)
 
 
+def _gather_math(src: Tensor, base: Tensor, batch: int, batch_stride, offset, chan_stride,
+                 chans: int) -> Tensor:
+    """Nearest: the texel at ``base`` of ``chans`` channels, ``(batch, chans, P)``, any dtype
+    (exact); 0 where ``base < 0``."""
+    ok = base >= 0
+    off = (torch.arange(batch, device=src.device)[:, None] * batch_stride + offset
+           + torch.where(ok, base, 0))
+    zero = torch.zeros((), dtype=src.dtype, device=src.device)
+    return torch.stack([torch.where(ok, src[off + c * chan_stride], zero)
+                        for c in range(chans)], 1)
+
+
+def _direct_math(src: Tensor, grid: Tensor, batch: int, batch_stride, offset, chan_stride,
+                 chans: int, face_size, pad, face_stride, bilinear: bool):
+    """A grid used once: the table and the sampling in one pass, never stored. Returns the
+    image ``(batch, chans, P)`` (0 at the pixels that are not interior) and ``base`` (its
+    codes tell the edge pixels)."""
+    base, fx, fy = _lut_math(grid, face_size, pad, face_stride, bilinear)
+    if bilinear:
+        out = _blend_math(src, base, fx, fy, batch, batch_stride, offset, chan_stride, chans,
+                          face_size)
+    else:
+        out = _gather_math(src, base, batch, batch_stride, offset, chan_stride, chans)
+    return out, base
+
+
 # ------------------------------------------------------------------------------------------
 # Compilation, with the eager fallback
 # ------------------------------------------------------------------------------------------
@@ -149,7 +177,6 @@ def _blend_math(src: Tensor, base: Tensor, fx: Tensor, fy: Tensor, batch: int,
 _COMPILED: dict[tuple, Callable | None] = {}
 _FAILURES: dict[tuple, str] = {}
 _LOCK = threading.Lock()
-_TARGETS = {"lut": _lut_math, "blend": _blend_math}
 
 
 def compile_failures() -> dict[tuple, str]:
@@ -225,63 +252,84 @@ def _ring_position(k: Tensor, i: Tensor, j: Tensor, face_size: int, pad: int) ->
     return k * (n * n - f * f) + pos
 
 
-def _edge_plan(lut: CubeLUT, border: str, dtype: torch.dtype, grid: Tensor
-               ) -> tuple[Tensor, Tensor]:
-    """What the edge pixels at ``grid (E, 2)`` read: per pixel the offsets of the cube texels
-    (within one sample and channel: ``k * face_stride + row * F + col``) and their weights,
-    ``(E, T)`` each (zero weights for unused slots): the taps of the virtual atlas, an interior
-    texel read from the cube, a border texel through the ring plan, as ``cubemap_to_atlas``
-    computes it. Cached in the table (``CubeLUT.plans``) for a frozen grid."""
-    f, p = lut.face_size, lut.pad
+@functools.lru_cache(maxsize=16)
+def _ring_offsets(face_size: int, pad: int, border: str, dtype: torch.dtype, face_stride: int
+                  ) -> tuple[Tensor, Tensor | None]:
+    """:func:`_ring_plan` as offsets within one sample and channel of a cube of
+    ``face_stride``; no ring (one dummy texel) without a border. Weights are None for one-tap
+    plans and for integer cubes (nearest)."""
+    if pad == 0:
+        return torch.zeros(1, 1, dtype=torch.long), None
+    ring_dtype = dtype if dtype.is_floating_point else torch.float64
+    src, weight = _ring_plan(face_size, pad, border, ring_dtype)
+    f2 = face_size * face_size
+    offsets = torch.div(src, f2, rounding_mode="floor") * face_stride + src % f2
+    return offsets, (weight if dtype.is_floating_point else None)
+
+
+def _ring_math(src: Tensor, ring_src: Tensor, ring_weight: Tensor | None, batch: int,
+               batch_stride, offset, chan_stride, chans: int) -> Tensor:
+    """The ring texels ``(batch, chans, N)`` of ``chans`` channels from the flat cube: ring
+    texel ``t`` reads the cube at ``ring_src[t] (K,)`` (offsets within one sample and channel)
+    with ``ring_weight[t]``, or its one texel where ``ring_weight`` is None (exact, any
+    dtype)."""
+    start = torch.arange(batch, device=src.device)[:, None, None] * batch_stride + offset
+    outs = []
+    for c in range(chans):
+        taps = src[start + c * chan_stride + ring_src]  # [B, N, K]
+        outs.append(taps[..., 0] if ring_weight is None else (taps * ring_weight).sum(-1))
+    return torch.stack(outs, 1)
+
+
+def _edge_math(src: Tensor, ring: Tensor, grid: Tensor, sample: Tensor, batch_stride, offset,
+               chan_stride, chans: int, face_size, pad, face_stride, bilinear: bool) -> Tensor:
+    """Values ``(E, chans)`` of the pixels at ``grid (E, 2)`` of samples ``sample (E,)``, read
+    from the virtual atlas: a tap on an interior texel from the cube, on a border texel from
+    ``ring (B, chans, N)`` (:func:`_ring_math`), outside the atlas 0. Taps and weights are
+    those of :func:`_lut_math` and :func:`_blend_math`."""
+    f, p = face_size, pad
     n = f + 2 * p
     x = unnormalize(grid[:, 0], n)
     y = unnormalize(grid[:, 1], 6 * n)
-    if lut.mode == "bilinear":
-        x0, y0 = torch.floor(x), torch.floor(y)
-        fx, fy = (x - x0).to(dtype), (y - y0).to(dtype)
+    x0 = torch.floor(x) if bilinear else torch.round(x)
+    y0 = torch.floor(y) if bilinear else torch.round(y)
+    if bilinear:
+        fx, fy = x - x0, y - y0
         e, s = 1 - fx, 1 - fy
         taps = ((0, 0, s * e), (1, 0, s * fx), (0, 1, fy * e), (1, 1, fy * fx))
     else:
-        x0, y0 = torch.round(x), torch.round(y)
-        taps = ((0, 0, torch.ones_like(x, dtype=dtype)),)
-    if p > 0:
-        src, weight = _ring_plan(f, p, border, dtype)
-        src = torch.div(src, f * f, rounding_mode="floor") * lut.face_stride + src % (f * f)
-        weight = torch.ones(src.shape, dtype=dtype) if weight is None else weight
-    width = 1 if p == 0 else src.shape[1]
-    offsets, weights = [], []
-    for dx, dy, tap_weight in taps:
-        j, r = x0.long() + dx, y0.long() + dy
+        taps = ((0, 0, None),)
+    j0, r0 = x0.to(torch.int64), y0.to(torch.int64)  # within two texels of the atlas
+    read = []   # per tap: inside the atlas, interior, cube offset, ring offset, weight
+    for dx, dy, weight in taps:
+        j, r = j0 + dx, r0 + dy
         inside = (j >= 0) & (j < n) & (r >= 0) & (r < 6 * n)
-        j, r = torch.where(inside, j, p), torch.where(inside, r, p)
+        j, r = j.clamp(0, n - 1), r.clamp(0, 6 * n - 1)
         k = torch.div(r, n, rounding_mode="floor")
         i = r - k * n
         interior = (i >= p) & (i < p + f) & (j >= p) & (j < p + f)
-        texel = k * lut.face_stride + torch.where(interior, (i - p) * f + (j - p), 0)
-        off = torch.zeros(x.shape[0], width, dtype=torch.long)
-        wgt = torch.zeros(x.shape[0], width, dtype=dtype)
-        off[:, 0], wgt[:, 0] = texel, 1
-        if p > 0:
-            ring = _ring_position(k, i, j, f, p).clamp(0, src.shape[0] - 1)
-            off = torch.where(interior[:, None], off, src[ring])
-            wgt = torch.where(interior[:, None], wgt, weight[ring])
-        offsets.append(off)
-        weights.append(wgt * (tap_weight * inside)[:, None])
-    return torch.cat(offsets, 1), torch.cat(weights, 1)
+        texel = k * face_stride + ((i - p) * f + (j - p)).clamp(0, f * f - 1)
+        ring_at = _ring_position(k, i, j, f, p).clamp(0, ring.shape[-1] - 1)
+        read.append((inside, interior, texel, ring_at, weight))
+    at = sample * batch_stride + offset
+    ring_at0 = sample * ring.stride(0)
+    flat_ring = ring.reshape(-1)
+    zero = torch.zeros((), dtype=src.dtype, device=src.device)
+    outs = []
+    for c in range(chans):
+        acc = None
+        for inside, interior, texel, ring_at, weight in read:
+            value = torch.where(interior, src[at + c * chan_stride + texel],
+                                flat_ring[ring_at0 + c * ring.stride(1) + ring_at])
+            value = torch.where(inside, value, zero)
+            term = value if weight is None else value * weight
+            acc = term if acc is None else acc + term
+        outs.append(acc)
+    return torch.stack(outs, 1)
 
 
-def _edge_values(src: Tensor, strides: tuple[int, int], chans: int, bsel: Tensor,
-                 plan: tuple[Tensor, Tensor]) -> Tensor:
-    """Values ``(E, C)`` of the edge pixels of samples ``bsel (E,)`` through their ``plan``
-    (:func:`_edge_plan`) from the flat cube ``src`` (sample and channel ``strides``). Nearest
-    reads one texel (exact for any dtype); bilinear sums the weighted texels."""
-    offsets, weights = plan
-    start = bsel[:, None, None] * strides[0] + torch.arange(chans)[:, None] * strides[1]
-    values = src[start + offsets[:, None, :]]  # [E, C, T]
-    if not src.is_floating_point():  # nearest: the one texel of weight 1 (0 outside)
-        return torch.where(weights[:, None, 0] > 0, values[..., 0], torch.zeros_like(
-            values[..., 0]))
-    return (values * weights[:, None, :]).sum(-1)
+_TARGETS = {"lut": _lut_math, "blend": _blend_math, "gather": _gather_math,
+            "direct": _direct_math, "ring": _ring_math, "edge": _edge_math}
 
 
 # ------------------------------------------------------------------------------------------
@@ -299,23 +347,16 @@ def _check_grid(grid: Tensor, batch: int | None = None) -> None:
                          f"H, W, 2), got {tuple(grid.shape)}")
 
 
+def _check_offsets(face_stride: int) -> None:
+    if 6 * face_stride >= 2 ** 31:
+        raise ValueError(f"cube too large for int32 offsets: face stride {face_stride}")
+
+
 def _check_mode(mode: str, border: str) -> None:
     if mode not in MODES:
         raise ValueError(f"mode: expected one of {MODES}, got {mode!r}")
     if border not in BORDERS:
         raise ValueError(f"border: expected one of {BORDERS}, got {border!r}")
-
-
-def _lut(grid: Tensor, face_size: int, pad: int, mode: str, face_stride: int) -> CubeLUT:
-    if 6 * face_stride >= 2 ** 31:
-        raise ValueError(f"cube too large for int32 offsets: face stride {face_stride}")
-    flat = grid.reshape(grid.shape[0], -1, 2)
-    base, fx, fy = _call("lut", grid.dtype, flat, face_size, pad, face_stride,
-                         mode == "bilinear")
-    frac = torch.stack((fx, fy)) if mode == "bilinear" else flat.new_empty(0)
-    edge = torch.nonzero(base == _EDGE)
-    return CubeLUT(mode, face_size, pad, face_stride, base, frac, edge, flat,
-                   tuple(grid.shape[1:3]))
 
 
 def build_lut(grid: Tensor, face_size: int, pad: int, mode: str = "bilinear", *,
@@ -338,7 +379,14 @@ def build_lut(grid: Tensor, face_size: int, pad: int, mode: str = "bilinear", *,
     _check_mode(mode, "bilinear")
     if isinstance(channels, bool) or not isinstance(channels, int) or channels < 1:
         raise ValueError(f"channels: expected a positive int, got {channels!r}")
-    return _lut(grid, face_size, pad, mode, channels * face_size * face_size)
+    face_stride = channels * face_size * face_size
+    _check_offsets(face_stride)
+    flat = grid.reshape(grid.shape[0], -1, 2)
+    base, fx, fy = _call("lut", grid.dtype, flat, face_size, pad, face_stride,
+                         mode == "bilinear")
+    frac = torch.stack((fx, fy)) if mode == "bilinear" else flat.new_empty(0)
+    return CubeLUT(mode, face_size, pad, face_stride, base, frac,
+                   torch.nonzero(base == _EDGE), flat, tuple(grid.shape[1:3]))
 
 
 def _sample(faces: Tensor, grid: Tensor, mode: str, pad: int, border: str,
@@ -346,39 +394,47 @@ def _sample(faces: Tensor, grid: Tensor, mode: str, pad: int, border: str,
     """Sample ``faces (B, 6, C, F, F)`` (any strides with unit texel stride in a face row)."""
     batch, _, chans, f, _ = faces.shape
     sb, sk, sc, sf, _ = faces.stride()
-    if lut is None:
-        lut = _lut(grid, f, pad, mode, sk)
-    elif (lut.mode, lut.face_size, lut.pad, lut.face_stride) != (mode, f, pad, sk) \
-            or lut.base.shape[0] not in (1, batch):
+    if lut is not None and ((lut.mode, lut.face_size, lut.pad, lut.face_stride) != (
+            mode, f, pad, sk) or lut.base.shape[0] not in (1, batch)):
         raise ValueError(f"lut: built for (mode, F, pad, face stride, batch) = "
                          f"{(lut.mode, lut.face_size, lut.pad, lut.face_stride, lut.base.shape[0])}"
                          f", the call needs {(mode, f, pad, sk, batch)}")
     span = sum((size - 1) * stride for size, stride in zip(faces.shape, faces.stride())) + 1
     src = faces.as_strided((span,), (1,))
-    if mode == "nearest":
-        ok = lut.base >= 0
-        off = (torch.arange(batch)[:, None, None] * sb + torch.arange(chans)[:, None] * sc
-               + torch.where(ok, lut.base, 0)[:, None])  # [B, C, P]
-        out = torch.where(ok[:, None], src[off], torch.zeros((), dtype=faces.dtype))
-    else:
+    bilinear = mode == "bilinear"
+    chunks = range(0, chans, _CHUNK)  # channels per kernel call
+    if lut is None:   # a grid used once: its table is computed in the sampling pass
+        _check_offsets(sk)
+        flat = grid.reshape(grid.shape[0], -1, 2)
+        parts = [_call("direct", faces.dtype, src, flat, batch, sb, c * sc, sc,
+                       min(_CHUNK, chans - c), f, pad, sk, bilinear) for c in chunks]
+        base = parts[0][1]
+        parts = [image for image, _ in parts]
+        lut = CubeLUT(mode, f, pad, sk, base, flat.new_empty(0), torch.nonzero(base == _EDGE),
+                      flat, tuple(grid.shape[1:3]))
+    elif bilinear:
         fx, fy = lut.frac.to(faces.dtype)
         parts = [_call("blend", faces.dtype, src, lut.base, fx, fy, batch, sb, c * sc, sc,
-                       min(_CHUNK, chans - c), f) for c in range(0, chans, _CHUNK)]
-        out = parts[0] if len(parts) == 1 else torch.cat(parts, 1)
-    if lut.edge.numel():
-        bsel, psel = lut.edge.unbind(1)
-        dtype = faces.dtype if faces.is_floating_point() else torch.float64
-        key = (border, dtype)
-        plan = lut.plans.get(key)
-        if plan is None:
-            points = lut.grid[bsel, psel].to(torch.float64 if faces.dtype == torch.float64
-                                             else lut.grid.dtype)
-            plan = lut.plans[key] = _edge_plan(lut, border, dtype, points)
+                       min(_CHUNK, chans - c), f) for c in chunks]
+    else:
+        parts = [_call("gather", faces.dtype, src, lut.base, batch, sb, c * sc, sc,
+                       min(_CHUNK, chans - c)) for c in chunks]
+    out = parts[0] if len(parts) == 1 else torch.cat(parts, 1)
+    if lut.edge.numel():   # the pixels next to a seam read the border: the virtual atlas
+        sample, pixel = lut.edge.unbind(1)
         if lut.base.shape[0] == 1 and batch > 1:  # one grid for the whole batch
-            plan = tuple(t.repeat(batch, 1) for t in plan)
-            psel = psel.repeat(batch)
-            bsel = torch.arange(batch).repeat_interleave(lut.edge.shape[0])
-        out[bsel, :, psel] = _edge_values(src, (sb, sc), chans, bsel, plan).to(out.dtype)
+            pixel = pixel.repeat(batch)
+            sample = torch.arange(batch).repeat_interleave(lut.edge.shape[0])
+        points = lut.grid[lut.edge[:, 0], lut.edge[:, 1]].repeat(len(sample) // len(lut.edge), 1)
+        if faces.is_floating_point():
+            points = points.to(faces.dtype)
+        ring_src, ring_weight = _ring_offsets(f, pad, border, faces.dtype, sk)
+        for c in chunks:
+            k = min(_CHUNK, chans - c)
+            ring = _call("ring", faces.dtype, src, ring_src, ring_weight, batch, sb, c * sc, sc,
+                         k)
+            out[sample, c:c + k, pixel] = _call("edge", faces.dtype, src, ring, points, sample,
+                                                sb, c * sc, sc, k, f, pad, sk, bilinear)
     return out.view(batch, chans, *lut.size)
 
 

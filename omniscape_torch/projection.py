@@ -74,14 +74,12 @@ class OmniProjection(nn.Module):
             ``torch.compile`` kernel of ``omniscape_torch.fastgrid`` (2x faster per call; the
             first call compiles for a few seconds; falls back to eager torch, with a warning,
             where compilation is unavailable). The output is the same either way.
-        fast: sample with :mod:`omniscape_torch.fastsample` (lookup table on the cube, no atlas;
-            CPU) whenever no gradient is needed and it measured faster: nearest sampling
-            (labels, nearest depth) always, bilinear through a cached grid (the table is built
-            once); a grid rebuilt per call (rotations) samples bilinear with ``grid_sample``,
-            since building its table costs more than it saves
-            (``benchmarks/bench_projection.py``). False forces the reference ``grid_sample``
-            path. Same output to float32 rounding either way, and gradients are unchanged
-            (they always come from the reference path).
+        fast: sample nearest and bilinear with :mod:`omniscape_torch.fastsample` (lookup
+            table on the cube, no atlas; CPU) whenever no gradient is needed: a cached grid's
+            table is built once and kept, a grid rebuilt per call (rotations) is turned into
+            taps in the sampling pass itself (``benchmarks/bench_projection.py``). False forces
+            the reference ``grid_sample`` path. Same output to float32 rounding either way, and
+            gradients are unchanged (they always come from the reference path).
 
     Shapes:
         cubemap ``(B, 6, C, F, F)``; rotation ``(B, 3, 3)`` or ``(3, 3)`` mapping camera rays into
@@ -234,8 +232,6 @@ class OmniProjection(nn.Module):
             return None
         cache = self._grid_cache
         cached = cache is not None and any(grid is g for g in cache[1])
-        if mode == "bilinear" and not cached:
-            return None   # a table per call costs more than grid_sample (class docstring)
         border = "copied" if self.border == "copied" else pad_mode
         cube = cube.contiguous()  # the layout the lookup tables are built for
         lut = None
@@ -375,9 +371,8 @@ class OmniProjection(nn.Module):
             ids = self._fast_sample(labels, grid_c, "nearest", "nearest")
             if ids is None:
                 ids = nearest_gather(self._atlas(labels, "nearest"), grid_c)
-            ids = ids.long()
-            out["labels"] = torch.where(valid[:, 0], ids[:, 0],
-                                        torch.full_like(ids[:, 0], self.ignore_index))
+            # in place on the sampled ids (a new tensor): no second label-sized buffer
+            out["labels"] = ids[:, 0].long().masked_fill_(~valid[:, 0], self.ignore_index)
             if soft_labels is not None:
                 if isinstance(soft_labels, bool) or not isinstance(soft_labels, int) \
                         or soft_labels < 1:

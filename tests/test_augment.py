@@ -232,3 +232,19 @@ def test_cuda_batch_matches_cpu():
     torch.testing.assert_close(gpu["rgb"].cpu(), cpu["rgb"], atol=1e-4, rtol=0)
     # rims may flip by a rounding of the rays; nearly all pixels agree
     assert (gpu["valid"].cpu() != cpu["valid"]).float().mean() < 0.01
+
+
+def test_chunked_render_equals_whole_batch(monkeypatch):
+    """On the CPU a batch is rendered a few samples at a time (``_CHUNK_PIXELS``); chunks that
+    split a model's samples, in and out of batch order (mixed models), change nothing."""
+    import omniscape_torch.augment as augment
+    rgb, labels, depth = _batch(b=7, seed=3)
+    aug = _mixed(seed=11)
+    params = aug.forward_parameters(7)
+    models = list(params["model"])
+    assert max(models.count(m) for m in models) > 2 and models != sorted(models)
+    whole = aug(rgb, labels, depth, params=params)
+    monkeypatch.setattr(augment, "_CHUNK_PIXELS", 2 * SIZE[0] * SIZE[1])  # 2 samples a chunk
+    chunked = aug(rgb, labels, depth, params=params)
+    assert _equal(whole, chunked)
+    assert bool(whole["valid"].any()) and bool((whole["labels"] != 255).any())

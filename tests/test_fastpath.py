@@ -101,9 +101,15 @@ def test_nearest_is_exact_for_integer_labels():
     grid = make_grid(1, f64)
     atlas = cm.cubemap_to_atlas(labels, 1, "nearest")
     expect = reference(atlas.double(), grid, "nearest")  # exact: ids < 2^53
-    got = fastsample.sample_cube(labels, grid, "nearest", pad=1, border="nearest")
-    assert got.dtype == torch.int64
-    assert torch.equal(got.double(), expect)
+    lut = fastsample.build_lut(grid, 8, 1, "nearest", channels=1)
+    for table in (None, lut):   # the table computed in the pass, or a frozen camera's
+        got = fastsample.sample_cube(labels, grid, "nearest", pad=1, border="nearest",
+                                     lut=table)
+        assert got.dtype == torch.int64
+        assert torch.equal(got.double(), expect)
+    small = labels.remainder(200).to(torch.uint8)   # the dtype of a label cube on disk
+    got = fastsample.sample_cube(small, grid, "nearest", pad=1, border="nearest")
+    assert got.dtype == torch.uint8 and torch.equal(got.double(), expect.remainder(200))
 
 
 def test_half_precision_is_sampled_in_float32():
@@ -127,10 +133,14 @@ def test_eager_fallback_when_compilation_is_unavailable(monkeypatch):
     monkeypatch.setattr(torch, "compile", broken)
     with pytest.warns(UserWarning, match="torch.compile failed"):
         eager = fastsample.sample_cube(cube, grid, pad=1)
-    assert set(fastsample.compile_failures()) == {("lut", f32), ("blend", f32)}
-    torch.testing.assert_close(eager, compiled, atol=ATOL[f32], rtol=0)
-    torch.testing.assert_close(eager, reference(cm.cubemap_to_atlas(cube, 1), grid, "bilinear"),
-                               atol=ATOL[f32], rtol=0)
+        lut = fastsample.build_lut(grid, 8, 1, channels=3)
+        eager_lut = fastsample.sample_cube(cube, grid, pad=1, lut=lut)
+    assert set(fastsample.compile_failures()) == {(name, f32) for name in (
+        "direct", "lut", "blend", "ring", "edge")}
+    for got in (eager, eager_lut):
+        torch.testing.assert_close(got, compiled, atol=ATOL[f32], rtol=0)
+        torch.testing.assert_close(got, reference(cm.cubemap_to_atlas(cube, 1), grid, "bilinear"),
+                                   atol=ATOL[f32], rtol=0)
 
 
 @pytest.mark.parametrize("kwargs,error,match", [

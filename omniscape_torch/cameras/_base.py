@@ -36,6 +36,9 @@ class CameraModel:
             tuples, so that a fit can freeze a group.
         variadic: the polynomial at the end of ``param_names`` has any length >= 1.
         check_values: raises ``ValueError`` for parameter values outside the model's range.
+        unproject_xyz: for a closed-form model, ``unproject`` as components:
+            ``(u (...), v (...), params (..., P)) -> (x, y, z, valid)``, without input checks
+            (for fused kernels: ``fastgrid.camera_grid``); None for the others.
     """
 
     name: str
@@ -46,6 +49,7 @@ class CameraModel:
     groups: Mapping[str, tuple[int, ...]] = field(default_factory=dict)
     variadic: bool = False
     check_values: Callable[[Tensor], None] | None = None
+    unproject_xyz: Callable[..., tuple[Tensor, Tensor, Tensor, Tensor]] | None = None
 
     @property
     def num_params(self) -> int:

@@ -60,9 +60,19 @@ def _project_radial(points: Tensor, params: Tensor, r_of_theta: Callable[[Tensor
 def _unproject_radial(pixels: Tensor, params: Tensor,
                       theta_of_r: Callable[[Tensor], tuple[Tensor, Tensor]]
                       ) -> tuple[Tensor, Tensor]:
+    x, y, z, valid = _unproject_radial_xyz(pixels[..., 0], pixels[..., 1], params, theta_of_r)
+    return torch.stack((x, y, z), dim=-1), valid
+
+
+def _unproject_radial_xyz(u: Tensor, v: Tensor, params: Tensor,
+                          theta_of_r: Callable[[Tensor], tuple[Tensor, Tensor]]
+                          ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The unit ray's components ``x, y, z`` of pixel ``(u, v)``, and its validity. Components
+    rather than a stacked ``(..., 3)``: compiled into a larger kernel, a stack is a buffer
+    written to memory, the components are not (``fastgrid.camera_grid``)."""
     fx, fy, cx, cy = params[..., 0], params[..., 1], params[..., 2], params[..., 3]
-    mx = (pixels[..., 0] - cx) / fx
-    my = (pixels[..., 1] - cy) / fy
+    mx = (u - cx) / fx
+    my = (v - cy) / fy
     r2 = mx * mx + my * my
     axis = near_zero_radius(r2, 1.0)
     r = safe_sqrt(r2, ~axis)
@@ -70,8 +80,7 @@ def _unproject_radial(pixels: Tensor, params: Tensor,
     theta = torch.where(valid, theta, torch.zeros_like(theta))
     # sin(theta) / r -> theta'(0) = 1 on the axis.
     sin_over_r = torch.where(axis, torch.ones_like(r), safe_div(torch.sin(theta), r, ~axis))
-    rays = torch.stack((mx * sin_over_r, my * sin_over_r, torch.cos(theta)), dim=-1)
-    return rays, valid
+    return mx * sin_over_r, my * sin_over_r, torch.cos(theta), valid
 
 
 def _check_focal(params: Tensor, name: str) -> None:
@@ -89,21 +98,24 @@ def _closed_form_model(name: str, r_of_theta, theta_of_r, r_limit: float, theta_
         check_inputs(name, points, params, 3, 4, "points")
         return _project_radial(points, params, r_of_theta, valid_theta)
 
+    def inverse(r: Tensor) -> tuple[Tensor, Tensor]:
+        valid = r <= r_limit if inclusive else r < r_limit
+        return theta_of_r(torch.where(valid, r, torch.zeros_like(r))), valid
+
     def unproject(pixels: Tensor, params: Tensor) -> tuple[Tensor, Tensor]:
         check_inputs(name, pixels, params, 2, 4, "pixels")
-
-        def inverse(r: Tensor) -> tuple[Tensor, Tensor]:
-            valid = r <= r_limit if inclusive else r < r_limit
-            return theta_of_r(torch.where(valid, r, torch.zeros_like(r))), valid
-
         return _unproject_radial(pixels, params, inverse)
+
+    def unproject_xyz(u: Tensor, v: Tensor, params: Tensor
+                      ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        return _unproject_radial_xyz(u, v, params, inverse)
 
     def max_angle(params: Tensor) -> Tensor:
         return torch.full(params.shape[:-1], theta_limit, dtype=params.dtype, device=params.device)
 
     project.__doc__ = unproject.__doc__ = doc
     return CameraModel(name, _FOCAL_NAMES, project, unproject, max_angle, _GROUPS,
-                       check_values=lambda p: _check_focal(p, name))
+                       check_values=lambda p: _check_focal(p, name), unproject_xyz=unproject_xyz)
 
 
 def _orthographic_theta(r: Tensor) -> Tensor:

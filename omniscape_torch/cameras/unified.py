@@ -209,15 +209,31 @@ def unified_unproject_undistorted(pixels: Tensor, params: Tensor) -> tuple[Tenso
     return _lift(mx, my, params[..., 4], torch.ones_like(mx, dtype=torch.bool))
 
 
+def unified_unproject_undistorted_xyz(u: Tensor, v: Tensor, params: Tensor
+                                      ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """:func:`unified_unproject_undistorted` as components ``x, y, z, valid`` of pixel
+    ``(u, v)``, without input checks (``CameraModel.unproject_xyz``)."""
+    mx = (u - params[..., 2]) / params[..., 0]
+    my = (v - params[..., 3]) / params[..., 1]
+    return _lift_xyz(mx, my, params[..., 4], torch.ones_like(mx, dtype=torch.bool))
+
+
 def _lift(mx: Tensor, my: Tensor, xi: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]:
     """Undistorted normalised coordinates -> unit rays on the sphere (and their validity)."""
+    x, y, z, valid = _lift_xyz(mx, my, xi, valid)
+    return torch.stack((x, y, z), dim=-1), valid
+
+
+def _lift_xyz(mx: Tensor, my: Tensor, xi: Tensor, valid: Tensor
+              ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """:func:`_lift` as components; invalid pixels get the optical axis (0, 0, 1)."""
     r2 = mx * mx + my * my
     rad = 1 + (1 - xi * xi) * r2
     valid = valid & (rad > 0)
     eta = (xi + safe_sqrt(rad, valid)) / (1 + r2)
-    rays = torch.stack((eta * mx, eta * my, eta - xi), dim=-1)
-    rays = torch.where(valid.unsqueeze(-1), rays, torch.zeros_like(rays) + _axis(rays))
-    return rays, valid
+    zero = torch.zeros_like(eta)
+    return (torch.where(valid, eta * mx, zero), torch.where(valid, eta * my, zero),
+            torch.where(valid, eta - xi, zero + 1), valid)
 
 
 def _axis(like: Tensor) -> Tensor:
