@@ -19,7 +19,8 @@ any yaw) per sample and call. Timed round-robin in one run:
 * our parts apart (``part`` rows): ``params`` (``forward_parameters``), ``grid``
   (``fastgrid.camera_grid``: rays, attitude, cones and the atlas grid of every pixel, one
   compiled kernel), ``sample`` (the layer's rendering of RGB and labels through that grid, on
-  the fast path: no gradient is needed); and the peer's
+  the fast path: no gradient is needed), both in chunks of samples as ``render`` chunks a
+  batch on the CPU (``projection.CHUNK_PIXELS``); and the peer's
   ``peer_maps`` (numpy maps only) and ``peer_remap`` (atlas padding + the two remaps, maps
   prebuilt).
 
@@ -59,6 +60,8 @@ sys.path.insert(0, str(ROOT))
 
 from common import loadavg, measure, run_record, write_json_atomic  # noqa: E402
 from omniscape_torch.augment import RandomOmniCamera, _GivenGrid  # noqa: E402
+from omniscape_torch.cameras import Camera  # noqa: E402
+from omniscape_torch.projection import CHUNK_PIXELS  # noqa: E402
 from omniscape_torch.fastgrid import camera_grid  # noqa: E402
 
 try:
@@ -182,22 +185,32 @@ def run(args: argparse.Namespace) -> dict:
     aug = RandomOmniCamera((size, size), face, mode="fisheye", seed=SEED)
     part_gen = torch.Generator().manual_seed(SEED + 1)
 
-    # Our parts, on one fixed draw (a fresh layer per call, as render builds one per call).
+    # Our parts, on one fixed draw, chunked as render chunks a batch (a fresh layer per chunk,
+    # as render builds one per chunk).
     params0 = aug.forward_parameters(batch, generator=torch.Generator().manual_seed(SEED + 2))
     (name0, (_, camera0)), = aug.cameras(params0).items()
     geometry0 = dict(rotation=params0["rotation"].float(), fov=params0["fov"].float(),
                      blind_fov=params0["blind_fov"].float())
+    step = max(1, CHUNK_PIXELS // (size * size))
+    chunks = [slice(i, i + step) for i in range(0, batch, step)]
 
-    def new_proj() -> _GivenGrid:
-        return _GivenGrid(camera0, face, interpolation=aug.interpolation,
-                          ignore_index=aug.ignore_index)
+    def new_proj(part: slice) -> _GivenGrid:
+        return _GivenGrid(Camera(name0, camera0.params[part], (size, size)), face,
+                          interpolation=aug.interpolation, ignore_index=aug.ignore_index)
 
-    def grid() -> tuple[torch.Tensor, torch.Tensor]:
-        return camera_grid(name0, camera0.params, (size, size), face, new_proj().pad,
-                           **geometry0)
+    pad = new_proj(chunks[0]).pad
 
-    proj0 = new_proj()
-    proj0.grid = grid()
+    def grid() -> list:
+        return [camera_grid(name0, camera0.params[part], (size, size), face, pad,
+                            **{k: v[part] for k, v in geometry0.items()}) for part in chunks]
+
+    projs = [new_proj(part) for part in chunks]
+    for proj, g in zip(projs, grid()):
+        proj.grid = g
+
+    def sample() -> list:
+        return [proj.render(rgb=cube[part], labels=labels[part])
+                for proj, part in zip(projs, chunks)]
 
     rng_peer = np.random.default_rng(SEED)
     rng_maps = np.random.default_rng(SEED + 1)
@@ -208,7 +221,7 @@ def run(args: argparse.Namespace) -> dict:
         ("ours", "ours", lambda: aug(cube, labels=labels)),
         ("params", "part", lambda: aug.forward_parameters(batch, generator=part_gen)),
         ("grid", "part", grid),
-        ("sample", "part", lambda: proj0.render(rgb=cube, labels=labels)),
+        ("sample", "part", sample),
     ]
     agreement: dict[str, float] = {}
     if cv2 is not None:
@@ -270,8 +283,8 @@ def run(args: argparse.Namespace) -> dict:
                   "mode": "fisheye", "model": "equidistant", "fov_deg": [160.0, 200.0],
                   "roll_deg": [-25.0, 25.0], "pitch_deg": [-10.0, 10.0],
                   "yaw_deg": [-180.0, 180.0], "rgb": "float32, 3 channels",
-                  "labels": "uint8 (ours returns int64)", "pad_ours": proj0.pad,
-                  "border_ours": proj0.border, "pad_peer": 1, "border_peer": "edge replication",
+                  "labels": "uint8 (ours returns int64)", "pad_ours": pad,
+                  "border_ours": projs[0].border, "samples_per_chunk_ours": step, "pad_peer": 1, "border_peer": "edge replication",
                   "peer_float": "float32 numpy maps"},
         "repeats": args.repeats,
         "warmup": args.warmup,

@@ -33,6 +33,7 @@ from .cameras.registry import get_model
 from .cubemap.faces import FACES, face_rotations
 from .fastgrid import camera_grid
 from .presets import yaw_pitch_roll_to_matrix
+from . import projection
 from .projection import OmniProjection
 
 __all__ = ["ApplyToKey", "RandomOmniCamera"]
@@ -45,8 +46,6 @@ _MAX_P = 9
 #: Kannala-Brandt coefficients are halved (at most this many times, then zeroed) until the
 #: polynomial stays monotonic past the drawn half field of view.
 _KB_SHRINK_STEPS = 8
-#: Pixels rendered per chunk of samples on the CPU (``RandomOmniCamera.render``).
-_CHUNK_PIXELS = 2 ** 20
 #: Margin (radians) kept between the drawn half field of view and a model's ``max_angle``.
 _ANGLE_MARGIN = 1e-3
 
@@ -407,10 +406,8 @@ class RandomOmniCamera(nn.Module):
         dtype = ref.dtype if ref.is_floating_point() and ref.dtype == torch.float64 \
             else torch.float32
         device = ref.device
-        # On the CPU, a few samples at a time: the grids and the sampling's intermediates of
-        # a chunk stay in the cache and in memory the allocator reuses, where a whole batch's
-        # are fresh pages every call (a page fault per 4 KiB: twice the time per sample).
-        chunk = batch if device.type != "cpu" else max(1, _CHUNK_PIXELS // math.prod(
+        # on the CPU a few samples at a time (projection.CHUNK_PIXELS)
+        chunk = batch if device.type != "cpu" else max(1, projection.CHUNK_PIXELS // math.prod(
             self.image_size))
         result: dict[str, Tensor] = {}
         for name, (idx, camera) in self.cameras(params, dtype, device).items():

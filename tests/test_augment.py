@@ -235,16 +235,16 @@ def test_cuda_batch_matches_cpu():
 
 
 def test_chunked_render_equals_whole_batch(monkeypatch):
-    """On the CPU a batch is rendered a few samples at a time (``_CHUNK_PIXELS``); chunks that
+    """On the CPU a batch is rendered a few samples at a time (``CHUNK_PIXELS``); chunks that
     split a model's samples, in and out of batch order (mixed models), change nothing."""
-    import omniscape_torch.augment as augment
+    from omniscape_torch import projection
     rgb, labels, depth = _batch(b=7, seed=3)
     aug = _mixed(seed=11)
     params = aug.forward_parameters(7)
     models = list(params["model"])
     assert max(models.count(m) for m in models) > 2 and models != sorted(models)
     whole = aug(rgb, labels, depth, params=params)
-    monkeypatch.setattr(augment, "_CHUNK_PIXELS", 2 * SIZE[0] * SIZE[1])  # 2 samples a chunk
+    monkeypatch.setattr(projection, "CHUNK_PIXELS", 2 * SIZE[0] * SIZE[1])  # 2 samples a chunk
     chunked = aug(rgb, labels, depth, params=params)
     assert _equal(whole, chunked)
     assert bool(whole["valid"].any()) and bool((whole["labels"] != 255).any())

@@ -211,6 +211,22 @@ def test_layer_fast_equals_reference(batch, rotated, interpolation):
     assert torch.equal(fast["labels"], ref["labels"])
 
 
+@pytest.mark.parametrize("supersample", [1, 2])
+def test_layer_rotation_batch_in_chunks_equals_reference(monkeypatch, supersample):
+    """A rotation batch is rendered a few samples at a time on the fast path
+    (``projection.CHUNK_PIXELS``): here 2 samples a chunk, 5 samples, against ``grid_sample``
+    on the whole batch."""
+    from omniscape_torch import projection
+    monkeypatch.setattr(projection, "CHUNK_PIXELS", 2 * 24 * 24 * supersample ** 2)
+    inputs = dict(rgb=make_cube(5, 3, 8), depth=1 + 9 * make_cube(5, 1, 8, seed=2),
+                  labels=(make_cube(5, 1, 8, seed=3) * 13).long(), rotation=rotations(5).float())
+    fast, ref = render_both(dict(supersample=supersample), inputs, soft_labels=13)
+    assert torch.equal(fast["valid"], ref["valid"]) and torch.equal(fast["labels"], ref["labels"])
+    for key in ("rgb", "depth", "soft_labels"):
+        assert fast[key].shape == ref[key].shape
+        torch.testing.assert_close(fast[key], ref[key], atol=ATOL[f32] * 10, rtol=0)
+
+
 @pytest.mark.parametrize("kwargs", [dict(border="copied"), dict(border="none"),
                                     dict(supersample=2), dict(interpolation="bicubic")])
 def test_layer_options_fast_equals_reference(kwargs):
