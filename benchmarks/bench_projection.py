@@ -9,7 +9,7 @@ batch 1 and 8, and times in one run, round-robin:
 * ``forward_cached_reference``: the same with ``fast=False`` (atlas build + ``grid_sample``);
 * ``forward_rebuilt_fused``: ``OmniProjection(cube, rotation)`` with a new random rotation per
   sample and call: the fused, compiled grid (``fastgrid.rotated_rays_to_grid``), then the
-  fast sampler (lookup table built per call);
+  fast sampler (taps computed in the sampling pass, in chunks of samples);
 * ``forward_rebuilt_reference``: the same with ``fast=False``;
 * ``forward_rebuilt_eager``: the same with ``fast=False`` and the grid rebuilt eagerly
   (``einsum`` + ``cubemap.rays_to_grid``: the layer's original path);
