@@ -355,9 +355,8 @@ class OmniProjection(nn.Module):
         pixels = math.prod(self.camera.image_size) * self.supersample ** 2
         step = max(1, CHUNK_PIXELS // pixels)
         if (self._fast_now and ref.device.type == "cpu" and rotation is not None
-                and rotation.shape[0] > step and cams == () and type(self) is OmniProjection):
-            # a grid per sample: a few samples at a time (see CHUNK_PIXELS); not in subclasses
-            # that bring their own grids (augment._GivenGrid chunks them itself)
+                and rotation.shape[0] > step and cams == ()):
+            # a grid per sample: a few samples at a time (see CHUNK_PIXELS)
             parts = [self.render(rgb=_rows(rgb, i, step), depth=_rows(depth, i, step),
                                  labels=_rows(labels, i, step), rotation=rotation[i:i + step],
                                  depth_output=depth_output, soft_labels=soft_labels)

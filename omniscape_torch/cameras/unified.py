@@ -63,8 +63,11 @@ def _pixels(mx: Tensor, my: Tensor, params: Tensor) -> Tensor:
 
 
 def _normalised(pixels: Tensor, params: Tensor) -> tuple[Tensor, Tensor]:
-    return ((pixels[..., 0] - params[..., 2]) / params[..., 0],
-            (pixels[..., 1] - params[..., 3]) / params[..., 1])
+    return _normalised_uv(pixels[..., 0], pixels[..., 1], params)
+
+
+def _normalised_uv(u: Tensor, v: Tensor, params: Tensor) -> tuple[Tensor, Tensor]:
+    return (u - params[..., 2]) / params[..., 0], (v - params[..., 3]) / params[..., 1]
 
 
 # --------------------------------------------------------------------------------------------
@@ -213,8 +216,7 @@ def unified_unproject_undistorted_xyz(u: Tensor, v: Tensor, params: Tensor
                                       ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """:func:`unified_unproject_undistorted` as components ``x, y, z, valid`` of pixel
     ``(u, v)``, without input checks (``CameraModel.unproject_xyz``)."""
-    mx = (u - params[..., 2]) / params[..., 0]
-    my = (v - params[..., 3]) / params[..., 1]
+    mx, my = _normalised_uv(u, v, params)
     return _lift_xyz(mx, my, params[..., 4], torch.ones_like(mx, dtype=torch.bool))
 
 
