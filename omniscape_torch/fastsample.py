@@ -12,10 +12,9 @@ For a frozen camera the offsets and fractions are a lookup table, built once
 computed in the sampling pass itself and never stored.
 
 A pixel whose taps are not all interior texels of one face ("edge" pixels: within a texel of
-a seam, about 1% of them) reads the atlas border, which the cube does not hold: those few
-pixels are sampled afterwards from a virtual atlas, the cube's interior plus its ring of border
-texels, computed from the border plan exactly as
-:func:`~omniscape_torch.cubemap.cubemap_to_atlas` computes them. Pixels whose taps all lie
+a seam, about 1% of them) reads the atlas border, which the cube does not hold: its taps read a
+virtual atlas, the cube's interior plus its ring of border texels, each computed from the border
+plan exactly as :func:`~omniscape_torch.cubemap.cubemap_to_atlas` computes them. Pixels whose taps all lie
 outside the atlas (the invalid ones, grid ``(-2, -2)``) read 0, as with zero padding.
 
 The pixel coordinates are those of ``grid_sample`` (``align_corners=False``) bit for bit:
@@ -25,9 +24,11 @@ the weights are then identical and the blend differs from ``grid_sample`` by flo
 (one or two ulps: ``grid_sample`` blends with fused multiply-adds too). Nearest sampling
 gathers one texel, exact for any dtype (integer labels).
 
-Every step runs in a ``torch.compile`` (inductor) kernel, compiled on first use per (step,
-dtype) for any size; where compilation is unavailable or fails the same maths runs eagerly (a
-warning, once; see :func:`compile_failures`).
+The per-pixel loops are C++ (``csrc/fastsample.cpp``, built on first use by
+:mod:`omniscape_torch.native`): one pass per call computes every pixel's taps (or reads them
+from the table), blends the interior pixels and reads the edge pixels' taps through the ring,
+straight into the output. The torch maths below is their specification and, where no C++
+compiler is found, the fallback (eager, a warning once; see :func:`compile_failures`).
 
 CPU only; other devices keep ``grid_sample``. Timings: ``benchmarks/bench_projection.py``.
 """
@@ -35,20 +36,17 @@ CPU only; other devices keep ``grid_sample``. Timings: ``benchmarks/bench_projec
 from __future__ import annotations
 
 import functools
-import threading
-import warnings
 from dataclasses import dataclass
-from typing import Callable
 
 import torch
 from torch import Tensor
 
+from . import memory, native
 from .cubemap.atlas import atlas_to_faces
 from .cubemap.padding import border_plan, check_cubemap
-from .fastgrid import COMPILE_OPTIONS, _fresh_copy, in_dataloader_worker
 from .sampling import unnormalize
 
-__all__ = ["CubeLUT", "build_lut", "sample_cube", "sample_atlas", "compile_failures",
+__all__ = ["CubeLUT", "build_lut", "sample_cube", "sample_atlas", "compile_failures", "holds",
            "MODES", "BORDERS"]
 
 MODES = ("nearest", "bilinear")
@@ -58,12 +56,6 @@ MODES = ("nearest", "bilinear")
 BORDERS = ("bilinear", "nearest", "copied")
 #: Codes of the lookup table's ``base`` for pixels that do not read 4 interior texels.
 _OUTSIDE, _EDGE = -1, -2
-#: Channels per kernel call (the kernel is unrolled over them): more channels take several calls.
-_CHUNK = 4
-#: Inductor options: the indices are in bounds by construction (no per-tap bounds check), and
-#: the loop is vectorised although it is gather-heavy (measured faster).
-_OPTIONS = {**COMPILE_OPTIONS, "assert_indirect_indexing": False,
-            "cpp.enable_tiling_heuristics": False}
 
 
 @dataclass(frozen=True)
@@ -80,7 +72,6 @@ class CubeLUT:
             atlas: 0) or -2 (an edge pixel).
         frac: ``(2, B', P)`` the bilinear fractions ``(x - floor x, y - floor y)`` (empty for
             nearest).
-        edge: ``(E, 2)`` int64, the ``(b', p)`` of the edge pixels.
         grid: ``(B', P, 2)`` the grid (the edge pixels are resampled from it).
         size: ``(H, W)``.
     """
@@ -91,13 +82,12 @@ class CubeLUT:
     face_stride: int
     base: Tensor
     frac: Tensor
-    edge: Tensor
     grid: Tensor
     size: tuple[int, int]
 
 
 # ------------------------------------------------------------------------------------------
-# The maths (compiled, or run eagerly as the fallback)
+# The maths: the specification of the C++ kernels, and their fallback
 # ------------------------------------------------------------------------------------------
 
 def _lut_math(grid: Tensor, face_size, pad, face_stride, bilinear: bool):
@@ -123,14 +113,15 @@ def _lut_math(grid: Tensor, face_size, pad, face_stride, bilinear: bool):
 
 
 def _blend_math(src: Tensor, base: Tensor, fx: Tensor, fy: Tensor, batch: int,
-                batch_stride, offset, chan_stride, chans: int, face_size) -> Tensor:
-    """Bilinear blend of ``chans`` channels: ``(batch, chans, P)``; 0 where ``base < 0``.
+                batch_stride, chan_stride, chans: int, face_size, fill: int = 0) -> Tensor:
+    """Bilinear blend of ``chans`` channels: ``(batch, chans, P)``; ``fill`` where
+    ``base < 0``.
 
-    ``src`` is the flat cube; tap offsets are ``b * batch_stride + offset + c * chan_stride +
-    base + (0, 1, F, F + 1)``. Weights and their order are ``grid_sample``'s (nw, ne, sw, se).
+    ``src`` is the flat cube; tap offsets are ``b * batch_stride + c * chan_stride + base +
+    (0, 1, F, F + 1)``. Weights and their order are ``grid_sample``'s (nw, ne, sw, se).
     """
     ok = base >= 0
-    off = (torch.arange(batch, device=src.device)[:, None] * batch_stride + offset
+    off = (torch.arange(batch, device=src.device)[:, None] * batch_stride
            + torch.where(ok, base, 0))  # [B, P] int64
     e, s = 1 - fx, 1 - fy
     taps = ((0, s * e), (1, s * fx), (face_size, fy * e), (face_size + 1, fy * fx))
@@ -140,83 +131,27 @@ def _blend_math(src: Tensor, base: Tensor, fx: Tensor, fy: Tensor, batch: int,
         for shift, weight in taps:
             term = src[off + (c * chan_stride + shift)] * weight
             acc = term if acc is None else acc + term
-        outs.append(torch.where(ok, acc, 0))
+        outs.append(torch.where(ok, acc, fill))
     return torch.stack(outs, 1)
 
 
-def _gather_math(src: Tensor, base: Tensor, batch: int, batch_stride, offset, chan_stride,
-                 chans: int) -> Tensor:
+def _gather_math(src: Tensor, base: Tensor, batch: int, batch_stride, chan_stride,
+                 chans: int, fill: int = 0) -> Tensor:
     """Nearest: the texel at ``base`` of ``chans`` channels, ``(batch, chans, P)``, any dtype
-    (exact); 0 where ``base < 0``."""
+    (exact); ``fill`` where ``base < 0``."""
     ok = base >= 0
-    off = (torch.arange(batch, device=src.device)[:, None] * batch_stride + offset
+    off = (torch.arange(batch, device=src.device)[:, None] * batch_stride
            + torch.where(ok, base, 0))
-    zero = torch.zeros((), dtype=src.dtype, device=src.device)
-    return torch.stack([torch.where(ok, src[off + c * chan_stride], zero)
+    fill = torch.tensor(fill, device=src.device).to(src.dtype)
+    return torch.stack([torch.where(ok, src[off + c * chan_stride], fill)
                         for c in range(chans)], 1)
 
 
-def _direct_math(src: Tensor, grid: Tensor, batch: int, batch_stride, offset, chan_stride,
-                 chans: int, face_size, pad, face_stride, bilinear: bool):
-    """A grid used once: the table and the sampling in one pass, never stored. Returns the
-    image ``(batch, chans, P)`` (0 at the pixels that are not interior) and ``base`` (its
-    codes tell the edge pixels)."""
-    base, fx, fy = _lut_math(grid, face_size, pad, face_stride, bilinear)
-    if bilinear:
-        out = _blend_math(src, base, fx, fy, batch, batch_stride, offset, chan_stride, chans,
-                          face_size)
-    else:
-        out = _gather_math(src, base, batch, batch_stride, offset, chan_stride, chans)
-    return out, base
-
-
-# ------------------------------------------------------------------------------------------
-# Compilation, with the eager fallback
-# ------------------------------------------------------------------------------------------
-
-_COMPILED: dict[tuple, Callable | None] = {}
-_FAILURES: dict[tuple, str] = {}
-_LOCK = threading.Lock()
-
-
 def compile_failures() -> dict[tuple, str]:
-    """The compilations that failed in this process: ``{(kernel, dtype): "Error: message"}``;
-    empty when every compilation worked (or none was tried)."""
-    return dict(_FAILURES)
-
-
-def _fail(key: tuple, exc: BaseException) -> None:
-    _COMPILED[key] = None
-    _FAILURES[key] = f"{type(exc).__name__}: {exc}"
-    first = str(exc).strip().splitlines()[0][:300] if str(exc).strip() else ""
-    warnings.warn(f"fastsample: torch.compile failed ({key[0]}, {key[1]}): "
-                  f"{type(exc).__name__}: {first}. Using the eager path for these inputs from "
-                  "now on (see fastsample.compile_failures()).", UserWarning, stacklevel=4)
-
-
-def _call(name: str, dtype: torch.dtype, *args):
-    """``_TARGETS[name](*args)``, compiled once per (name, dtype); eager after a failure."""
-    if in_dataloader_worker():   # compiling in a forked worker can deadlock
-        return _TARGETS[name](*args)
-    key = (name, dtype)
-    if key not in _COMPILED:
-        with _LOCK:
-            if key not in _COMPILED:
-                try:
-                    _COMPILED[key] = torch.compile(_fresh_copy(_TARGETS[name]), dynamic=True,
-                                                   options=_OPTIONS)
-                except Exception as exc:  # torch.compile unsupported here
-                    _fail(key, exc)
-    fn = _COMPILED[key]
-    if fn is not None:
-        try:
-            return fn(*args)
-        except torch.OutOfMemoryError:
-            raise
-        except Exception as exc:  # inductor, a missing C++ compiler, ...
-            with _LOCK:
-                _fail(key, exc)
-    return _TARGETS[name](*args)
+    """Why the fast sampler runs its eager torch maths in this process:
+    ``{("native", "c++"): "Error: message"}`` when the C++ kernels could not be built
+    (:mod:`omniscape_torch.native`); empty when they work (or were not needed yet)."""
+    return {} if native.failure() is None else {("native", "c++"): native.failure()}
 
 
 # ------------------------------------------------------------------------------------------
@@ -268,12 +203,12 @@ def _ring_offsets(face_size: int, pad: int, border: str, dtype: torch.dtype, fac
 
 
 def _ring_math(src: Tensor, ring_src: Tensor, ring_weight: Tensor | None, batch: int,
-               batch_stride, offset, chan_stride, chans: int) -> Tensor:
+               batch_stride, chan_stride, chans: int) -> Tensor:
     """The ring texels ``(batch, chans, N)`` of ``chans`` channels from the flat cube: ring
     texel ``t`` reads the cube at ``ring_src[t] (K,)`` (offsets within one sample and channel)
     with ``ring_weight[t]``, or its one texel where ``ring_weight`` is None (exact, any
     dtype)."""
-    start = torch.arange(batch, device=src.device)[:, None, None] * batch_stride + offset
+    start = torch.arange(batch, device=src.device)[:, None, None] * batch_stride
     outs = []
     for c in range(chans):
         taps = src[start + c * chan_stride + ring_src]  # [B, N, K]
@@ -281,7 +216,7 @@ def _ring_math(src: Tensor, ring_src: Tensor, ring_weight: Tensor | None, batch:
     return torch.stack(outs, 1)
 
 
-def _edge_math(src: Tensor, ring: Tensor, grid: Tensor, sample: Tensor, batch_stride, offset,
+def _edge_math(src: Tensor, ring: Tensor, grid: Tensor, sample: Tensor, batch_stride,
                chan_stride, chans: int, face_size, pad, face_stride, bilinear: bool) -> Tensor:
     """Values ``(E, chans)`` of the pixels at ``grid (E, 2)`` of samples ``sample (E,)``, read
     from the virtual atlas: a tap on an interior texel from the cube, on a border texel from
@@ -311,7 +246,7 @@ def _edge_math(src: Tensor, ring: Tensor, grid: Tensor, sample: Tensor, batch_st
         texel = k * face_stride + ((i - p) * f + (j - p)).clamp(0, f * f - 1)
         ring_at = _ring_position(k, i, j, f, p).clamp(0, ring.shape[-1] - 1)
         read.append((inside, interior, texel, ring_at, weight))
-    at = sample * batch_stride + offset
+    at = sample * batch_stride
     ring_at0 = sample * ring.stride(0)
     flat_ring = ring.reshape(-1)
     zero = torch.zeros((), dtype=src.dtype, device=src.device)
@@ -326,10 +261,6 @@ def _edge_math(src: Tensor, ring: Tensor, grid: Tensor, sample: Tensor, batch_st
             acc = term if acc is None else acc + term
         outs.append(acc)
     return torch.stack(outs, 1)
-
-
-_TARGETS = {"lut": _lut_math, "blend": _blend_math, "gather": _gather_math,
-            "direct": _direct_math, "ring": _ring_math, "edge": _edge_math}
 
 
 # ------------------------------------------------------------------------------------------
@@ -381,65 +312,112 @@ def build_lut(grid: Tensor, face_size: int, pad: int, mode: str = "bilinear", *,
         raise ValueError(f"channels: expected a positive int, got {channels!r}")
     face_stride = channels * face_size * face_size
     _check_offsets(face_stride)
-    flat = grid.reshape(grid.shape[0], -1, 2)
-    base, fx, fy = _call("lut", grid.dtype, flat, face_size, pad, face_stride,
-                         mode == "bilinear")
-    frac = torch.stack((fx, fy)) if mode == "bilinear" else flat.new_empty(0)
-    return CubeLUT(mode, face_size, pad, face_stride, base, frac,
-                   torch.nonzero(base == _EDGE), flat, tuple(grid.shape[1:3]))
+    flat = grid.reshape(grid.shape[0], -1, 2).contiguous()
+    bilinear = mode == "bilinear"
+    kernel = native.function(f"os_lut_{_SUFFIX[flat.dtype]}")
+    if kernel is not None:
+        base = torch.empty(flat.shape[:2], dtype=torch.int32)
+        frac = torch.empty((2, *flat.shape[:2]), dtype=flat.dtype)
+        kernel(flat.data_ptr(), flat.shape[0] * flat.shape[1], face_size, pad, face_stride,
+               bilinear, base.data_ptr(), frac[0].data_ptr(), frac[1].data_ptr(),
+               native.threads())
+    else:
+        base, fx, fy = _lut_math(flat, face_size, pad, face_stride, bilinear)
+        frac = torch.stack((fx, fy))
+    if not bilinear:
+        frac = flat.new_empty(0)
+    return CubeLUT(mode, face_size, pad, face_stride, base, frac, flat, tuple(grid.shape[1:3]))
+
+
+_SUFFIX = {torch.float32: "f32", torch.float64: "f64"}
+
+
+def _kernel(kind: str, dtype: torch.dtype, grid_dtype: torch.dtype):
+    """The C++ kernel ``os_sample_{kind}`` for cubes of ``dtype`` (a floating cube is sampled
+    with a grid of its dtype; any other is copied by element size), or None."""
+    if dtype.is_floating_point:
+        suffix = _SUFFIX.get(dtype)
+    else:
+        size = torch.empty((), dtype=dtype).element_size()
+        suffix = f"{size}_{_SUFFIX[grid_dtype]}" if size in (1, 2, 4, 8) else None
+    return None if suffix is None else native.function(f"os_sample_{kind}_{suffix}")
 
 
 def _sample(faces: Tensor, grid: Tensor, mode: str, pad: int, border: str,
-            lut: CubeLUT | None) -> Tensor:
-    """Sample ``faces (B, 6, C, F, F)`` (any strides with unit texel stride in a face row)."""
+            lut: CubeLUT | None, out: Tensor, valid: Tensor | None, fill: int) -> None:
+    """Sample ``faces (B, 6, C, F, F)`` (any strides with unit texel stride in a face row) into
+    ``out (B, C, P = H W)`` (unit pixel stride); the pixels outside the atlas (without ``lut``,
+    also those where ``valid (1 or B', P)`` is False) read ``fill``."""
     batch, _, chans, f, _ = faces.shape
-    sb, sk, sc, sf, _ = faces.stride()
+    sb, sk, sc, _, _ = faces.stride()
     if lut is not None and ((lut.mode, lut.face_size, lut.pad, lut.face_stride) != (
             mode, f, pad, sk) or lut.base.shape[0] not in (1, batch)):
         raise ValueError(f"lut: built for (mode, F, pad, face stride, batch) = "
                          f"{(lut.mode, lut.face_size, lut.pad, lut.face_stride, lut.base.shape[0])}"
                          f", the call needs {(mode, f, pad, sk, batch)}")
-    span = sum((size - 1) * stride for size, stride in zip(faces.shape, faces.stride())) + 1
+    _check_offsets(sk)
+    span = sum((n - 1) * stride for n, stride in zip(faces.shape, faces.stride())) + 1
     src = faces.as_strided((span,), (1,))
     bilinear = mode == "bilinear"
-    chunks = range(0, chans, _CHUNK)  # channels per kernel call
-    if lut is None:   # a grid used once: its table is computed in the sampling pass
-        _check_offsets(sk)
-        flat = grid.reshape(grid.shape[0], -1, 2)
-        parts = [_call("direct", faces.dtype, src, flat, batch, sb, c * sc, sc,
-                       min(_CHUNK, chans - c), f, pad, sk, bilinear) for c in chunks]
-        base = parts[0][1]
-        parts = [image for image, _ in parts]
-        lut = CubeLUT(mode, f, pad, sk, base, flat.new_empty(0), torch.nonzero(base == _EDGE),
-                      flat, tuple(grid.shape[1:3]))
-    elif bilinear:
-        fx, fy = lut.frac.to(faces.dtype)
-        parts = [_call("blend", faces.dtype, src, lut.base, fx, fy, batch, sb, c * sc, sc,
-                       min(_CHUNK, chans - c), f) for c in chunks]
+    floating = faces.is_floating_point()
+    width = (grid.shape[2] if lut is None else lut.size[1])
+    points = (grid.reshape(grid.shape[0], -1, 2) if lut is None else lut.grid).contiguous()
+    if floating:
+        points = points.to(faces.dtype)   # a float cube is sampled with a grid of its dtype
+    kernel = _kernel("grid" if lut is None else "lut", faces.dtype, points.dtype)
+    if kernel is None:
+        return _sample_eager(src, faces, points, bilinear, pad, border, lut, out, valid, fill)
+    ring_src, ring_weight = _ring_offsets(f, pad, border, faces.dtype, sk)
+    ring = (ring_src.data_ptr(), None if ring_weight is None else ring_weight.data_ptr(),
+            ring_src.shape[1])
+    layout = (f, pad, sk, bilinear, fill, batch, chans, out.shape[-1], width, sb, sc,
+              out.stride(0), out.stride(1), out.data_ptr(), native.threads())
+    pixels = out.shape[-1]
+    if lut is None:
+        mask = None if valid is None else valid.contiguous()
+        kernel(src.data_ptr(), points.data_ptr(), 0 if points.shape[0] == 1 else 2 * pixels,
+               None if mask is None else mask.data_ptr(),
+               0 if mask is None or mask.shape[0] == 1 else pixels, *ring, *layout)
     else:
-        parts = [_call("gather", faces.dtype, src, lut.base, batch, sb, c * sc, sc,
-                       min(_CHUNK, chans - c)) for c in chunks]
-    out = parts[0] if len(parts) == 1 else torch.cat(parts, 1)
-    if lut.edge.numel():   # the pixels next to a seam read the border: the virtual atlas
-        sample, pixel = lut.edge.unbind(1)
-        if lut.base.shape[0] == 1 and batch > 1:  # one grid for the whole batch
-            pixel = pixel.repeat(batch)
-            sample = torch.arange(batch).repeat_interleave(lut.edge.shape[0])
-        points = lut.grid[lut.edge[:, 0], lut.edge[:, 1]].repeat(len(sample) // len(lut.edge), 1)
-        if faces.is_floating_point():
-            points = points.to(faces.dtype)
-        ring_src, ring_weight = _ring_offsets(f, pad, border, faces.dtype, sk)
-        for c in chunks:
-            k = min(_CHUNK, chans - c)
-            ring = _call("ring", faces.dtype, src, ring_src, ring_weight, batch, sb, c * sc, sc,
-                         k)
-            out[sample, c:c + k, pixel] = _call("edge", faces.dtype, src, ring, points, sample,
-                                                sb, c * sc, sc, k, f, pad, sk, bilinear)
-    return out.view(batch, chans, *lut.size)
+        frac = lut.frac.to(faces.dtype) if floating and bilinear else lut.frac
+        fx, fy = (frac[0].data_ptr(), frac[1].data_ptr()) if bilinear else (None, None)
+        kernel(src.data_ptr(), lut.base.data_ptr(), fx, fy, points.data_ptr(),
+               0 if lut.base.shape[0] == 1 else pixels, *ring, *layout)
+
+
+def _sample_eager(src: Tensor, faces: Tensor, points: Tensor, bilinear: bool, pad: int,
+                  border: str, lut: CubeLUT | None, out: Tensor, valid: Tensor | None,
+                  fill: int) -> None:
+    """:func:`_sample` in torch: every pixel's taps, then the edge pixels through the ring."""
+    batch, _, chans, f, _ = faces.shape
+    sb, sk, sc, _, _ = faces.stride()
+    if lut is None:
+        if valid is not None:   # invalid pixels outside the atlas: they read 0
+            points = torch.where(valid.unsqueeze(-1), points, -2.0)
+        base, fx, fy = _lut_math(points, f, pad, sk, bilinear)
+    else:
+        base = lut.base
+        fx, fy = lut.frac.to(faces.dtype) if bilinear else (None, None)
+    out.copy_(_blend_math(src, base, fx, fy, batch, sb, sc, chans, f, fill) if bilinear else
+              _gather_math(src, base, batch, sb, sc, chans, fill))
+    edge = torch.nonzero(base == _EDGE)
+    if not edge.numel():
+        return
+    sample, pixel = edge.unbind(1)
+    if base.shape[0] == 1 and batch > 1:  # one grid for the whole batch
+        pixel = pixel.repeat(batch)
+        sample = torch.arange(batch).repeat_interleave(edge.shape[0])
+    at = points[edge[:, 0], edge[:, 1]].repeat(len(sample) // len(edge), 1)
+    ring_src, ring_weight = _ring_offsets(f, pad, border, faces.dtype, sk)
+    ring = _ring_math(src, ring_src, ring_weight, batch, sb, sc, chans)
+    out[sample, :, pixel] = _edge_math(src, ring, at, sample, sb, sc, chans, f, pad, sk,
+                                       bilinear)
 
 
 def sample_cube(cubemap: Tensor, grid: Tensor, mode: str = "bilinear", *, pad: int,
-                border: str = "bilinear", lut: CubeLUT | None = None) -> Tensor:
+                border: str = "bilinear", lut: CubeLUT | None = None,
+                out: Tensor | None = None, valid: Tensor | None = None, fill: int = 0
+                ) -> Tensor:
     """``grid_sample`` of the padded atlas of a cube, without building the atlas; forward only.
 
     Equal, to float32 rounding, to ``F.grid_sample(cubemap_to_atlas(cubemap, pad, border),
@@ -457,9 +435,18 @@ def sample_cube(cubemap: Tensor, grid: Tensor, mode: str = "bilinear", *, pad: i
         border: ``"bilinear"`` or ``"nearest"`` (the border resampled from the neighbouring
             faces with that ``cubemap.border_plan``), or ``"copied"``.
         lut: a :func:`build_lut` of ``grid`` for this layout (a frozen camera), else built here.
+        out: ``(B, C, H, W)`` in the cubemap's dtype to write the image into (any batch and
+            channel strides, each ``H x W`` plane contiguous), e.g. part of a larger batch.
+        valid: ``(1 or B', H, W)`` bool, without ``lut``: the pixels where it is False read
+            ``fill``, as if their grid pointed outside the atlas (so the caller need not move
+            them there first).
+        fill: the value of the pixels whose taps all lie outside the atlas (``grid_sample``'s
+            zero padding: 0), e.g. the ignore index of labels; an int that the cubemap's dtype
+            holds.
 
     Returns:
-        ``(B, C, H, W)`` in the cubemap's dtype; 0 where every tap is outside the atlas.
+        ``(B, C, H, W)`` in the cubemap's dtype (``out`` when given); ``fill`` where every tap
+        is outside the atlas.
     """
     check_cubemap(cubemap)
     _check_grid(grid, cubemap.shape[0])
@@ -476,8 +463,59 @@ def sample_cube(cubemap: Tensor, grid: Tensor, mode: str = "bilinear", *, pad: i
     work = cubemap.float() if half else (cubemap if rows_ok else cubemap.contiguous())
     if work.is_floating_point():
         grid = grid.to(work.dtype)
+    batch, chans = cubemap.shape[0], cubemap.shape[2]
+    size = tuple(grid.shape[1:3])
+    if out is not None:
+        _check_out(out, (batch, chans, *size), cubemap.dtype)
+    _check_fill(fill, cubemap.dtype)
+    if valid is not None:
+        if lut is not None:
+            raise ValueError("valid: only without lut (build the table from a grid whose "
+                             "invalid pixels lie outside the atlas)")
+        if (not isinstance(valid, Tensor) or valid.dtype != torch.bool or valid.dim() != 3
+                or valid.shape[0] not in (1, grid.shape[0]) or valid.shape[1:] != size):
+            raise ValueError(f"valid: expected a bool tensor of shape (1 or {grid.shape[0]}, "
+                             f"{size[0]}, {size[1]}), got "
+                             f"{getattr(valid, 'dtype', type(valid).__name__)} "
+                             f"{tuple(getattr(valid, 'shape', ()))}")
+        valid = valid.reshape(valid.shape[0], -1)
+    into = out if out is not None and out.dtype == work.dtype else None
+    if into is None:
+        into = memory.empty((batch, chans, *size), work.dtype)
     with torch.no_grad():
-        return _sample(work, grid, mode, pad, border, lut).to(cubemap.dtype)
+        _sample(work, grid, mode, pad, border, lut, into.flatten(2), valid, fill)
+    if out is None:
+        return into.to(cubemap.dtype)
+    if into is not out:
+        out.copy_(into)
+    return out
+
+
+def holds(dtype: torch.dtype, value: int) -> bool:
+    """Whether ``dtype`` holds the int ``value`` (a ``fill`` of :func:`sample_cube`)."""
+    if dtype.is_complex:
+        return value == 0   # complex elements are copied as bits: only 0 is a fill
+    if dtype == torch.bool:
+        return value in (0, 1)
+    info = torch.finfo(dtype) if dtype.is_floating_point else torch.iinfo(dtype)
+    return info.min <= value <= info.max
+
+
+def _check_fill(fill: int, dtype: torch.dtype) -> None:
+    if isinstance(fill, bool) or not isinstance(fill, int):
+        raise TypeError(f"fill: expected an int, got {type(fill).__name__}")
+    if not holds(dtype, fill):
+        raise ValueError(f"fill: {fill} does not fit in the cubemap's dtype {dtype}")
+
+
+def _check_out(out: Tensor, shape: tuple[int, ...], dtype: torch.dtype) -> None:
+    if not isinstance(out, Tensor) or out.dtype != dtype or out.device.type != "cpu":
+        raise TypeError(f"out: expected a CPU tensor of {dtype}, got "
+                        f"{getattr(out, 'dtype', type(out).__name__)} on "
+                        f"{getattr(out, 'device', '-')}")
+    if tuple(out.shape) != shape or out.stride(-1) != 1 or out.stride(-2) != shape[-1]:
+        raise ValueError(f"out: expected shape {shape} with contiguous rows and images, got "
+                         f"{tuple(out.shape)} with strides {out.stride()}")
 
 
 def sample_atlas(atlas: Tensor, grid: Tensor, mode: str = "bilinear") -> Tensor:

@@ -26,7 +26,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from . import cubemap as cm
-from . import fastsample
+from . import fastsample, memory
 from .cameras import Camera
 from .fastgrid import rotated_rays_to_grid
 from .sampling import grid_sample, nearest_gather
@@ -187,13 +187,16 @@ class OmniProjection(nn.Module):
         return rotated_rays_to_grid(rays, rotation, self.face_size, self.pad, dtype=dtype,
                                     compiled=rebuilt and self.fused_grid)
 
-    def sampling_grid(self, rotation: Tensor | None = None, dtype: torch.dtype = torch.float32
-                      ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def sampling_grid(self, rotation: Tensor | None = None, dtype: torch.dtype = torch.float32,
+                      *, masked: bool = True) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Grids for the sub-pixel samples and the pixel centres, and the validity.
 
         Args:
             rotation: ``(B, 3, 3)`` or ``(3, 3)`` camera -> cube frame, or None.
             dtype: dtype of the grids.
+            masked: move the invalid pixels' grid entries outside the atlas (-2, -2), where
+                ``grid_sample`` reads 0. False leaves a grid that is not cached as the rays give
+                it, for a sampler that takes the valid mask itself (one pass fewer).
 
         Returns:
             ``grid_sub (B', Hs, Ws, 2)``, ``valid_sub (B', Hs, Ws)``, ``grid_centre
@@ -210,8 +213,9 @@ class OmniProjection(nn.Module):
         valid_s, valid_c = _batched(valid_s), _batched(valid_c)
         # Invalid rays point outside the atlas: sampled with zero padding they read 0, so the
         # image needs no mask afterwards (their gradient is 0 too).
-        grid_s = _outside(self._grid(rays_s, rotation, dtype), valid_s)
-        grid_c = grid_s if self.supersample == 1 else _outside(
+        mask = _outside if masked or cacheable else (lambda grid, valid: grid)
+        grid_s = mask(self._grid(rays_s, rotation, dtype), valid_s)
+        grid_c = grid_s if self.supersample == 1 else mask(
             self._grid(rays_c, rotation, dtype), valid_c)
         out = (grid_s, valid_s, grid_c, valid_c)
         if cacheable:
@@ -232,10 +236,13 @@ class OmniProjection(nn.Module):
         padded = cube.reshape(b * 6, c, f, f)[:, :, idx][:, :, :, idx]
         return cm.faces_to_atlas(padded.reshape(b, 6, c, f + 2 * self.pad, f + 2 * self.pad))
 
-    def _fast_sample(self, cube: Tensor, grid: Tensor, mode: str, pad_mode: str
+    def _fast_sample(self, cube: Tensor, grid: Tensor, mode: str, pad_mode: str,
+                     valid: Tensor | None, *, fill: int = 0, out: Tensor | None = None
                      ) -> Tensor | None:
         """:func:`fastsample.sample_cube` of ``cube`` where the fast path applies (see
-        ``render``), else None. The lookup table of a cached grid is kept with it."""
+        ``render``), else None. The lookup table of a cached grid is kept with it. ``valid``:
+        the mask of a grid whose invalid pixels were not moved outside the atlas, else None;
+        ``fill``: the value of the pixels outside; ``out``: where to write the image."""
         if not (self._fast_now and mode in fastsample.MODES and cube.device.type == "cpu"):
             return None
         cache = self._grid_cache
@@ -252,7 +259,8 @@ class OmniProjection(nn.Module):
                 lut_grid = grid.to(cube.dtype) if cube.is_floating_point() else grid
                 lut = self._lut_cache[key] = fastsample.build_lut(
                     lut_grid, self.face_size, self.pad, mode, channels=cube.shape[2])
-        return fastsample.sample_cube(cube, grid, mode, pad=self.pad, border=border, lut=lut)
+        return fastsample.sample_cube(cube, grid, mode, pad=self.pad, border=border, lut=lut,
+                                      valid=valid, fill=fill, out=out)
 
     def _sample(self, atlas: Tensor, grid: Tensor, mode: str) -> Tensor:
         """``grid_sample`` with zero padding: 0 at the invalid pixels (see ``_outside``);
@@ -262,14 +270,18 @@ class OmniProjection(nn.Module):
             grid = grid.expand(batch, *grid.shape[1:])
         return grid_sample(atlas, grid, mode, padding_mode="zeros")
 
-    def _sample_float(self, cube: Tensor, grid: Tensor, mode: str, pad_mode: str) -> Tensor:
+    def _sample_float(self, cube: Tensor, grid: Tensor, mode: str, pad_mode: str,
+                      valid: Tensor | None, out: Tensor | None = None) -> Tensor:
         """Sample a floating cube; half precision is sampled in float32 (the grid stays float32:
-        a bfloat16 grid is off by pixels on a 512 face) and returned in its own dtype."""
+        a bfloat16 grid is off by pixels on a 512 face) and returned in its own dtype. ``out``:
+        where the fast path may write the image."""
         work = cube if cube.dtype in (torch.float32, torch.float64) else cube.float()
-        out = self._fast_sample(work, grid, mode, pad_mode)
+        if out is not None and out.dtype != work.dtype:
+            out = None
+        out = self._fast_sample(work, grid, mode, pad_mode, valid, out=out)
         if out is None:
             atlas = self._atlas(work, pad_mode)
-            out = self._sample(atlas, grid.to(atlas.dtype), mode)
+            out = self._sample(atlas, _outside(grid, valid).to(atlas.dtype), mode)
         return out.to(cube.dtype)
 
     def _average(self, image: Tensor, valid_sub: Tensor) -> Tensor:
@@ -352,24 +364,60 @@ class OmniProjection(nn.Module):
         self._fast_now = self.fast and not (torch.is_grad_enabled() and any(
             t is not None and t.requires_grad
             for t in (rgb, depth, labels, rotation, self.camera.params)))
+        if soft_labels is not None:
+            if labels is None:
+                raise ValueError("soft_labels: needs labels")
+            if isinstance(soft_labels, bool) or not isinstance(soft_labels, int) \
+                    or soft_labels < 1:
+                raise ValueError(f"soft_labels: expected a number of classes, got "
+                                 f"{soft_labels!r}")
+            if bool((labels < 0).any()) or bool((labels >= soft_labels).any()):
+                raise ValueError(f"labels: ids must lie in [0, {soft_labels}) for "
+                                 f"soft_labels={soft_labels}")
         pixels = math.prod(self.camera.image_size) * self.supersample ** 2
         step = max(1, CHUNK_PIXELS // pixels)
         if (self._fast_now and ref.device.type == "cpu" and rotation is not None
                 and rotation.shape[0] > step and cams == ()):
-            # a grid per sample: a few samples at a time (see CHUNK_PIXELS)
-            parts = [self.render(rgb=_rows(rgb, i, step), depth=_rows(depth, i, step),
-                                 labels=_rows(labels, i, step), rotation=rotation[i:i + step],
-                                 depth_output=depth_output, soft_labels=soft_labels)
-                     for i in range(0, batch, step)]
-            return {key: torch.cat([part[key] for part in parts]) for key in parts[0]}
+            # a grid per sample: a few samples at a time (see CHUNK_PIXELS), written into
+            # outputs allocated once for the batch
+            outputs: dict[str, Tensor] = {}
+            for i in range(0, batch, step):
+                self._render(_rows(rgb, i, step), _rows(depth, i, step), _rows(labels, i, step),
+                             rotation[i:i + step], depth_output, soft_labels,
+                             (outputs, slice(i, i + step), batch))
+            return outputs
+        return self._render(rgb, depth, labels, rotation, depth_output, soft_labels)
 
+    def _render(self, rgb: Tensor | None, depth: Tensor | None, labels: Tensor | None,
+                rotation: Tensor | None, depth_output: str, soft_labels: int | None,
+                into: tuple[dict, slice, int] | None = None) -> dict[str, Tensor]:
+        """``render`` of checked inputs; ``into``: ``(outputs, rows, batch)``, the outputs of a
+        whole batch (allocated here on the first call) whose ``rows`` this call renders."""
+        ref = next(t for t in (rgb, depth, labels) if t is not None)
+        batch = ref.shape[0]
         grid_dtype = torch.float64 if ref.dtype == torch.float64 else torch.float32
-        grid_s, valid_s, grid_c, valid_c = self.sampling_grid(rotation, grid_dtype)
+        # a grid rebuilt for the fast samplers keeps its invalid rays: they take the mask
+        raw = (self._fast_now and ref.device.type == "cpu"
+               and (rotation is not None or not self._fixed()))
+        grid_s, valid_s, grid_c, valid_c = self.sampling_grid(rotation, grid_dtype, masked=not raw)
+        mask_s, mask_c = (valid_s, valid_c) if raw else (None, None)
         valid = valid_c.expand(batch, *valid_c.shape[1:]).unsqueeze(1)
         out: dict[str, Tensor] = {"valid": valid}
 
+        def target(key: str, shape: tuple[int, ...], dtype: torch.dtype) -> Tensor | None:
+            """The rows of ``into``'s output ``key`` (per sample ``shape``), for a sampler to
+            write into."""
+            if into is None:
+                return None
+            outputs, rows, total = into
+            if key not in outputs:
+                outputs[key] = memory.empty((total, *shape), dtype)
+            return outputs[key][rows]
+
         if rgb is not None:
-            image = self._sample_float(rgb, grid_s, self.interpolation, "bilinear")
+            image = self._sample_float(rgb, grid_s, self.interpolation, "bilinear", mask_s,
+                                       target("rgb", (rgb.shape[2], *self.camera.image_size),
+                                              rgb.dtype) if self.supersample == 1 else None)
             if self.supersample > 1:  # a pixel whose centre is invalid may have valid samples
                 image = self._average(image, valid_s.expand(batch, *valid_s.shape[1:]))
                 image = torch.where(valid, image, torch.zeros_like(image))
@@ -377,7 +425,7 @@ class OmniProjection(nn.Module):
 
         if depth is not None:
             rng = cm.depth_to_range(depth.squeeze(2)).unsqueeze(2)
-            sampled = self._sample_depth(rng, grid_c)
+            sampled = self._sample_depth(rng, grid_c, mask_c)
             if depth_output == "z":
                 rays_c = self.camera_rays()[2]
                 z = rays_c[..., 2] if rays_c.dim() == 4 else rays_c[..., 2].unsqueeze(0)
@@ -386,39 +434,46 @@ class OmniProjection(nn.Module):
 
         if labels is not None:
             # gathered, not grid-sampled: ids of any integer dtype and size come back exact
-            ids = self._fast_sample(labels, grid_c, "nearest", "nearest")
+            # gathered with the ignore index outside, where the ids' dtype holds it
+            ignore = self.ignore_index
+            filled = fastsample.holds(labels.dtype, ignore)
+            ids = self._fast_sample(labels, grid_c, "nearest", "nearest", mask_c,
+                                    fill=ignore if filled else 0)
             if ids is None:
-                ids = nearest_gather(self._atlas(labels, "nearest"), grid_c)
-            # in place on the sampled ids (a new tensor): no second label-sized buffer
-            out["labels"] = ids[:, 0].long().masked_fill_(~valid[:, 0], self.ignore_index)
+                filled = False
+                ids = nearest_gather(self._atlas(labels, "nearest"), _outside(grid_c, mask_c))
+            ids = ids[:, 0]
+            rows = target("labels", ids.shape[1:], torch.int64)
+            rows = memory.empty(ids.shape, torch.int64) if rows is None else rows
+            rows.copy_(ids)
+            if not filled:
+                rows.masked_fill_(~valid[:, 0], ignore)
+            out["labels"] = rows
             if soft_labels is not None:
-                if isinstance(soft_labels, bool) or not isinstance(soft_labels, int) \
-                        or soft_labels < 1:
-                    raise ValueError(f"soft_labels: expected a number of classes, got "
-                                     f"{soft_labels!r}")
-                if bool((labels < 0).any()) or bool((labels >= soft_labels).any()):
-                    raise ValueError(f"labels: ids must lie in [0, {soft_labels}) for "
-                                     f"soft_labels={soft_labels}")
                 onehot = F.one_hot(labels[:, :, 0], soft_labels).permute(0, 1, 4, 2, 3)
-                probs = self._sample_float(onehot.to(grid_dtype), grid_s, "bilinear", "bilinear")
+                probs = self._sample_float(onehot.to(grid_dtype), grid_s, "bilinear", "bilinear",
+                                           mask_s)
                 probs = self._average(probs, valid_s.expand(batch, *valid_s.shape[1:]))
                 out["soft_labels"] = torch.where(valid, probs, torch.zeros_like(probs))
-        elif soft_labels is not None:
-            raise ValueError("soft_labels: needs labels")
+        if into is not None:   # the other outputs: copied into their rows
+            for key, value in out.items():
+                rows = target(key, value.shape[1:], value.dtype)
+                if rows.data_ptr() != value.data_ptr():
+                    rows.copy_(value)
         return out
 
-    def _sample_depth(self, rng: Tensor, grid: Tensor) -> Tensor:
+    def _sample_depth(self, rng: Tensor, grid: Tensor, valid: Tensor | None) -> Tensor:
         """Sample range ``(B, 6, 1, F, F)``. For nearest and edge-aware sampling the border is
         padded nearest, so that no depth is blended across a seam either; plain bilinear pads
         bilinear (smooth across seams, blends across depth edges like everywhere else)."""
         work = rng if rng.dtype in (torch.float32, torch.float64) else rng.float()
         mode = self.depth_interpolation
         pad_mode = "bilinear" if mode == "bilinear" else "nearest"
-        out = self._fast_sample(work, grid, mode, pad_mode)
+        out = self._fast_sample(work, grid, mode, pad_mode, valid)
         if out is not None:
             return out.to(rng.dtype)
         atlas = self._atlas(work, pad_mode)
-        grid = grid.to(atlas.dtype)
+        grid = _outside(grid, valid).to(atlas.dtype)
         if mode == "nearest":
             out = self._sample(atlas, grid, "nearest")
         elif mode == "bilinear":
@@ -458,8 +513,11 @@ def _edge_aware(atlas: Tensor, grid: Tensor, threshold: float) -> Tensor:
     return torch.where(edge, nearest, blend).unsqueeze(1)
 
 
-def _outside(grid: Tensor, valid: Tensor) -> Tensor:
-    """``grid (B, h, w, 2)`` with the invalid entries moved outside the atlas (-2, -2)."""
+def _outside(grid: Tensor, valid: Tensor | None) -> Tensor:
+    """``grid (B, h, w, 2)`` with the invalid entries moved outside the atlas (-2, -2); the
+    grid itself where ``valid`` is None (already moved)."""
+    if valid is None:
+        return grid
     return torch.where(valid.unsqueeze(-1), grid, torch.full_like(grid, -2.0))
 
 

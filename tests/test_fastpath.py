@@ -17,7 +17,7 @@ import torch.nn.functional as F_nn
 
 import omniscape_torch as ot
 from omniscape_torch import cubemap as cm
-from omniscape_torch import fastsample
+from omniscape_torch import fastsample, native
 
 f32, f64 = torch.float32, torch.float64
 #: Rounding of a blend of 4 texels in [0, 1]. float32: the weights are grid_sample's bit for bit,
@@ -65,7 +65,7 @@ def copied_atlas(cube: torch.Tensor, pad: int) -> torch.Tensor:
 @pytest.mark.parametrize("size,pad,channels,batch,grid_batch,border", [
     (8, 1, 3, 2, 1, "bilinear"),  # one grid for the batch (a frozen camera)
     (7, 2, 1, 2, 2, "nearest"),  # odd size, pad 2, a grid per sample
-    (5, 1, 5, 1, 1, "copied"),  # 5 channels: two kernel calls
+    (5, 1, 5, 1, 1, "copied"),  # 5 channels, each face padded with its own texels
     (6, 0, 2, 1, 1, "bilinear"),  # no border: taps across the stacked faces
 ])
 def test_sample_cube_equals_grid_sample(mode, dtype, size, pad, channels, batch, grid_batch,
@@ -84,7 +84,7 @@ def test_sample_cube_equals_grid_sample(mode, dtype, size, pad, channels, batch,
         torch.testing.assert_close(got, expect, atol=ATOL[dtype], rtol=0)
     invalid = (grid[..., 0] == -2).expand(batch, -1, -1)
     assert bool(invalid.any()) and bool((got.permute(0, 2, 3, 1)[invalid] == 0).all())
-    assert lut.edge.numel() > 0 or pad == 0  # the seam pixels were exercised
+    assert bool((lut.base == -2).any()) or pad == 0  # the seam pixels were exercised
 
 
 @pytest.mark.parametrize("mode", ["nearest", "bilinear"])
@@ -121,26 +121,40 @@ def test_half_precision_is_sampled_in_float32():
     torch.testing.assert_close(got, expect, atol=torch.finfo(torch.float16).eps, rtol=0)
 
 
-def test_eager_fallback_when_compilation_is_unavailable(monkeypatch):
+@pytest.mark.parametrize("mode", ["nearest", "bilinear"])
+def test_eager_fallback_without_a_compiler(monkeypatch, mode):
     cube, grid = make_cube(2, 3, 8), make_grid(1)
-    compiled = fastsample.sample_cube(cube, grid, pad=1)
+    labels = torch.randint(0, 2 ** 40, (2, 6, 1, 8, 8), generator=torch.Generator().manual_seed(2))
+    valid = torch.rand(1, *grid.shape[1:3], generator=torch.Generator().manual_seed(1)) > 0.3
 
-    def broken(*args, **kwargs):
-        raise RuntimeError("no compiler here")
+    def run():
+        lut = fastsample.build_lut(grid, 8, 1, mode, channels=3)
+        images = [fastsample.sample_cube(cube, grid, mode, pad=1),
+                  fastsample.sample_cube(cube, grid, mode, pad=1, lut=lut),
+                  fastsample.sample_cube(cube, grid, mode, pad=1, valid=valid)]
+        if mode == "nearest":
+            images.append(fastsample.sample_cube(labels, grid.double(), mode, pad=1,
+                                                 border="nearest"))
+        return images
 
-    monkeypatch.setattr(fastsample, "_COMPILED", {})
-    monkeypatch.setattr(fastsample, "_FAILURES", {})
-    monkeypatch.setattr(torch, "compile", broken)
-    with pytest.warns(UserWarning, match="torch.compile failed"):
-        eager = fastsample.sample_cube(cube, grid, pad=1)
-        lut = fastsample.build_lut(grid, 8, 1, channels=3)
-        eager_lut = fastsample.sample_cube(cube, grid, pad=1, lut=lut)
-    assert set(fastsample.compile_failures()) == {(name, f32) for name in (
-        "direct", "lut", "blend", "ring", "edge")}
-    for got in (eager, eager_lut):
-        torch.testing.assert_close(got, compiled, atol=ATOL[f32], rtol=0)
-        torch.testing.assert_close(got, reference(cm.cubemap_to_atlas(cube, 1), grid, "bilinear"),
-                                   atol=ATOL[f32], rtol=0)
+    compiled = run()
+    assert fastsample.compile_failures() == {}
+    monkeypatch.setattr(native, "_STATE", {})
+    monkeypatch.setenv("CXX", "no-such-compiler-here")
+    with pytest.warns(UserWarning, match="C.. kernels could not be built"):
+        eager = run()
+    (key, why), = fastsample.compile_failures().items()
+    assert key == ("native", "c++") and "no-such-compiler-here" in why
+    expect = reference(cm.cubemap_to_atlas(cube, 1), grid, mode)
+    for got, fast in zip(eager, compiled):
+        torch.testing.assert_close(got, fast, atol=ATOL[f32], rtol=0)
+    for got in eager[:2]:
+        torch.testing.assert_close(got, expect, atol=ATOL[f32], rtol=0)
+    torch.testing.assert_close(eager[2], expect * valid, atol=ATOL[f32], rtol=0)
+    if mode == "nearest":   # ids beyond float precision: the float64 grid_sample is exact
+        ids = reference(cm.cubemap_to_atlas(labels, 1, "nearest").double(), grid.double(),
+                        "nearest")
+        assert eager[3].dtype == torch.int64 and torch.equal(eager[3].double(), ids)
 
 
 @pytest.mark.parametrize("kwargs,error,match", [

@@ -1,0 +1,326 @@
+// The fast sampler's per-pixel loops (omniscape_torch/fastsample.py), compiled on first use by
+// omniscape_torch/native.py. Plain C++ with OpenMP, no PyTorch headers: tensors come in as
+// pointers, sizes and strides (in elements).
+//
+// The image is grid_sample(cubemap_to_atlas(cube, pad, border), grid, align_corners=False,
+// padding_mode="zeros") without the atlas: a grid point becomes atlas pixels as grid_sample's
+// CPU kernel computes them, x = fma(g + 1, size / 2, -0.5) (evaluated in double for a float
+// grid and rounded once, which is exact); a tap on an interior texel of a face reads the cube,
+// a tap on the border ("ring") texel t reads sum_m weight[t, m] * cube[src[t, m]] (the border
+// plan of cubemap_to_atlas), a tap outside the atlas reads 0. Taps, codes and weights are those
+// of fastsample._lut_math, _blend_math and _edge_math; built with -ffp-contract=off, so every
+// sum is evaluated in the order written there.
+//
+// Per pixel, its "code" is the offset of the top-left tap (nearest: the texel) within one
+// sample and channel of the cube when every tap is an interior texel of one face (99% of the
+// pixels), -1 when every tap lies outside the atlas or the pixel is not valid (it reads 0), -2
+// for an edge pixel, whose taps are read one by one through the border.
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <type_traits>
+
+namespace {
+
+constexpr int32_t kOutside = -1;
+constexpr int32_t kEdge = -2;
+constexpr int64_t kTileW = 64, kTileH = 16;  // pixels per unit of work of the samplers
+constexpr int64_t kChunk = 4096;  // grid points per unit of work of the table
+
+// The padded cube: faces of `face` texels with a border of `pad`, `n = face + 2 pad` per
+// padded side; `face_stride` elements between faces of one channel in the cube.
+struct Layout {
+    int64_t face, pad, n, face_stride;
+    double half_x, half_y;  // n / 2 and 6 n / 2: the unnormalisation of grid_sample
+};
+
+Layout layout(int64_t face, int64_t pad, int64_t face_stride) {
+    const int64_t n = face + 2 * pad;
+    return Layout{face, pad, n, face_stride, 0.5 * n, 3.0 * n};
+}
+
+// The border texels (row-major over the padded faces, interior skipped): texel t reads the
+// cube (one sample and channel) at src[t k .. t k + k) with weight[...], or at src[t k] alone
+// when weight is null (a copy: exact for any dtype).
+template <typename T>
+struct Ring {
+    const int64_t* src;
+    const T* weight;
+    int64_t k;
+};
+
+// The samples and channels of the cube and of the output image.
+struct Planes {
+    int64_t batch, chans, pixels, width;
+    int64_t src_batch, src_chan;  // strides of the cube
+    int64_t out_batch, out_chan;  // strides of the output (its pixels are contiguous)
+};
+
+inline float unnormalize(float g, double half) {
+    return static_cast<float>(static_cast<double>(g + 1.0f) * half - 0.5);
+}
+
+inline double unnormalize(double g, double half) {
+    return (g + 1.0) * half - 0.5;
+}
+
+// Codes and bilinear fractions of `count` grid points; `valid` (bool, may be null) false ->
+// outside. Branch-free int32 arithmetic (`&` for `&&`) that the compiler vectorises; the
+// offsets fit in int32 (fastsample._check_offsets).
+template <typename G, bool Bilinear>
+void locate(const G* __restrict grid, int64_t count, const uint8_t* __restrict valid,
+            const Layout& L, int32_t* __restrict code, G* __restrict fx, G* __restrict fy) {
+    const int32_t n = static_cast<int32_t>(L.n), f = static_cast<int32_t>(L.face);
+    const int32_t pad = static_cast<int32_t>(L.pad), stride = static_cast<int32_t>(L.face_stride);
+    const int32_t span = Bilinear ? 1 : 0;
+    const G lo = -2, hi_x = static_cast<G>(n + 1), hi_y = static_cast<G>(6 * n + 1);
+    for (int64_t p = 0; p < count; ++p) {
+        const G x = unnormalize(grid[2 * p], L.half_x);
+        const G y = unnormalize(grid[2 * p + 1], L.half_y);
+        // round: half to even under the default rounding mode, as grid_sample rounds
+        const G x0 = Bilinear ? std::floor(x) : std::nearbyint(x);
+        const G y0 = Bilinear ? std::floor(y) : std::nearbyint(y);
+        fx[p] = x - x0;
+        fy[p] = y - y0;
+        // beyond the atlas by more than a texel (or NaN): outside; keeps the casts small
+        const bool near = (x0 >= lo) & (x0 <= hi_x) & (y0 >= lo) & (y0 <= hi_y);
+        const int32_t j = static_cast<int32_t>(near ? x0 : lo);
+        const int32_t r = static_cast<int32_t>(near ? y0 : lo);
+        const int32_t k = (r >= n) + (r >= 2 * n) + (r >= 3 * n) + (r >= 4 * n) + (r >= 5 * n) +
+                          (r >= 6 * n) - (r < 0);  // face of row r
+        const int32_t i = r - k * n;
+        const bool interior = (k >= 0) & (k < 6) & (i >= pad) & (i + span < pad + f) &
+                              (j >= pad) & (j + span < pad + f);
+        const bool touches = near & (x0 + span >= 0) & (x0 < n) & (y0 + span >= 0) &
+                             (y0 < 6 * n);  // a tap inside the atlas
+        code[p] = interior ? k * stride + (i - pad) * f + (j - pad)
+                           : (touches ? kEdge : kOutside);
+    }
+    if (valid != nullptr) {
+        for (int64_t p = 0; p < count; ++p) {
+            code[p] = valid[p] ? code[p] : kOutside;
+        }
+    }
+}
+
+template <typename G>
+void locate(const G* grid, int64_t count, const uint8_t* valid, const Layout& L, bool bilinear,
+            int32_t* code, G* fx, G* fy) {
+    if (bilinear) {
+        locate<G, true>(grid, count, valid, L, code, fx, fy);
+    } else {
+        locate<G, false>(grid, count, valid, L, code, fx, fy);
+    }
+}
+
+// Bilinear blend of four taps: grid_sample's weights and order (nw, ne, sw, se).
+template <typename T>
+inline T blend(T nw, T ne, T sw, T se, T fx, T fy) {
+    const T e = 1 - fx, s = 1 - fy;
+    T acc = nw * (s * e);
+    acc = acc + ne * (s * fx);
+    acc = acc + sw * (fy * e);
+    acc = acc + se * (fy * fx);
+    return acc;
+}
+
+// Texel (row r, column j) of the virtual atlas of one sample and channel (`cube`).
+template <typename T>
+T atlas_texel(const T* cube, int64_t j, int64_t r, const Layout& L, const Ring<T>& R) {
+    const int64_t n = L.n, f = L.face, p = L.pad;
+    if (j < 0 || j >= n || r < 0 || r >= 6 * n) {
+        return T(0);
+    }
+    const int64_t k = r / n, i = r - k * n;
+    if (i >= p && i < p + f && j >= p && j < p + f) {
+        return cube[k * L.face_stride + (i - p) * f + (j - p)];
+    }
+    // index among the ring texels (fastsample._ring_position)
+    const int64_t pos = i < p       ? i * n + j
+                        : i < p + f ? p * n + (i - p) * 2 * p + (j < p ? j : j - f)
+                                    : p * n + f * 2 * p + (i - p - f) * n + j;
+    const int64_t t = k * (n * n - f * f) + pos;
+    const int64_t* src = R.src + t * R.k;
+    if (R.weight == nullptr) {
+        return cube[src[0]];
+    }
+    T acc = cube[src[0]] * R.weight[t * R.k];
+    for (int64_t m = 1; m < R.k; ++m) {
+        acc = acc + cube[src[m]] * R.weight[t * R.k + m];
+    }
+    return acc;
+}
+
+// An edge pixel at grid point (gx, gy): its taps read through the virtual atlas.
+template <typename T, typename G>
+T edge_value(const T* cube, G gx, G gy, const Layout& L, const Ring<T>& R, bool bilinear) {
+    const G x = unnormalize(gx, L.half_x), y = unnormalize(gy, L.half_y);
+    if (!bilinear) {
+        return atlas_texel<T>(cube, static_cast<int64_t>(std::nearbyint(x)),
+                              static_cast<int64_t>(std::nearbyint(y)), L, R);
+    }
+    if constexpr (std::is_floating_point_v<T>) {
+        const G x0 = std::floor(x), y0 = std::floor(y);
+        const int64_t j = static_cast<int64_t>(x0), r = static_cast<int64_t>(y0);
+        return blend<T>(atlas_texel<T>(cube, j, r, L, R), atlas_texel<T>(cube, j + 1, r, L, R),
+                        atlas_texel<T>(cube, j, r + 1, L, R),
+                        atlas_texel<T>(cube, j + 1, r + 1, L, R), T(x - x0), T(y - y0));
+    }
+    return T(0);  // not reached: integer cubes are sampled nearest
+}
+
+// Output pixels [lo, lo + m) of sample b: `code`, `fx`, `fy` and `grid` (the pixels' grid
+// points, for the edge pixels) start at the first of them; the pixels outside read `fill`.
+// One channel after the other, every pixel as if interior, then the edge pixels again. Scalar,
+// with the weights computed in the loop: gathers vectorised by the compiler were slower (AVX-512
+// on AMD EPYC: 36 -> 47 ms for 8 x 1M pixels), as were every channel of a pixel at once (47
+// ms) and weights computed once per tile for all channels (43 ms).
+template <typename T, typename G>
+__attribute__((optimize("no-tree-vectorize")))
+void sample_span(const T* __restrict cube, const int32_t* __restrict code,
+                 const G* __restrict fx, const G* __restrict fy, const G* __restrict grid,
+                 int64_t m, const Layout& L, const Ring<T>& R, bool bilinear, T fill,
+                 const Planes& S, T* __restrict out) {
+    const int64_t f = L.face;
+    for (int64_t c = 0; c < S.chans; ++c) {
+        const T* __restrict q = cube + c * S.src_chan;
+        T* __restrict o = out + c * S.out_chan;
+        if (std::is_floating_point_v<T> && bilinear) {
+            for (int64_t p = 0; p < m; ++p) {
+                const int32_t k = std::max(code[p], 0);
+                const T v = blend<T>(q[k], q[k + 1], q[k + f], q[k + f + 1], T(fx[p]),
+                                     T(fy[p]));
+                o[p] = code[p] >= 0 ? v : fill;
+            }
+        } else {
+            for (int64_t p = 0; p < m; ++p) {
+                const T v = q[std::max(code[p], 0)];
+                o[p] = code[p] >= 0 ? v : fill;
+            }
+        }
+    }
+    for (int64_t p = 0; p < m; ++p) {
+        if (code[p] == kEdge) {
+            for (int64_t c = 0; c < S.chans; ++c) {
+                out[c * S.out_chan + p] = edge_value<T, G>(cube + c * S.src_chan, grid[2 * p],
+                                                           grid[2 * p + 1], L, R, bilinear);
+            }
+        }
+    }
+}
+
+// fn(b, lo, m) for the row segments [lo, lo + m) of every tile of kTileW x kTileH pixels of
+// every sample, the tiles spread over the threads. A tile, not a row: the taps of a rotated
+// camera's row can run down a face's columns, a new cache line each; those of a tile stay in a
+// small patch of the cube.
+template <typename Fn>
+void for_tiles(const Planes& S, int threads, Fn fn) {
+    const int64_t height = S.pixels / S.width;
+    const int64_t nx = (S.width + kTileW - 1) / kTileW, ny = (height + kTileH - 1) / kTileH;
+#pragma omp parallel for collapse(2) num_threads(threads) schedule(static)
+    for (int64_t b = 0; b < S.batch; ++b) {
+        for (int64_t t = 0; t < nx * ny; ++t) {
+            const int64_t x0 = (t % nx) * kTileW, y0 = (t / nx) * kTileH;
+            const int64_t m = std::min(kTileW, S.width - x0);
+            for (int64_t y = y0; y < std::min(y0 + kTileH, height); ++y) {
+                fn(b, y * S.width + x0, m);
+            }
+        }
+    }
+}
+
+// Sampling through a lookup table (code, fx, fy; fx, fy unused for nearest) of a grid, shared
+// by the batch (lut_batch = 0) or one per sample (lut_batch = P).
+template <typename T, typename G>
+void sample_lut(const T* src, const int32_t* code, const G* fx, const G* fy, const G* grid,
+                int64_t lut_batch, const Ring<T>& R, const Layout& L, bool bilinear, T fill,
+                Planes S, T* out, int threads) {
+    for_tiles(S, threads, [&](int64_t b, int64_t lo, int64_t m) {
+        const int64_t t = b * lut_batch + lo;
+        sample_span<T, G>(src + b * S.src_batch, code + t, bilinear ? fx + t : nullptr,
+                          bilinear ? fy + t : nullptr, grid + 2 * t, m, L, R, bilinear, fill, S,
+                          out + b * S.out_batch + lo);
+    });
+}
+
+// A grid used once (grid_batch = 0: one grid for the batch, else 2 P): the codes computed in
+// the sampling pass, a segment at a time. Pixels where `valid` (bool, valid_batch = 0 or P;
+// null: all valid) is false read `fill`, as if outside the atlas.
+template <typename T, typename G>
+void sample_grid(const T* src, const G* grid, int64_t grid_batch, const uint8_t* valid,
+                 int64_t valid_batch, const Ring<T>& R, const Layout& L, bool bilinear, T fill,
+                 Planes S, T* out, int threads) {
+    for_tiles(S, threads, [&](int64_t b, int64_t lo, int64_t m) {
+        const G* g = grid + b * grid_batch + 2 * lo;
+        int32_t code[kTileW];
+        G fx[kTileW], fy[kTileW];
+        locate<G>(g, m, valid == nullptr ? nullptr : valid + b * valid_batch + lo, L, bilinear,
+                  code, fx, fy);
+        sample_span<T, G>(src + b * S.src_batch, code, fx, fy, g, m, L, R, bilinear, fill, S,
+                          out + b * S.out_batch + lo);
+    });
+}
+
+}  // namespace
+
+// ------------------------------------------------------------------------------------------
+// The C entry points (ctypes): per cube dtype (f32, f64; or the element size 1, 2, 4, 8 bytes
+// of a cube sampled nearest, whose elements are copied: any dtype, exact) and grid dtype.
+// `fill`: the value of the pixels outside (an integer: the ignore index of labels), given as
+// int64 and converted to the element type (two's complement for unsigned elements).
+// ------------------------------------------------------------------------------------------
+
+#define PLANE_ARGS int64_t batch, int64_t chans, int64_t pixels, int64_t width, \
+    int64_t src_batch, int64_t src_chan, int64_t out_batch, int64_t out_chan
+#define PLANES Planes{batch, chans, pixels, width, src_batch, src_chan, out_batch, out_chan}
+#define RING_ARGS(T) const int64_t *ring_src, const T *ring_weight, int64_t ring_k
+#define RING(T) Ring<T>{ring_src, ring_weight, ring_k}
+
+extern "C" {
+
+#define LUT(NAME, G)                                                                          \
+    void NAME(const G* grid, int64_t count, int64_t face, int64_t pad, int64_t face_stride,  \
+              int bilinear, int32_t* code, G* fx, G* fy, int threads) {                      \
+        const Layout L = layout(face, pad, face_stride);                                      \
+        const int64_t tiles = (count + kChunk - 1) / kChunk;                                  \
+        _Pragma("omp parallel for num_threads(threads) schedule(static)")                     \
+        for (int64_t tile = 0; tile < tiles; ++tile) {                                        \
+            const int64_t lo = tile * kChunk, m = std::min(kChunk, count - lo);               \
+            locate<G>(grid + 2 * lo, m, nullptr, L, bilinear != 0, code + lo, fx + lo,        \
+                      fy + lo);                                                               \
+        }                                                                                     \
+    }
+LUT(os_lut_f32, float)
+LUT(os_lut_f64, double)
+
+#define SAMPLE(SUFFIX, T, G)                                                                  \
+    void os_sample_lut_##SUFFIX(const T* src, const int32_t* code, const G* fx, const G* fy,  \
+                                const G* grid, int64_t lut_batch, RING_ARGS(T), int64_t face, \
+                                int64_t pad, int64_t face_stride, int bilinear, int64_t fill, \
+                                PLANE_ARGS, T* out, int threads) {                            \
+        sample_lut<T, G>(src, code, fx, fy, grid, lut_batch, RING(T),                         \
+                         layout(face, pad, face_stride), bilinear != 0, T(fill), PLANES, out, \
+                         threads);                                                            \
+    }                                                                                         \
+    void os_sample_grid_##SUFFIX(const T* src, const G* grid, int64_t grid_batch,             \
+                                 const uint8_t* valid, int64_t valid_batch, RING_ARGS(T),     \
+                                 int64_t face, int64_t pad, int64_t face_stride,              \
+                                 int bilinear, int64_t fill, PLANE_ARGS, T* out,              \
+                                 int threads) {                                               \
+        sample_grid<T, G>(src, grid, grid_batch, valid, valid_batch, RING(T),                 \
+                          layout(face, pad, face_stride), bilinear != 0, T(fill), PLANES,     \
+                          out, threads);                                                      \
+    }
+SAMPLE(f32, float, float)
+SAMPLE(f64, double, double)
+SAMPLE(1_f32, uint8_t, float)
+SAMPLE(2_f32, uint16_t, float)
+SAMPLE(4_f32, uint32_t, float)
+SAMPLE(8_f32, uint64_t, float)
+SAMPLE(1_f64, uint8_t, double)
+SAMPLE(2_f64, uint16_t, double)
+SAMPLE(4_f64, uint32_t, double)
+SAMPLE(8_f64, uint64_t, double)
+
+}  // extern "C"
