@@ -33,7 +33,7 @@ from .cameras.registry import get_model
 from .cubemap.faces import FACES, face_rotations
 from .fastgrid import camera_grid
 from .presets import yaw_pitch_roll_to_matrix
-from . import projection
+from . import memory, projection
 from .projection import OmniProjection
 
 __all__ = ["ApplyToKey", "RandomOmniCamera"]
@@ -410,7 +410,19 @@ class RandomOmniCamera(nn.Module):
         chunk = batch if device.type != "cpu" else max(1, projection.CHUNK_PIXELS // math.prod(
             self.image_size))
         result: dict[str, Tensor] = {}
-        for name, (idx, camera) in self.cameras(params, dtype, device).items():
+        cameras = self.cameras(params, dtype, device)
+        if len(cameras) > 1 or chunk < batch:   # several parts: outputs allocated once
+            h, w = self.image_size
+            shapes = {"valid": ((1, h, w), torch.bool)}
+            for key, t, shape, out_dtype in (("rgb", cubemap, (h, w), None),
+                                             ("labels", labels, (h, w), torch.int64),
+                                             ("depth", depth, (1, h, w), None)):
+                if t is not None:
+                    channels = (t.shape[2],) if key == "rgb" else ()
+                    shapes[key] = ((*channels, *shape), out_dtype or t.dtype)
+            result = {key: _empty((batch, *shape), out_dtype, device)
+                      for key, (shape, out_dtype) in shapes.items()}
+        for name, (idx, camera) in cameras.items():
             for start in range(0, len(idx), chunk):
                 part = slice(start, start + chunk)
                 cam = Camera(name, camera.params[part], self.image_size)
@@ -425,18 +437,21 @@ class RandomOmniCamera(nn.Module):
                     blind_fov=params["blind_fov"][sel].to(dtype=dtype, device=device))
                 whole = len(sel) == batch
                 first, last = int(sel[0]), int(sel[-1]) + 1
-                # a run of samples is a view (no copy); mixed models index
-                at = slice(first, last) if last - first == len(sel) else sel.to(device)
+                # a run of samples is a view (no copy), rendered into its rows of the outputs;
+                # mixed models index
+                run = last - first == len(sel)
+                at = slice(first, last) if run else sel.to(device)
                 take = (lambda t: t) if whole else (lambda t: None if t is None else t[at])
                 out = proj.render(rgb=take(cubemap), labels=take(labels), depth=take(depth),
-                                  depth_output=self.depth_output)
+                                  depth_output=self.depth_output,
+                                  out={key: value[at] for key, value in result.items()}
+                                  if run else None)
                 if whole:
                     result = out
                     break
-                for key, value in out.items():
-                    if key not in result:
-                        result[key] = value.new_empty((batch,) + value.shape[1:])
-                    result[key][at] = value
+                if not run:
+                    for key, value in out.items():
+                        result[key][at] = value
         result["params"] = params
         return result
 
@@ -469,6 +484,13 @@ class RandomOmniCamera(nn.Module):
         if params is None:
             params = self.forward_parameters(ref.shape[0], generator=generator)
         return self.render(cubemap, params, labels=labels, depth=depth)
+
+
+def _empty(shape: tuple[int, ...], dtype: torch.dtype, device: torch.device) -> Tensor:
+    """An output buffer: huge pages on the CPU (``memory.empty``)."""
+    if device.type == "cpu":
+        return memory.empty(shape, dtype)
+    return torch.empty(shape, dtype=dtype, device=device)
 
 
 class _GivenGrid(OmniProjection):

@@ -305,7 +305,8 @@ class OmniProjection(nn.Module):
 
     def render(self, *, rgb: Tensor | None = None, depth: Tensor | None = None,
                labels: Tensor | None = None, rotation: Tensor | None = None,
-               depth_output: str = "range", soft_labels: int | None = None) -> dict[str, Tensor]:
+               depth_output: str = "range", soft_labels: int | None = None,
+               out: dict[str, Tensor] | None = None) -> dict[str, Tensor]:
         """Render several modalities of one cubemap batch through the same grid.
 
         Args:
@@ -318,6 +319,9 @@ class OmniProjection(nn.Module):
                 omni camera's optical axis).
             soft_labels: number of classes K: also return per-class probabilities
                 ``(B, K, H, W)``, bilinearly sampled one-hot labels (soft-label training).
+            out: tensors to write outputs into, by the keys below (each of that output's shape
+                and dtype, any strides; e.g. rows of a larger batch). The fast path samples
+                straight into them; the outputs not given are allocated.
 
         Returns:
             dict with ``valid (B, 1, H, W)`` and, for each input, ``rgb (B, C, H, W)``,
@@ -374,25 +378,38 @@ class OmniProjection(nn.Module):
             if bool((labels < 0).any()) or bool((labels >= soft_labels).any()):
                 raise ValueError(f"labels: ids must lie in [0, {soft_labels}) for "
                                  f"soft_labels={soft_labels}")
+        if out is not None:
+            produced = {"valid"} | {key for key, t in (("rgb", rgb), ("depth", depth),
+                                                       ("labels", labels),
+                                                       ("soft_labels", soft_labels))
+                                     if t is not None}
+            if not isinstance(out, dict) or not set(out) <= produced:
+                raise ValueError(f"out: expected a dict with keys among {sorted(produced)}, got "
+                                 f"{sorted(out) if isinstance(out, dict) else type(out).__name__}")
         pixels = math.prod(self.camera.image_size) * self.supersample ** 2
         step = max(1, CHUNK_PIXELS // pixels)
         if (self._fast_now and ref.device.type == "cpu" and rotation is not None
                 and rotation.shape[0] > step and cams == ()):
             # a grid per sample: a few samples at a time (see CHUNK_PIXELS), written into
             # outputs allocated once for the batch
-            outputs: dict[str, Tensor] = {}
+            outputs = dict(out or {})
             for i in range(0, batch, step):
                 self._render(_rows(rgb, i, step), _rows(depth, i, step), _rows(labels, i, step),
                              rotation[i:i + step], depth_output, soft_labels,
                              (outputs, slice(i, i + step), batch))
             return outputs
-        return self._render(rgb, depth, labels, rotation, depth_output, soft_labels)
+        if out is None:
+            return self._render(rgb, depth, labels, rotation, depth_output, soft_labels)
+        outputs = dict(out)
+        self._render(rgb, depth, labels, rotation, depth_output, soft_labels,
+                     (outputs, slice(None), batch))
+        return outputs
 
     def _render(self, rgb: Tensor | None, depth: Tensor | None, labels: Tensor | None,
                 rotation: Tensor | None, depth_output: str, soft_labels: int | None,
                 into: tuple[dict, slice, int] | None = None) -> dict[str, Tensor]:
         """``render`` of checked inputs; ``into``: ``(outputs, rows, batch)``, the outputs of a
-        whole batch (allocated here on the first call) whose ``rows`` this call renders."""
+        whole batch (those missing allocated here) whose ``rows`` this call renders."""
         ref = next(t for t in (rgb, depth, labels) if t is not None)
         batch = ref.shape[0]
         grid_dtype = torch.float64 if ref.dtype == torch.float64 else torch.float32
@@ -412,7 +429,14 @@ class OmniProjection(nn.Module):
             outputs, rows, total = into
             if key not in outputs:
                 outputs[key] = memory.empty((total, *shape), dtype)
-            return outputs[key][rows]
+            given = outputs[key]
+            if not isinstance(given, Tensor) or given.shape != (total, *shape) or \
+                    given.dtype != dtype or given.device != ref.device:
+                raise ValueError(f"out[{key!r}]: expected a {dtype} tensor of shape "
+                                 f"{(total, *shape)} on {ref.device}, got "
+                                 f"{getattr(given, 'dtype', type(given).__name__)} "
+                                 f"{tuple(getattr(given, 'shape', ()))}")
+            return given[rows]
 
         if rgb is not None:
             image = self._sample_float(rgb, grid_s, self.interpolation, "bilinear", mask_s,
