@@ -10,6 +10,7 @@ labels, with and without rotations, and its eager fallback; gradients still come
 from __future__ import annotations
 
 import math
+import pickle
 
 import pytest
 import torch
@@ -17,7 +18,7 @@ import torch.nn.functional as F_nn
 
 import omniscape_torch as ot
 from omniscape_torch import cubemap as cm
-from omniscape_torch import fastsample, native
+from omniscape_torch import fastsample, memory, native
 
 f32, f64 = torch.float32, torch.float64
 #: Rounding of a blend of 4 texels in [0, 1]. float32: the weights are grid_sample's bit for bit,
@@ -157,6 +158,87 @@ def test_eager_fallback_without_a_compiler(monkeypatch, mode):
         assert eager[3].dtype == torch.int64 and torch.equal(eager[3].double(), ids)
 
 
+def test_out_valid_and_fill():
+    """``out`` (rows of a larger batch, any strides between planes), ``valid`` and ``fill``."""
+    cube, grid = make_cube(2, 3, 8), make_grid(1)
+    expect = fastsample.sample_cube(cube, grid, pad=1)
+    big = torch.full((4, 3, *grid.shape[1:3]), 7.0)
+    got = fastsample.sample_cube(cube, grid, pad=1, out=big[1:3])
+    assert got.data_ptr() == big[1].data_ptr() and torch.equal(got, expect)
+    assert bool((big[0] == 7).all()) and bool((big[3] == 7).all())
+    planes = torch.zeros(3, 2, *grid.shape[1:3]).permute(1, 0, 2, 3)   # channel-major
+    assert torch.equal(fastsample.sample_cube(cube, grid, pad=1, out=planes), expect)
+    half = torch.zeros(2, 3, *grid.shape[1:3], dtype=torch.float16)
+    fastsample.sample_cube(cube.half(), grid, pad=1, out=half)
+    assert torch.equal(half, fastsample.sample_cube(cube.half(), grid, pad=1))
+    # the pixels outside the atlas (grid (-2, -2) and a little beyond) and the invalid ones
+    # read fill
+    outside = (reference(torch.ones(1, 1, 60, 10), grid, "nearest")[0] == 0).expand(2, -1, -1)
+    assert bool(outside.any()) and bool((~outside).any())
+    labels = torch.randint(0, 9, (2, 6, 1, 8, 8), dtype=torch.uint8)
+    ids = fastsample.sample_cube(labels, grid, "nearest", pad=1, border="nearest", fill=255)
+    assert bool((ids[:, 0][outside] == 255).all()) and bool((ids[:, 0][~outside] < 9).all())
+    valid = ~torch.eye(*grid.shape[1:3], dtype=torch.bool).unsqueeze(0)
+    ids = fastsample.sample_cube(labels, grid, "nearest", pad=1, border="nearest", fill=255,
+                                 valid=valid)
+    assert bool((ids[:, 0][(outside | ~valid)] == 255).all())
+    with pytest.raises(ValueError, match="fill: -1 does not fit"):
+        fastsample.sample_cube(labels, grid, "nearest", pad=1, fill=-1)
+    with pytest.raises(TypeError, match="fill: expected an int"):
+        fastsample.sample_cube(cube, grid, pad=1, fill=0.5)
+    with pytest.raises(ValueError, match="out: expected shape"):
+        fastsample.sample_cube(cube, grid, pad=1, out=big)
+    with pytest.raises(TypeError, match="out: expected a CPU tensor of torch.float32"):
+        fastsample.sample_cube(cube, grid, pad=1, out=big.double()[:2])
+    with pytest.raises(ValueError, match="valid: expected a bool tensor"):
+        fastsample.sample_cube(cube, grid, pad=1, valid=valid[..., :-1])
+    with pytest.raises(ValueError, match="valid: only without lut"):
+        fastsample.sample_cube(cube, grid, pad=1, valid=valid,
+                               lut=fastsample.build_lut(grid, 8, 1, channels=3))
+
+
+def _sample_in_worker(i):
+    cube, grid = make_cube(2, 3, 8, seed=i), make_grid(2)
+    return fastsample.sample_cube(cube, grid, pad=1)
+
+
+def test_kernels_run_in_dataloader_workers():
+    """The OpenMP kernels, used here first, run again in forked DataLoader workers."""
+    expect = [_sample_in_worker(i) for i in range(4)]
+    got = list(torch.utils.data.DataLoader(_Samples(), batch_size=None, num_workers=2))
+    assert all(torch.equal(a, b) for a, b in zip(got, expect))
+
+
+class _Samples(torch.utils.data.Dataset):
+    def __len__(self):
+        return 4
+
+    def __getitem__(self, i):
+        return _sample_in_worker(i)
+
+
+def test_native_library_is_built_once_into_the_cache(monkeypatch, tmp_path):
+    monkeypatch.setenv("OMNISCAPE_TORCH_CACHE", str(tmp_path))
+    monkeypatch.setattr(native, "_STATE", {})
+    assert native.library() is not None and native.failure() is None
+    (built,) = tmp_path.iterdir()   # the library alone: no temporary file left
+    assert built.suffix == ".so"
+    stamp = built.stat().st_mtime_ns
+    monkeypatch.setattr(native, "_STATE", {})   # a new process: loaded, not rebuilt
+    assert native.function("os_sample_grid_f32") is not None
+    assert built.stat().st_mtime_ns == stamp and list(tmp_path.iterdir()) == [built]
+
+
+def test_huge_page_buffers_behave_as_tensors():
+    big = memory.empty((memory.HUGE_BYTES // 4 + 1,), torch.float32)
+    small = memory.empty((3, 4), torch.int64)
+    assert big.shape == (memory.HUGE_BYTES // 4 + 1,) and small.shape == (3, 4)
+    big.fill_(2.5)
+    big[-1] = 4.0
+    assert bool((big[:-1] == 2.5).all()) and float(big[-1]) == 4.0
+    assert torch.equal(pickle.loads(pickle.dumps(big[:10])), torch.full((10,), 2.5))
+
+
 @pytest.mark.parametrize("kwargs,error,match", [
     (dict(grid=torch.zeros(3, 4, 4, 2)), ValueError, "grid: expected shape"),
     (dict(grid=torch.zeros(1, 4, 4, 2, dtype=torch.int64)), TypeError, "grid: expected a float"),
@@ -239,6 +321,32 @@ def test_layer_rotation_batch_in_chunks_equals_reference(monkeypatch, supersampl
     for key in ("rgb", "depth", "soft_labels"):
         assert fast[key].shape == ref[key].shape
         torch.testing.assert_close(fast[key], ref[key], atol=ATOL[f32] * 10, rtol=0)
+
+
+@pytest.mark.parametrize("rotated", [False, True])
+def test_layer_renders_into_given_outputs(monkeypatch, rotated):
+    """``render(out=...)``: the outputs are written into the given tensors (here rows of larger
+    ones), equal to those it allocates; on the chunked path too."""
+    from omniscape_torch import projection
+    monkeypatch.setattr(projection, "CHUNK_PIXELS", 2 * 24 * 24)
+    layer = ot.OmniProjection(fisheye(), 8)
+    inputs = dict(rgb=make_cube(5, 3, 8), labels=(make_cube(5, 1, 8, seed=3) * 13).long(),
+                  rotation=rotations(5).float() if rotated else None)
+    big = {"rgb": torch.full((7, 3, 24, 24), 7.0),
+           "labels": torch.full((7, 24, 24), 7, dtype=torch.long)}
+    with torch.no_grad():
+        expect = layer.render(**inputs)
+        got = layer.render(**inputs, out={key: value[1:6] for key, value in big.items()})
+        assert set(got) == set(expect)
+        for key, value in expect.items():
+            assert torch.equal(got[key], value), key
+        for key, value in big.items():
+            assert got[key].data_ptr() == value[1].data_ptr()
+            assert bool((value[0] == 7).all()) and bool((value[6] == 7).all())
+        with pytest.raises(ValueError, match="out: expected a dict with keys among"):
+            layer.render(**inputs, out={"depth": torch.zeros(5, 1, 24, 24)})
+        with pytest.raises(ValueError, match="out\\['rgb'\\]: expected a torch.float32 tensor"):
+            layer.render(**inputs, out={"rgb": big["rgb"][:3]})
 
 
 @pytest.mark.parametrize("kwargs", [dict(border="copied"), dict(border="none"),
