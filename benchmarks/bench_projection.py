@@ -5,7 +5,8 @@ Renders a ``6 x F x F`` RGB float32 cube into a ``2F x 2F`` equidistant fisheye 
 batch 1 and 8, and times in one run, round-robin:
 
 * ``forward_cached``: ``OmniProjection(cube)`` (``fast=True``, the default, without
-  gradient): the frozen camera's lookup table on the cube (``fastsample``, no atlas), cached;
+  gradient): the frozen camera's lookup table on the cube (``fastsample``'s C++ kernels, no
+  atlas), cached;
 * ``forward_cached_reference``: the same with ``fast=False`` (atlas build + ``grid_sample``);
 * ``forward_rebuilt_fused``: ``OmniProjection(cube, rotation)`` with a new random rotation per
   sample and call: the fused, compiled grid (``fastgrid.rotated_rays_to_grid``), then the
@@ -35,9 +36,11 @@ Inputs come from a seeded ``torch.Generator``.
 
 Batch 8 allocates tensors above glibc's largest mmap threshold (32 MB: the 64 MB grid, the
 atlas, the 96 MB image): each is a fresh ``mmap`` whose pages fault on first touch, which on a
-small VM costs more than the arithmetic. ``MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=<large>``
-(or jemalloc/tcmalloc via ``LD_PRELOAD``) removes that; the ``environment`` field of the JSON
-records such settings, so compare runs only with the same one.
+small VM costs more than the arithmetic. The layer's own outputs of that size are mapped with
+transparent huge pages (``omniscape_torch.memory``); the reference path's tensors are not.
+``MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=<large>`` (or jemalloc/tcmalloc via ``LD_PRELOAD``)
+changes that for every row; the ``environment`` field of the JSON records such settings, so
+compare runs only with the same one.
 
 Usage::
 
