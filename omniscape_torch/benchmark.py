@@ -254,10 +254,19 @@ def label_accuracy(labels: Tensor, reference: Tensor) -> float:
 # Timing, Pareto front, environment
 # --------------------------------------------------------------------------------------------
 
+#: Untimed pause before every timed call: the worker threads of the previous call (OpenMP's,
+#: OpenCV's, OpenBLAS's) keep spinning for a while after it, and on 2 cores they take the next
+#: row's cores (measured: the augmentation batch 135 ms right after the numpy + OpenCV peer,
+#: 75 ms after a 50 ms pause, 61-70 ms alone). A user runs one or the other, not both.
+SETTLE_S = 0.05
+
+
 def measure(fns: list[Callable[[], object]], repeats: int, warmup: int, *,
-            cuda: bool = False, progress: bool = True) -> list[dict]:
+            cuda: bool = False, progress: bool = True, settle_s: float = SETTLE_S
+            ) -> list[dict]:
     """Median and IQR (seconds) of ``repeats`` timed calls of each of ``fns``, after ``warmup``
-    untimed calls of each, timed round-robin (one call of each per repeat); with ``cuda``,
+    untimed calls of each, timed round-robin (one call of each per repeat), each after an
+    untimed pause of ``settle_s`` (:data:`SETTLE_S`); with ``cuda``,
     ``torch.cuda.synchronize()`` before and after every timed call.
 
     Returns:
@@ -271,6 +280,8 @@ def measure(fns: list[Callable[[], object]], repeats: int, warmup: int, *,
                   file=sys.stderr):
         for fn, t in zip(fns, times):
             sync()
+            if r >= warmup and settle_s > 0:
+                time.sleep(settle_s)
             start = time.perf_counter()
             fn()
             sync()
@@ -872,7 +883,8 @@ def run(args: argparse.Namespace) -> dict:
         "warmup": args.warmup,
         "seed": SEED,
         "timer": "time.perf_counter around single calls, after warm-up, all rows round-robin; "
-                 "median and IQR",
+                 "median and IQR; an untimed 50 ms pause before every timed call "
+                 "(benchmark.SETTLE_S)",
         "phase_s": {"setup": setup_s, "accuracy": accuracy_s,
                     "timing": time.perf_counter() - start - setup_s - accuracy_s},
         "timestamp_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),

@@ -13,9 +13,10 @@ computed in the sampling pass itself and never stored.
 
 A pixel whose taps are not all interior texels of one face ("edge" pixels: within a texel of
 a seam, about 1% of them) reads the atlas border, which the cube does not hold: its taps read a
-virtual atlas, the cube's interior plus its ring of border texels, each computed from the border
-plan exactly as :func:`~omniscape_torch.cubemap.cubemap_to_atlas` computes them. Pixels whose taps all lie
-outside the atlas (the invalid ones, grid ``(-2, -2)``) read 0, as with zero padding.
+virtual atlas, the cube's interior plus its ring of border texels, each computed from the
+border plan exactly as :func:`~omniscape_torch.cubemap.cubemap_to_atlas` computes them. Pixels
+whose taps all lie outside the atlas (the invalid ones, grid ``(-2, -2)``) read 0, as with zero
+padding (or ``fill``).
 
 The pixel coordinates are those of ``grid_sample`` (``align_corners=False``) bit for bit:
 PyTorch's CPU kernel unnormalises with a fused multiply-add, ``x = fma(gx + 1, W / 2, -0.5)``,
