@@ -3,8 +3,8 @@
 Why hand-written: a bilinear tap is four loads a texel apart, which a C loop does in a few
 instructions; ``torch.compile`` (inductor) turns each gather into a vector of 64-bit indices
 stored to a buffer and read back one by one. Measured on 2 cores, 6 x 512 -> 1024 x 1024 RGB
-float32 through a lookup table: 7.0 -> 5.4 ms at batch 1 and 78 -> 43 ms at batch 8
-(``cv2.remap`` of the same image: 5.9 and 47 ms).
+float32 through a lookup table, into a reused buffer: 7.0 -> 5.2 ms at batch 1 and 78 -> 36 ms
+at batch 8 (``cv2.remap`` of the same images: 5.9 and 34-47 ms).
 
 The source is compiled once per machine with the C++ compiler ``torch.compile`` uses too
 (``$CXX``, else ``c++``) and OpenMP, into ``$OMNISCAPE_TORCH_CACHE`` (default
