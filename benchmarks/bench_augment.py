@@ -291,7 +291,7 @@ def run(args: argparse.Namespace) -> dict:
         "seed": SEED,
         "peer_agreement": agreement,
         "timer": ("time.perf_counter around single calls, after warm-up, all rows round-robin; "
-                  "median and IQR; an untimed 50 ms pause before every timed call "
+                  "median and IQR; an untimed 10 ms pause before every timed call "
                   "(benchmark.SETTLE_S)"),
         "timestamp_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "loadavg_start": load_start,

@@ -323,7 +323,7 @@ def run(args: argparse.Namespace) -> dict:
         "warmup": warmup,
         "seed": SEED,
         "timer": ("time.perf_counter around single calls, after warm-up, the calls of one model "
-                  "round-robin; median and IQR; an untimed 50 ms pause before every timed "
+                  "round-robin; median and IQR; an untimed 10 ms pause before every timed "
                   "call (benchmark.SETTLE_S)"),
         "timestamp_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "loadavg_start": None if load_start is None else list(load_start),

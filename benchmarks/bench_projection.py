@@ -295,7 +295,7 @@ def run(args: argparse.Namespace) -> dict:
                   "compile_failures": failures},
         "agreement": agreement,
         "timer": ("time.perf_counter around single calls, after warm-up, all rows of one batch "
-                  "round-robin; median and IQR; an untimed 50 ms pause before every timed "
+                  "round-robin; median and IQR; an untimed 10 ms pause before every timed "
                   "call (benchmark.SETTLE_S)"),
         "timestamp_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "loadavg_start": load_start,

@@ -256,9 +256,9 @@ def label_accuracy(labels: Tensor, reference: Tensor) -> float:
 
 #: Untimed pause before every timed call: the worker threads of the previous call (OpenMP's,
 #: OpenCV's, OpenBLAS's) keep spinning for a while after it, and on 2 cores they take the next
-#: row's cores (measured: the augmentation batch 135 ms right after the numpy + OpenCV peer,
-#: 75 ms after a 50 ms pause, 61-70 ms alone). A user runs one or the other, not both.
-SETTLE_S = 0.05
+#: row's cores (measured: the augmentation benchmark's IQR 20 ms without the pause, 10-12 ms
+#: with it). Short: after 50 ms idle this VM ran the next 5 ms call at up to 13 ms.
+SETTLE_S = 0.01
 
 
 def measure(fns: list[Callable[[], object]], repeats: int, warmup: int, *,
@@ -883,7 +883,7 @@ def run(args: argparse.Namespace) -> dict:
         "warmup": args.warmup,
         "seed": SEED,
         "timer": "time.perf_counter around single calls, after warm-up, all rows round-robin; "
-                 "median and IQR; an untimed 50 ms pause before every timed call "
+                 "median and IQR; an untimed 10 ms pause before every timed call "
                  "(benchmark.SETTLE_S)",
         "phase_s": {"setup": setup_s, "accuracy": accuracy_s,
                     "timing": time.perf_counter() - start - setup_s - accuracy_s},

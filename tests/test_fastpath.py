@@ -229,14 +229,27 @@ def test_native_library_is_built_once_into_the_cache(monkeypatch, tmp_path):
     assert built.stat().st_mtime_ns == stamp and list(tmp_path.iterdir()) == [built]
 
 
-def test_huge_page_buffers_behave_as_tensors():
-    big = memory.empty((memory.HUGE_BYTES // 4 + 1,), torch.float32)
-    small = memory.empty((3, 4), torch.int64)
-    assert big.shape == (memory.HUGE_BYTES // 4 + 1,) and small.shape == (3, 4)
+def test_large_buffers_are_pooled_and_reused_only_once_free(monkeypatch):
+    monkeypatch.setattr(memory, "_FREE", {})
+    n = memory.HUGE_BYTES // 4 + 1
+    big = memory.empty((n,), torch.float32)
+    assert memory.empty((3, 4), torch.int64).shape == (3, 4)   # small: torch.empty
     big.fill_(2.5)
     big[-1] = 4.0
     assert bool((big[:-1] == 2.5).all()) and float(big[-1]) == 4.0
     assert torch.equal(pickle.loads(pickle.dumps(big[:10])), torch.full((10,), 2.5))
+    where, view = big.data_ptr(), big[5:9]
+    del big
+    other = memory.empty((n,), torch.float32)   # a view of the first is alive: a new buffer
+    assert other.data_ptr() != where and memory.pooled_bytes() == 0
+    del view
+    assert memory.pooled_bytes() == 4 * n
+    again = memory.empty((n,), torch.float32)
+    assert again.data_ptr() == where and memory.pooled_bytes() == 0
+    monkeypatch.setattr(memory, "POOL_BYTES", 4 * n)   # room for one
+    del again, other
+    assert memory.pooled_bytes() == 4 * n
+    assert memory.release() == 4 * n and memory.pooled_bytes() == 0
 
 
 @pytest.mark.parametrize("kwargs,error,match", [
