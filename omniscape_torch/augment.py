@@ -420,7 +420,7 @@ class RandomOmniCamera(nn.Module):
                 if t is not None:
                     channels = (t.shape[2],) if key == "rgb" else ()
                     shapes[key] = ((*channels, *shape), out_dtype or t.dtype)
-            result = {key: _empty((batch, *shape), out_dtype, device)
+            result = {key: memory.empty((batch, *shape), out_dtype, device)
                       for key, (shape, out_dtype) in shapes.items()}
         for name, (idx, camera) in cameras.items():
             for start in range(0, len(idx), chunk):
@@ -484,13 +484,6 @@ class RandomOmniCamera(nn.Module):
         if params is None:
             params = self.forward_parameters(ref.shape[0], generator=generator)
         return self.render(cubemap, params, labels=labels, depth=depth)
-
-
-def _empty(shape: tuple[int, ...], dtype: torch.dtype, device: torch.device) -> Tensor:
-    """An output buffer: huge pages on the CPU (``memory.empty``)."""
-    if device.type == "cpu":
-        return memory.empty(shape, dtype)
-    return torch.empty(shape, dtype=dtype, device=device)
 
 
 class _GivenGrid(OmniProjection):

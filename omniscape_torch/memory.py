@@ -41,12 +41,14 @@ _LOCK = threading.Lock()
 _FREE: dict[int, list[mmap.mmap]] = {}   # size -> freed mappings
 
 
-def empty(shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
-    """``torch.empty(shape, dtype=dtype)`` on the CPU; from :data:`HUGE_BYTES` on, a pooled,
-    huge-page mapping (contents undefined, as ``torch.empty``)."""
+def empty(shape: tuple[int, ...], dtype: torch.dtype,
+          device: torch.device | str | None = None) -> torch.Tensor:
+    """``torch.empty(shape, dtype=dtype, device=device)``; on the CPU from :data:`HUGE_BYTES`
+    on, a pooled, huge-page mapping (contents undefined, as ``torch.empty``)."""
     size = math.prod(shape) * torch.empty((), dtype=dtype).element_size()
-    if size < HUGE_BYTES or not hasattr(mmap, "MADV_HUGEPAGE"):
-        return torch.empty(shape, dtype=dtype)
+    if (size < HUGE_BYTES or not hasattr(mmap, "MADV_HUGEPAGE")
+            or (device is not None and torch.device(device).type != "cpu")):
+        return torch.empty(shape, dtype=dtype, device=device)
     with _LOCK:
         free = _FREE.get(size)
         buffer = free.pop() if free else None

@@ -428,7 +428,7 @@ class OmniProjection(nn.Module):
                 return None
             outputs, rows, total = into
             if key not in outputs:
-                outputs[key] = memory.empty((total, *shape), dtype)
+                outputs[key] = memory.empty((total, *shape), dtype, ref.device)
             given = outputs[key]
             if not isinstance(given, Tensor) or given.shape != (total, *shape) or \
                     given.dtype != dtype or given.device != ref.device:
@@ -457,8 +457,8 @@ class OmniProjection(nn.Module):
             out["depth"] = torch.where(valid, sampled, torch.zeros_like(sampled))
 
         if labels is not None:
-            # gathered, not grid-sampled: ids of any integer dtype and size come back exact
-            # gathered with the ignore index outside, where the ids' dtype holds it
+            # gathered, not grid-sampled: ids of any integer dtype and size come back exact,
+            # with the ignore index outside where the ids' dtype holds it
             ignore = self.ignore_index
             filled = fastsample.holds(labels.dtype, ignore)
             ids = self._fast_sample(labels, grid_c, "nearest", "nearest", mask_c,
@@ -468,7 +468,7 @@ class OmniProjection(nn.Module):
                 ids = nearest_gather(self._atlas(labels, "nearest"), _outside(grid_c, mask_c))
             ids = ids[:, 0]
             rows = target("labels", ids.shape[1:], torch.int64)
-            rows = memory.empty(ids.shape, torch.int64) if rows is None else rows
+            rows = memory.empty(ids.shape, torch.int64, ids.device) if rows is None else rows
             rows.copy_(ids)
             if not filled:
                 rows.masked_fill_(~valid[:, 0], ignore)

@@ -234,6 +234,7 @@ def test_large_buffers_are_pooled_and_reused_only_once_free(monkeypatch):
     n = memory.HUGE_BYTES // 4 + 1
     big = memory.empty((n,), torch.float32)
     assert memory.empty((3, 4), torch.int64).shape == (3, 4)   # small: torch.empty
+    assert memory.empty((n,), torch.float32, "meta").device.type == "meta"   # not the CPU
     big.fill_(2.5)
     big[-1] = 4.0
     assert bool((big[:-1] == 2.5).all()) and float(big[-1]) == 4.0
