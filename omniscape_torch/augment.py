@@ -412,14 +412,14 @@ class RandomOmniCamera(nn.Module):
         result: dict[str, Tensor] = {}
         cameras = self.cameras(params, dtype, device)
         if len(cameras) > 1 or chunk < batch:   # several parts: outputs allocated once
-            h, w = self.image_size
+            h, w = self.image_size   # the outputs of OmniProjection.render
             shapes = {"valid": ((1, h, w), torch.bool)}
-            for key, t, shape, out_dtype in (("rgb", cubemap, (h, w), None),
-                                             ("labels", labels, (h, w), torch.int64),
-                                             ("depth", depth, (1, h, w), None)):
-                if t is not None:
-                    channels = (t.shape[2],) if key == "rgb" else ()
-                    shapes[key] = ((*channels, *shape), out_dtype or t.dtype)
+            if cubemap is not None:
+                shapes["rgb"] = ((cubemap.shape[2], h, w), cubemap.dtype)
+            if labels is not None:
+                shapes["labels"] = ((h, w), torch.int64)
+            if depth is not None:
+                shapes["depth"] = ((1, h, w), depth.dtype)
             result = {key: memory.empty((batch, *shape), out_dtype, device)
                       for key, (shape, out_dtype) in shapes.items()}
         for name, (idx, camera) in cameras.items():
