@@ -13,8 +13,9 @@
 //
 // Per pixel, its "code" is the offset of the top-left tap (nearest: the texel) within one
 // sample and channel of the cube when every tap is an interior texel of one face (99% of the
-// pixels), -1 when every tap lies outside the atlas or the pixel is not valid (it reads 0), -2
-// for an edge pixel, whose taps are read one by one through the border.
+// pixels), -1 when every tap lies outside the atlas or the pixel is not valid (it reads `fill`:
+// 0, or the ignore index of labels), -2 for an edge pixel, whose taps are read one by one
+// through the border.
 
 #include <algorithm>
 #include <cmath>
