@@ -8,8 +8,9 @@ at batch 8 (``cv2.remap`` of the same images: 5.9 and 34-47 ms).
 
 The source is compiled once per machine with the C++ compiler ``torch.compile`` uses too
 (``$CXX``, else ``c++``) and OpenMP, into ``$OMNISCAPE_TORCH_CACHE`` (default
-``~/.cache/omniscape_torch``), named by a hash of the source, the compiler and the flags;
-written to a temporary file and renamed, so concurrent processes never load half a library.
+``~/.cache/omniscape_torch``, else the temporary directory), named by a hash of the source, the
+compiler, the flags and the CPU; written to a temporary file and renamed, so concurrent
+processes never load half a library.
 The library links ``libgomp.so.1``, the OpenMP runtime PyTorch has already loaded, so both
 share one thread pool. Where no compiler or OpenMP is found, :func:`library` returns None
 after one warning and the caller runs its eager torch maths (see
@@ -56,9 +57,14 @@ _SIGNATURES = {
 }
 
 
-def _cache_dir() -> Path:
+def _cache_dirs() -> list[Path]:
+    """Where the library may be kept: ``$OMNISCAPE_TORCH_CACHE`` alone when set, else the user
+    cache, then (a read-only home) the temporary directory."""
     root = os.environ.get("OMNISCAPE_TORCH_CACHE")
-    return Path(root) if root else Path.home() / ".cache" / "omniscape_torch"
+    if root:
+        return [Path(root)]
+    return [Path.home() / ".cache" / "omniscape_torch",
+            Path(tempfile.gettempdir()) / f"omniscape_torch-{getattr(os, 'getuid', int)()}"]
 
 
 def _cpu() -> str:
@@ -77,12 +83,21 @@ def _build(compiler: str) -> Path:
                              check=True).stdout
     key = hashlib.sha256(b"\0".join([source, version.encode(), " ".join(FLAGS).encode(),
                                      _cpu().encode()]))
-    target = _cache_dir() / f"fastsample-{key.hexdigest()[:16]}.so"
-    if target.exists():
-        return target
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".so", dir=target.parent)
+    name = f"fastsample-{key.hexdigest()[:16]}.so"
+    for folder in _cache_dirs():
+        if (folder / name).exists():
+            return folder / name
+    for folder in _cache_dirs():
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(suffix=".so", dir=folder)
+            break
+        except OSError as exc:   # not writable: the next place
+            error = exc
+    else:
+        raise error
     os.close(fd)
+    target = folder / name
     try:
         done = subprocess.run([compiler, *FLAGS, str(SOURCE), "-o", tmp], capture_output=True,
                               text=True)

@@ -229,6 +229,20 @@ def test_native_library_is_built_once_into_the_cache(monkeypatch, tmp_path):
     assert built.stat().st_mtime_ns == stamp and list(tmp_path.iterdir()) == [built]
 
 
+def test_native_library_falls_back_to_the_temporary_directory(monkeypatch, tmp_path):
+    """A home whose cache cannot be written (here ``.cache`` is a file): the temporary
+    directory."""
+    (tmp_path / "home").mkdir()
+    (tmp_path / "home" / ".cache").write_text("not a folder")
+    monkeypatch.delenv("OMNISCAPE_TORCH_CACHE", raising=False)
+    monkeypatch.setattr(native.Path, "home", lambda: tmp_path / "home")
+    monkeypatch.setattr(native.tempfile, "gettempdir", lambda: str(tmp_path / "tmp"))
+    monkeypatch.setattr(native, "_STATE", {})
+    assert native.library() is not None
+    (folder,) = (tmp_path / "tmp").iterdir()
+    assert [p.suffix for p in folder.iterdir()] == [".so"]
+
+
 def test_large_buffers_are_pooled_and_reused_only_once_free(monkeypatch):
     monkeypatch.setattr(memory, "_FREE", {})
     n = memory.HUGE_BYTES // 4 + 1
