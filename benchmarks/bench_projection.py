@@ -9,9 +9,10 @@ batch 1 and 8, and times in one run, round-robin:
   atlas), cached;
 * ``forward_cached_reference``: the same with ``fast=False`` (atlas build + ``grid_sample``);
 * ``forward_rebuilt_fused``: ``OmniProjection(cube, rotation)`` with a new random rotation per
-  sample and call: the fused, compiled grid (``fastgrid.rotated_rays_to_grid``), then the
-  fast sampler (taps computed in the sampling pass, in chunks of samples);
-* ``forward_rebuilt_reference``: the same with ``fast=False``;
+  sample and call: the fast sampler computes each pixel's grid point from the camera's rays in
+  the sampling pass (``fastsample.sample_rays``; no grid is stored);
+* ``forward_rebuilt_reference``: the same with ``fast=False``: the fused, compiled grid
+  (``fastgrid.rotated_rays_to_grid``), then ``grid_sample``;
 * ``forward_rebuilt_eager``: the same with ``fast=False`` and the grid rebuilt eagerly
   (``einsum`` + ``cubemap.rays_to_grid``: the layer's original path);
 * the parts apart: ``atlas`` (``cubemap_to_atlas``), ``sample`` (the layer's ``grid_sample``
@@ -23,7 +24,8 @@ batch 1 and 8, and times in one run, round-robin:
   ``x = ((gx + 1) W - 1) / 2`` (``align_corners=False``), the atlas prebuilt (not timed).
 
 The layers differ only by their ``_grid`` (set on the instance here, so the benchmark
-measures both paths whatever ``projection.py`` uses by default) and ``fast``. Headline ratios
+measures both grid paths whatever ``projection.py`` uses by default; the fast layer's float32
+rays never build one) and ``fast``. Headline ratios
 (issue 7), against ``remap_float32`` per batch: ``forward_cached`` (target <= 1.0) and
 ``forward_rebuilt_fused`` (target <= 1.5); each ratio is given for the medians and for the
 fastest calls (``min_ratio``, which a load spike on a shared machine cannot inflate).

@@ -493,9 +493,9 @@ class _GivenGrid(OmniProjection):
 
     grid: tuple[Tensor, Tensor]
 
-    def sampling_grid(self, rotation: Tensor | None = None, dtype: torch.dtype = torch.float32,
-                      *, masked: bool = True) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        grid, valid = self.grid   # masked either way
+    def sampling_grid(self, rotation: Tensor | None = None, dtype: torch.dtype = torch.float32
+                      ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        grid, valid = self.grid
         grid = grid.to(dtype)
         return grid, valid, grid, valid
 

@@ -8,8 +8,9 @@ calls ``grid_sample``. Without gradients the same image is computed here with no
     image = 4 taps per channel gathered from the cube and blended
 
 For a frozen camera the offsets and fractions are a lookup table, built once
-(:func:`build_lut`) and read on every call; for a grid used once (a rotation per call) they are
-computed in the sampling pass itself and never stored.
+(:func:`build_lut`) and read on every call; for a grid used once they are computed in the
+sampling pass itself and never stored; for camera rays under a new rotation per call
+(:func:`sample_rays`) so is the grid, from the rays.
 
 A pixel whose taps are not all interior texels of one face ("edge" pixels: within a texel of
 a seam, about 1% of them) reads the atlas border, which the cube does not hold: its taps read a
@@ -45,9 +46,11 @@ from torch import Tensor
 from . import memory, native
 from .cubemap.atlas import atlas_to_faces
 from .cubemap.padding import border_plan, check_cubemap
+from .fastgrid import _CASES, _ZERO_CASE, rotated_rays_to_grid
+from .fastgrid import _check_inputs as _check_rays
 from .sampling import unnormalize
 
-__all__ = ["CubeLUT", "build_lut", "sample_cube", "sample_atlas", "compile_failures", "holds",
+__all__ = ["CubeLUT", "build_lut", "sample_cube", "sample_rays", "reads_rays", "sample_atlas", "compile_failures", "holds",
            "MODES", "BORDERS"]
 
 MODES = ("nearest", "bilinear")
@@ -344,21 +347,37 @@ def _kernel(kind: str, dtype: torch.dtype, grid_dtype: torch.dtype):
     return None if suffix is None else native.function(f"os_sample_{kind}_{suffix}")
 
 
+def _tail(faces: Tensor, mode: str, pad: int, border: str, out: Tensor, fill: int,
+          width: int) -> tuple:
+    """The kernels' arguments after their grid: ring, layout, fill, planes, out, threads."""
+    batch, _, chans, f, _ = faces.shape
+    sb, sk, sc, _, _ = faces.stride()
+    ring_src, ring_weight = _ring_offsets(f, pad, border, faces.dtype, sk)
+    return (ring_src.data_ptr(), None if ring_weight is None else ring_weight.data_ptr(),
+            ring_src.shape[1], f, pad, sk, mode == "bilinear", fill, batch, chans, out.shape[-1],
+            width, sb, sc, out.stride(0), out.stride(1), out.data_ptr(), native.threads())
+
+
+def _flat(faces: Tensor) -> Tensor:
+    """The elements ``faces`` spans, as one flat view (the kernels' ``src``)."""
+    _check_offsets(faces.stride(1))
+    span = sum((n - 1) * stride for n, stride in zip(faces.shape, faces.stride())) + 1
+    return faces.as_strided((span,), (1,))
+
+
 def _sample(faces: Tensor, grid: Tensor, mode: str, pad: int, border: str,
             lut: CubeLUT | None, out: Tensor, valid: Tensor | None, fill: int) -> None:
     """Sample ``faces (B, 6, C, F, F)`` (any strides with unit texel stride in a face row) into
     ``out (B, C, P = H W)`` (unit pixel stride); the pixels outside the atlas (without ``lut``,
     also those where ``valid (1 or B', P)`` is False) read ``fill``."""
-    batch, _, chans, f, _ = faces.shape
-    sb, sk, sc, _, _ = faces.stride()
+    batch, _, _, f, _ = faces.shape
+    sk = faces.stride(1)
     if lut is not None and ((lut.mode, lut.face_size, lut.pad, lut.face_stride) != (
             mode, f, pad, sk) or lut.base.shape[0] not in (1, batch)):
         raise ValueError(f"lut: built for (mode, F, pad, face stride, batch) = "
                          f"{(lut.mode, lut.face_size, lut.pad, lut.face_stride, lut.base.shape[0])}"
                          f", the call needs {(mode, f, pad, sk, batch)}")
-    _check_offsets(sk)
-    span = sum((n - 1) * stride for n, stride in zip(faces.shape, faces.stride())) + 1
-    src = faces.as_strided((span,), (1,))
+    src = _flat(faces)
     bilinear = mode == "bilinear"
     floating = faces.is_floating_point()
     width = (grid.shape[2] if lut is None else lut.size[1])
@@ -368,22 +387,69 @@ def _sample(faces: Tensor, grid: Tensor, mode: str, pad: int, border: str,
     kernel = _kernel("grid" if lut is None else "lut", faces.dtype, points.dtype)
     if kernel is None:
         return _sample_eager(src, faces, points, bilinear, pad, border, lut, out, valid, fill)
-    ring_src, ring_weight = _ring_offsets(f, pad, border, faces.dtype, sk)
-    ring = (ring_src.data_ptr(), None if ring_weight is None else ring_weight.data_ptr(),
-            ring_src.shape[1])
-    layout = (f, pad, sk, bilinear, fill, batch, chans, out.shape[-1], width, sb, sc,
-              out.stride(0), out.stride(1), out.data_ptr(), native.threads())
+    tail = _tail(faces, mode, pad, border, out, fill, width)
     pixels = out.shape[-1]
     if lut is None:
         mask = None if valid is None else valid.contiguous()
         kernel(src.data_ptr(), points.data_ptr(), 0 if points.shape[0] == 1 else 2 * pixels,
                None if mask is None else mask.data_ptr(),
-               0 if mask is None or mask.shape[0] == 1 else pixels, *ring, *layout)
+               0 if mask is None or mask.shape[0] == 1 else pixels, *tail)
     else:
         frac = lut.frac.to(faces.dtype) if floating and bilinear else lut.frac
         fx, fy = (frac[0].data_ptr(), frac[1].data_ptr()) if bilinear else (None, None)
         kernel(src.data_ptr(), lut.base.data_ptr(), fx, fy, points.data_ptr(),
-               0 if lut.base.shape[0] == 1 else pixels, *ring, *layout)
+               0 if lut.base.shape[0] == 1 else pixels, *tail)
+
+
+@functools.lru_cache(maxsize=1)
+def _check_face_table() -> None:
+    """The C++ kernel's copy of the face table must be ``cubemap.faces``' (via fastgrid)."""
+    table = torch.zeros(35, dtype=torch.int32)
+    native.function("os_face_cases")(table.data_ptr())
+    expected = [v for case in (*_CASES, _ZERO_CASE) for v in case]
+    if table.tolist() != expected:
+        raise RuntimeError(f"csrc/fastsample.cpp: its face table {table.tolist()} is not "
+                           f"cubemap.faces' {expected}; update kCases")
+
+
+def _rays_kernel(dtype: torch.dtype, rays_dtype: torch.dtype):
+    """The C++ kernel that samples a cube of (working) ``dtype`` through rays of
+    ``rays_dtype``, or None: it computes the grid in the rays' dtype, which must be the grid's
+    (the cube's floating dtype, float32 for other cubes)."""
+    grid_dtype = dtype if dtype.is_floating_point else torch.float32
+    kernel = _kernel("rays", dtype, grid_dtype) if rays_dtype == grid_dtype else None
+    if kernel is not None:
+        _check_face_table()
+    return kernel
+
+
+def reads_rays(dtype: torch.dtype, rays_dtype: torch.dtype) -> bool:
+    """Whether :func:`sample_rays` samples a cube of ``dtype`` through rays of ``rays_dtype``
+    without building their grid first."""
+    half = dtype.is_floating_point and dtype not in (torch.float32, torch.float64)
+    return _rays_kernel(torch.float32 if half else dtype, rays_dtype) is not None
+
+
+def _sample_rays(faces: Tensor, rays: Tensor, rotation: Tensor | None, mode: str, pad: int,
+                 border: str, out: Tensor, valid: Tensor | None, fill: int) -> None:
+    """:func:`_sample` of the grid of ``rays (Br, H, W, 3)`` rotated by ``rotation (Bq, 3, 3)``:
+    computed in the sampling pass where the C++ kernel runs (:func:`_rays_kernel`), else built
+    first."""
+    kernel = _rays_kernel(faces.dtype, rays.dtype)
+    if kernel is None:   # without a C++ compiler nothing compiles: the eager grid then
+        grid_dtype = faces.dtype if faces.is_floating_point() else torch.float32
+        grid = rotated_rays_to_grid(rays, rotation, faces.shape[-1], pad, dtype=grid_dtype,
+                                    compiled=native.library() is not None)
+        return _sample(faces, grid, mode, pad, border, None, out, valid, fill)
+    rays = rays.contiguous()
+    rot = None if rotation is None else rotation.to(rays.dtype).contiguous()
+    mask = None if valid is None else valid.contiguous()
+    pixels = out.shape[-1]
+    kernel(_flat(faces).data_ptr(), rays.data_ptr(), 0 if rays.shape[0] == 1 else 3 * pixels,
+           None if rot is None else rot.data_ptr(), 0 if rot is None or rot.shape[0] == 1 else 9,
+           None if mask is None else mask.data_ptr(),
+           0 if mask is None or mask.shape[0] == 1 else pixels,
+           *_tail(faces, mode, pad, border, out, fill, rays.shape[2]))
 
 
 def _sample_eager(src: Tensor, faces: Tensor, points: Tensor, bilinear: bool, pad: int,
@@ -449,12 +515,71 @@ def sample_cube(cubemap: Tensor, grid: Tensor, mode: str = "bilinear", *, pad: i
         ``(B, C, H, W)`` in the cubemap's dtype (``out`` when given); ``fill`` where every tap
         is outside the atlas.
     """
-    check_cubemap(cubemap)
     _check_grid(grid, cubemap.shape[0])
+    if grid.device.type != "cpu":
+        raise ValueError(f"grid: the fast path runs on the CPU, got {grid.device}")
+    if valid is not None and lut is not None:
+        raise ValueError("valid: only without lut (build the table from a grid whose "
+                         "invalid pixels lie outside the atlas)")
+
+    def sample(work: Tensor, into: Tensor, mask: Tensor | None) -> None:
+        points = grid.to(work.dtype) if work.is_floating_point() else grid
+        _sample(work, points, mode, pad, border, lut, into, mask, fill)
+
+    return _run(cubemap, grid.shape[0], tuple(grid.shape[1:3]), mode, border, out, valid, fill,
+                sample)
+
+
+def sample_rays(cubemap: Tensor, rays: Tensor, rotation: Tensor | None = None,
+                mode: str = "bilinear", *, pad: int, border: str = "bilinear",
+                out: Tensor | None = None, valid: Tensor | None = None, fill: int = 0
+                ) -> Tensor:
+    """:func:`sample_cube` through the grid of camera-frame ``rays`` rotated into the cube
+    frame, without storing the grid.
+
+    Equal, bit for bit, to ``sample_cube(cubemap, fastgrid.rotated_rays_to_grid(rays,
+    rotation, F, pad, dtype=...), ...)`` with the grid in the cube's floating dtype (float32
+    for an integer cube): the C++ kernel computes each pixel's grid point in the sampling pass,
+    with the operations of the compiled ``rotated_rays_to_grid`` in the same order, and reads
+    the cube straight away, so a grid used once (a new rotation per call) costs no pass over
+    memory of its own. Where the kernel does not apply (no compiler, or rays in another dtype
+    than the grid's) the grid is built first.
+
+    Args:
+        cubemap: ``(B, 6, C, F, F)`` on the CPU, as for :func:`sample_cube`.
+        rays: ``(Br, H, W, 3)`` (``Br`` 1 or ``B``) or ``(H, W, 3)`` camera-frame directions.
+        rotation: ``(Bq, 3, 3)`` (``Bq`` 1 or ``B``) or ``(3, 3)`` camera -> cube frame, or None.
+        mode, pad, border, out, fill: as for :func:`sample_cube`.
+        valid: ``(1 or max(Br, Bq), H, W)`` bool: the pixels where it is False read ``fill``.
+
+    Returns:
+        ``(B, C, H, W)`` in the cubemap's dtype (``out`` when given).
+    """
+    check_cubemap(cubemap)
+    batch = cubemap.shape[0]
+    rays, rotation, _ = _check_rays(rays, rotation, cubemap.shape[-1], pad, None)
+    points = max(rays.shape[0], 1 if rotation is None else rotation.shape[0])
+    if points not in (1, batch):
+        raise ValueError(f"rays, rotation: batch {points} does not match the cubemap's {batch}")
+    if rays.device.type != "cpu":
+        raise ValueError(f"rays: the fast path runs on the CPU, got {rays.device}")
+
+    def sample(work: Tensor, into: Tensor, mask: Tensor | None) -> None:
+        _sample_rays(work, rays, rotation, mode, pad, border, into, mask, fill)
+
+    return _run(cubemap, points, tuple(rays.shape[1:3]), mode, border, out, valid, fill, sample)
+
+
+def _run(cubemap: Tensor, points: int, size: tuple[int, int], mode: str, border: str,
+         out: Tensor | None, valid: Tensor | None, fill: int, sample) -> Tensor:
+    """What :func:`sample_cube` and :func:`sample_rays` share: the checks of ``cubemap``,
+    ``out``, ``valid`` (``points``: the grid's batch) and ``fill``; the cube in a dtype and
+    layout the kernels read; then ``sample(work, into (B, C, H W), valid (1 or B', H W) or
+    None)``."""
+    check_cubemap(cubemap)
     _check_mode(mode, border)
-    if cubemap.device.type != "cpu" or grid.device.type != "cpu":
-        raise ValueError(f"cubemap, grid: the fast path runs on the CPU, got {cubemap.device} "
-                         f"and {grid.device}")
+    if cubemap.device.type != "cpu":
+        raise ValueError(f"cubemap: the fast path runs on the CPU, got {cubemap.device}")
     if mode == "bilinear" and not cubemap.is_floating_point():
         raise TypeError(f"cubemap: bilinear sampling needs a floating cubemap, got "
                         f"{cubemap.dtype}")
@@ -462,20 +587,14 @@ def sample_cube(cubemap: Tensor, grid: Tensor, mode: str = "bilinear", *, pad: i
     f = cubemap.shape[-1]
     rows_ok = cubemap.stride(-1) == 1 and (cubemap.stride(-2) == f or f == 1)
     work = cubemap.float() if half else (cubemap if rows_ok else cubemap.contiguous())
-    if work.is_floating_point():
-        grid = grid.to(work.dtype)
     batch, chans = cubemap.shape[0], cubemap.shape[2]
-    size = tuple(grid.shape[1:3])
     if out is not None:
         _check_out(out, (batch, chans, *size), cubemap.dtype)
     _check_fill(fill, cubemap.dtype)
     if valid is not None:
-        if lut is not None:
-            raise ValueError("valid: only without lut (build the table from a grid whose "
-                             "invalid pixels lie outside the atlas)")
         if (not isinstance(valid, Tensor) or valid.dtype != torch.bool or valid.dim() != 3
-                or valid.shape[0] not in (1, grid.shape[0]) or valid.shape[1:] != size):
-            raise ValueError(f"valid: expected a bool tensor of shape (1 or {grid.shape[0]}, "
+                or valid.shape[0] not in (1, points) or valid.shape[1:] != size):
+            raise ValueError(f"valid: expected a bool tensor of shape (1 or {points}, "
                              f"{size[0]}, {size[1]}), got "
                              f"{getattr(valid, 'dtype', type(valid).__name__)} "
                              f"{tuple(getattr(valid, 'shape', ()))}")
@@ -484,7 +603,7 @@ def sample_cube(cubemap: Tensor, grid: Tensor, mode: str = "bilinear", *, pad: i
     if into is None:
         into = memory.empty((batch, chans, *size), work.dtype)
     with torch.no_grad():
-        _sample(work, grid, mode, pad, border, lut, into.flatten(2), valid, fill)
+        sample(work, into.flatten(2), valid)
     if out is None:
         return into.to(cubemap.dtype)
     if into is not out:

@@ -54,6 +54,8 @@ _SIGNATURES = {
     "os_lut_": [_P, _I, _I, _I, _I, _C, _P, _P, _P, _C],
     "os_sample_lut_": [_P, _P, _P, _P, _P, _I, *_TAIL],
     "os_sample_grid_": [_P, _P, _I, _P, _I, *_TAIL],
+    "os_sample_rays_": [_P, _P, _I, _P, _I, _P, _I, *_TAIL],
+    "os_face_cases": [_P],
 }
 
 

@@ -13,7 +13,8 @@ labels are sampled nearest and never blended.
 When no gradient is needed (grad disabled, or neither the cubemaps, the camera parameters nor
 the rotation require it) and the cube is on the CPU, nearest and bilinear sampling take the
 fast path of :mod:`omniscape_torch.fastsample` (same output to float32 rounding, no atlas
-built; a frozen camera's lookup table is cached with its grid); ``fast=False`` forces
+built; a frozen camera's lookup table is cached with its grid; under a rotation the grid is
+computed from the rays in the sampling pass and never stored); ``fast=False`` forces
 ``grid_sample`` everywhere.
 """
 
@@ -187,16 +188,14 @@ class OmniProjection(nn.Module):
         return rotated_rays_to_grid(rays, rotation, self.face_size, self.pad, dtype=dtype,
                                     compiled=rebuilt and self.fused_grid)
 
-    def sampling_grid(self, rotation: Tensor | None = None, dtype: torch.dtype = torch.float32,
-                      *, masked: bool = True) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """Grids for the sub-pixel samples and the pixel centres, and the validity.
+    def sampling_grid(self, rotation: Tensor | None = None, dtype: torch.dtype = torch.float32
+                      ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Grids for the sub-pixel samples and the pixel centres, and the validity. The invalid
+        pixels' grid entries lie outside the atlas (-2, -2), where ``grid_sample`` reads 0.
 
         Args:
             rotation: ``(B, 3, 3)`` or ``(3, 3)`` camera -> cube frame, or None.
             dtype: dtype of the grids.
-            masked: move the invalid pixels' grid entries outside the atlas (-2, -2), where
-                ``grid_sample`` reads 0. False leaves a grid that is not cached as the rays give
-                it, for a sampler that takes the valid mask itself (one pass fewer).
 
         Returns:
             ``grid_sub (B', Hs, Ws, 2)``, ``valid_sub (B', Hs, Ws)``, ``grid_centre
@@ -213,9 +212,8 @@ class OmniProjection(nn.Module):
         valid_s, valid_c = _batched(valid_s), _batched(valid_c)
         # Invalid rays point outside the atlas: sampled with zero padding they read 0, so the
         # image needs no mask afterwards (their gradient is 0 too).
-        mask = _outside if masked or cacheable else (lambda grid, valid: grid)
-        grid_s = mask(self._grid(rays_s, rotation, dtype), valid_s)
-        grid_c = grid_s if self.supersample == 1 else mask(
+        grid_s = _outside(self._grid(rays_s, rotation, dtype), valid_s)
+        grid_c = grid_s if self.supersample == 1 else _outside(
             self._grid(rays_c, rotation, dtype), valid_c)
         out = (grid_s, valid_s, grid_c, valid_c)
         if cacheable:
@@ -245,9 +243,15 @@ class OmniProjection(nn.Module):
         ``fill``: the value of the pixels outside; ``out``: where to write the image."""
         if not (self._fast_now and mode in fastsample.MODES and cube.device.type == "cpu"):
             return None
+        border = "copied" if self.border == "copied" else pad_mode
+        if isinstance(grid, _RayGrid):
+            if fastsample.reads_rays(cube.dtype, grid.rays.dtype):
+                return fastsample.sample_rays(cube, grid.rays, grid.rotation, mode,
+                                              pad=self.pad, border=border, valid=valid,
+                                              fill=fill, out=out)
+            grid = grid.tensor()   # built once for every modality, as the layer builds grids
         cache = self._grid_cache
         cached = cache is not None and any(grid is g for g in cache[1])
-        border = "copied" if self.border == "copied" else pad_mode
         cube = cube.contiguous()  # the layout the lookup tables are built for
         lut = None
         if cached:
@@ -389,7 +393,8 @@ class OmniProjection(nn.Module):
         pixels = math.prod(self.camera.image_size) * self.supersample ** 2
         step = max(1, CHUNK_PIXELS // pixels)
         if (self._fast_now and ref.device.type == "cpu" and rotation is not None
-                and rotation.shape[0] > step and cams == ()):
+                and rotation.shape[0] > step and cams == ()
+                and not self._grid_free(rgb, depth, labels, soft_labels)):
             # a grid per sample: a few samples at a time (see CHUNK_PIXELS), written into
             # outputs allocated once for the batch
             outputs = dict(out or {})
@@ -405,6 +410,17 @@ class OmniProjection(nn.Module):
                      (outputs, slice(None), batch))
         return outputs
 
+    def _grid_free(self, rgb: Tensor | None, depth: Tensor | None, labels: Tensor | None,
+                   soft_labels: int | None) -> bool:
+        """Whether the CPU's fast path renders these inputs under a rotation without building a
+        grid: every sampler reads the rays (``fastsample.sample_rays`` with its C++ kernel)."""
+        rays = self.camera_rays()[0]
+        wanted = ((rgb, self.interpolation), (depth, self.depth_interpolation),
+                  (labels, "nearest"))
+        return soft_labels is None and all(
+            t is None or (mode in fastsample.MODES and fastsample.reads_rays(t.dtype, rays.dtype))
+            for t, mode in wanted)
+
     def _render(self, rgb: Tensor | None, depth: Tensor | None, labels: Tensor | None,
                 rotation: Tensor | None, depth_output: str, soft_labels: int | None,
                 into: tuple[dict, slice, int] | None = None) -> dict[str, Tensor]:
@@ -413,11 +429,18 @@ class OmniProjection(nn.Module):
         ref = next(t for t in (rgb, depth, labels) if t is not None)
         batch = ref.shape[0]
         grid_dtype = torch.float64 if ref.dtype == torch.float64 else torch.float32
-        # a grid rebuilt for the fast samplers keeps its invalid rays: they take the mask
-        raw = (self._fast_now and ref.device.type == "cpu"
-               and (rotation is not None or not self._fixed()))
-        grid_s, valid_s, grid_c, valid_c = self.sampling_grid(rotation, grid_dtype, masked=not raw)
-        mask_s, mask_c = (valid_s, valid_c) if raw else (None, None)
+        if self._fast_now and ref.device.type == "cpu" and rotation is not None:
+            # a grid used once: the fast samplers compute it from the rays as they go, and take
+            # the valid mask (any other sampler builds it, see _RayGrid)
+            rays_s, valid_s, rays_c, valid_c = self.camera_rays()
+            valid_s, valid_c = _batched(valid_s), _batched(valid_c)
+            grid_s = _RayGrid(self, rays_s, rotation, grid_dtype)
+            grid_c = grid_s if self.supersample == 1 else _RayGrid(self, rays_c, rotation,
+                                                                   grid_dtype)
+            mask_s, mask_c = valid_s, valid_c
+        else:
+            grid_s, valid_s, grid_c, valid_c = self.sampling_grid(rotation, grid_dtype)
+            mask_s, mask_c = None, None
         valid = valid_c.expand(batch, *valid_c.shape[1:]).unsqueeze(1)
         out: dict[str, Tensor] = {"valid": valid}
 
@@ -537,9 +560,27 @@ def _edge_aware(atlas: Tensor, grid: Tensor, threshold: float) -> Tensor:
     return torch.where(edge, nearest, blend).unsqueeze(1)
 
 
-def _outside(grid: Tensor, valid: Tensor | None) -> Tensor:
+class _RayGrid:
+    """The grid of camera-frame ``rays`` rotated by ``rotation``, not built yet: the fast
+    samplers read the rays (``fastsample.sample_rays``), the others the grid, built on first
+    use (``tensor``) with the invalid rays left where they point."""
+
+    def __init__(self, layer: OmniProjection, rays: Tensor, rotation: Tensor,
+                 dtype: torch.dtype) -> None:
+        self.layer, self.rays, self.rotation, self.dtype = layer, rays, rotation, dtype
+        self._grid: Tensor | None = None
+
+    def tensor(self) -> Tensor:
+        if self._grid is None:
+            self._grid = self.layer._grid(self.rays, self.rotation, self.dtype)
+        return self._grid
+
+
+def _outside(grid: Tensor | _RayGrid, valid: Tensor | None) -> Tensor:
     """``grid (B, h, w, 2)`` with the invalid entries moved outside the atlas (-2, -2); the
     grid itself where ``valid`` is None (already moved)."""
+    if isinstance(grid, _RayGrid):
+        grid = grid.tensor()
     if valid is None:
         return grid
     return torch.where(valid.unsqueeze(-1), grid, torch.full_like(grid, -2.0))

@@ -18,7 +18,7 @@ import torch.nn.functional as F_nn
 
 import omniscape_torch as ot
 from omniscape_torch import cubemap as cm
-from omniscape_torch import fastsample, memory, native
+from omniscape_torch import fastgrid, fastsample, memory, native
 
 f32, f64 = torch.float32, torch.float64
 #: Rounding of a blend of 4 texels in [0, 1]. float32: the weights are grid_sample's bit for bit,
@@ -128,11 +128,14 @@ def test_eager_fallback_without_a_compiler(monkeypatch, mode):
     labels = torch.randint(0, 2 ** 40, (2, 6, 1, 8, 8), generator=torch.Generator().manual_seed(2))
     valid = torch.rand(1, *grid.shape[1:3], generator=torch.Generator().manual_seed(1)) > 0.3
 
+    rays = make_rays(1)
+
     def run():
         lut = fastsample.build_lut(grid, 8, 1, mode, channels=3)
         images = [fastsample.sample_cube(cube, grid, mode, pad=1),
                   fastsample.sample_cube(cube, grid, mode, pad=1, lut=lut),
-                  fastsample.sample_cube(cube, grid, mode, pad=1, valid=valid)]
+                  fastsample.sample_cube(cube, grid, mode, pad=1, valid=valid),
+                  fastsample.sample_rays(cube, rays, None, mode, pad=1)]
         if mode == "nearest":
             images.append(fastsample.sample_cube(labels, grid.double(), mode, pad=1,
                                                  border="nearest"))
@@ -152,10 +155,13 @@ def test_eager_fallback_without_a_compiler(monkeypatch, mode):
     for got in eager[:2]:
         torch.testing.assert_close(got, expect, atol=ATOL[f32], rtol=0)
     torch.testing.assert_close(eager[2], expect * valid, atol=ATOL[f32], rtol=0)
+    torch.testing.assert_close(eager[3], reference(cm.cubemap_to_atlas(cube, 1),
+                                                   spec_grid(rays, None, 8, 1, f32), mode),
+                               atol=ATOL[f32], rtol=0)
     if mode == "nearest":   # ids beyond float precision: the float64 grid_sample is exact
         ids = reference(cm.cubemap_to_atlas(labels, 1, "nearest").double(), grid.double(),
                         "nearest")
-        assert eager[3].dtype == torch.int64 and torch.equal(eager[3].double(), ids)
+        assert eager[4].dtype == torch.int64 and torch.equal(eager[4].double(), ids)
 
 
 def test_out_valid_and_fill():
@@ -292,13 +298,123 @@ def test_lut_of_another_layout_is_refused():
 
 
 # ------------------------------------------------------------------------------------------
+# sample_rays: the grid of rotated rays computed in the sampling pass
+# ------------------------------------------------------------------------------------------
+def make_rays(batch: int, dtype=f32, seed: int = 4, h: int = 23, w: int = 17) -> torch.Tensor:
+    """Rays in every direction, with the face axes, exact ties between components (the face
+    choice's tie-breaking) and the zero ray."""
+    gen = torch.Generator().manual_seed(seed)
+    rays = torch.randn(batch, h, w, 3, generator=gen, dtype=dtype)
+    special = torch.tensor([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1],
+                            [0, 0, 0], [1, 1, 0], [1, -1, 1], [-1, -1, -1], [0, -0.5, 0.5],
+                            [-0.0, 0, 0], [0.3, 0.3, -0.3]], dtype=dtype)
+    rays[:, 0, :len(special)] = special[:w]
+    return rays
+
+
+def spec_grid(rays: torch.Tensor, rotation, size: int, pad: int, dtype) -> torch.Tensor:
+    """fastgrid's fused maths run eagerly: the operations the kernel must reproduce."""
+    rays = rays if rays.dim() == 4 else rays.unsqueeze(0)
+    if rotation is None:
+        return fastgrid._fused_plain(rays, size, pad, dtype)
+    rotation = rotation if rotation.dim() == 3 else rotation.unsqueeze(0)
+    return fastgrid._fused_rotated(rays, rotation, size, pad, dtype)
+
+
+@pytest.mark.parametrize("mode", ["nearest", "bilinear"])
+@pytest.mark.parametrize("dtype", [f32, f64])
+@pytest.mark.parametrize("ray_batch,rot_batch,pad,border", [
+    (1, 2, 1, "bilinear"),   # one camera, a rotation per sample
+    (2, 1, 2, "nearest"),    # a camera per sample, one rotation
+    (2, None, 1, "copied"),  # no rotation
+    (1, 1, 0, "bilinear"),   # no border
+])
+def test_sample_rays_is_sample_cube_of_the_grid(mode, dtype, ray_batch, rot_batch, pad, border):
+    """Bit for bit the image of the grid of fastgrid's maths, and grid_sample's to rounding."""
+    cube = make_cube(2, 3, 8, dtype)
+    rays = make_rays(ray_batch, dtype)
+    rotation = None if rot_batch is None else rotations(rot_batch).to(dtype)
+    valid = torch.rand(1, 23, 17, generator=torch.Generator().manual_seed(2)) > 0.2
+    grid = spec_grid(rays, rotation, 8, pad, dtype)
+    got = fastsample.sample_rays(cube, rays, rotation, mode, pad=pad, border=border,
+                                 valid=valid)
+    assert got.dtype == dtype and got.shape == (2, 3, 23, 17)
+    assert torch.equal(got, fastsample.sample_cube(cube, grid, mode, pad=pad, border=border,
+                                                   valid=valid))
+    if border == "copied":
+        atlas = copied_atlas(cube, pad)
+    else:
+        atlas = cm.cubemap_to_atlas(cube, pad, border) if pad else cm.faces_to_atlas(cube)
+    masked = torch.where(valid.unsqueeze(-1), grid, torch.full_like(grid, -2.0))
+    torch.testing.assert_close(got, reference(atlas, masked, mode), atol=ATOL[dtype], rtol=0)
+    if rotation is not None:   # the compiled grid (the layer's) is the same grid
+        assert torch.equal(fastgrid.rotated_rays_to_grid(rays, rotation, 8, pad), grid)
+
+
+def test_sample_rays_of_labels_and_half_precision():
+    """Integer ids through float32 rays (exact, the ignore index outside); float16 sampled in
+    float32; rays in another dtype than the grid's: the grid is built first, same image."""
+    rays, rotation = make_rays(1), rotations(2).float()
+    valid = torch.rand(1, 23, 17, generator=torch.Generator().manual_seed(3)) > 0.2
+    labels = torch.randint(0, 2 ** 40, (2, 6, 1, 8, 8), generator=torch.Generator().manual_seed(5))
+    grid = spec_grid(rays, rotation, 8, 1, f32)
+    for ids, fill in ((labels, -1), (labels.remainder(200).to(torch.uint8), 255)):
+        got = fastsample.sample_rays(ids, rays, rotation, "nearest", pad=1, border="nearest",
+                                     valid=valid, fill=fill)
+        assert got.dtype == ids.dtype and bool((got[:, 0][~valid.expand(2, -1, -1)] == fill).all())
+        assert torch.equal(got, fastsample.sample_cube(ids, grid, "nearest", pad=1,
+                                                       border="nearest", valid=valid, fill=fill))
+    cube = make_cube(2, 3, 8)
+    half = fastsample.sample_rays(cube.half(), rays, rotation, pad=1)
+    assert half.dtype == torch.float16
+    assert torch.equal(half, fastsample.sample_rays(cube.half().float(), rays, rotation,
+                                                    pad=1).half())
+    assert fastsample.reads_rays(torch.float16, f32) and not fastsample.reads_rays(f32, f64)
+    assert torch.equal(fastsample.sample_rays(cube, rays.double(), rotation, pad=1),
+                       fastsample.sample_cube(cube, spec_grid(rays.double(), rotation, 8, 1, f32),
+                                              pad=1))
+
+
+def test_kernel_face_table_is_cubemap_faces(monkeypatch):
+    """The C++ kernel's copy of the face table is the one cubemap.faces gives, and a copy that
+    disagrees is refused rather than used."""
+    table = torch.zeros(35, dtype=torch.int32)
+    native.function("os_face_cases")(table.data_ptr())
+    assert table.view(7, 5).tolist() == [list(case) for case in (*fastgrid._CASES,
+                                                                  fastgrid._ZERO_CASE)]
+    fastsample._check_face_table.cache_clear()
+    monkeypatch.setattr(fastsample, "_CASES", fastgrid._CASES[::-1])
+    with pytest.raises(RuntimeError, match="face table"):
+        fastsample.sample_rays(make_cube(1, 3, 8), make_rays(1), None, pad=1)
+    fastsample._check_face_table.cache_clear()
+
+
+@pytest.mark.parametrize("kwargs,error,match", [
+    (dict(rays=torch.zeros(4, 4, 2)), ValueError, "rays must have shape"),
+    (dict(rays=torch.zeros(3, 4, 4, 3)), ValueError, "batch 3 does not match"),
+    (dict(rotation=torch.eye(3).expand(3, 3, 3)), ValueError, "batch 3 does not match"),
+    (dict(rotation=torch.zeros(2, 3, 4)), ValueError, "rotation must have shape"),
+    (dict(rays=torch.zeros(1, 4, 4, 3, dtype=torch.int64)), TypeError, "rays"),
+    (dict(valid=torch.ones(1, 4, 5, dtype=torch.bool)), ValueError, "valid: expected"),
+    (dict(mode="bicubic"), ValueError, "mode: expected one of"),
+])
+def test_sample_rays_bad_input(kwargs, error, match):
+    args = dict(rays=make_rays(1, h=4, w=4), rotation=None)
+    args.update(kwargs)
+    with pytest.raises(error, match=match):
+        fastsample.sample_rays(make_cube(2, 3, 8), args.pop("rays"), args.pop("rotation"),
+                               pad=1, **args)
+
+
+# ------------------------------------------------------------------------------------------
 # OmniProjection: fast=True against fast=False
 # ------------------------------------------------------------------------------------------
-def fisheye(size: int = 24, fov_deg: float = 190.0, learnable: bool = False) -> ot.Camera:
+def fisheye(size: int = 24, fov_deg: float = 190.0, learnable: bool = False,
+            dtype=f64) -> ot.Camera:
     """Equidistant fisheye whose image circle (the fov edge) lies inside the image."""
     fov = math.radians(fov_deg)
     focal, centre = (size - 2) / fov, (size - 1) / 2
-    return ot.Camera("equidistant", torch.tensor([focal, focal, centre, centre], dtype=f64),
+    return ot.Camera("equidistant", torch.tensor([focal, focal, centre, centre], dtype=dtype),
                      (size, size), fov=fov, learnable=learnable)
 
 
@@ -349,6 +465,36 @@ def test_layer_rotation_batch_in_chunks_equals_reference(monkeypatch, supersampl
     for key in ("rgb", "depth", "soft_labels"):
         assert fast[key].shape == ref[key].shape
         torch.testing.assert_close(fast[key], ref[key], atol=ATOL[f32] * 10, rtol=0)
+
+
+def test_layer_rotation_batch_samples_through_the_rays(monkeypatch):
+    """A float32 camera under a rotation batch: every fast sampler reads the rays, so the layer
+    builds no grid and renders the batch in one call (no chunks); the same outputs as
+    grid_sample on the whole batch."""
+    from omniscape_torch import projection
+    monkeypatch.setattr(projection, "CHUNK_PIXELS", 24 * 24)   # would be a chunk per sample
+    inputs = dict(rgb=make_cube(3, 3, 8), depth=1 + 9 * make_cube(3, 1, 8, seed=2),
+                  labels=(make_cube(3, 1, 8, seed=3) * 13).long(), rotation=rotations(3).float())
+    fast = ot.OmniProjection(fisheye(dtype=f32), 8)
+    ref = ot.OmniProjection(fisheye(dtype=f32), 8, fast=False)
+    renders = []
+
+    def no_grid(*args, **kwargs):
+        raise AssertionError("a grid was built")
+
+    def counted(*args, **kwargs):
+        renders.append(args)
+        return projection.OmniProjection._render(fast, *args, **kwargs)
+
+    monkeypatch.setattr(fast, "_grid", no_grid)
+    monkeypatch.setattr(fast, "_render", counted)
+    with torch.no_grad():
+        got, expect = fast.render(**inputs), ref.render(**inputs)
+    assert len(renders) == 1
+    assert torch.equal(got["valid"], expect["valid"])
+    assert torch.equal(got["labels"], expect["labels"])
+    for key in ("rgb", "depth"):
+        torch.testing.assert_close(got[key], expect[key], atol=ATOL[f32] * 10, rtol=0)
 
 
 @pytest.mark.parametrize("rotated", [False, True])

@@ -297,6 +297,118 @@ void sample_grid(const T* src, const G* grid, int64_t grid_batch, const uint8_t*
     });
 }
 
+// The faces of the cube as omniscape_torch.fastgrid._CASES (from cubemap.faces): per case
+// 2 axis + (dominant component < 0), the face, then r and b as (axis, sign). fastsample checks
+// this copy against cubemap.faces before the first use (os_face_cases).
+constexpr int32_t kCases[6][5] = {{3, 2, -1, 1, 1}, {2, 2, 1, 1, 1}, {5, 0, 1, 2, -1},
+                                  {4, 0, 1, 2, 1},  {0, 0, 1, 1, 1}, {1, 0, -1, 1, 1}};
+constexpr int32_t kZeroCase[5] = {0, 0, 1, 1, 1};
+
+template <int K, int Col>
+constexpr int32_t entry() {
+    return K < 6 ? kCases[K][Col] : kZeroCase[Col];
+}
+
+// Column Col of case K (K = 6: the zero ray) for the rotated ray (px, py, pz): 0 the face,
+// 1 r . p, 3 b . p. Templates, so that every case is a plain selection of a component (the
+// loop vectorises; a loop over the table did not).
+template <typename G, int K, int Col>
+inline G case_value(G px, G py, G pz) {
+    if constexpr (Col == 0) {
+        return G(entry<K, 0>());
+    } else {
+        constexpr int32_t axis = entry<K, Col>();
+        const G v = axis == 0 ? px : (axis == 1 ? py : pz);
+        if constexpr (entry<K, Col + 1>() > 0) {
+            return v;
+        } else {
+            return -v;
+        }
+    }
+}
+
+// fastgrid._grid_xy's pick: the value of case 2 axis + neg, or of the zero case.
+template <typename G, int Col>
+inline G pick(bool use_x, bool use_y, bool neg, bool zero, G px, G py, G pz) {
+    const G pos = use_x ? case_value<G, 0, Col>(px, py, pz)
+                        : (use_y ? case_value<G, 2, Col>(px, py, pz)
+                                 : case_value<G, 4, Col>(px, py, pz));
+    const G ngt = use_x ? case_value<G, 1, Col>(px, py, pz)
+                        : (use_y ? case_value<G, 3, Col>(px, py, pz)
+                                 : case_value<G, 5, Col>(px, py, pz));
+    return zero ? case_value<G, 6, Col>(px, py, pz) : (neg ? ngt : pos);
+}
+
+// The atlas grid of `count` rays (x, y, z at rays[3 p ..]) rotated by `rot` (row-major 3 x 3,
+// null: none), into grid[2 p], grid[2 p + 1]: fastgrid._rotated_grid_xy and _grid_xy, the same
+// operations in the same order (so the grid is inductor's, bit for bit).
+template <typename G, bool Rotate>
+void ray_grid(const G* __restrict rays, const G* __restrict rot, int64_t count,
+              const Layout& L, G* __restrict grid) {
+    const G f = G(L.face) / G(2), c = G(L.face - 1) / G(2), n = G(L.n), pad = G(L.pad);
+    const G n6 = G(6 * L.n);
+    G r[9];
+    if (Rotate) {
+        std::copy(rot, rot + 9, r);
+    }
+    for (int64_t p = 0; p < count; ++p) {
+        const G x = rays[3 * p], y = rays[3 * p + 1], z = rays[3 * p + 2];
+        G px = x, py = y, pz = z;
+        if (Rotate) {
+            px = r[0] * x + r[1] * y;
+            px = px + r[2] * z;
+            py = r[3] * x + r[4] * y;
+            py = py + r[5] * z;
+            pz = r[6] * x + r[7] * y;
+            pz = pz + r[8] * z;
+        }
+        const G ax = std::fabs(px), ay = std::fabs(py), az = std::fabs(pz);
+        const bool use_x = (ax >= ay) & (ax >= az);
+        const bool use_y = !use_x & (ay >= az);
+        const G comp = use_x ? px : (use_y ? py : pz);
+        const bool neg = comp < 0, zero = comp == 0;
+        const G num_r = pick<G, 1>(use_x, use_y, neg, zero, px, py, pz);
+        const G num_b = pick<G, 3>(use_x, use_y, neg, zero, px, py, pz);
+        const G face = pick<G, 0>(use_x, use_y, neg, zero, px, py, pz);
+        G depth = neg ? -comp : comp;
+        depth = zero ? G(1) : depth;
+        const G u = c + f * num_r / depth;
+        const G v = c + f * num_b / depth;
+        const G row0 = face * n;
+        grid[2 * p] = (G(2) * (u + pad) + G(1)) / n - G(1);
+        grid[2 * p + 1] = (G(2) * (v + pad + row0) + G(1)) / n6 - G(1);
+    }
+}
+
+template <typename G>
+void ray_grid(const G* rays, const G* rot, int64_t count, const Layout& L, G* grid) {
+    if (rot != nullptr) {
+        ray_grid<G, true>(rays, rot, count, L, grid);
+    } else {
+        ray_grid<G, false>(rays, rot, count, L, grid);
+    }
+}
+
+// sample_grid of the grid of rays (rays_batch = 0: one set for the batch, else 3 P) rotated
+// per sample (rot_batch = 0 or 9; rot null: not rotated), computed a segment at a time into
+// the stack and sampled at once: the grid never goes to memory.
+template <typename T, typename G>
+void sample_rays(const T* src, const G* rays, int64_t rays_batch, const G* rot,
+                 int64_t rot_batch, const uint8_t* valid, int64_t valid_batch, const Ring<T>& R,
+                 const Layout& L, bool bilinear, T fill, Planes S, T* out, int threads) {
+    for_tiles(S, threads, [&](int64_t b, int64_t lo, int64_t m) {
+        G g[2 * kTileW];
+        ray_grid<G>(rays + b * rays_batch + 3 * lo, rot == nullptr ? nullptr : rot + b * rot_batch,
+                    m, L, g);
+        int32_t code[kTileW];
+        G fx[kTileW], fy[kTileW];
+        locate<G>(g, m, valid == nullptr ? nullptr : valid + b * valid_batch + lo, L, bilinear,
+                  code, fx, fy);
+        sample_span<T, G>(src + b * S.src_batch, code, fx, fy, g, m, L, R, bilinear, fill, S,
+                          out + b * S.out_batch + lo);
+    });
+}
+
 }  // namespace
 
 // ------------------------------------------------------------------------------------------
@@ -346,6 +458,15 @@ LUT(os_lut_f64, double)
         sample_grid<T, G>(src, grid, grid_batch, valid, valid_batch, RING(T),                 \
                           layout(face, pad, face_stride), bilinear != 0, T(fill), PLANES,     \
                           out, threads);                                                      \
+    }                                                                                         \
+    void os_sample_rays_##SUFFIX(const T* src, const G* rays, int64_t rays_batch,             \
+                                 const G* rot, int64_t rot_batch, const uint8_t* valid,       \
+                                 int64_t valid_batch, RING_ARGS(T), int64_t face,             \
+                                 int64_t pad, int64_t face_stride, int bilinear,              \
+                                 int64_t fill, PLANE_ARGS, T* out, int threads) {             \
+        sample_rays<T, G>(src, rays, rays_batch, rot, rot_batch, valid, valid_batch, RING(T), \
+                          layout(face, pad, face_stride), bilinear != 0, T(fill), PLANES,     \
+                          out, threads);                                                      \
     }
 SAMPLE(f32, float, float)
 SAMPLE(f64, double, double)
@@ -357,5 +478,10 @@ SAMPLE(1_f64, uint8_t, double)
 SAMPLE(2_f64, uint16_t, double)
 SAMPLE(4_f64, uint32_t, double)
 SAMPLE(8_f64, uint64_t, double)
+
+void os_face_cases(int32_t* out) {
+    std::copy(&kCases[0][0], &kCases[0][0] + 30, out);
+    std::copy(kZeroCase, kZeroCase + 5, out + 30);
+}
 
 }  // extern "C"
