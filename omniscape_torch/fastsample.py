@@ -203,7 +203,11 @@ def _ring_offsets(face_size: int, pad: int, border: str, dtype: torch.dtype, fac
     src, weight = _ring_plan(face_size, pad, border, ring_dtype)
     f2 = face_size * face_size
     offsets = torch.div(src, f2, rounding_mode="floor") * face_stride + src % f2
-    return offsets, (weight if dtype.is_floating_point else None)
+    if weight is None or not dtype.is_floating_point:
+        return offsets, None
+    # each row's nonzero weights first, in their order (the kernel stops at a row's first zero)
+    order = torch.sort((weight == 0).to(torch.uint8), dim=1, stable=True).indices
+    return offsets.gather(1, order), weight.gather(1, order)
 
 
 def _ring_math(src: Tensor, ring_src: Tensor, ring_weight: Tensor | None, batch: int,

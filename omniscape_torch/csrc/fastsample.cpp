@@ -126,49 +126,76 @@ inline T blend(T nw, T ne, T sw, T se, T fx, T fy) {
     return acc;
 }
 
-// Texel (row r, column j) of the virtual atlas of one sample and channel (`cube`).
-template <typename T>
-T atlas_texel(const T* cube, int64_t j, int64_t r, const Layout& L, const Ring<T>& R) {
+// Where texel (column j, row r) of the virtual atlas of one sample and channel is read: `at`
+// in the cube (kCube), ring texel `at` (kRing: fastsample._ring_position), or nowhere (kZero:
+// outside the atlas, 0). Located once per tap, then read for every channel.
+enum Kind : int32_t { kZero, kCube, kRing };
+struct Tap {
+    int64_t at;
+    Kind kind;
+};
+
+inline Tap atlas_tap(int64_t j, int64_t r, const Layout& L) {
     const int64_t n = L.n, f = L.face, p = L.pad;
     if (j < 0 || j >= n || r < 0 || r >= 6 * n) {
-        return T(0);
+        return Tap{0, kZero};
     }
     const int64_t k = r / n, i = r - k * n;
     if (i >= p && i < p + f && j >= p && j < p + f) {
-        return cube[k * L.face_stride + (i - p) * f + (j - p)];
+        return Tap{k * L.face_stride + (i - p) * f + (j - p), kCube};
     }
     // index among the ring texels (fastsample._ring_position)
     const int64_t pos = i < p       ? i * n + j
                         : i < p + f ? p * n + (i - p) * 2 * p + (j < p ? j : j - f)
                                     : p * n + f * 2 * p + (i - p - f) * n + j;
-    const int64_t t = k * (n * n - f * f) + pos;
-    const int64_t* src = R.src + t * R.k;
+    return Tap{k * (n * n - f * f) + pos, kRing};
+}
+
+template <typename T>
+inline T read(const T* cube, const Ring<T>& R, const Tap& t) {
+    if (t.kind != kRing) {
+        return t.kind == kCube ? cube[t.at] : T(0);
+    }
+    const int64_t* src = R.src + t.at * R.k;
     if (R.weight == nullptr) {
         return cube[src[0]];
     }
-    T acc = cube[src[0]] * R.weight[t * R.k];
-    for (int64_t m = 1; m < R.k; ++m) {
-        acc = acc + cube[src[m]] * R.weight[t * R.k + m];
+    // summed in the plan's order up to the row's first zero weight: the rows list their
+    // nonzero weights first (fastsample._ring_offsets), then zeros, which would add nothing
+    const T* w = R.weight + t.at * R.k;
+    T acc = cube[src[0]] * w[0];
+    for (int64_t m = 1; m < R.k && w[m] != T(0); ++m) {
+        acc = acc + cube[src[m]] * w[m];
     }
     return acc;
 }
 
-// An edge pixel at grid point (gx, gy): its taps read through the virtual atlas.
+// An edge pixel at grid point (gx, gy) of one sample: its taps located once, then read through
+// the virtual atlas for every channel into out[c out_chan]. Not inlined: rare, and inlined into
+// sample_span it slowed the whole pass by 10% (1M pixels, 0.2% of them edge pixels).
 template <typename T, typename G>
-T edge_value(const T* cube, G gx, G gy, const Layout& L, const Ring<T>& R, bool bilinear) {
+__attribute__((noinline)) void edge_pixel(const T* cube, const Ring<T>& R, G gx, G gy, const Layout& L, bool bilinear,
+                const Planes& S, T* out) {
     const G x = unnormalize(gx, L.half_x), y = unnormalize(gy, L.half_y);
     if (!bilinear) {
-        return atlas_texel<T>(cube, static_cast<int64_t>(std::nearbyint(x)),
-                              static_cast<int64_t>(std::nearbyint(y)), L, R);
+        const Tap t = atlas_tap(static_cast<int64_t>(std::nearbyint(x)),
+                                static_cast<int64_t>(std::nearbyint(y)), L);
+        for (int64_t c = 0; c < S.chans; ++c) {
+            out[c * S.out_chan] = read(cube + c * S.src_chan, R, t);
+        }
+        return;
     }
-    if constexpr (std::is_floating_point_v<T>) {
+    if constexpr (std::is_floating_point_v<T>) {   // integer cubes are sampled nearest
         const G x0 = std::floor(x), y0 = std::floor(y);
         const int64_t j = static_cast<int64_t>(x0), r = static_cast<int64_t>(y0);
-        return blend<T>(atlas_texel<T>(cube, j, r, L, R), atlas_texel<T>(cube, j + 1, r, L, R),
-                        atlas_texel<T>(cube, j, r + 1, L, R),
-                        atlas_texel<T>(cube, j + 1, r + 1, L, R), T(x - x0), T(y - y0));
+        const Tap nw = atlas_tap(j, r, L), ne = atlas_tap(j + 1, r, L);
+        const Tap sw = atlas_tap(j, r + 1, L), se = atlas_tap(j + 1, r + 1, L);
+        for (int64_t c = 0; c < S.chans; ++c) {
+            const T* q = cube + c * S.src_chan;
+            out[c * S.out_chan] = blend<T>(read(q, R, nw), read(q, R, ne), read(q, R, sw),
+                                           read(q, R, se), T(x - x0), T(y - y0));
+        }
     }
-    return T(0);  // not reached: integer cubes are sampled nearest
 }
 
 // N channels of pixels [0, m) as if every pixel were interior (the outside ones read `fill`):
@@ -211,8 +238,8 @@ void interior(const T* __restrict cube, int64_t src_chan, const int32_t* __restr
 // points, for the edge pixels) start at the first of them; the pixels outside read `fill`.
 // Up to 4 channels per pass over the pixels (interior), then the edge pixels again.
 template <typename T, typename G>
-void sample_span(const T* cube, const int32_t* code, const G* fx, const G* fy, const G* grid,
-                 int64_t m, const Layout& L, const Ring<T>& R, bool bilinear, T fill,
+void sample_span(const T* cube, const Ring<T>& R, const int32_t* code, const G* fx, const G* fy,
+                 const G* grid, int64_t m, const Layout& L, bool bilinear, T fill,
                  const Planes& S, T* out) {
     for (int64_t c = 0; c < S.chans; c += 4) {
         const T* q = cube + c * S.src_chan;
@@ -237,10 +264,7 @@ void sample_span(const T* cube, const int32_t* code, const G* fx, const G* fy, c
     }
     for (int64_t p = 0; p < m; ++p) {
         if (code[p] == kEdge) {
-            for (int64_t c = 0; c < S.chans; ++c) {
-                out[c * S.out_chan + p] = edge_value<T, G>(cube + c * S.src_chan, grid[2 * p],
-                                                           grid[2 * p + 1], L, R, bilinear);
-            }
+            edge_pixel<T, G>(cube, R, grid[2 * p], grid[2 * p + 1], L, bilinear, S, out + p);
         }
     }
 }
@@ -273,9 +297,9 @@ void sample_lut(const T* src, const int32_t* code, const G* fx, const G* fy, con
                 Planes S, T* out, int threads) {
     for_tiles(S, threads, [&](int64_t b, int64_t lo, int64_t m) {
         const int64_t t = b * lut_batch + lo;
-        sample_span<T, G>(src + b * S.src_batch, code + t, bilinear ? fx + t : nullptr,
-                          bilinear ? fy + t : nullptr, grid + 2 * t, m, L, R, bilinear, fill, S,
-                          out + b * S.out_batch + lo);
+        sample_span<T, G>(src + b * S.src_batch, R, code + t,
+                          bilinear ? fx + t : nullptr, bilinear ? fy + t : nullptr, grid + 2 * t,
+                          m, L, bilinear, fill, S, out + b * S.out_batch + lo);
     });
 }
 
@@ -292,8 +316,8 @@ void sample_grid(const T* src, const G* grid, int64_t grid_batch, const uint8_t*
         G fx[kTileW], fy[kTileW];
         locate<G>(g, m, valid == nullptr ? nullptr : valid + b * valid_batch + lo, L, bilinear,
                   code, fx, fy);
-        sample_span<T, G>(src + b * S.src_batch, code, fx, fy, g, m, L, R, bilinear, fill, S,
-                          out + b * S.out_batch + lo);
+        sample_span<T, G>(src + b * S.src_batch, R, code, fx, fy, g,
+                          m, L, bilinear, fill, S, out + b * S.out_batch + lo);
     });
 }
 
@@ -404,8 +428,8 @@ void sample_rays(const T* src, const G* rays, int64_t rays_batch, const G* rot,
         G fx[kTileW], fy[kTileW];
         locate<G>(g, m, valid == nullptr ? nullptr : valid + b * valid_batch + lo, L, bilinear,
                   code, fx, fy);
-        sample_span<T, G>(src + b * S.src_batch, code, fx, fy, g, m, L, R, bilinear, fill, S,
-                          out + b * S.out_batch + lo);
+        sample_span<T, G>(src + b * S.src_batch, R, code, fx, fy, g,
+                          m, L, bilinear, fill, S, out + b * S.out_batch + lo);
     });
 }
 
