@@ -60,6 +60,8 @@ MODES = ("nearest", "bilinear")
 BORDERS = ("bilinear", "nearest", "copied")
 #: Codes of the lookup table's ``base`` for pixels that do not read 4 interior texels.
 _OUTSIDE, _EDGE = -1, -2
+#: The integer dtype of a lookup table's entries per grid dtype: as wide as the fractions.
+_ENTRY = {torch.float32: torch.int32, torch.float64: torch.int64}
 
 
 @dataclass(frozen=True)
@@ -71,11 +73,9 @@ class CubeLUT:
         face_size: ``F``. pad: the atlas border ``p`` the grid was made for.
         face_stride: elements between faces of one channel in the cube (``C F F`` for a
             contiguous cube).
-        base: ``(B', P)`` int32, ``P = H W``: per pixel the offset of the top-left tap
-            (nearest: the texel) within one sample of the cube, or -1 (all taps outside the
-            atlas: 0) or -2 (an edge pixel).
-        frac: ``(2, B', P)`` the bilinear fractions ``(x - floor x, y - floor y)`` (empty for
-            nearest).
+        table: ``(B', P, 3)``, ``P = H W``: per pixel the entry the C++ kernel reads, its
+            code (``base``) and the bits of its two fractions (``frac``) side by side; int32
+            for a float32 grid, int64 for a float64 one.
         grid: ``(B', P, 2)`` the grid (the edge pixels are resampled from it).
         size: ``(H, W)``.
     """
@@ -84,10 +84,28 @@ class CubeLUT:
     face_size: int
     pad: int
     face_stride: int
-    base: Tensor
-    frac: Tensor
+    table: Tensor
     grid: Tensor
     size: tuple[int, int]
+
+    @property
+    def base(self) -> Tensor:
+        """``(B', P)``: per pixel the offset of the top-left tap (nearest: the texel) within
+        one sample of the cube, or -1 (all taps outside the atlas: 0) or -2 (an edge pixel)."""
+        return self.table[..., 0]
+
+    @property
+    def frac(self) -> Tensor:
+        """``(2, B', P)`` in the grid's dtype: the bilinear fractions ``(x - floor x, y - floor
+        y)`` (unused for nearest)."""
+        return self.table[..., 1:].view(self.grid.dtype).permute(2, 0, 1)
+
+
+def _table(base: Tensor, fx: Tensor, fy: Tensor) -> Tensor:
+    """The entries ``(B', P, 3)`` of :class:`CubeLUT` from codes and fractions (float32 or
+    float64)."""
+    entry = _ENTRY[fx.dtype]
+    return torch.stack((base.to(entry), fx.view(entry), fy.view(entry)), -1)
 
 
 # ------------------------------------------------------------------------------------------
@@ -324,17 +342,12 @@ def build_lut(grid: Tensor, face_size: int, pad: int, mode: str = "bilinear", *,
     bilinear = mode == "bilinear"
     kernel = native.function(f"os_lut_{_SUFFIX[flat.dtype]}")
     if kernel is not None:
-        base = torch.empty(flat.shape[:2], dtype=torch.int32)
-        frac = torch.empty((2, *flat.shape[:2]), dtype=flat.dtype)
+        table = torch.empty((*flat.shape[:2], 3), dtype=_ENTRY[flat.dtype])
         kernel(flat.data_ptr(), flat.shape[0] * flat.shape[1], face_size, pad, face_stride,
-               bilinear, base.data_ptr(), frac[0].data_ptr(), frac[1].data_ptr(),
-               native.threads())
+               bilinear, table.data_ptr(), native.threads())
     else:
-        base, fx, fy = _lut_math(flat, face_size, pad, face_stride, bilinear)
-        frac = torch.stack((fx, fy))
-    if not bilinear:
-        frac = flat.new_empty(0)
-    return CubeLUT(mode, face_size, pad, face_stride, base, frac, flat, tuple(grid.shape[1:3]))
+        table = _table(*_lut_math(flat, face_size, pad, face_stride, bilinear))
+    return CubeLUT(mode, face_size, pad, face_stride, table, flat, tuple(grid.shape[1:3]))
 
 
 _SUFFIX = {torch.float32: "f32", torch.float64: "f64"}
@@ -399,10 +412,12 @@ def _sample(faces: Tensor, grid: Tensor, mode: str, pad: int, border: str,
                None if mask is None else mask.data_ptr(),
                0 if mask is None or mask.shape[0] == 1 else pixels, *tail)
     else:
-        frac = lut.frac.to(faces.dtype) if floating and bilinear else lut.frac
-        fx, fy = (frac[0].data_ptr(), frac[1].data_ptr()) if bilinear else (None, None)
-        kernel(src.data_ptr(), lut.base.data_ptr(), fx, fy, points.data_ptr(),
-               0 if lut.base.shape[0] == 1 else pixels, *tail)
+        table = lut.table
+        if table.dtype != _ENTRY[points.dtype]:   # a table of another grid dtype: converted
+            frac = lut.frac.to(points.dtype)
+            table = _table(lut.base, frac[0], frac[1])
+        kernel(src.data_ptr(), table.data_ptr(), points.data_ptr(),
+               0 if table.shape[0] == 1 else pixels, *tail)
 
 
 @functools.lru_cache(maxsize=1)

@@ -51,8 +51,8 @@ _P, _I, _C = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
 # threads
 _TAIL = [_P, _P, _I, _I, _I, _I, _C, _I, *[_I] * 8, _P, _C]
 _SIGNATURES = {
-    "os_lut_": [_P, _I, _I, _I, _I, _C, _P, _P, _P, _C],
-    "os_sample_lut_": [_P, _P, _P, _P, _P, _I, *_TAIL],
+    "os_lut_": [_P, _I, _I, _I, _I, _C, _P, _C],
+    "os_sample_lut_": [_P, _P, _P, _I, *_TAIL],
     "os_sample_grid_": [_P, _P, _I, _P, _I, *_TAIL],
     "os_sample_rays_": [_P, _P, _I, _P, _I, _P, _I, *_TAIL],
     "os_face_cases": [_P],

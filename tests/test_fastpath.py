@@ -88,6 +88,29 @@ def test_sample_cube_equals_grid_sample(mode, dtype, size, pad, channels, batch,
     assert bool((lut.base == -2).any()) or pad == 0  # the seam pixels were exercised
 
 
+def test_lookup_table_entries_and_another_grid_dtype():
+    """A table's entries hold the codes and the fractions of the grid points; one built from a
+    float64 grid samples a float32 cube too (its fractions converted)."""
+    cube, grid = make_cube(2, 3, 8), make_grid(1, f64)
+    lut = fastsample.build_lut(grid, 8, 1, channels=3)
+    assert lut.table.dtype == torch.int64 and lut.table.shape == (1, 23 * 17, 3)
+    n = 10   # 8 + 2 * 1
+    x = ((grid[..., 0] + 1) * n - 1) / 2   # atlas pixels, align_corners=False
+    y = ((grid[..., 1] + 1) * 6 * n - 1) / 2
+    torch.testing.assert_close(lut.frac, torch.stack((x - x.floor(), y - y.floor())).flatten(2),
+                               atol=1e-12, rtol=0)
+    interior = ((x >= 1) & (x < n - 2) & (y >= 0) & (y < 6 * n)
+                & (y.remainder(n) >= 1) & (y.remainder(n) < n - 2))
+    j, i, k = x.floor().long() - 1, y.remainder(n).floor().long() - 1, (y / n).floor().long()
+    expect = k * 3 * 64 + i * 8 + j   # face stride C F F, then the texel in the face
+    assert torch.equal(lut.base.view(1, 23, 17)[interior], expect[interior])
+    # the interior pixels at the table's float64 points, the edge pixels at the float32 grid's:
+    # within the float32 rounding of a point (60 atlas pixels: 4e-6 pixel) of the float64 image
+    atlas = cm.cubemap_to_atlas(cube.double(), 1)
+    torch.testing.assert_close(fastsample.sample_cube(cube, grid, pad=1, lut=lut),
+                               reference(atlas, grid, "bilinear").float(), atol=1e-5, rtol=0)
+
+
 @pytest.mark.parametrize("mode", ["nearest", "bilinear"])
 def test_sample_atlas_equals_grid_sample(mode):
     atlas = cm.cubemap_to_atlas(make_cube(2, 3, 9), 1)
