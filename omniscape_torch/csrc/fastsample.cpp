@@ -51,13 +51,50 @@ struct Ring {
     int64_t k;
 };
 
-// A pixel's taps: the code and the bilinear fractions, side by side so that a pass over the
-// pixels reads one stream (a table in three arrays was 10% slower). The code is as wide as G,
-// so that an Entry has no padding (the lookup table is an int32 or int64 tensor (P, 3)).
+// A pixel's taps, its code and bilinear fractions, where locate writes them and interior reads
+// them: side by side in a lookup table (one stream to read: three arrays were 10% slower), in
+// three arrays on the stack when computed in the sampling pass (vectorised stores: side by side
+// was 10% slower there). The code of an Entry is as wide as G, so that it has no padding (the
+// table is an int32 or int64 tensor (P, 3)).
 template <typename G>
 struct Entry {
     std::conditional_t<sizeof(G) == 8, int64_t, int32_t> code;
     G fx, fy;
+};
+
+template <typename G>
+struct Packed {
+    Entry<G>* e;
+    int64_t code(int64_t p) const { return e[p].code; }
+    G fx(int64_t p) const { return e[p].fx; }
+    G fy(int64_t p) const { return e[p].fy; }
+    void set(int64_t p, int32_t code, G fx, G fy) const { e[p] = Entry<G>{code, fx, fy}; }
+    void set_code(int64_t p, int32_t code) const { e[p].code = code; }
+    Packed operator+(int64_t d) const { return Packed{e + d}; }
+};
+
+template <typename G>
+struct Split {
+    int32_t* codes;
+    G *fxs, *fys;
+    int64_t code(int64_t p) const { return codes[p]; }
+    G fx(int64_t p) const { return fxs[p]; }
+    G fy(int64_t p) const { return fys[p]; }
+    void set(int64_t p, int32_t code, G fx, G fy) const {
+        codes[p] = code;
+        fxs[p] = fx;
+        fys[p] = fy;
+    }
+    void set_code(int64_t p, int32_t code) const { codes[p] = code; }
+    Split operator+(int64_t d) const { return Split{codes + d, fxs + d, fys + d}; }
+};
+
+// The three arrays of a segment of pixels, on the stack.
+template <typename G>
+struct SplitBuffer {
+    int32_t code[kTileW];
+    G fx[kTileW], fy[kTileW];
+    Split<G> taps() { return Split<G>{code, fx, fy}; }
 };
 
 // The samples and channels of the cube and of the output image.
@@ -78,9 +115,9 @@ inline double unnormalize(double g, double half) {
 // Codes and bilinear fractions of `count` grid points; `valid` (bool, may be null) false ->
 // outside. Branch-free int32 arithmetic (`&` for `&&`) that the compiler vectorises; the
 // offsets fit in int32 (fastsample._check_offsets).
-template <typename G, bool Bilinear>
+template <typename G, bool Bilinear, typename Taps>
 void locate(const G* __restrict grid, int64_t count, const uint8_t* __restrict valid,
-            const Layout& L, Entry<G>* __restrict e) {
+            const Layout& L, Taps out) {
     const int32_t n = static_cast<int32_t>(L.n), f = static_cast<int32_t>(L.face);
     const int32_t pad = static_cast<int32_t>(L.pad), stride = static_cast<int32_t>(L.face_stride);
     const int32_t span = Bilinear ? 1 : 0;
@@ -91,8 +128,6 @@ void locate(const G* __restrict grid, int64_t count, const uint8_t* __restrict v
         // round: half to even under the default rounding mode, as grid_sample rounds
         const G x0 = Bilinear ? std::floor(x) : std::nearbyint(x);
         const G y0 = Bilinear ? std::floor(y) : std::nearbyint(y);
-        e[p].fx = x - x0;
-        e[p].fy = y - y0;
         // beyond the atlas by more than a texel (or NaN): outside; keeps the casts small
         const bool near = (x0 >= lo) & (x0 <= hi_x) & (y0 >= lo) & (y0 <= hi_y);
         const int32_t j = static_cast<int32_t>(near ? x0 : lo);
@@ -104,23 +139,24 @@ void locate(const G* __restrict grid, int64_t count, const uint8_t* __restrict v
                               (j >= pad) & (j + span < pad + f);
         const bool touches = near & (x0 + span >= 0) & (x0 < n) & (y0 + span >= 0) &
                              (y0 < 6 * n);  // a tap inside the atlas
-        e[p].code = interior ? k * stride + (i - pad) * f + (j - pad)
-                             : (touches ? kEdge : kOutside);
+        out.set(p, interior ? k * stride + (i - pad) * f + (j - pad)
+                            : (touches ? kEdge : kOutside),
+                x - x0, y - y0);
     }
     if (valid != nullptr) {
         for (int64_t p = 0; p < count; ++p) {
-            e[p].code = valid[p] ? e[p].code : kOutside;
+            out.set_code(p, valid[p] ? out.code(p) : kOutside);
         }
     }
 }
 
-template <typename G>
+template <typename G, typename Taps>
 void locate(const G* grid, int64_t count, const uint8_t* valid, const Layout& L, bool bilinear,
-            Entry<G>* e) {
+            Taps out) {
     if (bilinear) {
-        locate<G, true>(grid, count, valid, L, e);
+        locate<G, true>(grid, count, valid, L, out);
     } else {
-        locate<G, false>(grid, count, valid, L, e);
+        locate<G, false>(grid, count, valid, L, out);
     }
 }
 
@@ -211,15 +247,15 @@ __attribute__((noinline)) void edge_pixel(const T* cube, const Ring<T>& R, G gx,
 // per pixel the tap offset and weights once, then the N channels' taps. Scalar: gathers
 // vectorised by the compiler were slower (AVX-512 on AMD EPYC: 36 -> 47 ms for 8 x 1M pixels),
 // so was a channel at a time (36 against 30 ms).
-template <typename T, typename G, int N>
+template <typename T, typename G, int N, typename Taps>
 __attribute__((optimize("no-tree-vectorize")))
-void interior(const T* __restrict cube, int64_t src_chan, const Entry<G>* __restrict t,
-              int64_t m, int64_t f, bool bilinear, T fill, T* __restrict out, int64_t out_chan) {
+void interior(const T* __restrict cube, int64_t src_chan, Taps t, int64_t m, int64_t f,
+              bool bilinear, T fill, T* __restrict out, int64_t out_chan) {
     if (std::is_floating_point_v<T> && bilinear) {
         for (int64_t p = 0; p < m; ++p) {
-            const int64_t k = std::max<int64_t>(t[p].code, 0);
-            const bool inside = t[p].code >= 0;
-            const T x = T(t[p].fx), y = T(t[p].fy), e = 1 - x, s = 1 - y;
+            const int64_t k = std::max<int64_t>(t.code(p), 0);
+            const bool inside = t.code(p) >= 0;
+            const T x = T(t.fx(p)), y = T(t.fy(p)), e = 1 - x, s = 1 - y;
             const T w0 = s * e, w1 = s * x, w2 = y * e, w3 = y * x;  // blend()'s order
             for (int n = 0; n < N; ++n) {
                 const T* q = cube + n * src_chan + k;
@@ -232,8 +268,8 @@ void interior(const T* __restrict cube, int64_t src_chan, const Entry<G>* __rest
         }
     } else {
         for (int64_t p = 0; p < m; ++p) {
-            const int64_t k = std::max<int64_t>(t[p].code, 0);
-            const bool inside = t[p].code >= 0;
+            const int64_t k = std::max<int64_t>(t.code(p), 0);
+            const bool inside = t.code(p) >= 0;
             for (int n = 0; n < N; ++n) {
                 const T v = cube[n * src_chan + k];
                 out[n * out_chan + p] = inside ? v : fill;
@@ -245,28 +281,28 @@ void interior(const T* __restrict cube, int64_t src_chan, const Entry<G>* __rest
 // Output pixels [lo, lo + m) of sample b: the entries `t` and `grid` (the pixels' grid
 // points, for the edge pixels) start at the first of them; the pixels outside read `fill`.
 // Up to 4 channels per pass over the pixels (interior), then the edge pixels again.
-template <typename T, typename G>
-void sample_span(const T* cube, const Ring<T>& R, const Entry<G>* t, const G* grid, int64_t m,
+template <typename T, typename G, typename Taps>
+void sample_span(const T* cube, const Ring<T>& R, Taps t, const G* grid, int64_t m,
                  const Layout& L, bool bilinear, T fill, const Planes& S, T* out) {
     for (int64_t c = 0; c < S.chans; c += 4) {
         const T* q = cube + c * S.src_chan;
         T* o = out + c * S.out_chan;
         switch (std::min<int64_t>(S.chans - c, 4)) {
             case 1:
-                interior<T, G, 1>(q, S.src_chan, t, m, L.face, bilinear, fill, o, S.out_chan);
+                interior<T, G, 1, Taps>(q, S.src_chan, t, m, L.face, bilinear, fill, o, S.out_chan);
                 break;
             case 2:
-                interior<T, G, 2>(q, S.src_chan, t, m, L.face, bilinear, fill, o, S.out_chan);
+                interior<T, G, 2, Taps>(q, S.src_chan, t, m, L.face, bilinear, fill, o, S.out_chan);
                 break;
             case 3:
-                interior<T, G, 3>(q, S.src_chan, t, m, L.face, bilinear, fill, o, S.out_chan);
+                interior<T, G, 3, Taps>(q, S.src_chan, t, m, L.face, bilinear, fill, o, S.out_chan);
                 break;
             default:
-                interior<T, G, 4>(q, S.src_chan, t, m, L.face, bilinear, fill, o, S.out_chan);
+                interior<T, G, 4, Taps>(q, S.src_chan, t, m, L.face, bilinear, fill, o, S.out_chan);
         }
     }
     for (int64_t p = 0; p < m; ++p) {
-        if (t[p].code == kEdge) {
+        if (t.code(p) == kEdge) {
             edge_pixel<T, G>(cube, R, grid[2 * p], grid[2 * p + 1], L, bilinear, S, out + p);
         }
     }
@@ -300,8 +336,9 @@ void sample_lut(const T* src, const Entry<G>* table, const G* grid, int64_t lut_
                 int threads) {
     for_tiles(S, threads, [&](int64_t b, int64_t lo, int64_t m) {
         const int64_t at = b * lut_batch + lo;
-        sample_span<T, G>(src + b * S.src_batch, R, table + at, grid + 2 * at, m, L, bilinear,
-                          fill, S, out + b * S.out_batch + lo);
+        const Packed<G> taps{const_cast<Entry<G>*>(table) + at};   // read only
+        sample_span<T, G>(src + b * S.src_batch, R, taps, grid + 2 * at, m, L, bilinear, fill,
+                          S, out + b * S.out_batch + lo);
     });
 }
 
@@ -314,10 +351,10 @@ void sample_grid(const T* src, const G* grid, int64_t grid_batch, const uint8_t*
                  Planes S, T* out, int threads) {
     for_tiles(S, threads, [&](int64_t b, int64_t lo, int64_t m) {
         const G* g = grid + b * grid_batch + 2 * lo;
-        Entry<G> t[kTileW];
+        SplitBuffer<G> buffer;
         locate<G>(g, m, valid == nullptr ? nullptr : valid + b * valid_batch + lo, L, bilinear,
-                  t);
-        sample_span<T, G>(src + b * S.src_batch, R, t, g, m, L, bilinear, fill, S,
+                  buffer.taps());
+        sample_span<T, G>(src + b * S.src_batch, R, buffer.taps(), g, m, L, bilinear, fill, S,
                           out + b * S.out_batch + lo);
     });
 }
@@ -425,10 +462,10 @@ void sample_rays(const T* src, const G* rays, int64_t rays_batch, const G* rot,
         G g[2 * kTileW];
         ray_grid<G>(rays + b * rays_batch + 3 * lo, rot == nullptr ? nullptr : rot + b * rot_batch,
                     m, L, g);
-        Entry<G> t[kTileW];
+        SplitBuffer<G> buffer;
         locate<G>(g, m, valid == nullptr ? nullptr : valid + b * valid_batch + lo, L, bilinear,
-                  t);
-        sample_span<T, G>(src + b * S.src_batch, R, t, g, m, L, bilinear, fill, S,
+                  buffer.taps());
+        sample_span<T, G>(src + b * S.src_batch, R, buffer.taps(), g, m, L, bilinear, fill, S,
                           out + b * S.out_batch + lo);
     });
 }
@@ -458,7 +495,7 @@ extern "C" {
         _Pragma("omp parallel for num_threads(threads) schedule(static)")                     \
         for (int64_t tile = 0; tile < tiles; ++tile) {                                        \
             const int64_t lo = tile * kChunk, m = std::min(kChunk, count - lo);               \
-            locate<G>(grid + 2 * lo, m, nullptr, L, bilinear != 0, table + lo);               \
+            locate<G>(grid + 2 * lo, m, nullptr, L, bilinear != 0, Packed<G>{table} + lo);    \
         }                                                                                     \
     }
 LUT(os_lut_f32, float)
