@@ -318,14 +318,16 @@ def pareto_front(cost: list[float], score: list[float]) -> list[int]:
 
 
 def git_commit() -> tuple[str, bool | None]:
-    """(HEAD commit of the checkout this package lives in, or "unknown"; dirty tree or None)."""
+    """(HEAD commit of the checkout this package lives in, or "unknown"; dirty tree or None).
+    Changed benchmark results (``benchmarks/results``, what a rerun rewrites) are not dirt."""
     root = Path(__file__).resolve().parents[1]
     try:
         commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True,
                                 text=True, timeout=10)
         if commit.returncode != 0:
             return "unknown", None
-        status = subprocess.run(["git", "status", "--porcelain"], cwd=root,
+        status = subprocess.run(["git", "status", "--porcelain", "--", ".",
+                                 ":(exclude)benchmarks/results"], cwd=root,
                                 capture_output=True, text=True, timeout=10)
         return commit.stdout.strip(), bool(status.stdout.strip())
     except (OSError, subprocess.SubprocessError):
