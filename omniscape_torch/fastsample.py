@@ -50,8 +50,8 @@ from .fastgrid import _CASES, _ZERO_CASE, rotated_rays_to_grid
 from .fastgrid import _check_inputs as _check_rays
 from .sampling import unnormalize
 
-__all__ = ["CubeLUT", "build_lut", "sample_cube", "sample_rays", "reads_rays", "sample_atlas", "compile_failures", "holds",
-           "MODES", "BORDERS"]
+__all__ = ["CubeLUT", "build_lut", "sample_cube", "sample_rays", "reads_rays", "sample_atlas",
+           "compile_failures", "holds", "MODES", "BORDERS"]
 
 MODES = ("nearest", "bilinear")
 #: How the atlas border is filled: resampled from the neighbours with the ``"bilinear"`` or
@@ -534,6 +534,7 @@ def sample_cube(cubemap: Tensor, grid: Tensor, mode: str = "bilinear", *, pad: i
         ``(B, C, H, W)`` in the cubemap's dtype (``out`` when given); ``fill`` where every tap
         is outside the atlas.
     """
+    check_cubemap(cubemap)
     _check_grid(grid, cubemap.shape[0])
     if grid.device.type != "cpu":
         raise ValueError(f"grid: the fast path runs on the CPU, got {grid.device}")
@@ -591,11 +592,10 @@ def sample_rays(cubemap: Tensor, rays: Tensor, rotation: Tensor | None = None,
 
 def _run(cubemap: Tensor, points: int, size: tuple[int, int], mode: str, border: str,
          out: Tensor | None, valid: Tensor | None, fill: int, sample) -> Tensor:
-    """What :func:`sample_cube` and :func:`sample_rays` share: the checks of ``cubemap``,
-    ``out``, ``valid`` (``points``: the grid's batch) and ``fill``; the cube in a dtype and
-    layout the kernels read; then ``sample(work, into (B, C, H W), valid (1 or B', H W) or
-    None)``."""
-    check_cubemap(cubemap)
+    """What :func:`sample_cube` and :func:`sample_rays` share, after their ``check_cubemap``:
+    the checks of the cube's device and dtype, of ``out``, ``valid`` (``points``: the grid's
+    batch) and ``fill``; the cube in a dtype and layout the kernels read; then ``sample(work,
+    into (B, C, H W), valid (1 or B', H W) or None)``."""
     _check_mode(mode, border)
     if cubemap.device.type != "cpu":
         raise ValueError(f"cubemap: the fast path runs on the CPU, got {cubemap.device}")

@@ -36,10 +36,11 @@ INTERPOLATIONS = ("nearest", "bilinear", "bicubic")
 DEPTH_INTERPOLATIONS = ("nearest", "bilinear", "edge_aware")
 BORDERS = ("resampled", "copied", "none")
 #: Pixels rendered per chunk of samples on the CPU's fast path when every sample has its own
-#: grid (a rotation batch; ``augment.RandomOmniCamera``): a chunk's grid and intermediates stay
-#: in the cache and in memory the allocator reuses, where a whole batch's are fresh pages on
-#: every call (a page fault per 4 KiB; measured: 16 x 512 x 512 augmentation 96 -> 45 ms for
-#: the grids alone).
+#: grid and some sampler builds it (a rotation batch with bicubic RGB, soft labels, or rays the
+#: C++ kernel does not read; see ``_grid_free``): a chunk's grid and intermediates stay in the
+#: cache and in memory the allocator reuses, where a whole batch's are fresh pages on every call
+#: (a page fault per 4 KiB; measured: 16 x 512 x 512 augmentation 96 -> 45 ms for the grids
+#: alone).
 CHUNK_PIXELS = 2 ** 20
 #: Border width of the atlas per interpolation: the texels a kernel reads beyond a face edge.
 _PAD = {"nearest": 1, "bilinear": 1, "bicubic": 2}

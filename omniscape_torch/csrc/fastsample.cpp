@@ -86,7 +86,6 @@ struct Split {
         fys[p] = fy;
     }
     void set_code(int64_t p, int32_t code) const { codes[p] = code; }
-    Split operator+(int64_t d) const { return Split{codes + d, fxs + d, fys + d}; }
 };
 
 // The three arrays of a segment of pixels, on the stack.
@@ -219,8 +218,9 @@ inline T read(const T* cube, const Ring<T>& R, const Tap& t) {
 // the virtual atlas for every channel into out[c out_chan]. Not inlined: rare, and inlined into
 // sample_span it slowed the whole pass by 10% (1M pixels, 0.2% of them edge pixels).
 template <typename T, typename G>
-__attribute__((noinline)) void edge_pixel(const T* cube, const Ring<T>& R, G gx, G gy, const Layout& L, bool bilinear,
-                const Planes& S, T* out) {
+__attribute__((noinline)) void edge_pixel(const T* cube, const Ring<T>& R, G gx, G gy,
+                                          const Layout& L, bool bilinear, const Planes& S,
+                                          T* out) {
     const G x = unnormalize(gx, L.half_x), y = unnormalize(gy, L.half_y);
     if (!bilinear) {
         const Tap t = atlas_tap(static_cast<int64_t>(std::nearbyint(x)),
@@ -289,16 +289,20 @@ void sample_span(const T* cube, const Ring<T>& R, Taps t, const G* grid, int64_t
         T* o = out + c * S.out_chan;
         switch (std::min<int64_t>(S.chans - c, 4)) {
             case 1:
-                interior<T, G, 1, Taps>(q, S.src_chan, t, m, L.face, bilinear, fill, o, S.out_chan);
+                interior<T, G, 1, Taps>(q, S.src_chan, t, m, L.face, bilinear, fill, o,
+                                        S.out_chan);
                 break;
             case 2:
-                interior<T, G, 2, Taps>(q, S.src_chan, t, m, L.face, bilinear, fill, o, S.out_chan);
+                interior<T, G, 2, Taps>(q, S.src_chan, t, m, L.face, bilinear, fill, o,
+                                        S.out_chan);
                 break;
             case 3:
-                interior<T, G, 3, Taps>(q, S.src_chan, t, m, L.face, bilinear, fill, o, S.out_chan);
+                interior<T, G, 3, Taps>(q, S.src_chan, t, m, L.face, bilinear, fill, o,
+                                        S.out_chan);
                 break;
             default:
-                interior<T, G, 4, Taps>(q, S.src_chan, t, m, L.face, bilinear, fill, o, S.out_chan);
+                interior<T, G, 4, Taps>(q, S.src_chan, t, m, L.face, bilinear, fill, o,
+                                        S.out_chan);
         }
     }
     for (int64_t p = 0; p < m; ++p) {
@@ -367,7 +371,7 @@ constexpr int32_t kCases[6][5] = {{3, 2, -1, 1, 1}, {2, 2, 1, 1, 1}, {5, 0, 1, 2
 constexpr int32_t kZeroCase[5] = {0, 0, 1, 1, 1};
 
 template <int K, int Col>
-constexpr int32_t entry() {
+constexpr int32_t case_entry() {
     return K < 6 ? kCases[K][Col] : kZeroCase[Col];
 }
 
@@ -377,11 +381,11 @@ constexpr int32_t entry() {
 template <typename G, int K, int Col>
 inline G case_value(G px, G py, G pz) {
     if constexpr (Col == 0) {
-        return G(entry<K, 0>());
+        return G(case_entry<K, 0>());
     } else {
-        constexpr int32_t axis = entry<K, Col>();
+        constexpr int32_t axis = case_entry<K, Col>();
         const G v = axis == 0 ? px : (axis == 1 ? py : pz);
-        if constexpr (entry<K, Col + 1>() > 0) {
+        if constexpr (case_entry<K, Col + 1>() > 0) {
             return v;
         } else {
             return -v;
