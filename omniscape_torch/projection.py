@@ -86,8 +86,9 @@ class OmniProjection(nn.Module):
             where compilation is unavailable). The output is the same either way.
         fast: sample nearest and bilinear with :mod:`omniscape_torch.fastsample` (lookup
             table on the cube, no atlas; CPU) whenever no gradient is needed: a cached grid's
-            table is built once and kept, a grid rebuilt per call (rotations) is turned into
-            taps in the sampling pass itself (``benchmarks/bench_projection.py``). False forces
+            table is built once and kept; under a rotation each pixel's grid point is computed
+            from the camera's rays in the sampling pass, no grid stored
+            (``fastsample.sample_rays``; ``benchmarks/bench_projection.py``). False forces
             the reference ``grid_sample`` path. Same output to float32 rounding either way, and
             gradients are unchanged (they always come from the reference path).
 

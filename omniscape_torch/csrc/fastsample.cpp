@@ -346,6 +346,16 @@ void sample_lut(const T* src, const Entry<G>* table, const G* grid, int64_t lut_
     });
 }
 
+// Output pixels [lo, lo + m) of one sample at grid points `g` (their `valid`, may be null):
+// their taps computed into the stack, then sampled.
+template <typename T, typename G>
+void sample_points(const T* cube, const G* g, const uint8_t* valid, int64_t m, const Ring<T>& R,
+                   const Layout& L, bool bilinear, T fill, const Planes& S, T* out) {
+    SplitBuffer<G> buffer;
+    locate<G>(g, m, valid, L, bilinear, buffer.taps());
+    sample_span<T, G>(cube, R, buffer.taps(), g, m, L, bilinear, fill, S, out);
+}
+
 // A grid used once (grid_batch = 0: one grid for the batch, else 2 P): the codes computed in
 // the sampling pass, a segment at a time. Pixels where `valid` (bool, valid_batch = 0 or P;
 // null: all valid) is false read `fill`, as if outside the atlas.
@@ -354,12 +364,9 @@ void sample_grid(const T* src, const G* grid, int64_t grid_batch, const uint8_t*
                  int64_t valid_batch, const Ring<T>& R, const Layout& L, bool bilinear, T fill,
                  Planes S, T* out, int threads) {
     for_tiles(S, threads, [&](int64_t b, int64_t lo, int64_t m) {
-        const G* g = grid + b * grid_batch + 2 * lo;
-        SplitBuffer<G> buffer;
-        locate<G>(g, m, valid == nullptr ? nullptr : valid + b * valid_batch + lo, L, bilinear,
-                  buffer.taps());
-        sample_span<T, G>(src + b * S.src_batch, R, buffer.taps(), g, m, L, bilinear, fill, S,
-                          out + b * S.out_batch + lo);
+        sample_points<T, G>(src + b * S.src_batch, grid + b * grid_batch + 2 * lo,
+                            valid == nullptr ? nullptr : valid + b * valid_batch + lo, m, R, L,
+                            bilinear, fill, S, out + b * S.out_batch + lo);
     });
 }
 
@@ -466,11 +473,9 @@ void sample_rays(const T* src, const G* rays, int64_t rays_batch, const G* rot,
         G g[2 * kTileW];
         ray_grid<G>(rays + b * rays_batch + 3 * lo, rot == nullptr ? nullptr : rot + b * rot_batch,
                     m, L, g);
-        SplitBuffer<G> buffer;
-        locate<G>(g, m, valid == nullptr ? nullptr : valid + b * valid_batch + lo, L, bilinear,
-                  buffer.taps());
-        sample_span<T, G>(src + b * S.src_batch, R, buffer.taps(), g, m, L, bilinear, fill, S,
-                          out + b * S.out_batch + lo);
+        sample_points<T, G>(src + b * S.src_batch, g,
+                            valid == nullptr ? nullptr : valid + b * valid_batch + lo, m, R, L,
+                            bilinear, fill, S, out + b * S.out_batch + lo);
     });
 }
 
