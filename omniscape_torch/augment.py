@@ -31,6 +31,7 @@ from torch import Tensor, nn
 from .cameras import Camera
 from .cameras.registry import get_model
 from .cubemap.faces import FACES, face_rotations
+from .cubemap.rotation import check_rotation
 from .fastgrid import camera_grid
 from .presets import yaw_pitch_roll_to_matrix
 from . import memory, projection
@@ -403,6 +404,7 @@ class RandomOmniCamera(nn.Module):
         if len(params["model"]) != batch:
             raise ValueError(f"params: drawn for {len(params['model'])} samples, the batch has "
                              f"{batch}")
+        check_rotation(params["rotation"], 'params["rotation"]')
         dtype = ref.dtype if ref.is_floating_point() and ref.dtype == torch.float64 \
             else torch.float32
         device = ref.device

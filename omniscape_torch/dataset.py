@@ -24,8 +24,9 @@ cameras 1.0 m. Each frame, the motorcycle's attitude ``R_bike`` (rig -> world,
 ``c = location + R_bike @ position``, and its rays go to the world by ``R_bike @ R_cam``. Each
 camera gets its own cubemap rendered at ``c`` with the cube axes along the world axes (x east,
 y down, z north), only the faces it sees (``sizing.visible_faces``), at the face size it needs
-(``sizing.required_face_size`` over all the ride's attitudes, capped by ``max_face_size``;
-or ``face_size`` for all). The built-in town is flat, so the ride is made with
+(``sizing.required_face_size`` over every attitude, capped by ``max_face_size``; or
+``face_size`` for all), so that frame ``k`` depends on the configuration and ``k`` only, not
+on the number of frames (a run of 12 frames extends a run of 8). The built-in town is flat, so the ride is made with
 ``town_route(seed)``, S-bends between the lanes of its straight road: pitch comes from the
 suspension only, and the leans stay moderate.
 
@@ -246,11 +247,9 @@ class _Plan:
         for name in config.cameras:
             camera, r_cam = _make_camera(name, config.image_size)
             r_cam = r_cam.double()
-            if config.face_size is not None:
-                size = config.face_size
-            else:
-                rot = (self.R_bike @ r_cam).float()
-                size = min(required_face_size(camera, rot), config.max_face_size)
+            # over every attitude, not the ride's: frame k must not depend on the frame count
+            size = config.face_size if config.face_size is not None else min(
+                required_face_size(camera, "any"), config.max_face_size)
             self.cameras[name] = dict(camera=camera, r_cam=r_cam, face_size=int(size),
                                       position=torch.tensor(RIG_POSITIONS[name],
                                                             dtype=torch.float64))

@@ -49,17 +49,14 @@ _PAD = {"nearest": 1, "bilinear": 1, "bicubic": 2}
 def _check_rotation(rotation: Tensor | None, batch: int, device, name: str = "rotation"):
     if rotation is None:
         return None
-    if not isinstance(rotation, Tensor):
-        raise TypeError(f"{name}: expected a tensor (B, 3, 3), got {type(rotation).__name__}")
-    if not rotation.is_floating_point():
-        raise TypeError(f"{name}: expected a floating-point tensor, got {rotation.dtype}")
+    if isinstance(rotation, Tensor) and rotation.device != device:
+        raise ValueError(f"{name}: on {rotation.device}, the cubemap is on {device}")
+    cm.check_rotation(rotation, name)
     if rotation.shape == (3, 3):
         rotation = rotation.unsqueeze(0)
     if rotation.dim() != 3 or rotation.shape[1:] != (3, 3) or rotation.shape[0] not in (1, batch):
         raise ValueError(f"{name}: expected shape ({batch}, 3, 3) or (3, 3), got "
                          f"{tuple(rotation.shape)}")
-    if rotation.device != device:
-        raise ValueError(f"{name}: on {rotation.device}, the cubemap is on {device}")
     return rotation
 
 
@@ -167,6 +164,7 @@ class OmniProjection(nn.Module):
         key = (id(params), params._version, params.device, params.dtype, self.supersample)
         if self._fixed() and self._rays_cache is not None and self._rays_cache[0] == key:
             return self._rays_cache[1]
+        self.camera.check_params()   # new or changed parameters: still in the model's domain?
         batch = self.camera.batch_shape
         centre = self.camera.pixel_grid()
         rays_c, valid_c = self.camera.unproject(centre.expand(batch + centre.shape))

@@ -171,10 +171,10 @@ def reproject(image: Tensor, src_camera: Camera, dst_camera: Camera, *,
     """
     rays, valid_dst = dst_camera.ray_grid()  # [(B,) h, w, 3]
     if rotation is not None:
-        if not isinstance(rotation, Tensor) or rotation.dim() not in (2, 3) \
-                or rotation.shape[-2:] != (3, 3):
+        cm.check_rotation(rotation)
+        if rotation.dim() not in (2, 3):
             raise ValueError(f"rotation: expected (3, 3) or (B, 3, 3), got "
-                             f"{tuple(getattr(rotation, 'shape', ()))}")
+                             f"{tuple(rotation.shape)}")
         if rotation.dim() == 3 and rays.dim() == 4 and len(rotation) != len(rays):
             raise ValueError(f"batch sizes disagree: rotation {len(rotation)}, dst_camera "
                              f"{len(rays)}")

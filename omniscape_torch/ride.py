@@ -365,10 +365,25 @@ def _second_order(target: np.ndarray, h: float, omega: float, zeta: float,
     return x, xd
 
 
-def _noise(n: int, h: float, std_rad: float, correlation: float,
-           generator: torch.Generator) -> np.ndarray:
-    """Stationary Ornstein-Uhlenbeck noise of standard deviation ``std_rad``."""
-    white = torch.randn(n, generator=generator, dtype=torch.float64).numpy()
+#: White noise is drawn in blocks of this many substeps (two channels: roll, pitch), one
+#: ``torch.randn`` call per block, so sample ``i`` is the same however many are drawn: a
+#: ride's frame ``k`` does not depend on its number of frames (``torch.randn`` of a larger
+#: size is not an extension of a smaller one).
+NOISE_BLOCK = 4096
+
+
+def _white_noise(n: int, generator: torch.Generator) -> np.ndarray:
+    """``(n, 2)`` standard normal samples (roll, pitch), a prefix of the same stream for
+    every ``n`` (see :data:`NOISE_BLOCK`)."""
+    blocks = [torch.randn(NOISE_BLOCK, 2, generator=generator, dtype=torch.float64)
+              for _ in range(-(-n // NOISE_BLOCK))]
+    return torch.cat(blocks)[:n].numpy()
+
+
+def _noise(white: np.ndarray, h: float, std_rad: float, correlation: float) -> np.ndarray:
+    """Stationary Ornstein-Uhlenbeck noise of standard deviation ``std_rad`` driven by
+    ``white (n,)``."""
+    n = len(white)
     if std_rad == 0:
         return np.zeros(n)
     rho = math.exp(-h / correlation)
@@ -407,7 +422,9 @@ def simulate(route: Route, fps: float = 10.0, duration: float | None = None, *,
         fps: frames per second.
         duration: seconds to simulate (``frames = floor(duration * fps) + 1``, frame 0 at
             t = 0); or give ``frames``. Default: until the motorcycle stops at the route's end.
-        seed, generator: the noise's random source (``generator`` wins); same seed, same ride.
+        seed, generator: the noise's random source (``generator`` wins); same seed, same ride,
+            and frame ``k`` is the same whatever ``frames`` or ``duration`` (a longer ride
+            extends a shorter one).
         max_speed: cruising speed, m/s. acceleration, deceleration: longitudinal limits, m/s^2
             (positive numbers).
         max_lateral_acceleration: limit on ``v^2 |kappa|``, m/s^2; also capped at
@@ -477,11 +494,12 @@ def simulate(route: Route, fps: float = 10.0, duration: float | None = None, *,
     grade = route.grade_at(s)
     a_lat = v * v * kappa * np.cos(grade)
     lean_target = np.arctan(a_lat / GRAVITY)
-    lean_target = lean_target + _noise(n, h, math.radians(roll_noise_deg), noise_correlation,
-                                       generator)
+    white = _white_noise(n, generator)
+    lean_target = lean_target + _noise(white[:, 0], h, math.radians(roll_noise_deg),
+                                       noise_correlation)
     pitch_target = math.radians(pitch_gain_deg) * a_long
-    pitch_target = pitch_target + _noise(n, h, math.radians(pitch_noise_deg),
-                                         noise_correlation, generator)
+    pitch_target = pitch_target + _noise(white[:, 1], h, math.radians(pitch_noise_deg),
+                                         noise_correlation)
     roll, roll_rate = _second_order(lean_target, h, 2 * math.pi * roll_frequency, 1.0,
                                     lean_target[0])
     suspension, suspension_rate = _second_order(pitch_target, h, 2 * math.pi * pitch_frequency,

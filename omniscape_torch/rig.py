@@ -16,6 +16,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from .cubemap.rotation import check_rotation
 from .projection import OmniProjection
 
 
@@ -48,10 +49,7 @@ class StereoRig(nn.Module):
             if not isinstance(t, Tensor) or tuple(t.shape) != shape:
                 raise ValueError(f"{name}: expected a tensor of shape {shape}, got "
                                  f"{tuple(t.shape) if isinstance(t, Tensor) else type(t)}")
-        eye = torch.eye(3, dtype=rotations.dtype)
-        if not torch.allclose(rotations @ rotations.transpose(-1, -2), eye.expand(2, 3, 3),
-                              atol=1e-5):
-            raise ValueError("rotations: expected rotation matrices (R R^T = I)")
+        check_rotation(rotations, "rotations")
         self.left, self.right = left, right
         self.register_buffer("positions", positions.clone().float())
         self.register_buffer("rotations", rotations.clone().float())

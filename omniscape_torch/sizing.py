@@ -52,6 +52,7 @@ from torch import Tensor
 from .cameras.camera import Camera
 from .cubemap.faces import FACES, _check_face_size, _check_pad, face_axes, ray_to_face
 from .cubemap.padding import border_plan
+from .cubemap.rotation import check_rotation
 
 __all__ = ["face_size_map", "needed_face_names", "required_face_size", "visible_faces"]
 
@@ -68,27 +69,12 @@ def _check_camera(camera: object) -> Camera:
     return camera
 
 
-def _check_rotation(rotation: object, *, atol: float = 1e-3) -> Tensor:
-    """``rotation`` as a float64 ``(*Br, 3, 3)`` tensor (identity for None), checked to be a
-    rotation to ``atol`` (float32 matrices built from angles pass)."""
+def _check_rotation(rotation: object) -> Tensor:
+    """``rotation`` as a float64 ``(*Br, 3, 3)`` CPU tensor (identity for None), checked by
+    :func:`~omniscape_torch.cubemap.check_rotation`."""
     if rotation is None:
         return torch.eye(3, dtype=torch.float64)
-    if not isinstance(rotation, Tensor):
-        raise TypeError(f"rotation: expected a torch.Tensor of shape (..., 3, 3) or None, got "
-                        f"{type(rotation).__name__}")
-    if not rotation.is_floating_point():
-        raise TypeError(f"rotation: expected a floating-point tensor, got {rotation.dtype}")
-    if rotation.dim() < 2 or rotation.shape[-2:] != (3, 3):
-        raise ValueError(f"rotation: expected shape (..., 3, 3), got {tuple(rotation.shape)}")
-    r = rotation.detach().to(device="cpu", dtype=torch.float64)
-    if not bool(torch.isfinite(r).all()):
-        raise ValueError("rotation: must be finite")
-    eye = torch.eye(3, dtype=torch.float64)
-    err = (r @ r.transpose(-1, -2) - eye).abs().amax() if r.numel() else torch.tensor(0.0)
-    if float(err) > atol or (r.numel() and bool((torch.linalg.det(r) <= 0).any())):
-        raise ValueError(f"rotation: expected rotation matrices (R R^T = I, det R = +1), got an "
-                         f"orthonormality error of {float(err):.3g}")
-    return r
+    return check_rotation(rotation).detach().to(device="cpu", dtype=torch.float64)
 
 
 def _pairs(camera: Camera, rotation: Tensor) -> tuple[torch.Size, list[tuple[int, int]]]:
@@ -152,7 +138,10 @@ def face_size_map(camera: Camera, rotation: Tensor | None = None, *,
     Args:
         camera: a ``Camera`` (one, or a batch ``(*Bc)``).
         rotation: ``None`` (identity), ``(3, 3)`` or ``(*Br, 3, 3)`` camera-to-cube rotations,
-            broadcasting with the camera batch.
+            broadcasting with the camera batch; or ``"any"``: the largest size over every
+            attitude, ``2 / s_min(J)`` (the pixel's ray at a face's centre, where both criteria
+            agree and a face is coarsest; ``sigma_min(G) >= s_min(J) / cos(phi)`` everywhere
+            else).
         criterion: ``"anisotropic"`` (exact, default) or ``"isotropic"`` (upper bound).
         step: finite-difference step in pixels.
 
@@ -165,7 +154,8 @@ def face_size_map(camera: Camera, rotation: Tensor | None = None, *,
     if criterion not in CRITERIA:
         raise ValueError(f"criterion: expected one of {CRITERIA}, got {criterion!r}")
     step = _check_positive_number(step, "step")
-    rot = _check_rotation(rotation)
+    any_rotation = isinstance(rotation, str) and rotation == "any"
+    rot = _check_rotation(None if any_rotation else rotation)
     shape, pairs = _pairs(camera, rot)
     rot = rot.reshape(-1, 3, 3)
     params_all = _params64(camera)
@@ -199,7 +189,11 @@ def face_size_map(camera: Camera, rotation: Tensor | None = None, *,
         a, b, right = ax[..., 0, :], ax[..., 1, :], ax[..., 2, :]
         depth = (a * d).sum(-1)  # cos(phi) > 0
         depth = torch.where(valid & (depth > 0), depth, torch.ones_like(depth))
-        if criterion == "isotropic":
+        if any_rotation:    # each ray at a face's centre: G = J in the face's basis
+            s_min, _ = _singular_values(jac[..., 0], jac[..., 1])
+            ok = valid & (s_min > 0)
+            size = 2 / torch.where(ok, s_min, torch.ones_like(s_min))
+        elif criterion == "isotropic":
             s_min, _ = _singular_values(jac_cube[..., 0], jac_cube[..., 1])  # rad / px
             ok = valid & (s_min > 0)
             size = 2 * depth / torch.where(ok, s_min, torch.ones_like(s_min))
@@ -263,7 +257,9 @@ def required_face_size(camera: Camera, rotation: Tensor | None = None, *,
         camera: a ``Camera``, or a batch of cameras (the maximum over the batch).
         rotation: ``None`` (identity: looking along the front face), ``(3, 3)`` or a batch
             ``(*Br, 3, 3)`` of camera-to-cube rotations ``ray_cube = R @ ray_cam``, broadcasting
-            with the camera batch (the maximum over all).
+            with the camera batch (the maximum over all); or ``"any"``, the maximum over every
+            attitude (twice the camera's finest pixels per radian: a size that holds whatever
+            the ride, :func:`face_size_map`).
         supersample: texels per camera pixel to ask for (> 0), e.g. 2 for 2x supersampling.
         criterion: ``"anisotropic"`` (default) or ``"isotropic"``.
         step: finite-difference step of the Jacobian, in pixels.

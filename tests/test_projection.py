@@ -796,6 +796,101 @@ def test_bad_forward_input(small_layer):
         batched(torch.rand(3, 6, 3, 4, 4))
 
 
+def _bad_rotations() -> dict[str, torch.Tensor]:
+    """Matrices that are not rotations, each with the words its error must use."""
+    theta = 0.3
+    turn = torch.tensor([[math.cos(theta), 0.0, math.sin(theta)], [0.0, 1.0, 0.0],
+                         [-math.sin(theta), 0.0, math.cos(theta)]])
+    return {"NaN": torch.full((3, 3), float("nan")),
+            "det 0": torch.zeros(3, 3),
+            "det -1": torch.diag(torch.tensor([1.0, 1.0, -1.0])),     # a reflection
+            "not orthonormal": 1.01 * turn,                          # scaled
+            "NaN or infinite": torch.eye(3).index_fill(1, torch.tensor([2]), float("inf"))}
+
+
+@pytest.mark.parametrize("fast", [True, False])
+@pytest.mark.parametrize("what", list(_bad_rotations()))
+def test_invalid_rotations_are_refused_naming_the_batch_index(what, fast):
+    """A NaN, zero, reflected or scaled matrix in a rotation batch is a ValueError naming its
+    index, on the fast and the reference path alike (it once rendered zeros, NaN, a mirrored
+    image or the silently normalised rotation, each marked valid)."""
+    cam, _, _ = fisheye(16)
+    layer = ot.OmniProjection(cam, 8, fast=fast)
+    cube = torch.rand(3, 6, 3, 8, 8, dtype=f64)
+    rotations = torch.eye(3, dtype=f64).repeat(3, 1, 1)
+    rotations[2] = _bad_rotations()[what]
+    with pytest.raises(ValueError, match=r"rotation\[2\]"):
+        layer(cube, rotations)
+    with pytest.raises(ValueError, match=what):
+        layer.render(labels=torch.zeros(3, 6, 8, 8, dtype=torch.long), rotation=rotations)
+    # a float32 rotation built from angles passes; so does the identity in half precision
+    good = ot.presets.yaw_pitch_roll_to_matrix(torch.tensor(0.3), torch.tensor(-0.2),
+                                               torch.tensor(1.1))
+    layer(cube.float(), good.float())
+    ot.cubemap.check_rotation(torch.eye(3, dtype=torch.float16))
+
+
+def test_every_path_that_takes_an_attitude_checks_it():
+    bad = torch.diag(torch.tensor([1.0, -1.0, 1.0]))      # a reflection: det -1
+    cam, _, _ = fisheye(16, dtype=f32)
+    with pytest.raises(ValueError, match="rotation.*det"):
+        ot.required_face_size(cam, bad)
+    with pytest.raises(ValueError, match="rotation.*det"):
+        ot.visible_faces(cam, bad)
+    with pytest.raises(ValueError, match="rotation.*det"):
+        ot.reproject(torch.rand(1, 3, 16, 32), ot.equirectangular_camera(32, 16), cam,
+                     rotation=bad)
+    layer = ot.OmniProjection(cam, 8)
+    with pytest.raises(ValueError, match=r"rotations\[1\].*det"):
+        ot.StereoRig(layer, layer, rotations=torch.stack((torch.eye(3), bad)))
+    aug = ot.augment.RandomOmniCamera((16, 16), 8, seed=0)
+    cube = torch.rand(2, 6, 3, 8, 8)
+    params = aug.forward_parameters(2)
+    params["rotation"] = params["rotation"].clone()
+    params["rotation"][1] = 2 * params["rotation"][1]
+    with pytest.raises(ValueError, match=r'params\["rotation"\]\[1\].*orthonormal'):
+        aug(cube, params=params)
+
+
+@pytest.mark.parametrize("value, match", [(float("nan"), "fx .*finite"),
+                                          (float("inf"), "fx .*finite"),
+                                          (-50.0, "fx .*> 0"), (0.0, "fx .*> 0")])
+def test_learnable_camera_outside_its_domain_raises_on_forward(value, match):
+    """A learnable focal length that becomes NaN or negative stops the next forward with the
+    parameter's name (it rendered black with valid all False, or a mirrored image marked
+    valid); field_of_view() says so too instead of returning 0."""
+    cam, _, _ = fisheye(16, learnable=True)
+    layer = ot.OmniProjection(cam, 8)
+    cube = torch.rand(1, 6, 3, 8, 8, dtype=f64)
+    image, _ = layer(cube)
+    image.sum().backward()
+    with torch.no_grad():
+        cam.params[0] = value
+    with pytest.raises(ValueError, match=match):
+        layer(cube)
+    with pytest.raises(ValueError, match=match):
+        cam.field_of_view()
+    with torch.no_grad(), pytest.raises(ValueError, match=match):
+        layer(cube)   # a frozen layer re-reads parameters changed in place
+    with torch.no_grad():
+        cam.params[0] = 5.0
+    layer(cube)   # back in the domain: renders again
+
+
+def test_model_constraints_are_checked_on_forward():
+    """Beyond the focal lengths: each model's own ranges (here the double sphere's alpha in
+    [0, 1]) are checked on every forward of a learnable camera."""
+    cam = ot.Camera("double_sphere", torch.tensor([10.0, 10.0, 7.5, 7.5, -0.2, 0.6],
+                                                  dtype=f64), (16, 16), learnable=True)
+    layer = ot.OmniProjection(cam, 8)
+    cube = torch.rand(1, 6, 3, 8, 8, dtype=f64)
+    layer(cube)
+    with torch.no_grad():
+        cam.params[5] = 1.5
+    with pytest.raises(ValueError, match="alpha of the double_sphere model"):
+        layer(cube)
+
+
 def test_mismatched_devices(small_layer):
     meta = torch.device("meta")
     cpu_cube = torch.rand(1, 6, 3, 4, 4)

@@ -201,6 +201,20 @@ def test_determinism_by_seed():
     assert torch.equal(a["location"], c["location"])      # noise only in the attitude
 
 
+def test_a_longer_ride_extends_a_shorter_one():
+    """Frame k depends on the seed and k only: the first frames of a longer ride (more frames,
+    or a longer duration) are those of the shorter one, noise included, bit for bit (a dataset
+    of 12 frames extends one of 8)."""
+    route = random_route(2, turns=3)
+    short = simulate(route, fps=2, frames=8, seed=3)
+    for longer in (simulate(route, fps=2, frames=12, seed=3),
+                   simulate(route, fps=2, duration=30.0, seed=3)):
+        for key in short:
+            assert torch.equal(short[key], longer[key][:8]), key
+    assert not torch.equal(short["rotation"], simulate(route, fps=2, frames=8,
+                                                        seed=4)["rotation"])
+
+
 def test_lateral_acceleration_within_limit():
     for seed in range(3):
         f = simulate(random_route(seed, turns=6), fps=10, max_lateral_acceleration=3.0,

@@ -135,6 +135,31 @@ def test_rotations_and_batches():
         face_size_map(batch, tilted[:2])
 
 
+def test_any_rotation_is_twice_the_finest_density_and_bounds_every_attitude():
+    """``rotation="any"``: each pixel's ray at a face's centre, where a face is coarsest, so
+    ``F = 2 x`` the camera's finest pixels per radian. For an equidistant lens that is the
+    tangential density ``f theta / sin theta`` of the valid pixel farthest from the axis,
+    computed here from the pixel grid (``theta = r / f``)."""
+    cam = fisheye((257, 257), fov=math.radians(190), dtype=torch.float64)
+    f, c = float(cam.params[0]), float(cam.params[2])
+    v, u = torch.meshgrid(torch.arange(257.0, dtype=torch.float64),
+                          torch.arange(257.0, dtype=torch.float64), indexing="ij")
+    theta = torch.hypot(u - c, v - c) / f
+    theta = theta[(theta <= math.radians(95)) & (theta > 0)]
+    expected = float((2 * f * theta / torch.sin(theta)).max())
+    sizes = face_size_map(cam, "any")
+    assert float(sizes.max()) == pytest.approx(expected, rel=1e-6)
+    bound = required_face_size(cam, "any")
+    assert bound == math.ceil(expected * (1 - 1e-8))
+    # no attitude needs more, and the bound is reached within a texel or two by some
+    g = torch.Generator().manual_seed(0)
+    angles = (torch.rand(3, 64, generator=g, dtype=torch.float64) - 0.5) * 2 * math.pi
+    rotations = yaw_pitch_roll_to_matrix(angles[0], angles[1] / 2, angles[2])
+    sizes = [required_face_size(cam, rotations[i]) for i in range(64)]
+    assert max(sizes) <= bound and max(sizes) >= bound - 3
+    assert required_face_size(cam) <= bound
+
+
 def test_required_face_size_entry_checks():
     cam = fisheye((16, 16))
     with pytest.raises(TypeError, match="camera"):

@@ -84,11 +84,17 @@ class CameraModel:
         if params.dim() == 0:
             raise ValueError(f"{what}: expected shape (..., P), got a scalar")
         self.check_num_params(params.shape[-1], what)
-        if not bool(torch.isfinite(params).all()):
-            raise ValueError(f"{what}: parameters of the {self.name} model must be finite, "
+        finite = torch.isfinite(params.detach()).reshape(-1, params.shape[-1]).all(0)
+        if not bool(finite.all()):
+            names = self.names_for(params.shape[-1])
+            bad = [names[i] for i in (~finite).nonzero()[:, 0].tolist()]
+            raise ValueError(f"{what}: {', '.join(bad)} of the {self.name} model must be finite, "
                              f"got {params.detach().cpu().tolist()}")
         if self.check_values is not None:
-            self.check_values(params.detach())
+            try:
+                self.check_values(params.detach())
+            except ValueError as err:   # the checks say "params: ..."; name the argument
+                raise ValueError(f"{what}: {str(err).removeprefix('params: ')}") from None
 
     def __repr__(self) -> str:
         return f"CameraModel({self.name!r}, params={self.param_names})"

@@ -96,6 +96,21 @@ class Camera(nn.Module):
         extra = values.dim() - 1 - b
         return self.params.reshape(self.batch_shape + (1,) * extra + self.params.shape[-1:])
 
+    def check_params(self) -> None:
+        """Check the parameters against the model's domain (finite, positive focal lengths,
+        the model's own ranges); the layer calls it on every forward of a camera whose
+        parameters may have changed, so a diverging fit or training run stops with the name of
+        the parameter instead of rendering a black or mirrored image.
+
+        Raises:
+            ValueError: naming the parameter and its values.
+        """
+        try:
+            self.model.validate_params(self.params.detach(), "camera.params")
+        except ValueError as err:
+            raise ValueError(f"{err} (the parameters left the {self.model.name} model's "
+                             f"domain: a diverging fit or training run?)") from None
+
     def in_image(self, pixels: Tensor) -> Tensor:
         """``(...)`` True where ``pixels (..., 2)`` lie in the image (pixel edges included)."""
         h, w = self.image_size
@@ -139,7 +154,11 @@ class Camera(nn.Module):
         Returns:
             ``rays (*B, H, W, 3)`` and ``valid (*B, H, W)``: model domain, inside the image,
             within ``fov``. Differentiable with respect to ``params``.
+
+        Raises:
+            ValueError: the parameters left the model's domain (:meth:`check_params`).
         """
+        self.check_params()
         grid = self.pixel_grid().expand(self.batch_shape + self.pixel_grid().shape)
         return self.unproject(grid)
 

@@ -24,14 +24,17 @@ from .faces import (
     ray_to_face,
 )
 from .padding import PAD_MODES, BorderPlan, border_plan, check_cubemap, pad_faces
+from .rotation import ROTATION_ATOL, check_rotation
 
 __all__ = [
     "FACES",
     "PAD_MODES",
+    "ROTATION_ATOL",
     "BorderPlan",
     "atlas_to_faces",
     "border_plan",
     "check_cubemap",
+    "check_rotation",
     "cubemap_to_atlas",
     "depth_to_range",
     "face_axes",

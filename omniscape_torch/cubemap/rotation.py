@@ -1,0 +1,74 @@
+"""The one check of the rotations that map camera rays into the cube frame.
+
+Every path that takes an attitude (the layer, its fast and reference samplers, the
+augmentation's replayed parameters, the stereo rig, ``reproject``, the sizing functions) calls
+:func:`check_rotation` at its entry, so a bad matrix gets the same error everywhere instead of
+a black, mirrored or silently rescaled image (the cube projection is scale invariant, so a
+scaled matrix would otherwise render as its rotation).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+__all__ = ["ROTATION_ATOL", "check_rotation"]
+
+#: Largest ``|R R^T - I|`` entry accepted, for float32 and float64 matrices: 1e-3 is a shear
+#: of 0.06 degrees, far above the rounding of matrices built from angles in float32 (about
+#: 1e-7) and far below any mistake (a scale, a reflection, a wrong convention). Lower
+#: precisions get 4 machine epsilons of their dtype when that is larger (float16 3.9e-3,
+#: bfloat16 0.031).
+ROTATION_ATOL = 1e-3
+
+
+def check_rotation(rotation: object, name: str = "rotation", *,
+                   atol: float = ROTATION_ATOL) -> Tensor:
+    """Check that ``rotation (..., 3, 3)`` holds rotation matrices; return it unchanged.
+
+    A rotation is finite, orthonormal (every entry of ``R R^T - I`` within ``atol``, or 4
+    epsilons of its dtype if larger) and proper (``det R = +1``: a reflection mirrors the
+    image).
+
+    Args:
+        rotation: a floating-point tensor of shape ``(..., 3, 3)``.
+        name: the argument's name, for the error message.
+        atol: the orthonormality tolerance (:data:`ROTATION_ATOL`).
+
+    Raises:
+        TypeError: not a floating-point tensor.
+        ValueError: another shape, or a matrix that is not a rotation; the message names the
+            first such batch index and what is wrong with it.
+    """
+    if not isinstance(rotation, Tensor):
+        raise TypeError(f"{name}: expected a torch.Tensor of shape (..., 3, 3), got "
+                        f"{type(rotation).__name__}")
+    if not rotation.is_floating_point():
+        raise TypeError(f"{name}: expected a floating-point tensor, got {rotation.dtype}")
+    if rotation.dim() < 2 or rotation.shape[-2:] != (3, 3):
+        raise ValueError(f"{name}: expected shape (..., 3, 3), got {tuple(rotation.shape)}")
+    if rotation.numel() == 0 or rotation.device.type == "meta":   # no values to check
+        return rotation
+    tol = max(float(atol), 4 * torch.finfo(rotation.dtype).eps)
+    r = rotation.detach().to(torch.float64).reshape(-1, 3, 3)
+    finite = torch.isfinite(r).flatten(1).all(1)
+    safe = torch.where(finite[:, None, None], r, torch.eye(3, dtype=r.dtype, device=r.device))
+    error = (safe @ safe.transpose(-1, -2) - torch.eye(3, dtype=r.dtype, device=r.device)
+             ).abs().flatten(1).amax(1)
+    det = torch.linalg.det(safe)
+    bad = ~finite | (error > tol) | (det <= 0)
+    if bool(bad.any()):
+        i = int(bad.nonzero()[0, 0])
+        index = tuple(int(k) for k in torch.unravel_index(torch.tensor(i), rotation.shape[:-2]))
+        where = f"{name}[{', '.join(map(str, index))}]" if index else name
+        if not bool(finite[i]):
+            what = "has a NaN or infinite entry"
+        elif float(det[i]) <= 0:
+            what = (f"has det {float(det[i]):.3g} (a reflection or a degenerate matrix; a "
+                    f"rotation has det +1)")
+        else:
+            what = (f"is not orthonormal: R R^T differs from I by {float(error[i]):.3g} (a "
+                    f"scaled or sheared matrix?)")
+        raise ValueError(f"{where} {what}; expected a rotation matrix (R R^T = I within "
+                         f"{tol:.3g}, det +1)")
+    return rotation
