@@ -29,7 +29,7 @@ SIGMA = 0.2  # pixels, per coordinate
 D = torch.float64
 
 
-pytestmark = pytest.mark.usefixtures("one_thread")
+pytestmark = [pytest.mark.numerics, pytest.mark.usefixtures("one_thread")]
 
 
 def _truth(model: str) -> tuple[torch.Tensor, tuple[int, int]]:

@@ -31,6 +31,9 @@ import omniscape_torch as ot  # noqa: E402
 from omniscape_torch.cameras.scaramuzza import scaramuzza_project  # noqa: E402
 from omniscape_torch.io.calibration import fit_invpol  # noqa: E402
 
+#: Numerically sensitive: CI runs this module again with OMP_NUM_THREADS=1 (.ci/run).
+pytestmark = pytest.mark.numerics
+
 REAL_CALIB = (Path(__file__).resolve().parents[1].parent
               / "shared/data/ocamcalib_real/calib_results_0.txt")
 needs_real = pytest.mark.skipif(not REAL_CALIB.is_file(), reason=f"missing {REAL_CALIB}")

@@ -20,6 +20,9 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import ocamcalib_reference as ref  # noqa: E402
 
+#: Numerically sensitive: CI runs this module again with OMP_NUM_THREADS=1 (.ci/run).
+pytestmark = pytest.mark.numerics
+
 HERE = Path(__file__).resolve().parent
 HARNESS_SRC = HERE / "c_reference" / "ocam_harness.c"
 REAL_CALIB = Path(__file__).resolve().parents[1].parent / "shared/data/ocamcalib_real/calib_results_0.txt"
