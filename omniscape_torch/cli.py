@@ -1,13 +1,23 @@
 """The ``omniscape-torch`` command line (thin: parsing and printing; the work is in the package).
 
 Angles are printed in degrees (the only place besides file formats where degrees appear).
+
+Every error ends the command with one line on stderr and an exit code (``--traceback`` shows
+the Python traceback instead): 2 for bad input (options, files that are missing or malformed),
+1 for a run that could not be done (an output that cannot be written, memory, another run in
+the same folder, a failed fit), 130 for Ctrl-C, whose line says what was kept and whether the
+same command resumes.
 """
 
 from __future__ import annotations
 
 import argparse
+import errno
 import math
+import os
+import shutil
 import sys
+import tempfile
 from pathlib import Path
 
 import torch
@@ -110,9 +120,41 @@ def _names(choices, what: str):
     return parse
 
 
+#: What to do about an operating-system error, by errno.
+_OS_ADVICE = {
+    errno.ENOTDIR: "a file is in the way where a folder is needed: choose another path or "
+                   "move the file",
+    errno.EEXIST: "it already exists: choose another path or remove it",
+    errno.EISDIR: "it is a folder, a file was expected: give a file",
+    errno.EACCES: "permission denied: choose a folder you can write, or change its permissions",
+    errno.EPERM: "operation not permitted: choose a folder you can write, or change its "
+                 "permissions",
+    errno.EROFS: "the file system is read-only: write to another disk",
+    errno.ENOSPC: "no space left on the device: free some space or write to another disk",
+    errno.EDQUOT: "disk quota exceeded: free some space or write to another disk",
+    errno.ENOENT: "no such file or folder",
+    errno.ENAMETOOLONG: "the file name is too long: choose a shorter path",
+}
+
+#: What an interrupted command leaves, and how to go on.
+_INTERRUPTED = {
+    "generate": "the finished frames are kept; the same command resumes the run",
+    "convert": "the captures converted so far are complete; the same command converts them "
+               "all again",
+}
+
+
+def describe_os_error(err: OSError) -> str:
+    """One line: the path at fault, what happened and what to do."""
+    path = err.filename if err.filename is not None else ""
+    what = _OS_ADVICE.get(err.errno) or err.strerror or str(err)
+    return f"{path}: {what}" if path else what
+
+
 def cmd_generate(args: argparse.Namespace) -> int:
     import time
     from .dataset import DatasetConfig, generate
+    from .io.atomic import check_writable
 
     cameras = [n for group in args.cameras for n in group]
     weather = [n for group in args.weather for n in group]
@@ -121,6 +163,7 @@ def cmd_generate(args: argparse.Namespace) -> int:
                            cameras=tuple(dict.fromkeys(cameras)),
                            weather=tuple(dict.fromkeys(weather)), seed=args.seed,
                            save_cubemaps=args.save_cubemaps, save_panorama=args.save_panorama)
+    check_writable(args.out)
     start = time.perf_counter()
     result = generate(args.out, config, workers=args.workers,
                       progress=None if not args.no_progress else False,
@@ -142,8 +185,10 @@ def cmd_stats(args: argparse.Namespace) -> int:
 
 def cmd_fit(args: argparse.Namespace) -> int:
     from .calibration import fit, read_correspondences, save_result
+    from .io.atomic import check_writable, publish
 
     data = read_correspondences(args.correspondences)
+    check_writable(args.out)
     result = fit(data.object_points, data.image_points, args.model, data.image_size,
                  method=args.method, degree=args.degree, freeze=args.freeze,
                  fov=None if args.fov is None else math.radians(args.fov), loss=args.loss,
@@ -159,10 +204,23 @@ def cmd_fit(args: argparse.Namespace) -> int:
         print(f"omniscape-torch fit: did not converge ({result.reason}); nothing written",
               file=sys.stderr)
         return 1
-    written = [save_result(result.camera, result.to_dict(), "fit", args.out / "camera.json")]
-    if args.model == "scaramuzza":
-        written.append(args.out / "calib_results.txt")
-        result.camera.to_ocamcalib(written[-1])
+    # every file into a temporary folder first: a failed writer leaves nothing half-written,
+    # and an output that cannot be written (disk full, removed) does not lose the fit
+    staging = Path(tempfile.mkdtemp(prefix="omniscape-fit-"))
+    try:
+        files = [save_result(result.camera, result.to_dict(), "fit", staging / "camera.json")]
+        if args.model == "scaramuzza":
+            files.append(staging / "calib_results.txt")
+            result.camera.to_ocamcalib(files[-1])
+        written = publish(files, args.out)
+    except OSError as err:
+        print(f"omniscape-torch fit: error: {describe_os_error(err)}; the fitted camera is "
+              f"kept in {staging}", file=sys.stderr)
+        return 1
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    shutil.rmtree(staging, ignore_errors=True)
     print("wrote " + ", ".join(map(str, written)))
     return 0
 
@@ -193,6 +251,8 @@ def cmd_convert_model(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="omniscape-torch", description=__doc__.splitlines()[0])
+    parser.add_argument("--traceback", action="store_true",
+                        help="on an error, show the Python traceback instead of one line")
     sub = parser.add_subparsers(dest="command", required=True)
     info = sub.add_parser("info", help="field of view and angular resolution of a camera")
     source = info.add_mutually_exclusive_group()
@@ -286,12 +346,32 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the command line; returns the exit code (module docstring)."""
     args = build_parser().parse_args(argv)
+    prefix = f"omniscape-torch {args.command}"
     try:
         return args.func(args)
-    except (ValueError, TypeError, FileNotFoundError) as err:
-        print(f"omniscape-torch {args.command}: error: {err}", file=sys.stderr)
-        return 2
+    except KeyboardInterrupt:
+        if args.traceback:
+            raise
+        print(f"\n{prefix}: interrupted; "
+              f"{_INTERRUPTED.get(args.command, 'nothing was written')}", file=sys.stderr)
+        return 130
+    except Exception as err:   # noqa: BLE001 - every error becomes one line and a code
+        if args.traceback:
+            raise
+        if isinstance(err, FileNotFoundError):   # a missing input
+            message, code = describe_os_error(err) if err.errno else str(err), 2
+        elif isinstance(err, OSError):
+            message, code = describe_os_error(err), 1
+        elif isinstance(err, (ValueError, TypeError)):
+            message, code = str(err), 2
+        elif isinstance(err, MemoryError):
+            message, code = str(err) or "out of memory", 1
+        else:
+            message, code = f"{type(err).__name__}: {err}", 1
+        print(f"{prefix}: error: {' '.join(message.split())}", file=sys.stderr)
+        return code
 
 
 if __name__ == "__main__":

@@ -45,6 +45,7 @@ Every file is written atomically (temporary file then rename).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -58,14 +59,16 @@ import torch
 from torch import Tensor
 
 from .cubemap.faces import FACES
-from .io.atomic import atomic_write_text
+from .io.atomic import (atomic_write_text, check_writable, folder_lock,
+                        remove_stale_temporaries, temporary_prefix)
 from .io.carla import LABEL_SETS, decode_depth, decode_labels, to_13
 from .io.exr import read_exr, write_exr
 from .io.images import read_image, write_image
 from .io.labels import colorize
+from .sizing import MEMORY_PER_PIXEL, PROCESS_MEMORY, available_memory
 
 __all__ = ["MODALITIES", "CAMERAS", "ConvertError", "add_convert_parser", "build_cameras", "cmd_convert",
-           "convert_captures", "find_captures", "load_capture", "render_capture"]
+           "check_pixels", "convert_captures", "find_captures", "load_capture", "render_capture"]
 
 MODALITIES = ("rgb", "depth", "labels")
 CAMERAS = ("fisheye", "catadioptric")
@@ -260,7 +263,7 @@ def render_capture(cube: dict, cameras: dict[str, tuple], out_dir: str | Path, *
     """
     out_dir = Path(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".partial",
+    staging = Path(tempfile.mkdtemp(prefix=temporary_prefix(out_dir), suffix=".partial",
                                     dir=out_dir.parent))
     try:
         staged = _render_into(cube, cameras, staging, depth_output=depth_output,
@@ -352,28 +355,54 @@ def convert_captures(cubemaps_dir: str | Path, out_dir: str | Path, *, label_set
                           catadioptric_blind_fov=catadioptric_blind_fov,
                           catadioptric_looking=catadioptric_looking)
     out_dir = Path(out_dir)
+    check_pixels(image_size)
     meta = {name: {"camera": cam.to_dict(),
                    "rotation": None if rot is None else rot.double().tolist(),
                    "depth": depth_output}
             for name, (cam, rot) in built.items()}
-    atomic_write_text(out_dir / "cameras.json", json.dumps(meta, indent=2) + "\n")
+    created = not out_dir.exists()
     layers: dict = {}
     results: dict[str, list[Path]] = {}
     failures: dict[str, str] = {}
-    for capture in captures:
-        try:
-            cube = load_capture(capture, label_set=label_set, unknown_label=unknown_label)
-            results[capture.name] = render_capture(
-                cube, built, out_dir / capture.name, depth_output=depth_output,
-                interpolation=interpolation, device=device, _layers=layers)
-        except (KeyboardInterrupt, SystemExit):
-            raise
-        except Exception as err:   # noqa: BLE001 - reported per capture below
-            failures[capture.name] = f"{type(err).__name__}: {err}" \
-                if not isinstance(err, (ValueError, FileNotFoundError)) else str(err)
+    with folder_lock(out_dir) as lock:
+        remove_stale_temporaries(out_dir)
+        for capture in captures:
+            try:
+                cube = load_capture(capture, label_set=label_set, unknown_label=unknown_label)
+                results[capture.name] = render_capture(
+                    cube, built, out_dir / capture.name, depth_output=depth_output,
+                    interpolation=interpolation, device=device, _layers=layers)
+            except Exception as err:   # noqa: BLE001 - reported per capture below
+                failures[capture.name] = f"{type(err).__name__}: {err}" \
+                    if not isinstance(err, (ValueError, FileNotFoundError)) else str(err)
+        if results:
+            atomic_write_text(out_dir / "cameras.json", json.dumps(meta, indent=2) + "\n")
+        elif created:    # nothing converted: nothing left behind either
+            lock.unlink()
+    if created and not results:
+        with contextlib.suppress(OSError):
+            out_dir.rmdir()
     if failures:
         raise ConvertError(failures, results)
     return results
+
+
+def check_pixels(image_size: tuple[int, int]) -> None:
+    """Refuse output images too large for this machine's memory, before any work (the faces'
+    size is known only once a capture is read).
+
+    Raises:
+        MemoryError: with the estimate, the memory available and the largest square size that
+            fits.
+    """
+    h, w = image_size
+    need = PROCESS_MEMORY + MEMORY_PER_PIXEL * h * w
+    available = available_memory()
+    if need > available:
+        side = int(math.sqrt(max(0.0, available - PROCESS_MEMORY) / MEMORY_PER_PIXEL))
+        raise MemoryError(f"images of {h} x {w} pixels need about {need / 1e9:.1f} GB of memory, "
+                          f"but {available / 1e9:.1f} GB are available; the largest square "
+                          f"size that fits is about {side} x {side}")
 
 
 # --------------------------------------------------------------------------------------------
@@ -417,6 +446,7 @@ def cmd_convert(args: argparse.Namespace) -> int:
     import sys
 
     failures: dict[str, str] = {}
+    check_writable(args.out)
     try:
         results = convert_captures(
             args.cubemaps, args.out, label_set=args.label_set, cameras=tuple(args.cameras),
@@ -432,7 +462,8 @@ def cmd_convert(args: argparse.Namespace) -> int:
         results, failures = err.results, err.failures
     for capture, paths in results.items():
         print(f"{capture}: {len(paths)} files -> {Path(args.out) / capture}")
-    print(f"cameras: {Path(args.out) / 'cameras.json'}")
+    if results:
+        print(f"cameras: {Path(args.out) / 'cameras.json'}")
     if failures:
         print(f"convert: {len(failures)} of {len(failures) + len(results)} captures failed "
               "(nothing written for them):", file=sys.stderr)

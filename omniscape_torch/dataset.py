@@ -80,7 +80,9 @@ import csv
 import io as _io
 import json
 import math
+import os
 import platform
+import signal
 import sys
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass
@@ -95,15 +97,17 @@ from . import ride as _ride
 from .cubemap.faces import FACES
 from .io import (CLASSES, IGNORE_INDEX, atomic_write_bytes, atomic_write_text, camera_to_dict,
                  colorize, read_image, write_exr, write_image)
+from .io.atomic import folder_lock, remove_stale_temporaries
 from .io.labels import PALETTE
 from .presets import catadioptric, fisheye
 from .projection import OmniProjection
 from .reproject import equirectangular_camera
 from .scenes.town import WEATHERS, Town
-from .sizing import required_face_size, visible_faces
+from .sizing import (MEMORY_PER_PIXEL, PROCESS_MEMORY, available_memory, required_face_size,
+                     visible_faces)
 
 __all__ = ["CAMERAS", "CONTACT_SHEET", "DatasetConfig", "contact_sheet", "generate", "stats",
-           "RIG_POSITIONS", "MODALITIES"]
+           "RIG_POSITIONS", "MODALITIES", "check_memory", "estimate_memory"]
 
 #: The rig's cameras, in this order.
 CAMERAS = ("fisheye_left", "fisheye_right", "catadioptric_left", "catadioptric_right")
@@ -125,6 +129,17 @@ MODALITIES = {"rgb": "png", "depth": "exr", "labels": "png", "labels_color": "pn
 
 FORMAT = "omniscape_torch dataset"
 FORMAT_VERSION = 1
+
+#: Smallest face and image sizes accepted: below 8 texels a face has hardly an interior for
+#: bilinear sampling and its resampled border, and an 8-pixel image is a smoke test already.
+MIN_FACE_SIZE = MIN_IMAGE_SIZE = 8
+
+#: Peak memory of one process rendering a frame, per texel of the largest cube one camera
+#: renders (the town's ray caster and the six faces with depth and labels), bytes; with
+#: ``sizing.PROCESS_MEMORY`` and ``sizing.MEMORY_PER_PIXEL``, measured peaks on the built-in
+#: town, from 6 x 256^2 to 6 x 1351^2 texels, lie 8-25% below the estimate
+#: (tests/test_dataset.py checks a run against it).
+MEMORY_PER_TEXEL = 560
 
 
 @dataclass
@@ -149,20 +164,21 @@ class DatasetConfig:
         self.validate()
 
     def validate(self) -> None:
-        def positive_int(name, value):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name}: expected a positive integer, got {value!r}")
+        def positive_int(name, value, minimum=1, unit=""):
+            if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+                raise ValueError(f"{name}: expected an integer of at least {minimum}{unit}, got "
+                                 f"{value!r}")
         positive_int("frames", self.frames)
-        positive_int("max_face_size", self.max_face_size)
+        positive_int("max_face_size", self.max_face_size, MIN_FACE_SIZE, " texels")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f"seed: expected an integer >= 0, got {self.seed!r}")
         if self.face_size is not None:
-            positive_int("face_size", self.face_size)
+            positive_int("face_size", self.face_size, MIN_FACE_SIZE, " texels")
         if not (isinstance(self.fps, (int, float)) and math.isfinite(self.fps) and self.fps > 0):
             raise ValueError(f"fps: expected a positive number, got {self.fps!r}")
-        if len(self.image_size) != 2 or min(self.image_size) < 8:
-            raise ValueError(f"image_size: expected (H, W), both at least 8 pixels, got "
-                             f"{self.image_size!r}")
+        if len(self.image_size) != 2 or min(self.image_size) < MIN_IMAGE_SIZE:
+            raise ValueError(f"image_size: expected (H, W), both at least {MIN_IMAGE_SIZE} "
+                             f"pixels, got {self.image_size!r}")
         if not self.cameras:
             raise ValueError("cameras: expected at least one camera")
         for name in self.cameras:
@@ -244,18 +260,16 @@ class _Plan:
         self.location = _ride.carla_to_world(self.frames["location"]).double()  # (N, 3)
         self.cameras = {}
         self._faces: dict[tuple[str, int], torch.Tensor] = {}
+        sizes = _face_sizes(config)
         for name in config.cameras:
             camera, r_cam = _make_camera(name, config.image_size)
             r_cam = r_cam.double()
-            # over every attitude, not the ride's: frame k must not depend on the frame count
-            size = config.face_size if config.face_size is not None else min(
-                required_face_size(camera, "any"), config.max_face_size)
-            self.cameras[name] = dict(camera=camera, r_cam=r_cam, face_size=int(size),
+            self.cameras[name] = dict(camera=camera, r_cam=r_cam, face_size=int(sizes[name]),
                                       position=torch.tensor(RIG_POSITIONS[name],
                                                             dtype=torch.float64))
         h = config.image_size[0]
         self.panorama_size = (h, 2 * h)
-        self.panorama_face = max(8, min(config.max_face_size, (2 * h) // 4 * 2))
+        self.panorama_face = _panorama_face(config.max_face_size, h)
 
     def rotation(self, name: str, k: int) -> torch.Tensor:
         """Camera -> world (= cube) rotation of camera ``name`` at frame ``k``, float64."""
@@ -314,6 +328,8 @@ def _state(config: DatasetConfig) -> dict:
 
 
 def _init_worker(config_dict: dict) -> None:
+    # Ctrl-C reaches the whole process group: the main process stops the run and says so
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     torch.set_num_threads(1)
     _state(DatasetConfig(**config_dict))
 
@@ -535,6 +551,9 @@ def generate(out: str | Path, config: DatasetConfig | None = None, *, workers: i
 
     Raises:
         ValueError: bad configuration, or ``out`` holds a dataset of another configuration.
+        MemoryError: the run would not fit in memory (:func:`check_memory`; before any work).
+        omniscape_torch.io.atomic.FolderBusyError: another run is writing ``out``.
+        OSError: ``out`` cannot be written (the message names the path).
     """
     config = DatasetConfig() if config is None else config
     config.validate()
@@ -542,6 +561,14 @@ def generate(out: str | Path, config: DatasetConfig | None = None, *, workers: i
         raise ValueError(f"workers: expected a positive integer, got {workers!r}")
     log = log or (lambda msg: None)
     out = Path(out)
+    check_memory(config, workers)
+    with folder_lock(out):
+        return _generate(out, config, workers, progress, log)
+
+
+def _generate(out: Path, config: DatasetConfig, workers: int, progress: bool | None,
+              log: Callable[[str], None]) -> dict:
+    """``generate`` inside the folder's lock."""
     manifest = out / "dataset.json"
     if manifest.is_file():
         try:
@@ -551,12 +578,11 @@ def generate(out: str | Path, config: DatasetConfig | None = None, *, workers: i
         if old != config.to_dict():
             raise ValueError(f"{out} holds a dataset of another configuration ({manifest}); "
                              f"use another --out folder or remove it")
-    out.mkdir(parents=True, exist_ok=True)
     # A run killed mid-write leaves its temporaries (the finished files are whole: written by
-    # rename); nothing else writes here before the workers start (one generate per folder).
-    for stale in out.rglob(".*.tmp*"):
-        if stale.is_file() and stale.name.endswith((".tmp", ".tmp.exr")):
-            stale.unlink()
+    # rename); they carry their process id, and only those of ended processes are removed.
+    stale = remove_stale_temporaries(out)
+    if stale:
+        log(f"removed {len(stale)} temporary file(s) of an interrupted run")
     plan = _state(config)["plan"]
     _write_run_files(plan, out)
     todo = [k for k in range(config.frames) if not _finished(plan, out, k)]
@@ -664,12 +690,18 @@ def contact_sheet(root: str | Path, cameras, frame: int) -> bytes:
 
 def stats(root: str | Path, *, plot: bool = True) -> dict:
     """Table I (yaw, pitch, roll over the ride) and the per-class pixel share (valid pixels)
-    of the fisheye and catadioptric images of the dataset in ``root``; writes
-    ``root/stats.json`` and (``plot``) the bar chart ``root/stats.png``.
+    of the fisheye and catadioptric images of the dataset in ``root``, over its finished
+    frames (``.done`` marker and every camera's files; an interrupted run's dataset has fewer
+    than planned); writes ``root/stats.json`` and (``plot``) the bar chart ``root/stats.png``.
 
     Returns:
         ``{"table_one": {angle: {mean, std, min, median, max}}, "class_share": {kind:
-        {class: share}}, "pixels": {kind: valid pixel count}, "frames": N}``.
+        {class: share}}, "pixels": {kind: valid pixel count}, "frames": finished frames,
+        "frames_planned": N}``.
+
+    Raises:
+        FileNotFoundError: ``root`` holds no dataset.
+        ValueError: no frame is finished yet.
     """
     root = Path(root)
     manifest_path = root / "dataset.json"
@@ -678,24 +710,29 @@ def stats(root: str | Path, *, plot: bool = True) -> dict:
                                 f"'omniscape-torch generate')")
     manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
     recs = json.loads((root / "dynamics.json").read_text(encoding="utf-8"))
+    cameras = list(manifest["cameras"])
+    finished = [r for r in recs if _marker(root, r["frame"]).is_file() and all(
+        (root / name / m / f"{_name(r['frame'])}.{ext}").is_file()
+        for name in cameras for m, ext in MODALITIES.items())]
+    if not finished:
+        raise ValueError(f"{root}: none of its {len(recs)} frames is finished yet; run "
+                         f"'omniscape-torch generate' with the same options to finish them")
     rotation = torch.tensor([[r["rotation"]["roll"], r["rotation"]["pitch"],
-                              r["rotation"]["yaw"]] for r in recs], dtype=torch.float64)
+                              r["rotation"]["yaw"]] for r in finished], dtype=torch.float64)
     table = _ride.table_one(rotation)
     counts = {}
-    for name in manifest["cameras"]:
+    for name in cameras:
         kind = name.split("_")[0]
         acc = counts.setdefault(kind, np.zeros(len(CLASSES), dtype=np.int64))
-        for path in sorted((root / name / "labels").glob("*.png")):
-            labels = read_image(path).numpy()
-            valid_path = root / name / "valid" / path.name
-            valid = read_image(valid_path).numpy() > 0 if valid_path.is_file() \
-                else labels != IGNORE_INDEX
+        for r in finished:
+            labels = read_image(root / name / "labels" / f"{_name(r['frame'])}.png").numpy()
+            valid = read_image(root / name / "valid" / f"{_name(r['frame'])}.png").numpy() > 0
             ids = labels[valid & (labels < len(CLASSES))]
             acc += np.bincount(ids.astype(np.int64), minlength=len(CLASSES))
     share = {kind: {c: (float(v[i]) / float(v.sum()) if v.sum() else 0.0)
                     for i, c in enumerate(CLASSES)} for kind, v in counts.items()}
-    result = {"frames": len(recs), "table_one": table, "class_share": share,
-              "pixels": {kind: int(v.sum()) for kind, v in counts.items()}}
+    result = {"frames": len(finished), "frames_planned": len(recs), "table_one": table,
+              "class_share": share, "pixels": {kind: int(v.sum()) for kind, v in counts.items()}}
     atomic_write_text(root / "stats.json", _dumps(result))
     if plot:
         _plot(result, root / "stats.png")
@@ -736,7 +773,10 @@ def _plot(result: dict, path: Path) -> None:
 
 def format_stats(result: dict) -> str:
     """The text ``omniscape-torch stats`` prints."""
-    lines = [f"Table I: vehicle attitude over {result['frames']} frames (degrees)",
+    done, planned = result["frames"], result.get("frames_planned", result["frames"])
+    over = f"{done} frames" if done == planned else (
+        f"the {done} finished of {planned} frames; run generate again to finish the others")
+    lines = [f"Table I: vehicle attitude over {over} (degrees)",
              f"{'':8}{'mean':>10}{'std':>10}{'min':>10}{'median':>10}{'max':>10}"]
     for name in ("yaw", "pitch", "roll"):
         row = result["table_one"][name]
@@ -751,3 +791,100 @@ def format_stats(result: dict) -> str:
                                          for k in kinds))
     lines.append(f"{'valid pixels':14}" + "".join(f"{result['pixels'][k]:14d}" for k in kinds))
     return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------------------------
+# Memory: estimated before any work
+# --------------------------------------------------------------------------------------------
+
+#: Face sizes are computed on the image scaled down to at most this many pixels, then scaled
+#: back (the rig's cameras scale with their image, and so does the face size they need, to
+#: within a texel or two; an exact computation at 1024 x 1024 takes seconds).
+SIZING_PIXELS = 2 ** 16
+
+
+def _face_sizes(config: DatasetConfig, image_size: tuple[int, int] | None = None
+                ) -> dict[str, int]:
+    """The face size of each camera for ``image_size`` (default the configuration's):
+    ``face_size``, or ``required_face_size`` over every attitude (not the ride's: frame ``k``
+    must not depend on the number of frames), capped by ``max_face_size``."""
+    h, w = config.image_size if image_size is None else image_size
+    if config.face_size is not None:
+        return {name: config.face_size for name in config.cameras}
+    scale = min(1.0, math.sqrt(SIZING_PIXELS / (h * w)))
+    small = (max(MIN_IMAGE_SIZE, round(h * scale)), max(MIN_IMAGE_SIZE, round(w * scale)))
+    need = {}   # per kind of camera: fisheye, catadioptric
+    out = {}
+    for name in config.cameras:
+        kind = name.split("_")[0]
+        if kind not in need:
+            need[kind] = required_face_size(_make_camera(name, small)[0], "any")
+            if small != (h, w):
+                need[kind] = math.ceil(need[kind] * max(h / small[0], w / small[1]))
+        out[name] = min(need[kind], config.max_face_size)
+    return out
+
+
+def _largest_render(config: DatasetConfig, sizes: dict[str, int],
+                    image_size: tuple[int, int] | None = None) -> tuple[int, int]:
+    """Texels of the largest cube and pixels of the largest image one process renders."""
+    h, w = config.image_size if image_size is None else image_size
+    texels, pixels = 6 * max(sizes.values()) ** 2, h * w
+    if config.save_panorama:
+        texels = max(texels, 6 * _panorama_face(config.max_face_size, h) ** 2)
+        pixels = max(pixels, 2 * h * h)
+    return texels, pixels
+
+
+def _panorama_face(max_face_size: int, height: int) -> int:
+    """Face size of the panorama's cube: a texel per panorama pixel at the equator."""
+    return max(MIN_FACE_SIZE, min(max_face_size, height // 2 * 2))
+
+
+def estimate_memory(config: DatasetConfig, workers: int = 1, *,
+                    image_size: tuple[int, int] | None = None) -> int:
+    """Bytes ``generate(config, workers=workers)`` needs at its peak (for ``image_size``, by
+    default the configuration's): per rendering process :data:`PROCESS_MEMORY` plus the largest
+    cube's texels and the largest image's pixels at their rates (:data:`MEMORY_PER_TEXEL`,
+    :data:`MEMORY_PER_PIXEL`; cameras render one after the other), times the processes, plus
+    the main process when workers render."""
+    sizes = _face_sizes(config, image_size)
+    texels, pixels = _largest_render(config, sizes, image_size)
+    per_process = PROCESS_MEMORY + MEMORY_PER_TEXEL * texels + MEMORY_PER_PIXEL * pixels
+    processes = min(workers, config.frames)
+    return int(per_process * processes + (PROCESS_MEMORY if processes > 1 else 0))
+
+
+def check_memory(config: DatasetConfig, workers: int = 1, available: int | None = None) -> None:
+    """Refuse, before any work, a run that cannot fit in memory.
+
+    Raises:
+        MemoryError: :func:`estimate_memory` exceeds ``available`` (default
+            :func:`available_memory`); the message gives both and the largest image size (and
+            worker count) that fits.
+    """
+    need = estimate_memory(config, workers)
+    available = available_memory() if available is None else available
+    if need <= available:
+        return
+    h, w = config.image_size
+    fits = None
+    lo, hi = MIN_IMAGE_SIZE, max(h, w)          # the largest scale of (H, W) that fits
+    while lo <= hi:
+        mid = (lo + hi) // 2
+        size = (round(h * mid / max(h, w)), round(w * mid / max(h, w)))
+        if min(size) >= MIN_IMAGE_SIZE and estimate_memory(config, workers,
+                                                           image_size=size) <= available:
+            fits, lo = size, mid + 1
+        else:
+            hi = mid - 1
+    gb = 1e9
+    hint = (f"the largest image size that fits is {fits[0]}x{fits[1]}" if fits else
+            "no image size fits with these face sizes: lower the face size")
+    if workers > 1:
+        hint += ", or use fewer workers"
+    texels, pixels = _largest_render(config, _face_sizes(config))
+    raise MemoryError(
+        f"this run needs about {need / gb:.1f} GB of memory ({min(workers, config.frames)} "
+        f"process(es), each a cube of {texels / 1e6:.1f} M texels and an image of "
+        f"{pixels / 1e6:.1f} M pixels), but {available / gb:.1f} GB are available; {hint}")

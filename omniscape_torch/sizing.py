@@ -45,6 +45,8 @@ the camera's dtype and device.
 from __future__ import annotations
 
 import math
+import os
+from pathlib import Path
 
 import torch
 from torch import Tensor
@@ -54,9 +56,16 @@ from .cubemap.faces import FACES, _check_face_size, _check_pad, face_axes, ray_t
 from .cubemap.padding import border_plan
 from .cubemap.rotation import check_rotation
 
-__all__ = ["face_size_map", "needed_face_names", "required_face_size", "visible_faces"]
+__all__ = ["MEMORY_PER_PIXEL", "PROCESS_MEMORY", "available_memory", "face_size_map", "needed_face_names",
+           "required_face_size", "visible_faces"]
 
 CRITERIA = ("anisotropic", "isotropic")
+
+#: Memory of a process that renders, before its images: Python, torch, the package (bytes;
+#: measured 340-460 MB, with headroom for the allocator); and the peak bytes per pixel of an
+#: image rendered through the layer (rays, grid, RGB, depth, labels and mask, their encoding;
+#: measured 110 on the built-in town's dataset, tests/test_dataset.py).
+PROCESS_MEMORY, MEMORY_PER_PIXEL = 600e6, 160
 
 
 # --------------------------------------------------------------------------------------------
@@ -409,3 +418,36 @@ def needed_face_names(needed: Tensor) -> list[str]:
     if not isinstance(needed, Tensor) or needed.shape != (6,):
         raise ValueError(f"needed: expected a (6,) tensor, got {getattr(needed, 'shape', needed)}")
     return [name for name, flag in zip(FACES, needed.tolist()) if flag]
+
+
+# --------------------------------------------------------------------------------------------
+# Memory
+# --------------------------------------------------------------------------------------------
+
+def available_memory() -> int:
+    """Bytes this process may still allocate: the kernel's ``MemAvailable``, or less under a
+    cgroup (container) limit; physical memory where neither can be read."""
+    limits = []
+    try:
+        with open("/proc/meminfo", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    limits.append(int(line.split()[1]) * 1024)
+    except OSError:
+        pass
+    for limit_file, usage_file in (("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
+                                   ("/sys/fs/cgroup/memory/memory.limit_in_bytes",
+                                    "/sys/fs/cgroup/memory/memory.usage_in_bytes")):
+        try:
+            limit = Path(limit_file).read_text().strip()
+            usage = Path(usage_file).read_text().strip()
+        except OSError:
+            continue
+        if limit.isdigit() and usage.isdigit() and int(limit) < 2 ** 60:
+            limits.append(int(limit) - int(usage))
+    if not limits:
+        try:
+            limits.append(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+        except (ValueError, OSError):  # pragma: no cover - no way to tell: do not refuse
+            return 2 ** 62
+    return max(0, min(limits))

@@ -14,6 +14,7 @@ import omniscape_torch as ot
 from omniscape_torch.convert import (ConvertError, add_convert_parser, cmd_convert,
                                      convert_captures, find_captures, load_capture)
 from omniscape_torch.cubemap import FACES, face_rays
+from omniscape_torch.io.atomic import LOCK_NAME
 from omniscape_torch.io.carla import (EXT23_TO_13, NEW_CLASSES, NEW_TO_13, decode_depth,
                                       decode_labels, encode_depth, map_labels, to_13)
 
@@ -344,7 +345,8 @@ def test_convert_skips_a_bad_capture_and_reports_it(tmp_path, breakage):
         assert sorted(p.name for p in err.results[name]) == sorted(
             p.name for p in (out / name).iterdir())
     assert not (out / "000002").exists()
-    assert sorted(p.name for p in out.iterdir()) == ["000001", "000003", "cameras.json"]
+    assert sorted(p.name for p in out.iterdir() if p.name != LOCK_NAME) == [
+        "000001", "000003", "cameras.json"]
 
 
 def test_corrupt_exr_depth_face_names_the_file(tmp_path):
@@ -387,7 +389,8 @@ def test_render_failure_leaves_nothing_half_written(tmp_path, monkeypatch):
                          cameras=("fisheye",))
     assert set(info.value.failures) == {"000002"}
     assert "disk full" in info.value.failures["000002"]
-    assert sorted(p.name for p in out.iterdir()) == ["000001", "000003", "cameras.json"]
+    assert sorted(p.name for p in out.iterdir() if p.name != LOCK_NAME) == [
+        "000001", "000003", "cameras.json"]
 
 
 def test_cli_convert_reports_failures_and_exits_non_zero(tmp_path, capsys):
@@ -405,3 +408,24 @@ def test_cli_convert_reports_failures_and_exits_non_zero(tmp_path, capsys):
     assert "1 of 3 captures failed" in captured.err
     assert "000002" in captured.err and "front_labels.png" in captured.err
     assert (out / "000001" / "fisheye_rgb.png").is_file() and not (out / "000002").exists()
+
+
+def test_convert_with_no_good_capture_writes_nothing(tmp_path, capsys):
+    """Every capture bad: no cameras.json, no output folder (it did not exist before), the
+    failures listed by file, exit 1."""
+    root = tmp_path / "cubemaps"
+    _three_captures(root)
+    for name in ("000001", "000002", "000003"):
+        _garbage(root / name / "left_rgb.png")
+    out = tmp_path / "out"
+    from omniscape_torch import cli
+    assert cli.main(["convert", "--cubemaps", str(root), "--out", str(out), "--label-set",
+                     "new", "--size", "16", "16", "--cameras", "fisheye"]) == 1
+    err = capsys.readouterr().err
+    assert "3 of 3 captures failed" in err and err.count("left_rgb.png") == 3
+    assert not out.exists()
+    # into an existing folder: nothing added to it either
+    out.mkdir()
+    with pytest.raises(ConvertError):
+        convert_captures(root, out, label_set="new", image_size=(16, 16), cameras=("fisheye",))
+    assert [p.name for p in out.iterdir() if p.name != LOCK_NAME] == []

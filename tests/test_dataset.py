@@ -10,6 +10,7 @@ import pytest
 import torch
 
 import omniscape_torch as ot
+from omniscape_torch.io.atomic import LOCK_NAME
 from omniscape_torch import cli
 from omniscape_torch.dataset import CAMERAS, MODALITIES, DatasetConfig, format_stats, generate
 from omniscape_torch.io import read_exr, read_image
@@ -27,7 +28,10 @@ def _config(**kw):
 
 
 def _files(root):
-    return {p.relative_to(root).as_posix(): p for p in sorted(root.rglob("*")) if p.is_file()}
+    """The dataset's files; not the lock (``.lock`` holds the id of the last process that wrote
+    the folder, not data)."""
+    return {p.relative_to(root).as_posix(): p for p in sorted(root.rglob("*"))
+            if p.is_file() and p.name != LOCK_NAME}
 
 
 @pytest.fixture(scope="module")
@@ -227,3 +231,152 @@ def test_cli_generate_and_stats_missing(tmp_path, capsys):
     assert not (out / "fisheye_right").exists()
     assert cli.main(["stats", str(tmp_path / "nothing")]) == 2
     assert "no dataset.json" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------------------------
+# Reliability: incomplete datasets, one writer per folder, temporaries, frame independence,
+# sizes and memory checked before any work
+# --------------------------------------------------------------------------------------------
+
+def test_stats_of_an_interrupted_run_counts_finished_frames_only(dataset, tmp_path, capsys):
+    out = tmp_path / "partial"
+    shutil.copytree(dataset, out)
+    (out / ".done" / "000001").unlink()        # frame 1 not finished (its marker comes last)
+    for name in CAMERAS:
+        (out / name / "labels" / "000001.png").unlink(missing_ok=True)
+    assert cli.main(["stats", str(out), "--no-plot"]) == 0
+    text = capsys.readouterr().out
+    assert f"the 1 finished of {FRAMES} frames" in text
+    result = json.loads((out / "stats.json").read_text())
+    assert result["frames"] == 1 and result["frames_planned"] == FRAMES
+    recs = json.loads((out / "dynamics.json").read_text())
+    assert result["table_one"]["roll"]["mean"] == pytest.approx(recs[0]["rotation"]["roll"])
+    n_valid = sum(int((read_image(out / cam / "valid" / "000000.png") == 255).sum())
+                  for cam in ("fisheye_left", "fisheye_right"))
+    assert result["pixels"]["fisheye"] == n_valid
+    (out / ".done" / "000000").unlink()
+    assert cli.main(["stats", str(out)]) == 2
+    assert "none of its 2 frames is finished" in capsys.readouterr().err
+
+
+def test_a_second_run_into_the_same_folder_stops_with_a_message(tmp_path, capsys):
+    from omniscape_torch.io.atomic import FolderBusyError, folder_lock
+
+    out = tmp_path / "busy"
+    with folder_lock(out):
+        with pytest.raises(FolderBusyError, match=f"process {__import__('os').getpid()}"):
+            generate(out, _config(frames=1), progress=False)
+        assert cli.main(["generate", "--out", str(out), "--frames", "1", "--image-size", "16",
+                         "--no-progress"]) == 1
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and "another run" in err
+        assert not (out / "dataset.json").exists()
+    generate(out, _config(frames=1), progress=False)     # the lock is free again
+
+
+def test_a_run_removes_the_temporaries_of_ended_processes_only(tmp_path):
+    """Temporaries carry their writer's process id: those of a process that has ended are
+    removed when a run starts, those of a live process (another run writing) are left."""
+    import subprocess
+    import sys
+
+    from omniscape_torch.io.atomic import remove_stale_temporaries
+
+    ended = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                           capture_output=True, text=True, check=True)
+    dead = int(ended.stdout)
+    live = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        folder = tmp_path / "ds" / "fisheye_left" / "rgb"
+        folder.mkdir(parents=True)
+        stale = folder / f".000000.png.{dead}.abcd1234.tmp"
+        stale_dir = tmp_path / "ds" / f".000003.{dead}.k_9x2abc.partial"
+        other = folder / f".000001.png.{live.pid}.abcd1234.tmp"
+        plain = folder / ".notes.txt"
+        for path in (stale, other, plain):
+            path.write_bytes(b"x")
+        stale_dir.mkdir()
+        (stale_dir / "fisheye_rgb.png").write_bytes(b"x")
+        removed = remove_stale_temporaries(tmp_path / "ds")
+        assert set(removed) == {stale, stale_dir}
+        assert other.exists() and plain.exists() and not stale.exists()
+        generate(tmp_path / "ds", _config(frames=1), progress=False)
+        assert other.exists()
+    finally:
+        live.kill()
+        live.wait()
+
+
+def test_frame_k_depends_on_the_seed_and_k_only(dataset, tmp_path):
+    """A longer run extends a shorter one: frames 0 and 1 of a 3-frame run are those of the
+    2-frame run byte for byte (ride noise, face sizes and weather do not depend on the frame
+    count), and so are the cameras."""
+    longer = tmp_path / "longer"
+    generate(longer, _config(frames=FRAMES + 1), progress=False)
+    short, long_ = _files(dataset), _files(longer)
+    per_frame = [f for f in short if f.startswith(".done/") or f.split("/")[-1][:6].isdigit()]
+    assert len(per_frame) > 10
+    differ = [f for f in per_frame if short[f].read_bytes() != long_[f].read_bytes()]
+    assert not differ, differ
+    for name in CAMERAS:
+        assert (dataset / name / "camera.json").read_bytes() == \
+            (longer / name / "camera.json").read_bytes()
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(face_size=1), "face_size: expected an integer of at least 8"),
+    (dict(face_size=7), "face_size: expected an integer of at least 8"),
+    (dict(max_face_size=4), "max_face_size: expected an integer of at least 8"),
+    (dict(image_size=(4, 64)), "image_size: expected .* at least 8"),
+])
+def test_sizes_below_a_useful_minimum_are_refused(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        _config(**kwargs)
+
+
+def test_a_run_that_cannot_fit_in_memory_is_refused_before_any_work(tmp_path, capsys):
+    import time
+
+    from omniscape_torch.dataset import check_memory, estimate_memory
+
+    out = tmp_path / "huge"
+    start = time.perf_counter()
+    assert cli.main(["generate", "--out", str(out), "--image-size", "100000",
+                     "--no-progress"]) == 1
+    assert time.perf_counter() - start < 30
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "GB of memory" in err
+    assert not out.exists()
+    size = int(err.split("the largest image size that fits is ")[1].split("x")[0])
+    config = _config(image_size=(size, size), max_face_size=1024)
+    available = __import__("omniscape_torch").sizing.available_memory()
+    check_memory(config, available=available)           # the size it suggests fits
+    with pytest.raises(MemoryError, match="fewer workers"):
+        check_memory(config, workers=64, available=available)
+    # more workers need more memory; so do larger images
+    assert estimate_memory(config, 2) > estimate_memory(config, 1)
+    assert estimate_memory(_config(image_size=(512, 512))) > estimate_memory(_config())
+
+
+def test_the_memory_estimate_bounds_a_measured_run(tmp_path):
+    """The estimate is an upper bound of the peak resident memory of a process that renders a
+    frame (measured in a fresh process), and not a loose one (within 2x)."""
+    import subprocess
+    import sys
+
+    from omniscape_torch.dataset import estimate_memory
+
+    config = DatasetConfig(frames=1, image_size=(160, 160), face_size=320,
+                           cameras=("fisheye_left",))
+    code = (
+        "import resource, sys\n"
+        "from omniscape_torch.dataset import DatasetConfig, render_frame\n"
+        "c = DatasetConfig(frames=1, image_size=(160, 160), face_size=320, "
+        "cameras=('fisheye_left',))\n"
+        f"render_frame(c, {str(tmp_path / 'out')!r}, 0)\n"
+        "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=300, check=True)
+    peak = int(done.stdout.split()[-1])
+    estimate = estimate_memory(config)
+    assert peak <= estimate <= 2 * peak, (peak, estimate)

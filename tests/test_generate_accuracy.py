@@ -26,6 +26,7 @@ import torch.nn.functional as nnf
 
 from omniscape_torch import presets
 from omniscape_torch.dataset import DatasetConfig, generate
+from omniscape_torch.io.atomic import LOCK_NAME
 from omniscape_torch.projection import OmniProjection
 from omniscape_torch.scenes.town import Town
 from omniscape_torch.sizing import required_face_size
@@ -124,7 +125,10 @@ def _generate_cmd(out: Path, frames: int) -> list[str]:
 
 
 def _files(root: Path) -> dict[str, Path]:
-    return {p.relative_to(root).as_posix(): p for p in sorted(root.rglob("*")) if p.is_file()}
+    """The dataset's files; not the lock (``.lock`` holds the id of the last process that wrote
+    the folder, not data)."""
+    return {p.relative_to(root).as_posix(): p for p in sorted(root.rglob("*"))
+            if p.is_file() and p.name != LOCK_NAME}
 
 
 def _run(cmd: list[str]) -> None:
@@ -158,19 +162,19 @@ def test_killed_run_resumes_to_identical_files(tmp_path):
             proc.stderr.close()
         finished = len(list(done_dir.iterdir())) if done_dir.is_dir() else 0
         if proc.returncode == -signal.SIGKILL and finished < frames:
-            interrupted = (out, frames, finished)
+            interrupted = (out, frames, finished, proc.pid)
             break
     if interrupted is None:
         pytest.skip("generate finished every attempt before it could be killed")
-    out_a, frames, finished = interrupted
+    out_a, frames, finished, pid = interrupted
     assert 1 <= finished < frames
     # a kill during a write leaves the writer's temporary file (io.atomic, io.exr name them
-    # .<name>.<random>.tmp[.exr]); the kill above only sometimes lands inside a write, so plant
-    # such leftovers too: the resumed run must not leave them behind
-    (out_a / ".done" / ".000000.killed01.tmp").write_bytes(b"")
+    # .<name>.<pid>.<random>.tmp[.exr]); the kill above only sometimes lands inside a write, so
+    # plant such leftovers of the killed process too: the resumed run must not leave them behind
+    (out_a / ".done" / f".000000.{pid}.killed01.tmp").write_bytes(b"")
     (out_a / "fisheye_left" / "depth").mkdir(parents=True, exist_ok=True)
-    (out_a / "fisheye_left" / "depth" / f".{frames - 1:06d}.exr.killed02.tmp.exr").write_bytes(
-        b"\x76\x2f")
+    (out_a / "fisheye_left" / "depth" / f".{frames - 1:06d}.exr.{pid}.killed02.tmp.exr"
+     ).write_bytes(b"\x76\x2f")
 
     _run(_generate_cmd(out_a, frames))                   # resume
     out_b = tmp_path / "B"

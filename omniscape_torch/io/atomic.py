@@ -1,39 +1,179 @@
-"""Atomic file writes: a temporary file in the target's folder, then ``os.replace``.
+"""Atomic file writes, their leftovers, and one writer per folder.
 
-An interrupted run leaves either the old file or the new one, never half of one (and at most a
-hidden ``.<name>.*.tmp*`` temporary, which ``generate`` removes when it resumes).
+A file is written to a hidden temporary in the target's folder, then renamed onto it
+(``os.replace``): an interrupted run leaves either the old file or the new one, never half of
+one. A temporary's name carries its owner's process id, ``.<name>.<pid>.<random><suffix>``, so
+that :func:`remove_stale_temporaries` removes only those whose process is gone, never a file
+another live run is writing. :func:`folder_lock` keeps a second run out of a folder that a run
+is writing (``fcntl.flock`` on ``<folder>/.lock``; released by the kernel when the process
+ends, however it ends).
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
+import re
+import shutil
 import tempfile
 from pathlib import Path
 from typing import Iterator
+
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - not on Windows: no locking there
+    fcntl = None
+
+#: The lock file :func:`folder_lock` holds in a folder.
+LOCK_NAME = ".lock"
+
+# .<name>.<pid>.<8 random characters of mkstemp/mkdtemp><suffix>
+_TEMPORARY = re.compile(r"^\.(?P<name>.+)\.(?P<pid>\d+)\.[a-z0-9_]{8}(?P<suffix>\..+)?$")
+
+
+class FolderBusyError(RuntimeError):
+    """Another process holds the folder's lock (:func:`folder_lock`)."""
+
+
+def temporary_prefix(path: str | os.PathLike) -> str:
+    """The prefix of a temporary for ``path``: hidden, with this process's id."""
+    return f".{Path(path).name}.{os.getpid()}."
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:   # another user's live process
+        return True
+    return True
+
+
+def remove_stale_temporaries(root: str | os.PathLike) -> list[Path]:
+    """Remove the temporaries (files and staging folders, named by :func:`temporary_prefix`)
+    under ``root`` whose owner process no longer runs; a live run's are left alone. Returns
+    the paths removed."""
+    removed = []
+    for path in sorted(Path(root).rglob(".*")):
+        match = _TEMPORARY.match(path.name)
+        if match is None or _alive(int(match["pid"])) or not path.exists():
+            continue
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            with contextlib.suppress(FileNotFoundError):
+                path.unlink()
+        removed.append(path)
+    return removed
+
+
+@contextlib.contextmanager
+def folder_lock(folder: str | os.PathLike) -> Iterator[Path]:
+    """Hold ``folder``'s lock for the ``with`` block (the folder is created).
+
+    Raises:
+        FolderBusyError: another process holds it; the message names the process.
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / LOCK_NAME
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+    try:
+        if fcntl is not None:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                owner = os.pread(fd, 32, 0).decode("ascii", "replace").strip() or "unknown"
+                raise FolderBusyError(
+                    f"{folder}: another run (process {owner}) is writing this folder; wait "
+                    f"for it to finish, or write to another folder") from None
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode("ascii"), 0)
+        yield path
+    finally:
+        os.close(fd)
+
+
+def check_writable(path: str | os.PathLike) -> None:
+    """Refuse, before any work, an output folder that cannot be created or written: a file in
+    the way (the path itself or a parent), a read-only file system, no permission.
+
+    Raises:
+        OSError: with the errno and the path at fault, for the command line's one-line message.
+    """
+    parent = Path(path)
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if parent.exists() and not parent.is_dir():
+        raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(parent))
+    if not os.access(parent, os.W_OK | os.X_OK):
+        read_only = bool(os.statvfs(parent).f_flag & os.ST_RDONLY)
+        code = errno.EROFS if read_only else errno.EACCES
+        raise PermissionError(code, os.strerror(code), str(parent))
+
+
+def _ordinary_mode(path: str) -> None:
+    """Give ``path`` the permissions of an ordinary new file (umask), not ``mkstemp``'s 0600."""
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(path, 0o666 & ~umask)
 
 
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, suffix: str = ".tmp") -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success it is synced and renamed onto
     ``path``, on any error removed. Creates the parent folder. The file gets the permissions of
-    an ordinary new file (umask), not ``mkstemp``'s 0600."""
+    an ordinary new file."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=temporary_prefix(path), suffix=suffix, dir=path.parent)
     os.close(fd)
     try:
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
+        _ordinary_mode(tmp)
         yield Path(tmp)
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as err:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
+        if isinstance(err, OSError) and err.filename is None and err.errno:
+            # a write to an open file (disk full) says no path: name the one being written
+            raise OSError(err.errno, err.strerror, str(path)) from err
         raise
+
+
+def publish(files: list[Path], folder: str | os.PathLike) -> list[Path]:
+    """Copy ``files`` into ``folder`` (created) all or nothing: each is copied to a temporary
+    beside its target, and only once every copy is whole are they renamed into place; on an
+    error the temporaries are removed and ``folder`` holds none of the new files. Returns the
+    paths written."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    staged = []
+    try:
+        for file in files:
+            target = folder / Path(file).name
+            fd, tmp = tempfile.mkstemp(prefix=temporary_prefix(target), suffix=".tmp",
+                                       dir=folder)
+            os.close(fd)
+            staged.append((tmp, target))
+            _ordinary_mode(tmp)
+            shutil.copyfile(file, tmp)
+            with open(tmp, "rb+") as f:
+                os.fsync(f.fileno())
+        for tmp, target in staged:
+            os.replace(tmp, target)
+    except BaseException:
+        for tmp, _ in staged:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp)
+        raise
+    return [target for _, target in staged]
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:

@@ -10,6 +10,7 @@ only move arrays.
 
 from __future__ import annotations
 
+import errno
 import os
 from pathlib import Path
 
@@ -80,7 +81,13 @@ def write_exr(path: str | os.PathLike, depth: Tensor | np.ndarray, *,
     path = Path(path)
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     with atomic_path(path, suffix=".tmp.exr") as tmp:
-        OpenEXR.File(header, {channel: array}).write(str(tmp))
+        try:
+            OpenEXR.File(header, {channel: array}).write(str(tmp))
+        except RuntimeError as err:   # OpenEXR words an operating-system error in a message
+            for code in (errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EROFS, errno.EIO):
+                if os.strerror(code) in str(err):
+                    raise OSError(code, os.strerror(code), str(path)) from err
+            raise
     return path
 
 

@@ -1,0 +1,276 @@
+"""The command line's failures: every error one line on stderr and an exit code, nothing lost.
+
+Operating-system errors are produced for real where the machine allows it: a file in the way,
+a folder an unprivileged user cannot write (the command runs as ``nobody`` when the tests run
+as root), a read-only and a full file system (small tmpfs mounts, where this process may
+mount). Where it does not, the error is raised inside the command by a patched writer, which
+still checks the command's handling.
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+import omniscape_torch as ot
+from omniscape_torch import cli
+
+from test_calibration_fit import _write
+
+ROOT = Path(__file__).resolve().parents[1]
+SMALL = ["--frames", "2", "--image-size", "16", "--max-face-size", "16", "--cameras",
+         "fisheye_left", "--no-progress"]
+
+
+def _line(err: str) -> str:
+    """The one error line of a command's stderr (other lines are progress messages)."""
+    assert "Traceback" not in err, err
+    lines = [ln for ln in err.splitlines() if ln.startswith("omniscape-torch ")]
+    assert len(lines) == 1, err
+    return lines[0]
+
+
+def _command(*args: str) -> list[str]:
+    return [sys.executable, "-m", "omniscape_torch.cli", *args]
+
+
+# --------------------------------------------------------------------------------------------
+# A path in the way
+# --------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("command", ["generate", "convert", "fit"])
+@pytest.mark.parametrize("under", [False, True])
+def test_an_output_path_blocked_by_a_file_is_one_line_and_exit_1(tmp_path, capsys, command,
+                                                                 under):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("mine")
+    out = blocker / "sub" if under else blocker
+    argv = {"generate": ["generate", "--out", str(out), *SMALL],
+            "convert": ["convert", "--cubemaps", str(tmp_path), "--out", str(out)],
+            "fit": ["fit", str(_write(tmp_path, n_views=4, rows=4, cols=5)[2]), "--model",
+                    "equidistant", "--out", str(out), "--no-progress"]}[command]
+    assert cli.main(argv) == 1
+    line = _line(capsys.readouterr().err)
+    assert f"{blocker}: a file is in the way" in line
+    assert blocker.read_text() == "mine"
+
+
+# --------------------------------------------------------------------------------------------
+# Permissions, read-only and full file systems (real ones where the machine allows)
+# --------------------------------------------------------------------------------------------
+
+def _as_nobody():
+    """``preexec_fn`` that drops root to the ``nobody`` user."""
+    os.setgid(65534)
+    os.setuid(65534)
+
+
+def test_a_folder_without_write_permission(tmp_path, capsys, monkeypatch):
+    """Run as ``nobody`` when the tests run as root and that user can run this Python; else
+    (a root whose Python lies in a private folder) the permission check is told the folder is
+    not writable, as it is for an ordinary user."""
+    import shutil
+    import tempfile
+
+    folder = Path(tempfile.mkdtemp(prefix="omniscape-perm-"))   # outside pytest's 0700 tree
+    home = Path(tempfile.mkdtemp(prefix="omniscape-home-"))
+    try:
+        folder.chmod(0o555)
+        home.chmod(0o777)
+        kwargs = {"preexec_fn": _as_nobody} if os.geteuid() == 0 else {}
+        env = {**os.environ, "HOME": str(home), "PYTHONPATH": str(ROOT)}
+        try:
+            done = subprocess.run(_command("generate", "--out", str(folder / "ds"), *SMALL),
+                                  capture_output=True, text=True, env=env, cwd=home,
+                                  timeout=300, **kwargs)
+            real = "Error" not in done.stderr.split("omniscape-torch")[0]
+        except PermissionError:   # nobody may not run this Python
+            real = False
+        if real:
+            assert done.returncode == 1, done.stderr
+            line = _line(done.stderr)
+        else:
+            writable = os.access
+            monkeypatch.setattr(os, "access", lambda path, mode, **kw: False if Path(path) ==
+                                folder else writable(path, mode, **kw))
+            assert cli.main(["generate", "--out", str(folder / "ds"), *SMALL]) == 1
+            line = _line(capsys.readouterr().err)
+        assert f"{folder}: permission denied" in line
+        assert list(folder.iterdir()) == []
+    finally:
+        folder.chmod(0o755)
+        shutil.rmtree(folder, ignore_errors=True)
+        shutil.rmtree(home, ignore_errors=True)
+
+
+@pytest.fixture
+def tmpfs(tmp_path):
+    """``mount(options)``: a tmpfs mounted under ``tmp_path`` (skips where mounting is not
+    permitted); unmounted afterwards."""
+    mounted = []
+
+    def mount(options: str) -> Path:
+        point = tmp_path / f"mnt{len(mounted)}"
+        point.mkdir()
+        done = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(point)],
+                              capture_output=True)
+        if done.returncode != 0:
+            pytest.skip("mounting a tmpfs is not permitted here")
+        mounted.append(point)
+        return point
+
+    yield mount
+    for point in mounted:
+        subprocess.run(["umount", "-l", str(point)], capture_output=True)
+
+
+def test_a_read_only_file_system(tmpfs, capsys):
+    point = tmpfs("ro,size=1m")
+    assert cli.main(["generate", "--out", str(point / "ds"), *SMALL]) == 1
+    assert f"{point}: the file system is read-only" in _line(capsys.readouterr().err)
+
+
+def test_a_full_disk_mid_run(tmpfs, tmp_path):
+    """The disk fills while frames are written: one line naming the file and the advice,
+    exit 1; every file present is whole (written atomically), and on a disk with room the
+    same command finishes the dataset."""
+    point = tmpfs("size=160k")
+    out = point / "ds"
+    argv = ["generate", "--out", str(out), "--frames", "6", "--image-size", "64",
+            "--max-face-size", "32", "--cameras", "fisheye_left", "--no-progress"]
+    done = subprocess.run(_command(*argv), capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert done.returncode == 1, done.stderr
+    line = _line(done.stderr)
+    assert "no space left on the device" in line and str(out) in line
+    for png in out.rglob("*.png"):
+        ot.io.read_image(png)                      # whole, or not there
+    subprocess.run(["mount", "-o", "remount,size=8m", str(point)], check=True)
+    again = subprocess.run(_command(*argv), capture_output=True, text=True, timeout=300,
+                           env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert again.returncode == 0, again.stderr
+    assert len(list((out / ".done").iterdir())) == 6
+
+
+def test_any_os_error_inside_a_command_becomes_one_line(tmp_path, capsys, monkeypatch):
+    """Wherever the machine cannot give a full disk: the error raised by a writer inside the
+    run (here ENOSPC from the PNG writer) is handled the same way."""
+    import omniscape_torch.dataset as dataset
+
+    def full(path, *args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+
+    monkeypatch.setattr(dataset, "write_image", full)
+    assert cli.main(["generate", "--out", str(tmp_path / "ds"), *SMALL]) == 1
+    line = _line(capsys.readouterr().err)
+    assert "rgb/000000.png: no space left on the device" in line
+
+
+def test_an_unexpected_error_is_one_line_or_a_traceback_when_asked(tmp_path, capsys,
+                                                                   monkeypatch):
+    import omniscape_torch.dataset as dataset
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("something\nbroke")
+
+    monkeypatch.setattr(dataset, "render_frame", broken)
+    assert cli.main(["generate", "--out", str(tmp_path / "ds"), *SMALL]) == 1
+    assert _line(capsys.readouterr().err).endswith("error: RuntimeError: something broke")
+    with pytest.raises(RuntimeError, match="something"):
+        cli.main(["--traceback", "generate", "--out", str(tmp_path / "ds2"), *SMALL])
+
+
+# --------------------------------------------------------------------------------------------
+# Ctrl-C
+# --------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_ctrl_c_says_the_same_command_resumes_and_it_does(tmp_path, workers):
+    out = tmp_path / "ds"
+    argv = ["generate", "--out", str(out), "--frames", "8", "--image-size", "32",
+            "--max-face-size", "32", "--cameras", "fisheye_left", "catadioptric_left",
+            "--workers", str(workers), "--no-progress"]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen(_command(*argv), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=env)
+    deadline = time.monotonic() + 240
+    while proc.poll() is None and time.monotonic() < deadline:
+        if (out / ".done").is_dir() and any((out / ".done").iterdir()):
+            proc.send_signal(signal.SIGINT)
+            break
+        time.sleep(0.01)
+    _, err = proc.communicate(timeout=240)
+    finished = sorted(p.name for p in (out / ".done").iterdir())
+    if len(finished) == 8:
+        pytest.skip("the run finished before it could be interrupted")
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err
+    assert err.strip().splitlines()[-1] == ("omniscape-torch generate: interrupted; the "
+                                            "finished frames are kept; the same command "
+                                            "resumes the run")
+    again = subprocess.run(_command(*argv), capture_output=True, text=True, env=env,
+                           timeout=300)
+    assert again.returncode == 0, again.stderr
+    assert f"skipped {len(finished)} finished" in again.stdout
+    assert len(list((out / ".done").iterdir())) == 8
+
+
+# --------------------------------------------------------------------------------------------
+# fit: the result is never lost
+# --------------------------------------------------------------------------------------------
+
+def test_a_fit_whose_output_cannot_be_written_keeps_its_result(tmp_path, capsys, monkeypatch):
+    """The output fails after the fit (a full disk, simulated in the writer that installs the
+    files): the camera is kept in a temporary folder whose path is printed, exit 1, and the
+    output folder holds nothing half-written."""
+    import omniscape_torch.io.atomic as atomic
+
+    truth, _, path = _write(tmp_path, model="scaramuzza", n_views=5, rows=6, cols=8)
+    out = tmp_path / "out"
+
+    def full(files, folder):
+        Path(folder).mkdir(parents=True, exist_ok=True)
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(Path(folder) / "camera.json"))
+
+    monkeypatch.setattr(atomic, "publish", full)
+    assert cli.main(["fit", str(path), "--model", "scaramuzza", "--out", str(out),
+                     "--no-progress"]) == 1
+    line = _line(capsys.readouterr().err)
+    assert "no space left on the device" in line
+    kept = Path(line.split("the fitted camera is kept in ")[1])
+    try:
+        camera = ot.Camera.load_json(kept / "camera.json")
+        assert json.loads((kept / "camera.json").read_text())["fit"]["converged"]
+        assert camera.model.name == "scaramuzza"
+        assert ot.Camera.from_ocamcalib(kept / "calib_results.txt").params.shape == \
+            camera.params.shape
+        assert list(out.iterdir()) == []
+    finally:
+        import shutil
+        shutil.rmtree(kept, ignore_errors=True)
+
+
+def test_fit_writes_all_its_files_or_none(tmp_path, capsys, monkeypatch):
+    """A writer that fails after another one succeeded (here OCamCalib's file after the JSON)
+    leaves the output folder untouched."""
+    from omniscape_torch.cameras import Camera
+
+    _, _, path = _write(tmp_path, model="scaramuzza", n_views=5, rows=6, cols=8)
+    out = tmp_path / "out"
+
+    def failing(self, *args, **kwargs):
+        raise ValueError("calib_results.txt: the inverse polynomial missed its target")
+
+    monkeypatch.setattr(Camera, "to_ocamcalib", failing)
+    assert cli.main(["fit", str(path), "--model", "scaramuzza", "--out", str(out),
+                     "--no-progress"]) == 2
+    assert "inverse polynomial" in _line(capsys.readouterr().err)
+    assert not out.exists() or list(out.iterdir()) == []
