@@ -59,10 +59,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from common import loadavg, measure, run_record, write_json_atomic  # noqa: E402
-from omniscape_torch.augment import RandomOmniCamera, _GivenGrid  # noqa: E402
+from omniscape_torch.render.augment import RandomOmniCamera, _GivenGrid  # noqa: E402
 from omniscape_torch.cameras import Camera  # noqa: E402
-from omniscape_torch.projection import CHUNK_PIXELS  # noqa: E402
-from omniscape_torch.fastgrid import camera_grid  # noqa: E402
+from omniscape_torch.render.layer import CHUNK_PIXELS  # noqa: E402
+from omniscape_torch.render.kernels import camera_grid  # noqa: E402
 
 try:
     import cv2

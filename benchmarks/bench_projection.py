@@ -39,7 +39,7 @@ Inputs come from a seeded ``torch.Generator``.
 Batch 8 allocates tensors above glibc's largest mmap threshold (32 MB: the 64 MB grid, the
 atlas, the 96 MB image): each is a fresh ``mmap`` whose pages fault on first touch, which on a
 small VM costs more than the arithmetic. The layer's own outputs of that size are mapped with
-transparent huge pages (``omniscape_torch.memory``); the reference path's tensors are not.
+transparent huge pages (``omniscape_torch.render.memory``); the reference path's tensors are not.
 ``MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=<large>`` (or jemalloc/tcmalloc via ``LD_PRELOAD``)
 changes that for every row; the ``environment`` field of the JSON records such settings, so
 compare runs only with the same one.
@@ -74,7 +74,7 @@ sys.path.insert(0, str(ROOT))
 import omniscape_torch as ot  # noqa: E402
 from common import loadavg, measure, run_record, write_json_atomic  # noqa: E402
 from omniscape_torch import cubemap as cm  # noqa: E402
-from omniscape_torch import fastgrid, fastsample  # noqa: E402
+from omniscape_torch.render import fast as fastsample, kernels as fastgrid  # noqa: E402
 
 try:
     import cv2

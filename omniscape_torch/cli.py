@@ -153,7 +153,7 @@ def describe_os_error(err: OSError) -> str:
 
 def cmd_generate(args: argparse.Namespace) -> int:
     import time
-    from .dataset import DatasetConfig, generate
+    from .data.generate import DatasetConfig, generate
     from .io.atomic import check_writable
 
     cameras = [n for group in args.cameras for n in group]
@@ -174,7 +174,7 @@ def cmd_generate(args: argparse.Namespace) -> int:
 
 
 def cmd_stats(args: argparse.Namespace) -> int:
-    from .dataset import format_stats, stats
+    from .data.generate import format_stats, stats
 
     result = stats(args.dir, plot=not args.no_plot)
     print(format_stats(result))
@@ -249,6 +249,73 @@ def cmd_convert_model(args: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
+def _add_convert_parser(sub) -> None:
+    """``convert`` (angles in degrees)."""
+    from .data.captures import CAMERAS
+    from .io.carla import LABEL_SETS
+
+    p = sub.add_parser(
+        "convert", help="render simulator cubemap captures into fisheye / catadioptric images",
+        description="Read DIR/<capture>/{front,back,left,right,up,down}_{rgb,depth,labels}.png "
+                    "(CARLA raw depth and semantic images) and write fisheye and catadioptric "
+                    "renderings (rgb png, depth exr, labels png) per capture.")
+    p.add_argument("--cubemaps", type=Path, required=True, help="folder of capture folders")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--label-set", choices=tuple(LABEL_SETS), default="13",
+                   help="the simulator's tag set: 13 (CARLA <= 0.9.9), 23 (0.9.10-0.9.13), "
+                        "new (Cityscapes-ordered tags of later versions); default 13")
+    p.add_argument("--unknown-label", type=int, default=None,
+                   help="class id for tags outside the label set (default: error)")
+    p.add_argument("--cameras", nargs="+", choices=CAMERAS, default=list(CAMERAS))
+    p.add_argument("--size", type=int, nargs=2, default=(1024, 1024), metavar=("H", "W"),
+                   help="output image size (default 1024 1024)")
+    p.add_argument("--fisheye-model", default="equidistant",
+                   help="fisheye preset model (default equidistant)")
+    p.add_argument("--fisheye-fov", type=float, default=190.0, help="degrees (default 190)")
+    p.add_argument("--cata-xi", type=float, default=None, help="mirror xi (default 0.9)")
+    p.add_argument("--cata-fov", type=float, default=220.0, help="degrees (default 220)")
+    p.add_argument("--cata-blind-fov", type=float, default=40.0,
+                   help="degrees, 0 for none (default 40)")
+    p.add_argument("--cata-looking", choices=("down", "up"), default="down")
+    p.add_argument("--depth-output", choices=("range", "z"), default="range")
+    p.add_argument("--interpolation", choices=("nearest", "bilinear", "bicubic"),
+                   default="bilinear", help="for rgb")
+    p.add_argument("--device", default="cpu")
+    p.set_defaults(func=cmd_convert)
+
+
+def cmd_convert(args: argparse.Namespace) -> int:
+    from .data.captures import ConvertError, convert_captures
+    from .io.atomic import check_writable
+
+    failures: dict[str, str] = {}
+    check_writable(args.out)
+    try:
+        results = convert_captures(
+            args.cubemaps, args.out, label_set=args.label_set, cameras=tuple(args.cameras),
+            image_size=tuple(args.size), fisheye_model=args.fisheye_model,
+            fisheye_fov=math.radians(args.fisheye_fov), catadioptric_xi=args.cata_xi,
+            catadioptric_fov=math.radians(args.cata_fov),
+            catadioptric_blind_fov=(math.radians(args.cata_blind_fov) if args.cata_blind_fov > 0
+                                    else None),
+            catadioptric_looking=args.cata_looking, depth_output=args.depth_output,
+            interpolation=args.interpolation, unknown_label=args.unknown_label,
+            device=args.device)
+    except ConvertError as err:
+        results, failures = err.results, err.failures
+    for capture, paths in results.items():
+        print(f"{capture}: {len(paths)} files -> {Path(args.out) / capture}")
+    if results:
+        print(f"cameras: {Path(args.out) / 'cameras.json'}")
+    if failures:
+        print(f"convert: {len(failures)} of {len(failures) + len(results)} captures failed "
+              "(nothing written for them):", file=sys.stderr)
+        for capture, message in failures.items():
+            print(f"  {capture}: {message}", file=sys.stderr)
+        return 1
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="omniscape-torch", description=__doc__.splitlines()[0])
     parser.add_argument("--traceback", action="store_true",
@@ -261,7 +328,7 @@ def build_parser() -> argparse.ArgumentParser:
     source.add_argument("--json", type=Path, default=None, help="camera JSON (Camera.save_json)")
     info.set_defaults(func=cmd_info)
 
-    from .dataset import CAMERAS
+    from .data.generate import CAMERAS
     from .scenes.town import WEATHERS
     gen = sub.add_parser("generate", help="write an OmniScape-like dataset (see "
                                           "omniscape_torch/dataset.py for the layout)")
@@ -298,11 +365,7 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--no-plot", action="store_true", help="do not write stats.png")
     st.set_defaults(func=cmd_stats)
 
-    from .convert import add_convert_parser
-    add_convert_parser(sub)
-
-    from .benchmark import add_bench_parser
-    add_bench_parser(sub)
+    _add_convert_parser(sub)
 
     from .calibration.fit import METHODS
     from .calibration.lm import LOSSES

@@ -8,7 +8,7 @@ import pytest
 import torch
 from torch import nn
 
-from omniscape_torch.augment import ApplyToKey, RandomOmniCamera
+from omniscape_torch.render.augment import ApplyToKey, RandomOmniCamera
 from omniscape_torch.cameras import Camera
 from omniscape_torch.cameras.registry import get_model
 from omniscape_torch.cubemap.faces import FACES, face_rotations
@@ -237,7 +237,7 @@ def test_cuda_batch_matches_cpu():
 def test_chunked_render_equals_whole_batch(monkeypatch):
     """On the CPU a batch is rendered a few samples at a time (``CHUNK_PIXELS``); chunks that
     split a model's samples, in and out of batch order (mixed models), change nothing."""
-    from omniscape_torch import projection
+    from omniscape_torch.render import layer as projection
     rgb, labels, depth = _batch(b=7, seed=3)
     aug = _mixed(seed=11)
     params = aug.forward_parameters(7)

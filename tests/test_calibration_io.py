@@ -1,4 +1,4 @@
-"""Calibration I/O (``omniscape_torch.io.calibration``) against OCamCalib's own code.
+"""Calibration I/O (``omniscape_torch.cameras.formats``) against OCamCalib's own code.
 
 * Reading the real ``calib_results.txt``: our ``scaramuzza`` camera reproduces OCamCalib's
   ``cam2world`` / ``world2cam`` (``tests/ocamcalib_reference.py``, an independent numpy
@@ -29,7 +29,7 @@ from test_ocamcalib_reference import (c_cam2world, c_model, c_world2cam,  # noqa
 
 import omniscape_torch as ot  # noqa: E402
 from omniscape_torch.cameras.scaramuzza import scaramuzza_project  # noqa: E402
-from omniscape_torch.io.calibration import fit_invpol  # noqa: E402
+from omniscape_torch.cameras.formats import fit_invpol  # noqa: E402
 
 #: Numerically sensitive: CI runs this module again with OMP_NUM_THREADS=1 (.ci/run).
 pytestmark = pytest.mark.numerics

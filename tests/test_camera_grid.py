@@ -14,7 +14,7 @@ import pytest
 import torch
 
 import omniscape_torch as ot
-from omniscape_torch import fastgrid as fg
+from omniscape_torch.render import kernels as fg
 
 from conftest import CASES
 from test_fastgrid import random_rotations

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
@@ -11,8 +10,9 @@ import pytest
 import torch
 
 import omniscape_torch as ot
-from omniscape_torch.convert import (ConvertError, add_convert_parser, cmd_convert,
-                                     convert_captures, find_captures, load_capture)
+from omniscape_torch import cli
+from omniscape_torch.data.captures import (ConvertError, convert_captures, find_captures,
+                                           load_capture)
 from omniscape_torch.cubemap import FACES, face_rays
 from omniscape_torch.io.atomic import LOCK_NAME
 from omniscape_torch.io.carla import (EXT23_TO_13, NEW_CLASSES, NEW_TO_13, decode_depth,
@@ -216,14 +216,9 @@ def test_no_capture(tmp_path):
 
 def test_cli_convert(capture_root, tmp_path, capsys):
     root, _ = capture_root
-    parser = argparse.ArgumentParser()
-    add_convert_parser(parser.add_subparsers(dest="command", required=True))
     out = tmp_path / "cli"
-    args = parser.parse_args(["convert", "--cubemaps", str(root), "--out", str(out),
-                              "--label-set", "new", "--size", "32", "32",
-                              "--cameras", "fisheye"])
-    assert args.func is cmd_convert
-    assert args.func(args) == 0
+    assert cli.main(["convert", "--cubemaps", str(root), "--out", str(out), "--label-set", "new",
+                     "--size", "32", "32", "--cameras", "fisheye"]) == 0
     assert (out / "000042" / "fisheye_rgb.png").is_file()
     assert not (out / "000042" / "catadioptric_rgb.png").exists()
     assert "000042" in capsys.readouterr().out
@@ -238,7 +233,7 @@ def test_capture_script_compiles_and_rig_matches_faces():
     import py_compile
 
     from omniscape_torch.cubemap import face_rotations
-    from omniscape_torch.presets import yaw_pitch_roll_to_matrix
+    from omniscape_torch.cameras.presets import yaw_pitch_roll_to_matrix
 
     path = CAPTURE_SCRIPT
     py_compile.compile(str(path), doraise=True)
@@ -370,7 +365,7 @@ def test_corrupt_exr_depth_face_names_the_file(tmp_path):
 
 def test_render_failure_leaves_nothing_half_written(tmp_path, monkeypatch):
     """An error while writing (here the third file) leaves no file of that capture."""
-    import omniscape_torch.convert as convert
+    import omniscape_torch.data.captures as convert
 
     _three_captures(tmp_path / "cubemaps")
     real = convert.write_exr
@@ -396,13 +391,9 @@ def test_render_failure_leaves_nothing_half_written(tmp_path, monkeypatch):
 def test_cli_convert_reports_failures_and_exits_non_zero(tmp_path, capsys):
     bad = _three_captures(tmp_path / "cubemaps")
     _garbage(bad / "front_labels.png")
-    parser = argparse.ArgumentParser()
-    add_convert_parser(parser.add_subparsers(dest="command", required=True))
     out = tmp_path / "cli"
-    args = parser.parse_args(["convert", "--cubemaps", str(tmp_path / "cubemaps"),
-                              "--out", str(out), "--label-set", "new", "--size", "16", "16",
-                              "--cameras", "fisheye"])
-    assert args.func(args) == 1
+    assert cli.main(["convert", "--cubemaps", str(tmp_path / "cubemaps"), "--out", str(out),
+                     "--label-set", "new", "--size", "16", "16", "--cameras", "fisheye"]) == 1
     captured = capsys.readouterr()
     assert "000001" in captured.out and "000003" in captured.out
     assert "1 of 3 captures failed" in captured.err
@@ -418,7 +409,6 @@ def test_convert_with_no_good_capture_writes_nothing(tmp_path, capsys):
     for name in ("000001", "000002", "000003"):
         _garbage(root / name / "left_rgb.png")
     out = tmp_path / "out"
-    from omniscape_torch import cli
     assert cli.main(["convert", "--cubemaps", str(root), "--out", str(out), "--label-set",
                      "new", "--size", "16", "16", "--cameras", "fisheye"]) == 1
     err = capsys.readouterr().err

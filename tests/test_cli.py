@@ -163,7 +163,7 @@ def test_a_full_disk_mid_run(tmpfs, tmp_path):
 def test_any_os_error_inside_a_command_becomes_one_line(tmp_path, capsys, monkeypatch):
     """Wherever the machine cannot give a full disk: the error raised by a writer inside the
     run (here ENOSPC from the PNG writer) is handled the same way."""
-    import omniscape_torch.dataset as dataset
+    import omniscape_torch.data.generate as dataset
 
     def full(path, *args, **kwargs):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
@@ -176,7 +176,7 @@ def test_any_os_error_inside_a_command_becomes_one_line(tmp_path, capsys, monkey
 
 def test_an_unexpected_error_is_one_line_or_a_traceback_when_asked(tmp_path, capsys,
                                                                    monkeypatch):
-    import omniscape_torch.dataset as dataset
+    import omniscape_torch.data.generate as dataset
 
     def broken(*args, **kwargs):
         raise RuntimeError("something\nbroke")

@@ -14,7 +14,7 @@ import warnings
 import pytest
 import torch
 
-from omniscape_torch import fastgrid as fg
+from omniscape_torch.render import kernels as fg
 
 f32, f64 = torch.float32, torch.float64
 FACE, PAD = 8, 1

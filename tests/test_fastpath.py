@@ -1,4 +1,4 @@
-"""The CPU fast path (``omniscape_torch.fastsample``) against the reference path (``grid_sample``).
+"""The CPU fast path (``omniscape_torch.render.fast``) against the reference path (``grid_sample``).
 
 Every fast path must give ``F.grid_sample(atlas, grid, align_corners=False)``'s output to
 float32 rounding: ``sample_cube`` (no atlas), ``sample_atlas``, the lookup table of a frozen
@@ -18,7 +18,7 @@ import torch.nn.functional as F_nn
 
 import omniscape_torch as ot
 from omniscape_torch import cubemap as cm
-from omniscape_torch import fastgrid, fastsample, memory, native
+from omniscape_torch.render import extension as native, fast as fastsample, kernels as fastgrid, memory
 
 f32, f64 = torch.float32, torch.float64
 #: Rounding of a blend of 4 texels in [0, 1]. float32: the weights are grid_sample's bit for bit,
@@ -479,7 +479,7 @@ def test_layer_rotation_batch_in_chunks_equals_reference(monkeypatch, supersampl
     """A rotation batch is rendered a few samples at a time on the fast path
     (``projection.CHUNK_PIXELS``): here 2 samples a chunk, 5 samples, against ``grid_sample``
     on the whole batch."""
-    from omniscape_torch import projection
+    from omniscape_torch.render import layer as projection
     monkeypatch.setattr(projection, "CHUNK_PIXELS", 2 * 24 * 24 * supersample ** 2)
     inputs = dict(rgb=make_cube(5, 3, 8), depth=1 + 9 * make_cube(5, 1, 8, seed=2),
                   labels=(make_cube(5, 1, 8, seed=3) * 13).long(), rotation=rotations(5).float())
@@ -494,7 +494,7 @@ def test_layer_rotation_batch_samples_through_the_rays(monkeypatch):
     """A float32 camera under a rotation batch: every fast sampler reads the rays, so the layer
     builds no grid and renders the batch in one call (no chunks); the same outputs as
     grid_sample on the whole batch."""
-    from omniscape_torch import projection
+    from omniscape_torch.render import layer as projection
     monkeypatch.setattr(projection, "CHUNK_PIXELS", 24 * 24)   # would be a chunk per sample
     inputs = dict(rgb=make_cube(3, 3, 8), depth=1 + 9 * make_cube(3, 1, 8, seed=2),
                   labels=(make_cube(3, 1, 8, seed=3) * 13).long(), rotation=rotations(3).float())
@@ -524,7 +524,7 @@ def test_layer_rotation_batch_samples_through_the_rays(monkeypatch):
 def test_layer_renders_into_given_outputs(monkeypatch, rotated):
     """``render(out=...)``: the outputs are written into the given tensors (here rows of larger
     ones), equal to those it allocates; on the chunked path too."""
-    from omniscape_torch import projection
+    from omniscape_torch.render import layer as projection
     monkeypatch.setattr(projection, "CHUNK_PIXELS", 2 * 24 * 24)
     layer = ot.OmniProjection(fisheye(), 8)
     inputs = dict(rgb=make_cube(5, 3, 8), labels=(make_cube(5, 1, 8, seed=3) * 13).long(),

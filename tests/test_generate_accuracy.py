@@ -24,12 +24,12 @@ import pytest
 import torch
 import torch.nn.functional as nnf
 
-from omniscape_torch import presets
-from omniscape_torch.dataset import DatasetConfig, generate
+from omniscape_torch.cameras import presets
+from omniscape_torch.data.generate import DatasetConfig, generate
 from omniscape_torch.io.atomic import LOCK_NAME
-from omniscape_torch.projection import OmniProjection
+from omniscape_torch.render.layer import OmniProjection
 from omniscape_torch.scenes.town import Town
-from omniscape_torch.sizing import required_face_size
+from omniscape_torch.render.sizing import required_face_size
 
 GRAVITY = 9.81
 
@@ -240,7 +240,7 @@ def test_roll_follows_steady_lean():
     roll noise (0.3 deg standard deviation: 1.5 deg is 5 sigma). The town's road only has
     S-bends, too short to settle, so this takes a ride with long arcs and the same noise; the
     noise-free formula is in tests/test_ride.py (test_steady_turn_lean_is_atan_v2_over_gr)."""
-    from omniscape_torch import ride
+    from omniscape_torch.scenes import ride
     route = ride.Route([ride.straight(40.0), ride.arc(60.0, 120.0), ride.straight(60.0),
                         ride.arc(40.0, -120.0), ride.straight(40.0)])
     frames = ride.simulate(route, 2.0, seed=0)

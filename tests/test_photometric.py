@@ -17,7 +17,7 @@ import torch
 
 import omniscape_torch as ot
 from omniscape_torch.calibration.photometric import fit_photometric, photometric_error
-from omniscape_torch.presets import yaw_pitch_roll_to_matrix
+from omniscape_torch.cameras.presets import yaw_pitch_roll_to_matrix
 from omniscape_torch.scenes import Town
 
 #: Numerically sensitive: CI runs this module again with OMP_NUM_THREADS=1 (.ci/run).

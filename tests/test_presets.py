@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from omniscape_torch.cubemap import FACES, face_axes, face_rotations
-from omniscape_torch.presets import (FISHEYE_DEFAULTS, catadioptric, fisheye,
+from omniscape_torch.cameras.presets import (FISHEYE_DEFAULTS, catadioptric, fisheye,
                                      matrix_to_yaw_pitch_roll, yaw_pitch_roll_to_matrix)
 
 #: Float64 trigonometry and products of three rotations: a few ulps.

@@ -14,9 +14,9 @@ from torch.utils.data import DataLoader
 
 import omniscape_torch as ot
 from omniscape_torch.cubemap import FACES
-from omniscape_torch.dataset import DatasetConfig, generate
-from omniscape_torch.datasets import CubemapCaptureDataset, OmniDataset, collate
-from omniscape_torch.io.readers import (list_cameras, list_frames, read_camera, read_dynamics,
+from omniscape_torch.data.generate import DatasetConfig, generate
+from omniscape_torch.data.datasets import CubemapCaptureDataset, OmniDataset, collate
+from omniscape_torch.data.readers import (list_cameras, list_frames, read_camera, read_dynamics,
                                         read_extrinsics, read_frame, read_manifest)
 
 SIZE = (32, 32)
@@ -248,7 +248,7 @@ def test_cubemap_capture_dataset(tmp_path):
 # ---------------------------------------------------------------------------- contact sheet
 
 def test_contact_sheet(root):
-    from omniscape_torch.dataset import SHEET_CELL, SHEET_COLUMNS
+    from omniscape_torch.data.generate import SHEET_CELL, SHEET_COLUMNS
     path = root / "contact_sheet.png"
     assert path.is_file()
     image = ot.io.read_image(path)

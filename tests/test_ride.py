@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from omniscape_torch.presets import yaw_pitch_roll_to_matrix
-from omniscape_torch.ride import (GRAVITY, Route, arc, camera_rotation, carla_to_world,
+from omniscape_torch.cameras.presets import yaw_pitch_roll_to_matrix
+from omniscape_torch.scenes.ride import (GRAVITY, Route, arc, camera_rotation, carla_to_world,
                                   random_route, records, simulate, straight, table_one,
                                   world_to_carla)
 

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 import omniscape_torch as ot
-from omniscape_torch.rig import StereoRig
+from omniscape_torch.render.rig import StereoRig
 
 F64 = torch.float64
 

@@ -9,8 +9,8 @@ import torch
 
 import omniscape_torch as ot
 from omniscape_torch.cubemap import FACES, face_rotations
-from omniscape_torch.presets import catadioptric, fisheye, yaw_pitch_roll_to_matrix
-from omniscape_torch.sizing import (face_size_map, needed_face_names, required_face_size,
+from omniscape_torch.cameras.presets import catadioptric, fisheye, yaw_pitch_roll_to_matrix
+from omniscape_torch.render.sizing import (face_size_map, needed_face_names, required_face_size,
                                     visible_faces)
 
 #: Fourth-order differences in float64 leave a relative error below 1e-10 on the face size

@@ -23,7 +23,7 @@ from torch import Tensor
 
 from ..cameras import Camera
 from ..cubemap import check_cubemap
-from ..projection import OmniProjection
+from ..render.layer import OmniProjection
 
 __all__ = ["PHOTOMETRIC_LOSSES", "PhotometricResult", "fit_photometric", "photometric_error"]
 

@@ -99,12 +99,6 @@ class CameraModel:
     def __repr__(self) -> str:
         return f"CameraModel({self.name!r}, params={self.param_names})"
 
-    def __reduce__(self):
-        # Pickled by name (the registry entry): some models hold closures, which do not pickle,
-        # and a Camera must cross to DataLoader workers.
-        from .registry import get_model
-        return get_model, (self.name,)
-
 
 # --------------------------------------------------------------------------------------------
 # Entry checks (one per public function; shapes only: values are checked once, in Camera).

@@ -9,6 +9,7 @@ from typing import Sequence
 import torch
 from torch import Tensor, nn
 
+from . import formats
 from ._base import CameraModel
 from .registry import get_model
 
@@ -62,6 +63,14 @@ class Camera(nn.Module):
             self.params = nn.Parameter(params)
         else:
             self.register_buffer("params", params)
+
+    # Pickled with its model's name (the registry entry): some models hold closures, which do
+    # not pickle, and a Camera must cross to DataLoader workers.
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "model": self.model.name}
+
+    def __setstate__(self, state: dict) -> None:
+        super().__setstate__({**state, "model": get_model(state["model"])})
 
     # ---------------------------------------------------------------------------------------
     @property
@@ -245,60 +254,50 @@ class Camera(nn.Module):
         }
 
     # ---------------------------------------------------------------------------------------
-    # Other formats (the I/O lives in omniscape_torch.io.calibration).
+    # Other formats (cameras/formats.py).
     @classmethod
     def from_ocamcalib(cls, path: str | Path, **kwargs) -> "Camera":
         """Load OCamCalib's ``calib_results.txt`` as a ``scaramuzza`` camera (centre converted
         from (row, column) to (u, v)); the file's inverse polynomial is kept as ``invpol``."""
-        from ..io.calibration import read_ocamcalib
-        return read_ocamcalib(path, **kwargs)
+        return formats.read_ocamcalib(cls, path, **kwargs)
 
     def to_ocamcalib(self, path: str | Path, **kwargs) -> None:
         """Write OCamCalib's ``calib_results.txt``, fitting ``invpol`` the way OCamCalib does."""
-        from ..io.calibration import write_ocamcalib
-        write_ocamcalib(self, path, **kwargs)
+        formats.write_ocamcalib(self, path, **kwargs)
 
     @classmethod
     def from_opencv_fisheye(cls, K, D, image_size: tuple[int, int], **kwargs) -> "Camera":
         """``cv2.fisheye`` (K 3x3, D 4) as a ``kannala_brandt`` camera."""
-        from ..io.calibration import from_opencv_fisheye
-        return from_opencv_fisheye(K, D, image_size, **kwargs)
+        return formats.from_opencv_fisheye(cls, K, D, image_size, **kwargs)
 
     def to_opencv_fisheye(self):
         """``(K (3, 3), D (4,))`` numpy arrays for ``cv2.fisheye``."""
-        from ..io.calibration import to_opencv_fisheye
-        return to_opencv_fisheye(self)
+        return formats.to_opencv_fisheye(self)
 
     @classmethod
     def from_opencv_omnidir(cls, K, D, xi, image_size: tuple[int, int], **kwargs) -> "Camera":
         """``cv2.omnidir`` (K 3x3, D 4, xi) as a ``unified`` camera."""
-        from ..io.calibration import from_opencv_omnidir
-        return from_opencv_omnidir(K, D, xi, image_size, **kwargs)
+        return formats.from_opencv_omnidir(cls, K, D, xi, image_size, **kwargs)
 
     def to_opencv_omnidir(self):
         """``(K (3, 3), D (1, 4), xi (1,))`` numpy arrays for ``cv2.omnidir``."""
-        from ..io.calibration import to_opencv_omnidir
-        return to_opencv_omnidir(self)
+        return formats.to_opencv_omnidir(self)
 
     def to_dict(self) -> dict:
         """A JSON-ready dict (one camera, or a list of cameras under ``"cameras"``)."""
-        from ..io.calibration import camera_to_dict
-        return camera_to_dict(self)
+        return formats.camera_to_dict(self)
 
     @classmethod
     def from_dict(cls, data: dict, **kwargs) -> "Camera":
-        from ..io.calibration import camera_from_dict
-        return camera_from_dict(data, **kwargs)
+        return formats.camera_from_dict(cls, data, **kwargs)
 
     def save_json(self, path: str | Path) -> None:
         """Write ``to_dict()`` as JSON (atomically)."""
-        from ..io.calibration import save_json
-        save_json(self, path)
+        formats.save_json(self, path)
 
     @classmethod
     def load_json(cls, path: str | Path, **kwargs) -> "Camera":
-        from ..io.calibration import load_json
-        return load_json(path, **kwargs)
+        return formats.load_json(cls, path, **kwargs)
 
 
 def _check_image_size(image_size) -> tuple[int, int]:

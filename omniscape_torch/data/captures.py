@@ -44,7 +44,6 @@ Every file is written atomically (temporary file then rename).
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import json
 import math
@@ -58,17 +57,17 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .cubemap.faces import FACES
-from .io.atomic import (atomic_write_text, check_writable, folder_lock,
-                        remove_stale_temporaries, temporary_prefix)
-from .io.carla import LABEL_SETS, decode_depth, decode_labels, to_13
-from .io.exr import read_exr, write_exr
-from .io.images import read_image, write_image
-from .io.labels import colorize
-from .sizing import MEMORY_PER_PIXEL, PROCESS_MEMORY, available_memory
+from ..cubemap.faces import FACES
+from ..io.atomic import (atomic_write_text, folder_lock, remove_stale_temporaries,
+                        temporary_prefix)
+from ..io.carla import LABEL_SETS, decode_depth, decode_labels, to_13
+from ..io.exr import read_exr, write_exr
+from ..io.images import read_image, write_image
+from ..io.labels import colorize
+from ..render.sizing import MEMORY_PER_PIXEL, PROCESS_MEMORY, available_memory
 
-__all__ = ["MODALITIES", "CAMERAS", "ConvertError", "add_convert_parser", "build_cameras", "cmd_convert",
-           "check_pixels", "convert_captures", "find_captures", "load_capture", "render_capture"]
+__all__ = ["MODALITIES", "CAMERAS", "ConvertError", "build_cameras", "check_pixels",
+           "convert_captures", "find_captures", "load_capture", "render_capture"]
 
 MODALITIES = ("rgb", "depth", "labels")
 CAMERAS = ("fisheye", "catadioptric")
@@ -231,7 +230,7 @@ def build_cameras(cameras: Sequence[str] = CAMERAS, *, image_size: tuple[int, in
                   catadioptric_blind_fov: float | None = math.radians(40),
                   catadioptric_looking: str = "down") -> dict[str, tuple]:
     """``{name: (Camera, rotation (3, 3) or None)}`` from the presets (angles in radians)."""
-    from . import presets
+    from ..cameras import presets
 
     built: dict[str, tuple] = {}
     for name in cameras:
@@ -282,7 +281,7 @@ def render_capture(cube: dict, cameras: dict[str, tuple], out_dir: str | Path, *
 def _render_into(cube: dict, cameras: dict[str, tuple], out_dir: Path, *, depth_output: str,
                  interpolation: str, device: str | torch.device,
                  _layers: dict | None) -> list[Path]:
-    from .projection import OmniProjection
+    from ..render.layer import OmniProjection
 
     face_size = int(cube["face_size"])
     written: list[Path] = []
@@ -403,71 +402,3 @@ def check_pixels(image_size: tuple[int, int]) -> None:
         raise MemoryError(f"images of {h} x {w} pixels need about {need / 1e9:.1f} GB of memory, "
                           f"but {available / 1e9:.1f} GB are available; the largest square "
                           f"size that fits is about {side} x {side}")
-
-
-# --------------------------------------------------------------------------------------------
-# Command line: omniscape-torch convert --cubemaps DIR --out DIR
-# --------------------------------------------------------------------------------------------
-
-def add_convert_parser(subparsers) -> argparse.ArgumentParser:
-    """Register ``convert`` on an ``argparse`` sub-parsers object (angles in degrees)."""
-    p = subparsers.add_parser(
-        "convert", help="render simulator cubemap captures into fisheye / catadioptric images",
-        description="Read DIR/<capture>/{front,back,left,right,up,down}_{rgb,depth,labels}.png "
-                    "(CARLA raw depth and semantic images) and write fisheye and catadioptric "
-                    "renderings (rgb png, depth exr, labels png) per capture.")
-    p.add_argument("--cubemaps", type=Path, required=True, help="folder of capture folders")
-    p.add_argument("--out", type=Path, required=True, help="output folder")
-    p.add_argument("--label-set", choices=tuple(LABEL_SETS), default="13",
-                   help="the simulator's tag set: 13 (CARLA <= 0.9.9), 23 (0.9.10-0.9.13), "
-                        "new (Cityscapes-ordered tags of later versions); default 13")
-    p.add_argument("--unknown-label", type=int, default=None,
-                   help="class id for tags outside the label set (default: error)")
-    p.add_argument("--cameras", nargs="+", choices=CAMERAS, default=list(CAMERAS))
-    p.add_argument("--size", type=int, nargs=2, default=(1024, 1024), metavar=("H", "W"),
-                   help="output image size (default 1024 1024)")
-    p.add_argument("--fisheye-model", default="equidistant",
-                   help="fisheye preset model (default equidistant)")
-    p.add_argument("--fisheye-fov", type=float, default=190.0, help="degrees (default 190)")
-    p.add_argument("--cata-xi", type=float, default=None, help="mirror xi (default 0.9)")
-    p.add_argument("--cata-fov", type=float, default=220.0, help="degrees (default 220)")
-    p.add_argument("--cata-blind-fov", type=float, default=40.0,
-                   help="degrees, 0 for none (default 40)")
-    p.add_argument("--cata-looking", choices=("down", "up"), default="down")
-    p.add_argument("--depth-output", choices=("range", "z"), default="range")
-    p.add_argument("--interpolation", choices=("nearest", "bilinear", "bicubic"),
-                   default="bilinear", help="for rgb")
-    p.add_argument("--device", default="cpu")
-    p.set_defaults(func=cmd_convert)
-    return p
-
-
-def cmd_convert(args: argparse.Namespace) -> int:
-    import sys
-
-    failures: dict[str, str] = {}
-    check_writable(args.out)
-    try:
-        results = convert_captures(
-            args.cubemaps, args.out, label_set=args.label_set, cameras=tuple(args.cameras),
-            image_size=tuple(args.size), fisheye_model=args.fisheye_model,
-            fisheye_fov=math.radians(args.fisheye_fov), catadioptric_xi=args.cata_xi,
-            catadioptric_fov=math.radians(args.cata_fov),
-            catadioptric_blind_fov=(math.radians(args.cata_blind_fov) if args.cata_blind_fov > 0
-                                    else None),
-            catadioptric_looking=args.cata_looking, depth_output=args.depth_output,
-            interpolation=args.interpolation, unknown_label=args.unknown_label,
-            device=args.device)
-    except ConvertError as err:
-        results, failures = err.results, err.failures
-    for capture, paths in results.items():
-        print(f"{capture}: {len(paths)} files -> {Path(args.out) / capture}")
-    if results:
-        print(f"cameras: {Path(args.out) / 'cameras.json'}")
-    if failures:
-        print(f"convert: {len(failures)} of {len(failures) + len(results)} captures failed "
-              "(nothing written for them):", file=sys.stderr)
-        for capture, message in failures.items():
-            print(f"  {capture}: {message}", file=sys.stderr)
-        return 1
-    return 0

@@ -43,12 +43,12 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from . import memory, native
-from .cubemap.atlas import atlas_to_faces
-from .cubemap.padding import border_plan, check_cubemap
-from .fastgrid import _CASES, _ZERO_CASE, rotated_rays_to_grid
-from .fastgrid import _check_inputs as _check_rays
-from .sampling import unnormalize
+from . import memory, extension as native
+from ..cubemap.atlas import atlas_to_faces
+from ..cubemap.padding import border_plan, check_cubemap
+from .kernels import _CASES, _ZERO_CASE, rotated_rays_to_grid
+from .kernels import _check_inputs as _check_rays
+from .reference import unnormalize
 
 __all__ = ["CubeLUT", "build_lut", "sample_cube", "sample_rays", "reads_rays", "sample_atlas",
            "compile_failures", "holds", "MODES", "BORDERS"]

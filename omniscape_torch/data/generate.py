@@ -93,17 +93,17 @@ from typing import Callable
 import numpy as np
 import torch
 
-from . import ride as _ride
-from .cubemap.faces import FACES
-from .io import (CLASSES, IGNORE_INDEX, atomic_write_bytes, atomic_write_text, camera_to_dict,
-                 colorize, read_image, write_exr, write_image)
-from .io.atomic import folder_lock, remove_stale_temporaries
-from .io.labels import PALETTE
-from .presets import catadioptric, fisheye
-from .projection import OmniProjection
-from .reproject import equirectangular_camera
-from .scenes.town import WEATHERS, Town
-from .sizing import (MEMORY_PER_PIXEL, PROCESS_MEMORY, available_memory, required_face_size,
+from ..scenes import ride as _ride
+from ..cubemap.faces import FACES
+from ..io import (CLASSES, IGNORE_INDEX, atomic_write_bytes, atomic_write_text, colorize,
+                 read_image, write_exr, write_image)
+from ..io.atomic import folder_lock, remove_stale_temporaries
+from ..io.labels import PALETTE
+from ..cameras.presets import catadioptric, fisheye
+from ..render.layer import OmniProjection
+from ..render.reproject import equirectangular_camera
+from ..scenes.town import WEATHERS, Town
+from ..render.sizing import (MEMORY_PER_PIXEL, PROCESS_MEMORY, available_memory, required_face_size,
                      visible_faces)
 
 __all__ = ["CAMERAS", "CONTACT_SHEET", "DatasetConfig", "contact_sheet", "generate", "stats",
@@ -135,11 +135,12 @@ FORMAT_VERSION = 1
 MIN_FACE_SIZE = MIN_IMAGE_SIZE = 8
 
 #: Peak memory of one process rendering a frame, per texel of the largest cube one camera
-#: renders (the town's ray caster and the six faces with depth and labels), bytes; with
-#: ``sizing.PROCESS_MEMORY`` and ``sizing.MEMORY_PER_PIXEL``, measured peaks on the built-in
-#: town, from 6 x 256^2 to 6 x 1351^2 texels, lie 8-25% below the estimate
+#: renders (the town's ray caster shades every texel at once, and the six faces with depth and
+#: labels), bytes. With ``sizing.PROCESS_MEMORY`` and ``sizing.MEMORY_PER_PIXEL``, measured
+#: peaks on the built-in town, from 6 x 256^2 to 6 x 1351^2 texels, lie 15-45% below the
+#: estimate; the allocator makes the same frame peak anywhere from 0.6 to 1.0 GB at 6 x 320^2
 #: (tests/test_dataset.py checks a run against it).
-MEMORY_PER_TEXEL = 560
+MEMORY_PER_TEXEL = 800
 
 
 @dataclass
@@ -435,7 +436,7 @@ def _pose(rotation: torch.Tensor, centre: torch.Tensor) -> list:
 
 
 def _versions() -> dict:
-    from . import __version__
+    from .. import __version__
     out = {"omniscape_torch": __version__, "torch": torch.__version__, "numpy": np.__version__,
            "python": platform.python_version()}
     try:
@@ -497,7 +498,7 @@ def _write_run_files(plan: _Plan, out: Path) -> None:
     for name, c in plan.cameras.items():
         base = out / name
         base.mkdir(parents=True, exist_ok=True)
-        _write_if_changed(base / "camera.json", _dumps(camera_to_dict(c["camera"])))
+        _write_if_changed(base / "camera.json", _dumps(c["camera"].to_dict()))
         t_rig = _pose(c["r_cam"], c["position"])
         poses = []
         for k in range(config.frames):
@@ -641,7 +642,7 @@ def contact_sheet(root: str | Path, cameras, frame: int) -> bytes:
     matplotlib.use("Agg", force=False)
     from matplotlib.figure import Figure
 
-    from .io import read_exr
+    from ..io import read_exr
 
     root = Path(root)
     n = _name(frame)

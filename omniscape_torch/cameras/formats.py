@@ -2,6 +2,10 @@
 
 Conventions are converted here and only here: OCamCalib stores its centre as (row, column),
 0-based, and its sensor axes as (row, column); OpenCV's pixel centres are at integers, like ours.
+
+The readers take the camera class to build (``cls``): they are ``Camera``'s constructors
+(``Camera.from_ocamcalib``, ``from_dict``, ...), which call them, and this module needs no
+import of ``camera.py`` (which imports it).
 """
 
 from __future__ import annotations
@@ -14,9 +18,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..cameras import Camera
-from ..cameras.scaramuzza import scaramuzza_project
-from .atomic import atomic_write_text
+from ..io.atomic import atomic_write_text
+from .registry import get_model
+from .scaramuzza import scaramuzza_project
 
 # --------------------------------------------------------------------------------------------
 # OCamCalib
@@ -80,8 +84,7 @@ def _counted(path: Path, line: int, tokens: list[str], what: str) -> list[float]
     return values[1:]
 
 
-def read_ocamcalib(path: str | Path, *, dtype: torch.dtype = torch.float64,
-                   **kwargs) -> Camera:
+def read_ocamcalib(cls, path: str | Path, *, dtype: torch.dtype = torch.float64, **kwargs):
     """Read OCamCalib's ``calib_results.txt`` as a ``scaramuzza`` camera.
 
     The centre (row, column) becomes (cx, cy) = (column, row); ``c, d, e`` and the direct
@@ -118,7 +121,7 @@ def read_ocamcalib(path: str | Path, *, dtype: torch.dtype = torch.float64,
     row, col = centre
     params = torch.tensor([col, row, *affine, *pol], dtype=dtype)
     try:
-        camera = Camera("scaramuzza", params, (int(size[0]), int(size[1])), **kwargs)
+        camera = cls("scaramuzza", params, (int(size[0]), int(size[1])), **kwargs)
     except ValueError as err:
         # name the line the offending value came from: the polynomial's a0 or the affine part
         line = l_pol if " a0 " in str(err) else l_a if "affine" in str(err) else None
@@ -128,7 +131,7 @@ def read_ocamcalib(path: str | Path, *, dtype: torch.dtype = torch.float64,
     return camera
 
 
-def fit_invpol(camera: Camera, *, max_error: float = 0.01, max_degree: int = 20,
+def fit_invpol(camera, *, max_error: float = 0.01, max_degree: int = 20,
                theta_range: tuple[float, float] = (-math.pi / 2, 1.20), step: float = 0.01
                ) -> tuple[np.ndarray, float]:
     """Fit OCamCalib's inverse polynomial ``rho(t)`` the way its ``findinvpoly`` does.
@@ -164,15 +167,13 @@ def fit_invpol(camera: Camera, *, max_error: float = 0.01, max_degree: int = 20,
                      f"{max_error} px (best {err:.3g} px)")
 
 
-def write_ocamcalib(camera: Camera, path: str | Path, *, max_error: float = 0.01) -> Path:
+def write_ocamcalib(camera, path: str | Path, *, max_error: float = 0.01) -> Path:
     """Write ``camera`` (one ``scaramuzza`` camera) as OCamCalib's ``calib_results.txt``.
 
     The layout is the one OCamCalib's ``export_data`` writes and its C ``get_ocam_model`` reads;
     the inverse polynomial is refitted (``fit_invpol``, within ``max_error`` px); numbers are
     written with 17 significant digits. Written atomically.
     """
-    if not isinstance(camera, Camera):
-        raise TypeError(f"camera: expected a Camera, got {type(camera).__name__}")
     if camera.model.name != "scaramuzza" or camera.batch_shape != ():
         raise ValueError(f"camera: OCamCalib files hold one scaramuzza camera, got "
                          f"{camera.model.name} with batch shape {tuple(camera.batch_shape)}")
@@ -219,9 +220,7 @@ def _intrinsics(K) -> tuple[float, float, float, float]:
     return K[0, 0], K[1, 1], K[0, 2], K[1, 2]
 
 
-def _one_camera(camera: Camera, model: str) -> list[float]:
-    if not isinstance(camera, Camera):
-        raise TypeError(f"camera: expected a Camera, got {type(camera).__name__}")
+def _one_camera(camera, model: str) -> list[float]:
     if camera.model.name != model or camera.batch_shape != ():
         raise ValueError(f"camera: expected one {model} camera, got {camera.model.name} with "
                          f"batch shape {tuple(camera.batch_shape)}")
@@ -232,31 +231,31 @@ def _k_matrix(fx, fy, cx, cy) -> np.ndarray:
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
 
-def from_opencv_fisheye(K, D, image_size: tuple[int, int], *, dtype=torch.float64,
-                        **kwargs) -> Camera:
+def from_opencv_fisheye(cls, K, D, image_size: tuple[int, int], *, dtype=torch.float64,
+                        **kwargs):
     """``cv2.fisheye`` intrinsics ``K (3, 3)`` and ``D (4,)`` as a ``kannala_brandt`` camera."""
     D = _as_array(D, "D", ((4,), (1, 4), (4, 1))).ravel()
-    return Camera("kannala_brandt", torch.tensor([*_intrinsics(K), *D], dtype=dtype),
-                  image_size, **kwargs)
+    return cls("kannala_brandt", torch.tensor([*_intrinsics(K), *D], dtype=dtype), image_size,
+               **kwargs)
 
 
-def to_opencv_fisheye(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+def to_opencv_fisheye(camera) -> tuple[np.ndarray, np.ndarray]:
     """``(K (3, 3), D (4,))`` of one ``kannala_brandt`` camera, for ``cv2.fisheye``."""
     p = _one_camera(camera, "kannala_brandt")
     return _k_matrix(*p[:4]), np.array(p[4:8])
 
 
-def from_opencv_omnidir(K, D, xi, image_size: tuple[int, int], *, dtype=torch.float64,
-                        **kwargs) -> Camera:
+def from_opencv_omnidir(cls, K, D, xi, image_size: tuple[int, int], *, dtype=torch.float64,
+                        **kwargs):
     """``cv2.omnidir`` intrinsics ``K (3, 3)``, ``D (k1, k2, p1, p2)`` and ``xi`` as a ``unified``
     camera."""
     D = _as_array(D, "D", ((4,), (1, 4), (4, 1))).ravel()
     xi = _as_array(xi, "xi", ((), (1,), (1, 1))).ravel()
-    return Camera("unified", torch.tensor([*_intrinsics(K), xi[0], *D], dtype=dtype),
-                  image_size, **kwargs)
+    return cls("unified", torch.tensor([*_intrinsics(K), xi[0], *D], dtype=dtype), image_size,
+               **kwargs)
 
 
-def to_opencv_omnidir(camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def to_opencv_omnidir(camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(K (3, 3), D (1, 4), xi (1,))`` of one ``unified`` camera, for ``cv2.omnidir``."""
     p = _one_camera(camera, "unified")
     return _k_matrix(*p[:4]), np.array([p[5:9]]), np.array([p[4]])
@@ -266,12 +265,10 @@ def to_opencv_omnidir(camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarra
 # JSON
 # --------------------------------------------------------------------------------------------
 
-def camera_to_dict(camera: Camera) -> dict:
+def camera_to_dict(camera) -> dict:
     """``{"model", "image_size": [H, W], "fov_deg", "blind_fov_deg", "params": {name: value}}``;
     for a batch,
     ``"params"`` is a list of such objects. Angles are in degrees in the file."""
-    if not isinstance(camera, Camera):
-        raise TypeError(f"camera: expected a Camera, got {type(camera).__name__}")
     names = camera.param_names
     rows = camera.params.detach().double().cpu().reshape(-1, len(names)).tolist()
     params = [dict(zip(names, row)) for row in rows]
@@ -287,14 +284,13 @@ def camera_to_dict(camera: Camera) -> dict:
     return out
 
 
-def camera_from_dict(data: dict, *, dtype: torch.dtype = torch.float64, **kwargs) -> Camera:
+def camera_from_dict(cls, data: dict, *, dtype: torch.dtype = torch.float64, **kwargs):
     """Inverse of ``camera_to_dict``."""
     if not isinstance(data, dict):
         raise TypeError(f"data: expected a dict, got {type(data).__name__}")
     missing = {"model", "image_size", "params"} - set(data)
     if missing:
         raise ValueError(f"data: missing keys {sorted(missing)}")
-    from ..cameras import get_model
     model = get_model(data["model"])
     rows = data["params"] if isinstance(data["params"], list) else [data["params"]]
     values = []
@@ -312,7 +308,7 @@ def camera_from_dict(data: dict, *, dtype: torch.dtype = torch.float64, **kwargs
     elif "batch_shape" in data:
         params = params.reshape(*data["batch_shape"], params.shape[-1])
     fov, blind = data.get("fov_deg"), data.get("blind_fov_deg")
-    camera = Camera(model, params, tuple(data["image_size"]),
+    camera = cls(model, params, tuple(data["image_size"]),
                     fov=None if fov is None else math.radians(fov),
                     blind_fov=None if blind is None else math.radians(blind), **kwargs)
     if data.get("invpol") is not None:
@@ -320,12 +316,12 @@ def camera_from_dict(data: dict, *, dtype: torch.dtype = torch.float64, **kwargs
     return camera
 
 
-def save_json(camera: Camera, path: str | Path) -> Path:
+def save_json(camera, path: str | Path) -> Path:
     """Write ``camera_to_dict(camera)`` to ``path`` atomically."""
     return atomic_write_text(path, json.dumps(camera_to_dict(camera), indent=2) + "\n")
 
 
-def load_json(path: str | Path, **kwargs) -> Camera:
+def load_json(cls, path: str | Path, **kwargs):
     """Read a camera written by ``save_json``."""
     path = Path(path)
     try:
@@ -333,6 +329,6 @@ def load_json(path: str | Path, **kwargs) -> Camera:
     except json.JSONDecodeError as err:
         raise ValueError(f"{path}, line {err.lineno}: not valid JSON ({err.msg})") from None
     try:
-        return camera_from_dict(data, **kwargs)
+        return camera_from_dict(cls, data, **kwargs)
     except (ValueError, TypeError) as err:
         raise type(err)(f"{path}: {err}") from None

@@ -16,8 +16,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from .cubemap.rotation import check_rotation
-from .projection import OmniProjection
+from ..cubemap.rotation import check_rotation
+from .layer import OmniProjection
 
 
 class StereoRig(nn.Module):

@@ -17,8 +17,8 @@ from typing import Sequence
 import torch
 from torch.utils.data import Dataset
 
-from .io.calibration import camera_from_dict
-from .io.readers import (FRAME_MODALITIES, list_cameras, list_frames, read_camera_dict,
+from ..cameras import Camera
+from .readers import (FRAME_MODALITIES, list_cameras, list_frames, read_camera_dict,
                          read_dynamics, read_extrinsics, read_frame, read_manifest)
 
 __all__ = ["CubemapCaptureDataset", "OmniDataset", "collate"]
@@ -110,7 +110,7 @@ class OmniDataset(Dataset):
 
     def camera(self, name: str, **kwargs):
         """The :class:`omniscape_torch.Camera` of ``name`` (float64 unless ``dtype=``)."""
-        return camera_from_dict(self._intrinsics[name], **kwargs)
+        return Camera.from_dict(self._intrinsics[name], **kwargs)
 
     def __getitem__(self, index: int) -> dict:
         if index < 0:
@@ -150,8 +150,8 @@ class CubemapCaptureDataset(Dataset):
 
     def __init__(self, root: str | Path, label_set: str = "13", *,
                  modalities: Sequence[str] | None = None, unknown_label: int | None = None):
-        from .convert import find_captures
-        from .io.carla import LABEL_SETS
+        from .captures import find_captures
+        from ..io.carla import LABEL_SETS
         if label_set not in LABEL_SETS:
             raise ValueError(f"label_set: expected one of {tuple(LABEL_SETS)}, got {label_set!r}")
         self.root = Path(root)
@@ -164,7 +164,7 @@ class CubemapCaptureDataset(Dataset):
         return len(self.captures)
 
     def __getitem__(self, index: int) -> dict:
-        from .convert import load_capture
+        from .captures import load_capture
         path = self.captures[index]
         cube = load_capture(path, label_set=self.label_set, modalities=self.modalities,
                             unknown_label=self.unknown_label)

@@ -51,10 +51,10 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from .cameras.camera import Camera
-from .cubemap.faces import FACES, _check_face_size, _check_pad, face_axes, ray_to_face
-from .cubemap.padding import border_plan
-from .cubemap.rotation import check_rotation
+from ..cameras.camera import Camera
+from ..cubemap.faces import FACES, _check_face_size, _check_pad, face_axes, ray_to_face
+from ..cubemap.padding import border_plan
+from ..cubemap.rotation import check_rotation
 
 __all__ = ["MEMORY_PER_PIXEL", "PROCESS_MEMORY", "available_memory", "face_size_map", "needed_face_names",
            "required_face_size", "visible_faces"]
@@ -65,7 +65,7 @@ CRITERIA = ("anisotropic", "isotropic")
 #: measured 340-460 MB, with headroom for the allocator); and the peak bytes per pixel of an
 #: image rendered through the layer (rays, grid, RGB, depth, labels and mask, their encoding;
 #: measured 110 on the built-in town's dataset, tests/test_dataset.py).
-PROCESS_MEMORY, MEMORY_PER_PIXEL = 600e6, 160
+PROCESS_MEMORY, MEMORY_PER_PIXEL = 700e6, 160
 
 
 # --------------------------------------------------------------------------------------------

@@ -42,10 +42,10 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from .cameras.registry import get_model
-from .cameras.unified import unified_unproject_undistorted_xyz
-from .cubemap.atlas import rays_to_grid
-from .cubemap.faces import (
+from ..cameras.registry import get_model
+from ..cameras.unified import unified_unproject_undistorted_xyz
+from ..cubemap.atlas import rays_to_grid
+from ..cubemap.faces import (
     _AXIS_SIGN_TO_FACE,
     _R_B_AXES,
     _check_face_size,

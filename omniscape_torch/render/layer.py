@@ -26,11 +26,11 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from . import cubemap as cm
-from . import fastsample, memory
-from .cameras import Camera
-from .fastgrid import rotated_rays_to_grid
-from .sampling import grid_sample, nearest_gather
+from .. import cubemap as cm
+from . import fast as fastsample, memory
+from ..cameras import Camera
+from .kernels import rotated_rays_to_grid
+from .reference import grid_sample, nearest_gather
 
 INTERPOLATIONS = ("nearest", "bilinear", "bicubic")
 DEPTH_INTERPOLATIONS = ("nearest", "bilinear", "edge_aware")

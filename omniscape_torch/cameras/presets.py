@@ -28,10 +28,9 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from .cameras.camera import Camera, _check_fov, _check_image_size
-from .cameras.registry import get_model
-from .cameras.unified import unified_from_mirror
-from .cubemap.faces import FACES, face_rotations
+from .camera import Camera, _check_fov, _check_image_size
+from .registry import get_model
+from .unified import unified_from_mirror
 
 __all__ = [
     "FISHEYE_DEFAULTS",
@@ -319,7 +318,11 @@ def catadioptric(image_size: tuple[int, int], *, xi: float | None = None,
     h, w = size
     params = torch.tensor([gamma, gamma, (w - 1) / 2, (h - 1) / 2, *extra], dtype=dtype)
     camera = Camera("unified", params, size, fov=fov, blind_fov=blind_fov)
-    rotation = face_rotations(dtype)[FACES.index(looking)]
+    # a pitch of -90 degrees (down) or +90 degrees (up), written exactly: the camera's axis
+    # along the world's +y (down) or -y, its image-down along -z or +z (DESIGN.md's down and up
+    # faces)
+    s = 1.0 if looking == "down" else -1.0
+    rotation = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, s], [0.0, -s, 0.0]], dtype=dtype)
     return camera, rotation
 
 

@@ -28,14 +28,14 @@ from typing import Sequence
 import torch
 from torch import Tensor, nn
 
-from .cameras import Camera
-from .cameras.registry import get_model
-from .cubemap.faces import FACES, face_rotations
-from .cubemap.rotation import check_rotation
-from .fastgrid import camera_grid
-from .presets import yaw_pitch_roll_to_matrix
-from . import memory, projection
-from .projection import OmniProjection
+from ..cameras import Camera
+from ..cameras.registry import get_model
+from ..cubemap.faces import FACES, face_rotations
+from ..cubemap.rotation import check_rotation
+from .kernels import camera_grid
+from ..cameras.presets import yaw_pitch_roll_to_matrix
+from . import memory, layer as projection
+from .layer import OmniProjection
 
 __all__ = ["ApplyToKey", "RandomOmniCamera"]
 

@@ -56,7 +56,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .presets import yaw_pitch_roll_to_matrix
+from ..cameras.presets import yaw_pitch_roll_to_matrix
 
 __all__ = [
     "GRAVITY",

@@ -17,10 +17,10 @@ import math
 import torch
 from torch import Tensor
 
-from . import cubemap as cm
-from .cameras import Camera
-from .io.labels import IGNORE_INDEX
-from .sampling import grid_sample, nearest_gather, pixels_to_grid
+from .. import cubemap as cm
+from ..cameras import Camera
+from ..io.labels import IGNORE_INDEX
+from .reference import grid_sample, nearest_gather, pixels_to_grid
 
 INTERPOLATIONS = ("nearest", "bilinear", "bicubic")
 

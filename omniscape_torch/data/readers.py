@@ -22,9 +22,9 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from .calibration import camera_from_dict
-from .exr import read_exr
-from .images import read_image
+from ..cameras import Camera
+from ..io.exr import read_exr
+from ..io.images import read_image
 
 __all__ = ["FRAME_MODALITIES", "frame_name", "list_cameras", "list_frames", "read_camera",
            "read_camera_dict", "read_dynamics", "read_extrinsics", "read_frame",
@@ -144,10 +144,10 @@ def read_camera_dict(root: str | Path, camera: str) -> dict:
 
 def read_camera(root: str | Path, camera: str, **kwargs):
     """The intrinsics of ``camera``: a :class:`omniscape_torch.Camera` (float64 by default;
-    ``kwargs`` go to ``camera_from_dict``)."""
+    ``kwargs`` go to ``Camera.from_dict``)."""
     path = _root(root) / camera / "camera.json"
     try:
-        return camera_from_dict(_json(path), **kwargs)
+        return Camera.from_dict(_json(path), **kwargs)
     except (ValueError, TypeError) as err:
         raise type(err)(f"{path}: {err}") from None
 

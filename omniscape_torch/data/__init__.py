@@ -1,0 +1,2 @@
+"""Datasets: the format defined once, the generator, statistics, simulator captures, readers
+and torch datasets."""
