@@ -1,4 +1,4 @@
-"""Tests of ``fastgrid.camera_grid``: every pixel of ``B`` cameras -> rotated atlas grid, fused.
+"""Tests of ``render.kernels.camera_grid``: every pixel of ``B`` cameras -> rotated atlas grid, fused.
 
 The oracle is the chain it replaces, built from public pieces: ``ot.Camera(model, params,
 fov=..., blind_fov=...).ray_grid()`` (rays and validity: model domain, image, cones), then
@@ -14,6 +14,7 @@ import pytest
 import torch
 
 import omniscape_torch as ot
+from omniscape_torch.cubemap import grid as cgrid
 from omniscape_torch.render import kernels as fg
 
 from conftest import CASES
@@ -40,7 +41,7 @@ def reference(model, params, size, rotation, fov, blind):
                         fov=None if fov is None else float(fov[i]),
                         blind_fov=None if blind is None or blind[i] == 0 else float(blind[i]))
         rays, valid = cam.ray_grid()
-        grid = fg.rotated_rays_to_grid_reference(rays, rotation[i], FACE, PAD)[0]
+        grid = cgrid.rotated_rays_to_grid_reference(rays, rotation[i], FACE, PAD)[0]
         grids.append(torch.where(valid[..., None], grid, torch.full_like(grid, -2.0)))
         valids.append(valid)
     return torch.stack(grids), torch.stack(valids)
@@ -127,8 +128,8 @@ def test_forward_only_even_with_grad_inputs():
 
 
 def test_compile_failure_warns_once_and_falls_back(monkeypatch):
-    monkeypatch.setattr(fg, "_COMPILED", {})
-    monkeypatch.setattr(fg, "_FAILURES", {})
+    monkeypatch.setattr(cgrid, "_COMPILED", {})
+    monkeypatch.setattr(cgrid, "_FAILURES", {})
 
     def broken_compile(*args, **kwargs):
         raise RuntimeError("no compiler here")
@@ -146,7 +147,7 @@ def test_compile_failure_warns_once_and_falls_back(monkeypatch):
     for a, b in ((got, expected), (again, expected)):
         assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
     assert ("camera", "stereographic", torch.float32, torch.float32, "cpu", True) \
-        in fg.compile_failures()
+        in cgrid.compile_failures()
 
 
 @pytest.mark.parametrize("kwargs, match", [

@@ -1,7 +1,8 @@
-"""Tests of ``fastgrid.rotated_rays_to_grid``: the fused (compiled) grid against its eager oracle.
+"""Tests of ``cubemap.grid``: the grid maths, eager and compiled, against the definitions.
 
-The oracle is ``rotated_rays_to_grid_reference``: ``einsum`` then ``cubemap.rays_to_grid``, the
-path ``OmniProjection`` took before (itself tested against DESIGN.md in ``test_cubemap.py``).
+The oracle is :func:`oracle`: ``einsum``, then ``cubemap.ray_to_face`` and ``face_uv_to_grid``
+(the face table's gathers; themselves tested against DESIGN.md in ``test_cubemap.py``), not
+the selection form under test.
 The fused maths is checked first eagerly (cheap, every case), then compiled on tiny inputs, since
 compilation dominates the run time (seconds per kernel; inductor caches them on disk).
 """
@@ -14,10 +15,23 @@ import warnings
 import pytest
 import torch
 
-from omniscape_torch.render import kernels as fg
+from omniscape_torch.cubemap import face_uv_to_grid, ray_to_face
+from omniscape_torch.cubemap import grid as fg
 
 f32, f64 = torch.float32, torch.float64
 FACE, PAD = 8, 1
+
+
+def oracle(rays: torch.Tensor, rotation: torch.Tensor | None, face_size: int, pad: int, *,
+           dtype: torch.dtype | None = None) -> torch.Tensor:
+    """The definition of ``rotated_rays_to_grid``: the rotation by ``einsum`` in the rays'
+    dtype, then ``ray_to_face`` and ``face_uv_to_grid`` in ``dtype``."""
+    rays = rays.unsqueeze(0) if rays.dim() == 3 else rays
+    if rotation is not None:
+        rotation = rotation.unsqueeze(0) if rotation.dim() == 2 else rotation
+        rays = torch.einsum("bij,bhwj->bhwi", rotation.to(rays.dtype), rays)
+    face, uv = ray_to_face(rays.to(dtype or rays.dtype), face_size)
+    return face_uv_to_grid(face, uv, face_size, pad)
 
 
 def tie_rays(dtype) -> torch.Tensor:
@@ -63,7 +77,7 @@ def random_rays(shape, dtype, seed: int = 1) -> torch.Tensor:
 @pytest.mark.parametrize("size,pad", [(8, 1), (5, 2), (1, 0), (512, 1)])
 def test_fused_maths_without_rotation_is_the_reference_bit_for_bit(dtype, size, pad):
     rays = torch.cat([tie_rays(dtype), random_rays((200,), dtype)]).reshape(1, 1, -1, 3)
-    expected = fg.rotated_rays_to_grid_reference(rays, None, size, pad)
+    expected = oracle(rays, None, size, pad)
     got = fg._fused_plain(rays, size, pad, dtype)
     assert got.dtype == dtype and got.shape == expected.shape
     assert torch.equal(got, expected)
@@ -73,7 +87,7 @@ def test_fused_maths_without_rotation_is_the_reference_bit_for_bit(dtype, size, 
 def test_fused_maths_with_exact_rotations_keeps_ties_bit_for_bit(dtype):
     rays = tie_rays(dtype).reshape(1, 15, 23, 3)
     rot = signed_permutations(dtype)  # [48, 3, 3]
-    expected = fg.rotated_rays_to_grid_reference(rays, rot, FACE, PAD)
+    expected = oracle(rays, rot, FACE, PAD)
     got = fg._fused_rotated(rays, rot, FACE, PAD, dtype)
     assert got.shape == (48, 15, 23, 2)
     assert torch.equal(got, expected)
@@ -82,7 +96,7 @@ def test_fused_maths_with_exact_rotations_keeps_ties_bit_for_bit(dtype):
 def test_fused_maths_with_random_rotations_matches_to_rounding():
     rays = random_rays((1, 16, 20), f32)
     rot = random_rotations(5, f32)
-    expected = fg.rotated_rays_to_grid_reference(rays, rot, 512, 1)
+    expected = oracle(rays, rot, 512, 1)
     got = fg._fused_rotated(rays, rot, 512, 1, f32)
     # float32 rounding of the rotated rays (einsum may sum in another order); a different
     # face would differ by a face's height in the atlas (1/3 in gy)
@@ -97,12 +111,12 @@ def test_compiled_without_rotation_is_the_reference_bit_for_bit():
     rays = torch.cat([tie_rays(f32), random_rays((105,), f32)]).reshape(1, 3, 150, 3)
     got = fg.rotated_rays_to_grid(rays, None, FACE, PAD)
     assert fg.compile_failures() == {}
-    assert torch.equal(got, fg.rotated_rays_to_grid_reference(rays, None, FACE, PAD))
+    assert torch.equal(got, oracle(rays, None, FACE, PAD))
     # one kernel for every shape and face size (dynamic shapes): (H, W, 3) rays, another F
     rays3 = random_rays((5, 7), f32)
     got = fg.rotated_rays_to_grid(rays3, None, 16, 2)
     assert got.shape == (1, 5, 7, 2)
-    assert torch.equal(got, fg.rotated_rays_to_grid_reference(rays3, None, 16, 2))
+    assert torch.equal(got, oracle(rays3, None, 16, 2))
 
 
 def test_compiled_rotation_broadcasting_ties_and_rounding():
@@ -110,12 +124,12 @@ def test_compiled_rotation_broadcasting_ties_and_rounding():
     rot = signed_permutations(f32)
     got = fg.rotated_rays_to_grid(rays, rot, FACE, PAD)
     assert got.shape == (48, 15, 23, 2)
-    assert torch.equal(got, fg.rotated_rays_to_grid_reference(rays, rot, FACE, PAD))
+    assert torch.equal(got, oracle(rays, rot, FACE, PAD))
     # a batch of rays, one rotation per sample, random rotations: equal to rounding
     rays_b = random_rays((3, 6, 10), f32)
     rot_b = random_rotations(3, f32)
     torch.testing.assert_close(fg.rotated_rays_to_grid(rays_b, rot_b, 512, 1),
-                               fg.rotated_rays_to_grid_reference(rays_b, rot_b, 512, 1),
+                               oracle(rays_b, rot_b, 512, 1),
                                rtol=0, atol=1e-6)
     assert fg.compile_failures() == {}
 
@@ -161,7 +175,7 @@ def test_compiled_false_is_the_reference():
     rays = tie_rays(f64).reshape(1, 15, 23, 3)
     rot = random_rotations(3, f64)
     assert torch.equal(fg.rotated_rays_to_grid(rays, rot, FACE, PAD, compiled=False),
-                       fg.rotated_rays_to_grid_reference(rays, rot, FACE, PAD))
+                       oracle(rays, rot, FACE, PAD))
 
 
 def test_compile_unavailable_falls_back_and_warns_once(fresh_cache, monkeypatch):
@@ -171,7 +185,7 @@ def test_compile_unavailable_falls_back_and_warns_once(fresh_cache, monkeypatch)
     monkeypatch.setattr(fg.torch, "compile", broken_compile)
     rays = tie_rays(f32).reshape(1, 15, 23, 3)
     rot = random_rotations(2, f32)
-    expected = fg.rotated_rays_to_grid_reference(rays, rot, FACE, PAD)
+    expected = oracle(rays, rot, FACE, PAD)
     with pytest.warns(UserWarning, match="torch.compile failed.*no compiler here") as rec:
         got = fg.rotated_rays_to_grid(rays, rot, FACE, PAD)
     assert rec[0].filename == __file__  # points at the caller
@@ -192,7 +206,7 @@ def test_compiled_kernel_failing_at_call_falls_back_and_warns_once(fresh_cache, 
 
     monkeypatch.setattr(fg.torch, "compile", lambda fn, **kw: failing_kernel)
     rays = tie_rays(f32).reshape(1, 15, 23, 3)
-    expected = fg.rotated_rays_to_grid_reference(rays, None, FACE, PAD)
+    expected = oracle(rays, None, FACE, PAD)
     with pytest.warns(UserWarning, match="C\\+\\+ compile error") as rec:
         assert torch.equal(fg.rotated_rays_to_grid(rays, None, FACE, PAD), expected)
     assert rec[0].filename == __file__
@@ -220,7 +234,7 @@ def test_backward_kernel_failure_falls_back_to_eager_gradients(fresh_cache, monk
     with pytest.warns(UserWarning, match="vjp.*backward kernel broken"):
         grid.sum().backward()
     r, q = rays.detach().requires_grad_(True), rot.detach().requires_grad_(True)
-    fg.rotated_rays_to_grid_reference(r, q, FACE, PAD).sum().backward()
+    oracle(r, q, FACE, PAD).sum().backward()
     assert torch.equal(rays.grad, r.grad) and torch.equal(rot.grad, q.grad)
     assert set(k[0] for k in fg.compile_failures()) == {"vjp"}
 
@@ -240,7 +254,7 @@ def test_autograd_function_gradcheck_and_double_backward(fresh_cache, monkeypatc
                                 create_graph=True)
     q2 = rot.clone().requires_grad_(True)
     (dq2,) = torch.autograd.grad(
-        fg.rotated_rays_to_grid_reference(rays, q2, FACE, PAD).square().sum(), q2,
+        oracle(rays, q2, FACE, PAD).square().sum(), q2,
         create_graph=True)
     torch.testing.assert_close(dq, dq2)
     torch.testing.assert_close(torch.autograd.grad(dq.sum(), q)[0],

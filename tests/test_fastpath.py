@@ -18,7 +18,8 @@ import torch.nn.functional as F_nn
 
 import omniscape_torch as ot
 from omniscape_torch import cubemap as cm
-from omniscape_torch.render import extension as native, fast as fastsample, kernels as fastgrid, memory
+from omniscape_torch.cubemap import grid as fastgrid
+from omniscape_torch.render import extension as native, fast as fastsample, memory
 
 f32, f64 = torch.float32, torch.float64
 #: Rounding of a blend of 4 texels in [0, 1]. float32: the weights are grid_sample's bit for bit,

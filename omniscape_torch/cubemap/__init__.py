@@ -12,7 +12,8 @@ Pipeline for a layer::
     out = grid_sample(atlas, grid, align_corners=False)
 """
 
-from .atlas import atlas_to_faces, cubemap_to_atlas, face_uv_to_grid, faces_to_atlas, rays_to_grid
+from .atlas import atlas_to_faces, cubemap_to_atlas, face_uv_to_grid, faces_to_atlas
+from .grid import rays_to_grid, rotated_rays_to_grid
 from .depth import depth_to_range, range_factor, range_to_depth
 from .faces import (
     FACES,
@@ -49,4 +50,5 @@ __all__ = [
     "range_to_depth",
     "ray_to_face",
     "rays_to_grid",
+    "rotated_rays_to_grid",
 ]

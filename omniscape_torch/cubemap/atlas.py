@@ -2,8 +2,8 @@
 
 Atlas of border ``p``: ``(B, C, 6 n, n)`` with ``n = F + 2p``; face ``k`` (in ``FACES`` order)
 occupies rows ``[k n, (k + 1) n)``, and face pixel ``(u, v)`` is atlas pixel
-``(x, y) = (u + p, v + p + k n)``. :func:`face_uv_to_grid` is the only place that turns face
-coordinates into ``grid_sample`` coordinates; everything samples the atlas through it.
+``(x, y) = (u + p, v + p + k n)``. :func:`face_uv_to_grid` defines how face coordinates become
+``grid_sample`` coordinates; ``cubemap.grid`` computes the same map from rays.
 
 Because every face carries its resampled border (:func:`~omniscape_torch.cubemap.pad_faces`),
 bilinear sampling (``p >= 1``) or bicubic sampling (``p >= 2``) at any ``uv`` in
@@ -15,7 +15,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .faces import _check_face, _check_face_size, _check_float_tensor, _check_pad, ray_to_face
+from .faces import _check_face, _check_face_size, _check_float_tensor, _check_pad
 from .padding import BorderPlan, _pad_flat, check_cubemap
 
 __all__ = [
@@ -23,7 +23,6 @@ __all__ = [
     "atlas_to_faces",
     "cubemap_to_atlas",
     "face_uv_to_grid",
-    "rays_to_grid",
 ]
 
 
@@ -116,21 +115,3 @@ def face_uv_to_grid(face: int | Tensor, uv: Tensor, face_size: int, pad: int) ->
     x = uv[..., 0] + pad
     y = uv[..., 1] + pad + row0
     return torch.stack([(2 * x + 1) / n - 1, (2 * y + 1) / (6 * n) - 1], dim=-1)
-
-
-def rays_to_grid(rays: Tensor, face_size: int, pad: int) -> Tensor:
-    """``grid_sample`` coordinates (``align_corners=False``) in the atlas of cube-frame rays.
-
-    ``ray_to_face`` followed by ``face_uv_to_grid``. Zero rays map to the centre of face 0;
-    mask them.
-
-    Args:
-        rays: ``(..., 3)`` directions in the cube frame (need not be unit), floating.
-        face_size: ``F``.
-        pad: atlas border ``p``.
-
-    Returns:
-        ``(..., 2)`` grid, dtype of ``rays``; differentiable with respect to ``rays``.
-    """
-    face, uv = ray_to_face(rays, face_size)
-    return face_uv_to_grid(face, uv, face_size, pad)

@@ -46,8 +46,8 @@ from torch import Tensor
 from . import memory, extension as native
 from ..cubemap.atlas import atlas_to_faces
 from ..cubemap.padding import border_plan, check_cubemap
-from .kernels import _CASES, _ZERO_CASE, rotated_rays_to_grid
-from .kernels import _check_inputs as _check_rays
+from ..cubemap.grid import _CASES, _ZERO_CASE, rotated_rays_to_grid
+from ..cubemap.grid import _check_inputs as _check_rays
 from .reference import unnormalize
 
 __all__ = ["CubeLUT", "build_lut", "sample_cube", "sample_rays", "reads_rays", "sample_atlas",

@@ -29,7 +29,7 @@ from torch import Tensor, nn
 from .. import cubemap as cm
 from . import fast as fastsample, memory
 from ..cameras import Camera
-from .kernels import rotated_rays_to_grid
+from ..cubemap.grid import rotated_rays_to_grid
 from .reference import grid_sample, nearest_gather
 
 INTERPOLATIONS = ("nearest", "bilinear", "bicubic")
