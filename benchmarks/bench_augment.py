@@ -59,9 +59,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from common import loadavg, measure, run_record, write_json_atomic  # noqa: E402
-from omniscape_torch.render.augment import RandomOmniCamera, _GivenGrid  # noqa: E402
+from omniscape_torch.render.augment import RandomOmniCamera  # noqa: E402
 from omniscape_torch.cameras import Camera  # noqa: E402
-from omniscape_torch.render.layer import CHUNK_PIXELS  # noqa: E402
+from omniscape_torch.render.layer import CHUNK_PIXELS, OmniProjection  # noqa: E402
 from omniscape_torch.render.kernels import camera_grid  # noqa: E402
 
 try:
@@ -194,9 +194,9 @@ def run(args: argparse.Namespace) -> dict:
     step = max(1, CHUNK_PIXELS // (size * size))
     chunks = [slice(i, i + step) for i in range(0, batch, step)]
 
-    def new_proj(part: slice) -> _GivenGrid:
-        return _GivenGrid(Camera(name0, camera0.params[part], (size, size)), face,
-                          interpolation=aug.interpolation, ignore_index=aug.ignore_index)
+    def new_proj(part: slice) -> OmniProjection:
+        return OmniProjection(Camera(name0, camera0.params[part], (size, size)), face,
+                              interpolation=aug.interpolation, ignore_index=aug.ignore_index)
 
     pad = new_proj(chunks[0]).pad
 
@@ -205,12 +205,11 @@ def run(args: argparse.Namespace) -> dict:
                             **{k: v[part] for k, v in geometry0.items()}) for part in chunks]
 
     projs = [new_proj(part) for part in chunks]
-    for proj, g in zip(projs, grid()):
-        proj.grid = g
+    grids = grid()
 
     def sample() -> list:
-        return [proj.render(rgb=cube[part], labels=labels[part])
-                for proj, part in zip(projs, chunks)]
+        return [proj.render(rgb=cube[part], labels=labels[part], grid=g)
+                for proj, part, g in zip(projs, chunks, grids)]
 
     rng_peer = np.random.default_rng(SEED)
     rng_maps = np.random.default_rng(SEED + 1)

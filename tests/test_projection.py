@@ -796,6 +796,33 @@ def test_bad_forward_input(small_layer):
         batched(torch.rand(3, 6, 3, 4, 4))
 
 
+def test_render_through_a_given_grid():
+    """``render(grid=...)`` samples through a grid computed elsewhere (per-sample random
+    cameras in one kernel): the grid of the camera's rays under a rotation gives the image
+    rendered with that rotation, on the fast and the reference path."""
+    cam, _, _ = fisheye(16)
+    cube = torch.rand(2, 6, 3, 8, 8, dtype=f64)
+    labels = torch.randint(0, 13, (2, 6, 8, 8))
+    rotation = ot.presets.yaw_pitch_roll_to_matrix(torch.tensor([0.3, -1.2], dtype=f64),
+                                                   torch.tensor([0.1, 0.4], dtype=f64), 0.2)
+    for fast in (True, False):
+        layer = ot.OmniProjection(cam, 8, fast=fast)
+        expected = layer.render(rgb=cube, labels=labels, rotation=rotation)
+        rays, valid = cam.ray_grid()
+        grid = ot.cubemap.rotated_rays_to_grid(rays, rotation, 8, layer.pad, compiled=False)
+        grid = torch.where(valid[..., None], grid, torch.full_like(grid, -2.0))
+        got = layer.render(rgb=cube, labels=labels, grid=(grid, valid.expand(2, -1, -1)))
+        torch.testing.assert_close(got["rgb"], expected["rgb"])
+        assert torch.equal(got["labels"], expected["labels"])
+        assert torch.equal(got["valid"], expected["valid"])
+    with pytest.raises(ValueError, match="grid: a given grid already holds the attitude"):
+        layer.render(rgb=cube, rotation=rotation, grid=(grid, valid.expand(2, -1, -1)))
+    with pytest.raises(ValueError, match="grid: expected a floating tensor"):
+        layer.render(rgb=cube, grid=(grid[:, :4], valid.expand(2, -1, -1)))
+    with pytest.raises(TypeError, match="grid: expected a tuple"):
+        layer.render(rgb=cube, grid=grid)
+
+
 def _bad_rotations() -> dict[str, torch.Tensor]:
     """Matrices that are not rotations, each with the words its error must use."""
     theta = 0.3

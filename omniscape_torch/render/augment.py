@@ -429,10 +429,10 @@ class RandomOmniCamera(nn.Module):
                 part = slice(start, start + chunk)
                 cam = Camera(name, camera.params[part], self.image_size)
                 sel = idx[part]
-                proj = _GivenGrid(cam, self.face_size, interpolation=self.interpolation,
-                                  ignore_index=self.ignore_index)
+                proj = OmniProjection(cam, self.face_size, interpolation=self.interpolation,
+                                      ignore_index=self.ignore_index)
                 # the grid of every pixel, with the sample's rotation and field-of-view cones
-                proj.grid = camera_grid(
+                grid = camera_grid(
                     name, cam.params, self.image_size, self.face_size, proj.pad,
                     rotation=params["rotation"][sel].to(dtype=dtype, device=device),
                     fov=params["fov"][sel].to(dtype=dtype, device=device),
@@ -445,7 +445,7 @@ class RandomOmniCamera(nn.Module):
                 at = slice(first, last) if run else sel.to(device)
                 take = (lambda t: t) if whole else (lambda t: None if t is None else t[at])
                 out = proj.render(rgb=take(cubemap), labels=take(labels), depth=take(depth),
-                                  depth_output=self.depth_output,
+                                  depth_output=self.depth_output, grid=grid,
                                   out={key: value[at] for key, value in result.items()}
                                   if run else None)
                 if whole:
@@ -486,20 +486,6 @@ class RandomOmniCamera(nn.Module):
         if params is None:
             params = self.forward_parameters(ref.shape[0], generator=generator)
         return self.render(cubemap, params, labels=labels, depth=depth)
-
-
-class _GivenGrid(OmniProjection):
-    """``OmniProjection`` that samples through a grid given from outside (``grid``: the
-    ``(grid (B, H, W, 2), valid (B, H, W))`` of ``fastgrid.camera_grid``, invalid pixels outside
-    the atlas) instead of building one; the modalities are rendered by the layer's own rules."""
-
-    grid: tuple[Tensor, Tensor]
-
-    def sampling_grid(self, rotation: Tensor | None = None, dtype: torch.dtype = torch.float32
-                      ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        grid, valid = self.grid
-        grid = grid.to(dtype)
-        return grid, valid, grid, valid
 
 
 class ApplyToKey(nn.Module):

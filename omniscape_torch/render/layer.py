@@ -21,6 +21,7 @@ computed from the rays in the sampling pass and never stored); ``fast=False`` fo
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -126,7 +127,6 @@ class OmniProjection(nn.Module):
         self.border = border
         self.fused_grid = bool(fused_grid)
         self.fast = bool(fast)
-        self._fast_now = False  # set per render call
         self.pad = 0 if border == "none" else _PAD[interpolation]
         self._rays_cache: tuple | None = None
         self._grid_cache: tuple | None = None
@@ -237,11 +237,11 @@ class OmniProjection(nn.Module):
     def _fast_sample(self, cube: Tensor, grid: Tensor, mode: str, pad_mode: str,
                      valid: Tensor | None, *, fill: int = 0, out: Tensor | None = None
                      ) -> Tensor | None:
-        """:func:`fastsample.sample_cube` of ``cube`` where the fast path applies (see
-        ``render``), else None. The lookup table of a cached grid is kept with it. ``valid``:
+        """:func:`fastsample.sample_cube` of ``cube`` where the fast sampler applies (a call
+        on the fast path: see ``render``), else None. The lookup table of a cached grid is kept with it. ``valid``:
         the mask of a grid whose invalid pixels were not moved outside the atlas, else None;
         ``fill``: the value of the pixels outside; ``out``: where to write the image."""
-        if not (self._fast_now and mode in fastsample.MODES and cube.device.type == "cpu"):
+        if not (mode in fastsample.MODES and cube.device.type == "cpu"):
             return None
         border = "copied" if self.border == "copied" else pad_mode
         if isinstance(grid, _RayGrid):
@@ -275,14 +275,14 @@ class OmniProjection(nn.Module):
         return grid_sample(atlas, grid, mode, padding_mode="zeros")
 
     def _sample_float(self, cube: Tensor, grid: Tensor, mode: str, pad_mode: str,
-                      valid: Tensor | None, out: Tensor | None = None) -> Tensor:
+                      valid: Tensor | None, fast: bool, out: Tensor | None = None) -> Tensor:
         """Sample a floating cube; half precision is sampled in float32 (the grid stays float32:
-        a bfloat16 grid is off by pixels on a 512 face) and returned in its own dtype. ``out``:
-        where the fast path may write the image."""
+        a bfloat16 grid is off by pixels on a 512 face) and returned in its own dtype. ``fast``:
+        the call may take the fast sampler; ``out``: where it may write the image."""
         work = cube if cube.dtype in (torch.float32, torch.float64) else cube.float()
         if out is not None and out.dtype != work.dtype:
             out = None
-        out = self._fast_sample(work, grid, mode, pad_mode, valid, out=out)
+        out = self._fast_sample(work, grid, mode, pad_mode, valid, out=out) if fast else None
         if out is None:
             atlas = self._atlas(work, pad_mode)
             out = self._sample(atlas, _outside(grid, valid).to(atlas.dtype), mode)
@@ -310,7 +310,8 @@ class OmniProjection(nn.Module):
     def render(self, *, rgb: Tensor | None = None, depth: Tensor | None = None,
                labels: Tensor | None = None, rotation: Tensor | None = None,
                depth_output: str = "range", soft_labels: int | None = None,
-               out: dict[str, Tensor] | None = None) -> dict[str, Tensor]:
+               out: dict[str, Tensor] | None = None,
+               grid: tuple[Tensor, Tensor] | None = None) -> dict[str, Tensor]:
         """Render several modalities of one cubemap batch through the same grid.
 
         Args:
@@ -326,6 +327,11 @@ class OmniProjection(nn.Module):
             out: tensors to write outputs into, by the keys below (each of that output's shape
                 and dtype, any strides; e.g. rows of a larger batch). The fast path samples
                 straight into them; the outputs not given are allocated.
+            grid: ``(grid (B' in {1, B}, H, W, 2), valid (B', H, W))``: an atlas grid of this
+                layer's face size and border (``self.pad``) to sample through instead of the
+                camera's, its invalid pixels already outside the atlas (e.g. per-sample random
+                cameras and attitudes in one kernel, ``render.kernels.camera_grid``); not with
+                ``rotation`` or ``supersample > 1``. The camera then gives only the image size.
 
         Returns:
             dict with ``valid (B, 1, H, W)`` and, for each input, ``rgb (B, C, H, W)``,
@@ -368,10 +374,14 @@ class OmniProjection(nn.Module):
             raise ValueError(f"cubemap: batch {batch} does not match the camera batch "
                              f"{tuple(cams)}")
         rotation = _check_rotation(rotation, batch, ref.device)
+        if grid is not None:
+            grid = self._check_given_grid(grid, batch, ref.device, rotation)
         # the fast path only where no gradient is asked for: gradients come from grid_sample
-        self._fast_now = self.fast and not (torch.is_grad_enabled() and any(
+        fast = self.fast and not (torch.is_grad_enabled() and any(
             t is not None and t.requires_grad
-            for t in (rgb, depth, labels, rotation, self.camera.params)))
+            for t in (rgb, depth, labels, rotation, self.camera.params,
+                      None if grid is None else grid[0])))
+        call = _Call(fast, depth_output, soft_labels, grid)
         if soft_labels is not None:
             if labels is None:
                 raise ValueError("soft_labels: needs labels")
@@ -392,7 +402,7 @@ class OmniProjection(nn.Module):
                                  f"{sorted(out) if isinstance(out, dict) else type(out).__name__}")
         pixels = math.prod(self.camera.image_size) * self.supersample ** 2
         step = max(1, CHUNK_PIXELS // pixels)
-        if (self._fast_now and ref.device.type == "cpu" and rotation is not None
+        if (fast and ref.device.type == "cpu" and rotation is not None
                 and rotation.shape[0] > step and cams == ()
                 and not self._grid_free(rgb, depth, labels, soft_labels)):
             # a grid per sample: a few samples at a time (see CHUNK_PIXELS), written into
@@ -400,15 +410,36 @@ class OmniProjection(nn.Module):
             outputs = dict(out or {})
             for i in range(0, batch, step):
                 self._render(_rows(rgb, i, step), _rows(depth, i, step), _rows(labels, i, step),
-                             rotation[i:i + step], depth_output, soft_labels,
-                             (outputs, slice(i, i + step), batch))
+                             rotation[i:i + step], call, (outputs, slice(i, i + step), batch))
             return outputs
         if out is None:
-            return self._render(rgb, depth, labels, rotation, depth_output, soft_labels)
+            return self._render(rgb, depth, labels, rotation, call)
         outputs = dict(out)
-        self._render(rgb, depth, labels, rotation, depth_output, soft_labels,
-                     (outputs, slice(None), batch))
+        self._render(rgb, depth, labels, rotation, call, (outputs, slice(None), batch))
         return outputs
+
+    def _check_given_grid(self, grid: object, batch: int, device: torch.device,
+                          rotation: Tensor | None) -> tuple[Tensor, Tensor]:
+        """``render``'s ``grid`` argument, checked."""
+        h, w = self.camera.image_size
+        if not (isinstance(grid, tuple) and len(grid) == 2
+                and all(isinstance(t, Tensor) for t in grid)):
+            raise TypeError(f"grid: expected a tuple (grid, valid) of tensors, got "
+                            f"{type(grid).__name__}")
+        points, valid = grid
+        if (not points.is_floating_point() or points.dim() != 4 or points.shape[0] not in
+                (1, batch) or points.shape[1:] != (h, w, 2)):
+            raise ValueError(f"grid: expected a floating tensor (1 or {batch}, {h}, {w}, 2), got "
+                             f"{points.dtype} {tuple(points.shape)}")
+        if valid.dtype != torch.bool or valid.shape != points.shape[:3]:
+            raise ValueError(f"grid: expected valid, a bool tensor {tuple(points.shape[:3])}, "
+                             f"got {valid.dtype} {tuple(valid.shape)}")
+        if points.device != device or valid.device != device:
+            raise ValueError(f"grid: on {points.device}, the cubemap is on {device}")
+        if rotation is not None or self.supersample != 1:
+            raise ValueError("grid: a given grid already holds the attitude and one sample per "
+                             "pixel: pass no rotation, use supersample=1")
+        return points, valid
 
     def _grid_free(self, rgb: Tensor | None, depth: Tensor | None, labels: Tensor | None,
                    soft_labels: int | None) -> bool:
@@ -422,14 +453,20 @@ class OmniProjection(nn.Module):
             for t, mode in wanted)
 
     def _render(self, rgb: Tensor | None, depth: Tensor | None, labels: Tensor | None,
-                rotation: Tensor | None, depth_output: str, soft_labels: int | None,
+                rotation: Tensor | None, call: _Call,
                 into: tuple[dict, slice, int] | None = None) -> dict[str, Tensor]:
         """``render`` of checked inputs; ``into``: ``(outputs, rows, batch)``, the outputs of a
         whole batch (those missing allocated here) whose ``rows`` this call renders."""
         ref = next(t for t in (rgb, depth, labels) if t is not None)
         batch = ref.shape[0]
         grid_dtype = torch.float64 if ref.dtype == torch.float64 else torch.float32
-        if self._fast_now and ref.device.type == "cpu" and rotation is not None:
+        depth_output, soft_labels, fast = call.depth_output, call.soft_labels, call.fast
+        if call.grid is not None:
+            points, valid_c = call.grid
+            grid_s = grid_c = points.to(grid_dtype)
+            valid_s = valid_c
+            mask_s = mask_c = None
+        elif fast and ref.device.type == "cpu" and rotation is not None:
             # a grid used once: the fast samplers compute it from the rays as they go, and take
             # the valid mask (any other sampler builds it, see _RayGrid)
             rays_s, valid_s, rays_c, valid_c = self.camera_rays()
@@ -462,7 +499,7 @@ class OmniProjection(nn.Module):
             return given[rows]
 
         if rgb is not None:
-            image = self._sample_float(rgb, grid_s, self.interpolation, "bilinear", mask_s,
+            image = self._sample_float(rgb, grid_s, self.interpolation, "bilinear", mask_s, fast,
                                        target("rgb", (rgb.shape[2], *self.camera.image_size),
                                               rgb.dtype) if self.supersample == 1 else None)
             if self.supersample > 1:  # a pixel whose centre is invalid may have valid samples
@@ -472,7 +509,7 @@ class OmniProjection(nn.Module):
 
         if depth is not None:
             rng = cm.depth_to_range(depth.squeeze(2)).unsqueeze(2)
-            sampled = self._sample_depth(rng, grid_c, mask_c)
+            sampled = self._sample_depth(rng, grid_c, mask_c, fast)
             if depth_output == "z":
                 rays_c = self.camera_rays()[2]
                 z = rays_c[..., 2] if rays_c.dim() == 4 else rays_c[..., 2].unsqueeze(0)
@@ -485,7 +522,7 @@ class OmniProjection(nn.Module):
             ignore = self.ignore_index
             filled = fastsample.holds(labels.dtype, ignore)
             ids = self._fast_sample(labels, grid_c, "nearest", "nearest", mask_c,
-                                    fill=ignore if filled else 0)
+                                    fill=ignore if filled else 0) if fast else None
             if ids is None:
                 filled = False
                 ids = nearest_gather(self._atlas(labels, "nearest"), _outside(grid_c, mask_c))
@@ -499,7 +536,7 @@ class OmniProjection(nn.Module):
             if soft_labels is not None:
                 onehot = F.one_hot(labels[:, :, 0], soft_labels).permute(0, 1, 4, 2, 3)
                 probs = self._sample_float(onehot.to(grid_dtype), grid_s, "bilinear", "bilinear",
-                                           mask_s)
+                                           mask_s, fast)
                 probs = self._average(probs, valid_s.expand(batch, *valid_s.shape[1:]))
                 out["soft_labels"] = torch.where(valid, probs, torch.zeros_like(probs))
         if into is not None:   # the other outputs: copied into their rows
@@ -509,14 +546,15 @@ class OmniProjection(nn.Module):
                     rows.copy_(value)
         return out
 
-    def _sample_depth(self, rng: Tensor, grid: Tensor, valid: Tensor | None) -> Tensor:
+    def _sample_depth(self, rng: Tensor, grid: Tensor, valid: Tensor | None,
+                      fast: bool) -> Tensor:
         """Sample range ``(B, 6, 1, F, F)``. For nearest and edge-aware sampling the border is
         padded nearest, so that no depth is blended across a seam either; plain bilinear pads
         bilinear (smooth across seams, blends across depth edges like everywhere else)."""
         work = rng if rng.dtype in (torch.float32, torch.float64) else rng.float()
         mode = self.depth_interpolation
         pad_mode = "bilinear" if mode == "bilinear" else "nearest"
-        out = self._fast_sample(work, grid, mode, pad_mode, valid)
+        out = self._fast_sample(work, grid, mode, pad_mode, valid) if fast else None
         if out is not None:
             return out.to(rng.dtype)
         atlas = self._atlas(work, pad_mode)
@@ -558,6 +596,17 @@ def _edge_aware(atlas: Tensor, grid: Tensor, threshold: float) -> Tensor:
     edge = (hi - lo) > threshold * lo.abs()
     nearest = taps.gather(-1, weights.detach().argmax(-1, keepdim=True)).squeeze(-1)
     return torch.where(edge, nearest, blend).unsqueeze(1)
+
+
+@dataclass(frozen=True)
+class _Call:
+    """What one ``render`` call decided: the fast path or not, the depth output, soft labels,
+    a given grid."""
+
+    fast: bool
+    depth_output: str
+    soft_labels: int | None
+    grid: tuple[Tensor, Tensor] | None
 
 
 class _RayGrid:
