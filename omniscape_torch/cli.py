@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import errno
 import math
-import os
 import shutil
 import sys
 import tempfile
@@ -174,12 +173,13 @@ def cmd_generate(args: argparse.Namespace) -> int:
 
 
 def cmd_stats(args: argparse.Namespace) -> int:
-    from .data.generate import format_stats, stats
+    from .data.format import STATS, STATS_PLOT
+    from .data.stats import format_stats, stats
 
     result = stats(args.dir, plot=not args.no_plot)
     print(format_stats(result))
-    print(f"\nwrote {args.dir / 'stats.json'}" + ("" if args.no_plot else
-                                                   f" and {args.dir / 'stats.png'}"))
+    print(f"\nwrote {args.dir / STATS}" + ("" if args.no_plot else
+                                          f" and {args.dir / STATS_PLOT}"))
     return 0
 
 

@@ -181,7 +181,7 @@ def test_an_unexpected_error_is_one_line_or_a_traceback_when_asked(tmp_path, cap
     def broken(*args, **kwargs):
         raise RuntimeError("something\nbroke")
 
-    monkeypatch.setattr(dataset, "render_frame", broken)
+    monkeypatch.setattr(dataset.FrameRenderer, "render", broken)
     assert cli.main(["generate", "--out", str(tmp_path / "ds"), *SMALL]) == 1
     assert _line(capsys.readouterr().err).endswith("error: RuntimeError: something broke")
     with pytest.raises(RuntimeError, match="something"):

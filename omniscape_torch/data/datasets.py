@@ -18,8 +18,9 @@ import torch
 from torch.utils.data import Dataset
 
 from ..cameras import Camera
-from .readers import (FRAME_MODALITIES, list_cameras, list_frames, read_camera_dict,
-                         read_dynamics, read_extrinsics, read_frame, read_manifest)
+from .format import MODALITIES
+from .readers import (list_cameras, list_frames, read_camera_dict, read_dynamics,
+                      read_extrinsics, read_frame, read_manifest)
 
 __all__ = ["CubemapCaptureDataset", "OmniDataset", "collate"]
 
@@ -83,9 +84,8 @@ class OmniDataset(Dataset):
                                  f"{', '.join(available)})")
         self.modalities = tuple(modalities)
         for m in self.modalities:
-            if m not in FRAME_MODALITIES:
-                raise ValueError(f"modalities: expected some of {tuple(FRAME_MODALITIES)}, "
-                                 f"got {m!r}")
+            if m not in MODALITIES:
+                raise ValueError(f"modalities: expected some of {tuple(MODALITIES)}, got {m!r}")
         finished = list_frames(self.root, self.cameras, modalities=self.modalities)
         if frames is None:
             self.frames = finished

@@ -1,7 +1,6 @@
 """Write an OmniScape-like dataset: a motorcycle ride through the built-in town, seen by a rig of
 stereo fisheye and stereo catadioptric cameras, with range depth, labels, intrinsics,
-extrinsics and vehicle dynamics (``omniscape-torch generate``), and its statistics
-(``omniscape-torch stats``).
+extrinsics and vehicle dynamics (``omniscape-torch generate``; the files: :mod:`.format`).
 
 The rig
 -------
@@ -26,50 +25,17 @@ camera gets its own cubemap rendered at ``c`` with the cube axes along the world
 y down, z north), only the faces it sees (``sizing.visible_faces``), at the face size it needs
 (``sizing.required_face_size`` over every attitude, capped by ``max_face_size``; or
 ``face_size`` for all), so that frame ``k`` depends on the configuration and ``k`` only, not
-on the number of frames (a run of 12 frames extends a run of 8). The built-in town is flat, so the ride is made with
-``town_route(seed)``, S-bends between the lanes of its straight road: pitch comes from the
+on the number of frames (a run of 12 frames extends a run of 8). The built-in town is flat,
+so the ride is made with ``town_route(seed)``, S-bends between the lanes of its straight road: pitch comes from the
 suspension only, and the leans stay moderate.
-
-Layout of ``DIR``
------------------
-::
-
-    DIR/
-      dataset.json                 manifest: config, versions, cameras, layout, conventions
-      dynamics.json                per-frame vehicle state, ride.records(): CARLA names, frame
-                                   and units (x north, y east, z up, metres; degrees)
-      dynamics.csv                 the same, one row per frame (flattened columns)
-      <camera>/                    fisheye_left, fisheye_right, catadioptric_left, ...
-        camera.json                intrinsics (Camera.save_json)
-        extrinsics.json            T_rig_camera (camera -> rig, 4 x 4), and per frame
-                                   T_world_camera (camera -> world) and the faces rendered
-        rgb/NNNNNN.png             8-bit RGB
-        depth/NNNNNN.exr           range (Euclidean distance along the ray), float32 metres,
-                                   channel "Z"; 0 where not valid; sky: the town's far
-                                   plane (planar 1000 m on its face: range >= 1000 m)
-        labels/NNNNNN.png          8-bit class ids 0..12 (CARLA's 13 classes), 255 not valid
-        labels_color/NNNNNN.png    labels in CARLA's palette (white: not valid)
-        valid/NNNNNN.png           8-bit mask: 255 valid, 0 not (valid == labels != 255)
-        cubemap/                   only with --save-cubemaps, only the faces rendered:
-          rgb/NNNNNN_<face>.png      faces as rendered (DESIGN.md face table), cube axes =
-          depth/NNNNNN_<face>.exr    world axes; depth is planar (along the face's axis), m
-          labels/NNNNNN_<face>.png
-      panorama/                    only with --save-panorama: an equirectangular view
-        rgb/NNNNNN.png             (H x 2H, H = image height) from the rig origin raised
-        depth/NNNNNN.exr           0.9 m, turned with the motorcycle (centre column: its
-        labels/NNNNNN.png          heading); range depth
-      .done/NNNNNN                 written last, atomically, when all files of a frame exist
-      contact_sheet.png            a look at the middle finished frame: one row per camera,
-                                   columns rgb, depth (log colour map, black not valid),
-                                   labels_color, valid; 200 x 200 pixels per cell; rewritten
-                                   only when its bytes change
 
 ``NNNNNN`` is the frame number (zero-padded to 6 digits). Every file is written atomically
 (temporary file + rename). A frame is finished when its ``.done`` marker and all its files
 exist; a rerun with the same configuration skips finished frames (and leaves their files and
 the unchanged per-run files untouched), so an interrupted run resumes where it stopped. A rerun
 with another configuration in the same folder is refused. Frames are independent: ``workers``
-processes each render whole frames; nothing uses a global random state (the weather of a frame,
+processes render shares of the frames (:func:`render_frames`, a plain function of the
+configuration and the frame numbers); nothing uses a global random state (the weather of a frame,
 when several are given, is drawn from ``numpy.random.default_rng([seed, frame])``), so the
 files do not depend on the number of workers.
 """
@@ -80,7 +46,6 @@ import csv
 import io as _io
 import json
 import math
-import os
 import platform
 import signal
 import sys
@@ -98,6 +63,7 @@ from ..cubemap.faces import FACES
 from ..io import (CLASSES, IGNORE_INDEX, atomic_write_bytes, atomic_write_text, colorize,
                  read_image, write_exr, write_image)
 from ..io.atomic import folder_lock, remove_stale_temporaries
+from . import format as fmt
 from ..io.labels import PALETTE
 from ..cameras.presets import catadioptric, fisheye
 from ..render.layer import OmniProjection
@@ -106,8 +72,8 @@ from ..scenes.town import WEATHERS, Town
 from ..render.sizing import (MEMORY_PER_PIXEL, PROCESS_MEMORY, available_memory, required_face_size,
                      visible_faces)
 
-__all__ = ["CAMERAS", "CONTACT_SHEET", "DatasetConfig", "contact_sheet", "generate", "stats",
-           "RIG_POSITIONS", "MODALITIES", "check_memory", "estimate_memory"]
+__all__ = ["CAMERAS", "RIG_POSITIONS", "DatasetConfig", "FrameRenderer", "check_memory",
+           "contact_sheet", "estimate_memory", "generate", "render_frame", "render_frames"]
 
 #: The rig's cameras, in this order.
 CAMERAS = ("fisheye_left", "fisheye_right", "catadioptric_left", "catadioptric_right")
@@ -123,12 +89,6 @@ RIG_POSITIONS = {
 #: Centre of the panorama in the rig frame, metres.
 PANORAMA_POSITION = (0.0, -0.9, 0.0)
 
-#: Per-frame files of each camera: folder -> extension.
-MODALITIES = {"rgb": "png", "depth": "exr", "labels": "png", "labels_color": "png",
-              "valid": "png"}
-
-FORMAT = "omniscape_torch dataset"
-FORMAT_VERSION = 1
 
 #: Smallest face and image sizes accepted: below 8 texels a face has hardly an interior for
 #: bilinear sampling and its resampled border, and an 8-pixel image is a smoke test already.
@@ -247,10 +207,6 @@ def _frame_weather(config: DatasetConfig, frame: int) -> str:
     return config.weather[int(rng.integers(len(config.weather)))]
 
 
-def _name(frame: int) -> str:
-    return f"{frame:06d}"
-
-
 class _Plan:
     """Everything a process needs to render any frame."""
 
@@ -289,122 +245,123 @@ class _Plan:
 
     def files(self, k: int) -> list[str]:
         """Relative paths of every file of frame ``k`` (the marker excluded)."""
-        n = _name(k)
         out = []
         for name in self.config.cameras:
-            out += [f"{name}/{m}/{n}.{ext}" for m, ext in MODALITIES.items()]
+            out += [fmt.frame_file(name, m, k) for m in fmt.MODALITIES]
             if self.config.save_cubemaps:
-                for face, need in zip(FACES, self.faces(name, k).tolist()):
-                    if need:
-                        out += [f"{name}/cubemap/rgb/{n}_{face}.png",
-                                f"{name}/cubemap/depth/{n}_{face}.exr",
-                                f"{name}/cubemap/labels/{n}_{face}.png"]
+                out += [fmt.cubemap_file(name, m, k, face) for face, need in
+                        zip(FACES, self.faces(name, k).tolist()) if need
+                        for m in fmt.CUBE_MODALITIES]
         if self.config.save_panorama:
-            out += [f"panorama/rgb/{n}.png", f"panorama/depth/{n}.exr",
-                    f"panorama/labels/{n}.png"]
+            out += [fmt.panorama_file(m, k) for m in fmt.CUBE_MODALITIES]
         return out
 
-
-def _marker(out: Path, k: int) -> Path:
-    return out / ".done" / _name(k)
-
-
-def _finished(plan: _Plan, out: Path, k: int) -> bool:
-    return _marker(out, k).is_file() and all((out / f).is_file() for f in plan.files(k))
+    def finished(self, out: Path, k: int) -> bool:
+        """Whether frame ``k`` is finished in ``out``: its marker and all its files."""
+        return (out / fmt.marker(k)).is_file() and all((out / f).is_file()
+                                                        for f in self.files(k))
 
 
 # --------------------------------------------------------------------------------------------
 # Rendering one frame (in a worker process or in the main one)
 # --------------------------------------------------------------------------------------------
 
-_STATE: dict = {}
+class FrameRenderer:
+    """Renders frames of one configuration: the plan, the town and a layer per camera, built
+    once and kept for every frame it renders (in the main process, or in one task of a
+    worker)."""
+
+    def __init__(self, config: DatasetConfig) -> None:
+        self.config = config
+        self.plan = _Plan(config)
+        self.town = Town(config.seed)
+        self._layers: dict[str, OmniProjection] = {}
+
+    def _layer(self, key: str, camera, face_size: int) -> OmniProjection:
+        if key not in self._layers:
+            # fused_grid=False: the eager grid, no torch.compile start-up in every worker
+            self._layers[key] = OmniProjection(camera, face_size, fused_grid=False)
+        return self._layers[key]
+
+    def render(self, out: str | Path, k: int) -> int:
+        """Render and write every file of frame ``k``, then its marker. Returns ``k``."""
+        out = Path(out)
+        config, plan, town = self.config, self.plan, self.town
+        t = float(plan.frames["time"][k])
+        weather = _frame_weather(config, k)
+        with torch.no_grad():
+            for name in config.cameras:
+                c = plan.cameras[name]
+                F = c["face_size"]
+                faces = plan.faces(name, k)
+                rot = plan.rotation(name, k).float()
+                cube = town.render_cubemap(plan.centre(name, k).float(), None, F, faces=faces,
+                                           t=t, weather=weather)
+                res = self._layer(name, c["camera"], F).render(
+                    rgb=cube["rgb"], depth=cube["depth"], labels=cube["labels"], rotation=rot)
+                labels = res["labels"][0]
+                valid = res["valid"][0, 0]
+
+                def path(modality: str) -> Path:
+                    return out / fmt.frame_file(name, modality, k)
+
+                write_image(path("rgb"), _to_uint8(res["rgb"][0]))
+                write_exr(path("depth"), res["depth"][0, 0].float())
+                write_image(path("labels"), labels.to(torch.uint8).numpy())
+                write_image(path("labels_color"), colorize(labels))
+                write_image(path("valid"), (valid.to(torch.uint8) * 255).numpy())
+                if config.save_cubemaps:
+                    for i, (face, need) in enumerate(zip(FACES, faces.tolist())):
+                        if need:
+                            _write_modalities(
+                                lambda m: out / fmt.cubemap_file(name, m, k, face),
+                                cube["rgb"][0, i], cube["depth"][0, i], cube["labels"][0, i])
+            if config.save_panorama:
+                centre = plan.location[k] + plan.R_bike[k] @ torch.tensor(PANORAMA_POSITION,
+                                                                          dtype=torch.float64)
+                F = plan.panorama_face
+                cube = town.render_cubemap(centre.float(), None, F, t=t, weather=weather)
+                h, w = plan.panorama_size
+                res = self._layer("panorama", equirectangular_camera(w, h), F).render(
+                    rgb=cube["rgb"], depth=cube["depth"], labels=cube["labels"],
+                    rotation=plan.R_bike[k].float())
+                _write_modalities(lambda m: out / fmt.panorama_file(m, k), res["rgb"][0],
+                                  res["depth"][0, 0], res["labels"][0])
+        atomic_write_text(out / fmt.marker(k), json.dumps({"frame": k, "weather": weather})
+                          + "\n")
+        return k
 
 
-def _state(config: DatasetConfig) -> dict:
-    key = json.dumps(config.to_dict(), sort_keys=True)
-    if _STATE.get("key") != key:
-        _STATE.clear()
-        _STATE.update(key=key, plan=_Plan(config), town=Town(config.seed), layers={})
-    return _STATE
+def _write_modalities(path: Callable[[str], Path], rgb: torch.Tensor, depth: torch.Tensor,
+                      labels: torch.Tensor) -> None:
+    """A saved cube face or panorama: ``rgb (3, h, w)`` float, ``depth (h, w)``, ``labels``."""
+    write_image(path("rgb"), _to_uint8(rgb))
+    write_exr(path("depth"), depth.float())
+    write_image(path("labels"), labels.to(torch.uint8).numpy())
 
 
-def _init_worker(config_dict: dict) -> None:
+def render_frames(config: DatasetConfig, out: str | Path, frames: list[int]) -> list[int]:
+    """Render and write ``frames`` of ``config`` into ``out``: a plain function of its
+    arguments (the files depend on the configuration and the frame numbers only), which any
+    process or scheduler can call for any share of the frames. Returns the frames."""
+    renderer = FrameRenderer(config)
+    return [renderer.render(out, k) for k in frames]
+
+
+def render_frame(config: DatasetConfig, out: str | Path, k: int) -> int:
+    """``render_frames(config, out, [k])``. Returns ``k``."""
+    return render_frames(config, out, [k])[0]
+
+
+def _init_worker() -> None:
     # Ctrl-C reaches the whole process group: the main process stops the run and says so
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     torch.set_num_threads(1)
-    _state(DatasetConfig(**config_dict))
 
 
 def _to_uint8(rgb: torch.Tensor) -> np.ndarray:
     """``(3, H, W)`` float in [0, 1] -> ``(H, W, 3)`` uint8."""
     return (rgb.clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()
-
-
-def _layer(state: dict, key, camera, face_size: int) -> OmniProjection:
-    layers = state["layers"]
-    if key not in layers:
-        # fused_grid=False: the eager grid, no torch.compile start-up in every worker.
-        layers[key] = OmniProjection(camera, face_size, fused_grid=False)
-    return layers[key]
-
-
-def render_frame(config: DatasetConfig, out: str | Path, k: int) -> int:
-    """Render and write every file of frame ``k``, then its ``.done`` marker. Returns ``k``."""
-    out = Path(out)
-    state = _state(config)
-    plan: _Plan = state["plan"]
-    town: Town = state["town"]
-    n = _name(k)
-    t = float(plan.frames["time"][k])
-    weather = _frame_weather(config, k)
-    with torch.no_grad():
-        for name in config.cameras:
-            c = plan.cameras[name]
-            F = c["face_size"]
-            faces = plan.faces(name, k)
-            rot = plan.rotation(name, k).float()
-            cube = town.render_cubemap(plan.centre(name, k).float(), None, F, faces=faces, t=t,
-                                       weather=weather)
-            layer = _layer(state, name, c["camera"], F)
-            res = layer.render(rgb=cube["rgb"], depth=cube["depth"], labels=cube["labels"],
-                               rotation=rot)
-            labels = res["labels"][0]
-            valid = res["valid"][0, 0]
-            base = out / name
-            write_image(base / "rgb" / f"{n}.png", _to_uint8(res["rgb"][0]))
-            write_exr(base / "depth" / f"{n}.exr", res["depth"][0, 0].float())
-            write_image(base / "labels" / f"{n}.png", labels.to(torch.uint8).numpy())
-            write_image(base / "labels_color" / f"{n}.png", colorize(labels))
-            write_image(base / "valid" / f"{n}.png", (valid.to(torch.uint8) * 255).numpy())
-            if config.save_cubemaps:
-                for i, (face, need) in enumerate(zip(FACES, faces.tolist())):
-                    if not need:
-                        continue
-                    write_image(base / "cubemap" / "rgb" / f"{n}_{face}.png",
-                                _to_uint8(cube["rgb"][0, i]))
-                    write_exr(base / "cubemap" / "depth" / f"{n}_{face}.exr",
-                              cube["depth"][0, i].float())
-                    write_image(base / "cubemap" / "labels" / f"{n}_{face}.png",
-                                cube["labels"][0, i].to(torch.uint8).numpy())
-        if config.save_panorama:
-            centre = plan.location[k] + plan.R_bike[k] @ torch.tensor(PANORAMA_POSITION,
-                                                                      dtype=torch.float64)
-            F = plan.panorama_face
-            cube = town.render_cubemap(centre.float(), None, F, t=t, weather=weather)
-            h, w = plan.panorama_size
-            layer = _layer(state, "panorama", equirectangular_camera(w, h), F)
-            res = layer.render(rgb=cube["rgb"], depth=cube["depth"], labels=cube["labels"],
-                               rotation=plan.R_bike[k].float())
-            base = out / "panorama"
-            write_image(base / "rgb" / f"{n}.png", _to_uint8(res["rgb"][0]))
-            write_exr(base / "depth" / f"{n}.exr", res["depth"][0, 0].float())
-            write_image(base / "labels" / f"{n}.png", res["labels"][0].to(torch.uint8).numpy())
-    atomic_write_text(_marker(out, k), json.dumps({"frame": k, "weather": weather}) + "\n")
-    return k
-
-
-def _render_in_worker(out: str, k: int) -> int:
-    return render_frame(DatasetConfig(**json.loads(_STATE["key"])), out, k)
 
 
 # --------------------------------------------------------------------------------------------
@@ -465,35 +422,11 @@ def _dynamics_csv(recs: list[dict]) -> str:
     return buf.getvalue()
 
 
-def _layout(config: DatasetConfig) -> dict:
-    layout = {"dataset.json": "this manifest",
-              "dynamics.json": "ride.records(): per-frame vehicle state, CARLA names/frame/units",
-              "dynamics.csv": "dynamics.json flattened, one row per frame",
-              "<camera>/camera.json": "intrinsics, Camera.save_json",
-              "<camera>/extrinsics.json": "T_rig_camera and per-frame T_world_camera",
-              "<camera>/rgb/NNNNNN.png": "8-bit RGB",
-              "<camera>/depth/NNNNNN.exr": "range along the ray, float32 metres, channel Z, "
-                                           "0 where not valid",
-              "<camera>/labels/NNNNNN.png": "class ids 0..12, 255 not valid",
-              "<camera>/labels_color/NNNNNN.png": "labels in CARLA's palette",
-              "<camera>/valid/NNNNNN.png": "255 valid, 0 not",
-              ".done/NNNNNN": "frame finished marker, written last",
-              "contact_sheet.png": "middle finished frame: a row per camera, columns rgb, "
-                                   "depth, labels_color, valid"}
-    if config.save_cubemaps:
-        layout["<camera>/cubemap/{rgb,depth,labels}/NNNNNN_<face>.{png,exr,png}"] = \
-            "rendered cube faces (planar depth), cube axes = world axes"
-    if config.save_panorama:
-        layout["panorama/{rgb,depth,labels}/NNNNNN.{png,exr,png}"] = \
-            "equirectangular view from the rig, turned with the motorcycle (range depth)"
-    return layout
-
-
 def _write_run_files(plan: _Plan, out: Path) -> None:
     config = plan.config
     recs = _ride.records(plan.frames)
-    _write_if_changed(out / "dynamics.json", _dumps(recs))
-    _write_if_changed(out / "dynamics.csv", _dynamics_csv(recs))
+    _write_if_changed(out / fmt.DYNAMICS, _dumps(recs))
+    _write_if_changed(out / fmt.DYNAMICS_CSV, _dynamics_csv(recs))
     cameras = {}
     for name, c in plan.cameras.items():
         base = out / name
@@ -518,18 +451,18 @@ def _write_run_files(plan: _Plan, out: Path) -> None:
                          "face_size": c["face_size"],
                          "position_rig": list(RIG_POSITIONS[name]),
                          "rotation_rig_camera": _matrix(c["r_cam"])}
-    manifest = {"format": FORMAT, "format_version": FORMAT_VERSION,
+    manifest = {"format": fmt.FORMAT, "format_version": fmt.FORMAT_VERSION,
                 "config": config.to_dict(), "versions": _versions(),
                 "frames": config.frames, "cameras": cameras,
                 "classes": list(CLASSES), "ignore_index": IGNORE_INDEX,
                 "palette": PALETTE.tolist(),
                 "weather_per_frame": [_frame_weather(config, k) for k in range(config.frames)],
-                "layout": _layout(config),
+                "layout": fmt.layout(config.save_cubemaps, config.save_panorama),
                 "conventions": {"depth": "range (Euclidean, along the ray), metres",
                                 "angles": "degrees in dynamics.json (CARLA)",
                                 "pixels": "(u, v) = (column, row), (0, 0) the centre of the "
                                           "top-left pixel"}}
-    _write_if_changed(out / "dataset.json", _dumps(manifest))
+    _write_if_changed(out / fmt.MANIFEST, _dumps(manifest))
 
 
 # --------------------------------------------------------------------------------------------
@@ -570,7 +503,7 @@ def generate(out: str | Path, config: DatasetConfig | None = None, *, workers: i
 def _generate(out: Path, config: DatasetConfig, workers: int, progress: bool | None,
               log: Callable[[str], None]) -> dict:
     """``generate`` inside the folder's lock."""
-    manifest = out / "dataset.json"
+    manifest = out / fmt.MANIFEST
     if manifest.is_file():
         try:
             old = json.loads(manifest.read_text(encoding="utf-8")).get("config")
@@ -584,9 +517,10 @@ def _generate(out: Path, config: DatasetConfig, workers: int, progress: bool | N
     stale = remove_stale_temporaries(out)
     if stale:
         log(f"removed {len(stale)} temporary file(s) of an interrupted run")
-    plan = _state(config)["plan"]
+    renderer = FrameRenderer(config)
+    plan = renderer.plan
     _write_run_files(plan, out)
-    todo = [k for k in range(config.frames) if not _finished(plan, out, k)]
+    todo = [k for k in range(config.frames) if not plan.finished(out, k)]
     skipped = [k for k in range(config.frames) if k not in todo]
     sizes = {n: c["face_size"] for n, c in plan.cameras.items()}
     log(f"{len(todo)} frame(s) to render, {len(skipped)} finished; face sizes "
@@ -600,27 +534,30 @@ def _generate(out: Path, config: DatasetConfig, workers: int, progress: bool | N
     try:
         if workers == 1 or len(todo) <= 1:
             for k in todo:
-                rendered.append(render_frame(config, out, k))
+                rendered.append(renderer.render(out, k))
                 bar.update(1)
         else:
-            ctx = get_context("spawn")
-            with ProcessPoolExecutor(min(workers, len(todo)), mp_context=ctx,
-                                     initializer=_init_worker,
-                                     initargs=(config.to_dict(),)) as pool:
-                futures = [pool.submit(_render_in_worker, str(out), k) for k in todo]
+            # a few chunks of frames per worker: each task builds its renderer once
+            size = -(-len(todo) // (2 * workers))
+            chunks = [todo[i:i + size] for i in range(0, len(todo), size)]
+            with ProcessPoolExecutor(min(workers, len(chunks)), mp_context=get_context("spawn"),
+                                     initializer=_init_worker) as pool:
+                futures = [pool.submit(render_frames, config, str(out), chunk)
+                           for chunk in chunks]
                 try:
                     for fut in as_completed(futures):
-                        rendered.append(fut.result())
-                        bar.update(1)
+                        done = fut.result()
+                        rendered += done
+                        bar.update(len(done))
                 except BaseException:
                     for fut in futures:
                         fut.cancel()
                     raise
     finally:
         bar.close()
-    sheet = out / CONTACT_SHEET
+    sheet = out / fmt.CONTACT_SHEET
     if rendered or not sheet.is_file():
-        finished = [k for k in range(config.frames) if _finished(plan, out, k)]
+        finished = [k for k in range(config.frames) if plan.finished(out, k)]
         if finished:
             data = contact_sheet(out, config.cameras, finished[len(finished) // 2])
             if not sheet.is_file() or sheet.read_bytes() != data:
@@ -628,8 +565,7 @@ def _generate(out: Path, config: DatasetConfig, workers: int, progress: bool | N
     return {"rendered": sorted(rendered), "skipped": skipped, "face_sizes": sizes}
 
 
-#: The contact sheet's file name, and the size of one of its cells (pixels).
-CONTACT_SHEET = "contact_sheet.png"
+#: The size of one of the contact sheet's cells (pixels), and its columns.
 SHEET_CELL = 200
 SHEET_COLUMNS = ("rgb", "depth", "labels_color", "valid")
 
@@ -645,7 +581,6 @@ def contact_sheet(root: str | Path, cameras, frame: int) -> bytes:
     from ..io import read_exr
 
     root = Path(root)
-    n = _name(frame)
     rows, cols = len(cameras), len(SHEET_COLUMNS)
     dpi = 100
     fig = Figure(figsize=(cols * SHEET_CELL / dpi, rows * SHEET_CELL / dpi), dpi=dpi)
@@ -653,12 +588,14 @@ def contact_sheet(root: str | Path, cameras, frame: int) -> bytes:
     fig.subplots_adjust(left=0.06, right=0.99, top=1 - 0.12 / rows, bottom=0.01,
                         wspace=0.05, hspace=0.12)
     for r, name in enumerate(cameras):
-        base = root / name
-        valid = read_image(base / "valid" / f"{n}.png").numpy() > 0
-        depth = read_exr(base / "depth" / f"{n}.exr").numpy()
+        def path(modality: str) -> Path:
+            return root / fmt.frame_file(name, modality, frame)
+
+        valid = read_image(path("valid")).numpy() > 0
+        depth = read_exr(path("depth")).numpy()
         log_depth = np.where(valid, np.log10(np.maximum(depth, 1e-3)), np.nan)
-        images = {"rgb": read_image(base / "rgb" / f"{n}.png").numpy(),
-                  "labels_color": read_image(base / "labels_color" / f"{n}.png").numpy(),
+        images = {"rgb": read_image(path("rgb")).numpy(),
+                  "labels_color": read_image(path("labels_color")).numpy(),
                   "valid": valid.astype(np.uint8) * 255}
         for c, modality in enumerate(SHEET_COLUMNS):
             ax = axes[r, c]
@@ -679,119 +616,11 @@ def contact_sheet(root: str | Path, cameras, frame: int) -> bytes:
                 ax.set_title(modality if modality != "depth" else "depth (log)", fontsize=9)
             if c == 0:
                 ax.set_ylabel(name, fontsize=8)
-    fig.suptitle(f"frame {n}", fontsize=9, x=0.02, ha="left", y=0.999, va="top")
+    fig.suptitle(f"frame {fmt.frame_name(frame)}", fontsize=9, x=0.02, ha="left", y=0.999,
+                 va="top")
     buf = _io.BytesIO()
     fig.savefig(buf, format="png", dpi=dpi)
     return buf.getvalue()
-
-
-# --------------------------------------------------------------------------------------------
-# stats
-# --------------------------------------------------------------------------------------------
-
-def stats(root: str | Path, *, plot: bool = True) -> dict:
-    """Table I (yaw, pitch, roll over the ride) and the per-class pixel share (valid pixels)
-    of the fisheye and catadioptric images of the dataset in ``root``, over its finished
-    frames (``.done`` marker and every camera's files; an interrupted run's dataset has fewer
-    than planned); writes ``root/stats.json`` and (``plot``) the bar chart ``root/stats.png``.
-
-    Returns:
-        ``{"table_one": {angle: {mean, std, min, median, max}}, "class_share": {kind:
-        {class: share}}, "pixels": {kind: valid pixel count}, "frames": finished frames,
-        "frames_planned": N}``.
-
-    Raises:
-        FileNotFoundError: ``root`` holds no dataset.
-        ValueError: no frame is finished yet.
-    """
-    root = Path(root)
-    manifest_path = root / "dataset.json"
-    if not manifest_path.is_file():
-        raise FileNotFoundError(f"{root}: no dataset.json (not a dataset written by "
-                                f"'omniscape-torch generate')")
-    manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
-    recs = json.loads((root / "dynamics.json").read_text(encoding="utf-8"))
-    cameras = list(manifest["cameras"])
-    finished = [r for r in recs if _marker(root, r["frame"]).is_file() and all(
-        (root / name / m / f"{_name(r['frame'])}.{ext}").is_file()
-        for name in cameras for m, ext in MODALITIES.items())]
-    if not finished:
-        raise ValueError(f"{root}: none of its {len(recs)} frames is finished yet; run "
-                         f"'omniscape-torch generate' with the same options to finish them")
-    rotation = torch.tensor([[r["rotation"]["roll"], r["rotation"]["pitch"],
-                              r["rotation"]["yaw"]] for r in finished], dtype=torch.float64)
-    table = _ride.table_one(rotation)
-    counts = {}
-    for name in cameras:
-        kind = name.split("_")[0]
-        acc = counts.setdefault(kind, np.zeros(len(CLASSES), dtype=np.int64))
-        for r in finished:
-            labels = read_image(root / name / "labels" / f"{_name(r['frame'])}.png").numpy()
-            valid = read_image(root / name / "valid" / f"{_name(r['frame'])}.png").numpy() > 0
-            ids = labels[valid & (labels < len(CLASSES))]
-            acc += np.bincount(ids.astype(np.int64), minlength=len(CLASSES))
-    share = {kind: {c: (float(v[i]) / float(v.sum()) if v.sum() else 0.0)
-                    for i, c in enumerate(CLASSES)} for kind, v in counts.items()}
-    result = {"frames": len(finished), "frames_planned": len(recs), "table_one": table,
-              "class_share": share, "pixels": {kind: int(v.sum()) for kind, v in counts.items()}}
-    atomic_write_text(root / "stats.json", _dumps(result))
-    if plot:
-        _plot(result, root / "stats.png")
-    return result
-
-
-def _plot(result: dict, path: Path) -> None:
-    import matplotlib
-    matplotlib.use("Agg", force=False)
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(11, 4.5), layout="constrained")
-    ax0, ax1 = fig.subplots(1, 2, width_ratios=(3, 1))
-    kinds = list(result["class_share"])
-    x = np.arange(len(CLASSES))
-    width = 0.8 / max(1, len(kinds))
-    for i, kind in enumerate(kinds):
-        values = [100 * result["class_share"][kind][c] for c in CLASSES]
-        ax0.bar(x + (i - (len(kinds) - 1) / 2) * width, values, width, label=kind)
-    ax0.set_xticks(x, CLASSES, rotation=60, ha="right")
-    ax0.set_ylabel("share of valid pixels (%)")
-    ax0.set_title("class share")
-    if kinds:
-        ax0.legend()
-    names = ("yaw", "pitch", "roll")
-    table = result["table_one"]
-    ax1.bar(names, [table[n]["mean"] for n in names],
-            yerr=[table[n]["std"] for n in names], capsize=4, color="grey")
-    ax1.scatter(names, [table[n]["min"] for n in names], marker="v", color="k", label="min")
-    ax1.scatter(names, [table[n]["max"] for n in names], marker="^", color="k", label="max")
-    ax1.set_ylabel("degrees")
-    ax1.set_title("attitude (mean, std)")
-    ax1.legend()
-    buf = _io.BytesIO()
-    fig.savefig(buf, format="png", dpi=100)
-    atomic_write_bytes(path, buf.getvalue())
-
-
-def format_stats(result: dict) -> str:
-    """The text ``omniscape-torch stats`` prints."""
-    done, planned = result["frames"], result.get("frames_planned", result["frames"])
-    over = f"{done} frames" if done == planned else (
-        f"the {done} finished of {planned} frames; run generate again to finish the others")
-    lines = [f"Table I: vehicle attitude over {over} (degrees)",
-             f"{'':8}{'mean':>10}{'std':>10}{'min':>10}{'median':>10}{'max':>10}"]
-    for name in ("yaw", "pitch", "roll"):
-        row = result["table_one"][name]
-        lines.append(f"{name:8}" + "".join(f"{row[k]:10.3f}" for k in
-                                           ("mean", "std", "min", "median", "max")))
-    kinds = list(result["class_share"])
-    lines.append("")
-    lines.append("class share of valid pixels (%)")
-    lines.append(f"{'class':14}" + "".join(f"{k:>14}" for k in kinds))
-    for c in CLASSES:
-        lines.append(f"{c:14}" + "".join(f"{100 * result['class_share'][k][c]:14.2f}"
-                                         for k in kinds))
-    lines.append(f"{'valid pixels':14}" + "".join(f"{result['pixels'][k]:14d}" for k in kinds))
-    return "\n".join(lines)
 
 
 # --------------------------------------------------------------------------------------------
@@ -804,25 +633,27 @@ def format_stats(result: dict) -> str:
 SIZING_PIXELS = 2 ** 16
 
 
-def _face_sizes(config: DatasetConfig, image_size: tuple[int, int] | None = None
-                ) -> dict[str, int]:
+def _face_sizes(config: DatasetConfig, image_size: tuple[int, int] | None = None,
+                memo: dict | None = None) -> dict[str, int]:
     """The face size of each camera for ``image_size`` (default the configuration's):
     ``face_size``, or ``required_face_size`` over every attitude (not the ride's: frame ``k``
-    must not depend on the number of frames), capped by ``max_face_size``."""
+    must not depend on the number of frames), capped by ``max_face_size``. ``memo``: a dict
+    that keeps the sizes computed on scaled images across calls (a search over sizes)."""
     h, w = config.image_size if image_size is None else image_size
     if config.face_size is not None:
         return {name: config.face_size for name in config.cameras}
     scale = min(1.0, math.sqrt(SIZING_PIXELS / (h * w)))
     small = (max(MIN_IMAGE_SIZE, round(h * scale)), max(MIN_IMAGE_SIZE, round(w * scale)))
-    need = {}   # per kind of camera: fisheye, catadioptric
+    memo = {} if memo is None else memo
     out = {}
     for name in config.cameras:
-        kind = name.split("_")[0]
-        if kind not in need:
-            need[kind] = required_face_size(_make_camera(name, small)[0], "any")
-            if small != (h, w):
-                need[kind] = math.ceil(need[kind] * max(h / small[0], w / small[1]))
-        out[name] = min(need[kind], config.max_face_size)
+        key = (name.split("_")[0], small)   # per kind of camera: fisheye, catadioptric
+        if key not in memo:
+            memo[key] = required_face_size(_make_camera(name, small)[0], "any")
+        need = memo[key]
+        if small != (h, w):
+            need = math.ceil(need * max(h / small[0], w / small[1]))
+        out[name] = min(need, config.max_face_size)
     return out
 
 
@@ -843,13 +674,13 @@ def _panorama_face(max_face_size: int, height: int) -> int:
 
 
 def estimate_memory(config: DatasetConfig, workers: int = 1, *,
-                    image_size: tuple[int, int] | None = None) -> int:
+                    image_size: tuple[int, int] | None = None, memo: dict | None = None) -> int:
     """Bytes ``generate(config, workers=workers)`` needs at its peak (for ``image_size``, by
     default the configuration's): per rendering process :data:`PROCESS_MEMORY` plus the largest
     cube's texels and the largest image's pixels at their rates (:data:`MEMORY_PER_TEXEL`,
     :data:`MEMORY_PER_PIXEL`; cameras render one after the other), times the processes, plus
-    the main process when workers render."""
-    sizes = _face_sizes(config, image_size)
+    the main process when workers render. ``memo``: as for ``_face_sizes``."""
+    sizes = _face_sizes(config, image_size, memo)
     texels, pixels = _largest_render(config, sizes, image_size)
     per_process = PROCESS_MEMORY + MEMORY_PER_TEXEL * texels + MEMORY_PER_PIXEL * pixels
     processes = min(workers, config.frames)
@@ -869,13 +700,13 @@ def check_memory(config: DatasetConfig, workers: int = 1, available: int | None 
     if need <= available:
         return
     h, w = config.image_size
-    fits = None
+    fits, memo = None, {}
     lo, hi = MIN_IMAGE_SIZE, max(h, w)          # the largest scale of (H, W) that fits
     while lo <= hi:
         mid = (lo + hi) // 2
         size = (round(h * mid / max(h, w)), round(w * mid / max(h, w)))
-        if min(size) >= MIN_IMAGE_SIZE and estimate_memory(config, workers,
-                                                           image_size=size) <= available:
+        if min(size) >= MIN_IMAGE_SIZE and estimate_memory(
+                config, workers, image_size=size, memo=memo) <= available:
             fits, lo = size, mid + 1
         else:
             hi = mid - 1

@@ -1,4 +1,4 @@
-"""Read a dataset written by ``omniscape-torch generate`` (layout: :mod:`omniscape_torch.dataset`).
+"""Read a dataset written by ``omniscape-torch generate`` (layout: :mod:`.format`).
 
 Everything is read from the files alone (nothing is re-rendered): frames, intrinsics,
 extrinsics and the vehicle dynamics. A frame counts as written only when it is *finished*: its
@@ -25,27 +25,12 @@ from torch import Tensor
 from ..cameras import Camera
 from ..io.exr import read_exr
 from ..io.images import read_image
+from .format import DYNAMICS, MANIFEST, MODALITIES, finished_frames, frame_file
 
-__all__ = ["FRAME_MODALITIES", "frame_name", "list_cameras", "list_frames", "read_camera",
-           "read_camera_dict", "read_dynamics", "read_extrinsics", "read_frame",
-           "read_manifest"]
-
-#: Per-frame files of each camera: folder -> extension (as the writer's ``MODALITIES``).
-FRAME_MODALITIES = {"rgb": "png", "depth": "exr", "labels": "png", "labels_color": "png",
-                    "valid": "png"}
+__all__ = ["list_cameras", "list_frames", "read_camera", "read_camera_dict", "read_dynamics",
+           "read_extrinsics", "read_frame", "read_manifest"]
 
 _DEFAULT = ("rgb", "depth", "labels", "valid")
-
-
-def frame_name(frame: int | str) -> str:
-    """``7`` or ``"000007"`` -> ``"000007"``."""
-    if isinstance(frame, str):
-        if not frame.isdigit():
-            raise ValueError(f"frame: expected a frame number, got {frame!r}")
-        frame = int(frame)
-    if isinstance(frame, bool) or not isinstance(frame, int) or frame < 0:
-        raise ValueError(f"frame: expected an integer >= 0, got {frame!r}")
-    return f"{frame:06d}"
 
 
 def _root(root: str | Path) -> Path:
@@ -67,37 +52,26 @@ def _json(path: Path):
 
 def read_manifest(root: str | Path) -> dict:
     """``dataset.json``: config, versions, cameras, classes, weather per frame, layout."""
-    return _json(_root(root) / "dataset.json")
+    return _json(_root(root) / MANIFEST)
 
 
 def list_cameras(root: str | Path) -> list[str]:
     """The cameras of the dataset, in the writer's order (``dataset.json``); without a manifest,
     the sorted sub-folders holding a ``camera.json``."""
     root = _root(root)
-    if (root / "dataset.json").is_file():
+    if (root / MANIFEST).is_file():
         return list(read_manifest(root)["cameras"])
     return sorted(p.name for p in root.iterdir() if (p / "camera.json").is_file())
 
 
 def list_frames(root: str | Path, cameras: Sequence[str] | None = None, *,
-                modalities: Sequence[str] = tuple(FRAME_MODALITIES),
+                modalities: Sequence[str] = tuple(MODALITIES),
                 check_files: bool = True) -> list[int]:
     """The finished frames (sorted): a ``.done`` marker and (``check_files``) the files of
     ``modalities`` for every camera of ``cameras`` (default: all)."""
     root = _root(root)
-    done = root / ".done"
-    if not done.is_dir():
-        return []
-    frames = sorted(int(p.name) for p in done.iterdir() if p.is_file() and p.name.isdigit())
-    if not check_files:
-        return frames
     cameras = list_cameras(root) if cameras is None else list(cameras)
-    for m in modalities:
-        if m not in FRAME_MODALITIES:
-            raise ValueError(f"modalities: expected some of {tuple(FRAME_MODALITIES)}, got {m!r}")
-    return [k for k in frames
-            if all((root / c / m / f"{k:06d}.{FRAME_MODALITIES[m]}").is_file()
-                   for c in cameras for m in modalities)]
+    return finished_frames(root, cameras if check_files else (), modalities)
 
 
 def read_frame(root: str | Path, camera: str, frame: int | str,
@@ -109,12 +83,9 @@ def read_frame(root: str | Path, camera: str, frame: int | str,
         ValueError: an unknown modality. FileNotFoundError: a missing file (names it).
     """
     root = _root(root)
-    n = frame_name(frame)
     out: dict[str, Tensor] = {}
     for m in modalities:
-        if m not in FRAME_MODALITIES:
-            raise ValueError(f"modalities: expected some of {tuple(FRAME_MODALITIES)}, got {m!r}")
-        path = root / camera / m / f"{n}.{FRAME_MODALITIES[m]}"
+        path = root / frame_file(camera, m, frame)
         if m == "depth":
             out[m] = read_exr(path)
             continue
@@ -174,5 +145,5 @@ def read_dynamics(root: str | Path) -> dict[int, dict]:
     """``dynamics.json`` by frame number: ``{frame: record}``, each record with CARLA's names
     and units (``timestamp`` s, ``location``/``velocity``/``acceleration``/``angular_velocity``
     as ``{x, y, z}``, ``rotation`` as ``{pitch, yaw, roll}`` degrees, ``speed`` m/s)."""
-    recs = _json(_root(root) / "dynamics.json")
+    recs = _json(_root(root) / DYNAMICS)
     return {int(r["frame"]): r for r in recs}

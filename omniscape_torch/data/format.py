@@ -1,0 +1,151 @@
+"""The dataset format, defined once: file names, folders, modalities, when a frame is finished.
+
+The writer (:mod:`omniscape_torch.data.generate`), the readers (:mod:`~.readers`), the torch
+datasets (:mod:`~.datasets`) and the statistics (:mod:`~.stats`) all name files through this
+module.
+
+Layout of ``DIR``
+-----------------
+::
+
+    DIR/
+      dataset.json                 manifest: config, versions, cameras, layout, conventions
+      dynamics.json                per-frame vehicle state, ride.records(): CARLA names, frame
+                                   and units (x north, y east, z up, metres; degrees)
+      dynamics.csv                 the same, one row per frame (flattened columns)
+      <camera>/                    fisheye_left, fisheye_right, catadioptric_left, ...
+        camera.json                intrinsics (Camera.save_json)
+        extrinsics.json            T_rig_camera (camera -> rig, 4 x 4), and per frame
+                                   T_world_camera (camera -> world) and the faces rendered
+        rgb/NNNNNN.png             8-bit RGB
+        depth/NNNNNN.exr           range (Euclidean distance along the ray), float32 metres,
+                                   channel "Z"; 0 where not valid; sky: the town's far
+                                   plane (planar 1000 m on its face: range >= 1000 m)
+        labels/NNNNNN.png          8-bit class ids 0..12 (CARLA's 13 classes), 255 not valid
+        labels_color/NNNNNN.png    labels in CARLA's palette (white: not valid)
+        valid/NNNNNN.png           8-bit mask: 255 valid, 0 not (valid == labels != 255)
+        cubemap/                   only with --save-cubemaps, only the faces rendered:
+          rgb/NNNNNN_<face>.png      faces as rendered (DESIGN.md face table), cube axes =
+          depth/NNNNNN_<face>.exr    world axes; depth is planar (along the face's axis), m
+          labels/NNNNNN_<face>.png
+      panorama/                    only with --save-panorama: an equirectangular view
+        rgb/NNNNNN.png             (H x 2H, H = image height) from the rig origin raised
+        depth/NNNNNN.exr           0.9 m, turned with the motorcycle (centre column: its
+        labels/NNNNNN.png          heading); range depth
+      .done/NNNNNN                 written last, atomically, when all files of a frame exist
+      contact_sheet.png            a look at the middle finished frame: one row per camera,
+                                   columns rgb, depth (log colour map, black not valid),
+                                   labels_color, valid; 200 x 200 pixels per cell; rewritten
+                                   only when its bytes change
+      .lock                        held by the run writing the folder (``io.atomic``); a second
+                                   run into the folder stops
+      stats.json, stats.png        written by ``omniscape-torch stats``
+
+NNNNNN is the frame number (zero-padded to 6 digits). Every file is written atomically
+(temporary file + rename). A frame is finished when its marker and all its files exist.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+__all__ = ["CONTACT_SHEET", "CUBE_MODALITIES", "DONE", "DYNAMICS", "DYNAMICS_CSV", "FORMAT",
+           "FORMAT_VERSION", "MANIFEST", "MODALITIES", "STATS", "STATS_PLOT", "cubemap_file",
+           "finished_frames", "frame_file", "frame_name", "layout", "marker", "panorama_file"]
+
+FORMAT = "omniscape_torch dataset"
+FORMAT_VERSION = 1
+
+MANIFEST = "dataset.json"
+DYNAMICS, DYNAMICS_CSV = "dynamics.json", "dynamics.csv"
+CONTACT_SHEET = "contact_sheet.png"
+STATS, STATS_PLOT = "stats.json", "stats.png"
+#: The folder of the finished-frame markers.
+DONE = ".done"
+
+#: Per-frame files of each camera: folder -> extension.
+MODALITIES = {"rgb": "png", "depth": "exr", "labels": "png", "labels_color": "png",
+              "valid": "png"}
+#: The modalities of the saved cube faces and of the panorama: folder -> extension.
+CUBE_MODALITIES = {"rgb": "png", "depth": "exr", "labels": "png"}
+
+
+def frame_name(frame: int | str) -> str:
+    """``7`` or ``"000007"`` -> ``"000007"``."""
+    if isinstance(frame, str):
+        if not frame.isdigit():
+            raise ValueError(f"frame: expected a frame number, got {frame!r}")
+        frame = int(frame)
+    if isinstance(frame, bool) or not isinstance(frame, int) or frame < 0:
+        raise ValueError(f"frame: expected an integer >= 0, got {frame!r}")
+    return f"{frame:06d}"
+
+
+def _check_modality(modality: str, allowed: dict) -> str:
+    if modality not in allowed:
+        raise ValueError(f"modalities: expected some of {tuple(allowed)}, got {modality!r}")
+    return allowed[modality]
+
+
+def frame_file(camera: str, modality: str, frame: int | str) -> str:
+    """Relative path of one camera's file of ``modality`` at ``frame``."""
+    ext = _check_modality(modality, MODALITIES)
+    return f"{camera}/{modality}/{frame_name(frame)}.{ext}"
+
+
+def cubemap_file(camera: str, modality: str, frame: int | str, face: str) -> str:
+    """Relative path of a saved cube face (``--save-cubemaps``)."""
+    ext = _check_modality(modality, CUBE_MODALITIES)
+    return f"{camera}/cubemap/{modality}/{frame_name(frame)}_{face}.{ext}"
+
+
+def panorama_file(modality: str, frame: int | str) -> str:
+    """Relative path of a panorama file (``--save-panorama``)."""
+    ext = _check_modality(modality, CUBE_MODALITIES)
+    return f"panorama/{modality}/{frame_name(frame)}.{ext}"
+
+
+def marker(frame: int | str) -> str:
+    """Relative path of ``frame``'s finished marker, written last."""
+    return f"{DONE}/{frame_name(frame)}"
+
+
+def finished_frames(root: str | Path, cameras: Sequence[str],
+                    modalities: Sequence[str] = tuple(MODALITIES)) -> list[int]:
+    """The finished frames of the dataset in ``root`` (sorted): a marker, and the files of
+    ``modalities`` of every camera of ``cameras``."""
+    root = Path(root)
+    done = root / DONE
+    if not done.is_dir():
+        return []
+    for m in modalities:
+        _check_modality(m, MODALITIES)
+    frames = sorted(int(p.name) for p in done.iterdir() if p.is_file() and p.name.isdigit())
+    return [k for k in frames
+            if all((root / frame_file(c, m, k)).is_file() for c in cameras for m in modalities)]
+
+
+def layout(save_cubemaps: bool, save_panorama: bool) -> dict[str, str]:
+    """The manifest's description of the files of a dataset."""
+    out = {MANIFEST: "this manifest",
+           DYNAMICS: "ride.records(): per-frame vehicle state, CARLA names/frame/units",
+           DYNAMICS_CSV: "dynamics.json flattened, one row per frame",
+           "<camera>/camera.json": "intrinsics, Camera.save_json",
+           "<camera>/extrinsics.json": "T_rig_camera and per-frame T_world_camera",
+           "<camera>/rgb/NNNNNN.png": "8-bit RGB",
+           "<camera>/depth/NNNNNN.exr": "range along the ray, float32 metres, channel Z, "
+                                        "0 where not valid",
+           "<camera>/labels/NNNNNN.png": "class ids 0..12, 255 not valid",
+           "<camera>/labels_color/NNNNNN.png": "labels in CARLA's palette",
+           "<camera>/valid/NNNNNN.png": "255 valid, 0 not",
+           f"{DONE}/NNNNNN": "frame finished marker, written last",
+           CONTACT_SHEET: "middle finished frame: a row per camera, columns rgb, depth, "
+                          "labels_color, valid"}
+    if save_cubemaps:
+        out["<camera>/cubemap/{rgb,depth,labels}/NNNNNN_<face>.{png,exr,png}"] = \
+            "rendered cube faces (planar depth), cube axes = world axes"
+    if save_panorama:
+        out["panorama/{rgb,depth,labels}/NNNNNN.{png,exr,png}"] = \
+            "equirectangular view from the rig, turned with the motorcycle (range depth)"
+    return out

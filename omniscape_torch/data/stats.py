@@ -1,0 +1,120 @@
+"""Statistics of a generated dataset (``omniscape-torch stats``): the paper's Table I (vehicle
+attitude) and the per-class pixel share of the fisheye and catadioptric images, over the
+finished frames."""
+
+from __future__ import annotations
+
+import io as _io
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..io import CLASSES, atomic_write_bytes, atomic_write_text, read_image
+from ..scenes import ride as _ride
+from . import format as fmt
+from .readers import list_cameras, read_dynamics
+
+__all__ = ["format_stats", "stats"]
+
+
+def stats(root: str | Path, *, plot: bool = True) -> dict:
+    """Table I (yaw, pitch, roll over the ride) and the per-class pixel share (valid pixels)
+    of the fisheye and catadioptric images of the dataset in ``root``, over its finished
+    frames (``.done`` marker and every camera's files; an interrupted run's dataset has fewer
+    than planned); writes ``root/stats.json`` and (``plot``) the bar chart ``root/stats.png``.
+
+    Returns:
+        ``{"table_one": {angle: {mean, std, min, median, max}}, "class_share": {kind:
+        {class: share}}, "pixels": {kind: valid pixel count}, "frames": finished frames,
+        "frames_planned": N}``.
+
+    Raises:
+        FileNotFoundError: ``root`` holds no dataset.
+        ValueError: no frame is finished yet.
+    """
+    root = Path(root)
+    if not (root / fmt.MANIFEST).is_file():
+        raise FileNotFoundError(f"{root}: no {fmt.MANIFEST} (not a dataset written by "
+                                f"'omniscape-torch generate')")
+    cameras = list_cameras(root)
+    recs = read_dynamics(root)
+    finished = [recs[k] for k in fmt.finished_frames(root, cameras) if k in recs]
+    if not finished:
+        raise ValueError(f"{root}: none of its {len(recs)} frames is finished yet; run "
+                         f"'omniscape-torch generate' with the same options to finish them")
+    rotation = torch.tensor([[r["rotation"]["roll"], r["rotation"]["pitch"],
+                              r["rotation"]["yaw"]] for r in finished], dtype=torch.float64)
+    table = _ride.table_one(rotation)
+    counts = {}
+    for name in cameras:
+        kind = name.split("_")[0]
+        acc = counts.setdefault(kind, np.zeros(len(CLASSES), dtype=np.int64))
+        for r in finished:
+            labels = read_image(root / fmt.frame_file(name, "labels", r["frame"])).numpy()
+            valid = read_image(root / fmt.frame_file(name, "valid", r["frame"])).numpy() > 0
+            ids = labels[valid & (labels < len(CLASSES))]
+            acc += np.bincount(ids.astype(np.int64), minlength=len(CLASSES))
+    share = {kind: {c: (float(v[i]) / float(v.sum()) if v.sum() else 0.0)
+                    for i, c in enumerate(CLASSES)} for kind, v in counts.items()}
+    result = {"frames": len(finished), "frames_planned": len(recs), "table_one": table,
+              "class_share": share, "pixels": {kind: int(v.sum()) for kind, v in counts.items()}}
+    atomic_write_text(root / fmt.STATS, json.dumps(result, indent=2) + "\n")
+    if plot:
+        _plot(result, root / fmt.STATS_PLOT)
+    return result
+
+
+def _plot(result: dict, path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg", force=False)
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(11, 4.5), layout="constrained")
+    ax0, ax1 = fig.subplots(1, 2, width_ratios=(3, 1))
+    kinds = list(result["class_share"])
+    x = np.arange(len(CLASSES))
+    width = 0.8 / max(1, len(kinds))
+    for i, kind in enumerate(kinds):
+        values = [100 * result["class_share"][kind][c] for c in CLASSES]
+        ax0.bar(x + (i - (len(kinds) - 1) / 2) * width, values, width, label=kind)
+    ax0.set_xticks(x, CLASSES, rotation=60, ha="right")
+    ax0.set_ylabel("share of valid pixels (%)")
+    ax0.set_title("class share")
+    if kinds:
+        ax0.legend()
+    names = ("yaw", "pitch", "roll")
+    table = result["table_one"]
+    ax1.bar(names, [table[n]["mean"] for n in names],
+            yerr=[table[n]["std"] for n in names], capsize=4, color="grey")
+    ax1.scatter(names, [table[n]["min"] for n in names], marker="v", color="k", label="min")
+    ax1.scatter(names, [table[n]["max"] for n in names], marker="^", color="k", label="max")
+    ax1.set_ylabel("degrees")
+    ax1.set_title("attitude (mean, std)")
+    ax1.legend()
+    buf = _io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def format_stats(result: dict) -> str:
+    """The text ``omniscape-torch stats`` prints."""
+    done, planned = result["frames"], result.get("frames_planned", result["frames"])
+    over = f"{done} frames" if done == planned else (
+        f"the {done} finished of {planned} frames; run generate again to finish the others")
+    lines = [f"Table I: vehicle attitude over {over} (degrees)",
+             f"{'':8}{'mean':>10}{'std':>10}{'min':>10}{'median':>10}{'max':>10}"]
+    for name in ("yaw", "pitch", "roll"):
+        row = result["table_one"][name]
+        lines.append(f"{name:8}" + "".join(f"{row[k]:10.3f}" for k in
+                                           ("mean", "std", "min", "median", "max")))
+    kinds = list(result["class_share"])
+    lines.append("")
+    lines.append("class share of valid pixels (%)")
+    lines.append(f"{'class':14}" + "".join(f"{k:>14}" for k in kinds))
+    for c in CLASSES:
+        lines.append(f"{c:14}" + "".join(f"{100 * result['class_share'][k][c]:14.2f}"
+                                         for k in kinds))
+    lines.append(f"{'valid pixels':14}" + "".join(f"{result['pixels'][k]:14d}" for k in kinds))
+    return "\n".join(lines)
