@@ -393,8 +393,12 @@ def _pose(rotation: torch.Tensor, centre: torch.Tensor) -> list:
 
 
 def _versions() -> dict:
-    from .. import __version__
-    out = {"omniscape_torch": __version__, "torch": torch.__version__, "numpy": np.__version__,
+    from importlib.metadata import PackageNotFoundError, version
+    try:
+        ours = version("omniscape_torch")
+    except PackageNotFoundError:  # pragma: no cover - run from a checkout never installed
+        ours = "unknown"
+    out = {"omniscape_torch": ours, "torch": torch.__version__, "numpy": np.__version__,
            "python": platform.python_version()}
     try:
         import cv2
