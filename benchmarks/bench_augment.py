@@ -291,7 +291,7 @@ def run(args: argparse.Namespace) -> dict:
         "peer_agreement": agreement,
         "timer": ("time.perf_counter around single calls, after warm-up, all rows round-robin; "
                   "median and IQR; an untimed 10 ms pause before every timed call "
-                  "(benchmark.SETTLE_S)"),
+                  "(common.SETTLE_S)"),
         "timestamp_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "loadavg_start": load_start,
         "loadavg_end": loadavg(),

@@ -51,7 +51,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import omniscape_torch as ot  # noqa: E402
-from common import measure, run_record, write_json_atomic  # noqa: E402
+from common import loadavg, measure, run_record, write_json_atomic  # noqa: E402
 from omniscape_torch.cameras.scaramuzza import scaramuzza_project  # noqa: E402
 
 try:
@@ -156,7 +156,7 @@ def run(args: argparse.Namespace) -> dict:
     if cv2 is not None:
         cv2.setNumThreads(args.threads)
     n, repeats, warmup = args.points, args.repeats, args.warmup
-    load_start = os.getloadavg() if hasattr(os, "getloadavg") else None
+    load_start = loadavg()
     if load_start is not None and load_start[0] > 0.5:
         print(f"# warning: load average {load_start[0]:.2f} before the run; with {args.threads} "
               f"threads on {os.cpu_count()} cores, other processes distort the timings",
@@ -324,10 +324,10 @@ def run(args: argparse.Namespace) -> dict:
         "seed": SEED,
         "timer": ("time.perf_counter around single calls, after warm-up, the calls of one model "
                   "round-robin; median and IQR; an untimed 10 ms pause before every timed "
-                  "call (benchmark.SETTLE_S)"),
+                  "call (common.SETTLE_S)"),
         "timestamp_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "loadavg_start": None if load_start is None else list(load_start),
-        "loadavg_end": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+        "loadavg_start": load_start,
+        "loadavg_end": loadavg(),
         "rows": rows,
         "ratios": ratios,
     }

@@ -12,7 +12,7 @@ batch 1 and 8, and times in one run, round-robin:
   sample and call: the fast sampler computes each pixel's grid point from the camera's rays in
   the sampling pass (``fastsample.sample_rays``; no grid is stored);
 * ``forward_rebuilt_reference``: the same with ``fast=False``: the fused, compiled grid
-  (``fastgrid.rotated_rays_to_grid``), then ``grid_sample``;
+  (``cubemap.grid.rotated_rays_to_grid``), then ``grid_sample``;
 * ``forward_rebuilt_eager``: the same with ``fast=False`` and the grid rebuilt eagerly
   (``einsum`` + ``cubemap.rays_to_grid``: the layer's original path);
 * the parts apart: ``atlas`` (``cubemap_to_atlas``), ``sample`` (the layer's ``grid_sample``
@@ -74,7 +74,8 @@ sys.path.insert(0, str(ROOT))
 import omniscape_torch as ot  # noqa: E402
 from common import loadavg, measure, run_record, write_json_atomic  # noqa: E402
 from omniscape_torch import cubemap as cm  # noqa: E402
-from omniscape_torch.render import fast as fastsample, kernels as fastgrid  # noqa: E402
+from omniscape_torch.cubemap import grid as fastgrid  # noqa: E402
+from omniscape_torch.render import fast as fastsample  # noqa: E402
 
 try:
     import cv2
@@ -298,7 +299,7 @@ def run(args: argparse.Namespace) -> dict:
         "agreement": agreement,
         "timer": ("time.perf_counter around single calls, after warm-up, all rows of one batch "
                   "round-robin; median and IQR; an untimed 10 ms pause before every timed "
-                  "call (benchmark.SETTLE_S)"),
+                  "call (common.SETTLE_S)"),
         "timestamp_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "loadavg_start": load_start,
         "loadavg_end": loadavg(),

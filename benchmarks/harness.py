@@ -1,6 +1,6 @@
 """Speed against accuracy of cubemap -> fisheye rendering: every setting and the peers, one run.
 
-``omniscape-torch bench`` (or ``python benchmarks/run.py``) renders a ``6 x F x F`` RGB cube into
+``python benchmarks/run.py`` (this module's :func:`main`) renders a ``6 x F x F`` RGB cube into
 a square equidistant fisheye of 190 degrees (default 1024 x 1024 from 6 x 512, the paper's
 headline; ``--quick``: 256 x 256 from 6 x 128) and, in one run, times and scores:
 
@@ -40,11 +40,11 @@ attitude):
   layer only; peers render RGB). Face sizes above ``F_req`` are not ray cast for the town (the
   cube alone would take minutes); those cells are empty.
 
-Timing: ``--warmup`` untimed calls of every row, then ``--repeats`` timed calls round-robin over
-all rows (one call of each per repeat, so a change of load hits every row alike),
-``time.perf_counter`` around single calls, ``torch.cuda.synchronize`` around them on CUDA;
-median and inter-quartile range per frame (``median / batch``), frames per second, and the
-ratio to ``cv2.remap`` with float maps on float32 images in the same run.
+Timing (``common.measure``): ``--warmup`` untimed calls of every row, then ``--repeats`` timed
+calls round-robin over all rows (one call of each per repeat, so a change of load hits every
+row alike), ``time.perf_counter`` around single calls, ``torch.cuda.synchronize`` around them
+on CUDA; median and inter-quartile range per frame (``median / batch``), frames per second,
+and the ratio to ``cv2.remap`` with float maps on float32 images in the same run.
 
 Devices: ``--device cpu`` (default), ``cuda`` or ``auto`` (CUDA when available), several allowed:
 our rows, pytorch360convert and the six ``grid_sample`` calls run on each device; OpenCV and
@@ -62,11 +62,7 @@ import argparse
 import copy
 import importlib
 import inspect
-import json
 import math
-import os
-import platform
-import subprocess
 import sys
 import time
 from dataclasses import dataclass, field
@@ -78,17 +74,25 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from . import cubemap as cm
-from .cameras import Camera
-from .io.atomic import atomic_path, atomic_write_text
-from .presets import fisheye, yaw_pitch_roll_to_matrix
-from .projection import OmniProjection
-from .sampling import grid_sample, pixels_to_grid
-from .scenes import Town
-from .sizing import required_face_size
+# This folder's helpers (``common``, which also puts the checkout first on ``sys.path``): the
+# harness is a module of ``benchmarks/``, imported as ``harness`` by ``run.py`` and the tests.
+if str(Path(__file__).resolve().parent) not in sys.path:
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-__all__ = ["add_arguments", "add_bench_parser", "main", "markdown", "measure", "pareto_front",
-           "run", "sphere_texture", "texture_cubemap", "texture_reference"]
+from common import (git_commit, loadavg, machine_info, measure, positive_int,  # noqa: E402
+                    write_json_atomic)
+import omniscape_torch  # noqa: E402
+from omniscape_torch import cubemap as cm  # noqa: E402
+from omniscape_torch.cameras import Camera  # noqa: E402
+from omniscape_torch.cameras.presets import fisheye, yaw_pitch_roll_to_matrix  # noqa: E402
+from omniscape_torch.io.atomic import atomic_path, atomic_write_text  # noqa: E402
+from omniscape_torch.render.layer import OmniProjection  # noqa: E402
+from omniscape_torch.render.reference import grid_sample, pixels_to_grid  # noqa: E402
+from omniscape_torch.render.sizing import required_face_size  # noqa: E402
+from omniscape_torch.scenes import Town  # noqa: E402
+
+__all__ = ["add_arguments", "main", "markdown", "pareto_front", "run", "sphere_texture",
+           "texture_cubemap", "texture_reference"]
 
 SEED = 20240611
 FOV = math.radians(190.0)
@@ -251,49 +255,8 @@ def label_accuracy(labels: Tensor, reference: Tensor) -> float:
 
 
 # --------------------------------------------------------------------------------------------
-# Timing, Pareto front, environment
+# Pareto front, versions (the timer and the environment records: common.py)
 # --------------------------------------------------------------------------------------------
-
-#: Untimed pause before every timed call: the worker threads of the previous call (OpenMP's,
-#: OpenCV's, OpenBLAS's) keep spinning for a while after it, and on 2 cores they take the next
-#: row's cores (measured: the augmentation benchmark's IQR 20 ms without the pause, 10-12 ms
-#: with it). Short: after 50 ms idle this VM ran the next 5 ms call at up to 13 ms.
-SETTLE_S = 0.01
-
-
-def measure(fns: list[Callable[[], object]], repeats: int, warmup: int, *,
-            cuda: bool = False, progress: bool = True, settle_s: float = SETTLE_S
-            ) -> list[dict]:
-    """Median and IQR (seconds) of ``repeats`` timed calls of each of ``fns``, after ``warmup``
-    untimed calls of each, timed round-robin (one call of each per repeat), each after an
-    untimed pause of ``settle_s`` (:data:`SETTLE_S`); with ``cuda``,
-    ``torch.cuda.synchronize()`` before and after every timed call.
-
-    Returns:
-        per function ``{"median_s", "iqr_s", "min_s", "times_s"}``.
-    """
-    from tqdm import tqdm
-
-    sync = torch.cuda.synchronize if cuda else (lambda: None)
-    times: list[list[float]] = [[] for _ in fns]
-    for r in tqdm(range(warmup + repeats), desc="timing", unit="round", disable=not progress,
-                  file=sys.stderr):
-        for fn, t in zip(fns, times):
-            sync()
-            if r >= warmup and settle_s > 0:
-                time.sleep(settle_s)
-            start = time.perf_counter()
-            fn()
-            sync()
-            if r >= warmup:
-                t.append(time.perf_counter() - start)
-    out = []
-    for t in times:
-        q1, median, q3 = np.percentile(t, [25, 50, 75])
-        out.append({"median_s": float(median), "iqr_s": float(q3 - q1), "min_s": float(min(t)),
-                    "times_s": [float(x) for x in t]})
-    return out
-
 
 def pareto_front(cost: list[float], score: list[float]) -> list[int]:
     """Indices of the points no other point beats (cost no higher and score no lower, one of
@@ -317,47 +280,9 @@ def pareto_front(cost: list[float], score: list[float]) -> list[int]:
     return front
 
 
-def git_commit() -> tuple[str, bool | None]:
-    """(HEAD commit of the checkout this package lives in, or "unknown"; dirty tree or None).
-    Changed benchmark results (``benchmarks/results``, what a rerun rewrites) are not dirt."""
-    root = Path(__file__).resolve().parents[1]
-    try:
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True,
-                                text=True, timeout=10)
-        if commit.returncode != 0:
-            return "unknown", None
-        status = subprocess.run(["git", "status", "--porcelain", "--", ".",
-                                 ":(exclude)benchmarks/results"], cwd=root,
-                                capture_output=True, text=True, timeout=10)
-        return commit.stdout.strip(), bool(status.stdout.strip())
-    except (OSError, subprocess.SubprocessError):
-        return "unknown", None
-
-
-def machine_info(devices: list[torch.device]) -> dict:
-    """Platform, CPU model and count, Python, and the GPU of every CUDA device used."""
-    info = {"platform": platform.platform(), "processor": platform.processor()
-            or platform.machine(), "cpu_count": os.cpu_count(),
-            "python": platform.python_version()}
-    try:
-        with open("/proc/cpuinfo") as f:
-            info["cpu_model"] = next((line.split(":", 1)[1].strip() for line in f
-                                      if line.startswith("model name")), None)
-    except OSError:
-        pass
-    gpus = [torch.cuda.get_device_name(d) for d in devices if d.type == "cuda"]
-    if gpus:
-        info["gpu"] = gpus[0]
-    return info
-
-
-def _loadavg() -> list[float] | None:
-    return list(os.getloadavg()) if hasattr(os, "getloadavg") else None
-
-
 def _versions(modules: dict) -> dict:
-    from . import __version__
-    out = {"omniscape_torch": __version__, "torch": torch.__version__, "numpy": np.__version__}
+    out = {"omniscape_torch": omniscape_torch.__version__, "torch": torch.__version__,
+           "numpy": np.__version__}
     for name, module in modules.items():
         out[name] = None if module is None else getattr(module, "__version__", "unknown")
     return out
@@ -790,7 +715,7 @@ def _notes(rows: list[dict]) -> None:
 
 def run(args: argparse.Namespace) -> dict:
     """Build the sweep, score every row, time all rows round-robin; the result dict."""
-    load_start = _loadavg()
+    load_start = loadavg()
     if load_start is not None and load_start[0] > 0.5:
         print(f"# warning: 1-minute load average {load_start[0]:.2f} > 0.5: timings are "
               "unreliable on a busy machine", file=sys.stderr)
@@ -834,8 +759,8 @@ def run(args: argparse.Namespace) -> dict:
             rot = (_Attitudes(b, calls, gen, torch.device(case.settings["device"]))
                    if case.rebuilt else None)
             fns.append(case.prepare(cube, rot))
-        timings = measure(fns, args.repeats, args.warmup,
-                          cuda=any(d.type == "cuda" for d in devices), progress=progress)
+        sync = "cuda" if any(d.type == "cuda" for d in devices) else "cpu"
+        timings = measure(fns, args.repeats, args.warmup, sync, progress=progress)
     for (case, row), t in zip(timed, timings):
         b = case.settings["batch"]
         row["timing"] = t
@@ -886,12 +811,12 @@ def run(args: argparse.Namespace) -> dict:
         "seed": SEED,
         "timer": "time.perf_counter around single calls, after warm-up, all rows round-robin; "
                  "median and IQR; an untimed 10 ms pause before every timed call "
-                 "(benchmark.SETTLE_S)",
+                 "(common.SETTLE_S)",
         "phase_s": {"setup": setup_s, "accuracy": accuracy_s,
                     "timing": time.perf_counter() - start - setup_s - accuracy_s},
         "timestamp_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "loadavg_start": load_start,
-        "loadavg_end": _loadavg(),
+        "loadavg_end": loadavg(),
         "pareto": fronts,
         "rows": rows,
     }
@@ -994,7 +919,7 @@ def chart(result: dict, path: Path) -> None:
 def write_outputs(result: dict, out_dir: Path) -> dict[str, Path]:
     """``bench.json``, ``bench.png`` and ``bench.md`` in ``out_dir``, each atomically."""
     paths = {k: Path(out_dir) / f"bench.{k}" for k in ("json", "png", "md")}
-    atomic_write_text(paths["json"], json.dumps(result, indent=2) + "\n")
+    write_json_atomic(result, paths["json"])
     chart(result, paths["png"])
     atomic_write_text(paths["md"], markdown(result))
     return paths
@@ -1021,34 +946,32 @@ def add_arguments(parser: argparse.ArgumentParser,
                   out_dir: Path = Path("benchmarks") / "results") -> None:
     """The benchmark's flags (``--quick`` fills the ones left unset); ``out_dir`` is the default
     of ``--out-dir``."""
-    from .cli import _positive_int as _positive   # the CLI imports this module
-
     parser.add_argument("--quick", action="store_true",
                         help="smoke run: 256 x 256 from 6 x 128, batch 2, 5 repeats (~1 min)")
-    parser.add_argument("--size", type=_positive, default=None,
+    parser.add_argument("--size", type=positive_int, default=None,
                         help="image side in pixels (default 1024; 256 with --quick)")
-    parser.add_argument("--face", type=_positive, default=None,
+    parser.add_argument("--face", type=positive_int, default=None,
                         help="headline face size (default size / 2)")
-    parser.add_argument("--faces", type=_positive, nargs="+", default=None,
+    parser.add_argument("--faces", type=positive_int, nargs="+", default=None,
                         help="face sizes of the interpolation sweep (default face / 2, face, "
                              "F_req, 2 F_req)")
-    parser.add_argument("--batch", type=_positive, default=None,
+    parser.add_argument("--batch", type=positive_int, default=None,
                         help="the larger batch (default 8; 2 with --quick)")
-    parser.add_argument("--threads", type=_positive, default=2,
+    parser.add_argument("--threads", type=positive_int, default=2,
                         help="torch and OpenCV threads (default 2)")
-    parser.add_argument("--repeats", type=_positive, default=None,
+    parser.add_argument("--repeats", type=positive_int, default=None,
                         help="timed calls per row (default 10; 5 with --quick)")
     parser.add_argument("--warmup", type=int, default=None,
                         help="untimed calls per row first (default 2; 1 with --quick)")
     parser.add_argument("--device", nargs="+", choices=("cpu", "cuda", "auto"),
                         default=["cpu"], help="devices of the torch rows (default cpu; auto: "
                                               "cuda when available)")
-    parser.add_argument("--reference-samples", type=_positive, default=5,
+    parser.add_argument("--reference-samples", type=positive_int, default=5,
                         help="sub-samples per pixel side of the texture reference (default 5)")
     parser.add_argument("--town-pixels", type=int, default=None,
                         help="pixels ray cast for the town (default 20000; 5000 with --quick; "
                              "0: no town)")
-    parser.add_argument("--town-samples", type=_positive, default=3,
+    parser.add_argument("--town-samples", type=positive_int, default=3,
                         help="sub-rays per pixel side of the town reference, odd (default 3)")
     parser.add_argument("--no-fused", action="store_true",
                         help="rebuilt grids without torch.compile (no compilation wait)")
@@ -1080,31 +1003,18 @@ def _resolve(args: argparse.Namespace) -> argparse.Namespace:
     return args
 
 
-def run_from_args(args: argparse.Namespace) -> int:
-    """Run, write the outputs, print the table; exit status 0."""
-    result = run(_resolve(args))
-    paths = write_outputs(result, args.out_dir)
-    print(markdown(result))
-    print("wrote " + ", ".join(str(p) for p in paths.values()))
-    return 0
-
-
-def add_bench_parser(subparsers) -> argparse.ArgumentParser:
-    """Register ``bench`` on an ``argparse`` sub-parsers object."""
-    p = subparsers.add_parser("bench", help="speed vs accuracy of every rendering setting and "
-                                            "its peers (JSON, chart, table)",
-                              description=__doc__.splitlines()[0])
-    add_arguments(p)
-    p.set_defaults(func=run_from_args)
-    return p
-
-
 def main(argv: list[str] | None = None, *, out_dir: Path | None = None) -> int:
-    """``python benchmarks/run.py [flags]``; ``out_dir``: the default of ``--out-dir``."""
+    """``python benchmarks/run.py [flags]``: run, write the outputs, print the table; exit
+    status 0 (a bad flag: usage on stderr and ``SystemExit(2)``). ``out_dir``: the default of
+    ``--out-dir``."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_arguments(parser, *([] if out_dir is None else [out_dir]))
     args = parser.parse_args(argv)
     try:
-        return run_from_args(args)
+        result = run(_resolve(args))
     except ValueError as err:
         parser.error(str(err))
+    paths = write_outputs(result, args.out_dir)
+    print(markdown(result))
+    print("wrote " + ", ".join(str(p) for p in paths.values()))
+    return 0

@@ -1,8 +1,7 @@
-"""Speed against accuracy of every rendering setting and its peers: ``omniscape-torch bench``.
+"""Speed against accuracy of every rendering setting and its peers.
 
-A thin wrapper: the runner lives in the package (``omniscape_torch/benchmark.py``, where the rows,
-the references and the outputs are documented), so that ``omniscape-torch bench`` works from an
-installed package too. This script runs the checkout it lives in.
+A thin wrapper: the runner is ``benchmarks/harness.py`` (where the rows, the references and the
+outputs are documented). It runs the checkout this script lives in, not an installed copy.
 
 Usage::
 
@@ -18,11 +17,11 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-# Benchmark the checkout this script lives in, not whatever copy is installed.
-sys.path.insert(0, str(ROOT))
+HERE = Path(__file__).resolve().parent
+# this folder's modules (``harness``, ``common``); ``common`` puts the checkout first
+sys.path.insert(0, str(HERE))
 
-from omniscape_torch.benchmark import main  # noqa: E402
+from harness import main  # noqa: E402
 
 if __name__ == "__main__":
-    sys.exit(main(out_dir=ROOT / "benchmarks" / "results"))
+    sys.exit(main(out_dir=HERE / "results"))

@@ -350,14 +350,23 @@ def test_a_run_that_cannot_fit_in_memory_is_refused_before_any_work(tmp_path, ca
                      "--no-progress"]) == 1
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and "GB of memory" in err
+    assert "the largest image size that fits is" in err
     assert not out.exists()
-    size = int(err.split("the largest image size that fits is ")[1].split("x")[0])
-    config = _config(image_size=(size, size), max_face_size=1024)
-    available = __import__("omniscape_torch").sizing.available_memory()
-    check_memory(config, available=available)           # the size it suggests fits
+    # the size suggested fits in the memory the check was given, and the next one up does not
+    # (a fixed budget: the machine's free memory moves while the test runs)
+    budget = 8e9
+    with pytest.raises(MemoryError) as refused:
+        check_memory(_config(image_size=(20000, 20000), max_face_size=1024), available=budget)
+    size = int(str(refused.value).split("the largest image size that fits is ")[1].split("x")[0])
+    check_memory(_config(image_size=(size, size), max_face_size=1024), available=budget)
+    with pytest.raises(MemoryError):
+        check_memory(_config(image_size=(size + 1, size + 1), max_face_size=1024),
+                     available=budget)
     with pytest.raises(MemoryError, match="fewer workers"):
-        check_memory(config, workers=64, available=available)
+        check_memory(_config(image_size=(size, size), max_face_size=1024), workers=64,
+                     available=budget)
     # more workers need more memory; so do larger images
+    config = _config(image_size=(size, size), max_face_size=1024)
     assert estimate_memory(config, 2) > estimate_memory(config, 1)
     assert estimate_memory(_config(image_size=(512, 512))) > estimate_memory(_config())
 
