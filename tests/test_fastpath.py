@@ -3,8 +3,8 @@
 Every fast path must give ``F.grid_sample(atlas, grid, align_corners=False)``'s output to
 float32 rounding: ``sample_cube`` (no atlas), ``sample_atlas``, the lookup table of a frozen
 camera, and ``OmniProjection`` with ``fast=True`` (against ``fast=False``) for RGB, depth and
-labels, with and without rotations, and its eager fallback; gradients still come from
-``grid_sample``.
+labels, with and without rotations, and without a C++ compiler (the layer's reference path);
+gradients still come from ``grid_sample``.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import torch.nn.functional as F_nn
 import omniscape_torch as ot
 from omniscape_torch import cubemap as cm
 from omniscape_torch.cubemap import grid as fastgrid
-from omniscape_torch.render import extension as native, fast as fastsample, memory
+from omniscape_torch.render import extension, fast as fastsample, memory
 
 f32, f64 = torch.float32, torch.float64
 #: Rounding of a blend of 4 texels in [0, 1]. float32: the weights are grid_sample's bit for bit,
@@ -147,45 +147,55 @@ def test_half_precision_is_sampled_in_float32():
 
 
 @pytest.mark.parametrize("mode", ["nearest", "bilinear"])
-def test_eager_fallback_without_a_compiler(monkeypatch, mode):
-    cube, grid = make_cube(2, 3, 8), make_grid(1)
+def test_reference_path_without_a_compiler(monkeypatch, mode):
+    """Where the C++ extension cannot be built (here: no compiler), the fast sampler is
+    unavailable after one warning that says why, and the layer renders through its reference
+    path (``grid_sample`` on the padded atlas): ``fast=False``'s images, and the fast
+    sampler's to rounding (labels exact)."""
+    cube, depth = make_cube(2, 3, 8), 1 + 9 * make_cube(2, 1, 8, seed=2)
     labels = torch.randint(0, 2 ** 40, (2, 6, 1, 8, 8), generator=torch.Generator().manual_seed(2))
-    valid = torch.rand(1, *grid.shape[1:3], generator=torch.Generator().manual_seed(1)) > 0.3
+    rotation = rotations(2).float()
 
-    rays = make_rays(1)
+    def run(fast: bool) -> list[dict]:
+        layer = ot.OmniProjection(fisheye(dtype=f32), 8, fast=fast, interpolation=mode,
+                                  depth_interpolation=mode)
+        with torch.no_grad():
+            return [layer.render(rgb=cube, depth=depth, labels=labels),
+                    layer.render(rgb=cube, depth=depth, labels=labels, rotation=rotation)]
 
-    def run():
-        lut = fastsample.build_lut(grid, 8, 1, mode, channels=3)
-        images = [fastsample.sample_cube(cube, grid, mode, pad=1),
-                  fastsample.sample_cube(cube, grid, mode, pad=1, lut=lut),
-                  fastsample.sample_cube(cube, grid, mode, pad=1, valid=valid),
-                  fastsample.sample_rays(cube, rays, None, mode, pad=1)]
-        if mode == "nearest":
-            images.append(fastsample.sample_cube(labels, grid.double(), mode, pad=1,
-                                                 border="nearest"))
-        return images
+    compiled = run(True)
+    assert fastsample.compile_failures() == {} and fastsample.available()
+    build = extension._build
 
-    compiled = run()
-    assert fastsample.compile_failures() == {}
-    monkeypatch.setattr(native, "_STATE", {})
-    monkeypatch.setenv("CXX", "no-such-compiler-here")
-    with pytest.warns(UserWarning, match="C.. kernels could not be built"):
-        eager = run()
+    def build_without_a_compiler():
+        # $CXX names no compiler while the extension is built, and only then: inductor, which
+        # compiles the layer's grids, would remember a failure of its own for the process
+        with monkeypatch.context() as scope:
+            scope.setenv("CXX", "no-such-compiler-here")
+            return build()
+
+    monkeypatch.setattr(fastsample, "_STATE", {})
+    monkeypatch.setattr(extension, "_LOADED", [])   # as in a new process: nothing loaded yet
+    monkeypatch.setattr(extension, "_build", build_without_a_compiler)
+    with pytest.warns(UserWarning, match="fast sampler is unavailable") as caught:
+        without = run(True)
+        without += run(True)   # warned once, not per call
+    assert sum("fast sampler is unavailable" in str(w.message) for w in caught) == 1
     (key, why), = fastsample.compile_failures().items()
-    assert key == ("native", "c++") and "no-such-compiler-here" in why
-    expect = reference(cm.cubemap_to_atlas(cube, 1), grid, mode)
-    for got, fast in zip(eager, compiled):
-        torch.testing.assert_close(got, fast, atol=ATOL[f32], rtol=0)
-    for got in eager[:2]:
-        torch.testing.assert_close(got, expect, atol=ATOL[f32], rtol=0)
-    torch.testing.assert_close(eager[2], expect * valid, atol=ATOL[f32], rtol=0)
-    torch.testing.assert_close(eager[3], reference(cm.cubemap_to_atlas(cube, 1),
-                                                   spec_grid(rays, None, 8, 1, f32), mode),
-                               atol=ATOL[f32], rtol=0)
-    if mode == "nearest":   # ids beyond float precision: the float64 grid_sample is exact
-        ids = reference(cm.cubemap_to_atlas(labels, 1, "nearest").double(), grid.double(),
-                        "nearest")
-        assert eager[4].dtype == torch.int64 and torch.equal(eager[4].double(), ids)
+    assert key == ("extension", "fastsample") and "no-such-compiler-here" in why
+    assert not fastsample.available() and fastsample.unavailable_reason() == why
+    assert not fastsample.reads_rays(f32, f32)
+    with pytest.raises(RuntimeError, match="fast sampler is unavailable"):
+        fastsample.sample_cube(cube, make_grid(1), mode, pad=1)
+    reference = run(False)
+    for got, ref, fast in zip(without, reference * 2, compiled * 2):
+        assert set(got) == set(ref) == set(fast)
+        for key in got:   # the reference path itself
+            assert torch.equal(got[key], ref[key]), key
+        assert torch.equal(got["valid"], fast["valid"])
+        assert torch.equal(got["labels"], fast["labels"])   # ids beyond float precision
+        for key in ("rgb", "depth"):
+            torch.testing.assert_close(got[key], fast[key], atol=ATOL[f32] * 10, rtol=0)
 
 
 def test_out_valid_and_fill():
@@ -245,32 +255,6 @@ class _Samples(torch.utils.data.Dataset):
 
     def __getitem__(self, i):
         return _sample_in_worker(i)
-
-
-def test_native_library_is_built_once_into_the_cache(monkeypatch, tmp_path):
-    monkeypatch.setenv("OMNISCAPE_TORCH_CACHE", str(tmp_path))
-    monkeypatch.setattr(native, "_STATE", {})
-    assert native.library() is not None and native.failure() is None
-    (built,) = tmp_path.iterdir()   # the library alone: no temporary file left
-    assert built.suffix == ".so"
-    stamp = built.stat().st_mtime_ns
-    monkeypatch.setattr(native, "_STATE", {})   # a new process: loaded, not rebuilt
-    assert native.function("os_sample_grid_f32") is not None
-    assert built.stat().st_mtime_ns == stamp and list(tmp_path.iterdir()) == [built]
-
-
-def test_native_library_falls_back_to_the_temporary_directory(monkeypatch, tmp_path):
-    """A home whose cache cannot be written (here ``.cache`` is a file): the temporary
-    directory."""
-    (tmp_path / "home").mkdir()
-    (tmp_path / "home" / ".cache").write_text("not a folder")
-    monkeypatch.delenv("OMNISCAPE_TORCH_CACHE", raising=False)
-    monkeypatch.setattr(native.Path, "home", lambda: tmp_path / "home")
-    monkeypatch.setattr(native.tempfile, "gettempdir", lambda: str(tmp_path / "tmp"))
-    monkeypatch.setattr(native, "_STATE", {})
-    assert native.library() is not None
-    (folder,) = (tmp_path / "tmp").iterdir()
-    assert [p.suffix for p in folder.iterdir()] == [".so"]
 
 
 def test_large_buffers_are_pooled_and_reused_only_once_free(monkeypatch):
@@ -400,17 +384,18 @@ def test_sample_rays_of_labels_and_half_precision():
 
 
 def test_kernel_face_table_is_cubemap_faces(monkeypatch):
-    """The C++ kernel's copy of the face table is the one cubemap.faces gives, and a copy that
-    disagrees is refused rather than used."""
-    table = torch.zeros(35, dtype=torch.int32)
-    native.function("os_face_cases")(table.data_ptr())
+    """The C++ kernel's face table is generated from the one cubemap.faces gives, and passed to
+    the build (``-DOS_FACE_CASES``), so another table makes another build; the kernel's grid is
+    the Python maths' bit for bit (``test_sample_rays_is_sample_cube_of_the_grid``)."""
+    (flag,) = extension.face_case_flags()
+    define, values = flag.split("=")
+    table = torch.tensor([int(v) for v in values.split(",")], dtype=torch.int32)
+    assert define == "-DOS_FACE_CASES"
     assert table.view(7, 5).tolist() == [list(case) for case in (*fastgrid._CASES,
                                                                   fastgrid._ZERO_CASE)]
-    fastsample._check_face_table.cache_clear()
-    monkeypatch.setattr(fastsample, "_CASES", fastgrid._CASES[::-1])
-    with pytest.raises(RuntimeError, match="face table"):
-        fastsample.sample_rays(make_cube(1, 3, 8), make_rays(1), None, pad=1)
-    fastsample._check_face_table.cache_clear()
+    name = extension.name()
+    monkeypatch.setattr(fastgrid, "_CASES", fastgrid._CASES[::-1])
+    assert extension.face_case_flags() != [flag] and extension.name() != name
 
 
 @pytest.mark.parametrize("kwargs,error,match", [

@@ -1,4 +1,5 @@
-"""The fast sampler's per-pixel loops as plain C++ (``csrc/fastsample.cpp``), built on first use.
+"""The fast sampler's per-pixel loops (``csrc/fastsample.cpp``) as PyTorch custom ops, built on
+first use.
 
 Why hand-written: a bilinear tap is four loads a texel apart, which a C loop does in a few
 instructions; ``torch.compile`` (inductor) turns each gather into a vector of 64-bit indices
@@ -6,67 +7,61 @@ stored to a buffer and read back one by one. Measured on 2 cores, 6 x 512 -> 102
 float32 through a lookup table, into a reused buffer: 7.0 -> 5.2 ms at batch 1 and 78 -> 36 ms
 at batch 8 (``cv2.remap`` of the same images: 5.9 and 34-47 ms).
 
-The source is compiled once per machine with the C++ compiler ``torch.compile`` uses too
-(``$CXX``, else ``c++``) and OpenMP, into ``$OMNISCAPE_TORCH_CACHE`` (default
-``~/.cache/omniscape_torch``, else the temporary directory), named by a hash of the source, the
-compiler, the flags and the CPU; written to a temporary file and renamed, so concurrent
-processes never load half a library.
-The library links ``libgomp.so.1``, the OpenMP runtime PyTorch has already loaded, so both
-share one thread pool. Where no compiler or OpenMP is found, :func:`library` returns None
-after one warning and the caller runs its eager torch maths (see
-:func:`omniscape_torch.fastsample.compile_failures`).
+:func:`load` builds the source with ``torch.utils.cpp_extension.load`` (ninja and the C++
+compiler torch uses, ``$CXX`` else ``c++``; 12 s once per machine on 2 cores, 5 s of it the
+torch headers, against 30 s with ``torch/extension.h``) into torch's extension cache
+(``$TORCH_EXTENSIONS_DIR``, default ``~/.cache/torch_extensions/<python>_<device>/``) and
+loads it: the ops ``torch.ops.omniscape_torch.{build_lut, sample_lut, sample_grid,
+sample_rays}`` (schemas in the source), with their fake implementations for ``torch.compile``
+registered here. A later process finds it built (ninja checks the source and the flags) and
+loads it in 0.1-0.2 s, mostly the import of ``cpp_extension``. Concurrent first uses
+(processes, ``DataLoader`` workers) are serialised by ``cpp_extension``'s lock file in the
+build folder: one builds, the others wait and load. (A build killed outright, SIGKILL, leaves
+that file behind, and later loads wait for it forever: delete the folder's ``lock``.)
+
+The extension's name holds a hash of the CPU's feature flags (``-march=native`` code must not
+be loaded on another CPU that shares the home directory, e.g. over NFS), of the torch version
+and Python ABI it links against, of the flags and of the source: each gets its own build
+folder, so that no process loads, or rebuilds under another's feet, a library built from
+another source (two checkouts sharing a home); an edited source leaves its old folder behind.
+The face table is generated from ``cubemap/faces.py`` (the only one) and passed as
+``-DOS_FACE_CASES=...``: a changed table is a new build.
+
+The library is built with OpenMP, the runtime PyTorch has already loaded (``libgomp.so.1``), and
+the loops run on PyTorch's intra-op threads (``at::parallel_for``). Where no compiler or ninja
+is found, :func:`load` raises; :mod:`.fast` turns that into one warning and its reference path.
 """
 
 from __future__ import annotations
 
-import ctypes
+import contextlib
 import hashlib
 import os
 import platform
 import shutil
-import subprocess
-import tempfile
+import sys
+import sysconfig
 import threading
-import warnings
 from pathlib import Path
 
 import torch
 
-__all__ = ["library", "function", "failure", "threads"]
+__all__ = ["load", "name", "face_case_flags", "CFLAGS", "LDFLAGS", "NAMESPACE", "OPS", "SOURCE"]
 
 SOURCE = Path(__file__).with_name("csrc") / "fastsample.cpp"
-#: ``-march=native``: the library is built for this machine's CPU (its flags are part of the
-#: cache key); ``-fno-trapping-math``: float comparisons may be evaluated speculatively, so the
-#: tap computation vectorises (no result changes); ``-ffp-contract=off``: no fused
-#: multiply-adds the torch maths does not make.
-FLAGS = ("-O3", "-march=native", "-fno-trapping-math", "-fno-math-errno", "-ffp-contract=off",
-         "-std=c++17", "-fopenmp", "-fPIC", "-shared")
+NAMESPACE = "omniscape_torch"
+OPS = ("build_lut", "sample_lut", "sample_grid", "sample_rays")
+#: ``-march=native``: the library is built for this machine's CPU (its flags are in the name);
+#: ``-fno-trapping-math``: float comparisons may be evaluated speculatively, so the tap
+#: computation vectorises (no result changes); ``-ffp-contract=off``: no fused multiply-adds
+#: that the reference maths does not make (the results are grid_sample's to the bit where
+#: they were before); ``-fopenmp``: ``at::parallel_for`` is OpenMP's in PyTorch's CPU builds.
+CFLAGS = ("-O3", "-march=native", "-fno-trapping-math", "-fno-math-errno", "-ffp-contract=off",
+          "-fopenmp")
+LDFLAGS = ("-fopenmp",)
 
 _LOCK = threading.Lock()
-_STATE: dict = {}   # "lib": the CDLL or None once tried, "error": why it is None
-
-_P, _I, _C = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
-# ring (src, weight, k), layout (face, pad, face stride, bilinear), fill, planes (batch,
-# chans, pixels, width, cube batch and channel strides, output batch and channel strides), out,
-# threads
-_TAIL = [_P, _P, _I, _I, _I, _I, _C, _I, *[_I] * 8, _P, _C]
-_SIGNATURES = {
-    "os_lut_": [_P, _I, _I, _I, _I, _C, _P, _C],
-    "os_sample_lut_": [_P, _P, _P, _I, *_TAIL],
-    "os_sample_grid_": [_P, _P, _I, _P, _I, *_TAIL],
-    "os_sample_rays_": [_P, _P, _I, _P, _I, _P, _I, *_TAIL],
-    "os_face_cases": [_P],
-}
-
-
-def _cache_dirs() -> list[Path]:
-    """Where the library may be kept: ``$OMNISCAPE_TORCH_CACHE`` alone when set, else the user
-    cache, then (a read-only home) the temporary directory."""
-    root = os.environ.get("OMNISCAPE_TORCH_CACHE")
-    if root:
-        return [Path(root)]
-    return [Path.home() / ".cache" / "omniscape_torch",
-            Path(tempfile.gettempdir()) / f"omniscape_torch-{getattr(os, 'getuid', int)()}"]
+_LOADED: list[str] = []   # the path of the library once loaded in this process
 
 
 def _cpu() -> str:
@@ -79,81 +74,139 @@ def _cpu() -> str:
         return platform.machine() + platform.processor()
 
 
-def _build(compiler: str) -> Path:
-    source = SOURCE.read_bytes()
-    version = subprocess.run([compiler, "--version"], capture_output=True, text=True,
-                             check=True).stdout
-    key = hashlib.sha256(b"\0".join([source, version.encode(), " ".join(FLAGS).encode(),
-                                     _cpu().encode()]))
-    name = f"fastsample-{key.hexdigest()[:16]}.so"
-    for folder in _cache_dirs():
-        if (folder / name).exists():
-            return folder / name
-    for folder in _cache_dirs():
-        try:
-            folder.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(suffix=".so", dir=folder)
-            break
-        except OSError as exc:   # not writable: the next place
-            error = exc
-    else:
-        raise error
-    os.close(fd)
-    target = folder / name
+def name() -> str:
+    """The extension's name: ``omniscape_torch_fastsample_`` and a hash of what the library is
+    built for and from: this CPU's feature flags, the torch version and Python ABI it links
+    against, the flags (the face table among them) and the source."""
+    parts = [_cpu().strip(), torch.__version__, sys.implementation.cache_tag or "",
+             getattr(sys, "abiflags", ""), *CFLAGS, *LDFLAGS, *face_case_flags()]
+    digest = hashlib.sha256("\0".join(parts).encode() + b"\0" + SOURCE.read_bytes())
+    return f"omniscape_torch_fastsample_{digest.hexdigest()[:12]}"
+
+
+def face_case_flags() -> list[str]:
+    """``-DOS_FACE_CASES=...``: the kernel's face table, the 6 cases of
+    ``cubemap.grid._CASES`` (derived from ``cubemap.faces``) and its zero-ray case, 35 integers
+    (commas only: nothing a shell or ninja would rewrite)."""
+    from ..cubemap import grid
+    values = [int(v) for case in (*grid._CASES, grid._ZERO_CASE) for v in case]
+    return ["-DOS_FACE_CASES=" + ",".join(map(str, values))]
+
+
+def _ninja_folders() -> list[str]:
+    """Where ninja is installed with this Python, whether or not that is on the PATH: the
+    ``ninja`` package's own folder, the environment's scripts folder (a virtualenv's ``bin``)
+    and the interpreter's folder."""
+    folders = []
     try:
-        done = subprocess.run([compiler, *FLAGS, str(SOURCE), "-o", tmp], capture_output=True,
-                              text=True)
-        if done.returncode != 0:
-            raise RuntimeError(f"{compiler} failed: {done.stderr.strip()[:2000]}")
-        os.replace(tmp, target)   # atomic: another process sees all of it or none
+        import ninja   # the PyPI package (setup.cfg): its binary lives in the package
+        folders.append(getattr(ninja, "BIN_DIR", ""))
+    except ImportError:
+        pass
+    folders += [sysconfig.get_path("scripts"), os.path.dirname(sys.executable)]
+    return [f for f in folders if f]
+
+
+@contextlib.contextmanager
+def _ninja_on_path():
+    """``cpp_extension`` runs ``ninja`` from the PATH. The ninja installed with this Python goes
+    first, whether or not its folder is on the PATH (``.venv/bin/python -m pytest`` without
+    activating the virtualenv), and the PATH is restored afterwards: this is the only way to
+    reach ``cpp_extension``'s subprocesses, and the lock of :func:`load` keeps this process's
+    other builds out meanwhile. Always the same ninja for one Python, even where another is on
+    the PATH: ninja versions keep their build logs differently (1.11 and 1.13 each took the
+    other's build for out of date, a rebuild whenever they alternated). Without one installed
+    with Python, the PATH's."""
+    folder = next((f for f in _ninja_folders() if shutil.which("ninja", path=f)), None)
+    found = shutil.which("ninja")
+    if folder is None or (found is not None and os.path.samefile(
+            os.path.dirname(found), folder)):
+        if found is None:
+            raise RuntimeError("ninja is not installed: torch.utils.cpp_extension needs it to "
+                               "build the C++ kernels (pip install ninja)")
+        yield
+        return
+    before = os.environ.get("PATH")
+    os.environ["PATH"] = folder + os.pathsep + (before or "")
+    try:
+        yield
     finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return target
+        if before is None:
+            os.environ.pop("PATH", None)
+        else:
+            os.environ["PATH"] = before
 
 
-def _load() -> ctypes.CDLL:
+def _check_compiler() -> None:
     compiler = os.environ.get("CXX") or "c++"
     if shutil.which(compiler) is None:
         raise RuntimeError(f"no C++ compiler: {compiler!r} is not on the PATH (set $CXX)")
-    return ctypes.CDLL(str(_build(compiler)))
 
 
-def library() -> ctypes.CDLL | None:
-    """The compiled kernels, built on the first call; None (after one warning) where they
-    cannot be built."""
-    if "lib" in _STATE:
-        return _STATE["lib"]
+def _build() -> str:
+    """Build (or find built) and load the library; its path."""
+    from torch.utils import cpp_extension
+    _check_compiler()
+    with _ninja_on_path():
+        return cpp_extension.load(name(), [str(SOURCE)],
+                                  extra_cflags=[*CFLAGS, *face_case_flags()],
+                                  extra_ldflags=list(LDFLAGS), is_python_module=False)
+
+
+def load() -> torch._ops._OpNamespace:
+    """The ops ``torch.ops.omniscape_torch``, built and loaded on the first call (once per
+    process; a forked child inherits them).
+
+    Raises:
+        RuntimeError: no C++ compiler, no ninja, or the build failed (its output).
+    """
     with _LOCK:
-        if "lib" not in _STATE:
-            try:
-                _STATE["lib"] = _load()
-            except Exception as exc:  # no compiler, no OpenMP, a read-only home, ...
-                _STATE["lib"], _STATE["error"] = None, f"{type(exc).__name__}: {exc}"
-                warnings.warn(f"omniscape_torch.native: the C++ kernels could not be built "
-                              f"({_STATE['error'][:300]}); the fast sampler runs its eager "
-                              "torch maths instead", UserWarning, stacklevel=3)
-    return _STATE["lib"]
+        if not _LOADED:
+            _LOADED.append(_build())
+            _register_fakes()
+    return getattr(torch.ops, NAMESPACE)
 
 
-def failure() -> str | None:
-    """Why :func:`library` is None, or None."""
-    return _STATE.get("error")
+# ------------------------------------------------------------------------------------------
+# Fake (meta) implementations: the ops only write into their mutated argument, so tracing
+# (torch.compile, FakeTensor) needs no output, only the checks that shapes and dtypes allow.
+# ------------------------------------------------------------------------------------------
+
+def _check(cond: bool, message: str) -> None:
+    torch._check(cond, lambda: f"{NAMESPACE}: {message}")
 
 
-def function(name: str):
-    """The kernel ``name`` (e.g. ``"os_sample_grid_f32"``) with its argument types, or None."""
-    lib = library()
-    if lib is None:
-        return None
-    fn = getattr(lib, name)
-    if fn.argtypes is None:
-        fn.argtypes = next(sig for prefix, sig in _SIGNATURES.items()
-                           if name.startswith(prefix))
-        fn.restype = None
-    return fn
+def _fake_build_lut(grid, face, pad, face_stride, bilinear, table) -> None:
+    _check(grid.dim() == 3 and grid.shape[-1] == 2, "build_lut: grid: expected (B, P, 2)")
+    _check(table.shape == (*grid.shape[:2], 3), "build_lut: table: expected (B, P, 3)")
 
 
-def threads() -> int:
-    """OpenMP threads per call: PyTorch's intra-op count (1 in ``DataLoader`` workers)."""
-    return torch.get_num_threads()
+def _fake_sample(cube, out, points, last: int, what: str) -> None:
+    _check(cube.dim() == 5 and cube.shape[1] == 6, f"{what}: cube: expected (B, 6, C, F, F)")
+    _check(points.shape[-1] == last, f"{what}: expected a last dimension of {last}")
+    _check(out.dim() == 4 and out.shape[:2] == (cube.shape[0], cube.shape[2])
+           and out.dtype == cube.dtype, f"{what}: out: expected (B, C, H, W) in the cube's dtype")
+
+
+def _fake_sample_lut(cube, table, grid, ring_src, ring_weight, pad, face_stride, bilinear, fill,
+                     out) -> None:
+    _fake_sample(cube, out, grid, 2, "sample_lut")
+
+
+def _fake_sample_grid(cube, grid, valid, ring_src, ring_weight, pad, bilinear, fill,
+                      out) -> None:
+    _fake_sample(cube, out, grid, 2, "sample_grid")
+
+
+def _fake_sample_rays(cube, rays, rotation, valid, ring_src, ring_weight, pad, bilinear, fill,
+                      out) -> None:
+    _fake_sample(cube, out, rays, 3, "sample_rays")
+
+
+_FAKES = {"build_lut": _fake_build_lut, "sample_lut": _fake_sample_lut,
+          "sample_grid": _fake_sample_grid, "sample_rays": _fake_sample_rays}
+
+
+def _register_fakes() -> None:
+    for op, fake in _FAKES.items():
+        torch.library.register_fake(f"{NAMESPACE}::{op}", fake)

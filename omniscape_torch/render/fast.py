@@ -26,11 +26,14 @@ the weights are then identical and the blend differs from ``grid_sample`` by flo
 (one or two ulps: ``grid_sample`` blends with fused multiply-adds too). Nearest sampling
 gathers one texel, exact for any dtype (integer labels).
 
-The per-pixel loops are C++ (``csrc/fastsample.cpp``, built on first use by
-:mod:`omniscape_torch.native`): one pass per call computes every pixel's taps (or reads them
-from the table), blends the interior pixels and reads the edge pixels' taps through the ring,
-straight into the output. The torch maths below is their specification and, where no C++
-compiler is found, the fallback (eager, a warning once; see :func:`compile_failures`).
+The per-pixel loops are C++ custom ops, ``torch.ops.omniscape_torch.*``
+(``csrc/fastsample.cpp``, built on first use by :mod:`.extension`): one pass per call computes
+every pixel's taps (or reads them from the table), blends the interior pixels and reads the
+edge pixels' taps through the ring, straight into the output. ``torch.compile`` traces through
+them (their fake implementations are registered with them). Where they cannot be built (no
+C++ compiler, no ninja) the fast sampler is unavailable (:func:`available`: False after one
+warning that says why) and ``OmniProjection`` takes its reference path, ``grid_sample`` on the
+padded atlas; the functions here then raise.
 
 CPU only; other devices keep ``grid_sample``. Timings: ``benchmarks/bench_projection.py``.
 """
@@ -38,20 +41,21 @@ CPU only; other devices keep ``grid_sample``. Timings: ``benchmarks/bench_projec
 from __future__ import annotations
 
 import functools
+import threading
+import warnings
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from . import memory, extension as native
+from . import extension, memory
 from ..cubemap.atlas import atlas_to_faces
 from ..cubemap.padding import border_plan, check_cubemap
-from ..cubemap.grid import _CASES, _ZERO_CASE, rotated_rays_to_grid
+from ..cubemap.grid import rotated_rays_to_grid
 from ..cubemap.grid import _check_inputs as _check_rays
-from .reference import unnormalize
 
 __all__ = ["CubeLUT", "build_lut", "sample_cube", "sample_rays", "reads_rays", "sample_atlas",
-           "compile_failures", "holds", "MODES", "BORDERS"]
+           "available", "unavailable_reason", "compile_failures", "holds", "MODES", "BORDERS"]
 
 MODES = ("nearest", "bilinear")
 #: How the atlas border is filled: resampled from the neighbours with the ``"bilinear"`` or
@@ -109,71 +113,61 @@ def _table(base: Tensor, fx: Tensor, fy: Tensor) -> Tensor:
 
 
 # ------------------------------------------------------------------------------------------
-# The maths: the specification of the C++ kernels, and their fallback
+# The C++ ops, or why there are none
 # ------------------------------------------------------------------------------------------
 
-def _lut_math(grid: Tensor, face_size, pad, face_stride, bilinear: bool):
-    """``grid (B', P, 2)`` -> ``base (B', P)`` int32 and fractions ``x - x0``, ``y - y0``."""
-    n = face_size + 2 * pad
-    x = unnormalize(grid[..., 0], n)
-    y = unnormalize(grid[..., 1], 6 * n)
-    x0 = torch.floor(x) if bilinear else torch.round(x)  # round: half to even, as grid_sample
-    y0 = torch.floor(y) if bilinear else torch.round(y)
-    span = 1 if bilinear else 0
-    # beyond the atlas by more than a texel (or NaN): outside; keeps the int casts small
-    near = (x0 >= -2) & (x0 <= n + 1) & (y0 >= -2) & (y0 <= 6 * n + 1)
-    j = torch.where(near, x0, -2.0).to(torch.int32)
-    r = torch.where(near, y0, -2.0).to(torch.int32)
-    k = torch.floor((r.to(torch.float32) + 0.5) / n).to(torch.int32)  # face of row r
-    i = r - k * n
-    interior = ((k >= 0) & (k < 6) & (i >= pad) & (i + span < pad + face_size)
-                & (j >= pad) & (j + span < pad + face_size))
-    outside = (j + span < 0) | (j >= n) | (r + span < 0) | (r >= 6 * n)
-    code = torch.where(outside, _OUTSIDE, _EDGE).to(torch.int32)
-    base = torch.where(interior, k * face_stride + (i - pad) * face_size + (j - pad), code)
-    return base, x - x0, y - y0
+_LOCK = threading.Lock()
+_STATE: dict = {}   # "ops": torch.ops.omniscape_torch, or None once they could not be built;
+#                     "error": why
 
 
-def _blend_math(src: Tensor, base: Tensor, fx: Tensor, fy: Tensor, batch: int,
-                batch_stride, chan_stride, chans: int, face_size, fill: int = 0) -> Tensor:
-    """Bilinear blend of ``chans`` channels: ``(batch, chans, P)``; ``fill`` where
-    ``base < 0``.
-
-    ``src`` is the flat cube; tap offsets are ``b * batch_stride + c * chan_stride + base +
-    (0, 1, F, F + 1)``. Weights and their order are ``grid_sample``'s (nw, ne, sw, se).
-    """
-    ok = base >= 0
-    off = (torch.arange(batch, device=src.device)[:, None] * batch_stride
-           + torch.where(ok, base, 0))  # [B, P] int64
-    e, s = 1 - fx, 1 - fy
-    taps = ((0, s * e), (1, s * fx), (face_size, fy * e), (face_size + 1, fy * fx))
-    outs = []
-    for c in range(chans):
-        acc = None
-        for shift, weight in taps:
-            term = src[off + (c * chan_stride + shift)] * weight
-            acc = term if acc is None else acc + term
-        outs.append(torch.where(ok, acc, fill))
-    return torch.stack(outs, 1)
+def _ops():
+    """The ops, built and loaded on the first call; None (after one warning) where they cannot
+    be built."""
+    if "ops" in _STATE:
+        return _STATE["ops"]
+    with _LOCK:
+        if "ops" not in _STATE:
+            try:
+                _STATE["ops"] = extension.load()
+            except Exception as exc:  # no compiler, no ninja, a read-only cache, ...
+                hint = ("; set $TORCH_EXTENSIONS_DIR to a writable folder"
+                        if isinstance(exc, OSError) else "")
+                _STATE["ops"], _STATE["error"] = None, f"{type(exc).__name__}: {exc}{hint}"
+                warnings.warn(f"omniscape_torch: the fast sampler is unavailable, its C++ "
+                              f"extension could not be built ({_STATE['error'][:500]}); "
+                              "OmniProjection samples with grid_sample on the padded atlas "
+                              "instead", UserWarning, stacklevel=3)
+    return _STATE["ops"]
 
 
-def _gather_math(src: Tensor, base: Tensor, batch: int, batch_stride, chan_stride,
-                 chans: int, fill: int = 0) -> Tensor:
-    """Nearest: the texel at ``base`` of ``chans`` channels, ``(batch, chans, P)``, any dtype
-    (exact); ``fill`` where ``base < 0``."""
-    ok = base >= 0
-    off = (torch.arange(batch, device=src.device)[:, None] * batch_stride
-           + torch.where(ok, base, 0))
-    fill = torch.tensor(fill, device=src.device).to(src.dtype)
-    return torch.stack([torch.where(ok, src[off + c * chan_stride], fill)
-                        for c in range(chans)], 1)
+def available() -> bool:
+    """Whether the fast sampler runs in this process: its C++ extension is built (on the first
+    call, once per machine) and loaded. False, after one ``UserWarning`` that says why
+    (:func:`unavailable_reason`), where it cannot be built (no C++ compiler, no ninja)."""
+    return _ops() is not None
+
+
+def unavailable_reason() -> str | None:
+    """Why :func:`available` is False (``"Error: message"``), else None."""
+    return _STATE.get("error")
 
 
 def compile_failures() -> dict[tuple, str]:
-    """Why the fast sampler runs its eager torch maths in this process:
-    ``{("native", "c++"): "Error: message"}`` when the C++ kernels could not be built
-    (:mod:`omniscape_torch.native`); empty when they work (or were not needed yet)."""
-    return {} if native.failure() is None else {("native", "c++"): native.failure()}
+    """``{("extension", "fastsample"): "Error: message"}`` when the C++ extension could not be
+    built in this process (:func:`available` is False); empty when it works (or was not needed
+    yet)."""
+    why = unavailable_reason()
+    return {} if why is None else {("extension", "fastsample"): why}
+
+
+def _require():
+    """The ops; a RuntimeError that says why where there are none."""
+    ops = _ops()
+    if ops is None:
+        raise RuntimeError(f"the fast sampler is unavailable ({unavailable_reason()}): use "
+                           "grid_sample on the padded atlas (OmniProjection does)")
+    return ops
 
 
 # ------------------------------------------------------------------------------------------
@@ -199,16 +193,6 @@ def _ring_plan(face_size: int, pad: int, border: str, dtype: torch.dtype
     return ((face * face_size + src_i) * face_size + src_j).unsqueeze(1), None
 
 
-def _ring_position(k: Tensor, i: Tensor, j: Tensor, face_size: int, pad: int) -> Tensor:
-    """Index among the ring texels (row-major over ``(6, n, n)``) of padded texel ``(k, i, j)``."""
-    n, f = face_size + 2 * pad, face_size
-    top = i * n + j
-    middle = pad * n + (i - pad) * 2 * pad + torch.where(j < pad, j, j - f)
-    bottom = pad * n + f * 2 * pad + (i - pad - f) * n + j
-    pos = torch.where(i < pad, top, torch.where(i < pad + f, middle, bottom))
-    return k * (n * n - f * f) + pos
-
-
 @functools.lru_cache(maxsize=16)
 def _ring_offsets(face_size: int, pad: int, border: str, dtype: torch.dtype, face_stride: int
                   ) -> tuple[Tensor, Tensor | None]:
@@ -226,67 +210,6 @@ def _ring_offsets(face_size: int, pad: int, border: str, dtype: torch.dtype, fac
     # each row's nonzero weights first, in their order (the kernel stops at a row's first zero)
     order = torch.sort((weight == 0).to(torch.uint8), dim=1, stable=True).indices
     return offsets.gather(1, order), weight.gather(1, order)
-
-
-def _ring_math(src: Tensor, ring_src: Tensor, ring_weight: Tensor | None, batch: int,
-               batch_stride, chan_stride, chans: int) -> Tensor:
-    """The ring texels ``(batch, chans, N)`` of ``chans`` channels from the flat cube: ring
-    texel ``t`` reads the cube at ``ring_src[t] (K,)`` (offsets within one sample and channel)
-    with ``ring_weight[t]``, or its one texel where ``ring_weight`` is None (exact, any
-    dtype)."""
-    start = torch.arange(batch, device=src.device)[:, None, None] * batch_stride
-    outs = []
-    for c in range(chans):
-        taps = src[start + c * chan_stride + ring_src]  # [B, N, K]
-        outs.append(taps[..., 0] if ring_weight is None else (taps * ring_weight).sum(-1))
-    return torch.stack(outs, 1)
-
-
-def _edge_math(src: Tensor, ring: Tensor, grid: Tensor, sample: Tensor, batch_stride,
-               chan_stride, chans: int, face_size, pad, face_stride, bilinear: bool) -> Tensor:
-    """Values ``(E, chans)`` of the pixels at ``grid (E, 2)`` of samples ``sample (E,)``, read
-    from the virtual atlas: a tap on an interior texel from the cube, on a border texel from
-    ``ring (B, chans, N)`` (:func:`_ring_math`), outside the atlas 0. Taps and weights are
-    those of :func:`_lut_math` and :func:`_blend_math`."""
-    f, p = face_size, pad
-    n = f + 2 * p
-    x = unnormalize(grid[:, 0], n)
-    y = unnormalize(grid[:, 1], 6 * n)
-    x0 = torch.floor(x) if bilinear else torch.round(x)
-    y0 = torch.floor(y) if bilinear else torch.round(y)
-    if bilinear:
-        fx, fy = x - x0, y - y0
-        e, s = 1 - fx, 1 - fy
-        taps = ((0, 0, s * e), (1, 0, s * fx), (0, 1, fy * e), (1, 1, fy * fx))
-    else:
-        taps = ((0, 0, None),)
-    j0, r0 = x0.to(torch.int64), y0.to(torch.int64)  # within two texels of the atlas
-    read = []   # per tap: inside the atlas, interior, cube offset, ring offset, weight
-    for dx, dy, weight in taps:
-        j, r = j0 + dx, r0 + dy
-        inside = (j >= 0) & (j < n) & (r >= 0) & (r < 6 * n)
-        j, r = j.clamp(0, n - 1), r.clamp(0, 6 * n - 1)
-        k = torch.div(r, n, rounding_mode="floor")
-        i = r - k * n
-        interior = (i >= p) & (i < p + f) & (j >= p) & (j < p + f)
-        texel = k * face_stride + ((i - p) * f + (j - p)).clamp(0, f * f - 1)
-        ring_at = _ring_position(k, i, j, f, p).clamp(0, ring.shape[-1] - 1)
-        read.append((inside, interior, texel, ring_at, weight))
-    at = sample * batch_stride
-    ring_at0 = sample * ring.stride(0)
-    flat_ring = ring.reshape(-1)
-    zero = torch.zeros((), dtype=src.dtype, device=src.device)
-    outs = []
-    for c in range(chans):
-        acc = None
-        for inside, interior, texel, ring_at, weight in read:
-            value = torch.where(interior, src[at + c * chan_stride + texel],
-                                flat_ring[ring_at0 + c * ring.stride(1) + ring_at])
-            value = torch.where(inside, value, zero)
-            term = value if weight is None else value * weight
-            acc = term if acc is None else acc + term
-        outs.append(acc)
-    return torch.stack(outs, 1)
 
 
 # ------------------------------------------------------------------------------------------
@@ -339,54 +262,24 @@ def build_lut(grid: Tensor, face_size: int, pad: int, mode: str = "bilinear", *,
     face_stride = channels * face_size * face_size
     _check_offsets(face_stride)
     flat = grid.reshape(grid.shape[0], -1, 2).contiguous()
-    bilinear = mode == "bilinear"
-    kernel = native.function(f"os_lut_{_SUFFIX[flat.dtype]}")
-    if kernel is not None:
-        table = torch.empty((*flat.shape[:2], 3), dtype=_ENTRY[flat.dtype])
-        kernel(flat.data_ptr(), flat.shape[0] * flat.shape[1], face_size, pad, face_stride,
-               bilinear, table.data_ptr(), native.threads())
-    else:
-        table = _table(*_lut_math(flat, face_size, pad, face_stride, bilinear))
+    table = torch.empty((*flat.shape[:2], 3), dtype=_ENTRY[flat.dtype])
+    _require().build_lut(flat, face_size, pad, face_stride, mode == "bilinear", table)
     return CubeLUT(mode, face_size, pad, face_stride, table, flat, tuple(grid.shape[1:3]))
 
 
-_SUFFIX = {torch.float32: "f32", torch.float64: "f64"}
-
-
-def _kernel(kind: str, dtype: torch.dtype, grid_dtype: torch.dtype):
-    """The C++ kernel ``os_sample_{kind}`` for cubes of ``dtype`` (a floating cube is sampled
-    with a grid of its dtype; any other is copied by element size), or None."""
-    if dtype.is_floating_point:
-        suffix = _SUFFIX.get(dtype)
-    else:
-        size = torch.empty((), dtype=dtype).element_size()
-        suffix = f"{size}_{_SUFFIX[grid_dtype]}" if size in (1, 2, 4, 8) else None
-    return None if suffix is None else native.function(f"os_sample_{kind}_{suffix}")
-
-
-def _tail(faces: Tensor, mode: str, pad: int, border: str, out: Tensor, fill: int,
-          width: int) -> tuple:
-    """The kernels' arguments after their grid: ring, layout, fill, planes, out, threads."""
-    batch, _, chans, f, _ = faces.shape
-    sb, sk, sc, _, _ = faces.stride()
-    ring_src, ring_weight = _ring_offsets(f, pad, border, faces.dtype, sk)
-    return (ring_src.data_ptr(), None if ring_weight is None else ring_weight.data_ptr(),
-            ring_src.shape[1], f, pad, sk, mode == "bilinear", fill, batch, chans, out.shape[-1],
-            width, sb, sc, out.stride(0), out.stride(1), out.data_ptr(), native.threads())
-
-
-def _flat(faces: Tensor) -> Tensor:
-    """The elements ``faces`` spans, as one flat view (the kernels' ``src``)."""
-    _check_offsets(faces.stride(1))
-    span = sum((n - 1) * stride for n, stride in zip(faces.shape, faces.stride())) + 1
-    return faces.as_strided((span,), (1,))
+def _copies(dtype: torch.dtype) -> bool:
+    """Whether the kernels read a cube of ``dtype``: float32 and float64, and any dtype of 1, 2,
+    4 or 8 bytes sampled nearest (its elements copied)."""
+    return (dtype in (torch.float32, torch.float64)
+            or torch.empty((), dtype=dtype).element_size() in (1, 2, 4, 8))
 
 
 def _sample(faces: Tensor, grid: Tensor, mode: str, pad: int, border: str,
             lut: CubeLUT | None, out: Tensor, valid: Tensor | None, fill: int) -> None:
-    """Sample ``faces (B, 6, C, F, F)`` (any strides with unit texel stride in a face row) into
-    ``out (B, C, P = H W)`` (unit pixel stride); the pixels outside the atlas (without ``lut``,
-    also those where ``valid (1 or B', P)`` is False) read ``fill``."""
+    """Sample ``faces (B, 6, C, F, F)`` (any strides with unit texel stride in a face row) at
+    ``grid (B', H, W, 2)`` into ``out (B, C, H, W)`` (contiguous planes); the pixels outside
+    the atlas (without ``lut``, also those where ``valid (1 or B', H, W)`` is False) read
+    ``fill``."""
     batch, _, _, f, _ = faces.shape
     sk = faces.stride(1)
     if lut is not None and ((lut.mode, lut.face_size, lut.pad, lut.face_stride) != (
@@ -394,110 +287,51 @@ def _sample(faces: Tensor, grid: Tensor, mode: str, pad: int, border: str,
         raise ValueError(f"lut: built for (mode, F, pad, face stride, batch) = "
                          f"{(lut.mode, lut.face_size, lut.pad, lut.face_stride, lut.base.shape[0])}"
                          f", the call needs {(mode, f, pad, sk, batch)}")
-    src = _flat(faces)
+    _check_offsets(sk)
+    ops = _require()
     bilinear = mode == "bilinear"
-    floating = faces.is_floating_point()
-    width = (grid.shape[2] if lut is None else lut.size[1])
-    points = (grid.reshape(grid.shape[0], -1, 2) if lut is None else lut.grid).contiguous()
-    if floating:
-        points = points.to(faces.dtype)   # a float cube is sampled with a grid of its dtype
-    kernel = _kernel("grid" if lut is None else "lut", faces.dtype, points.dtype)
-    if kernel is None:
-        return _sample_eager(src, faces, points, bilinear, pad, border, lut, out, valid, fill)
-    tail = _tail(faces, mode, pad, border, out, fill, width)
-    pixels = out.shape[-1]
+    ring_src, ring_weight = _ring_offsets(f, pad, border, faces.dtype, sk)
     if lut is None:
-        mask = None if valid is None else valid.contiguous()
-        kernel(src.data_ptr(), points.data_ptr(), 0 if points.shape[0] == 1 else 2 * pixels,
-               None if mask is None else mask.data_ptr(),
-               0 if mask is None or mask.shape[0] == 1 else pixels, *tail)
-    else:
-        table = lut.table
-        if table.dtype != _ENTRY[points.dtype]:   # a table of another grid dtype: converted
-            frac = lut.frac.to(points.dtype)
-            table = _table(lut.base, frac[0], frac[1])
-        kernel(src.data_ptr(), table.data_ptr(), points.data_ptr(),
-               0 if table.shape[0] == 1 else pixels, *tail)
-
-
-@functools.lru_cache(maxsize=1)
-def _check_face_table() -> None:
-    """The C++ kernel's copy of the face table must be ``cubemap.faces``' (via fastgrid)."""
-    table = torch.zeros(35, dtype=torch.int32)
-    native.function("os_face_cases")(table.data_ptr())
-    expected = [v for case in (*_CASES, _ZERO_CASE) for v in case]
-    if table.tolist() != expected:
-        raise RuntimeError(f"csrc/fastsample.cpp: its face table {table.tolist()} is not "
-                           f"cubemap.faces' {expected}; update kCases")
-
-
-def _rays_kernel(dtype: torch.dtype, rays_dtype: torch.dtype):
-    """The C++ kernel that samples a cube of (working) ``dtype`` through rays of
-    ``rays_dtype``, or None: it computes the grid in the rays' dtype, which must be the grid's
-    (the cube's floating dtype, float32 for other cubes)."""
-    grid_dtype = dtype if dtype.is_floating_point else torch.float32
-    kernel = _kernel("rays", dtype, grid_dtype) if rays_dtype == grid_dtype else None
-    if kernel is not None:
-        _check_face_table()
-    return kernel
+        points = grid.to(faces.dtype) if faces.is_floating_point() else grid
+        ops.sample_grid(faces, points.contiguous(), valid, ring_src, ring_weight, pad, bilinear,
+                        fill, out)
+        return
+    points = lut.grid.to(faces.dtype) if faces.is_floating_point() else lut.grid
+    table = lut.table
+    if table.dtype != _ENTRY[points.dtype]:   # a table of another grid dtype: converted
+        frac = lut.frac.to(points.dtype)
+        table = _table(lut.base, frac[0], frac[1])
+    ops.sample_lut(faces, table, points.contiguous(), ring_src, ring_weight, pad, sk, bilinear,
+                   fill, out)
 
 
 def reads_rays(dtype: torch.dtype, rays_dtype: torch.dtype) -> bool:
     """Whether :func:`sample_rays` samples a cube of ``dtype`` through rays of ``rays_dtype``
-    without building their grid first."""
+    without building their grid first: the C++ op computes the grid in the rays' dtype, which
+    must be the grid's (the cube's floating dtype, float32 for other cubes). False where the
+    fast sampler is unavailable."""
     half = dtype.is_floating_point and dtype not in (torch.float32, torch.float64)
-    return _rays_kernel(torch.float32 if half else dtype, rays_dtype) is not None
+    work = torch.float32 if half else dtype
+    grid_dtype = work if work.is_floating_point else torch.float32
+    return rays_dtype == grid_dtype and _copies(work) and available()
 
 
 def _sample_rays(faces: Tensor, rays: Tensor, rotation: Tensor | None, mode: str, pad: int,
                  border: str, out: Tensor, valid: Tensor | None, fill: int) -> None:
     """:func:`_sample` of the grid of ``rays (Br, H, W, 3)`` rotated by ``rotation (Bq, 3, 3)``:
-    computed in the sampling pass where the C++ kernel runs (:func:`_rays_kernel`), else built
-    first."""
-    kernel = _rays_kernel(faces.dtype, rays.dtype)
-    if kernel is None:   # without a C++ compiler nothing compiles: the eager grid then
-        grid_dtype = faces.dtype if faces.is_floating_point() else torch.float32
-        grid = rotated_rays_to_grid(rays, rotation, faces.shape[-1], pad, dtype=grid_dtype,
-                                    compiled=native.library() is not None)
+    computed in the sampling pass where the C++ op reads these rays (:func:`reads_rays`), else
+    built first."""
+    grid_dtype = faces.dtype if faces.is_floating_point() else torch.float32
+    if rays.dtype != grid_dtype:   # the op would compute the grid in another dtype
+        grid = rotated_rays_to_grid(rays, rotation, faces.shape[-1], pad, dtype=grid_dtype)
         return _sample(faces, grid, mode, pad, border, None, out, valid, fill)
-    rays = rays.contiguous()
-    rot = None if rotation is None else rotation.to(rays.dtype).contiguous()
-    mask = None if valid is None else valid.contiguous()
-    pixels = out.shape[-1]
-    kernel(_flat(faces).data_ptr(), rays.data_ptr(), 0 if rays.shape[0] == 1 else 3 * pixels,
-           None if rot is None else rot.data_ptr(), 0 if rot is None or rot.shape[0] == 1 else 9,
-           None if mask is None else mask.data_ptr(),
-           0 if mask is None or mask.shape[0] == 1 else pixels,
-           *_tail(faces, mode, pad, border, out, fill, rays.shape[2]))
-
-
-def _sample_eager(src: Tensor, faces: Tensor, points: Tensor, bilinear: bool, pad: int,
-                  border: str, lut: CubeLUT | None, out: Tensor, valid: Tensor | None,
-                  fill: int) -> None:
-    """:func:`_sample` in torch: every pixel's taps, then the edge pixels through the ring."""
-    batch, _, chans, f, _ = faces.shape
-    sb, sk, sc, _, _ = faces.stride()
-    if lut is None:
-        if valid is not None:   # invalid pixels outside the atlas: they read 0
-            points = torch.where(valid.unsqueeze(-1), points, -2.0)
-        base, fx, fy = _lut_math(points, f, pad, sk, bilinear)
-    else:
-        base = lut.base
-        fx, fy = lut.frac.to(faces.dtype) if bilinear else (None, None)
-    out.copy_(_blend_math(src, base, fx, fy, batch, sb, sc, chans, f, fill) if bilinear else
-              _gather_math(src, base, batch, sb, sc, chans, fill))
-    edge = torch.nonzero(base == _EDGE)
-    if not edge.numel():
-        return
-    sample, pixel = edge.unbind(1)
-    if base.shape[0] == 1 and batch > 1:  # one grid for the whole batch
-        pixel = pixel.repeat(batch)
-        sample = torch.arange(batch).repeat_interleave(edge.shape[0])
-    at = points[edge[:, 0], edge[:, 1]].repeat(len(sample) // len(edge), 1)
+    f, sk = faces.shape[-1], faces.stride(1)
+    _check_offsets(sk)
+    ops = _require()
     ring_src, ring_weight = _ring_offsets(f, pad, border, faces.dtype, sk)
-    ring = _ring_math(src, ring_src, ring_weight, batch, sb, sc, chans)
-    out[sample, :, pixel] = _edge_math(src, ring, at, sample, sb, sc, chans, f, pad, sk,
-                                       bilinear)
+    rot = None if rotation is None else rotation.to(rays.dtype).contiguous()
+    ops.sample_rays(faces, rays.contiguous(), rot, valid, ring_src, ring_weight, pad,
+                    mode == "bilinear", fill, out)
 
 
 def sample_cube(cubemap: Tensor, grid: Tensor, mode: str = "bilinear", *, pad: int,
@@ -562,8 +396,7 @@ def sample_rays(cubemap: Tensor, rays: Tensor, rotation: Tensor | None = None,
     for an integer cube): the C++ kernel computes each pixel's grid point in the sampling pass,
     with the operations of the compiled ``rotated_rays_to_grid`` in the same order, and reads
     the cube straight away, so a grid used once (a new rotation per call) costs no pass over
-    memory of its own. Where the kernel does not apply (no compiler, or rays in another dtype
-    than the grid's) the grid is built first.
+    memory of its own. For rays in another dtype than the grid's the grid is built first.
 
     Args:
         cubemap: ``(B, 6, C, F, F)`` on the CPU, as for :func:`sample_cube`.
@@ -595,7 +428,7 @@ def _run(cubemap: Tensor, points: int, size: tuple[int, int], mode: str, border:
     """What :func:`sample_cube` and :func:`sample_rays` share, after their ``check_cubemap``:
     the checks of the cube's device and dtype, of ``out``, ``valid`` (``points``: the grid's
     batch) and ``fill``; the cube in a dtype and layout the kernels read; then ``sample(work,
-    into (B, C, H W), valid (1 or B', H W) or None)``."""
+    into (B, C, H, W), valid (1 or B', H, W) or None)``."""
     _check_mode(mode, border)
     if cubemap.device.type != "cpu":
         raise ValueError(f"cubemap: the fast path runs on the CPU, got {cubemap.device}")
@@ -603,6 +436,9 @@ def _run(cubemap: Tensor, points: int, size: tuple[int, int], mode: str, border:
         raise TypeError(f"cubemap: bilinear sampling needs a floating cubemap, got "
                         f"{cubemap.dtype}")
     half = cubemap.is_floating_point() and cubemap.dtype not in (torch.float32, torch.float64)
+    if not (half or _copies(cubemap.dtype)):
+        raise TypeError(f"cubemap: nearest sampling copies elements of 1, 2, 4 or 8 bytes, got "
+                        f"{cubemap.dtype}")
     f = cubemap.shape[-1]
     rows_ok = cubemap.stride(-1) == 1 and (cubemap.stride(-2) == f or f == 1)
     work = cubemap.float() if half else (cubemap if rows_ok else cubemap.contiguous())
@@ -617,12 +453,13 @@ def _run(cubemap: Tensor, points: int, size: tuple[int, int], mode: str, border:
                              f"{size[0]}, {size[1]}), got "
                              f"{getattr(valid, 'dtype', type(valid).__name__)} "
                              f"{tuple(getattr(valid, 'shape', ()))}")
-        valid = valid.reshape(valid.shape[0], -1)
+        valid = valid.contiguous()
+    _require()
     into = out if out is not None and out.dtype == work.dtype else None
     if into is None:
         into = memory.empty((batch, chans, *size), work.dtype)
     with torch.no_grad():
-        sample(work, into.flatten(2), valid)
+        sample(work, into, valid)
     if out is None:
         return into.to(cubemap.dtype)
     if into is not out:

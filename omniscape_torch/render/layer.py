@@ -241,7 +241,8 @@ class OmniProjection(nn.Module):
         on the fast path: see ``render``), else None. The lookup table of a cached grid is kept with it. ``valid``:
         the mask of a grid whose invalid pixels were not moved outside the atlas, else None;
         ``fill``: the value of the pixels outside; ``out``: where to write the image."""
-        if not (mode in fastsample.MODES and cube.device.type == "cpu"):
+        if not (mode in fastsample.MODES and cube.device.type == "cpu"
+                and fastsample.available()):   # no C++ extension here: the reference path
             return None
         border = "copied" if self.border == "copied" else pad_mode
         if isinstance(grid, _RayGrid):
@@ -444,11 +445,12 @@ class OmniProjection(nn.Module):
     def _grid_free(self, rgb: Tensor | None, depth: Tensor | None, labels: Tensor | None,
                    soft_labels: int | None) -> bool:
         """Whether the CPU's fast path renders these inputs under a rotation without building a
-        grid: every sampler reads the rays (``fastsample.sample_rays`` with its C++ kernel)."""
+        grid: every sampler reads the rays (``fastsample.sample_rays`` with its C++ kernel;
+        never where the fast sampler is unavailable)."""
         rays = self.camera_rays()[0]
         wanted = ((rgb, self.interpolation), (depth, self.depth_interpolation),
                   (labels, "nearest"))
-        return soft_labels is None and all(
+        return soft_labels is None and fastsample.available() and all(
             t is None or (mode in fastsample.MODES and fastsample.reads_rays(t.dtype, rays.dtype))
             for t, mode in wanted)
 

@@ -1,15 +1,17 @@
-// The fast sampler's per-pixel loops (omniscape_torch/fastsample.py), compiled on first use by
-// omniscape_torch/native.py. Plain C++ with OpenMP, no PyTorch headers: tensors come in as
-// pointers, sizes and strides (in elements).
+// The fast sampler's per-pixel loops (omniscape_torch/render/fast.py) as PyTorch custom ops,
+// torch.ops.omniscape_torch.{build_lut, sample_lut, sample_grid, sample_rays}, built on first
+// use by omniscape_torch/render/extension.py (torch.utils.cpp_extension). The ops take tensors
+// and read their sizes and strides; the loops below take pointers, sizes and strides (in
+// elements).
 //
 // The image is grid_sample(cubemap_to_atlas(cube, pad, border), grid, align_corners=False,
 // padding_mode="zeros") without the atlas: a grid point becomes atlas pixels as grid_sample's
 // CPU kernel computes them, x = fma(g + 1, size / 2, -0.5) (evaluated in double for a float
 // grid and rounded once, which is exact); a tap on an interior texel of a face reads the cube,
 // a tap on the border ("ring") texel t reads sum_m weight[t, m] * cube[src[t, m]] (the border
-// plan of cubemap_to_atlas), a tap outside the atlas reads 0. Taps, codes and weights are those
-// of fastsample._lut_math, _blend_math and _edge_math; built with -ffp-contract=off, so every
-// sum is evaluated in the order written there.
+// plan of cubemap_to_atlas, fast._ring_offsets), a tap outside the atlas reads 0; bilinear
+// weights and their order are grid_sample's (nw, ne, sw, se). Built with -ffp-contract=off, so
+// every sum is evaluated in the order written here.
 //
 // Per pixel, its "code" is the offset of the top-left tap (nearest: the texel) within one
 // sample and channel of the cube when every tap is an interior texel of one face (99% of the
@@ -17,10 +19,22 @@
 // 0, or the ignore index of labels), -2 for an edge pixel, whose taps are read one by one
 // through the border.
 
+#include <ATen/Parallel.h>
+#include <ATen/core/Tensor.h>
+#include <torch/library.h>
+
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <optional>
 #include <type_traits>
+
+// The face table, per case 2 axis + (dominant component < 0) and then the zero ray: the face,
+// then r and b as (axis, sign). Generated from cubemap/faces.py (the only face table) by
+// extension.py, which passes it as -DOS_FACE_CASES=..., so a new table is a new build.
+#ifndef OS_FACE_CASES
+#error "OS_FACE_CASES is undefined: build this file through omniscape_torch/render/extension.py"
+#endif
 
 namespace {
 
@@ -43,12 +57,14 @@ Layout layout(int64_t face, int64_t pad, int64_t face_stride) {
 
 // The border texels (row-major over the padded faces, interior skipped): texel t reads the
 // cube (one sample and channel) at src[t k .. t k + k) with weight[...], or at src[t k] alone
-// when weight is null (a copy: exact for any dtype).
+// when weight is null (a copy: exact for any dtype). The offsets are an input of the ops:
+// clamped to [0, last] where read (edge pixels only; checking them all per call cost 5%).
 template <typename T>
 struct Ring {
     const int64_t* src;
     const T* weight;
-    int64_t k;
+    int64_t k, last;
+    int64_t at(const int64_t* s, int64_t m) const { return std::clamp<int64_t>(s[m], 0, last); }
 };
 
 // A pixel's taps, its code and bilinear fractions, where locate writes them and interior reads
@@ -62,15 +78,18 @@ struct Entry {
     G fx, fy;
 };
 
+// A table is an input of its own (sample_lut): a code beyond `limit`, the last top-left tap
+// whose taps all lie in the cube, reads as outside, so that no table reads past the cube.
 template <typename G>
 struct Packed {
     Entry<G>* e;
-    int64_t code(int64_t p) const { return e[p].code; }
+    int64_t limit;
+    int64_t code(int64_t p) const { return e[p].code > limit ? kOutside : e[p].code; }
     G fx(int64_t p) const { return e[p].fx; }
     G fy(int64_t p) const { return e[p].fy; }
     void set(int64_t p, int32_t code, G fx, G fy) const { e[p] = Entry<G>{code, fx, fy}; }
     void set_code(int64_t p, int32_t code) const { e[p].code = code; }
-    Packed operator+(int64_t d) const { return Packed{e + d}; }
+    Packed operator+(int64_t d) const { return Packed{e + d, limit}; }
 };
 
 template <typename G>
@@ -113,7 +132,7 @@ inline double unnormalize(double g, double half) {
 
 // Codes and bilinear fractions of `count` grid points; `valid` (bool, may be null) false ->
 // outside. Branch-free int32 arithmetic (`&` for `&&`) that the compiler vectorises; the
-// offsets fit in int32 (fastsample._check_offsets).
+// offsets fit in int32 (checked by the ops).
 template <typename G, bool Bilinear, typename Taps>
 void locate(const G* __restrict grid, int64_t count, const uint8_t* __restrict valid,
             const Layout& L, Taps out) {
@@ -171,7 +190,7 @@ inline T blend(T nw, T ne, T sw, T se, T fx, T fy) {
 }
 
 // Where texel (column j, row r) of the virtual atlas of one sample and channel is read: `at`
-// in the cube (kCube), ring texel `at` (kRing: fastsample._ring_position), or nowhere (kZero:
+// in the cube (kCube), ring texel `at` (kRing), or nowhere (kZero:
 // outside the atlas, 0). Located once per tap, then read for every channel.
 enum Kind : int32_t { kZero, kCube, kRing };
 struct Tap {
@@ -188,7 +207,7 @@ inline Tap atlas_tap(int64_t j, int64_t r, const Layout& L) {
     if (i >= p && i < p + f && j >= p && j < p + f) {
         return Tap{k * L.face_stride + (i - p) * f + (j - p), kCube};
     }
-    // index among the ring texels (fastsample._ring_position)
+    // index among the ring texels (row-major over the padded faces, interior skipped)
     const int64_t pos = i < p       ? i * n + j
                         : i < p + f ? p * n + (i - p) * 2 * p + (j < p ? j : j - f)
                                     : p * n + f * 2 * p + (i - p - f) * n + j;
@@ -202,14 +221,14 @@ inline T read(const T* cube, const Ring<T>& R, const Tap& t) {
     }
     const int64_t* src = R.src + t.at * R.k;
     if (R.weight == nullptr) {
-        return cube[src[0]];
+        return cube[R.at(src, 0)];
     }
     // summed in the plan's order up to the row's first zero weight: the rows list their
-    // nonzero weights first (fastsample._ring_offsets), then zeros, which would add nothing
+    // nonzero weights first (fast._ring_offsets), then zeros, which would add nothing
     const T* w = R.weight + t.at * R.k;
-    T acc = cube[src[0]] * w[0];
+    T acc = cube[R.at(src, 0)] * w[0];
     for (int64_t m = 1; m < R.k && w[m] != T(0); ++m) {
-        acc = acc + cube[src[m]] * w[m];
+        acc = acc + cube[R.at(src, m)] * w[m];
     }
     return acc;
 }
@@ -313,34 +332,39 @@ void sample_span(const T* cube, const Ring<T>& R, Taps t, const G* grid, int64_t
 }
 
 // fn(b, lo, m) for the row segments [lo, lo + m) of every tile of kTileW x kTileH pixels of
-// every sample, the tiles spread over the threads. A tile, not a row: the taps of a rotated
-// camera's row can run down a face's columns, a new cache line each; those of a tile stay in a
-// small patch of the cube.
+// every sample, the tiles spread over PyTorch's intra-op threads (at::parallel_for: a run of
+// consecutive tiles per thread; one thread in DataLoader workers). A tile, not a row: the taps
+// of a rotated camera's row can run down a face's columns, a new cache line each; those of a
+// tile stay in a small patch of the cube.
 template <typename Fn>
-void for_tiles(const Planes& S, int threads, Fn fn) {
+void for_tiles(const Planes& S, Fn fn) {
+    if (S.pixels == 0 || S.chans == 0) {   // an empty image: nothing to write
+        return;
+    }
     const int64_t height = S.pixels / S.width;
     const int64_t nx = (S.width + kTileW - 1) / kTileW, ny = (height + kTileH - 1) / kTileH;
-#pragma omp parallel for collapse(2) num_threads(threads) schedule(static)
-    for (int64_t b = 0; b < S.batch; ++b) {
-        for (int64_t t = 0; t < nx * ny; ++t) {
+    at::parallel_for(0, S.batch * nx * ny, 1, [&](int64_t begin, int64_t end) {
+        for (int64_t index = begin; index < end; ++index) {
+            const int64_t b = index / (nx * ny), t = index % (nx * ny);
             const int64_t x0 = (t % nx) * kTileW, y0 = (t / nx) * kTileH;
             const int64_t m = std::min(kTileW, S.width - x0);
             for (int64_t y = y0; y < std::min(y0 + kTileH, height); ++y) {
                 fn(b, y * S.width + x0, m);
             }
         }
-    }
+    });
 }
 
 // Sampling through a lookup table (the entries of a grid; fractions unused for nearest),
 // shared by the batch (lut_batch = 0) or one per sample (lut_batch = P).
 template <typename T, typename G>
 void sample_lut(const T* src, const Entry<G>* table, const G* grid, int64_t lut_batch,
-                const Ring<T>& R, const Layout& L, bool bilinear, T fill, Planes S, T* out,
-                int threads) {
-    for_tiles(S, threads, [&](int64_t b, int64_t lo, int64_t m) {
+                const Ring<T>& R, const Layout& L, bool bilinear, T fill, Planes S, T* out) {
+    // the top-left tap of the last interior pixel: its 4 taps (nearest: its 1) in the last face
+    const int64_t limit = 5 * L.face_stride + L.face * L.face - 1 - (bilinear ? L.face + 1 : 0);
+    for_tiles(S, [&](int64_t b, int64_t lo, int64_t m) {
         const int64_t at = b * lut_batch + lo;
-        const Packed<G> taps{const_cast<Entry<G>*>(table) + at};   // read only
+        const Packed<G> taps{const_cast<Entry<G>*>(table) + at, limit};   // read only
         sample_span<T, G>(src + b * S.src_batch, R, taps, grid + 2 * at, m, L, bilinear, fill,
                           S, out + b * S.out_batch + lo);
     });
@@ -362,24 +386,22 @@ void sample_points(const T* cube, const G* g, const uint8_t* valid, int64_t m, c
 template <typename T, typename G>
 void sample_grid(const T* src, const G* grid, int64_t grid_batch, const uint8_t* valid,
                  int64_t valid_batch, const Ring<T>& R, const Layout& L, bool bilinear, T fill,
-                 Planes S, T* out, int threads) {
-    for_tiles(S, threads, [&](int64_t b, int64_t lo, int64_t m) {
+                 Planes S, T* out) {
+    for_tiles(S, [&](int64_t b, int64_t lo, int64_t m) {
         sample_points<T, G>(src + b * S.src_batch, grid + b * grid_batch + 2 * lo,
                             valid == nullptr ? nullptr : valid + b * valid_batch + lo, m, R, L,
                             bilinear, fill, S, out + b * S.out_batch + lo);
     });
 }
 
-// The faces of the cube as omniscape_torch.fastgrid._CASES (from cubemap.faces): per case
-// 2 axis + (dominant component < 0), the face, then r and b as (axis, sign). fastsample checks
-// this copy against cubemap.faces before the first use (os_face_cases).
-constexpr int32_t kCases[6][5] = {{3, 2, -1, 1, 1}, {2, 2, 1, 1, 1}, {5, 0, 1, 2, -1},
-                                  {4, 0, 1, 2, 1},  {0, 0, 1, 1, 1}, {1, 0, -1, 1, 1}};
-constexpr int32_t kZeroCase[5] = {0, 0, 1, 1, 1};
+// The face table (OS_FACE_CASES): the 6 cases of cubemap.grid._CASES, then its _ZERO_CASE.
+constexpr int32_t kFaceCases[] = {OS_FACE_CASES};
+static_assert(sizeof(kFaceCases) / sizeof(kFaceCases[0]) == 7 * 5,
+              "OS_FACE_CASES: expected 7 cases of 5 integers");
 
 template <int K, int Col>
 constexpr int32_t case_entry() {
-    return K < 6 ? kCases[K][Col] : kZeroCase[Col];
+    return kFaceCases[5 * K + Col];
 }
 
 // Column Col of case K (K = 6: the zero ray) for the rotated ray (px, py, pz): 0 the face,
@@ -400,7 +422,7 @@ inline G case_value(G px, G py, G pz) {
     }
 }
 
-// fastgrid._grid_xy's pick: the value of case 2 axis + neg, or of the zero case.
+// cubemap.grid.grid_xy's pick: the value of case 2 axis + neg, or of the zero case.
 template <typename G, int Col>
 inline G pick(bool use_x, bool use_y, bool neg, bool zero, G px, G py, G pz) {
     const G pos = use_x ? case_value<G, 0, Col>(px, py, pz)
@@ -413,7 +435,7 @@ inline G pick(bool use_x, bool use_y, bool neg, bool zero, G px, G py, G pz) {
 }
 
 // The atlas grid of `count` rays (x, y, z at rays[3 p ..]) rotated by `rot` (row-major 3 x 3,
-// null: none), into grid[2 p], grid[2 p + 1]: fastgrid._rotated_grid_xy and _grid_xy, the same
+// null: none), into grid[2 p], grid[2 p + 1]: cubemap.grid.rotated_grid_xy and grid_xy, the same
 // operations in the same order (so the grid is inductor's, bit for bit).
 template <typename G, bool Rotate>
 void ray_grid(const G* __restrict rays, const G* __restrict rot, int64_t count,
@@ -468,8 +490,8 @@ void ray_grid(const G* rays, const G* rot, int64_t count, const Layout& L, G* gr
 template <typename T, typename G>
 void sample_rays(const T* src, const G* rays, int64_t rays_batch, const G* rot,
                  int64_t rot_batch, const uint8_t* valid, int64_t valid_batch, const Ring<T>& R,
-                 const Layout& L, bool bilinear, T fill, Planes S, T* out, int threads) {
-    for_tiles(S, threads, [&](int64_t b, int64_t lo, int64_t m) {
+                 const Layout& L, bool bilinear, T fill, Planes S, T* out) {
+    for_tiles(S, [&](int64_t b, int64_t lo, int64_t m) {
         G g[2 * kTileW];
         ray_grid<G>(rays + b * rays_batch + 3 * lo, rot == nullptr ? nullptr : rot + b * rot_batch,
                     m, L, g);
@@ -481,76 +503,351 @@ void sample_rays(const T* src, const G* rays, int64_t rays_batch, const G* rot,
 
 }  // namespace
 
+
 // ------------------------------------------------------------------------------------------
-// The C entry points (ctypes): per cube dtype (f32, f64; or the element size 1, 2, 4, 8 bytes
-// of a cube sampled nearest, whose elements are copied: any dtype, exact) and grid dtype.
-// `fill`: the value of the pixels outside (an integer: the ignore index of labels), given as
-// int64 and converted to the element type (two's complement for unsigned elements).
+// The ops: tensors in, checked, then the loops above per cube dtype (float32, float64; or the
+// element size 1, 2, 4, 8 bytes of a cube sampled nearest, whose elements are copied: any
+// dtype, exact) and grid dtype (the cube's for a floating cube, float32 or float64 otherwise).
+// `fill`: the value of the pixels outside (an integer: the ignore index of labels), converted
+// to the element type (two's complement for the copied elements).
 // ------------------------------------------------------------------------------------------
 
-#define PLANE_ARGS int64_t batch, int64_t chans, int64_t pixels, int64_t width, \
-    int64_t src_batch, int64_t src_chan, int64_t out_batch, int64_t out_chan
-#define PLANES Planes{batch, chans, pixels, width, src_batch, src_chan, out_batch, out_chan}
-#define RING_ARGS(T) const int64_t *ring_src, const T *ring_weight, int64_t ring_k
-#define RING(T) Ring<T>{ring_src, ring_weight, ring_k}
+namespace {
 
-extern "C" {
+constexpr int64_t kMaxOffset = int64_t(1) << 31;  // the codes are int32
 
-#define LUT(NAME, G)                                                                          \
-    void NAME(const G* grid, int64_t count, int64_t face, int64_t pad, int64_t face_stride,  \
-              int bilinear, Entry<G>* table, int threads) {                                  \
-        const Layout L = layout(face, pad, face_stride);                                      \
-        const int64_t tiles = (count + kChunk - 1) / kChunk;                                  \
-        _Pragma("omp parallel for num_threads(threads) schedule(static)")                     \
-        for (int64_t tile = 0; tile < tiles; ++tile) {                                        \
-            const int64_t lo = tile * kChunk, m = std::min(kChunk, count - lo);               \
-            locate<G>(grid + 2 * lo, m, nullptr, L, bilinear != 0, Packed<G>{table} + lo);    \
-        }                                                                                     \
-    }
-LUT(os_lut_f32, float)
-LUT(os_lut_f64, double)
-
-#define SAMPLE(SUFFIX, T, G)                                                                  \
-    void os_sample_lut_##SUFFIX(const T* src, const Entry<G>* table, const G* grid,           \
-                                int64_t lut_batch, RING_ARGS(T), int64_t face, int64_t pad,   \
-                                int64_t face_stride, int bilinear, int64_t fill, PLANE_ARGS,  \
-                                T* out, int threads) {                                        \
-        sample_lut<T, G>(src, table, grid, lut_batch, RING(T),                                \
-                         layout(face, pad, face_stride), bilinear != 0, T(fill), PLANES, out, \
-                         threads);                                                            \
-    }                                                                                         \
-    void os_sample_grid_##SUFFIX(const T* src, const G* grid, int64_t grid_batch,             \
-                                 const uint8_t* valid, int64_t valid_batch, RING_ARGS(T),     \
-                                 int64_t face, int64_t pad, int64_t face_stride,              \
-                                 int bilinear, int64_t fill, PLANE_ARGS, T* out,              \
-                                 int threads) {                                               \
-        sample_grid<T, G>(src, grid, grid_batch, valid, valid_batch, RING(T),                 \
-                          layout(face, pad, face_stride), bilinear != 0, T(fill), PLANES,     \
-                          out, threads);                                                      \
-    }                                                                                         \
-    void os_sample_rays_##SUFFIX(const T* src, const G* rays, int64_t rays_batch,             \
-                                 const G* rot, int64_t rot_batch, const uint8_t* valid,       \
-                                 int64_t valid_batch, RING_ARGS(T), int64_t face,             \
-                                 int64_t pad, int64_t face_stride, int bilinear,              \
-                                 int64_t fill, PLANE_ARGS, T* out, int threads) {             \
-        sample_rays<T, G>(src, rays, rays_batch, rot, rot_batch, valid, valid_batch, RING(T), \
-                          layout(face, pad, face_stride), bilinear != 0, T(fill), PLANES,     \
-                          out, threads);                                                      \
-    }
-SAMPLE(f32, float, float)
-SAMPLE(f64, double, double)
-SAMPLE(1_f32, uint8_t, float)
-SAMPLE(2_f32, uint16_t, float)
-SAMPLE(4_f32, uint32_t, float)
-SAMPLE(8_f32, uint64_t, float)
-SAMPLE(1_f64, uint8_t, double)
-SAMPLE(2_f64, uint16_t, double)
-SAMPLE(4_f64, uint32_t, double)
-SAMPLE(8_f64, uint64_t, double)
-
-void os_face_cases(int32_t* out) {
-    std::copy(&kCases[0][0], &kCases[0][0] + 30, out);
-    std::copy(kZeroCase, kZeroCase + 5, out + 30);
+bool floating(const at::Tensor& t) {
+    return t.scalar_type() == at::kFloat || t.scalar_type() == at::kDouble;
 }
 
-}  // extern "C"
+// Calls fn(T{}, G{}) with T the cube's element type and G the grid's (see above).
+template <typename Fn>
+void dispatch(const at::Tensor& cube, at::ScalarType grid, Fn fn) {
+    if (cube.scalar_type() == at::kFloat) {
+        return fn(float{}, float{});
+    }
+    if (cube.scalar_type() == at::kDouble) {
+        return fn(double{}, double{});
+    }
+    const auto with_grid = [&](auto element) {
+        if (grid == at::kFloat) {
+            fn(element, float{});
+        } else {
+            fn(element, double{});
+        }
+    };
+    switch (cube.element_size()) {
+        case 1:
+            return with_grid(uint8_t{});
+        case 2:
+            return with_grid(uint16_t{});
+        case 4:
+            return with_grid(uint32_t{});
+        default:
+            return with_grid(uint64_t{});
+    }
+}
+
+void check_cpu(const char* op, const char* name, const at::Tensor& t) {
+    TORCH_CHECK(t.device().is_cpu(), op, ": ", name, ": expected a CPU tensor, got one on ",
+                t.device());
+}
+
+void check_contiguous(const char* op, const char* name, const at::Tensor& t) {
+    check_cpu(op, name, t);
+    TORCH_CHECK(t.is_contiguous(), op, ": ", name, ": expected a contiguous tensor, got strides ",
+                t.strides(), " for shape ", t.sizes());
+}
+
+// (B', ...) with B' 1 (shared by the batch) or B.
+void check_batch(const char* op, const char* name, const at::Tensor& t, int64_t batch) {
+    TORCH_CHECK(t.size(0) == 1 || t.size(0) == batch, op, ": ", name, ": expected batch 1 or ",
+                batch, ", got shape ", t.sizes());
+}
+
+// cube (B, 6, C, F, F) on the CPU with contiguous face rows; its element type one the loops
+// read; offsets within a sample and channel that fit the int32 codes.
+void check_cube(const char* op, const at::Tensor& cube, bool bilinear, int64_t pad) {
+    check_cpu(op, "cube", cube);
+    TORCH_CHECK(cube.dim() == 5 && cube.size(1) == 6 && cube.size(3) == cube.size(4) &&
+                    cube.size(3) >= 1,
+                op, ": cube: expected shape (B, 6, C, F, F), got ", cube.sizes());
+    const int64_t f = cube.size(4);
+    TORCH_CHECK(cube.stride(4) == 1 && (cube.stride(3) == f || f == 1), op,
+                ": cube: expected contiguous face rows (strides (..., F, 1)), got strides ",
+                cube.strides());
+    if (bilinear) {
+        TORCH_CHECK(floating(cube), op, ": cube: bilinear sampling needs float32 or float64, got ",
+                    cube.scalar_type());
+    } else {
+        const int64_t size = cube.element_size();
+        TORCH_CHECK(floating(cube) || size == 1 || size == 2 || size == 4 || size == 8, op,
+                    ": cube: nearest sampling copies elements of 1, 2, 4 or 8 bytes, got ",
+                    cube.scalar_type());
+    }
+    TORCH_CHECK(6 * std::max(cube.stride(1), f * f) < kMaxOffset, op,
+                ": cube: too large for int32 offsets (face stride ", cube.stride(1), ")");
+    TORCH_CHECK(pad >= 0 && f + 2 * pad < kMaxOffset / 6, op, ": pad: expected >= 0, got ", pad);
+}
+
+// A grid-like input (B', ..., last) in the dtype the cube is sampled with.
+void check_points(const char* op, const char* name, const at::Tensor& t, const at::Tensor& cube,
+                  int64_t dim, int64_t last) {
+    check_contiguous(op, name, t);
+    TORCH_CHECK(t.dim() == dim && t.size(dim - 1) == last, op, ": ", name, ": expected ", dim,
+                " dimensions, the last of size ", last, ", got shape ", t.sizes());
+    check_batch(op, name, t, cube.size(0));
+    if (floating(cube)) {
+        TORCH_CHECK(t.scalar_type() == cube.scalar_type(), op, ": ", name,
+                    ": expected the cube's dtype ", cube.scalar_type(), ", got ",
+                    t.scalar_type());
+    } else {
+        TORCH_CHECK(t.scalar_type() == at::kFloat || t.scalar_type() == at::kDouble, op, ": ",
+                    name, ": expected float32 or float64, got ", t.scalar_type());
+    }
+}
+
+// out (B, C, H, W) in the cube's dtype, each H x W plane contiguous, planes apart.
+void check_out(const char* op, const at::Tensor& out, const at::Tensor& cube, int64_t height,
+               int64_t width) {
+    check_cpu(op, "out", out);
+    TORCH_CHECK(out.scalar_type() == cube.scalar_type(), op, ": out: expected the cube's dtype ",
+                cube.scalar_type(), ", got ", out.scalar_type());
+    TORCH_CHECK(out.dim() == 4 && out.size(0) == cube.size(0) && out.size(1) == cube.size(2) &&
+                    out.size(2) == height && out.size(3) == width,
+                op, ": out: expected shape (", cube.size(0), ", ", cube.size(2), ", ", height,
+                ", ", width, "), got ", out.sizes());
+    TORCH_CHECK(out.numel() == 0 ||
+                    (out.stride(3) == 1 && (out.stride(2) == width || height == 1) &&
+                     (out.stride(0) != 0 || out.size(0) == 1) &&
+                     (out.stride(1) != 0 || out.size(1) == 1)),
+                op, ": out: expected contiguous H x W planes, got strides ", out.strides());
+}
+
+// valid (1 or B, H, W) bool, or none.
+void check_valid(const char* op, const std::optional<at::Tensor>& valid, int64_t batch,
+                 int64_t height, int64_t width) {
+    if (!valid.has_value()) {
+        return;
+    }
+    check_contiguous(op, "valid", *valid);
+    TORCH_CHECK(valid->scalar_type() == at::kBool, op, ": valid: expected bool, got ",
+                valid->scalar_type());
+    TORCH_CHECK(valid->dim() == 3 && valid->size(1) == height && valid->size(2) == width, op,
+                ": valid: expected shape (1 or ", batch, ", ", height, ", ", width, "), got ",
+                valid->sizes());
+    check_batch(op, "valid", *valid, batch);
+}
+
+// The ring (fast._ring_offsets): ring_src (N, K) int64 offsets within a sample and channel of
+// the cube, N = 6 (n^2 - F^2) border texels (any N >= 1 without a border), and ring_weight of
+// the same shape in the cube's dtype, or none (copies).
+Layout check_ring(const char* op, const at::Tensor& ring_src,
+                  const std::optional<at::Tensor>& ring_weight, const at::Tensor& cube,
+                  int64_t pad) {
+    const int64_t f = cube.size(4), n = f + 2 * pad;
+    check_contiguous(op, "ring_src", ring_src);
+    TORCH_CHECK(ring_src.scalar_type() == at::kLong, op, ": ring_src: expected int64, got ",
+                ring_src.scalar_type());
+    TORCH_CHECK(ring_src.dim() == 2 && ring_src.size(1) >= 1 &&
+                    (pad == 0 ? ring_src.size(0) >= 1 : ring_src.size(0) == 6 * (n * n - f * f)),
+                op, ": ring_src: expected shape (", 6 * (n * n - f * f),
+                ", K) for F = ", f, " and pad = ", pad, ", got ", ring_src.sizes());
+    if (ring_weight.has_value()) {
+        check_contiguous(op, "ring_weight", *ring_weight);
+        TORCH_CHECK(floating(cube) && ring_weight->scalar_type() == cube.scalar_type(), op,
+                    ": ring_weight: expected the floating cube's dtype, got ",
+                    ring_weight->scalar_type(), " for a ", cube.scalar_type(), " cube");
+        TORCH_CHECK(ring_weight->sizes() == ring_src.sizes(), op,
+                    ": ring_weight: expected the shape of ring_src ", ring_src.sizes(), ", got ",
+                    ring_weight->sizes());
+    }
+    return layout(f, pad, cube.stride(1));
+}
+
+template <typename T>
+Ring<T> ring(const at::Tensor& ring_src, const std::optional<at::Tensor>& ring_weight,
+             const at::Tensor& cube) {
+    const int64_t f = cube.size(4);
+    return Ring<T>{ring_src.const_data_ptr<int64_t>(),
+                   ring_weight.has_value()
+                       ? static_cast<const T*>(ring_weight->const_data_ptr())
+                       : nullptr,
+                   ring_src.size(1), 5 * cube.stride(1) + f * f - 1};
+}
+
+Planes planes(const at::Tensor& cube, const at::Tensor& out) {
+    return Planes{out.size(0),   out.size(1),   out.size(2) * out.size(3), out.size(3),
+                  cube.stride(0), cube.stride(2), out.stride(0),            out.stride(1)};
+}
+
+template <typename T>
+const T* elements(const at::Tensor& t) {
+    return static_cast<const T*>(t.const_data_ptr());
+}
+
+const uint8_t* mask(const std::optional<at::Tensor>& valid) {
+    return valid.has_value() ? static_cast<const uint8_t*>(valid->const_data_ptr()) : nullptr;
+}
+
+// Elements between the samples of an input shared by the batch (0) or not.
+int64_t batch_stride(const at::Tensor& t) {
+    return t.size(0) == 1 ? 0 : t.stride(0);
+}
+
+int64_t batch_stride(const std::optional<at::Tensor>& t) {
+    return t.has_value() ? batch_stride(*t) : 0;
+}
+
+// build_lut: the entries (code, fraction bits) of grid (B', P, 2) into table (B', P, 3), int32
+// for a float32 grid, int64 for a float64 one.
+void build_lut_op(const at::Tensor& grid, int64_t face, int64_t pad, int64_t face_stride,
+                  bool bilinear, const at::Tensor& table) {
+    const char* op = "omniscape_torch::build_lut";
+    check_contiguous(op, "grid", grid);
+    check_contiguous(op, "table", table);
+    TORCH_CHECK(grid.scalar_type() == at::kFloat || grid.scalar_type() == at::kDouble, op,
+                ": grid: expected float32 or float64, got ", grid.scalar_type());
+    TORCH_CHECK(grid.dim() == 3 && grid.size(2) == 2, op, ": grid: expected shape (B, P, 2), got ",
+                grid.sizes());
+    const auto entry = grid.scalar_type() == at::kFloat ? at::kInt : at::kLong;
+    TORCH_CHECK(table.scalar_type() == entry, op, ": table: expected ", entry, " for a ",
+                grid.scalar_type(), " grid, got ", table.scalar_type());
+    TORCH_CHECK(table.dim() == 3 && table.size(0) == grid.size(0) &&
+                    table.size(1) == grid.size(1) && table.size(2) == 3,
+                op, ": table: expected shape (", grid.size(0), ", ", grid.size(1), ", 3), got ",
+                table.sizes());
+    TORCH_CHECK(face >= 1 && pad >= 0 && face + 2 * pad < kMaxOffset / 6, op,
+                ": face, pad: expected F >= 1 and pad >= 0, got ", face, " and ", pad);
+    TORCH_CHECK(face_stride >= 0 && 6 * std::max(face_stride, face * face) < kMaxOffset, op,
+                ": face_stride: ", face_stride, " does not fit the int32 offsets");
+    const Layout L = layout(face, pad, face_stride);
+    const int64_t count = grid.size(0) * grid.size(1);
+    const auto run = [&](auto g) {
+        using G = decltype(g);
+        const G* points = elements<G>(grid);
+        Entry<G>* entries = static_cast<Entry<G>*>(table.mutable_data_ptr());
+        const int64_t chunks = (count + kChunk - 1) / kChunk;
+        at::parallel_for(0, chunks, 1, [&](int64_t begin, int64_t end) {
+            for (int64_t c = begin; c < end; ++c) {
+                const int64_t lo = c * kChunk, m = std::min(kChunk, count - lo);
+                locate<G>(points + 2 * lo, m, nullptr, L, bilinear,
+                          Packed<G>{entries, INT64_MAX} + lo);
+            }
+        });
+    };
+    if (grid.scalar_type() == at::kFloat) {
+        run(float{});
+    } else {
+        run(double{});
+    }
+}
+
+// sample_lut: cube (B, 6, C, F, F) through a table (B', P, 3) of build_lut (with its grid
+// (B', P, 2) for the edge pixels), built for this cube's face stride, into out (B, C, H, W).
+void sample_lut_op(const at::Tensor& cube, const at::Tensor& table, const at::Tensor& grid,
+                   const at::Tensor& ring_src, const std::optional<at::Tensor>& ring_weight,
+                   int64_t pad, int64_t face_stride, bool bilinear, int64_t fill,
+                   const at::Tensor& out) {
+    const char* op = "omniscape_torch::sample_lut";
+    check_cube(op, cube, bilinear, pad);
+    check_points(op, "grid", grid, cube, 3, 2);
+    check_contiguous(op, "table", table);
+    const auto entry = grid.scalar_type() == at::kFloat ? at::kInt : at::kLong;
+    TORCH_CHECK(table.scalar_type() == entry, op, ": table: expected ", entry, " for a ",
+                grid.scalar_type(), " grid, got ", table.scalar_type());
+    TORCH_CHECK(table.dim() == 3 && table.size(0) == grid.size(0) &&
+                    table.size(1) == grid.size(1) && table.size(2) == 3,
+                op, ": table: expected shape (", grid.size(0), ", ", grid.size(1), ", 3), got ",
+                table.sizes());
+    TORCH_CHECK(face_stride == cube.stride(1), op, ": table: built for face stride ",
+                face_stride, ", the cube's is ", cube.stride(1));
+    TORCH_CHECK(out.dim() == 4 && out.size(2) * out.size(3) == grid.size(1), op,
+                ": out: expected H W = ", grid.size(1), " pixels, got shape ", out.sizes());
+    check_out(op, out, cube, out.size(2), out.size(3));
+    const Layout L = check_ring(op, ring_src, ring_weight, cube, pad);
+    dispatch(cube, grid.scalar_type(), [&](auto t, auto g) {
+        using T = decltype(t);
+        using G = decltype(g);
+        sample_lut<T, G>(elements<T>(cube), static_cast<const Entry<G>*>(table.const_data_ptr()),
+                         elements<G>(grid), table.size(0) == 1 ? 0 : table.size(1),
+                         ring<T>(ring_src, ring_weight, cube), L, bilinear, T(fill),
+                         planes(cube, out), static_cast<T*>(out.mutable_data_ptr()));
+    });
+}
+
+// sample_grid: cube (B, 6, C, F, F) at grid (B', H, W, 2) (where valid (1 or B, H, W) is
+// false: fill) into out (B, C, H, W).
+void sample_grid_op(const at::Tensor& cube, const at::Tensor& grid,
+                    const std::optional<at::Tensor>& valid, const at::Tensor& ring_src,
+                    const std::optional<at::Tensor>& ring_weight, int64_t pad, bool bilinear,
+                    int64_t fill, const at::Tensor& out) {
+    const char* op = "omniscape_torch::sample_grid";
+    check_cube(op, cube, bilinear, pad);
+    check_points(op, "grid", grid, cube, 4, 2);
+    check_out(op, out, cube, grid.size(1), grid.size(2));
+    check_valid(op, valid, cube.size(0), grid.size(1), grid.size(2));
+    const Layout L = check_ring(op, ring_src, ring_weight, cube, pad);
+    dispatch(cube, grid.scalar_type(), [&](auto t, auto g) {
+        using T = decltype(t);
+        using G = decltype(g);
+        sample_grid<T, G>(elements<T>(cube), elements<G>(grid), batch_stride(grid), mask(valid),
+                          batch_stride(valid), ring<T>(ring_src, ring_weight, cube), L, bilinear,
+                          T(fill), planes(cube, out), static_cast<T*>(out.mutable_data_ptr()));
+    });
+}
+
+// sample_rays: cube (B, 6, C, F, F) through the grid of camera-frame rays (B', H, W, 3) rotated
+// by rotation (B', 3, 3) (none: not rotated), computed in the pass in the rays' dtype (where
+// valid (1 or B, H, W) is false: fill), into out (B, C, H, W).
+void sample_rays_op(const at::Tensor& cube, const at::Tensor& rays,
+                    const std::optional<at::Tensor>& rotation,
+                    const std::optional<at::Tensor>& valid, const at::Tensor& ring_src,
+                    const std::optional<at::Tensor>& ring_weight, int64_t pad, bool bilinear,
+                    int64_t fill, const at::Tensor& out) {
+    const char* op = "omniscape_torch::sample_rays";
+    check_cube(op, cube, bilinear, pad);
+    check_points(op, "rays", rays, cube, 4, 3);
+    if (rotation.has_value()) {
+        check_points(op, "rotation", *rotation, cube, 3, 3);
+        TORCH_CHECK(rotation->size(1) == 3 && rotation->scalar_type() == rays.scalar_type(), op,
+                    ": rotation: expected (1 or B, 3, 3) in the rays' dtype ", rays.scalar_type(),
+                    ", got ", rotation->scalar_type(), " ", rotation->sizes());
+    }
+    check_out(op, out, cube, rays.size(1), rays.size(2));
+    check_valid(op, valid, cube.size(0), rays.size(1), rays.size(2));
+    const Layout L = check_ring(op, ring_src, ring_weight, cube, pad);
+    dispatch(cube, rays.scalar_type(), [&](auto t, auto g) {
+        using T = decltype(t);
+        using G = decltype(g);
+        sample_rays<T, G>(elements<T>(cube), elements<G>(rays), batch_stride(rays),
+                          rotation.has_value() ? elements<G>(*rotation) : nullptr,
+                          batch_stride(rotation), mask(valid), batch_stride(valid),
+                          ring<T>(ring_src, ring_weight, cube), L, bilinear, T(fill),
+                          planes(cube, out), static_cast<T*>(out.mutable_data_ptr()));
+    });
+}
+
+}  // namespace
+
+TORCH_LIBRARY(omniscape_torch, m) {
+    // the fake (meta) implementations, for torch.compile, are registered there
+    m.set_python_module("omniscape_torch.render.extension");
+    m.def("build_lut(Tensor grid, int face, int pad, int face_stride, bool bilinear, "
+          "Tensor(a!) table) -> ()");
+    m.def("sample_lut(Tensor cube, Tensor table, Tensor grid, Tensor ring_src, "
+          "Tensor? ring_weight, int pad, int face_stride, bool bilinear, int fill, "
+          "Tensor(a!) out) -> ()");
+    m.def("sample_grid(Tensor cube, Tensor grid, Tensor? valid, Tensor ring_src, "
+          "Tensor? ring_weight, int pad, bool bilinear, int fill, Tensor(a!) out) -> ()");
+    m.def("sample_rays(Tensor cube, Tensor rays, Tensor? rotation, Tensor? valid, "
+          "Tensor ring_src, Tensor? ring_weight, int pad, bool bilinear, int fill, "
+          "Tensor(a!) out) -> ()");
+}
+
+TORCH_LIBRARY_IMPL(omniscape_torch, CPU, m) {
+    m.impl("build_lut", &build_lut_op);
+    m.impl("sample_lut", &sample_lut_op);
+    m.impl("sample_grid", &sample_grid_op);
+    m.impl("sample_rays", &sample_rays_op);
+}

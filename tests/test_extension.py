@@ -1,0 +1,354 @@
+"""The fast sampler's C++ extension (``omniscape_torch.render.extension``): custom ops that pass
+``torch.library.opcheck``, check their arguments, trace under ``torch.compile``, and a build that
+is cached where torch caches extensions, keyed on the CPU, safe under concurrent first uses and
+found without ninja on the PATH.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+import torch
+
+import omniscape_torch as ot
+from omniscape_torch.render import extension, fast as fastsample
+
+ROOT = Path(__file__).resolve().parents[1]
+f32, f64 = torch.float32, torch.float64
+
+
+def ops():
+    return extension.load()
+
+
+def make_inputs(dtype, mode="bilinear", batch=2, size=8, pad=1, h=5, w=7, seed=0):
+    """A cube, its ring and an output buffer, as ``fast.py`` passes them to the ops."""
+    gen = torch.Generator().manual_seed(seed)
+    if dtype.is_floating_point:
+        cube = torch.rand(batch, 6, 3, size, size, generator=gen, dtype=dtype)
+    else:
+        cube = torch.randint(0, 200, (batch, 6, 3, size, size), generator=gen).to(dtype)
+    border = "bilinear" if mode == "bilinear" else "nearest"
+    ring_src, ring_weight = fastsample._ring_offsets(size, pad, border, dtype, cube.stride(1))
+    out = torch.empty(batch, 3, h, w, dtype=dtype)
+    return cube, ring_src, ring_weight, out
+
+
+def grid_dtype(dtype):
+    return dtype if dtype.is_floating_point else (f32 if dtype == torch.uint8 else f64)
+
+
+def make_grid(batch, h, w, dtype, seed=1):
+    gen = torch.Generator().manual_seed(seed)
+    grid = (torch.rand(batch, h, w, 2, generator=gen, dtype=f64) * 2.3 - 1.15).to(dtype)
+    grid[:, 0, 0] = -2.0
+    return grid
+
+
+def make_rotation(batch, dtype):
+    q, _ = torch.linalg.qr(torch.randn(batch, 3, 3, generator=torch.Generator().manual_seed(3),
+                                       dtype=f64))
+    return (q * torch.linalg.det(q)[:, None, None]).to(dtype).contiguous()
+
+
+def make_valid(batch, h, w):
+    return torch.rand(batch, h, w, generator=torch.Generator().manual_seed(4)) > 0.3
+
+
+CASES = [(f32, "bilinear"), (f64, "bilinear"), (f32, "nearest"), (torch.uint8, "nearest"),
+         (torch.int64, "nearest")]
+
+
+# ------------------------------------------------------------------------------------------
+# The ops
+# ------------------------------------------------------------------------------------------
+def test_ops_are_registered_after_a_render():
+    size = 16
+    focal, centre = (size - 2) / math.radians(190), (size - 1) / 2
+    camera = ot.Camera("equidistant", torch.tensor([focal, focal, centre, centre]), (size, size),
+                       fov=math.radians(190))
+    with torch.no_grad():
+        ot.OmniProjection(camera, 8)(torch.rand(1, 6, 3, 8, 8))
+    assert fastsample.available() and fastsample.compile_failures() == {}
+    for name in extension.OPS:
+        assert hasattr(torch.ops.omniscape_torch, name), name
+
+
+@pytest.mark.parametrize("dtype", [f32, f64])
+def test_opcheck_build_lut(dtype):
+    grid = make_grid(2, 5, 7, dtype).reshape(2, -1, 2)
+    table = torch.empty(2, 35, 3, dtype=fastsample._ENTRY[dtype])
+    for bilinear in (True, False):
+        torch.library.opcheck(ops().build_lut, (grid, 8, 1, 3 * 64, bilinear, table))
+
+
+@pytest.mark.parametrize("dtype,mode", CASES)
+def test_opcheck_sample_lut(dtype, mode):
+    cube, ring_src, ring_weight, out = make_inputs(dtype, mode)
+    grid = make_grid(1, 5, 7, grid_dtype(dtype))
+    lut = fastsample.build_lut(grid, 8, 1, mode, channels=3)
+    torch.library.opcheck(ops().sample_lut, (cube, lut.table, lut.grid, ring_src, ring_weight, 1,
+                                             cube.stride(1), mode == "bilinear", 0, out))
+
+
+@pytest.mark.parametrize("masked", [False, True])
+@pytest.mark.parametrize("dtype,mode", CASES)
+def test_opcheck_sample_grid(dtype, mode, masked):
+    cube, ring_src, ring_weight, out = make_inputs(dtype, mode)
+    grid = make_grid(2, 5, 7, grid_dtype(dtype))
+    valid = make_valid(1, 5, 7) if masked else None
+    torch.library.opcheck(ops().sample_grid, (cube, grid, valid, ring_src, ring_weight, 1,
+                                              mode == "bilinear", 0, out))
+
+
+@pytest.mark.parametrize("masked,rotated", [(False, False), (True, True), (False, True)])
+@pytest.mark.parametrize("dtype,mode", CASES)
+def test_opcheck_sample_rays(dtype, mode, masked, rotated):
+    cube, ring_src, ring_weight, out = make_inputs(dtype, mode)
+    g = grid_dtype(dtype)
+    rays = torch.randn(1, 5, 7, 3, generator=torch.Generator().manual_seed(5), dtype=g)
+    rotation = make_rotation(2, g) if rotated else None
+    valid = make_valid(2, 5, 7) if masked else None
+    torch.library.opcheck(ops().sample_rays, (cube, rays, rotation, valid, ring_src, ring_weight,
+                                              1, mode == "bilinear", 7, out))
+
+
+def test_ops_write_what_the_python_functions_return():
+    """The ops called directly give ``fast.sample_cube``'s and ``fast.sample_rays``' images."""
+    cube, ring_src, ring_weight, out = make_inputs(f32)
+    grid, valid = make_grid(2, 5, 7, f32), make_valid(1, 5, 7)
+    ops().sample_grid(cube, grid, valid, ring_src, ring_weight, 1, True, 0, out)
+    assert torch.equal(out, fastsample.sample_cube(cube, grid, pad=1, valid=valid))
+    rays, rotation = torch.randn(1, 5, 7, 3), make_rotation(2, f32)
+    ops().sample_rays(cube, rays, rotation, None, ring_src, ring_weight, 1, True, 0, out)
+    assert torch.equal(out, fastsample.sample_rays(cube, rays, rotation, pad=1))
+
+
+def test_ops_check_their_arguments():
+    """Wrong dtypes, shapes and strides are refused with the argument's name, not read."""
+    cube, ring_src, ring_weight, out = make_inputs(f32)
+    grid, valid = make_grid(2, 5, 7, f32), make_valid(1, 5, 7)
+    args = dict(cube=cube, grid=grid, valid=valid, ring_src=ring_src, ring_weight=ring_weight,
+                pad=1, bilinear=True, fill=0, out=out)
+    bad = [
+        (dict(grid=grid.double()), "sample_grid: grid: expected the cube's dtype"),
+        (dict(grid=grid.transpose(1, 2)), "grid: expected a contiguous tensor"),
+        (dict(grid=grid[:1].expand(3, -1, -1, -1).contiguous()), "grid: expected batch 1 or 2"),
+        (dict(cube=cube.transpose(3, 4)), "cube: expected contiguous face rows"),
+        (dict(cube=cube[:, :5]), r"cube: expected shape \(B, 6, C, F, F\)"),
+        (dict(cube=cube.to(torch.int32)), "cube: bilinear sampling needs float32 or float64"),
+        (dict(out=out[:, :2]), "out: expected shape"),
+        (dict(out=out.double()), "out: expected the cube's dtype"),
+        (dict(out=torch.empty(2, 3, 7, 5).transpose(2, 3)), "out: expected contiguous H x W"),
+        (dict(valid=valid.float()), "valid: expected bool"),
+        (dict(valid=valid[..., :6].contiguous()), "valid: expected shape"),
+        (dict(ring_src=ring_src[:-1]), "ring_src: expected shape"),
+        (dict(ring_weight=ring_weight.double()), "ring_weight: expected the floating cube's"),
+        (dict(pad=-1), "pad: expected >= 0"),
+    ]
+    for change, match in bad:
+        with pytest.raises(RuntimeError, match=match):
+            ops().sample_grid(**{**args, **change})
+    lut = fastsample.build_lut(grid, 8, 1, channels=1)   # for a cube of 1 channel
+    with pytest.raises(RuntimeError, match="sample_lut: table: built for face stride 64, the "
+                                           "cube's is 192"):
+        ops().sample_lut(cube, lut.table, lut.grid, ring_src, ring_weight, 1, 64, True, 0, out)
+    with pytest.raises(RuntimeError, match="sample_rays: rotation: expected .* rays' dtype"):
+        ids, ids_src, _, ids_out = make_inputs(torch.uint8, "nearest")
+        ops().sample_rays(ids, torch.randn(1, 5, 7, 3), make_rotation(1, f64), None, ids_src,
+                          None, 1, False, 0, ids_out)
+    with pytest.raises(RuntimeError, match="nearest sampling copies elements of 1, 2, 4 or 8"):
+        ops().sample_grid(cube.to(torch.complex128), grid.double(), None, ring_src, None, 1,
+                          False, 0, out.to(torch.complex128))
+
+
+def test_tables_and_rings_of_any_entries_read_inside_the_cube():
+    """The ops trust no table or ring: a table's codes beyond the cube read as outside
+    (``fill``), ring offsets beyond it are clamped into it."""
+    cube, ring_src, ring_weight, out = make_inputs(f32)
+    grid = make_grid(1, 5, 7, f32).reshape(1, -1, 2)
+    table = torch.randint(-2 ** 31, 2 ** 31 - 1, (1, 35, 3), dtype=torch.int32)
+    table[0, :3, 0] = torch.tensor([2 ** 31 - 1, 6 * cube.stride(1), -7], dtype=torch.int32)
+    ops().sample_lut(cube, table, grid, ring_src, ring_weight, 1, cube.stride(1), False, 5, out)
+    assert bool((out.flatten(2)[..., :3] == 5).all())
+    wild = ring_src * 10 ** 9 - 10 ** 12
+    ops().sample_grid(cube, grid.view(1, 5, 7, 2), None, wild, None, 1, True, 0, out)
+    assert bool(out.isfinite().all())
+
+
+# ------------------------------------------------------------------------------------------
+# torch.compile
+# ------------------------------------------------------------------------------------------
+def test_compiled_layer_gives_the_eager_result():
+    """``torch.compile(layer)`` without gradients: the ops are traced through their fake
+    implementations into the compiled graphs, and the images are the eager ones."""
+    from torch._dynamo.testing import CompileCounterWithBackend
+    size = 24
+    focal, centre = (size - 2) / math.radians(190), (size - 1) / 2
+    camera = ot.Camera("equidistant", torch.tensor([focal, focal, centre, centre]), (size, size),
+                       fov=math.radians(190))
+    layer = ot.OmniProjection(camera, 8)
+    cube = torch.rand(2, 6, 3, 8, 8, generator=torch.Generator().manual_seed(0))
+    rotation = make_rotation(2, f32)
+    backend = CompileCounterWithBackend("inductor")
+    torch._dynamo.reset()
+    try:
+        with torch.no_grad():
+            expect = [layer(cube), layer(cube, rotation)]
+            compiled = torch.compile(layer, backend=backend)
+            got = [compiled(cube), compiled(cube), compiled(cube, rotation)]
+    finally:
+        torch._dynamo.reset()
+    for (image, valid), (eager, eager_valid) in zip(got, [expect[0], *expect]):
+        assert torch.equal(image, eager) and torch.equal(valid, eager_valid)
+    traced = " ".join(str(g.graph) for g in backend.graphs)
+    assert "omniscape_torch.sample_lut" in traced and "omniscape_torch.sample_rays" in traced
+
+
+# ------------------------------------------------------------------------------------------
+# The build
+# ------------------------------------------------------------------------------------------
+def test_name_holds_a_hash_of_the_cpu_flags_and_the_source(monkeypatch, tmp_path):
+    name = extension.name()
+    assert name.startswith("omniscape_torch_fastsample_") and name == extension.name()
+    monkeypatch.setattr(extension, "_cpu", lambda: "flags : fpu sse2 avx512f")
+    other_cpu = extension.name()
+    monkeypatch.setattr(extension, "_cpu", lambda: "flags : fpu sse2")
+    names = {name, other_cpu, extension.name()}
+    edited = tmp_path / "fastsample.cpp"
+    edited.write_bytes(extension.SOURCE.read_bytes() + b"\n")
+    monkeypatch.setattr(extension, "SOURCE", edited)
+    assert len(names | {extension.name()}) == 4
+
+
+def test_built_in_torchs_extension_cache():
+    """The library lives where ``cpp_extension`` keeps extensions ($TORCH_EXTENSIONS_DIR,
+    default ``~/.cache/torch_extensions``), with the speed and exactness flags."""
+    from torch.utils import cpp_extension
+    ops()
+    (path,) = extension._LOADED
+    folder = Path(cpp_extension._get_build_directory(extension.name(), False))
+    assert Path(path).parent == folder and Path(path).name.startswith(extension.name())
+    build = (folder / "build.ninja").read_text()
+    for flag in (*extension.CFLAGS, *extension.face_case_flags()):
+        assert flag in build
+
+
+def test_no_ctypes():
+    for name in ("fast.py", "extension.py"):
+        text = (ROOT / "omniscape_torch" / "render" / name).read_text()
+        assert "ctypes" not in text, name
+
+
+def test_ninja_beside_python_goes_first_on_the_path_and_comes_off(monkeypatch, tmp_path):
+    """The ninja installed with this Python runs, for the build only: not on the PATH, or
+    another on the PATH (ninja versions disagree on what is out of date)."""
+    for name in ("venv", "system"):
+        (tmp_path / name).mkdir()
+        ninja = tmp_path / name / "ninja"
+        ninja.write_text(f"#!/bin/sh\necho {name}\n")
+        ninja.chmod(0o755)
+    monkeypatch.setattr(extension, "_ninja_folders", lambda: [str(tmp_path / "venv")])
+
+    def version():
+        return subprocess.run(["ninja", "--version"], capture_output=True, text=True).stdout
+
+    for path in (str(tmp_path / "empty"), str(tmp_path / "system")):
+        monkeypatch.setenv("PATH", path)
+        with extension._ninja_on_path():
+            assert version() == "venv\n"
+        assert os.environ["PATH"] == path
+        with pytest.raises(KeyError):   # restored when the build fails too
+            with extension._ninja_on_path():
+                raise KeyError("build failed")
+        assert os.environ["PATH"] == path
+    monkeypatch.setenv("PATH", str(tmp_path / "venv"))   # already first: the PATH as it is
+    with extension._ninja_on_path():
+        assert os.environ["PATH"] == str(tmp_path / "venv")
+    monkeypatch.delenv("PATH")
+    with extension._ninja_on_path():
+        assert os.environ["PATH"].startswith(str(tmp_path / "venv"))
+    assert "PATH" not in os.environ
+    monkeypatch.setattr(extension, "_ninja_folders", lambda: [])   # none with Python: PATH's
+    monkeypatch.setenv("PATH", str(tmp_path / "system"))
+    with extension._ninja_on_path():
+        assert version() == "system\n" and os.environ["PATH"] == str(tmp_path / "system")
+    monkeypatch.setenv("PATH", str(tmp_path / "empty"))
+    with pytest.raises(RuntimeError, match="ninja is not installed.*pip install ninja"):
+        with extension._ninja_on_path():
+            pass
+
+
+#: A process that loads the ops and samples a cube; prints its checksum and whether its PATH
+#: came back unchanged.
+CHILD = textwrap.dedent("""
+    import os, sys, warnings
+    warnings.simplefilter("error")
+    import torch
+    from omniscape_torch.render import fast
+    path = os.environ.get("PATH")
+    cube = torch.rand(2, 6, 3, 8, 8, generator=torch.Generator().manual_seed(0))
+    grid = torch.rand(1, 5, 7, 2, generator=torch.Generator().manual_seed(1)) * 2.2 - 1.1
+    image = fast.sample_cube(cube, grid, pad=1)
+    print(float(image.double().sum()), os.environ.get("PATH") == path, fast.available())
+""")
+
+
+def _mirror_path_without_ninja(folder: Path) -> str:
+    """A PATH of one folder linking every program on this PATH but ninja."""
+    folder.mkdir()
+    for entry in os.environ.get("PATH", "").split(os.pathsep):
+        if not os.path.isdir(entry):
+            continue
+        for program in os.scandir(entry):
+            target = folder / program.name
+            if program.name != "ninja" and not target.exists():
+                target.symlink_to(program.path)
+    return str(folder)
+
+
+def test_loads_with_ninja_installed_beside_python_but_not_on_the_path(tmp_path):
+    """``.venv/bin/python -m pytest`` without activating the virtualenv: ninja is in
+    ``.venv/bin``, not on the PATH; the extension still builds or loads (a new process), and
+    the PATH is the same afterwards."""
+    if not any(os.access(os.path.join(f, "ninja"), os.X_OK) for f in extension._ninja_folders()):
+        pytest.skip("ninja is not installed beside this Python (pip install ninja)")
+    env = {**os.environ, "PATH": _mirror_path_without_ninja(tmp_path / "bin")}
+    done = subprocess.run([sys.executable, "-c", CHILD], env=env, capture_output=True,
+                          text=True, cwd=ROOT, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    total, path_kept, available = done.stdout.split()
+    assert path_kept == "True" and available == "True"
+
+
+def test_concurrent_first_uses_build_once(tmp_path):
+    """Two processes using the sampler for the first time on a machine at once (e.g. two
+    training scripts, or DataLoader workers): one builds under cpp_extension's lock, the other
+    waits and loads the same library; a third process later loads it without building."""
+    env = {**os.environ, "TORCH_EXTENSIONS_DIR": str(tmp_path / "cache")}
+    children = [subprocess.Popen([sys.executable, "-c", CHILD], env=env, cwd=ROOT, text=True,
+                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+                for _ in range(2)]
+    outputs = [child.communicate(timeout=600) for child in children]
+    for child, (stdout, stderr) in zip(children, outputs):
+        assert child.returncode == 0, stderr[-3000:]
+    assert outputs[0][0] == outputs[1][0] and outputs[0][0].split()[1:] == ["True", "True"]
+    (folder,) = (tmp_path / "cache").iterdir()
+    assert folder.name == extension.name() and not (folder / "lock").exists()
+    (library,) = folder.glob("*.so")
+    stamp = library.stat().st_mtime_ns
+    again = subprocess.run([sys.executable, "-c", CHILD], env=env, cwd=ROOT, text=True,
+                           capture_output=True, timeout=600)
+    assert again.returncode == 0 and again.stdout == outputs[0][0]
+    assert library.stat().st_mtime_ns == stamp and list(folder.glob("*.so")) == [library]
+    # and the image is this process's
+    cube = torch.rand(2, 6, 3, 8, 8, generator=torch.Generator().manual_seed(0))
+    grid = torch.rand(1, 5, 7, 2, generator=torch.Generator().manual_seed(1)) * 2.2 - 1.1
+    assert float(outputs[0][0].split()[0]) == float(
+        fastsample.sample_cube(cube, grid, pad=1).double().sum())
