@@ -11,6 +11,9 @@ batch 1 and 8, and times in one run, round-robin:
 * ``forward_rebuilt_fused``: ``OmniProjection(cube, rotation)`` with a new random rotation per
   sample and call: the fast sampler computes each pixel's grid point from the camera's rays in
   the sampling pass (``fastsample.sample_rays``; no grid is stored);
+* ``forward_cached_out``, ``forward_rebuilt_fused_out``: the same two through
+  ``render(..., out=...)`` into outputs allocated once (what a loop that keeps its buffers
+  gets: no fresh pages per call);
 * ``forward_rebuilt_reference``: the same with ``fast=False``: the fused, compiled grid
   (``cubemap.grid.rotated_rays_to_grid``), then ``grid_sample``;
 * ``forward_rebuilt_eager``: the same with ``fast=False`` and the grid rebuilt eagerly
@@ -38,8 +41,7 @@ Inputs come from a seeded ``torch.Generator``.
 
 Batch 8 allocates tensors above glibc's largest mmap threshold (32 MB: the 64 MB grid, the
 atlas, the 96 MB image): each is a fresh ``mmap`` whose pages fault on first touch, which on a
-small VM costs more than the arithmetic. The layer's own outputs of that size are mapped with
-transparent huge pages (``omniscape_torch.render.memory``); the reference path's tensors are not.
+small VM costs more than the arithmetic (the ``_out`` rows reuse theirs).
 ``MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=<large>`` (or jemalloc/tcmalloc via ``LD_PRELOAD``)
 changes that for every row; the ``environment`` field of the JSON records such settings, so
 compare runs only with the same one.
@@ -209,11 +211,20 @@ def run(args: argparse.Namespace) -> dict:
         rot_gf = RotationPool(batch, calls, gen, device, dtype)
         grid_b = grid.unsqueeze(0)
         lut = fastsample.build_lut(grid_b, face, pad, channels=3)
+        # outputs allocated once and reused, as a training loop can (render(out=...)): a
+        # batch's 96 MB image is otherwise a fresh mapping whose pages fault on every call
+        reused = {"rgb": torch.empty(batch, 3, 2 * face, 2 * face, dtype=dtype, device=device),
+                  "valid": torch.empty(batch, 1, 2 * face, 2 * face, dtype=torch.bool,
+                                       device=device)}
+        rot_fused_out = RotationPool(batch, calls, gen, device, dtype)
 
         cases: list[tuple[str, str, Callable[[], object]]] = [
             ("forward_cached", "ours", lambda: fused(cube)),
             ("forward_cached_reference", "ours", lambda: eager(cube)),
             ("forward_rebuilt_fused", "ours", lambda: fused(cube, rot_fused())),
+            ("forward_cached_out", "ours", lambda: fused.render(rgb=cube, out=reused)),
+            ("forward_rebuilt_fused_out", "ours",
+             lambda: fused.render(rgb=cube, rotation=rot_fused_out(), out=reused)),
             ("forward_rebuilt_reference", "ours",
              lambda: fused_reference(cube, rot_fused_ref())),
             ("forward_rebuilt_eager", "ours", lambda: eager(cube, rot_eager())),
@@ -260,6 +271,7 @@ def run(args: argparse.Namespace) -> dict:
         if "remap_float32" in by_name:
             peer = by_name["remap_float32"]
             for name in ("forward_cached", "forward_cached_reference", "forward_rebuilt_fused",
+                         "forward_cached_out", "forward_rebuilt_fused_out",
                          "forward_rebuilt_reference", "forward_rebuilt_eager", "sample",
                          "sample_lut", "atlas", "grid_eager", "grid_fused"):
                 ratio = by_name[name]["median_s"] / peer["median_s"]

@@ -19,7 +19,7 @@ import torch.nn.functional as F_nn
 import omniscape_torch as ot
 from omniscape_torch import cubemap as cm
 from omniscape_torch.cubemap import grid as fastgrid
-from omniscape_torch.render import extension, fast as fastsample, memory
+from omniscape_torch.render import extension, fast as fastsample
 
 f32, f64 = torch.float32, torch.float64
 #: Rounding of a blend of 4 texels in [0, 1]. float32: the weights are grid_sample's bit for bit,
@@ -255,30 +255,6 @@ class _Samples(torch.utils.data.Dataset):
 
     def __getitem__(self, i):
         return _sample_in_worker(i)
-
-
-def test_large_buffers_are_pooled_and_reused_only_once_free(monkeypatch):
-    monkeypatch.setattr(memory, "_FREE", {})
-    n = memory.HUGE_BYTES // 4 + 1
-    big = memory.empty((n,), torch.float32)
-    assert memory.empty((3, 4), torch.int64).shape == (3, 4)   # small: torch.empty
-    assert memory.empty((n,), torch.float32, "meta").device.type == "meta"   # not the CPU
-    big.fill_(2.5)
-    big[-1] = 4.0
-    assert bool((big[:-1] == 2.5).all()) and float(big[-1]) == 4.0
-    assert torch.equal(pickle.loads(pickle.dumps(big[:10])), torch.full((10,), 2.5))
-    where, view = big.data_ptr(), big[5:9]
-    del big
-    other = memory.empty((n,), torch.float32)   # a view of the first is alive: a new buffer
-    assert other.data_ptr() != where and memory.pooled_bytes() == 0
-    del view
-    assert memory.pooled_bytes() == 4 * n
-    again = memory.empty((n,), torch.float32)
-    assert again.data_ptr() == where and memory.pooled_bytes() == 0
-    monkeypatch.setattr(memory, "POOL_BYTES", 4 * n)   # room for one
-    del again, other
-    assert memory.pooled_bytes() == 4 * n
-    assert memory.release() == 4 * n and memory.pooled_bytes() == 0
 
 
 @pytest.mark.parametrize("kwargs,error,match", [

@@ -34,7 +34,7 @@ from ..cubemap.faces import FACES, face_rotations
 from ..cubemap.rotation import check_rotation
 from .kernels import camera_grid
 from ..cameras.presets import yaw_pitch_roll_to_matrix
-from . import memory, layer as projection
+from . import layer as projection
 from .layer import OmniProjection
 
 __all__ = ["ApplyToKey", "RandomOmniCamera"]
@@ -422,7 +422,7 @@ class RandomOmniCamera(nn.Module):
                 shapes["labels"] = ((h, w), torch.int64)
             if depth is not None:
                 shapes["depth"] = ((1, h, w), depth.dtype)
-            result = {key: memory.empty((batch, *shape), out_dtype, device)
+            result = {key: torch.empty((batch, *shape), dtype=out_dtype, device=device)
                       for key, (shape, out_dtype) in shapes.items()}
         for name, (idx, camera) in cameras.items():
             for start in range(0, len(idx), chunk):

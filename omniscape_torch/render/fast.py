@@ -48,7 +48,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from . import extension, memory
+from . import extension
 from ..cubemap.atlas import atlas_to_faces
 from ..cubemap.padding import border_plan, check_cubemap
 from ..cubemap.grid import rotated_rays_to_grid
@@ -457,7 +457,7 @@ def _run(cubemap: Tensor, points: int, size: tuple[int, int], mode: str, border:
     _require()
     into = out if out is not None and out.dtype == work.dtype else None
     if into is None:
-        into = memory.empty((batch, chans, *size), work.dtype)
+        into = torch.empty((batch, chans, *size), dtype=work.dtype)
     with torch.no_grad():
         sample(work, into, valid)
     if out is None:

@@ -28,7 +28,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .. import cubemap as cm
-from . import fast as fastsample, memory
+from . import fast as fastsample
 from ..cameras import Camera
 from ..cubemap.grid import rotated_rays_to_grid
 from .reference import grid_sample, nearest_gather
@@ -490,7 +490,7 @@ class OmniProjection(nn.Module):
                 return None
             outputs, rows, total = into
             if key not in outputs:
-                outputs[key] = memory.empty((total, *shape), dtype, ref.device)
+                outputs[key] = torch.empty((total, *shape), dtype=dtype, device=ref.device)
             given = outputs[key]
             if not isinstance(given, Tensor) or given.shape != (total, *shape) or \
                     given.dtype != dtype or given.device != ref.device:
@@ -530,7 +530,7 @@ class OmniProjection(nn.Module):
                 ids = nearest_gather(self._atlas(labels, "nearest"), _outside(grid_c, mask_c))
             ids = ids[:, 0]
             rows = target("labels", ids.shape[1:], torch.int64)
-            rows = memory.empty(ids.shape, torch.int64, ids.device) if rows is None else rows
+            rows = torch.empty_like(ids) if rows is None else rows
             rows.copy_(ids)
             if not filled:
                 rows.masked_fill_(~valid[:, 0], ignore)
