@@ -61,6 +61,7 @@ sys.path.insert(0, str(ROOT))
 from common import loadavg, measure, run_record, write_json_atomic  # noqa: E402
 from omniscape_torch.render.augment import RandomOmniCamera  # noqa: E402
 from omniscape_torch.cameras import Camera  # noqa: E402
+from omniscape_torch.cubemap import face_axes  # noqa: E402
 from omniscape_torch.render.layer import CHUNK_PIXELS, OmniProjection  # noqa: E402
 from omniscape_torch.render.kernels import camera_grid  # noqa: E402
 
@@ -81,15 +82,10 @@ YAW_RANGE = (-math.pi, math.pi)
 # The peer: numpy maps + cv2.remap, per sample
 # --------------------------------------------------------------------------------------------
 
-# DESIGN.md's face table, in FACES order (front, back, left, right, up, down):
+# DESIGN.md's face table (the package's, cubemap/faces.py: the only copy), in FACES order:
 # a (looks along), b (image down), r (image right); face pixel (u, v) is the ray
 # r (u - c) / f + b (v - c) / f + a with f = F / 2, c = (F - 1) / 2.
-FACE_A = np.array([[0, 0, 1], [0, 0, -1], [-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0]],
-                  np.float32)
-FACE_B = np.array([[0, 1, 0], [0, 1, 0], [0, 1, 0], [0, 1, 0], [0, 0, 1], [0, 0, -1]],
-                  np.float32)
-FACE_R = np.array([[1, 0, 0], [-1, 0, 0], [0, 0, 1], [0, 0, -1], [1, 0, 0], [1, 0, 0]],
-                  np.float32)
+FACE_A, FACE_B, FACE_R = face_axes(torch.float32).numpy().transpose(1, 0, 2)
 
 
 def np_yaw_pitch_roll(yaw: float, pitch: float, roll: float) -> np.ndarray:
