@@ -699,17 +699,10 @@ int64_t batch_stride(const std::optional<at::Tensor>& t) {
     return t.has_value() ? batch_stride(*t) : 0;
 }
 
-// build_lut: the entries (code, fraction bits) of grid (B', P, 2) into table (B', P, 3), int32
-// for a float32 grid, int64 for a float64 one.
-void build_lut_op(const at::Tensor& grid, int64_t face, int64_t pad, int64_t face_stride,
-                  bool bilinear, const at::Tensor& table) {
-    const char* op = "omniscape_torch::build_lut";
-    check_contiguous(op, "grid", grid);
+// A lookup table (B', P, 3) for a grid (B', P, 2): int32 entries for a float32 grid, int64
+// for a float64 one.
+void check_table(const char* op, const at::Tensor& table, const at::Tensor& grid) {
     check_contiguous(op, "table", table);
-    TORCH_CHECK(grid.scalar_type() == at::kFloat || grid.scalar_type() == at::kDouble, op,
-                ": grid: expected float32 or float64, got ", grid.scalar_type());
-    TORCH_CHECK(grid.dim() == 3 && grid.size(2) == 2, op, ": grid: expected shape (B, P, 2), got ",
-                grid.sizes());
     const auto entry = grid.scalar_type() == at::kFloat ? at::kInt : at::kLong;
     TORCH_CHECK(table.scalar_type() == entry, op, ": table: expected ", entry, " for a ",
                 grid.scalar_type(), " grid, got ", table.scalar_type());
@@ -717,6 +710,19 @@ void build_lut_op(const at::Tensor& grid, int64_t face, int64_t pad, int64_t fac
                     table.size(1) == grid.size(1) && table.size(2) == 3,
                 op, ": table: expected shape (", grid.size(0), ", ", grid.size(1), ", 3), got ",
                 table.sizes());
+}
+
+// build_lut: the entries (code, fraction bits) of grid (B', P, 2) into table (B', P, 3), int32
+// for a float32 grid, int64 for a float64 one.
+void build_lut_op(const at::Tensor& grid, int64_t face, int64_t pad, int64_t face_stride,
+                  bool bilinear, const at::Tensor& table) {
+    const char* op = "omniscape_torch::build_lut";
+    check_contiguous(op, "grid", grid);
+    TORCH_CHECK(grid.scalar_type() == at::kFloat || grid.scalar_type() == at::kDouble, op,
+                ": grid: expected float32 or float64, got ", grid.scalar_type());
+    TORCH_CHECK(grid.dim() == 3 && grid.size(2) == 2, op, ": grid: expected shape (B, P, 2), got ",
+                grid.sizes());
+    check_table(op, table, grid);
     TORCH_CHECK(face >= 1 && pad >= 0 && face + 2 * pad < kMaxOffset / 6, op,
                 ": face, pad: expected F >= 1 and pad >= 0, got ", face, " and ", pad);
     TORCH_CHECK(face_stride >= 0 && 6 * std::max(face_stride, face * face) < kMaxOffset, op,
@@ -752,14 +758,7 @@ void sample_lut_op(const at::Tensor& cube, const at::Tensor& table, const at::Te
     const char* op = "omniscape_torch::sample_lut";
     check_cube(op, cube, bilinear, pad);
     check_points(op, "grid", grid, cube, 3, 2);
-    check_contiguous(op, "table", table);
-    const auto entry = grid.scalar_type() == at::kFloat ? at::kInt : at::kLong;
-    TORCH_CHECK(table.scalar_type() == entry, op, ": table: expected ", entry, " for a ",
-                grid.scalar_type(), " grid, got ", table.scalar_type());
-    TORCH_CHECK(table.dim() == 3 && table.size(0) == grid.size(0) &&
-                    table.size(1) == grid.size(1) && table.size(2) == 3,
-                op, ": table: expected shape (", grid.size(0), ", ", grid.size(1), ", 3), got ",
-                table.sizes());
+    check_table(op, table, grid);
     TORCH_CHECK(face_stride == cube.stride(1), op, ": table: built for face stride ",
                 face_stride, ", the cube's is ", cube.stride(1));
     TORCH_CHECK(out.dim() == 4 && out.size(2) * out.size(3) == grid.size(1), op,
