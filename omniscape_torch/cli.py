@@ -331,7 +331,7 @@ def build_parser() -> argparse.ArgumentParser:
     from .data.generate import CAMERAS
     from .scenes.town import WEATHERS
     gen = sub.add_parser("generate", help="write an OmniScape-like dataset (see "
-                                          "omniscape_torch/dataset.py for the layout)")
+                                          "omniscape_torch/data/format.py for the layout)")
     gen.add_argument("--out", type=Path, required=True, help="dataset folder (created; a "
                      "rerun completes an interrupted run)")
     gen.add_argument("--frames", type=_positive_int, default=8, help="frames (default 8)")

@@ -10,7 +10,6 @@ gradients still come from ``grid_sample``.
 from __future__ import annotations
 
 import math
-import pickle
 
 import pytest
 import torch

@@ -38,7 +38,7 @@ class CameraModel:
         check_values: raises ``ValueError`` for parameter values outside the model's range.
         unproject_xyz: for a closed-form model, ``unproject`` as components:
             ``(u (...), v (...), params (..., P)) -> (x, y, z, valid)``, without input checks
-            (for fused kernels: ``fastgrid.camera_grid``); None for the others.
+            (for fused kernels: ``render.kernels.camera_grid``); None for the others.
     """
 
     name: str

@@ -69,7 +69,7 @@ def _unproject_radial_xyz(u: Tensor, v: Tensor, params: Tensor,
                           ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The unit ray's components ``x, y, z`` of pixel ``(u, v)``, and its validity. Components
     rather than a stacked ``(..., 3)``: compiled into a larger kernel, a stack is a buffer
-    written to memory, the components are not (``fastgrid.camera_grid``)."""
+    written to memory, the components are not (``render.kernels.camera_grid``)."""
     fx, fy, cx, cy = params[..., 0], params[..., 1], params[..., 2], params[..., 3]
     mx = (u - cx) / fx
     my = (v - cy) / fy

@@ -206,7 +206,7 @@ def unified_unproject(pixels: Tensor, params: Tensor, *,
 def unified_unproject_undistorted(pixels: Tensor, params: Tensor) -> tuple[Tensor, Tensor]:
     """:func:`unified_unproject` of a camera without lens distortion (k = p = 0, which this does
     not check): the closed form alone, without the data-dependent branch, so ``torch.compile``
-    traces it whole (``fastgrid.camera_grid``)."""
+    traces it whole (``render.kernels.camera_grid``)."""
     check_inputs("unified", pixels, params, 2, 9, "pixels")
     mx, my = _normalised(pixels, params)
     return _lift(mx, my, params[..., 4], torch.ones_like(mx, dtype=torch.bool))

@@ -326,8 +326,8 @@ def convert_captures(cubemaps_dir: str | Path, out_dir: str | Path, *, label_set
                      device: str | torch.device = "cpu") -> dict[str, list[Path]]:
     """Convert every capture under ``cubemaps_dir`` into omni images under ``out_dir``.
 
-    Angles are radians. Cameras come from :func:`omniscape_torch.presets.fisheye` (optical
-    axis forward) and :func:`~omniscape_torch.presets.catadioptric` (axis down or up); their
+    Angles are radians. Cameras come from :func:`omniscape_torch.cameras.presets.fisheye` (optical
+    axis forward) and :func:`~omniscape_torch.cameras.presets.catadioptric` (axis down or up); their
     JSON and rotations go to ``out_dir/cameras.json``.
 
     A capture that fails (missing, corrupt or mismatched face, unknown tag, an error while

@@ -1,9 +1,9 @@
 """PyTorch datasets over what this package writes and reads.
 
 * :class:`OmniDataset`: a dataset written by ``omniscape-torch generate`` (layout in
-  :mod:`omniscape_torch.dataset`), one item per (finished frame, camera).
+  :mod:`omniscape_torch.data.generate`), one item per (finished frame, camera).
 * :class:`CubemapCaptureDataset`: simulator cubemap captures (layout in
-  :mod:`omniscape_torch.convert`), one item per capture folder.
+  :mod:`omniscape_torch.data.captures`), one item per capture folder.
 
 Both hold only plain data (paths, tensors, dicts): they pickle, so they work with
 ``DataLoader(num_workers=N)`` and the default collate function.
@@ -136,7 +136,7 @@ class OmniDataset(Dataset):
 class CubemapCaptureDataset(Dataset):
     """Simulator cubemap captures (``convert`` layout), one item per capture folder.
 
-    Each item is :func:`omniscape_torch.convert.load_capture`'s dict without its batch
+    Each item is :func:`omniscape_torch.data.captures.load_capture`'s dict without its batch
     dimension (``rgb (6, 3, F, F)`` float32 in [0, 1], ``depth (6, F, F)`` float32 planar
     metres, ``labels (6, F, F)`` int64, those present), plus ``face_size`` (int) and
     ``capture`` (the folder's name). Faces in ``cubemap.FACES`` order.

@@ -14,7 +14,7 @@ Randomness comes only from a ``torch.Generator``: the one passed to a call, else
 own, created on first use from ``seed`` (module docstring of ``RandomOmniCamera``). Parameters
 are drawn in float64 on the CPU, so a seed gives the same cameras on any device.
 
-Attitude (rig convention of :mod:`omniscape_torch.presets`): ``R = R_att @ R_mount`` with
+Attitude (rig convention of :mod:`omniscape_torch.cameras.presets`): ``R = R_att @ R_mount`` with
 ``R_att = yaw_pitch_roll_to_matrix(yaw, pitch, roll)`` the vehicle's attitude relative to the
 cube frame and ``R_mount`` the camera's mount on the vehicle (identity for a forward fisheye,
 the "down" or "up" face's rotation for a catadioptric camera), ``ray_cube = R @ ray_cam``.
@@ -86,7 +86,7 @@ class RandomOmniCamera(nn.Module):
     """Per sample, a random omnidirectional camera and attitude; renders the cubemap through it.
 
     Cameras: the image circle of the drawn field of view ``fov`` is inscribed in the image (as in
-    :func:`~omniscape_torch.presets.fisheye` and :func:`~omniscape_torch.presets.catadioptric`):
+    :func:`~omniscape_torch.cameras.presets.fisheye` and :func:`~omniscape_torch.cameras.presets.catadioptric`):
     ``f = s (min(H, W) / 2 - 0.5) / r1(fov / 2)`` with ``r1`` the model's radius at focal 1 and
     ``s`` drawn in ``focal_scale_range`` (``s > 1`` zooms in and crops the circle); the centre is
     the image centre plus a uniform jitter of at most ``center_jitter`` pixels on each axis.
@@ -115,7 +115,7 @@ class RandomOmniCamera(nn.Module):
     (``base_seed + worker_id``, reproducible with ``DataLoader(generator=...)``). No global RNG
     is consumed. The module (and its generator state) pickles. Inside ``DataLoader`` workers
     the grid kernel runs eagerly (compiling in a forked worker can deadlock; see
-    ``fastgrid.in_dataloader_worker``): render in the main process, or on the GPU, for speed.
+    ``cubemap.grid.in_dataloader_worker``): render in the main process, or on the GPU, for speed.
 
     Args:
         image_size: ``(H, W)`` of the output.

@@ -391,7 +391,7 @@ def sample_rays(cubemap: Tensor, rays: Tensor, rotation: Tensor | None = None,
     """:func:`sample_cube` through the grid of camera-frame ``rays`` rotated into the cube
     frame, without storing the grid.
 
-    Equal, bit for bit, to ``sample_cube(cubemap, fastgrid.rotated_rays_to_grid(rays,
+    Equal, bit for bit, to ``sample_cube(cubemap, cubemap.grid.rotated_rays_to_grid(rays,
     rotation, F, pad, dtype=...), ...)`` with the grid in the cube's floating dtype (float32
     for an integer cube): the C++ kernel computes each pixel's grid point in the sampling pass,
     with the operations of the compiled ``rotated_rays_to_grid`` in the same order, and reads

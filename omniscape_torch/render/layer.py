@@ -12,7 +12,7 @@ labels are sampled nearest and never blended.
 
 When no gradient is needed (grad disabled, or neither the cubemaps, the camera parameters nor
 the rotation require it) and the cube is on the CPU, nearest and bilinear sampling take the
-fast path of :mod:`omniscape_torch.fastsample` (same output to float32 rounding, no atlas
+fast path of :mod:`omniscape_torch.render.fast` (same output to float32 rounding, no atlas
 built; a frozen camera's lookup table is cached with its grid; under a rotation the grid is
 computed from the rays in the sampling pass and never stored); ``fast=False`` forces
 ``grid_sample`` everywhere.
@@ -79,10 +79,10 @@ class OmniProjection(nn.Module):
             across seams), ``"copied"`` (edge texels repeated, what a naive atlas does; for
             comparison), ``"none"`` (no padding; for comparison).
         fused_grid: build rebuilt grids (rotations, learnable intrinsics) with the fused
-            ``torch.compile`` kernel of ``omniscape_torch.fastgrid`` (2x faster per call; the
+            ``torch.compile`` kernel of ``omniscape_torch.cubemap.grid`` (2x faster per call; the
             first call compiles for a few seconds; falls back to eager torch, with a warning,
             where compilation is unavailable). The output is the same either way.
-        fast: sample nearest and bilinear with :mod:`omniscape_torch.fastsample` (lookup
+        fast: sample nearest and bilinear with :mod:`omniscape_torch.render.fast` (lookup
             table on the cube, no atlas; CPU) whenever no gradient is needed: a cached grid's
             table is built once and kept; under a rotation each pixel's grid point is computed
             from the camera's rays in the sampling pass, no grid stored

@@ -341,7 +341,7 @@ def visible_faces(camera: Camera, rotation: Tensor | None = None, *, pad: int = 
 
     Example:
         >>> import math, omniscape_torch as ot
-        >>> from omniscape_torch.presets import fisheye
+        >>> from omniscape_torch.cameras.presets import fisheye
         >>> needed = visible_faces(fisheye((64, 64), fov=math.radians(190)))
         >>> [f for f, n in zip(ot.cubemap.FACES, needed.tolist()) if n]
         ['front', 'left', 'right', 'up', 'down']
