@@ -58,7 +58,7 @@ ROOT = Path(__file__).resolve().parents[1]
 # Benchmark the checkout this script lives in, not whatever copy is installed.
 sys.path.insert(0, str(ROOT))
 
-from common import loadavg, measure, run_record, write_json_atomic  # noqa: E402
+from common import loadavg, measure, run_record, begin_run, write_json_atomic  # noqa: E402
 from omniscape_torch.render.augment import RandomOmniCamera  # noqa: E402
 from omniscape_torch.cameras import Camera  # noqa: E402
 from omniscape_torch.cubemap import face_axes  # noqa: E402
@@ -162,13 +162,7 @@ def peer_batch(rgb: list[np.ndarray], labels: list[np.ndarray], rng: np.random.G
 # --------------------------------------------------------------------------------------------
 
 def run(args: argparse.Namespace) -> dict:
-    load_start = loadavg()
-    if load_start is not None and load_start[0] > 0.5:
-        print(f"# warning: 1-minute load average {load_start[0]:.2f} > 0.5: timings are "
-              "unreliable on a busy machine", file=sys.stderr)
-    torch.set_num_threads(args.threads)
-    if cv2 is not None:
-        cv2.setNumThreads(args.threads)
+    load_start = begin_run(args.threads, cv2)
     device = torch.device("cpu")
     batch, face, size = args.batch, args.face, args.size
 

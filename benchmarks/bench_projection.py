@@ -74,7 +74,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import omniscape_torch as ot  # noqa: E402
-from common import loadavg, measure, run_record, write_json_atomic  # noqa: E402
+from common import loadavg, measure, run_record, begin_run, write_json_atomic  # noqa: E402
 from omniscape_torch import cubemap as cm  # noqa: E402
 from omniscape_torch.cubemap import grid as fastgrid  # noqa: E402
 from omniscape_torch.render import fast as fastsample  # noqa: E402
@@ -141,13 +141,7 @@ def remap_maps(grid: torch.Tensor, atlas_hw: tuple[int, int]) -> tuple[np.ndarra
 # --------------------------------------------------------------------------------------------
 
 def run(args: argparse.Namespace) -> dict:
-    load_start = loadavg()
-    if load_start is not None and load_start[0] > 0.5:
-        print(f"# warning: 1-minute load average {load_start[0]:.2f} > 0.5: timings are "
-              "unreliable on a busy machine", file=sys.stderr)
-    torch.set_num_threads(args.threads)
-    if cv2 is not None:
-        cv2.setNumThreads(args.threads)
+    load_start = begin_run(args.threads, cv2)
     device = torch.device(args.device)
     dtype = torch.float32
     face, size = args.face, 2 * args.face

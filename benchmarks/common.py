@@ -27,7 +27,7 @@ if str(ROOT) not in sys.path:
 
 from omniscape_torch.io import atomic_write_text  # noqa: E402
 
-__all__ = ["ROOT", "SETTLE_S", "git_commit", "loadavg", "machine_info", "measure",
+__all__ = ["begin_run", "ROOT", "SETTLE_S", "git_commit", "loadavg", "machine_info", "measure",
            "positive_int", "run_record", "write_json_atomic"]
 
 #: Untimed pause before every timed call: the worker threads of the previous call (OpenMP's,
@@ -114,6 +114,19 @@ def machine_info(devices: torch.device | str | Iterable[torch.device | str] = ()
 def loadavg() -> list[float] | None:
     """The 1, 5 and 15-minute load averages, or None where the platform has none."""
     return list(os.getloadavg()) if hasattr(os, "getloadavg") else None
+
+
+def begin_run(threads: int, cv2=None) -> list[float] | None:
+    """What every timed run does first: warn when the machine is busy (1-minute load above
+    0.5), set torch's (and OpenCV's) thread count. Returns the load at the start."""
+    load = loadavg()
+    if load is not None and load[0] > 0.5:
+        print(f"# warning: 1-minute load average {load[0]:.2f} > 0.5: timings are "
+              "unreliable on a busy machine", file=sys.stderr)
+    torch.set_num_threads(threads)
+    if cv2 is not None:
+        cv2.setNumThreads(threads)
+    return load
 
 
 def positive_int(text: str) -> int:

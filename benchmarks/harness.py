@@ -79,8 +79,8 @@ from torch import Tensor
 if str(Path(__file__).resolve().parent) not in sys.path:
     sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import (git_commit, loadavg, machine_info, measure, positive_int,  # noqa: E402
-                    write_json_atomic)
+from common import (begin_run, git_commit, loadavg, machine_info, measure,  # noqa: E402
+                    positive_int, write_json_atomic)
 import omniscape_torch  # noqa: E402
 from omniscape_torch import cubemap as cm  # noqa: E402
 from omniscape_torch.cameras import Camera  # noqa: E402
@@ -715,14 +715,8 @@ def _notes(rows: list[dict]) -> None:
 
 def run(args: argparse.Namespace) -> dict:
     """Build the sweep, score every row, time all rows round-robin; the result dict."""
-    load_start = loadavg()
-    if load_start is not None and load_start[0] > 0.5:
-        print(f"# warning: 1-minute load average {load_start[0]:.2f} > 0.5: timings are "
-              "unreliable on a busy machine", file=sys.stderr)
-    torch.set_num_threads(args.threads)
     cv2 = _optional("cv2")
-    if cv2 is not None:
-        cv2.setNumThreads(args.threads)
+    load_start = begin_run(args.threads, cv2)
     devices = _devices(args.device)
     progress = not args.no_progress
     start = time.perf_counter()
