@@ -27,21 +27,26 @@ def ops():
     return extension.load()
 
 
-def make_inputs(dtype, mode="bilinear", batch=2, size=8, pad=1, h=5, w=7, seed=0):
+def make_inputs(dtype, mode="bilinear", batch=2, size=8, pad=1, h=5, w=7, seed=0,
+                channels_last=False, out_dtype=None):
     """A cube, its ring and an output buffer, as ``fast.py`` passes them to the ops."""
     gen = torch.Generator().manual_seed(seed)
     if dtype.is_floating_point:
         cube = torch.rand(batch, 6, 3, size, size, generator=gen, dtype=dtype)
     else:
         cube = torch.randint(0, 200, (batch, 6, 3, size, size), generator=gen).to(dtype)
+    out = torch.empty(batch, 3, h, w, dtype=out_dtype or dtype)
+    if channels_last:   # (B, 6, F, F, C) and (B, H, W, C) in memory
+        cube = cube.permute(0, 1, 3, 4, 2).contiguous().permute(0, 1, 4, 2, 3)
+        out = out.permute(0, 2, 3, 1).contiguous().permute(0, 3, 1, 2)
     border = "bilinear" if mode == "bilinear" else "nearest"
-    ring_src, ring_weight = fastsample._ring_offsets(size, pad, border, dtype, cube.stride(1))
-    out = torch.empty(batch, 3, h, w, dtype=dtype)
+    ring_src, ring_weight = fastsample._ring_offsets(size, pad, border, dtype,
+                                                     fastsample._strides(cube))
     return cube, ring_src, ring_weight, out
 
 
 def grid_dtype(dtype):
-    return dtype if dtype.is_floating_point else (f32 if dtype == torch.uint8 else f64)
+    return fastsample.work_dtype(dtype) if dtype in fastsample.BLENDED else f64
 
 
 def make_grid(batch, h, w, dtype, seed=1):
@@ -62,7 +67,11 @@ def make_valid(batch, h, w):
 
 
 CASES = [(f32, "bilinear"), (f64, "bilinear"), (f32, "nearest"), (torch.uint8, "nearest"),
-         (torch.int64, "nearest")]
+         (torch.int64, "nearest"), (torch.uint8, "bilinear"), (torch.float16, "bilinear"),
+         (torch.bfloat16, "nearest")]
+#: (cube dtype, output dtype, channels-last) for the layouts and conversions
+LAYOUTS = [(f32, f32, True), (torch.uint8, torch.uint8, True), (torch.uint8, f32, False),
+           (torch.uint8, f32, True), (torch.bfloat16, f32, True)]
 
 
 # ------------------------------------------------------------------------------------------
@@ -85,7 +94,7 @@ def test_opcheck_build_lut(dtype):
     grid = make_grid(2, 5, 7, dtype).reshape(2, -1, 2)
     table = torch.empty(2, 35, 3, dtype=fastsample._ENTRY[dtype])
     for bilinear in (True, False):
-        torch.library.opcheck(ops().build_lut, (grid, 8, 1, 3 * 64, bilinear, table))
+        torch.library.opcheck(ops().build_lut, (grid, 8, 1, [3 * 64, 8, 1], bilinear, table))
 
 
 @pytest.mark.parametrize("dtype,mode", CASES)
@@ -94,7 +103,20 @@ def test_opcheck_sample_lut(dtype, mode):
     grid = make_grid(1, 5, 7, grid_dtype(dtype))
     lut = fastsample.build_lut(grid, 8, 1, mode, channels=3)
     torch.library.opcheck(ops().sample_lut, (cube, lut.table, lut.grid, ring_src, ring_weight, 1,
-                                             cube.stride(1), mode == "bilinear", 0, out))
+                                             list(lut.strides), mode == "bilinear", 0, out))
+
+
+@pytest.mark.parametrize("dtype,out_dtype,channels_last", LAYOUTS)
+def test_opcheck_layouts_and_output_dtypes(dtype, out_dtype, channels_last):
+    """Channels-last cubes and outputs, and a float32 output of an 8-bit or half cube."""
+    cube, ring_src, ring_weight, out = make_inputs(dtype, channels_last=channels_last,
+                                                   out_dtype=out_dtype)
+    grid = make_grid(1, 5, 7, f32)
+    lut = fastsample.build_lut(grid, 8, 1, channels=3, channels_last=channels_last)
+    torch.library.opcheck(ops().sample_lut, (cube, lut.table, lut.grid, ring_src, ring_weight, 1,
+                                             list(lut.strides), True, 0, out))
+    torch.library.opcheck(ops().sample_grid, (cube, make_grid(2, 5, 7, f32), None, ring_src,
+                                              ring_weight, 1, True, 0, out))
 
 
 @pytest.mark.parametrize("masked", [False, True])
@@ -137,28 +159,31 @@ def test_ops_check_their_arguments():
     args = dict(cube=cube, grid=grid, valid=valid, ring_src=ring_src, ring_weight=ring_weight,
                 pad=1, bilinear=True, fill=0, out=out)
     bad = [
-        (dict(grid=grid.double()), "sample_grid: grid: expected the cube's dtype"),
+        (dict(grid=grid.double()), "sample_grid: grid: expected Float for a Float cube"),
         (dict(grid=grid.transpose(1, 2)), "grid: expected a contiguous tensor"),
         (dict(grid=grid[:1].expand(3, -1, -1, -1).contiguous()), "grid: expected batch 1 or 2"),
-        (dict(cube=cube.transpose(3, 4)), "cube: expected contiguous face rows"),
         (dict(cube=cube[:, :5]), r"cube: expected shape \(B, 6, C, F, F\)"),
-        (dict(cube=cube.to(torch.int32)), "cube: bilinear sampling needs float32 or float64"),
+        (dict(cube=cube.to(torch.int32)), "cube: bilinear sampling needs float32, float64"),
         (dict(out=out[:, :2]), "out: expected shape"),
-        (dict(out=out.double()), "out: expected the cube's dtype"),
-        (dict(out=torch.empty(2, 3, 7, 5).transpose(2, 3)), "out: expected contiguous H x W"),
+        (dict(out=out.double()), "out: expected Float, got Double"),
+        (dict(cube=cube.double(), grid=grid.double(), ring_weight=ring_weight.double()),
+         "out: expected Double, got Float"),
+        (dict(cube=cube.to(torch.uint8), out=out.half()), "out: expected Byte or float32"),
+        (dict(out=torch.empty(2, 3, 7, 5).transpose(2, 3)), "out: expected H x W planes"),
         (dict(valid=valid.float()), "valid: expected bool"),
         (dict(valid=valid[..., :6].contiguous()), "valid: expected shape"),
         (dict(ring_src=ring_src[:-1]), "ring_src: expected shape"),
-        (dict(ring_weight=ring_weight.double()), "ring_weight: expected the floating cube's"),
-        (dict(pad=-1), "pad: expected >= 0"),
+        (dict(ring_weight=ring_weight.double()), "ring_weight: expected Float for a Float"),
+        (dict(pad=-1), "pad: expected F >= 1 and pad >= 0"),
     ]
     for change, match in bad:
         with pytest.raises(RuntimeError, match=match):
             ops().sample_grid(**{**args, **change})
     lut = fastsample.build_lut(grid, 8, 1, channels=1)   # for a cube of 1 channel
-    with pytest.raises(RuntimeError, match="sample_lut: table: built for face stride 64, the "
-                                           "cube's is 192"):
-        ops().sample_lut(cube, lut.table, lut.grid, ring_src, ring_weight, 1, 64, True, 0, out)
+    with pytest.raises(RuntimeError, match=r"sample_lut: table: built for the strides \(face, "
+                                           r"row, texel\) \[64, 8, 1\], the cube's are \(192, "):
+        ops().sample_lut(cube, lut.table, lut.grid, ring_src, ring_weight, 1, list(lut.strides),
+                         True, 0, out)
     with pytest.raises(RuntimeError, match="sample_rays: rotation: expected .* rays' dtype"):
         ids, ids_src, _, ids_out = make_inputs(torch.uint8, "nearest")
         ops().sample_rays(ids, torch.randn(1, 5, 7, 3), make_rotation(1, f64), None, ids_src,
@@ -175,7 +200,8 @@ def test_tables_and_rings_of_any_entries_read_inside_the_cube():
     grid = make_grid(1, 5, 7, f32).reshape(1, -1, 2)
     table = torch.randint(-2 ** 31, 2 ** 31 - 1, (1, 35, 3), dtype=torch.int32)
     table[0, :3, 0] = torch.tensor([2 ** 31 - 1, 6 * cube.stride(1), -7], dtype=torch.int32)
-    ops().sample_lut(cube, table, grid, ring_src, ring_weight, 1, cube.stride(1), False, 5, out)
+    ops().sample_lut(cube, table, grid, ring_src, ring_weight, 1, list(fastsample._strides(cube)),
+                     False, 5, out)
     assert bool((out.flatten(2)[..., :3] == 5).all())
     wild = ring_src * 10 ** 9 - 10 ** 12
     ops().sample_grid(cube, grid.view(1, 5, 7, 2), None, wild, None, 1, True, 0, out)

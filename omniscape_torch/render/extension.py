@@ -176,7 +176,7 @@ def _check(cond: bool, message: str) -> None:
     torch._check(cond, lambda: f"{NAMESPACE}: {message}")
 
 
-def _fake_build_lut(grid, face, pad, face_stride, bilinear, table) -> None:
+def _fake_build_lut(grid, face, pad, strides, bilinear, table) -> None:
     _check(grid.dim() == 3 and grid.shape[-1] == 2, "build_lut: grid: expected (B, P, 2)")
     _check(table.shape == (*grid.shape[:2], 3), "build_lut: table: expected (B, P, 3)")
 
@@ -185,10 +185,11 @@ def _fake_sample(cube, out, points, last: int, what: str) -> None:
     _check(cube.dim() == 5 and cube.shape[1] == 6, f"{what}: cube: expected (B, 6, C, F, F)")
     _check(points.shape[-1] == last, f"{what}: expected a last dimension of {last}")
     _check(out.dim() == 4 and out.shape[:2] == (cube.shape[0], cube.shape[2])
-           and out.dtype == cube.dtype, f"{what}: out: expected (B, C, H, W) in the cube's dtype")
+           and (out.dtype == cube.dtype or out.dtype == torch.float32),
+           f"{what}: out: expected (B, C, H, W) in the cube's dtype or float32")
 
 
-def _fake_sample_lut(cube, table, grid, ring_src, ring_weight, pad, face_stride, bilinear, fill,
+def _fake_sample_lut(cube, table, grid, ring_src, ring_weight, pad, strides, bilinear, fill,
                      out) -> None:
     _fake_sample(cube, out, grid, 2, "sample_lut")
 

@@ -55,7 +55,8 @@ from ..cubemap.grid import rotated_rays_to_grid
 from ..cubemap.grid import _check_inputs as _check_rays
 
 __all__ = ["CubeLUT", "build_lut", "sample_cube", "sample_rays", "reads_rays", "sample_atlas",
-           "available", "unavailable_reason", "compile_failures", "holds", "MODES", "BORDERS"]
+           "available", "unavailable_reason", "compile_failures", "holds", "is_channels_last",
+           "work_dtype", "output_dtypes", "MODES", "BORDERS", "BLENDED"]
 
 MODES = ("nearest", "bilinear")
 #: How the atlas border is filled: resampled from the neighbours with the ``"bilinear"`` or
@@ -75,8 +76,8 @@ class CubeLUT:
     Attributes:
         mode: ``"nearest"`` or ``"bilinear"``.
         face_size: ``F``. pad: the atlas border ``p`` the grid was made for.
-        face_stride: elements between faces of one channel in the cube (``C F F`` for a
-            contiguous cube).
+        strides: elements between the faces, rows and texels of one channel in the cubes it
+            reads (``(C F F, F, 1)`` for a contiguous cube, ``(F F C, F C, C)`` channels-last).
         table: ``(B', P, 3)``, ``P = H W``: per pixel the entry the C++ kernel reads, its
             code (``base``) and the bits of its two fractions (``frac``) side by side; int32
             for a float32 grid, int64 for a float64 one.
@@ -87,7 +88,7 @@ class CubeLUT:
     mode: str
     face_size: int
     pad: int
-    face_stride: int
+    strides: tuple[int, int, int]
     table: Tensor
     grid: Tensor
     size: tuple[int, int]
@@ -194,18 +195,18 @@ def _ring_plan(face_size: int, pad: int, border: str, dtype: torch.dtype
 
 
 @functools.lru_cache(maxsize=16)
-def _ring_offsets(face_size: int, pad: int, border: str, dtype: torch.dtype, face_stride: int
-                  ) -> tuple[Tensor, Tensor | None]:
-    """:func:`_ring_plan` as offsets within one sample and channel of a cube of
-    ``face_stride``; no ring (one dummy texel) without a border. Weights are None for one-tap
-    plans and for integer cubes (nearest)."""
+def _ring_offsets(face_size: int, pad: int, border: str, dtype: torch.dtype,
+                  strides: tuple[int, int, int]) -> tuple[Tensor, Tensor | None]:
+    """:func:`_ring_plan` as offsets within one sample and channel of a cube of ``strides``
+    (faces, rows, texels); no ring (one dummy texel) without a border. Weights in
+    :func:`work_dtype`; None for one-tap plans and for cubes whose elements are copied."""
     if pad == 0:
         return torch.zeros(1, 1, dtype=torch.long), None
-    ring_dtype = dtype if dtype.is_floating_point else torch.float64
-    src, weight = _ring_plan(face_size, pad, border, ring_dtype)
-    f2 = face_size * face_size
-    offsets = torch.div(src, f2, rounding_mode="floor") * face_stride + src % f2
-    if weight is None or not dtype.is_floating_point:
+    src, weight = _ring_plan(face_size, pad, border, work_dtype(dtype))
+    face, texel = torch.div(src, face_size ** 2, rounding_mode="floor"), src % face_size ** 2
+    row, col = torch.div(texel, face_size, rounding_mode="floor"), texel % face_size
+    offsets = face * strides[0] + row * strides[1] + col * strides[2]
+    if weight is None or dtype not in BLENDED:
         return offsets, None
     # each row's nonzero weights first, in their order (the kernel stops at a row's first zero)
     order = torch.sort((weight == 0).to(torch.uint8), dim=1, stable=True).indices
@@ -215,6 +216,36 @@ def _ring_offsets(face_size: int, pad: int, border: str, dtype: torch.dtype, fac
 # ------------------------------------------------------------------------------------------
 # Public functions
 # ------------------------------------------------------------------------------------------
+
+#: Cube dtypes the kernels blend (bilinear sampling; ring texels are weighted sums), in
+#: :func:`work_dtype`; the others are sampled nearest, their elements copied (exact).
+BLENDED = (torch.float32, torch.float64, torch.float16, torch.bfloat16, torch.uint8)
+
+
+def work_dtype(dtype: torch.dtype) -> torch.dtype:
+    """What a cube of ``dtype`` is blended in and its grid computed in: float64 for float64,
+    float32 for every other cube (half precision and ``uint8`` included)."""
+    return torch.float64 if dtype == torch.float64 else torch.float32
+
+
+def output_dtypes(dtype: torch.dtype) -> tuple[torch.dtype, ...]:
+    """The dtypes the kernels write a cube of ``dtype`` into: its own, and float32 for a
+    ``uint8`` cube (scaled to [0, 1]) or a half-precision one."""
+    scaled = dtype in (torch.uint8, torch.float16, torch.bfloat16)
+    return (dtype, torch.float32) if scaled else (dtype,)
+
+
+def _strides(cube: Tensor) -> tuple[int, int, int]:
+    """Elements between the faces, rows and texels of one channel of ``cube (B, 6, C, F, F)``."""
+    return cube.stride(1), cube.stride(3), cube.stride(4)
+
+
+def _layout_strides(channels: int, face_size: int, channels_last: bool) -> tuple[int, int, int]:
+    """:func:`_strides` of a contiguous cube ``(B, 6, C, F, F)``, or ``(B, 6, F, F, C)``."""
+    if channels_last:
+        return face_size * face_size * channels, face_size * channels, channels
+    return channels * face_size * face_size, face_size, 1
+
 
 def _check_grid(grid: Tensor, batch: int | None = None) -> None:
     """A floating ``(B', H, W, 2)`` grid, ``B'`` in ``(1, batch)`` when ``batch`` is given."""
@@ -227,9 +258,9 @@ def _check_grid(grid: Tensor, batch: int | None = None) -> None:
                          f"H, W, 2), got {tuple(grid.shape)}")
 
 
-def _check_offsets(face_stride: int) -> None:
-    if 6 * face_stride >= 2 ** 31:
-        raise ValueError(f"cube too large for int32 offsets: face stride {face_stride}")
+def _fits(strides: tuple[int, int, int], face_size: int) -> bool:
+    """Whether every texel offset within a sample and channel fits the kernels' int32 codes."""
+    return 5 * strides[0] + (face_size - 1) * (strides[1] + strides[2]) < 2 ** 31
 
 
 def _check_mode(mode: str, border: str) -> None:
@@ -240,17 +271,19 @@ def _check_mode(mode: str, border: str) -> None:
 
 
 def build_lut(grid: Tensor, face_size: int, pad: int, mode: str = "bilinear", *,
-              channels: int) -> CubeLUT:
-    """Lookup table of an atlas ``grid`` for contiguous cubes ``(B, 6, channels, F, F)``.
+              channels: int, channels_last: bool = False) -> CubeLUT:
+    """Lookup table of an atlas ``grid`` for contiguous cubes ``(B, 6, channels, F, F)`` (or
+    channels-last ones, ``(B, 6, F, F, channels)`` in memory).
 
     Build it once for a frozen camera and pass it to :func:`sample_cube` on every call.
 
     Args:
         grid: ``(B', H, W, 2)`` atlas grid (``cubemap.rays_to_grid``, ``align_corners=False``),
-            float32 or float64 (the dtype the cube is sampled in).
+            float32 or float64 (the dtype the cube is sampled with: :func:`work_dtype`).
         face_size: ``F``. pad: the atlas border ``p`` of the grid.
         mode: ``"nearest"`` or ``"bilinear"``.
         channels: ``C`` of the cubes it will sample.
+        channels_last: the cubes hold their channels innermost.
 
     Returns:
         The :class:`CubeLUT`.
@@ -259,61 +292,63 @@ def build_lut(grid: Tensor, face_size: int, pad: int, mode: str = "bilinear", *,
     _check_mode(mode, "bilinear")
     if isinstance(channels, bool) or not isinstance(channels, int) or channels < 1:
         raise ValueError(f"channels: expected a positive int, got {channels!r}")
-    face_stride = channels * face_size * face_size
-    _check_offsets(face_stride)
+    strides = _layout_strides(channels, face_size, bool(channels_last))
+    if not _fits(strides, face_size):
+        raise ValueError(f"cube too large for int32 offsets: strides {strides}")
     flat = grid.reshape(grid.shape[0], -1, 2).contiguous()
     table = torch.empty((*flat.shape[:2], 3), dtype=_ENTRY[flat.dtype])
-    _require().build_lut(flat, face_size, pad, face_stride, mode == "bilinear", table)
-    return CubeLUT(mode, face_size, pad, face_stride, table, flat, tuple(grid.shape[1:3]))
+    _require().build_lut(flat, face_size, pad, list(strides), mode == "bilinear", table)
+    return CubeLUT(mode, face_size, pad, strides, table, flat, tuple(grid.shape[1:3]))
 
 
-def _copies(dtype: torch.dtype) -> bool:
-    """Whether the kernels read a cube of ``dtype``: float32 and float64, and any dtype of 1, 2,
-    4 or 8 bytes sampled nearest (its elements copied)."""
-    return (dtype in (torch.float32, torch.float64)
-            or torch.empty((), dtype=dtype).element_size() in (1, 2, 4, 8))
+def _grid_dtype(dtype: torch.dtype, mode: str, given: torch.dtype) -> torch.dtype:
+    """The dtype the kernels read a grid in for a cube of ``dtype``: :func:`work_dtype` where
+    they blend, the ``given`` grid's (float32 or float64) where they copy."""
+    blends = dtype.is_floating_point or (mode == "bilinear" and dtype in BLENDED)
+    return work_dtype(dtype) if blends else given
 
 
 def _sample(faces: Tensor, grid: Tensor, mode: str, pad: int, border: str,
             lut: CubeLUT | None, out: Tensor, valid: Tensor | None, fill: int) -> None:
-    """Sample ``faces (B, 6, C, F, F)`` (any strides with unit texel stride in a face row) at
-    ``grid (B', H, W, 2)`` into ``out (B, C, H, W)`` (contiguous planes); the pixels outside
-    the atlas (without ``lut``, also those where ``valid (1 or B', H, W)`` is False) read
-    ``fill``."""
-    batch, _, _, f, _ = faces.shape
-    sk = faces.stride(1)
-    if lut is not None and ((lut.mode, lut.face_size, lut.pad, lut.face_stride) != (
-            mode, f, pad, sk) or lut.base.shape[0] not in (1, batch)):
-        raise ValueError(f"lut: built for (mode, F, pad, face stride, batch) = "
-                         f"{(lut.mode, lut.face_size, lut.pad, lut.face_stride, lut.base.shape[0])}"
-                         f", the call needs {(mode, f, pad, sk, batch)}")
-    _check_offsets(sk)
+    """Sample ``faces (B, 6, C, F, F)`` (any strides) at ``grid (B', H, W, 2)`` into ``out (B,
+    C, H, W)`` (planes or channels-last pixels); the pixels outside the atlas (without ``lut``,
+    also those where ``valid (1 or B', H, W)`` is False) read ``fill``."""
+    batch, f = faces.shape[0], faces.shape[-1]
+    strides = _strides(faces)
+    if lut is not None and ((lut.mode, lut.face_size, lut.pad, lut.strides) != (
+            mode, f, pad, strides) or lut.base.shape[0] not in (1, batch)):
+        raise ValueError(f"lut: built for (mode, F, pad, strides, batch) = "
+                         f"{(lut.mode, lut.face_size, lut.pad, lut.strides, lut.base.shape[0])}"
+                         f", the call needs {(mode, f, pad, strides, batch)}")
     ops = _require()
     bilinear = mode == "bilinear"
-    ring_src, ring_weight = _ring_offsets(f, pad, border, faces.dtype, sk)
+    ring_src, ring_weight = _ring_offsets(f, pad, border, faces.dtype, strides)
     if lut is None:
-        points = grid.to(faces.dtype) if faces.is_floating_point() else grid
-        ops.sample_grid(faces, points.contiguous(), valid, ring_src, ring_weight, pad, bilinear,
-                        fill, out)
+        points = grid.to(_grid_dtype(faces.dtype, mode, grid.dtype)).contiguous()
+        ops.sample_grid(faces, points, valid, ring_src, ring_weight, pad, bilinear, fill, out)
         return
-    points = lut.grid.to(faces.dtype) if faces.is_floating_point() else lut.grid
+    points = lut.grid.to(_grid_dtype(faces.dtype, mode, lut.grid.dtype)).contiguous()
     table = lut.table
     if table.dtype != _ENTRY[points.dtype]:   # a table of another grid dtype: converted
         frac = lut.frac.to(points.dtype)
         table = _table(lut.base, frac[0], frac[1])
-    ops.sample_lut(faces, table, points.contiguous(), ring_src, ring_weight, pad, sk, bilinear,
+    ops.sample_lut(faces, table, points, ring_src, ring_weight, pad, list(strides), bilinear,
                    fill, out)
+
+
+def _samples(dtype: torch.dtype, mode: str) -> bool:
+    """Whether the kernels sample a cube of ``dtype`` in ``mode``: the :data:`BLENDED` dtypes in
+    both modes, any dtype of 1, 2, 4 or 8 bytes nearest (its elements copied)."""
+    return dtype in BLENDED or (mode == "nearest" and torch.empty(
+        (), dtype=dtype).element_size() in (1, 2, 4, 8))
 
 
 def reads_rays(dtype: torch.dtype, rays_dtype: torch.dtype) -> bool:
     """Whether :func:`sample_rays` samples a cube of ``dtype`` through rays of ``rays_dtype``
     without building their grid first: the C++ op computes the grid in the rays' dtype, which
-    must be the grid's (the cube's floating dtype, float32 for other cubes). False where the
-    fast sampler is unavailable."""
-    half = dtype.is_floating_point and dtype not in (torch.float32, torch.float64)
-    work = torch.float32 if half else dtype
-    grid_dtype = work if work.is_floating_point else torch.float32
-    return rays_dtype == grid_dtype and _copies(work) and available()
+    must be :func:`work_dtype`. False where the fast sampler is unavailable."""
+    return (rays_dtype == work_dtype(dtype) and _samples(dtype, "nearest")
+            and available())
 
 
 def _sample_rays(faces: Tensor, rays: Tensor, rotation: Tensor | None, mode: str, pad: int,
@@ -321,14 +356,13 @@ def _sample_rays(faces: Tensor, rays: Tensor, rotation: Tensor | None, mode: str
     """:func:`_sample` of the grid of ``rays (Br, H, W, 3)`` rotated by ``rotation (Bq, 3, 3)``:
     computed in the sampling pass where the C++ op reads these rays (:func:`reads_rays`), else
     built first."""
-    grid_dtype = faces.dtype if faces.is_floating_point() else torch.float32
+    grid_dtype = work_dtype(faces.dtype)
     if rays.dtype != grid_dtype:   # the op would compute the grid in another dtype
         grid = rotated_rays_to_grid(rays, rotation, faces.shape[-1], pad, dtype=grid_dtype)
         return _sample(faces, grid, mode, pad, border, None, out, valid, fill)
-    f, sk = faces.shape[-1], faces.stride(1)
-    _check_offsets(sk)
     ops = _require()
-    ring_src, ring_weight = _ring_offsets(f, pad, border, faces.dtype, sk)
+    ring_src, ring_weight = _ring_offsets(faces.shape[-1], pad, border, faces.dtype,
+                                          _strides(faces))
     rot = None if rotation is None else rotation.to(rays.dtype).contiguous()
     ops.sample_rays(faces, rays.contiguous(), rot, valid, ring_src, ring_weight, pad,
                     mode == "bilinear", fill, out)
@@ -336,8 +370,8 @@ def _sample_rays(faces: Tensor, rays: Tensor, rotation: Tensor | None, mode: str
 
 def sample_cube(cubemap: Tensor, grid: Tensor, mode: str = "bilinear", *, pad: int,
                 border: str = "bilinear", lut: CubeLUT | None = None,
-                out: Tensor | None = None, valid: Tensor | None = None, fill: int = 0
-                ) -> Tensor:
+                out: Tensor | None = None, valid: Tensor | None = None, fill: int = 0,
+                out_dtype: torch.dtype | None = None) -> Tensor:
     """``grid_sample`` of the padded atlas of a cube, without building the atlas; forward only.
 
     Equal, to float32 rounding, to ``F.grid_sample(cubemap_to_atlas(cubemap, pad, border),
@@ -346,27 +380,37 @@ def sample_cube(cubemap: Tensor, grid: Tensor, mode: str = "bilinear", *, pad: i
     dtype (integer labels). Nothing is recorded for autograd: use ``grid_sample`` where a
     gradient is needed.
 
+    The cube is read through its strides, so a channels-last cube (a ``(B, 6, F, F, C)`` tensor
+    permuted to ``(B, 6, C, F, F)``) costs no copy, and the image comes back in the same
+    layout: channels-last pixels when the cube's channels are innermost, planes otherwise.
+    A ``uint8`` cube is blended in float32 and rounded to nearest (half up, as OpenCV's
+    ``remap``), or written as float32 scaled to [0, 1] (``out_dtype``); float16 and bfloat16
+    cubes are blended in float32 and rounded once.
+
     Args:
-        cubemap: ``(B, 6, C, F, F)`` on the CPU: float32 or float64 (half precision is sampled
-            in float32), or any dtype for ``"nearest"``.
+        cubemap: ``(B, 6, C, F, F)`` on the CPU, any strides: float32, float64, float16,
+            bfloat16 or ``uint8`` (blended), or any dtype for ``"nearest"``.
         grid: ``(B' in {1, B}, H, W, 2)`` atlas grid (``cubemap.rays_to_grid``), floating.
         mode: ``"nearest"`` or ``"bilinear"``.
         pad: the atlas border ``p`` the grid was made for.
         border: ``"bilinear"`` or ``"nearest"`` (the border resampled from the neighbouring
-            faces with that ``cubemap.border_plan``), or ``"copied"``.
+            faces with that ``cubemap.border_plan``), or ``"copied"``. ``uint8`` labels:
+            ``"nearest"`` (a ``uint8`` cube is an image: its border texels are blended).
         lut: a :func:`build_lut` of ``grid`` for this layout (a frozen camera), else built here.
-        out: ``(B, C, H, W)`` in the cubemap's dtype to write the image into (any batch and
-            channel strides, each ``H x W`` plane contiguous), e.g. part of a larger batch.
+        out: ``(B, C, H, W)`` in ``out_dtype`` to write the image into (any batch strides; each
+            ``H x W`` plane contiguous, or channels-last pixels), e.g. part of a larger batch.
         valid: ``(1 or B', H, W)`` bool, without ``lut``: the pixels where it is False read
             ``fill``, as if their grid pointed outside the atlas (so the caller need not move
             them there first).
         fill: the value of the pixels whose taps all lie outside the atlas (``grid_sample``'s
-            zero padding: 0), e.g. the ignore index of labels; an int that the cubemap's dtype
+            zero padding: 0), e.g. the ignore index of labels; an int that the output's dtype
             holds.
+        out_dtype: the image's dtype (:func:`output_dtypes`): the cube's (default), or float32
+            for a ``uint8`` cube (scaled to [0, 1]) or a half-precision one.
 
     Returns:
-        ``(B, C, H, W)`` in the cubemap's dtype (``out`` when given); ``fill`` where every tap
-        is outside the atlas.
+        ``(B, C, H, W)`` in ``out_dtype`` (``out`` when given); ``fill`` where every tap is
+        outside the atlas.
     """
     check_cubemap(cubemap)
     _check_grid(grid, cubemap.shape[0])
@@ -377,36 +421,35 @@ def sample_cube(cubemap: Tensor, grid: Tensor, mode: str = "bilinear", *, pad: i
                          "invalid pixels lie outside the atlas)")
 
     def sample(work: Tensor, into: Tensor, mask: Tensor | None) -> None:
-        points = grid.to(work.dtype) if work.is_floating_point() else grid
-        _sample(work, points, mode, pad, border, lut, into, mask, fill)
+        _sample(work, grid, mode, pad, border, lut, into, mask, fill)
 
     return _run(cubemap, grid.shape[0], tuple(grid.shape[1:3]), mode, border, out, valid, fill,
-                sample)
+                out_dtype, sample)
 
 
 def sample_rays(cubemap: Tensor, rays: Tensor, rotation: Tensor | None = None,
                 mode: str = "bilinear", *, pad: int, border: str = "bilinear",
-                out: Tensor | None = None, valid: Tensor | None = None, fill: int = 0
-                ) -> Tensor:
+                out: Tensor | None = None, valid: Tensor | None = None, fill: int = 0,
+                out_dtype: torch.dtype | None = None) -> Tensor:
     """:func:`sample_cube` through the grid of camera-frame ``rays`` rotated into the cube
     frame, without storing the grid.
 
     Equal, bit for bit, to ``sample_cube(cubemap, cubemap.grid.rotated_rays_to_grid(rays,
-    rotation, F, pad, dtype=...), ...)`` with the grid in the cube's floating dtype (float32
-    for an integer cube): the C++ kernel computes each pixel's grid point in the sampling pass,
-    with the operations of the compiled ``rotated_rays_to_grid`` in the same order, and reads
-    the cube straight away, so a grid used once (a new rotation per call) costs no pass over
-    memory of its own. For rays in another dtype than the grid's the grid is built first.
+    rotation, F, pad, dtype=work_dtype(cubemap.dtype)), ...)``: the C++ kernel computes each
+    pixel's grid point in the sampling pass, with the operations of the compiled
+    ``rotated_rays_to_grid`` in the same order, and reads the cube straight away, so a grid used
+    once (a new rotation per call) costs no pass over memory of its own. For rays in another
+    dtype than :func:`work_dtype` the grid is built first.
 
     Args:
         cubemap: ``(B, 6, C, F, F)`` on the CPU, as for :func:`sample_cube`.
         rays: ``(Br, H, W, 3)`` (``Br`` 1 or ``B``) or ``(H, W, 3)`` camera-frame directions.
         rotation: ``(Bq, 3, 3)`` (``Bq`` 1 or ``B``) or ``(3, 3)`` camera -> cube frame, or None.
-        mode, pad, border, out, fill: as for :func:`sample_cube`.
+        mode, pad, border, out, fill, out_dtype: as for :func:`sample_cube`.
         valid: ``(1 or max(Br, Bq), H, W)`` bool: the pixels where it is False read ``fill``.
 
     Returns:
-        ``(B, C, H, W)`` in the cubemap's dtype (``out`` when given).
+        ``(B, C, H, W)`` in ``out_dtype`` (``out`` when given).
     """
     check_cubemap(cubemap)
     batch = cubemap.shape[0]
@@ -420,32 +463,49 @@ def sample_rays(cubemap: Tensor, rays: Tensor, rotation: Tensor | None = None,
     def sample(work: Tensor, into: Tensor, mask: Tensor | None) -> None:
         _sample_rays(work, rays, rotation, mode, pad, border, into, mask, fill)
 
-    return _run(cubemap, points, tuple(rays.shape[1:3]), mode, border, out, valid, fill, sample)
+    return _run(cubemap, points, tuple(rays.shape[1:3]), mode, border, out, valid, fill,
+                out_dtype, sample)
+
+
+def is_channels_last(t: Tensor) -> bool:
+    """Whether the channels of ``t (..., C, H, W)`` (a cube or an image) are its innermost
+    dimension in memory (a ``(..., H, W, C)`` tensor permuted, or ``torch.channels_last``);
+    the fast sampler writes the image of such a cube in the same layout."""
+    return t.shape[-3] > 1 and t.stride(-3) == 1 and t.stride(-1) >= t.shape[-3]
 
 
 def _run(cubemap: Tensor, points: int, size: tuple[int, int], mode: str, border: str,
-         out: Tensor | None, valid: Tensor | None, fill: int, sample) -> Tensor:
+         out: Tensor | None, valid: Tensor | None, fill: int, out_dtype: torch.dtype | None,
+         sample) -> Tensor:
     """What :func:`sample_cube` and :func:`sample_rays` share, after their ``check_cubemap``:
-    the checks of the cube's device and dtype, of ``out``, ``valid`` (``points``: the grid's
-    batch) and ``fill``; the cube in a dtype and layout the kernels read; then ``sample(work,
-    into (B, C, H, W), valid (1 or B', H, W) or None)``."""
+    the checks of the cube's device and dtype, of ``out_dtype``, ``out``, ``valid``
+    (``points``: the grid's batch) and ``fill``; the output allocated in the cube's layout;
+    then ``sample(cube, into (B, C, H, W), valid (1 or B', H, W) or None)``."""
     _check_mode(mode, border)
     if cubemap.device.type != "cpu":
         raise ValueError(f"cubemap: the fast path runs on the CPU, got {cubemap.device}")
-    if mode == "bilinear" and not cubemap.is_floating_point():
-        raise TypeError(f"cubemap: bilinear sampling needs a floating cubemap, got "
-                        f"{cubemap.dtype}")
-    half = cubemap.is_floating_point() and cubemap.dtype not in (torch.float32, torch.float64)
-    if not (half or _copies(cubemap.dtype)):
+    if not _samples(cubemap.dtype, mode):
+        if mode == "bilinear":
+            raise TypeError(f"cubemap: bilinear sampling needs one of "
+                            f"{[str(d) for d in BLENDED]}, got {cubemap.dtype}")
         raise TypeError(f"cubemap: nearest sampling copies elements of 1, 2, 4 or 8 bytes, got "
                         f"{cubemap.dtype}")
+    out_dtype = cubemap.dtype if out_dtype is None else out_dtype
+    if out_dtype not in output_dtypes(cubemap.dtype):
+        raise TypeError(f"out_dtype: expected one of "
+                        f"{[str(d) for d in output_dtypes(cubemap.dtype)]} for a "
+                        f"{cubemap.dtype} cubemap, got {out_dtype}")
     f = cubemap.shape[-1]
-    rows_ok = cubemap.stride(-1) == 1 and (cubemap.stride(-2) == f or f == 1)
-    work = cubemap.float() if half else (cubemap if rows_ok else cubemap.contiguous())
+    if not _fits(_strides(cubemap), f):   # a view into a larger tensor: its elements copied
+        cubemap = cubemap.contiguous()
+        if not _fits(_strides(cubemap), f):
+            raise ValueError(f"cubemap: too large for int32 offsets: {tuple(cubemap.shape)}")
     batch, chans = cubemap.shape[0], cubemap.shape[2]
+    shape = (batch, chans, *size)
+    interleaved = is_channels_last(cubemap)
     if out is not None:
-        _check_out(out, (batch, chans, *size), cubemap.dtype)
-    _check_fill(fill, cubemap.dtype)
+        _check_out(out, shape, out_dtype)
+    _check_fill(fill, out_dtype)
     if valid is not None:
         if (not isinstance(valid, Tensor) or valid.dtype != torch.bool or valid.dim() != 3
                 or valid.shape[0] not in (1, points) or valid.shape[1:] != size):
@@ -455,15 +515,11 @@ def _run(cubemap: Tensor, points: int, size: tuple[int, int], mode: str, border:
                              f"{tuple(getattr(valid, 'shape', ()))}")
         valid = valid.contiguous()
     _require()
-    into = out if out is not None and out.dtype == work.dtype else None
-    if into is None:
-        into = torch.empty((batch, chans, *size), dtype=work.dtype)
-    with torch.no_grad():
-        sample(work, into, valid)
     if out is None:
-        return into.to(cubemap.dtype)
-    if into is not out:
-        out.copy_(into)
+        out = (torch.empty((batch, *size, chans), dtype=out_dtype).permute(0, 3, 1, 2)
+               if interleaved else torch.empty(shape, dtype=out_dtype))
+    with torch.no_grad():
+        sample(cubemap, out, valid)
     return out
 
 
@@ -489,9 +545,14 @@ def _check_out(out: Tensor, shape: tuple[int, ...], dtype: torch.dtype) -> None:
         raise TypeError(f"out: expected a CPU tensor of {dtype}, got "
                         f"{getattr(out, 'dtype', type(out).__name__)} on "
                         f"{getattr(out, 'device', '-')}")
-    if tuple(out.shape) != shape or out.stride(-1) != 1 or out.stride(-2) != shape[-1]:
-        raise ValueError(f"out: expected shape {shape} with contiguous rows and images, got "
-                         f"{tuple(out.shape)} with strides {out.stride()}")
+    width = shape[-1]
+    planes = out.stride(-1) == 1
+    interleaved = out.stride(1) == 1 and out.stride(-1) >= shape[1]
+    if tuple(out.shape) != shape or not (planes or interleaved) or (
+            out.stride(-2) != width * out.stride(-1) and shape[-2] > 1):
+        raise ValueError(f"out: expected shape {shape} with contiguous rows and images (or "
+                         f"channels-last pixels), got {tuple(out.shape)} with strides "
+                         f"{out.stride()}")
 
 
 def sample_atlas(atlas: Tensor, grid: Tensor, mode: str = "bilinear") -> Tensor:

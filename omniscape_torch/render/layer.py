@@ -235,12 +235,13 @@ class OmniProjection(nn.Module):
         return cm.faces_to_atlas(padded.reshape(b, 6, c, f + 2 * self.pad, f + 2 * self.pad))
 
     def _fast_sample(self, cube: Tensor, grid: Tensor, mode: str, pad_mode: str,
-                     valid: Tensor | None, *, fill: int = 0, out: Tensor | None = None
-                     ) -> Tensor | None:
+                     valid: Tensor | None, *, fill: int = 0, out: Tensor | None = None,
+                     out_dtype: torch.dtype | None = None) -> Tensor | None:
         """:func:`fastsample.sample_cube` of ``cube`` where the fast sampler applies (a call
-        on the fast path: see ``render``), else None. The lookup table of a cached grid is kept with it. ``valid``:
-        the mask of a grid whose invalid pixels were not moved outside the atlas, else None;
-        ``fill``: the value of the pixels outside; ``out``: where to write the image."""
+        on the fast path: see ``render``), else None. The lookup table of a cached grid is kept
+        with it. ``valid``: the mask of a grid whose invalid pixels were not moved outside the
+        atlas, else None; ``fill``: the value of the pixels outside; ``out``: where to write the
+        image; ``out_dtype``: its dtype."""
         if not (mode in fastsample.MODES and cube.device.type == "cpu"
                 and fastsample.available()):   # no C++ extension here: the reference path
             return None
@@ -249,23 +250,29 @@ class OmniProjection(nn.Module):
             if fastsample.reads_rays(cube.dtype, grid.rays.dtype):
                 return fastsample.sample_rays(cube, grid.rays, grid.rotation, mode,
                                               pad=self.pad, border=border, valid=valid,
-                                              fill=fill, out=out)
+                                              fill=fill, out=out, out_dtype=out_dtype)
             grid = grid.tensor()   # built once for every modality, as the layer builds grids
         cache = self._grid_cache
         cached = cache is not None and any(grid is g for g in cache[1])
-        cube = cube.contiguous()  # the layout the lookup tables are built for
+        last = fastsample.is_channels_last(cube)
+        # the layouts the lookup tables are built for: contiguous, or channels-last
+        cube = cube if (cube.permute(0, 1, 3, 4, 2) if last else cube).is_contiguous() \
+            else cube.contiguous()
         lut = None
         if cached:
-            key = (cache[0], id(grid), mode, cube.shape[2], cube.dtype)
+            key = (cache[0], id(grid), mode, cube.shape[2], last, cube.dtype)
             if self._lut_cache and next(iter(self._lut_cache))[0] != cache[0]:
                 self._lut_cache.clear()  # the grids changed: drop their tables
             lut = self._lut_cache.get(key)
             if lut is None:
-                lut_grid = grid.to(cube.dtype) if cube.is_floating_point() else grid
+                blended = cube.is_floating_point() or (mode == "bilinear"
+                                                       and cube.dtype in fastsample.BLENDED)
+                lut_grid = grid.to(fastsample.work_dtype(cube.dtype)) if blended else grid
                 lut = self._lut_cache[key] = fastsample.build_lut(
-                    lut_grid, self.face_size, self.pad, mode, channels=cube.shape[2])
+                    lut_grid, self.face_size, self.pad, mode, channels=cube.shape[2],
+                    channels_last=last)
         return fastsample.sample_cube(cube, grid, mode, pad=self.pad, border=border, lut=lut,
-                                      valid=valid, fill=fill, out=out)
+                                      valid=valid, fill=fill, out=out, out_dtype=out_dtype)
 
     def _sample(self, atlas: Tensor, grid: Tensor, mode: str) -> Tensor:
         """``grid_sample`` with zero padding: 0 at the invalid pixels (see ``_outside``);
@@ -275,19 +282,30 @@ class OmniProjection(nn.Module):
             grid = grid.expand(batch, *grid.shape[1:])
         return grid_sample(atlas, grid, mode, padding_mode="zeros")
 
-    def _sample_float(self, cube: Tensor, grid: Tensor, mode: str, pad_mode: str,
-                      valid: Tensor | None, fast: bool, out: Tensor | None = None) -> Tensor:
-        """Sample a floating cube; half precision is sampled in float32 (the grid stays float32:
-        a bfloat16 grid is off by pixels on a 512 face) and returned in its own dtype. ``fast``:
-        the call may take the fast sampler; ``out``: where it may write the image."""
-        work = cube if cube.dtype in (torch.float32, torch.float64) else cube.float()
-        if out is not None and out.dtype != work.dtype:
-            out = None
-        out = self._fast_sample(work, grid, mode, pad_mode, valid, out=out) if fast else None
-        if out is None:
+    def _sample_image(self, cube: Tensor, grid: Tensor, mode: str, pad_mode: str,
+                      valid: Tensor | None, fast: bool, out: Tensor | None = None,
+                      out_dtype: torch.dtype | None = None) -> Tensor:
+        """Sample a floating or ``uint8`` cube into ``out_dtype`` (default: the cube's). Half
+        precision and ``uint8`` are blended in float32 (the grid stays float32: a bfloat16 grid
+        is off by pixels on a 512 face) and rounded once; a ``uint8`` cube into a floating
+        ``out_dtype`` is scaled to [0, 1]. ``fast``: the call may take the fast sampler;
+        ``out``: where it may write the image."""
+        out_dtype = cube.dtype if out_dtype is None else out_dtype
+        written = fastsample.output_dtypes(cube.dtype)   # by the kernels, in the same pass
+        kernel_dtype = out_dtype if out_dtype in written else written[-1]
+        image = self._fast_sample(cube, grid, mode, pad_mode, valid, out_dtype=kernel_dtype,
+                                  out=out if kernel_dtype == out_dtype else None
+                                  ) if fast else None
+        if image is None:   # grid_sample on the padded atlas, in float32 (or float64)
+            work = cube if cube.dtype in (torch.float32, torch.float64) else cube.float()
             atlas = self._atlas(work, pad_mode)
-            out = self._sample(atlas, _outside(grid, valid).to(atlas.dtype), mode)
-        return out.to(cube.dtype)
+            image = _convert(self._sample(atlas, _outside(grid, valid).to(atlas.dtype), mode),
+                             cube.dtype, out_dtype)
+        else:
+            image = image.to(out_dtype)   # another floating dtype: converted after
+        if out is not None and image.data_ptr() != out.data_ptr():
+            out.copy_(image)
+        return image
 
     def _average(self, image: Tensor, valid_sub: Tensor) -> Tensor:
         """Mean over each pixel's valid ``s x s`` sub-samples."""
@@ -299,24 +317,35 @@ class OmniProjection(nn.Module):
         count = F.avg_pool2d(weight, s)
         return total / count.clamp(min=1.0 / (s * s))
 
-    def forward(self, cubemap: Tensor, rotation: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        """Render ``cubemap (B, 6, C, F, F)`` (RGB or any float channels).
+    def forward(self, cubemap: Tensor, rotation: Tensor | None = None, *,
+                out_dtype: torch.dtype | None = None, channels_last: bool = False
+                ) -> tuple[Tensor, Tensor]:
+        """Render ``cubemap (B, 6, C, F, F)`` (RGB or any float channels; ``channels_last``:
+        ``(B, 6, F, F, C)``), floating or ``uint8``; ``out_dtype`` as for :meth:`render`.
 
         Returns:
-            ``image (B, C, H, W)`` (0 outside the valid area) and ``valid (B, 1, H, W)`` bool.
+            ``image (B, C, H, W)`` (``channels_last``: ``(B, H, W, C)``; 0 outside the valid
+            area) and ``valid (B, 1, H, W)`` bool.
         """
-        out = self.render(rgb=cubemap, rotation=rotation)
+        out = self.render(rgb=cubemap, rotation=rotation, out_dtype=out_dtype,
+                          channels_last=channels_last)
         return out["rgb"], out["valid"]
 
     def render(self, *, rgb: Tensor | None = None, depth: Tensor | None = None,
                labels: Tensor | None = None, rotation: Tensor | None = None,
                depth_output: str = "range", soft_labels: int | None = None,
                out: dict[str, Tensor] | None = None,
-               grid: tuple[Tensor, Tensor] | None = None) -> dict[str, Tensor]:
+               grid: tuple[Tensor, Tensor] | None = None,
+               out_dtype: torch.dtype | None = None,
+               channels_last: bool = False) -> dict[str, Tensor]:
         """Render several modalities of one cubemap batch through the same grid.
 
         Args:
-            rgb: ``(B, 6, C, F, F)`` floating (any channels).
+            rgb: ``(B, 6, C, F, F)`` (any channels; ``channels_last``: ``(B, 6, F, F, C)``),
+                floating, or ``uint8`` as simulators and image files give it (sampled as it
+                is, no float copy: see ``out_dtype``; no gradient). Any strides: a
+                ``(B, 6, F, F, C)`` tensor permuted to ``(B, 6, C, F, F)`` is read without a
+                copy, and its image comes back channels-last in memory too.
             depth: ``(B, 6, F, F)`` or ``(B, 6, 1, F, F)`` planar depth per face (distance along
                 the face axis, metres), as a simulator's depth camera renders it.
             labels: ``(B, 6, F, F)`` or ``(B, 6, 1, F, F)`` integer class ids.
@@ -333,9 +362,15 @@ class OmniProjection(nn.Module):
                 camera's, its invalid pixels already outside the atlas (e.g. per-sample random
                 cameras and attitudes in one kernel, ``render.kernels.camera_grid``); not with
                 ``rotation`` or ``supersample > 1``. The camera then gives only the image size.
+            out_dtype: the dtype of the ``rgb`` image: the cube's (default; ``uint8`` rounded
+                to nearest, as OpenCV's ``remap`` rounds), or a floating dtype (a ``uint8``
+                cube scaled to [0, 1] in the same pass).
+            channels_last: ``rgb`` is ``(B, 6, F, F, C)`` (channels innermost, as image files
+                and simulators store them) and its image ``(B, H, W, C)``.
 
         Returns:
-            dict with ``valid (B, 1, H, W)`` and, for each input, ``rgb (B, C, H, W)``,
+            dict with ``valid (B, 1, H, W)`` and, for each input, ``rgb (B, C, H, W)``
+            (``channels_last``: ``(B, H, W, C)``) in ``out_dtype``,
             ``depth (B, 1, H, W)`` (0 where invalid), ``labels (B, H, W)`` int64
             (``ignore_index`` where invalid), ``soft_labels (B, K, H, W)``.
         """
@@ -344,10 +379,12 @@ class OmniProjection(nn.Module):
             raise ValueError("render: pass at least one of rgb, depth, labels")
         if depth_output not in ("range", "z"):
             raise ValueError(f"depth_output: expected 'range' or 'z', got {depth_output!r}")
+        if not isinstance(channels_last, bool):
+            raise TypeError(f"channels_last: expected a bool, got {type(channels_last).__name__}")
         if rgb is not None:
-            cm.check_cubemap(rgb, "rgb")
-            if not rgb.is_floating_point():
-                raise TypeError(f"rgb: expected a floating-point cubemap, got {rgb.dtype}")
+            rgb, out_dtype = _check_rgb(rgb, out_dtype, channels_last)
+        elif out_dtype is not None or channels_last:
+            raise ValueError("out_dtype, channels_last: they describe rgb, which is not given")
         depth = _as_cube(depth, "depth")
         labels = _as_cube(labels, "labels")
         if depth is not None and not depth.is_floating_point():
@@ -377,12 +414,16 @@ class OmniProjection(nn.Module):
         rotation = _check_rotation(rotation, batch, ref.device)
         if grid is not None:
             grid = self._check_given_grid(grid, batch, ref.device, rotation)
+        if rgb is not None and not rgb.is_floating_point() and torch.is_grad_enabled() and any(
+                t is not None and t.requires_grad for t in (rotation, self.camera.params)):
+            raise TypeError(f"rgb: a {rgb.dtype} cubemap has no gradient; convert it to float "
+                            "(ot.io.to_float) to differentiate through the rotation or camera")
         # the fast path only where no gradient is asked for: gradients come from grid_sample
         fast = self.fast and not (torch.is_grad_enabled() and any(
             t is not None and t.requires_grad
             for t in (rgb, depth, labels, rotation, self.camera.params,
                       None if grid is None else grid[0])))
-        call = _Call(fast, depth_output, soft_labels, grid)
+        call = _Call(fast, depth_output, soft_labels, grid, out_dtype, channels_last)
         if soft_labels is not None:
             if labels is None:
                 raise ValueError("soft_labels: needs labels")
@@ -501,12 +542,23 @@ class OmniProjection(nn.Module):
             return given[rows]
 
         if rgb is not None:
-            image = self._sample_float(rgb, grid_s, self.interpolation, "bilinear", mask_s, fast,
-                                       target("rgb", (rgb.shape[2], *self.camera.image_size),
-                                              rgb.dtype) if self.supersample == 1 else None)
-            if self.supersample > 1:  # a pixel whose centre is invalid may have valid samples
+            chans, (h, w) = rgb.shape[2], self.camera.image_size
+            if self.supersample == 1:
+                rows = target("rgb", (h, w, chans) if call.channels_last else (chans, h, w),
+                              call.out_dtype)
+                if rows is not None and call.channels_last:
+                    rows = rows.permute(0, 3, 1, 2)
+                image = self._sample_image(rgb, grid_s, self.interpolation, "bilinear", mask_s,
+                                           fast, rows, call.out_dtype)
+            else:   # averaged in floats: a pixel whose centre is invalid may have valid samples
+                work = torch.float64 if rgb.dtype == torch.float64 else torch.float32
+                image = self._sample_image(rgb, grid_s, self.interpolation, "bilinear", mask_s,
+                                           fast, None, work)
                 image = self._average(image, valid_s.expand(batch, *valid_s.shape[1:]))
                 image = torch.where(valid, image, torch.zeros_like(image))
+                image = _convert(image, work, call.out_dtype)
+            if call.channels_last:   # (B, H, W, C): a view where it was sampled channels-last
+                image = image.permute(0, 2, 3, 1).contiguous()
             out["rgb"] = image
 
         if depth is not None:
@@ -537,7 +589,7 @@ class OmniProjection(nn.Module):
             out["labels"] = rows
             if soft_labels is not None:
                 onehot = F.one_hot(labels[:, :, 0], soft_labels).permute(0, 1, 4, 2, 3)
-                probs = self._sample_float(onehot.to(grid_dtype), grid_s, "bilinear", "bilinear",
+                probs = self._sample_image(onehot.to(grid_dtype), grid_s, "bilinear", "bilinear",
                                            mask_s, fast)
                 probs = self._average(probs, valid_s.expand(batch, *valid_s.shape[1:]))
                 out["soft_labels"] = torch.where(valid, probs, torch.zeros_like(probs))
@@ -603,12 +655,48 @@ def _edge_aware(atlas: Tensor, grid: Tensor, threshold: float) -> Tensor:
 @dataclass(frozen=True)
 class _Call:
     """What one ``render`` call decided: the fast path or not, the depth output, soft labels,
-    a given grid."""
+    a given grid, the rgb image's dtype and layout."""
 
     fast: bool
     depth_output: str
     soft_labels: int | None
     grid: tuple[Tensor, Tensor] | None
+    out_dtype: torch.dtype | None = None
+    channels_last: bool = False
+
+
+def _check_rgb(rgb: object, out_dtype: object, channels_last: bool
+               ) -> tuple[Tensor, torch.dtype]:
+    """``render``'s ``rgb`` as ``(B, 6, C, F, F)`` (a view of a channels-last cube) and the
+    image's dtype."""
+    if not isinstance(rgb, Tensor):
+        raise TypeError(f"rgb: expected a tensor, got {type(rgb).__name__}")
+    if channels_last:
+        if rgb.dim() != 5 or rgb.shape[1] != 6 or rgb.shape[2] != rgb.shape[3]:
+            raise ValueError(f"rgb: expected shape (B, 6, F, F, C) with channels_last=True, got "
+                             f"{tuple(rgb.shape)}")
+        rgb = rgb.permute(0, 1, 4, 2, 3)
+    cm.check_cubemap(rgb, "rgb")
+    if not (rgb.is_floating_point() or rgb.dtype == torch.uint8):
+        raise TypeError(f"rgb: expected a floating-point or uint8 cubemap, got {rgb.dtype}")
+    if out_dtype is None:
+        return rgb, rgb.dtype
+    if not isinstance(out_dtype, torch.dtype) or not (
+            out_dtype == rgb.dtype or out_dtype.is_floating_point):
+        raise TypeError(f"out_dtype: expected None, {rgb.dtype} or a floating dtype, got "
+                        f"{out_dtype!r}")
+    return rgb, out_dtype
+
+
+def _convert(image: Tensor, dtype: torch.dtype, out_dtype: torch.dtype) -> Tensor:
+    """An image sampled in floats from a cube of ``dtype`` as ``out_dtype``: a ``uint8`` cube's
+    levels (0..255) into floats scaled to [0, 1]; into ``uint8`` rounded to nearest (half up,
+    as the fast sampler and OpenCV round) and saturated, from levels or from [0, 1]."""
+    levels = dtype == torch.uint8
+    if out_dtype == torch.uint8:
+        image = image if levels else image * 255
+        return torch.floor(image.clamp(0, 255) + 0.5).to(torch.uint8)
+    return (image / 255 if levels else image).to(out_dtype)
 
 
 class _RayGrid:

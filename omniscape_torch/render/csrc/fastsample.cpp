@@ -13,6 +13,12 @@
 // weights and their order are grid_sample's (nw, ne, sw, se). Built with -ffp-contract=off, so
 // every sum is evaluated in the order written here.
 //
+// The cube is read through its strides: channels-first (B, 6, C, F, F) and channels-last
+// (B, 6, F, F, C) memory alike, no copy. Its elements: float32 and float64 (blended in their
+// own precision), float16, bfloat16 and uint8 (blended in float32; uint8 rounded to nearest
+// and saturated, or written as float32 scaled to [0, 1]), or any element of 2, 4 or 8 bytes
+// sampled nearest (copied: integer labels, exact).
+//
 // Per pixel, its "code" is the offset of the top-left tap (nearest: the texel) within one
 // sample and channel of the cube when every tap is an interior texel of one face (99% of the
 // pixels), -1 when every tap lies outside the atlas or the pixel is not valid (it reads `fill`:
@@ -21,12 +27,18 @@
 
 #include <ATen/Parallel.h>
 #include <ATen/core/Tensor.h>
+#include <c10/util/BFloat16.h>
+#include <c10/util/Half.h>
 #include <torch/library.h>
 
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <optional>
+#ifdef __SSE4_1__
+#include <immintrin.h>
+#endif
 #include <type_traits>
 
 // The face table, per case 2 axis + (dominant component < 0) and then the zero ray: the face,
@@ -43,16 +55,72 @@ constexpr int32_t kEdge = -2;
 constexpr int64_t kTileW = 64, kTileH = 16;  // pixels per unit of work of the samplers
 constexpr int64_t kChunk = 4096;  // grid points per unit of work of the table
 
+// ------------------------------------------------------------------------------------------
+// Elements: what a cube of T is blended in (W), and how a value is written as O (the cube's
+// own type, or float32 for an 8-bit or half-precision cube)
+// ------------------------------------------------------------------------------------------
+
+template <typename T>
+struct Work {
+    using type = float;
+};
+template <>
+struct Work<double> {
+    using type = double;
+};
+template <typename T>
+using W = typename Work<T>::type;
+
+// Cubes of T are blended (bilinear; ring texels are weighted sums): floating and uint8 ones.
+// The others (the integer elements of 2, 4 or 8 bytes, as unsigned bits) are copied.
+template <typename T>
+constexpr bool kBlends = !std::is_integral_v<T> || std::is_same_v<T, uint8_t>;
+
+// A blended value written as O: uint8 rounded to nearest (half up, as OpenCV's fixed point
+// rounds) and saturated; a uint8 cube written as float scaled to [0, 1]; otherwise converted.
+template <typename T, typename O>
+inline O store(W<T> v) {
+    if constexpr (std::is_same_v<O, uint8_t>) {
+        return static_cast<uint8_t>(std::min(std::max(v, W<T>(0)), W<T>(255)) + W<T>(0.5));
+    } else if constexpr (std::is_same_v<T, uint8_t>) {
+        return static_cast<O>(v * W<T>(1.0 / 255.0));
+    } else {
+        return static_cast<O>(v);
+    }
+}
+
+// A texel copied (nearest): the element itself where O is T, else converted as by store.
+template <typename T, typename O>
+inline O copy(T v) {
+    if constexpr (std::is_same_v<T, O>) {
+        return v;
+    } else {
+        return store<T, O>(static_cast<W<T>>(v));
+    }
+}
+
+// ------------------------------------------------------------------------------------------
+// The padded cube and its border
+// ------------------------------------------------------------------------------------------
+
 // The padded cube: faces of `face` texels with a border of `pad`, `n = face + 2 pad` per
-// padded side; `face_stride` elements between faces of one channel in the cube.
+// padded side; the cube's strides between faces, rows and texels of one channel (elements).
 struct Layout {
-    int64_t face, pad, n, face_stride;
+    int64_t face, pad, n;
+    int64_t face_stride, row, texel;
     double half_x, half_y;  // n / 2 and 6 n / 2: the unnormalisation of grid_sample
+
+    // the offset of texel (i, j) of face k
+    int64_t at(int64_t k, int64_t i, int64_t j) const {
+        return k * face_stride + i * row + j * texel;
+    }
+    // the largest offset of a texel of the cube
+    int64_t last() const { return at(5, face - 1, face - 1); }
 };
 
-Layout layout(int64_t face, int64_t pad, int64_t face_stride) {
+Layout layout(int64_t face, int64_t pad, int64_t face_stride, int64_t row, int64_t texel) {
     const int64_t n = face + 2 * pad;
-    return Layout{face, pad, n, face_stride, 0.5 * n, 3.0 * n};
+    return Layout{face, pad, n, face_stride, row, texel, 0.5 * n, 3.0 * n};
 }
 
 // The border texels (row-major over the padded faces, interior skipped): texel t reads the
@@ -62,7 +130,7 @@ Layout layout(int64_t face, int64_t pad, int64_t face_stride) {
 template <typename T>
 struct Ring {
     const int64_t* src;
-    const T* weight;
+    const W<T>* weight;
     int64_t k, last;
     int64_t at(const int64_t* s, int64_t m) const { return std::clamp<int64_t>(s[m], 0, last); }
 };
@@ -105,6 +173,7 @@ struct Split {
         fys[p] = fy;
     }
     void set_code(int64_t p, int32_t code) const { codes[p] = code; }
+    Split operator+(int64_t d) const { return Split{codes + d, fxs + d, fys + d}; }
 };
 
 // The three arrays of a segment of pixels, on the stack.
@@ -115,11 +184,12 @@ struct SplitBuffer {
     Split<G> taps() { return Split<G>{code, fx, fy}; }
 };
 
-// The samples and channels of the cube and of the output image.
+// The samples and channels of the cube and of the output image: the output's pixels are
+// `out_pix` apart in row-major order (1: planes (B, C, H, W); C: channels-last (B, H, W, C)).
 struct Planes {
     int64_t batch, chans, pixels, width;
-    int64_t src_batch, src_chan;  // strides of the cube
-    int64_t out_batch, out_chan;  // strides of the output (its pixels are contiguous)
+    int64_t src_batch, src_chan;           // strides of the cube
+    int64_t out_batch, out_chan, out_pix;  // strides of the output
 };
 
 inline float unnormalize(float g, double half) {
@@ -132,12 +202,15 @@ inline double unnormalize(double g, double half) {
 
 // Codes and bilinear fractions of `count` grid points; `valid` (bool, may be null) false ->
 // outside. Branch-free int32 arithmetic (`&` for `&&`) that the compiler vectorises; the
-// offsets fit in int32 (checked by the ops).
+// offsets of interior texels fit in int32 (checked by the ops), those of the other pixels are
+// computed modulo 2^32 (unsigned: defined) and discarded.
 template <typename G, bool Bilinear, typename Taps>
 void locate(const G* __restrict grid, int64_t count, const uint8_t* __restrict valid,
             const Layout& L, Taps out) {
     const int32_t n = static_cast<int32_t>(L.n), f = static_cast<int32_t>(L.face);
-    const int32_t pad = static_cast<int32_t>(L.pad), stride = static_cast<int32_t>(L.face_stride);
+    const int32_t pad = static_cast<int32_t>(L.pad);
+    const uint32_t stride = static_cast<uint32_t>(L.face_stride);
+    const uint32_t row = static_cast<uint32_t>(L.row), texel = static_cast<uint32_t>(L.texel);
     const int32_t span = Bilinear ? 1 : 0;
     const G lo = -2, hi_x = static_cast<G>(n + 1), hi_y = static_cast<G>(6 * n + 1);
     for (int64_t p = 0; p < count; ++p) {
@@ -157,9 +230,10 @@ void locate(const G* __restrict grid, int64_t count, const uint8_t* __restrict v
                               (j >= pad) & (j + span < pad + f);
         const bool touches = near & (x0 + span >= 0) & (x0 < n) & (y0 + span >= 0) &
                              (y0 < 6 * n);  // a tap inside the atlas
-        out.set(p, interior ? k * stride + (i - pad) * f + (j - pad)
-                            : (touches ? kEdge : kOutside),
-                x - x0, y - y0);
+        const int32_t at = static_cast<int32_t>(static_cast<uint32_t>(k) * stride +
+                                                static_cast<uint32_t>(i - pad) * row +
+                                                static_cast<uint32_t>(j - pad) * texel);
+        out.set(p, interior ? at : (touches ? kEdge : kOutside), x - x0, y - y0);
     }
     if (valid != nullptr) {
         for (int64_t p = 0; p < count; ++p) {
@@ -179,10 +253,10 @@ void locate(const G* grid, int64_t count, const uint8_t* valid, const Layout& L,
 }
 
 // Bilinear blend of four taps: grid_sample's weights and order (nw, ne, sw, se).
-template <typename T>
-inline T blend(T nw, T ne, T sw, T se, T fx, T fy) {
-    const T e = 1 - fx, s = 1 - fy;
-    T acc = nw * (s * e);
+template <typename V>
+inline V blend(V nw, V ne, V sw, V se, V fx, V fy) {
+    const V e = 1 - fx, s = 1 - fy;
+    V acc = nw * (s * e);
     acc = acc + ne * (s * fx);
     acc = acc + sw * (fy * e);
     acc = acc + se * (fy * fx);
@@ -205,7 +279,7 @@ inline Tap atlas_tap(int64_t j, int64_t r, const Layout& L) {
     }
     const int64_t k = r / n, i = r - k * n;
     if (i >= p && i < p + f && j >= p && j < p + f) {
-        return Tap{k * L.face_stride + (i - p) * f + (j - p), kCube};
+        return Tap{L.at(k, i - p, j - p), kCube};
     }
     // index among the ring texels (row-major over the padded faces, interior skipped)
     const int64_t pos = i < p       ? i * n + j
@@ -214,50 +288,67 @@ inline Tap atlas_tap(int64_t j, int64_t r, const Layout& L) {
     return Tap{k * (n * n - f * f) + pos, kRing};
 }
 
+// Texel t of the virtual atlas of one sample and channel: blended cubes read it as W (a ring
+// texel is a weighted sum), copied ones as the element itself (their ring has one tap).
 template <typename T>
-inline T read(const T* cube, const Ring<T>& R, const Tap& t) {
+inline auto read(const T* cube, const Ring<T>& R, const Tap& t) {
+    using V = std::conditional_t<kBlends<T>, W<T>, T>;
     if (t.kind != kRing) {
-        return t.kind == kCube ? cube[t.at] : T(0);
+        return t.kind == kCube ? static_cast<V>(cube[t.at]) : V(0);
     }
     const int64_t* src = R.src + t.at * R.k;
-    if (R.weight == nullptr) {
-        return cube[R.at(src, 0)];
+    if constexpr (kBlends<T>) {
+        if (R.weight != nullptr) {
+            // summed in the plan's order up to the row's first zero weight: the rows list
+            // their nonzero weights first (fast._ring_offsets), then zeros, which add nothing
+            const W<T>* w = R.weight + t.at * R.k;
+            V acc = static_cast<V>(cube[R.at(src, 0)]) * w[0];
+            for (int64_t m = 1; m < R.k && w[m] != V(0); ++m) {
+                acc = acc + static_cast<V>(cube[R.at(src, m)]) * w[m];
+            }
+            return acc;
+        }
     }
-    // summed in the plan's order up to the row's first zero weight: the rows list their
-    // nonzero weights first (fast._ring_offsets), then zeros, which would add nothing
-    const T* w = R.weight + t.at * R.k;
-    T acc = cube[R.at(src, 0)] * w[0];
-    for (int64_t m = 1; m < R.k && w[m] != T(0); ++m) {
-        acc = acc + cube[R.at(src, m)] * w[m];
+    return static_cast<V>(cube[R.at(src, 0)]);
+}
+
+// A value read by `read` written as O.
+template <typename T, typename O, typename V>
+inline O emit(V v) {
+    if constexpr (std::is_same_v<V, T>) {
+        return copy<T, O>(v);
+    } else {
+        return store<T, O>(v);
     }
-    return acc;
 }
 
 // An edge pixel at grid point (gx, gy) of one sample: its taps located once, then read through
 // the virtual atlas for every channel into out[c out_chan]. Not inlined: rare, and inlined into
 // sample_span it slowed the whole pass by 10% (1M pixels, 0.2% of them edge pixels).
-template <typename T, typename G>
+template <typename T, typename O, typename G>
 __attribute__((noinline)) void edge_pixel(const T* cube, const Ring<T>& R, G gx, G gy,
                                           const Layout& L, bool bilinear, const Planes& S,
-                                          T* out) {
+                                          O* out) {
     const G x = unnormalize(gx, L.half_x), y = unnormalize(gy, L.half_y);
     if (!bilinear) {
         const Tap t = atlas_tap(static_cast<int64_t>(std::nearbyint(x)),
                                 static_cast<int64_t>(std::nearbyint(y)), L);
         for (int64_t c = 0; c < S.chans; ++c) {
-            out[c * S.out_chan] = read(cube + c * S.src_chan, R, t);
+            out[c * S.out_chan] = emit<T, O>(read(cube + c * S.src_chan, R, t));
         }
         return;
     }
-    if constexpr (std::is_floating_point_v<T>) {   // integer cubes are sampled nearest
+    if constexpr (kBlends<T>) {   // the other cubes are sampled nearest
+        using V = W<T>;
         const G x0 = std::floor(x), y0 = std::floor(y);
         const int64_t j = static_cast<int64_t>(x0), r = static_cast<int64_t>(y0);
         const Tap nw = atlas_tap(j, r, L), ne = atlas_tap(j + 1, r, L);
         const Tap sw = atlas_tap(j, r + 1, L), se = atlas_tap(j + 1, r + 1, L);
         for (int64_t c = 0; c < S.chans; ++c) {
             const T* q = cube + c * S.src_chan;
-            out[c * S.out_chan] = blend<T>(read(q, R, nw), read(q, R, ne), read(q, R, sw),
-                                           read(q, R, se), T(x - x0), T(y - y0));
+            out[c * S.out_chan] = store<T, O>(blend<V>(read(q, R, nw), read(q, R, ne),
+                                                       read(q, R, sw), read(q, R, se),
+                                                       V(x - x0), V(y - y0)));
         }
     }
 }
@@ -266,76 +357,142 @@ __attribute__((noinline)) void edge_pixel(const T* cube, const Ring<T>& R, G gx,
 // per pixel the tap offset and weights once, then the N channels' taps. Scalar: gathers
 // vectorised by the compiler were slower (AVX-512 on AMD EPYC: 36 -> 47 ms for 8 x 1M pixels),
 // so was a channel at a time (36 against 30 ms).
-template <typename T, typename G, int N, typename Taps>
+template <typename T, typename O, int N, typename Taps>
 __attribute__((optimize("no-tree-vectorize")))
-void interior(const T* __restrict cube, int64_t src_chan, Taps t, int64_t m, int64_t f,
-              bool bilinear, T fill, T* __restrict out, int64_t out_chan) {
-    if (std::is_floating_point_v<T> && bilinear) {
-        for (int64_t p = 0; p < m; ++p) {
-            const int64_t k = std::max<int64_t>(t.code(p), 0);
-            const bool inside = t.code(p) >= 0;
-            const T x = T(t.fx(p)), y = T(t.fy(p)), e = 1 - x, s = 1 - y;
-            const T w0 = s * e, w1 = s * x, w2 = y * e, w3 = y * x;  // blend()'s order
-            for (int n = 0; n < N; ++n) {
-                const T* q = cube + n * src_chan + k;
-                T acc = q[0] * w0;
-                acc = acc + q[1] * w1;
-                acc = acc + q[f] * w2;
-                acc = acc + q[f + 1] * w3;
-                out[n * out_chan + p] = inside ? acc : fill;
+void interior(const T* __restrict cube, int64_t src_chan, Taps t, int64_t m, const Layout& L,
+              bool bilinear, O fill, O* __restrict out, int64_t out_chan, int64_t out_pix) {
+    const int64_t dx = L.texel, dy = L.row;
+    if constexpr (kBlends<T>) {
+        if (bilinear) {
+            using V = W<T>;
+            for (int64_t p = 0; p < m; ++p) {
+                const int64_t k = std::max<int64_t>(t.code(p), 0);
+                const bool inside = t.code(p) >= 0;
+                const V x = V(t.fx(p)), y = V(t.fy(p)), e = 1 - x, s = 1 - y;
+                const V w0 = s * e, w1 = s * x, w2 = y * e, w3 = y * x;  // blend()'s order
+                for (int n = 0; n < N; ++n) {
+                    const T* q = cube + n * src_chan + k;
+                    V acc = V(q[0]) * w0;
+                    acc = acc + V(q[dx]) * w1;
+                    acc = acc + V(q[dy]) * w2;
+                    acc = acc + V(q[dy + dx]) * w3;
+                    out[n * out_chan + p * out_pix] = inside ? store<T, O>(acc) : fill;
+                }
             }
+            return;
         }
-    } else {
-        for (int64_t p = 0; p < m; ++p) {
-            const int64_t k = std::max<int64_t>(t.code(p), 0);
-            const bool inside = t.code(p) >= 0;
-            for (int n = 0; n < N; ++n) {
-                const T v = cube[n * src_chan + k];
-                out[n * out_chan + p] = inside ? v : fill;
-            }
+    }
+    for (int64_t p = 0; p < m; ++p) {
+        const int64_t k = std::max<int64_t>(t.code(p), 0);
+        const bool inside = t.code(p) >= 0;
+        for (int n = 0; n < N; ++n) {
+            const O v = copy<T, O>(cube[n * src_chan + k]);
+            out[n * out_chan + p * out_pix] = inside ? v : fill;
         }
     }
 }
 
+#ifdef __SSE4_1__
+// The blend of interior() for 8-bit channels-last texels of N = 3 or 4 channels (x86 with
+// SSE4.1; elsewhere interior() itself): a texel's channels in one 4-byte load, blended as a
+// vector of 4 floats (the same operations in the same order as interior's, so the same
+// values), rounded half up and saturated to bytes (packus) or scaled to [0, 1], and written
+// with one store of 4 channels (N = 3: the 4th is the next pixel's first, written after it; the
+// segment's last pixel writes 3). For N = 3 a load reads a byte beyond the texel: pixels whose
+// last tap lies beyond `safe` (the cube's last texels) go through interior().
+template <typename O, int N, typename Taps>
+void interior_rgb8(const uint8_t* __restrict cube, Taps t, int64_t m, const Layout& L,
+                   int64_t safe, O fill, O* __restrict out, int64_t out_pix) {
+    const int64_t dx = L.texel, dy = L.row;
+    const auto texel = [](const uint8_t* q) {
+        int32_t v;
+        std::memcpy(&v, q, 4);
+        return _mm_cvtepi32_ps(_mm_cvtepu8_epi32(_mm_cvtsi32_si128(v)));
+    };
+    for (int64_t p = 0; p < m; ++p) {
+        const int64_t k = t.code(p);
+        O* o = out + p * out_pix;
+        if (k < 0) {
+            for (int n = 0; n < N; ++n) {
+                o[n] = fill;
+            }
+            continue;
+        }
+        if (k > safe) {
+            interior<uint8_t, O, N>(cube, 1, t + p, 1, L, true, fill, o, 1, 0);
+            continue;
+        }
+        const float x = float(t.fx(p)), y = float(t.fy(p)), e = 1 - x, s = 1 - y;
+        const uint8_t* q = cube + k;
+        __m128 acc = _mm_mul_ps(texel(q), _mm_set1_ps(s * e));   // blend()'s order
+        acc = _mm_add_ps(acc, _mm_mul_ps(texel(q + dx), _mm_set1_ps(s * x)));
+        acc = _mm_add_ps(acc, _mm_mul_ps(texel(q + dy), _mm_set1_ps(y * e)));
+        acc = _mm_add_ps(acc, _mm_mul_ps(texel(q + dy + dx), _mm_set1_ps(y * x)));
+        const size_t bytes = (N == 4 || p + 1 < m ? 4 : N) * sizeof(O);
+        if constexpr (std::is_same_v<O, uint8_t>) {
+            const __m128i v = _mm_cvttps_epi32(_mm_add_ps(acc, _mm_set1_ps(0.5f)));
+            const int32_t packed = _mm_cvtsi128_si32(_mm_packus_epi16(_mm_packus_epi32(v, v), v));
+            std::memcpy(o, &packed, bytes);
+        } else {
+            alignas(16) float v[4];
+            _mm_store_ps(v, _mm_mul_ps(acc, _mm_set1_ps(float(1.0 / 255.0))));
+            std::memcpy(o, v, bytes);
+        }
+    }
+}
+#endif
+
 // Output pixels [lo, lo + m) of sample b: the entries `t` and `grid` (the pixels' grid
 // points, for the edge pixels) start at the first of them; the pixels outside read `fill`.
 // Up to 4 channels per pass over the pixels (interior), then the edge pixels again.
-template <typename T, typename G, typename Taps>
+template <typename T, typename O, typename G, typename Taps>
 void sample_span(const T* cube, const Ring<T>& R, Taps t, const G* grid, int64_t m,
-                 const Layout& L, bool bilinear, T fill, const Planes& S, T* out) {
+                 const Layout& L, bool bilinear, O fill, const Planes& S, O* out) {
     for (int64_t c = 0; c < S.chans; c += 4) {
         const T* q = cube + c * S.src_chan;
-        T* o = out + c * S.out_chan;
+        O* o = out + c * S.out_chan;
+        const auto run = [&](auto channels) {
+            constexpr int N = decltype(channels)::value;
+#ifdef __SSE4_1__
+            if constexpr (std::is_same_v<T, uint8_t> && (N == 3 || N == 4)) {
+                if (bilinear && S.src_chan == 1 && S.out_chan == 1 && S.chans == N) {
+                    // the last tap's 4-byte load stays inside the cube
+                    const int64_t safe = L.last() + (N - 1) - 3 - L.row - L.texel;
+                    return interior_rgb8<O, N, Taps>(q, t, m, L, safe, fill, o, S.out_pix);
+                }
+            }
+#endif
+            interior<T, O, N, Taps>(q, S.src_chan, t, m, L, bilinear, fill, o, S.out_chan,
+                                    S.out_pix);
+        };
         switch (std::min<int64_t>(S.chans - c, 4)) {
             case 1:
-                interior<T, G, 1, Taps>(q, S.src_chan, t, m, L.face, bilinear, fill, o,
-                                        S.out_chan);
+                run(std::integral_constant<int, 1>{});
                 break;
             case 2:
-                interior<T, G, 2, Taps>(q, S.src_chan, t, m, L.face, bilinear, fill, o,
-                                        S.out_chan);
+                run(std::integral_constant<int, 2>{});
                 break;
             case 3:
-                interior<T, G, 3, Taps>(q, S.src_chan, t, m, L.face, bilinear, fill, o,
-                                        S.out_chan);
+                run(std::integral_constant<int, 3>{});
                 break;
             default:
-                interior<T, G, 4, Taps>(q, S.src_chan, t, m, L.face, bilinear, fill, o,
-                                        S.out_chan);
+                run(std::integral_constant<int, 4>{});
         }
     }
     for (int64_t p = 0; p < m; ++p) {
         if (t.code(p) == kEdge) {
-            edge_pixel<T, G>(cube, R, grid[2 * p], grid[2 * p + 1], L, bilinear, S, out + p);
+            edge_pixel<T, O, G>(cube, R, grid[2 * p], grid[2 * p + 1], L, bilinear, S,
+                                out + p * S.out_pix);
         }
     }
 }
 
 // fn(b, lo, m) for the row segments [lo, lo + m) of every tile of kTileW x kTileH pixels of
 // every sample, the tiles spread over PyTorch's intra-op threads (at::parallel_for: a run of
-// consecutive tiles per thread; one thread in DataLoader workers). A tile, not a row: the taps
-// of a rotated camera's row can run down a face's columns, a new cache line each; those of a
-// tile stay in a small patch of the cube.
+// consecutive tiles per thread; one thread in DataLoader workers), every sample of a tile in
+// turn, so that a table or rays shared by the batch are read from memory once. A tile, not a
+// row: the taps of a rotated camera's row can run down a face's columns, a new cache line
+// each; those of a tile stay in a small patch of the cube.
 template <typename Fn>
 void for_tiles(const Planes& S, Fn fn) {
     if (S.pixels == 0 || S.chans == 0) {   // an empty image: nothing to write
@@ -345,7 +502,7 @@ void for_tiles(const Planes& S, Fn fn) {
     const int64_t nx = (S.width + kTileW - 1) / kTileW, ny = (height + kTileH - 1) / kTileH;
     at::parallel_for(0, S.batch * nx * ny, 1, [&](int64_t begin, int64_t end) {
         for (int64_t index = begin; index < end; ++index) {
-            const int64_t b = index / (nx * ny), t = index % (nx * ny);
+            const int64_t t = index / S.batch, b = index % S.batch;
             const int64_t x0 = (t % nx) * kTileW, y0 = (t / nx) * kTileH;
             const int64_t m = std::min(kTileW, S.width - x0);
             for (int64_t y = y0; y < std::min(y0 + kTileH, height); ++y) {
@@ -357,40 +514,40 @@ void for_tiles(const Planes& S, Fn fn) {
 
 // Sampling through a lookup table (the entries of a grid; fractions unused for nearest),
 // shared by the batch (lut_batch = 0) or one per sample (lut_batch = P).
-template <typename T, typename G>
+template <typename T, typename O, typename G>
 void sample_lut(const T* src, const Entry<G>* table, const G* grid, int64_t lut_batch,
-                const Ring<T>& R, const Layout& L, bool bilinear, T fill, Planes S, T* out) {
+                const Ring<T>& R, const Layout& L, bool bilinear, O fill, Planes S, O* out) {
     // the top-left tap of the last interior pixel: its 4 taps (nearest: its 1) in the last face
-    const int64_t limit = 5 * L.face_stride + L.face * L.face - 1 - (bilinear ? L.face + 1 : 0);
+    const int64_t limit = L.last() - (bilinear ? L.row + L.texel : 0);
     for_tiles(S, [&](int64_t b, int64_t lo, int64_t m) {
         const int64_t at = b * lut_batch + lo;
         const Packed<G> taps{const_cast<Entry<G>*>(table) + at, limit};   // read only
-        sample_span<T, G>(src + b * S.src_batch, R, taps, grid + 2 * at, m, L, bilinear, fill,
-                          S, out + b * S.out_batch + lo);
+        sample_span<T, O, G>(src + b * S.src_batch, R, taps, grid + 2 * at, m, L, bilinear,
+                             fill, S, out + b * S.out_batch + lo * S.out_pix);
     });
 }
 
 // Output pixels [lo, lo + m) of one sample at grid points `g` (their `valid`, may be null):
 // their taps computed into the stack, then sampled.
-template <typename T, typename G>
+template <typename T, typename O, typename G>
 void sample_points(const T* cube, const G* g, const uint8_t* valid, int64_t m, const Ring<T>& R,
-                   const Layout& L, bool bilinear, T fill, const Planes& S, T* out) {
+                   const Layout& L, bool bilinear, O fill, const Planes& S, O* out) {
     SplitBuffer<G> buffer;
     locate<G>(g, m, valid, L, bilinear, buffer.taps());
-    sample_span<T, G>(cube, R, buffer.taps(), g, m, L, bilinear, fill, S, out);
+    sample_span<T, O, G>(cube, R, buffer.taps(), g, m, L, bilinear, fill, S, out);
 }
 
 // A grid used once (grid_batch = 0: one grid for the batch, else 2 P): the codes computed in
 // the sampling pass, a segment at a time. Pixels where `valid` (bool, valid_batch = 0 or P;
 // null: all valid) is false read `fill`, as if outside the atlas.
-template <typename T, typename G>
+template <typename T, typename O, typename G>
 void sample_grid(const T* src, const G* grid, int64_t grid_batch, const uint8_t* valid,
-                 int64_t valid_batch, const Ring<T>& R, const Layout& L, bool bilinear, T fill,
-                 Planes S, T* out) {
+                 int64_t valid_batch, const Ring<T>& R, const Layout& L, bool bilinear, O fill,
+                 Planes S, O* out) {
     for_tiles(S, [&](int64_t b, int64_t lo, int64_t m) {
-        sample_points<T, G>(src + b * S.src_batch, grid + b * grid_batch + 2 * lo,
-                            valid == nullptr ? nullptr : valid + b * valid_batch + lo, m, R, L,
-                            bilinear, fill, S, out + b * S.out_batch + lo);
+        sample_points<T, O, G>(src + b * S.src_batch, grid + b * grid_batch + 2 * lo,
+                               valid == nullptr ? nullptr : valid + b * valid_batch + lo, m, R,
+                               L, bilinear, fill, S, out + b * S.out_batch + lo * S.out_pix);
     });
 }
 
@@ -487,17 +644,17 @@ void ray_grid(const G* rays, const G* rot, int64_t count, const Layout& L, G* gr
 // sample_grid of the grid of rays (rays_batch = 0: one set for the batch, else 3 P) rotated
 // per sample (rot_batch = 0 or 9; rot null: not rotated), computed a segment at a time into
 // the stack and sampled at once: the grid never goes to memory.
-template <typename T, typename G>
+template <typename T, typename O, typename G>
 void sample_rays(const T* src, const G* rays, int64_t rays_batch, const G* rot,
                  int64_t rot_batch, const uint8_t* valid, int64_t valid_batch, const Ring<T>& R,
-                 const Layout& L, bool bilinear, T fill, Planes S, T* out) {
+                 const Layout& L, bool bilinear, O fill, Planes S, O* out) {
     for_tiles(S, [&](int64_t b, int64_t lo, int64_t m) {
         G g[2 * kTileW];
         ray_grid<G>(rays + b * rays_batch + 3 * lo, rot == nullptr ? nullptr : rot + b * rot_batch,
                     m, L, g);
-        sample_points<T, G>(src + b * S.src_batch, g,
-                            valid == nullptr ? nullptr : valid + b * valid_batch + lo, m, R, L,
-                            bilinear, fill, S, out + b * S.out_batch + lo);
+        sample_points<T, O, G>(src + b * S.src_batch, g,
+                               valid == nullptr ? nullptr : valid + b * valid_batch + lo, m, R,
+                               L, bilinear, fill, S, out + b * S.out_batch + lo * S.out_pix);
     });
 }
 
@@ -505,37 +662,58 @@ void sample_rays(const T* src, const G* rays, int64_t rays_batch, const G* rot,
 
 
 // ------------------------------------------------------------------------------------------
-// The ops: tensors in, checked, then the loops above per cube dtype (float32, float64; or the
-// element size 1, 2, 4, 8 bytes of a cube sampled nearest, whose elements are copied: any
-// dtype, exact) and grid dtype (the cube's for a floating cube, float32 or float64 otherwise).
-// `fill`: the value of the pixels outside (an integer: the ignore index of labels), converted
-// to the element type (two's complement for the copied elements).
+// The ops: tensors in, checked, then the loops above per cube element (float32, float64,
+// float16, bfloat16, uint8; or the element size 2, 4, 8 bytes of a cube sampled nearest, whose
+// elements are copied: any dtype, exact), output element (the cube's, or float32 for a uint8,
+// float16 or bfloat16 cube) and grid dtype (float64 for a float64 cube, float32 for the other
+// blended ones, either for a copied cube). `fill`: the value of the pixels outside (an
+// integer: the ignore index of labels), converted to the output element (two's complement for
+// the copied elements).
 // ------------------------------------------------------------------------------------------
 
 namespace {
 
 constexpr int64_t kMaxOffset = int64_t(1) << 31;  // the codes are int32
 
-bool floating(const at::Tensor& t) {
-    return t.scalar_type() == at::kFloat || t.scalar_type() == at::kDouble;
+bool blends(const at::Tensor& t) {
+    const auto s = t.scalar_type();
+    return s == at::kFloat || s == at::kDouble || s == at::kHalf || s == at::kBFloat16 ||
+           s == at::kByte;
 }
 
-// Calls fn(T{}, G{}) with T the cube's element type and G the grid's (see above).
+// The grid dtype a blended cube is sampled with.
+at::ScalarType work_dtype(const at::Tensor& cube) {
+    return cube.scalar_type() == at::kDouble ? at::kDouble : at::kFloat;
+}
+
+// Calls fn(T{}, O{}, G{}) with T the cube's element type, O the output's and G the grid's.
 template <typename Fn>
-void dispatch(const at::Tensor& cube, at::ScalarType grid, Fn fn) {
-    if (cube.scalar_type() == at::kFloat) {
-        return fn(float{}, float{});
-    }
-    if (cube.scalar_type() == at::kDouble) {
-        return fn(double{}, double{});
-    }
+void dispatch(const at::Tensor& cube, const at::Tensor& out, at::ScalarType grid, Fn fn) {
+    const bool to_float = out.scalar_type() == at::kFloat;
     const auto with_grid = [&](auto element) {
+        using E = decltype(element);
         if (grid == at::kFloat) {
-            fn(element, float{});
+            fn(element, E{}, float{});
         } else {
-            fn(element, double{});
+            fn(element, E{}, double{});
         }
     };
+    switch (cube.scalar_type()) {
+        case at::kFloat:
+            return fn(float{}, float{}, float{});
+        case at::kDouble:
+            return fn(double{}, double{}, double{});
+        case at::kHalf:
+            return to_float ? fn(c10::Half{}, float{}, float{})
+                            : fn(c10::Half{}, c10::Half{}, float{});
+        case at::kBFloat16:
+            return to_float ? fn(c10::BFloat16{}, float{}, float{})
+                            : fn(c10::BFloat16{}, c10::BFloat16{}, float{});
+        case at::kByte:
+            return to_float ? fn(uint8_t{}, float{}, float{}) : with_grid(uint8_t{});
+        default:
+            break;
+    }
     switch (cube.element_size()) {
         case 1:
             return with_grid(uint8_t{});
@@ -565,41 +743,47 @@ void check_batch(const char* op, const char* name, const at::Tensor& t, int64_t 
                 batch, ", got shape ", t.sizes());
 }
 
-// cube (B, 6, C, F, F) on the CPU with contiguous face rows; its element type one the loops
-// read; offsets within a sample and channel that fit the int32 codes.
-void check_cube(const char* op, const at::Tensor& cube, bool bilinear, int64_t pad) {
+// face, pad and the strides (face, row, texel) of a layout whose offsets fit the int32 codes.
+Layout check_layout(const char* op, int64_t face, int64_t pad, at::IntArrayRef strides) {
+    TORCH_CHECK(face >= 1 && pad >= 0 && face + 2 * pad < kMaxOffset / 6, op,
+                ": face, pad: expected F >= 1 and pad >= 0, got ", face, " and ", pad);
+    TORCH_CHECK(strides.size() == 3 && strides[0] >= 0 && strides[1] >= 0 && strides[2] >= 0,
+                op, ": strides: expected (face, row, texel) >= 0, got ", strides);
+    const Layout L = layout(face, pad, strides[0], strides[1], strides[2]);
+    TORCH_CHECK(L.last() < kMaxOffset, op, ": cube: too large for int32 offsets (strides ",
+                strides, ")");
+    return L;
+}
+
+// cube (B, 6, C, F, F) on the CPU, any strides; its element type one the loops read; offsets
+// within a sample and channel that fit the int32 codes.
+Layout check_cube(const char* op, const at::Tensor& cube, bool bilinear, int64_t pad) {
     check_cpu(op, "cube", cube);
     TORCH_CHECK(cube.dim() == 5 && cube.size(1) == 6 && cube.size(3) == cube.size(4) &&
                     cube.size(3) >= 1,
                 op, ": cube: expected shape (B, 6, C, F, F), got ", cube.sizes());
-    const int64_t f = cube.size(4);
-    TORCH_CHECK(cube.stride(4) == 1 && (cube.stride(3) == f || f == 1), op,
-                ": cube: expected contiguous face rows (strides (..., F, 1)), got strides ",
-                cube.strides());
     if (bilinear) {
-        TORCH_CHECK(floating(cube), op, ": cube: bilinear sampling needs float32 or float64, got ",
-                    cube.scalar_type());
+        TORCH_CHECK(blends(cube), op, ": cube: bilinear sampling needs float32, float64, "
+                    "float16, bfloat16 or uint8, got ", cube.scalar_type());
     } else {
         const int64_t size = cube.element_size();
-        TORCH_CHECK(floating(cube) || size == 1 || size == 2 || size == 4 || size == 8, op,
+        TORCH_CHECK(blends(cube) || size == 1 || size == 2 || size == 4 || size == 8, op,
                     ": cube: nearest sampling copies elements of 1, 2, 4 or 8 bytes, got ",
                     cube.scalar_type());
     }
-    TORCH_CHECK(6 * std::max(cube.stride(1), f * f) < kMaxOffset, op,
-                ": cube: too large for int32 offsets (face stride ", cube.stride(1), ")");
-    TORCH_CHECK(pad >= 0 && f + 2 * pad < kMaxOffset / 6, op, ": pad: expected >= 0, got ", pad);
+    return check_layout(op, cube.size(4), pad, {cube.stride(1), cube.stride(3), cube.stride(4)});
 }
 
 // A grid-like input (B', ..., last) in the dtype the cube is sampled with.
 void check_points(const char* op, const char* name, const at::Tensor& t, const at::Tensor& cube,
-                  int64_t dim, int64_t last) {
+                  bool bilinear, int64_t dim, int64_t last) {
     check_contiguous(op, name, t);
     TORCH_CHECK(t.dim() == dim && t.size(dim - 1) == last, op, ": ", name, ": expected ", dim,
                 " dimensions, the last of size ", last, ", got shape ", t.sizes());
     check_batch(op, name, t, cube.size(0));
-    if (floating(cube)) {
-        TORCH_CHECK(t.scalar_type() == cube.scalar_type(), op, ": ", name,
-                    ": expected the cube's dtype ", cube.scalar_type(), ", got ",
+    if (cube.is_floating_point() || (bilinear && blends(cube))) {
+        TORCH_CHECK(t.scalar_type() == work_dtype(cube), op, ": ", name, ": expected ",
+                    work_dtype(cube), " for a ", cube.scalar_type(), " cube, got ",
                     t.scalar_type());
     } else {
         TORCH_CHECK(t.scalar_type() == at::kFloat || t.scalar_type() == at::kDouble, op, ": ",
@@ -607,21 +791,30 @@ void check_points(const char* op, const char* name, const at::Tensor& t, const a
     }
 }
 
-// out (B, C, H, W) in the cube's dtype, each H x W plane contiguous, planes apart.
+// out (B, C, H, W) in the cube's dtype (or float32 for a uint8, float16 or bfloat16 cube), its
+// pixels row-major `pix` elements apart: planes (pix 1, any channel stride) or channels-last
+// (channel stride 1, pix >= C).
 void check_out(const char* op, const at::Tensor& out, const at::Tensor& cube, int64_t height,
                int64_t width) {
     check_cpu(op, "out", out);
-    TORCH_CHECK(out.scalar_type() == cube.scalar_type(), op, ": out: expected the cube's dtype ",
-                cube.scalar_type(), ", got ", out.scalar_type());
+    const auto s = cube.scalar_type();
+    TORCH_CHECK(out.scalar_type() == s || (out.scalar_type() == at::kFloat &&
+                                           (s == at::kByte || s == at::kHalf ||
+                                            s == at::kBFloat16)),
+                op, ": out: expected ", s, s == at::kByte || s == at::kHalf ||
+                s == at::kBFloat16 ? " or float32" : "", ", got ", out.scalar_type());
     TORCH_CHECK(out.dim() == 4 && out.size(0) == cube.size(0) && out.size(1) == cube.size(2) &&
                     out.size(2) == height && out.size(3) == width,
                 op, ": out: expected shape (", cube.size(0), ", ", cube.size(2), ", ", height,
                 ", ", width, "), got ", out.sizes());
+    const int64_t pix = out.stride(3), chans = out.size(1);
     TORCH_CHECK(out.numel() == 0 ||
-                    (out.stride(3) == 1 && (out.stride(2) == width || height == 1) &&
+                    ((out.stride(2) == width * pix || height == 1) &&
                      (out.stride(0) != 0 || out.size(0) == 1) &&
-                     (out.stride(1) != 0 || out.size(1) == 1)),
-                op, ": out: expected contiguous H x W planes, got strides ", out.strides());
+                     ((pix == 1 && (out.stride(1) != 0 || chans == 1)) ||
+                      (out.stride(1) == 1 && pix >= chans))),
+                op, ": out: expected H x W planes or channels-last pixels, got strides ",
+                out.strides());
 }
 
 // valid (1 or B, H, W) bool, or none.
@@ -641,10 +834,11 @@ void check_valid(const char* op, const std::optional<at::Tensor>& valid, int64_t
 
 // The ring (fast._ring_offsets): ring_src (N, K) int64 offsets within a sample and channel of
 // the cube, N = 6 (n^2 - F^2) border texels (any N >= 1 without a border), and ring_weight of
-// the same shape in the cube's dtype, or none (copies).
-Layout check_ring(const char* op, const at::Tensor& ring_src,
-                  const std::optional<at::Tensor>& ring_weight, const at::Tensor& cube,
-                  int64_t pad) {
+// the same shape in the dtype the cube is blended in (float64 for float64, else float32), or
+// none (copies).
+void check_ring(const char* op, const at::Tensor& ring_src,
+                const std::optional<at::Tensor>& ring_weight, const at::Tensor& cube,
+                int64_t pad) {
     const int64_t f = cube.size(4), n = f + 2 * pad;
     check_contiguous(op, "ring_src", ring_src);
     TORCH_CHECK(ring_src.scalar_type() == at::kLong, op, ": ring_src: expected int64, got ",
@@ -655,30 +849,29 @@ Layout check_ring(const char* op, const at::Tensor& ring_src,
                 ", K) for F = ", f, " and pad = ", pad, ", got ", ring_src.sizes());
     if (ring_weight.has_value()) {
         check_contiguous(op, "ring_weight", *ring_weight);
-        TORCH_CHECK(floating(cube) && ring_weight->scalar_type() == cube.scalar_type(), op,
-                    ": ring_weight: expected the floating cube's dtype, got ",
-                    ring_weight->scalar_type(), " for a ", cube.scalar_type(), " cube");
+        TORCH_CHECK(blends(cube) && ring_weight->scalar_type() == work_dtype(cube), op,
+                    ": ring_weight: expected ", work_dtype(cube), " for a ", cube.scalar_type(),
+                    " cube (none for copied elements), got ", ring_weight->scalar_type());
         TORCH_CHECK(ring_weight->sizes() == ring_src.sizes(), op,
                     ": ring_weight: expected the shape of ring_src ", ring_src.sizes(), ", got ",
                     ring_weight->sizes());
     }
-    return layout(f, pad, cube.stride(1));
 }
 
 template <typename T>
 Ring<T> ring(const at::Tensor& ring_src, const std::optional<at::Tensor>& ring_weight,
-             const at::Tensor& cube) {
-    const int64_t f = cube.size(4);
+             const Layout& L) {
     return Ring<T>{ring_src.const_data_ptr<int64_t>(),
                    ring_weight.has_value()
-                       ? static_cast<const T*>(ring_weight->const_data_ptr())
+                       ? static_cast<const W<T>*>(ring_weight->const_data_ptr())
                        : nullptr,
-                   ring_src.size(1), 5 * cube.stride(1) + f * f - 1};
+                   ring_src.size(1), L.last()};
 }
 
 Planes planes(const at::Tensor& cube, const at::Tensor& out) {
-    return Planes{out.size(0),   out.size(1),   out.size(2) * out.size(3), out.size(3),
-                  cube.stride(0), cube.stride(2), out.stride(0),            out.stride(1)};
+    return Planes{out.size(0),   out.size(1),    out.size(2) * out.size(3),
+                  out.size(3),   cube.stride(0), cube.stride(2),
+                  out.stride(0), out.stride(1),  out.stride(3)};
 }
 
 template <typename T>
@@ -699,6 +892,16 @@ int64_t batch_stride(const std::optional<at::Tensor>& t) {
     return t.has_value() ? batch_stride(*t) : 0;
 }
 
+// The fill value as O: an int, its two's complement bits for the copied elements.
+template <typename O>
+O fill_value(int64_t fill) {
+    if constexpr (std::is_integral_v<O>) {
+        return static_cast<O>(fill);
+    } else {
+        return static_cast<O>(static_cast<float>(fill));
+    }
+}
+
 // A lookup table (B', P, 3) for a grid (B', P, 2): int32 entries for a float32 grid, int64
 // for a float64 one.
 void check_table(const char* op, const at::Tensor& table, const at::Tensor& grid) {
@@ -713,8 +916,9 @@ void check_table(const char* op, const at::Tensor& table, const at::Tensor& grid
 }
 
 // build_lut: the entries (code, fraction bits) of grid (B', P, 2) into table (B', P, 3), int32
-// for a float32 grid, int64 for a float64 one.
-void build_lut_op(const at::Tensor& grid, int64_t face, int64_t pad, int64_t face_stride,
+// for a float32 grid, int64 for a float64 one, for cubes of faces `face` with the strides
+// (face, row, texel) of one channel.
+void build_lut_op(const at::Tensor& grid, int64_t face, int64_t pad, at::IntArrayRef strides,
                   bool bilinear, const at::Tensor& table) {
     const char* op = "omniscape_torch::build_lut";
     check_contiguous(op, "grid", grid);
@@ -723,11 +927,7 @@ void build_lut_op(const at::Tensor& grid, int64_t face, int64_t pad, int64_t fac
     TORCH_CHECK(grid.dim() == 3 && grid.size(2) == 2, op, ": grid: expected shape (B, P, 2), got ",
                 grid.sizes());
     check_table(op, table, grid);
-    TORCH_CHECK(face >= 1 && pad >= 0 && face + 2 * pad < kMaxOffset / 6, op,
-                ": face, pad: expected F >= 1 and pad >= 0, got ", face, " and ", pad);
-    TORCH_CHECK(face_stride >= 0 && 6 * std::max(face_stride, face * face) < kMaxOffset, op,
-                ": face_stride: ", face_stride, " does not fit the int32 offsets");
-    const Layout L = layout(face, pad, face_stride);
+    const Layout L = check_layout(op, face, pad, strides);
     const int64_t count = grid.size(0) * grid.size(1);
     const auto run = [&](auto g) {
         using G = decltype(g);
@@ -750,28 +950,32 @@ void build_lut_op(const at::Tensor& grid, int64_t face, int64_t pad, int64_t fac
 }
 
 // sample_lut: cube (B, 6, C, F, F) through a table (B', P, 3) of build_lut (with its grid
-// (B', P, 2) for the edge pixels), built for this cube's face stride, into out (B, C, H, W).
+// (B', P, 2) for the edge pixels), built for this cube's strides, into out (B, C, H, W).
 void sample_lut_op(const at::Tensor& cube, const at::Tensor& table, const at::Tensor& grid,
                    const at::Tensor& ring_src, const std::optional<at::Tensor>& ring_weight,
-                   int64_t pad, int64_t face_stride, bool bilinear, int64_t fill,
+                   int64_t pad, at::IntArrayRef strides, bool bilinear, int64_t fill,
                    const at::Tensor& out) {
     const char* op = "omniscape_torch::sample_lut";
-    check_cube(op, cube, bilinear, pad);
-    check_points(op, "grid", grid, cube, 3, 2);
+    const Layout L = check_cube(op, cube, bilinear, pad);
+    check_points(op, "grid", grid, cube, bilinear, 3, 2);
     check_table(op, table, grid);
-    TORCH_CHECK(face_stride == cube.stride(1), op, ": table: built for face stride ",
-                face_stride, ", the cube's is ", cube.stride(1));
+    TORCH_CHECK(strides.size() == 3 && strides[0] == L.face_stride && strides[1] == L.row &&
+                    strides[2] == L.texel,
+                op, ": table: built for the strides (face, row, texel) ", strides,
+                ", the cube's are (", L.face_stride, ", ", L.row, ", ", L.texel, ")");
     TORCH_CHECK(out.dim() == 4 && out.size(2) * out.size(3) == grid.size(1), op,
                 ": out: expected H W = ", grid.size(1), " pixels, got shape ", out.sizes());
     check_out(op, out, cube, out.size(2), out.size(3));
-    const Layout L = check_ring(op, ring_src, ring_weight, cube, pad);
-    dispatch(cube, grid.scalar_type(), [&](auto t, auto g) {
+    check_ring(op, ring_src, ring_weight, cube, pad);
+    dispatch(cube, out, grid.scalar_type(), [&](auto t, auto o, auto g) {
         using T = decltype(t);
+        using O = decltype(o);
         using G = decltype(g);
-        sample_lut<T, G>(elements<T>(cube), static_cast<const Entry<G>*>(table.const_data_ptr()),
-                         elements<G>(grid), table.size(0) == 1 ? 0 : table.size(1),
-                         ring<T>(ring_src, ring_weight, cube), L, bilinear, T(fill),
-                         planes(cube, out), static_cast<T*>(out.mutable_data_ptr()));
+        sample_lut<T, O, G>(elements<T>(cube),
+                            static_cast<const Entry<G>*>(table.const_data_ptr()),
+                            elements<G>(grid), table.size(0) == 1 ? 0 : table.size(1),
+                            ring<T>(ring_src, ring_weight, L), L, bilinear, fill_value<O>(fill),
+                            planes(cube, out), static_cast<O*>(out.mutable_data_ptr()));
     });
 }
 
@@ -782,17 +986,19 @@ void sample_grid_op(const at::Tensor& cube, const at::Tensor& grid,
                     const std::optional<at::Tensor>& ring_weight, int64_t pad, bool bilinear,
                     int64_t fill, const at::Tensor& out) {
     const char* op = "omniscape_torch::sample_grid";
-    check_cube(op, cube, bilinear, pad);
-    check_points(op, "grid", grid, cube, 4, 2);
+    const Layout L = check_cube(op, cube, bilinear, pad);
+    check_points(op, "grid", grid, cube, bilinear, 4, 2);
     check_out(op, out, cube, grid.size(1), grid.size(2));
     check_valid(op, valid, cube.size(0), grid.size(1), grid.size(2));
-    const Layout L = check_ring(op, ring_src, ring_weight, cube, pad);
-    dispatch(cube, grid.scalar_type(), [&](auto t, auto g) {
+    check_ring(op, ring_src, ring_weight, cube, pad);
+    dispatch(cube, out, grid.scalar_type(), [&](auto t, auto o, auto g) {
         using T = decltype(t);
+        using O = decltype(o);
         using G = decltype(g);
-        sample_grid<T, G>(elements<T>(cube), elements<G>(grid), batch_stride(grid), mask(valid),
-                          batch_stride(valid), ring<T>(ring_src, ring_weight, cube), L, bilinear,
-                          T(fill), planes(cube, out), static_cast<T*>(out.mutable_data_ptr()));
+        sample_grid<T, O, G>(elements<T>(cube), elements<G>(grid), batch_stride(grid),
+                             mask(valid), batch_stride(valid), ring<T>(ring_src, ring_weight, L),
+                             L, bilinear, fill_value<O>(fill), planes(cube, out),
+                             static_cast<O*>(out.mutable_data_ptr()));
     });
 }
 
@@ -805,25 +1011,26 @@ void sample_rays_op(const at::Tensor& cube, const at::Tensor& rays,
                     const std::optional<at::Tensor>& ring_weight, int64_t pad, bool bilinear,
                     int64_t fill, const at::Tensor& out) {
     const char* op = "omniscape_torch::sample_rays";
-    check_cube(op, cube, bilinear, pad);
-    check_points(op, "rays", rays, cube, 4, 3);
+    const Layout L = check_cube(op, cube, bilinear, pad);
+    check_points(op, "rays", rays, cube, bilinear, 4, 3);
     if (rotation.has_value()) {
-        check_points(op, "rotation", *rotation, cube, 3, 3);
+        check_points(op, "rotation", *rotation, cube, bilinear, 3, 3);
         TORCH_CHECK(rotation->size(1) == 3 && rotation->scalar_type() == rays.scalar_type(), op,
                     ": rotation: expected (1 or B, 3, 3) in the rays' dtype ", rays.scalar_type(),
                     ", got ", rotation->scalar_type(), " ", rotation->sizes());
     }
     check_out(op, out, cube, rays.size(1), rays.size(2));
     check_valid(op, valid, cube.size(0), rays.size(1), rays.size(2));
-    const Layout L = check_ring(op, ring_src, ring_weight, cube, pad);
-    dispatch(cube, rays.scalar_type(), [&](auto t, auto g) {
+    check_ring(op, ring_src, ring_weight, cube, pad);
+    dispatch(cube, out, rays.scalar_type(), [&](auto t, auto o, auto g) {
         using T = decltype(t);
+        using O = decltype(o);
         using G = decltype(g);
-        sample_rays<T, G>(elements<T>(cube), elements<G>(rays), batch_stride(rays),
-                          rotation.has_value() ? elements<G>(*rotation) : nullptr,
-                          batch_stride(rotation), mask(valid), batch_stride(valid),
-                          ring<T>(ring_src, ring_weight, cube), L, bilinear, T(fill),
-                          planes(cube, out), static_cast<T*>(out.mutable_data_ptr()));
+        sample_rays<T, O, G>(elements<T>(cube), elements<G>(rays), batch_stride(rays),
+                             rotation.has_value() ? elements<G>(*rotation) : nullptr,
+                             batch_stride(rotation), mask(valid), batch_stride(valid),
+                             ring<T>(ring_src, ring_weight, L), L, bilinear, fill_value<O>(fill),
+                             planes(cube, out), static_cast<O*>(out.mutable_data_ptr()));
     });
 }
 
@@ -832,10 +1039,10 @@ void sample_rays_op(const at::Tensor& cube, const at::Tensor& rays,
 TORCH_LIBRARY(omniscape_torch, m) {
     // the fake (meta) implementations, for torch.compile, are registered there
     m.set_python_module("omniscape_torch.render.extension");
-    m.def("build_lut(Tensor grid, int face, int pad, int face_stride, bool bilinear, "
+    m.def("build_lut(Tensor grid, int face, int pad, int[] strides, bool bilinear, "
           "Tensor(a!) table) -> ()");
     m.def("sample_lut(Tensor cube, Tensor table, Tensor grid, Tensor ring_src, "
-          "Tensor? ring_weight, int pad, int face_stride, bool bilinear, int fill, "
+          "Tensor? ring_weight, int pad, int[] strides, bool bilinear, int fill, "
           "Tensor(a!) out) -> ()");
     m.def("sample_grid(Tensor cube, Tensor grid, Tensor? valid, Tensor ring_src, "
           "Tensor? ring_weight, int pad, bool bilinear, int fill, Tensor(a!) out) -> ()");
