@@ -58,6 +58,28 @@ def copied_atlas(cube: torch.Tensor, pad: int) -> torch.Tensor:
     return cm.faces_to_atlas(cube[..., idx, :][..., idx])
 
 
+#: Width (in levels) of the band around a rounding tie (x.5) where an 8-bit image may differ by
+#: one level from the rounded float image: both blend the same float32 numbers (levels are exact
+#: in float32) with the same weights, in another order or with fused multiply-adds, a few ulps
+#: of 255 (1.5e-5 each) apart.
+TIE = 1e-3
+
+
+def assert_rounded(got: torch.Tensor, ref: torch.Tensor, what: str = "") -> None:
+    """``got`` (uint8) is ``ref`` (float levels) rounded to nearest and saturated, except within
+    ``TIE`` of a tie, where it may be one level off."""
+    assert got.dtype == torch.uint8 and got.shape == ref.shape, (got.dtype, got.shape, ref.shape)
+    assert bool(torch.isfinite(ref).all())
+    levels = ref.double().clamp(0, 255)
+    diff = got.double() - torch.floor(levels + 0.5)
+    near_tie = (levels - torch.floor(levels) - 0.5).abs() <= TIE
+    wrong = (diff != 0) & ~near_tie | (diff.abs() > 1)
+    assert not bool(wrong.any()), (
+        f"{what}: {int(wrong.sum())} of {wrong.numel()} pixels not the rounded float image, "
+        f"e.g. at {tuple(torch.nonzero(wrong)[0].tolist())}: got "
+        f"{int(got[wrong][0])}, float {float(ref[wrong][0]):.6f}")
+
+
 # ------------------------------------------------------------------------------------------
 # sample_cube / sample_atlas against grid_sample on the atlas
 # ------------------------------------------------------------------------------------------
@@ -85,6 +107,45 @@ def test_sample_cube_equals_grid_sample(mode, dtype, size, pad, channels, batch,
         torch.testing.assert_close(got, expect, atol=ATOL[dtype], rtol=0)
     invalid = (grid[..., 0] == -2).expand(batch, -1, -1)
     assert bool(invalid.any()) and bool((got.permute(0, 2, 3, 1)[invalid] == 0).all())
+    assert bool((lut.base == -2).any()) or pad == 0  # the seam pixels were exercised
+
+
+@pytest.mark.parametrize("mode", ["nearest", "bilinear"])
+@pytest.mark.parametrize("channels_last", [False, True])
+@pytest.mark.parametrize("size,pad,channels,batch,grid_batch,border", [
+    (8, 1, 3, 2, 1, "bilinear"),  # one grid for the batch (a frozen camera)
+    (7, 2, 1, 2, 2, "nearest"),  # odd size, pad 2, a grid per sample
+    (5, 1, 5, 1, 1, "copied"),  # 5 channels, each face padded with its own texels
+    (6, 0, 2, 1, 1, "bilinear"),  # no border: taps across the stacked faces
+    (8, 1, 4, 2, 2, "bilinear"),  # 4 channels (channels-last: one 4-byte load per texel)
+])
+def test_sample_cube_of_uint8_is_the_rounded_grid_sample(mode, channels_last, size, pad,
+                                                         channels, batch, grid_batch, border):
+    """An 8-bit cube (channels-first or channels-last), seams and texel centres included: the
+    float cube's image rounded to nearest, one level off at most next to a tie; its float32
+    output that image / 255."""
+    gen = torch.Generator().manual_seed(4)
+    cube = torch.randint(0, 256, (batch, 6, channels, size, size), generator=gen,
+                         dtype=torch.uint8)
+    grid = make_grid(grid_batch)
+    if border == "copied":
+        atlas = copied_atlas(cube.float(), pad)
+    else:
+        atlas = cm.cubemap_to_atlas(cube.float(), pad, border) if pad else \
+            cm.faces_to_atlas(cube.float())
+    expect = reference(atlas, grid, mode)
+    given = cube.permute(0, 1, 3, 4, 2).contiguous().permute(0, 1, 4, 2, 3) \
+        if channels_last else cube
+    lut = fastsample.build_lut(grid, size, pad, mode, channels=channels,
+                               channels_last=channels_last)
+    for table in (None, lut):
+        got = fastsample.sample_cube(given, grid, mode, pad=pad, border=border, lut=table)
+        assert_rounded(got, expect, f"{mode} {border} table={table is not None}")
+        scaled = fastsample.sample_cube(given, grid, mode, pad=pad, border=border, lut=table,
+                                        out_dtype=f32)
+        torch.testing.assert_close(scaled, expect / 255, atol=1e-6, rtol=0)
+        if channels_last and channels > 1:   # the image in the cube's layout
+            assert got.stride(1) == 1 and scaled.stride(1) == 1
     assert bool((lut.base == -2).any()) or pad == 0  # the seam pixels were exercised
 
 
@@ -433,6 +494,31 @@ def test_layer_fast_equals_reference(batch, rotated, interpolation):
         torch.testing.assert_close(fast[key], ref[key], atol=ATOL[f64] * 10, rtol=0)
         assert bool((fast[key].masked_select(~fast["valid"]) == 0).all())
     assert torch.equal(fast["labels"], ref["labels"])
+
+
+@pytest.mark.parametrize("channels_last", [False, True])
+@pytest.mark.parametrize("batch,rotated", [(1, False), (2, False), (2, True)])
+@pytest.mark.parametrize("interpolation", ["nearest", "bilinear"])
+def test_layer_fast_equals_reference_uint8(batch, rotated, interpolation, channels_last):
+    """8-bit RGB and labels: the fast path's image within a level of the reference path's
+    (both the float image rounded), the labels exact."""
+    gen = torch.Generator().manual_seed(batch)
+    cube = torch.randint(0, 256, (batch, 6, 3, 8, 8), generator=gen, dtype=torch.uint8)
+    labels = torch.randint(0, 255, (batch, 6, 8, 8), generator=gen, dtype=torch.uint8)
+    rgb = cube.permute(0, 1, 3, 4, 2).contiguous() if channels_last else cube
+    inputs = dict(rgb=rgb, labels=labels, rotation=rotations(batch) if rotated else None,
+                  channels_last=channels_last)
+    fast, ref = render_both(dict(interpolation=interpolation), inputs)
+    floats, _ = render_both(dict(interpolation=interpolation),
+                            dict(inputs, rgb=rgb.float()))
+    assert torch.equal(fast["valid"], ref["valid"])
+    assert bool(fast["valid"].any()) and not bool(fast["valid"].all())  # the fov edge is in
+    assert torch.equal(fast["labels"], ref["labels"])
+    assert fast["rgb"].dtype == ref["rgb"].dtype == torch.uint8
+    assert fast["rgb"].shape == ref["rgb"].shape == ((batch, 24, 24, 3) if channels_last
+                                                     else (batch, 3, 24, 24))
+    assert_rounded(fast["rgb"], floats["rgb"], "fast")
+    assert_rounded(ref["rgb"], floats["rgb"], "reference")
 
 
 @pytest.mark.parametrize("supersample", [1, 2])

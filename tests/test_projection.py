@@ -161,14 +161,16 @@ def coded_cube(size: int) -> torch.Tensor:
     return torch.stack([torch.stack((torch.full_like(u, k), u, v)) for k in range(6)])[None]
 
 
-def test_axis_rays_land_at_face_centres():
+@pytest.mark.parametrize("dtype", [f64, torch.uint8])
+def test_axis_rays_land_at_face_centres(dtype):
     size = 9  # odd: the face centre is a texel centre
     # Equidistant with f = 20 / pi: the ray at 90 degrees is 10 px from the centre pixel (16, 16).
     f = 20 / math.pi
     cam = ot.Camera("equidistant", torch.tensor([f, f, 16.0, 16.0], dtype=f64), (33, 33),
                     fov=math.radians(190))
     layer = ot.OmniProjection(cam, size, interpolation="nearest")
-    image, valid = layer(coded_cube(size))
+    image, valid = layer(coded_cube(size).to(dtype))
+    assert image.dtype == dtype
     centre = (size - 1) / 2
     expect = {(16, 16): "front", (26, 16): "right", (6, 16): "left", (16, 26): "down",
               (16, 6): "up"}
@@ -179,21 +181,24 @@ def test_axis_rays_land_at_face_centres():
     # Yaw +90 deg: the forward pixel looks along +x, the "right" face.
     rot = torch.tensor(YAW_RIGHT, dtype=f64)
     assert torch.equal(rot[:, 2], torch.tensor([1.0, 0, 0], dtype=f64))  # a of "right"
-    image, _ = layer(coded_cube(size), rotation=rot)
+    image, _ = layer(coded_cube(size).to(dtype), rotation=rot)
     assert image[0, :, 16, 16].tolist() == [FACE_ORDER.index("right"), centre, centre]
     # and the pixel that looked right (+x) now looks back (-z)
     assert image[0, :, 16, 26].tolist() == [FACE_ORDER.index("back"), centre, centre]
     assert image[0, :, 16, 6].tolist() == [FACE_ORDER.index("front"), centre, centre]
 
 
+@pytest.mark.parametrize("dtype", [f64, torch.uint8])
 @pytest.mark.parametrize("yaw", [False, True])
-def test_nearest_reads_reference_texel_everywhere(yaw):
+def test_nearest_reads_reference_texel_everywhere(yaw, dtype):
     """Every valid pixel of a 190-degree fisheye reads the texel our own ray -> face gives."""
     size, n = 12, 48
     cam, f, c = fisheye(n)
     layer = ot.OmniProjection(cam, size, interpolation="nearest")
     rot = torch.tensor(YAW_RIGHT, dtype=f64) if yaw else None
-    image, valid = layer(coded_cube(size), rotation=rot)
+    image, valid = layer(coded_cube(size).to(dtype), rotation=rot)
+    assert image.dtype == dtype
+    image = image.to(f64)
     cam_rays = equidistant_rays(f, c, n, n)
     rays = cam_rays @ rot.T if yaw else cam_rays
     face, uv = ref_face_uv(rays, size)
@@ -280,6 +285,44 @@ def test_copied_border_violates_the_seam_criterion(big_case):
           f"ratio {ratio:.1f}")
     assert ratio > 1.5
     assert psnr(err[valid]) < psnr(big_case[0]["resampled"][0][valid])
+
+
+#: The seam criterion on the 8-bit path: a coarser cube, whose copied border's seam error
+#: (several levels) stands out of the quantisation (about a level everywhere).
+SEAM8_F, SEAM8_N = 32, 256
+
+
+@pytest.fixture(scope="module")
+def seam_case_uint8():
+    cam, f, c = fisheye(SEAM8_N)
+    rays = equidistant_rays(f, c, SEAM8_N, SEAM8_N)
+    truth = smooth(rays)
+    _, uv = ref_face_uv(rays, SEAM8_F)
+    cube = torch.floor(smooth_cube(SEAM8_F, f64) * 255 + 0.5).to(torch.uint8)
+    out = {}
+    for border in ("resampled", "copied"):
+        layer = ot.OmniProjection(cam, SEAM8_F, border=border)
+        image, valid = layer(cube)
+        assert image.dtype == torch.uint8
+        out[border] = (image[0, 0].double() / 255 - truth).abs(), valid[0, 0]
+    return out, edge_distance(uv, SEAM8_F)
+
+
+def test_no_seam_error_with_resampled_border_uint8(seam_case_uint8):
+    (err, valid), dist = seam_case_uint8[0]["resampled"], seam_case_uint8[1]
+    ratio, band, rest = seam_ratio(err, valid, dist)
+    print(f"\nuint8: seam band (< 2 texels) max error {band * 255:.2f} levels, elsewhere "
+          f"{rest * 255:.2f}, ratio {ratio:.2f}")
+    assert ratio <= 1.5
+    assert rest * 255 <= 1.5   # input and output rounding (half a level each) and the blend
+
+
+def test_copied_border_violates_the_seam_criterion_uint8(seam_case_uint8):
+    (err, valid), dist = seam_case_uint8[0]["copied"], seam_case_uint8[1]
+    ratio, band, rest = seam_ratio(err, valid, dist)
+    print(f"\nuint8, copied border: seam band max error {band * 255:.2f} levels, elsewhere "
+          f"{rest * 255:.2f}, ratio {ratio:.1f}")
+    assert ratio > 1.5
 
 
 # ------------------------------------------------------------------------------------------
@@ -383,15 +426,18 @@ def test_no_flying_pixels_at_a_depth_edge(mode, flying):
 # Labels
 # ------------------------------------------------------------------------------------------
 LABEL_VALUES = torch.tensor([0, 2, 5, 9, 12, 77, 300])
+#: 8-bit ids: every value but the ignore index (255)
+LABEL_VALUES_UINT8 = torch.tensor([0, 2, 5, 9, 12, 77, 254], dtype=torch.uint8)
 
 
+@pytest.mark.parametrize("values", [LABEL_VALUES, LABEL_VALUES_UINT8], ids=["int64", "uint8"])
 @pytest.mark.parametrize("yaw", [False, True])
 @pytest.mark.parametrize("supersample", [1, 2])
-def test_labels_equal_brute_force_nearest_texel(yaw, supersample):
+def test_labels_equal_brute_force_nearest_texel(yaw, supersample, values):
     size, n = 16, 64
     cam, f, c = fisheye(n)
     g = torch.Generator().manual_seed(1)
-    cube = LABEL_VALUES[torch.randint(0, len(LABEL_VALUES), (1, 6, size, size), generator=g)]
+    cube = values[torch.randint(0, len(values), (1, 6, size, size), generator=g)]
     layer = ot.OmniProjection(cam, size, supersample=supersample, interpolation="bicubic")
     rot = torch.tensor(YAW_RIGHT, dtype=f32) if yaw else None
     out = layer.render(labels=cube, rotation=rot)
@@ -405,9 +451,9 @@ def test_labels_equal_brute_force_nearest_texel(yaw, supersample):
     expect = cube[0, face, iv, iu]
     ok = valid & not_tie(uv, 1e-4)
     assert int(ok.sum()) > 0.95 * int(valid.sum()) > 0
-    assert torch.equal(labels[ok], expect[ok])
+    assert torch.equal(labels[ok], expect[ok].long())
     assert bool((labels[~valid] == 255).all()) and int((~valid).sum()) > 0
-    assert set(labels.unique().tolist()) <= set(LABEL_VALUES.tolist()) | {255}
+    assert set(labels.unique().tolist()) <= set(values.tolist()) | {255}
 
 
 def test_labels_custom_ignore_index_and_uint8():

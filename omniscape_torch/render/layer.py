@@ -254,10 +254,12 @@ class OmniProjection(nn.Module):
             grid = grid.tensor()   # built once for every modality, as the layer builds grids
         cache = self._grid_cache
         cached = cache is not None and any(grid is g for g in cache[1])
+        # the layouts the lookup tables are built for: contiguous, or contiguous channels-last
         last = fastsample.is_channels_last(cube)
-        # the layouts the lookup tables are built for: contiguous, or channels-last
-        cube = cube if (cube.permute(0, 1, 3, 4, 2) if last else cube).is_contiguous() \
-            else cube.contiguous()
+        if last and not cube.permute(0, 1, 3, 4, 2).is_contiguous():
+            cube = cube.permute(0, 1, 3, 4, 2).contiguous().permute(0, 1, 4, 2, 3)
+        elif not last:
+            cube = cube.contiguous()
         lut = None
         if cached:
             key = (cache[0], id(grid), mode, cube.shape[2], last, cube.dtype)
@@ -313,7 +315,9 @@ class OmniProjection(nn.Module):
         if s == 1:
             return image
         weight = valid_sub.unsqueeze(1).to(image.dtype)
-        total = F.avg_pool2d(image * weight, s)
+        # the sum of s x s samples of the pool, divided before it is summed: no overflow near
+        # the dtype's largest value (exact for s a power of 2)
+        total = F.avg_pool2d(image * (weight / (s * s)), s) * (s * s)
         count = F.avg_pool2d(weight, s)
         return total / count.clamp(min=1.0 / (s * s))
 
@@ -415,7 +419,8 @@ class OmniProjection(nn.Module):
         if grid is not None:
             grid = self._check_given_grid(grid, batch, ref.device, rotation)
         if rgb is not None and not rgb.is_floating_point() and torch.is_grad_enabled() and any(
-                t is not None and t.requires_grad for t in (rotation, self.camera.params)):
+                t is not None and t.requires_grad
+                for t in (rotation, self.camera.params, None if grid is None else grid[0])):
             raise TypeError(f"rgb: a {rgb.dtype} cubemap has no gradient; convert it to float "
                             "(ot.io.to_float) to differentiate through the rotation or camera")
         # the fast path only where no gradient is asked for: gradients come from grid_sample
@@ -582,7 +587,8 @@ class OmniProjection(nn.Module):
                 ids = nearest_gather(self._atlas(labels, "nearest"), _outside(grid_c, mask_c))
             ids = ids[:, 0]
             rows = target("labels", ids.shape[1:], torch.int64)
-            rows = torch.empty_like(ids) if rows is None else rows
+            rows = torch.empty(ids.shape, dtype=torch.int64, device=ids.device) \
+                if rows is None else rows
             rows.copy_(ids)
             if not filled:
                 rows.masked_fill_(~valid[:, 0], ignore)
