@@ -248,3 +248,126 @@ def test_chunked_render_equals_whole_batch(monkeypatch):
     chunked = aug(rgb, labels, depth, params=params)
     assert _equal(whole, chunked)
     assert bool(whole["valid"].any()) and bool((whole["labels"] != 255).any())
+
+
+# ------------------------------------------------------------------ uint8 and channels-last cubes
+
+def _u8(b=5, seed=4):
+    return torch.randint(0, 256, (b, 6, 3, FACE, FACE), dtype=torch.uint8,
+                         generator=torch.Generator().manual_seed(seed))
+
+
+def _params_equal(a, b):
+    return a["model"] == b["model"] and all(
+        torch.equal(a[key], b[key]) for key in a if key != "model")
+
+
+@pytest.mark.parametrize("chunked", [False, True])
+def test_uint8_cube_within_a_level_of_the_float_path(chunked, monkeypatch):
+    """A uint8 cube renders into uint8, rounded to nearest (half up) from the float image of
+    its levels (``c.float()``) with the same seed; mixed models and chunks (indexed and sliced
+    rows of preallocated outputs) included. The drawn parameters do not depend on the dtype."""
+    from omniscape_torch.render import layer as projection
+    if chunked:
+        monkeypatch.setattr(projection, "CHUNK_PIXELS", 2 * SIZE[0] * SIZE[1])
+    cube = _u8()
+    _, labels, depth = _batch(b=5, seed=4)
+    u8 = _mixed(seed=9)(cube, labels, depth)
+    ref = _mixed(seed=9)(cube.float(), labels, depth)
+    assert len(set(u8["params"]["model"])) > 1
+    assert _params_equal(u8["params"], ref["params"])
+    assert u8["rgb"].dtype == torch.uint8 and u8["rgb"].shape == (5, 3, *SIZE)
+    expected = torch.floor(ref["rgb"] + 0.5)
+    assert float((u8["rgb"].float() - expected).abs().max()) <= 1
+    assert float((u8["rgb"].float() != expected).float().mean()) < 0.01
+    for key in ("labels", "depth", "valid"):
+        assert torch.equal(u8[key], ref[key]), key
+    assert bool((u8["rgb"][~u8["valid"].expand_as(u8["rgb"])] == 0).all())
+    # out_dtype: scaled to [0, 1] in the same pass
+    scaled = _mixed(seed=9, out_dtype=torch.float32)(cube, labels, depth)
+    assert scaled["rgb"].dtype == torch.float32
+    torch.testing.assert_close(scaled["rgb"], ref["rgb"] / 255, atol=1e-6, rtol=0)
+    wide = _mixed(seed=9, out_dtype=torch.float64)(cube.float() / 255)
+    assert wide["rgb"].dtype == torch.float64
+    torch.testing.assert_close(wide["rgb"], (ref["rgb"] / 255).double(), atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize("chunked", [False, True])
+@pytest.mark.parametrize("dtype", [torch.uint8, torch.float32])
+def test_channels_last_equals_channels_first_permuted(dtype, chunked, monkeypatch):
+    from omniscape_torch.render import layer as projection
+    if chunked:
+        monkeypatch.setattr(projection, "CHUNK_PIXELS", 2 * SIZE[0] * SIZE[1])
+    cube = _u8() if dtype == torch.uint8 else _batch(b=5, seed=4)[0]
+    _, labels, depth = _batch(b=5, seed=4)
+    last = cube.permute(0, 1, 3, 4, 2).contiguous()   # (B, 6, F, F, C), as files give faces
+    first = _mixed(seed=9)(cube, labels, depth)
+    out = _mixed(seed=9, channels_last=True)(last, labels, depth)
+    assert out["rgb"].shape == (5, *SIZE, 3) and out["rgb"].dtype == dtype
+    assert torch.equal(out["rgb"], first["rgb"].permute(0, 2, 3, 1))
+    for key in ("labels", "depth", "valid"):
+        assert torch.equal(out[key], first[key]), key
+    # the dict form, and a labels-only call of a channels-last module
+    as_dict = _mixed(seed=9, channels_last=True)({"rgb": last, "labels": labels})
+    assert torch.equal(as_dict["rgb"], out["rgb"]) and torch.equal(as_dict["labels"],
+                                                                   out["labels"])
+    only = _mixed(seed=9, channels_last=True)(None, labels)
+    assert "rgb" not in only and torch.equal(only["labels"], out["labels"])
+
+
+def test_bad_channels_last_and_out_dtype_name_the_argument():
+    with pytest.raises(TypeError, match="channels_last"):
+        RandomOmniCamera(SIZE, FACE, channels_last="yes")
+    with pytest.raises(TypeError, match="out_dtype"):
+        RandomOmniCamera(SIZE, FACE, out_dtype=torch.int32)
+    with pytest.raises(TypeError, match="out_dtype"):
+        RandomOmniCamera(SIZE, FACE, out_dtype="float32")
+    with pytest.raises(TypeError, match="out_dtype"):   # uint8 out needs a uint8 cube
+        RandomOmniCamera(SIZE, FACE, out_dtype=torch.uint8, seed=0)(_batch(b=2)[0])
+    assert RandomOmniCamera(SIZE, FACE, out_dtype=torch.uint8, seed=0)(
+        _u8(b=2))["rgb"].dtype == torch.uint8
+    last = _u8(b=2).permute(0, 1, 3, 4, 2)
+    with pytest.raises(ValueError, match="channels_last=True"):
+        RandomOmniCamera(SIZE, FACE, seed=0)(last)
+    with pytest.raises(ValueError, match="channels_last=False"):
+        RandomOmniCamera(SIZE, FACE, channels_last=True, seed=0)(_u8(b=2))
+    with pytest.raises(TypeError, match="cubemap"):
+        RandomOmniCamera(SIZE, FACE, seed=0)(_u8(b=2).to(torch.int32))
+
+
+class _Fill(nn.Module):
+    """Every entry set to ``value`` (an image augmentation that touches the invalid pixels)."""
+
+    def __init__(self, value):
+        super().__init__()
+        self.value = value
+
+    def forward(self, x):
+        return torch.full_like(x, self.value)
+
+
+def test_apply_to_key_masks_channels_last_and_uint8():
+    cube = _u8(b=2)
+    first = nn.Sequential(RandomOmniCamera(SIZE, FACE, seed=1), ApplyToKey(_Fill(200)))(cube)
+    last = nn.Sequential(RandomOmniCamera(SIZE, FACE, seed=1, channels_last=True),
+                         ApplyToKey(_Fill(200)))(cube.permute(0, 1, 3, 4, 2))
+    valid = first["valid"]
+    assert bool(valid.any()) and bool((~valid).any())
+    expected = torch.where(valid, 200, 0).to(torch.uint8).expand(2, 3, *SIZE)
+    assert first["rgb"].dtype == torch.uint8 and torch.equal(first["rgb"], expected)
+    assert torch.equal(last["rgb"], expected.permute(0, 2, 3, 1))
+    # labels (B, H, W) broadcast per pixel, not against the batch
+    lab = ApplyToKey(_Fill(7), key="labels")(
+        RandomOmniCamera(SIZE, FACE, seed=1)(None, _batch(b=2)[1]))
+    assert lab["labels"].shape == (2, *SIZE)
+    assert torch.equal(lab["labels"], torch.where(valid[:, 0], 7, 0))
+    # C = H = W cannot tell the layouts apart: the flag decides
+    square = {"rgb": torch.ones(1, 4, 4, 4, dtype=torch.uint8),
+              "valid": torch.zeros(1, 1, 4, 4, dtype=torch.bool)}
+    square["valid"][0, 0, 0, 1] = True
+    with pytest.raises(ValueError, match="channels_last"):
+        ApplyToKey(nn.Identity())(square)
+    got = ApplyToKey(nn.Identity(), channels_last=True)(square)["rgb"]
+    assert torch.equal(got[0, 0, 1], torch.ones(4, dtype=torch.uint8)) and int(got.sum()) == 4
+    got = ApplyToKey(nn.Identity(), channels_last=False)(square)["rgb"]
+    assert torch.equal(got[0, :, 0, 1], torch.ones(4, dtype=torch.uint8)) and int(got.sum()) == 4

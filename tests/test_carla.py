@@ -184,6 +184,61 @@ def test_convert_writes_fisheye_and_catadioptric(capture_root, tmp_path):
     assert bool((cata[cvalid] > 2.5).all())
 
 
+def test_convert_samples_8bit_faces_as_they_are(tmp_path, monkeypatch):
+    """``convert`` renders the PNG faces' uint8 levels (channels innermost, no float copy)
+    into the 8-bit image it writes: within a level of the float path (faces / 255 rendered in
+    floats, then rounded), with EXR depth faces, and the other files identical."""
+    from omniscape_torch.data.captures import build_cameras, render_capture
+    from omniscape_torch.render.fast import is_channels_last
+    from omniscape_torch.render.layer import OmniProjection
+
+    _, depth, tags = _scene()
+    rgb = np.random.default_rng(5).integers(0, 256, (6, F, F, 3), dtype=np.uint8)  # sharp
+    capture = tmp_path / "cubemaps" / "000007"
+    _write_capture(capture, rgb, depth, tags)
+    for k, face in enumerate(FACES):   # float faces keep working beside 8-bit ones
+        (capture / f"{face}_depth.png").unlink()
+        ot.io.write_exr(capture / f"{face}_depth.exr", depth[k].astype(np.float32))
+
+    cube = load_capture(capture, label_set="new", rgb_uint8=True)
+    assert cube["rgb"].dtype == torch.uint8 and cube["rgb"].shape == (1, 6, 3, F, F)
+    assert is_channels_last(cube["rgb"])   # the files' layout, read without a copy
+    assert torch.equal(cube["rgb"][0], torch.from_numpy(rgb).permute(0, 3, 1, 2))
+    with pytest.raises(TypeError, match="rgb_uint8"):
+        load_capture(capture, label_set="new", rgb_uint8=1)
+
+    seen = []
+    real = OmniProjection.render
+
+    def spy(self, **kwargs):
+        if kwargs.get("rgb") is not None:
+            seen.append((kwargs["rgb"].dtype, kwargs.get("channels_last")))
+        return real(self, **kwargs)
+
+    monkeypatch.setattr(OmniProjection, "render", spy)
+    size = (40, 40)
+    convert_captures(tmp_path / "cubemaps", tmp_path / "u8", label_set="new", image_size=size)
+    assert seen == [(torch.uint8, True)] * 2
+    cameras = build_cameras(image_size=size)
+    render_capture(load_capture(capture, label_set="new"), cameras, tmp_path / "float")
+    assert seen[2:] == [(torch.float32, False)] * 2
+    compared = 0
+    for cam in ("fisheye", "catadioptric"):
+        got = ot.io.read_image(tmp_path / "u8" / "000007" / f"{cam}_rgb.png").int()
+        ref = ot.io.read_image(tmp_path / "float" / f"{cam}_rgb.png").int()
+        valid = ot.io.read_image(tmp_path / "u8" / "000007" / f"{cam}_valid.png") > 0
+        assert got.shape == (*size, 3)
+        assert int((got - ref).abs().max()) <= 1
+        assert bool((got[~valid] == 0).all()) and int(got[valid].float().std()) > 10
+        compared += int(valid.sum())
+        for suffix in ("valid.png", "labels.png"):
+            assert torch.equal(ot.io.read_image(tmp_path / "u8" / "000007" / f"{cam}_{suffix}"),
+                               ot.io.read_image(tmp_path / "float" / f"{cam}_{suffix}"))
+        assert torch.equal(ot.io.read_exr(tmp_path / "u8" / "000007" / f"{cam}_depth.exr"),
+                           ot.io.read_exr(tmp_path / "float" / f"{cam}_depth.exr"))
+    assert compared > 0
+
+
 def test_missing_face_names_the_file(capture_root):
     root, _ = capture_root
     (root / "000042" / "up_depth.png").unlink()

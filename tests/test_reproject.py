@@ -233,15 +233,117 @@ def test_labels_keep_channels_and_follow_the_nearest_pixel():
     ids = torch.randint(0, 200, (2, 3, 32, 64), generator=gen, dtype=torch.uint8)
     src = ot.equirectangular_camera(64, 32, dtype=F64)
     dst = ot.presets.fisheye((24, 24), fov=math.radians(180), dtype=F64)
-    out, valid = ot.reproject(ids, src, dst, rotation=rot_y(2.9))  # looks across the seam
+    # uint8 is an image unless labels=True says it holds class ids
+    out, valid = ot.reproject(ids, src, dst, rotation=rot_y(2.9), labels=True)  # across the seam
     assert out.shape == (2, 3, 24, 24) and out.dtype == torch.int64
     as_float, _ = ot.reproject(ids.to(F64), src, dst, rotation=rot_y(2.9),
                                interpolation="nearest")
     assert torch.equal(out[valid.expand_as(out)], as_float[valid.expand_as(out)].long())
+    # other integer dtypes are labels by default
+    wide, _ = ot.reproject(ids.to(torch.int16), src, dst, rotation=rot_y(2.9))
+    assert torch.equal(wide, out)
     with pytest.raises(TypeError, match="to_float"):
-        ot.reproject(ids, src, dst, labels=False)
+        ot.reproject(ids.to(torch.int16), src, dst, labels=False)
     with pytest.raises(TypeError, match="labels=True"):
         ot.reproject(ids.to(F64), src, dst, labels=True)
+
+
+# --------------------------------------------------------------------------------------------
+# 8-bit and half-precision images
+# --------------------------------------------------------------------------------------------
+
+def _u8_pano(seed=3, shape=(2, 3, 32, 64)):
+    return torch.randint(0, 256, shape, generator=torch.Generator().manual_seed(seed),
+                         dtype=torch.uint8)
+
+
+@pytest.mark.parametrize("interpolation", ["nearest", "bilinear", "bicubic"])
+def test_uint8_image_within_a_level_of_the_float_path(interpolation):
+    """A uint8 image is an image (labels=None): sampled in float32 and rounded half up and
+    saturated; the reference is the float32 image of its levels through the same call."""
+    pano = _u8_pano()
+    src = ot.equirectangular_camera(64, 32)
+    dst = ot.presets.fisheye((24, 24), fov=math.radians(200))
+    out, valid = ot.reproject(pano, src, dst, rotation=rot_y(2.9).float(),
+                              interpolation=interpolation)
+    ref, ref_valid = ot.reproject(pano.float(), src, dst, rotation=rot_y(2.9).float(),
+                                  interpolation=interpolation)
+    assert out.dtype == torch.uint8 and out.shape == (2, 3, 24, 24)
+    assert torch.equal(valid, ref_valid) and bool(valid.any()) and bool((~valid).any())
+    expected = torch.floor(ref.clamp(0, 255) + 0.5)   # half up, saturated (bicubic overshoots)
+    assert float((out.float() - expected).abs().max()) <= 1
+    assert float((out.float() - expected).abs().mean()) < 0.01   # nearly all exact
+    if interpolation == "nearest":
+        assert torch.equal(out.float(), ref)   # levels copied
+    assert bool((out[~valid.expand_as(out)] == 0).all())
+    # a floating out_dtype: scaled to [0, 1], the float path on the image / 255
+    scaled, _ = ot.reproject(pano, src, dst, rotation=rot_y(2.9).float(),
+                             interpolation=interpolation, out_dtype=torch.float64)
+    unit, _ = ot.reproject(pano.float() / 255, src, dst, rotation=rot_y(2.9).float(),
+                           interpolation=interpolation)
+    assert scaled.dtype == torch.float64
+    torch.testing.assert_close(scaled, unit.double(), atol=1e-6, rtol=0)
+
+
+def test_uint8_equirect_to_cubemap_and_labels_true():
+    pano = _u8_pano(shape=(1, 3, 32, 64))
+    cube = ot.equirect_to_cubemap(pano, 16)
+    ref = ot.equirect_to_cubemap(pano.float() / 255, 16)
+    assert cube.dtype == torch.uint8 and cube.shape == (1, 6, 3, 16, 16)
+    assert float((cube.float() - torch.floor(ref * 255 + 0.5)).abs().max()) <= 1
+    as_float = ot.equirect_to_cubemap(pano, 16, out_dtype=torch.float32)
+    torch.testing.assert_close(as_float, ref, atol=1e-6, rtol=0)
+    # uint8 class ids with labels=True: nearest, exact, int64 (the int64 ids' result)
+    ids = pano[:, 0] % 13
+    cube_ids = ot.equirect_to_cubemap(ids, 16, labels=True)
+    assert cube_ids.dtype == torch.int64
+    assert torch.equal(cube_ids, ot.equirect_to_cubemap(ids.long(), 16))
+    # (B, H, W) uint8 without labels=True is ambiguous
+    with pytest.raises(ValueError, match="labels=True"):
+        ot.equirect_to_cubemap(ids, 16)
+    with pytest.raises(ValueError, match=r"labels=True.*\(B, C, H, W\)"):
+        ot.reproject(ids, ot.equirectangular_camera(64, 32), ot.presets.fisheye((8, 8)))
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_half_precision_images_are_sampled_with_a_float32_grid(dtype):
+    """The float32 image of the same (rounded) values through the same call, rounded once to
+    the image's dtype: exactly. (A grid cast to half was off by pixels, and gave NaN.)"""
+    pano = pano_of(texture, 256, 128).to(dtype)
+    cube = ot.equirect_to_cubemap(pano, 64)
+    assert cube.dtype == dtype and bool(torch.isfinite(cube).all())
+    assert torch.equal(cube, ot.equirect_to_cubemap(pano.float(), 64).to(dtype))
+    fisheye = ot.presets.fisheye((32, 32), fov=math.radians(190))
+    out, valid = ot.reproject(pano, ot.equirectangular_camera(256, 128), fisheye,
+                              interpolation="bicubic")
+    ref, _ = ot.reproject(pano.float(), ot.equirectangular_camera(256, 128), fisheye,
+                          interpolation="bicubic")
+    assert out.dtype == dtype and torch.equal(out, ref.to(dtype))
+    wide, _ = ot.reproject(pano, ot.equirectangular_camera(256, 128), fisheye,
+                           interpolation="bicubic", out_dtype=torch.float32)
+    assert torch.equal(wide, ref)
+
+
+def test_uint8_gradients_and_bad_out_dtype():
+    pano = _u8_pano(shape=(1, 3, 32, 64))
+    src = ot.equirectangular_camera(64, 32)
+    dst = ot.Camera("equidistant", [12.0, 12.0, 15.5, 15.5], (32, 32), learnable=True)
+    params = dst.params
+    with pytest.raises(TypeError, match="out_dtype"):   # uint8 out would drop the gradient
+        ot.reproject(pano, src, dst)
+    out, _ = ot.reproject(pano, src, dst, out_dtype=torch.float32)   # the grid's gradient
+    out.sum().backward()
+    assert params.grad is not None and bool(torch.isfinite(params.grad).all())
+    assert float(params.grad.abs().sum()) > 0
+    with torch.no_grad():
+        assert ot.reproject(pano, src, dst)[0].dtype == torch.uint8
+    cam = ot.Camera("pinhole", [4.0, 4.0, 3.5, 3.5], (8, 8))
+    with pytest.raises(TypeError, match="out_dtype"):
+        ot.reproject(torch.rand(1, 3, 8, 8), cam, cam, out_dtype=torch.uint8)
+    with pytest.raises(TypeError, match="out_dtype"):
+        ot.reproject(_u8_pano(shape=(1, 3, 8, 8)), cam, cam, out_dtype=torch.int32)
+    with pytest.raises(ValueError, match="out_dtype"):
+        ot.reproject(torch.zeros(1, 8, 8, dtype=torch.int64), cam, cam, out_dtype=torch.float32)
 
 
 # --------------------------------------------------------------------------------------------

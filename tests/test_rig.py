@@ -87,3 +87,41 @@ def test_rig_rejects_bad_arguments():
     rig = StereoRig(layer, layer)
     with pytest.raises(TypeError, match="unexpected keyword"):
         rig(torch.rand(1, 6, 3, 16, 16), torch.rand(1, 6, 3, 16, 16), depth=torch.rand(1, 6, 16, 16))
+
+
+def test_rig_renders_uint8_and_channels_last_cubes():
+    """uint8 cubes: within a level of the float image of their levels (rounded half up);
+    channels-last: the channels-first images permuted, exactly; out_dtype for both cameras."""
+    cam = ot.Camera("equidistant", [9.0, 9.0, 11.5, 11.5], (24, 24), fov=math.radians(190))
+    rig = StereoRig(ot.OmniProjection(cam, 16), ot.OmniProjection(cam, 16))
+    g = torch.Generator().manual_seed(0)
+    left, right = (torch.randint(0, 256, (2, 6, 3, 16, 16), dtype=torch.uint8, generator=g)
+                   for _ in range(2))
+    yaw = torch.tensor([[0.8, 0.0, 0.6], [0.0, 1.0, 0.0], [-0.6, 0.0, 0.8]])
+    for rotation in (None, yaw.expand(2, 3, 3)):
+        u8 = rig(left, right, rotation)
+        ref = rig(left.float(), right.float(), rotation)
+        last = rig(left.permute(0, 1, 3, 4, 2), right.permute(0, 1, 3, 4, 2), rotation,
+                   channels_last=True)
+        scaled = rig(left, right, rotation, out_dtype=torch.float32)
+        for name in ("left", "right"):
+            assert u8[name]["rgb"].dtype == torch.uint8
+            expected = torch.floor(ref[name]["rgb"] + 0.5)
+            assert float((u8[name]["rgb"].float() - expected).abs().max()) <= 1
+            assert torch.equal(u8[name]["valid"], ref[name]["valid"])
+            assert last[name]["rgb"].shape == (2, 24, 24, 3)
+            assert torch.equal(last[name]["rgb"], u8[name]["rgb"].permute(0, 2, 3, 1))
+            assert scaled[name]["rgb"].dtype == torch.float32
+            torch.testing.assert_close(scaled[name]["rgb"], ref[name]["rgb"] / 255, atol=1e-6,
+                                       rtol=0)
+        assert not torch.equal(u8["left"]["rgb"], u8["right"]["rgb"])   # each its own cube
+    # one camera's cube only: the options apply to it, the other renders depth
+    out = rig(left.permute(0, 1, 3, 4, 2), None, channels_last=True,
+              right_depth=torch.ones(2, 6, 16, 16))
+    assert out["left"]["rgb"].shape == (2, 24, 24, 3) and "rgb" not in out["right"]
+    with pytest.raises(ValueError, match="channels_last"):
+        rig(None, None, channels_last=True, left_depth=torch.ones(2, 6, 16, 16))
+    with pytest.raises(TypeError, match="channels_last"):
+        rig(left, right, channels_last=1)
+    with pytest.raises(TypeError, match="out_dtype"):
+        rig(left, right, out_dtype=torch.int32)

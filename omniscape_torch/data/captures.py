@@ -32,7 +32,7 @@ with status 1).
 
 Written per capture and camera (``fisheye``, ``catadioptric``)::
 
-    OUT/<capture_id>/<camera>_rgb.png          8-bit RGB
+    OUT/<capture_id>/<camera>_rgb.png          8-bit RGB (sampled from the 8-bit faces as read)
     OUT/<capture_id>/<camera>_depth.exr        float32 metres: range (default) or z; 0 invalid
     OUT/<capture_id>/<camera>_labels.png       8-bit class ids, 255 outside the valid area
     OUT/<capture_id>/<camera>_labels_color.png the ids in CARLA's palette
@@ -124,7 +124,8 @@ def find_captures(cubemaps_dir: str | Path) -> list[Path]:
 
 def load_capture(path: str | Path, *, label_set: str = "13",
                  modalities: Sequence[str] | None = None,
-                 unknown_label: int | None = None) -> dict[str, Tensor | int]:
+                 unknown_label: int | None = None,
+                 rgb_uint8: bool = False) -> dict[str, Tensor | int]:
     """Read one capture folder into cubemaps, faces in ``FACES`` order, batch of one.
 
     Args:
@@ -133,11 +134,15 @@ def load_capture(path: str | Path, *, label_set: str = "13",
             0.9.13) or ``"new"`` (Cityscapes-ordered tags of later versions).
         modalities: those required (default: whichever are there; at least one).
         unknown_label: class given to tags outside ``label_set`` (default: an error).
+        rgb_uint8: keep the RGB faces as the files give them, ``uint8`` levels 0..255 with the
+            channels innermost in memory (no float copy; ``OmniProjection.render`` samples them
+            as they are), instead of float32 in [0, 1].
 
     Returns:
         dict with ``face_size`` and, for each modality found: ``rgb (1, 6, 3, F, F)`` float32 in
-        [0, 1], ``depth (1, 6, F, F)`` float32 planar metres, ``labels (1, 6, F, F)`` int64
-        class ids 0..12.
+        [0, 1] (``rgb_uint8``: ``uint8``, a view of a contiguous ``(1, 6, F, F, 3)`` tensor),
+        ``depth (1, 6, F, F)`` float32 planar metres, ``labels (1, 6, F, F)`` int64 class ids
+        0..12.
 
     Raises:
         ValueError: a face missing (names the file), faces not square or of different sizes,
@@ -149,6 +154,8 @@ def load_capture(path: str | Path, *, label_set: str = "13",
         raise FileNotFoundError(f"{capture}: no such capture folder")
     if label_set not in LABEL_SETS:
         raise ValueError(f"label_set: expected one of {tuple(LABEL_SETS)}, got {label_set!r}")
+    if not isinstance(rgb_uint8, bool):
+        raise TypeError(f"rgb_uint8: expected a bool, got {rgb_uint8!r}")
     wanted = MODALITIES if modalities is None else tuple(modalities)
     for m in wanted:
         if m not in MODALITIES:
@@ -193,8 +200,12 @@ def load_capture(path: str | Path, *, label_set: str = "13",
             if file.suffix == ".exr":
                 faces.append(face_image)
             else:
-                faces.append(_decode(image, modality, file, label_set, unknown_label))
-        out[modality] = torch.stack(faces).unsqueeze(0)
+                faces.append(_decode(image, modality, file, label_set, unknown_label,
+                                     rgb_uint8))
+        stacked = torch.stack(faces).unsqueeze(0)
+        if modality == "rgb" and rgb_uint8:   # (1, 6, F, F, 3) seen as (1, 6, 3, F, F)
+            stacked = stacked.permute(0, 1, 4, 2, 3)
+        out[modality] = stacked
     if size is None:
         raise ValueError(f"{capture}: no face image (expected files like "
                          f"{_face_file(capture, FACES[0], 'rgb').name})")
@@ -203,13 +214,16 @@ def load_capture(path: str | Path, *, label_set: str = "13",
 
 
 def _decode(image: np.ndarray, modality: str, file: Path, label_set: str,
-            unknown_label: int | None) -> Tensor:
+            unknown_label: int | None, rgb_uint8: bool = False) -> Tensor:
+    """One face as a tensor: rgb ``(3, F, F)`` float32 in [0, 1] (``rgb_uint8``: ``(F, F, 3)``
+    ``uint8`` as read), depth ``(F, F)`` metres, labels ``(F, F)`` int64 classes."""
     if image.dtype != np.uint8:
         raise ValueError(f"{file}: expected 8-bit pixels, got {image.dtype}")
     if modality == "rgb":
         if image.ndim == 2:
             image = np.repeat(image[..., None], 3, axis=-1)
-        return torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1).float() / 255.0
+        face = torch.from_numpy(np.ascontiguousarray(image))
+        return face if rgb_uint8 else face.permute(2, 0, 1).float() / 255.0
     if modality == "depth":
         if image.ndim != 3:
             raise ValueError(f"{file}: a CARLA depth image has 3 channels (24-bit depth), got "
@@ -256,6 +270,10 @@ def render_capture(cube: dict, cameras: dict[str, tuple], out_dir: str | Path, *
     """Render the cubemaps of :func:`load_capture` through each camera and write the files
     (layout in the module docstring) into ``out_dir``. Returns the paths written.
 
+    A ``uint8`` RGB cube (``load_capture(rgb_uint8=True)``, what :func:`convert_captures`
+    reads) is sampled as it is into the 8-bit image written (blended in float32, rounded to
+    nearest, half up); a float cube in [0, 1] is rendered in floats and rounded after.
+
     All or nothing: the files are written into a hidden staging folder beside ``out_dir`` and
     moved into it (each with ``os.replace``) only once every one is written; on an error the
     staging folder is removed and ``out_dir`` is left as it was.
@@ -294,15 +312,25 @@ def _render_into(cube: dict, cameras: dict[str, tuple], out_dir: Path, *, depth_
             if _layers is not None:
                 _layers[key] = layer
         kwargs = {m: cube[m].to(device) for m in MODALITIES if m in cube}
+        # 8-bit faces are sampled as they are, into an 8-bit image with the channels innermost,
+        # as the PNG holds them (no float copy of the cube or the image)
+        levels = "rgb" in kwargs and kwargs["rgb"].dtype == torch.uint8
+        if levels:
+            kwargs["rgb"] = kwargs["rgb"].permute(0, 1, 3, 4, 2)   # (1, 6, F, F, 3)
         rot = None if rotation is None else rotation.to(device)
         with torch.no_grad():
-            result = layer.render(**kwargs, rotation=rot, depth_output=depth_output)
+            result = layer.render(**kwargs, rotation=rot, depth_output=depth_output,
+                                  channels_last=levels)
         valid = result["valid"][0, 0].cpu()
         written.append(write_image(out_dir / f"{name}_valid.png",
                                    valid.to(torch.uint8) * 255))
         if "rgb" in result:
-            rgb = (result["rgb"][0].clamp(0, 1) * 255).round().to(torch.uint8)
-            written.append(write_image(out_dir / f"{name}_rgb.png", rgb.permute(1, 2, 0).cpu()))
+            if levels:   # (H, W, 3) uint8, rounded to nearest by the sampler
+                rgb = result["rgb"][0]
+            else:
+                rgb = (result["rgb"][0].clamp(0, 1) * 255).round().to(torch.uint8) \
+                    .permute(1, 2, 0)
+            written.append(write_image(out_dir / f"{name}_rgb.png", rgb.cpu()))
         if "depth" in result:
             written.append(write_exr(out_dir / f"{name}_depth.exr",
                                      result["depth"][0, 0].float().cpu().contiguous()))
@@ -367,7 +395,8 @@ def convert_captures(cubemaps_dir: str | Path, out_dir: str | Path, *, label_set
         remove_stale_temporaries(out_dir)
         for capture in captures:
             try:
-                cube = load_capture(capture, label_set=label_set, unknown_label=unknown_label)
+                cube = load_capture(capture, label_set=label_set, unknown_label=unknown_label,
+                                    rgb_uint8=True)
                 results[capture.name] = render_capture(
                     cube, built, out_dir / capture.name, depth_output=depth_output,
                     interpolation=interpolation, device=device, _layers=layers)

@@ -139,11 +139,20 @@ class RandomOmniCamera(nn.Module):
         depth_output: ``"range"`` or ``"z"`` (see ``OmniProjection.render``).
         ignore_index: label of invalid pixels.
         seed: seed of the module's generator (see above).
+        channels_last: the RGB cubemap is ``(B, 6, F, F, C)`` (channels innermost, as image
+            files and simulators give faces) and ``rgb`` comes back ``(B, H, W, C)``; read
+            without a copy (``OmniProjection.render``'s ``channels_last``).
+        out_dtype: dtype of ``rgb``: None for the cubemap's (a ``uint8`` cube gives a ``uint8``
+            image, blended in float32 and rounded to nearest, half up), or a floating dtype (a
+            ``uint8`` cube is then scaled to [0, 1] in the same pass). ``torch.uint8`` is
+            accepted for ``uint8`` cubes only.
 
     Shapes:
-        cubemap ``(B, 6, C, F, F)``, labels ``(B, 6, F, F)``, depth ``(B, 6, F, F)`` planar ->
-        ``rgb (B, C, H, W)``, ``labels (B, H, W)`` int64, ``depth (B, 1, H, W)``,
-        ``valid (B, 1, H, W)`` bool.
+        cubemap ``(B, 6, C, F, F)`` (``channels_last``: ``(B, 6, F, F, C)``) floating or
+        ``uint8``, labels ``(B, 6, F, F)``, depth ``(B, 6, F, F)`` planar -> ``rgb (B, C, H, W)``
+        (``channels_last``: ``(B, H, W, C)``) in ``out_dtype``, ``labels (B, H, W)`` int64,
+        ``depth (B, 1, H, W)``, ``valid (B, 1, H, W)`` bool. The drawn parameters do not depend
+        on the cubemap's dtype or layout: a seed gives the same cameras for all of them.
 
     Example:
         >>> aug = RandomOmniCamera((32, 32), 16, seed=0)
@@ -167,7 +176,8 @@ class RandomOmniCamera(nn.Module):
                  yaw_range: tuple[float, float] = (-math.pi, math.pi),
                  p: float = 1.0, same_on_batch: bool = False,
                  interpolation: str = "bilinear", depth_output: str = "range",
-                 ignore_index: int = 255, seed: int | None = None) -> None:
+                 ignore_index: int = 255, seed: int | None = None,
+                 channels_last: bool = False, out_dtype: torch.dtype | None = None) -> None:
         super().__init__()
         try:
             h, w = (int(v) for v in image_size)
@@ -198,6 +208,12 @@ class RandomOmniCamera(nn.Module):
                              f"{center_jitter!r}")
         if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int)):
             raise TypeError(f"seed: expected an int or None, got {seed!r}")
+        if not isinstance(channels_last, bool):
+            raise TypeError(f"channels_last: expected a bool, got {channels_last!r}")
+        if out_dtype is not None and not (isinstance(out_dtype, torch.dtype) and (
+                out_dtype.is_floating_point or out_dtype == torch.uint8)):
+            raise TypeError(f"out_dtype: expected None, torch.uint8 or a floating dtype, got "
+                            f"{out_dtype!r}")
         self.image_size = (h, w)
         self.face_size = face_size
         self.mode = mode
@@ -220,6 +236,8 @@ class RandomOmniCamera(nn.Module):
         self.depth_output = depth_output
         self.ignore_index = int(ignore_index)
         self.seed = seed
+        self.channels_last = channels_last
+        self.out_dtype = out_dtype
         self._generator: torch.Generator | None = None
         self._check_ranges()
 
@@ -248,7 +266,8 @@ class RandomOmniCamera(nn.Module):
 
     def extra_repr(self) -> str:
         return (f"image_size={self.image_size}, face_size={self.face_size}, mode={self.mode!r}, "
-                f"p={self.p}, same_on_batch={self.same_on_batch}, seed={self.seed}")
+                f"p={self.p}, same_on_batch={self.same_on_batch}, seed={self.seed}, "
+                f"channels_last={self.channels_last}, out_dtype={self.out_dtype}")
 
     # ---------------------------------------------------------------------------------------
     # Randomness
@@ -393,10 +412,17 @@ class RandomOmniCamera(nn.Module):
                depth: Tensor | None = None) -> dict:
         """Render the modalities through the cameras and rotations of ``params``.
 
+        Args:
+            cubemap: ``(B, 6, C, F, F)`` (``channels_last``: ``(B, 6, F, F, C)``), floating or
+                ``uint8``, or None.
+            params: parameters from ``forward_parameters``.
+            labels, depth: as for ``forward``.
+
         Returns:
             dict ``valid`` and, for each given input, ``rgb``, ``labels``, ``depth`` (class
             docstring), plus ``params``.
         """
+        rgb_dtype = self._check_cubemap(cubemap)
         ref = next((t for t in (cubemap, depth, labels) if t is not None), None)
         if ref is None:
             raise ValueError("render: pass at least one of cubemap, labels, depth")
@@ -412,12 +438,16 @@ class RandomOmniCamera(nn.Module):
         chunk = batch if device.type != "cpu" else max(1, projection.CHUNK_PIXELS // math.prod(
             self.image_size))
         result: dict[str, Tensor] = {}
+        # the layer refuses these without rgb: a labels- or depth-only call ignores them
+        rgb_options = {} if cubemap is None else dict(out_dtype=rgb_dtype,
+                                                      channels_last=self.channels_last)
         cameras = self.cameras(params, dtype, device)
         if len(cameras) > 1 or chunk < batch:   # several parts: outputs allocated once
             h, w = self.image_size   # the outputs of OmniProjection.render
             shapes = {"valid": ((1, h, w), torch.bool)}
             if cubemap is not None:
-                shapes["rgb"] = ((cubemap.shape[2], h, w), cubemap.dtype)
+                shapes["rgb"] = (((h, w, cubemap.shape[4]) if self.channels_last
+                                  else (cubemap.shape[2], h, w)), rgb_dtype)
             if labels is not None:
                 shapes["labels"] = ((h, w), torch.int64)
             if depth is not None:
@@ -445,7 +475,7 @@ class RandomOmniCamera(nn.Module):
                 at = slice(first, last) if run else sel.to(device)
                 take = (lambda t: t) if whole else (lambda t: None if t is None else t[at])
                 out = proj.render(rgb=take(cubemap), labels=take(labels), depth=take(depth),
-                                  depth_output=self.depth_output, grid=grid,
+                                  depth_output=self.depth_output, grid=grid, **rgb_options,
                                   out={key: value[at] for key, value in result.items()}
                                   if run else None)
                 if whole:
@@ -457,14 +487,47 @@ class RandomOmniCamera(nn.Module):
         result["params"] = params
         return result
 
+    def _check_cubemap(self, cubemap: object) -> torch.dtype | None:
+        """The dtype of the ``rgb`` image of ``cubemap`` (None without one). Raises for a cube
+        not laid out as ``channels_last`` says (naming the flag that fits), or of a dtype the
+        layer refuses."""
+        if cubemap is None:
+            return None
+        if not isinstance(cubemap, Tensor):
+            raise TypeError(f"cubemap: expected a tensor, got {type(cubemap).__name__}")
+        if not (cubemap.is_floating_point() or cubemap.dtype == torch.uint8):
+            raise TypeError(f"cubemap: expected a floating-point or uint8 cubemap, got "
+                            f"{cubemap.dtype}")
+        f = self.face_size
+        layout = "(B, 6, F, F, C)" if self.channels_last else "(B, 6, C, F, F)"
+        face_dims = (2, 3) if self.channels_last else (3, 4)
+        if cubemap.dim() != 5 or cubemap.shape[1] != 6 or \
+                tuple(cubemap.shape[d] for d in face_dims) != (f, f):
+            other = (3, 4) if self.channels_last else (2, 3)   # the other layout's face dims
+            hint = ""
+            if cubemap.dim() == 5 and cubemap.shape[1] == 6 and \
+                    tuple(cubemap.shape[d] for d in other) == (f, f):
+                hint = (f"; it looks {'channels-first' if self.channels_last else 'channels-last'}"
+                        f": construct with channels_last={not self.channels_last}")
+            raise ValueError(f"cubemap: expected shape {layout} with F = face_size = {f} "
+                             f"(channels_last={self.channels_last}), got "
+                             f"{tuple(cubemap.shape)}{hint}")
+        if self.out_dtype is None:
+            return cubemap.dtype
+        if self.out_dtype == torch.uint8 and cubemap.dtype != torch.uint8:
+            raise TypeError(f"out_dtype: torch.uint8 needs a uint8 cubemap, got {cubemap.dtype} "
+                            "(a floating cube renders into its own or another floating dtype)")
+        return self.out_dtype
+
     def forward(self, cubemap: Tensor | dict | None, labels: Tensor | None = None,
                 depth: Tensor | None = None, *, params: dict | None = None,
                 generator: torch.Generator | None = None) -> dict:
         """Draw (or reuse ``params``, kornia style) and render.
 
         Args:
-            cubemap: ``(B, 6, C, F, F)`` floating, or a dict with keys ``rgb`` and optionally
-                ``labels`` and ``depth`` (so the module can start an ``nn.Sequential``).
+            cubemap: ``(B, 6, C, F, F)`` (``channels_last``: ``(B, 6, F, F, C)``) floating or
+                ``uint8``, or a dict with keys ``rgb`` and optionally ``labels`` and ``depth``
+                (so the module can start an ``nn.Sequential``).
             labels: ``(B, 6, F, F)`` integer class ids.
             depth: ``(B, 6, F, F)`` planar depth, metres.
             params: parameters from ``forward_parameters`` or a previous output, to replay.
@@ -494,20 +557,57 @@ class ApplyToKey(nn.Module):
 
         nn.Sequential(RandomOmniCamera(...), ApplyToKey(kornia.augmentation.ColorJitter(...)))
 
-    The invalid pixels are zeroed again afterwards (``mask_invalid``). Note that kornia's own
-    augmentations draw from torch's global RNG, not from this package's generators.
+    The invalid pixels are zeroed again afterwards (``mask_invalid``), in the value's dtype
+    (``uint8`` included). Note that kornia's own augmentations draw from torch's global RNG,
+    not from this package's generators, and take ``(B, C, H, W)`` floating images.
+
+    Args:
+        module: applied to ``batch[key]``.
+        key: the entry it applies to.
+        mask_invalid: zero the pixels where ``batch["valid"] (B, 1, H, W)`` is False.
+        channels_last: the layout of the module's output: ``(B, H, W, C)`` (True) or
+            ``(B, C, H, W)`` (False); None (default) tells them apart by where ``(H, W)`` of
+            the valid mask lies, and raises where that is ambiguous (``C = H = W``).
+            ``(B, H, W)`` (labels) and ``(B, 1, H, W)`` need no flag.
     """
 
-    def __init__(self, module: nn.Module, key: str = "rgb", mask_invalid: bool = True) -> None:
+    def __init__(self, module: nn.Module, key: str = "rgb", mask_invalid: bool = True,
+                 channels_last: bool | None = None) -> None:
         super().__init__()
+        if channels_last is not None and not isinstance(channels_last, bool):
+            raise TypeError(f"channels_last: expected a bool or None, got {channels_last!r}")
         self.module = module
         self.key = key
         self.mask_invalid = bool(mask_invalid)
+        self.channels_last = channels_last
 
     def forward(self, batch: dict) -> dict:
         out = dict(batch)
         value = self.module(batch[self.key])
         if self.mask_invalid and "valid" in batch:
-            value = torch.where(batch["valid"], value, torch.zeros_like(value))
+            mask = _mask_for(batch["valid"], value, self.channels_last, self.key)
+            value = torch.where(mask, value, torch.zeros_like(value))
         out[self.key] = value
         return out
+
+
+def _mask_for(valid: Tensor, value: Tensor, channels_last: bool | None, key: str) -> Tensor:
+    """``valid (B, 1, H, W)`` shaped to broadcast over ``value``: ``(B, C, H, W)``,
+    ``(B, H, W, C)`` (``valid[:, 0, ..., None]``) or ``(B, H, W)``."""
+    hw = tuple(valid.shape[-2:])
+    shape = tuple(value.shape)
+    if value.dim() == 3 and shape[1:] == hw:
+        return valid[:, 0]
+    first = value.dim() == 4 and shape[2:] == hw
+    last = value.dim() == 4 and shape[1:3] == hw
+    if channels_last is None:
+        if first and last and shape[1] != 1:
+            raise ValueError(f"{key}: shape {shape} reads as (B, C, H, W) and (B, H, W, C) "
+                             f"with valid {tuple(valid.shape)}: pass channels_last")
+        channels_last = last and not first
+    if channels_last and last:
+        return valid[:, 0, ..., None]
+    if not channels_last and first:
+        return valid
+    raise ValueError(f"{key}: shape {shape} does not match valid {tuple(valid.shape)} as "
+                     f"{'(B, H, W, C)' if channels_last else '(B, C, H, W)'}")

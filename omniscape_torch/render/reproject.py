@@ -51,39 +51,86 @@ def wraps_in_longitude(camera: Camera) -> bool:
 
 
 def _is_labels(image: Tensor, labels: bool | None) -> bool:
+    """Whether ``image`` is sampled as class ids: ``labels``, or by default its dtype (integer
+    dtypes other than ``uint8``; a ``uint8`` tensor is an 8-bit image unless ``labels=True``)."""
     if labels is None:
-        return not image.is_floating_point()
+        if image.dtype == torch.uint8:
+            if image.dim() == 3:
+                raise ValueError(f"image: a uint8 tensor {tuple(image.shape)} is ambiguous: "
+                                 "uint8 is read as an 8-bit image, (B, C, H, W); pass "
+                                 "labels=True for (B, H, W) class ids, or an image "
+                                 "(B, C, H, W)")
+            return False
+        return not (image.is_floating_point() or image.is_complex())
     if labels and (image.is_floating_point() or image.is_complex()):
         raise TypeError(f"image: labels=True needs integer class ids, got {image.dtype}")
-    if not labels and not image.is_floating_point():
-        raise TypeError(f"image: expected a floating image (labels=False), got {image.dtype}; "
-                        f"convert with ot.io.to_float, or pass labels=True for class ids")
+    if not labels and not (image.is_floating_point() or image.dtype == torch.uint8):
+        raise TypeError(f"image: expected a floating or uint8 image (labels=False), got "
+                        f"{image.dtype}; convert with ot.io.to_float, or pass labels=True for "
+                        f"class ids")
     return bool(labels)
+
+
+def _image_dtype(image: Tensor, labels: bool, out_dtype: object) -> torch.dtype | None:
+    """The dtype of the sampled image: ``out_dtype``, by default the image's (None: labels,
+    which come back int64)."""
+    if labels:
+        if out_dtype is not None:
+            raise ValueError(f"out_dtype: describes an image; labels come back int64, got "
+                             f"{out_dtype!r}")
+        return None
+    if out_dtype is None:
+        return image.dtype
+    if not isinstance(out_dtype, torch.dtype) or not (
+            out_dtype == image.dtype or out_dtype.is_floating_point):
+        raise TypeError(f"out_dtype: expected None, {image.dtype} or a floating dtype, got "
+                        f"{out_dtype!r}")
+    return out_dtype
+
+
+def _from_work(values: Tensor, dtype: torch.dtype, out_dtype: torch.dtype) -> Tensor:
+    """Values sampled in float32/float64 from an image of ``dtype`` as ``out_dtype``: a
+    ``uint8`` image's levels (0..255) rounded to nearest, half up, and saturated (as OpenCV's
+    ``remap``), or scaled to [0, 1] for a floating ``out_dtype``; floats cast."""
+    if dtype != torch.uint8:
+        return values if values.dtype == out_dtype else values.to(out_dtype)
+    if out_dtype == torch.uint8:
+        return torch.floor(values.clamp(0, 255) + 0.5).to(torch.uint8)
+    return (values / 255).to(out_dtype)
 
 
 def sample_camera(image: Tensor, camera: Camera, rays: Tensor, *,
                   interpolation: str = "bilinear", labels: bool | None = None,
-                  ignore_index: int = IGNORE_INDEX) -> tuple[Tensor, Tensor]:
+                  ignore_index: int = IGNORE_INDEX, out_dtype: torch.dtype | None = None
+                  ) -> tuple[Tensor, Tensor]:
     """Sample ``image`` seen by ``camera`` along ``rays`` given in that camera's frame.
 
     Args:
-        image: ``(B, C, H, W)`` floating, or integer labels ``(B, H, W)`` / ``(B, C, H, W)``
-            (nearest only, never blended). A batch of 1 is shared by every ray batch.
+        image: ``(B, C, H, W)`` floating or ``uint8`` (an 8-bit image), or integer labels
+            ``(B, H, W)`` / ``(B, C, H, W)`` (nearest only, never blended). A batch of 1 is
+            shared by every ray batch. Images other than float32 and float64 (``uint8``,
+            float16, bfloat16) are sampled in float32, through a float32 grid.
         camera: the camera that took ``image`` (one, or a batch of ``B``).
         rays: ``(h, w, 3)`` or ``(B, h, w, 3)`` directions in the camera frame.
-        interpolation: ``"nearest"``, ``"bilinear"`` or ``"bicubic"`` (floating images; bicubic
-            may overshoot the input's range).
-        labels: treat ``image`` as integer class ids; ``None`` decides by its dtype.
+        interpolation: ``"nearest"``, ``"bilinear"`` or ``"bicubic"`` (images; bicubic may
+            overshoot the input's range: a ``uint8`` image saturates).
+        labels: treat ``image`` as integer class ids; ``None`` decides by its dtype: integer
+            dtypes other than ``uint8`` are labels, ``uint8`` is an image (pass
+            ``labels=True`` for ``uint8`` class ids).
         ignore_index: label of invalid pixels.
+        out_dtype: the image's dtype: the input's (default; ``uint8`` rounded to nearest, half
+            up, and saturated, as OpenCV's ``remap``), or a floating dtype (a ``uint8`` image
+            scaled to [0, 1]). Not for labels.
 
     Returns:
-        ``values (B, C, h, w)`` (labels: int64, ``(B, h, w)`` for ``(B, H, W)`` input) and
-        ``valid (B, 1, h, w)``: the source camera's validity (model domain, image bounds, fov).
-        Invalid pixels are 0 (labels: ``ignore_index``).
+        ``values (B, C, h, w)`` in ``out_dtype`` (labels: int64, ``(B, h, w)`` for
+        ``(B, H, W)`` input) and ``valid (B, 1, h, w)``: the source camera's validity (model
+        domain, image bounds, fov). Invalid pixels are 0 (labels: ``ignore_index``).
     """
     if not isinstance(image, Tensor):
         raise TypeError(f"image: expected a tensor, got {type(image).__name__}")
     labels = _is_labels(image, labels)
+    out_dtype = _image_dtype(image, labels, out_dtype)
     squeeze = labels and image.dim() == 3
     if squeeze:
         image = image.unsqueeze(1)
@@ -132,34 +179,49 @@ def sample_camera(image: Tensor, camera: Camera, rays: Tensor, *,
         out = nearest_gather(image, grid).long()
         out = torch.where(valid, out, torch.full_like(out, ignore_index))
         return (out[:, 0] if squeeze else out), valid
-    out = grid_sample(image, grid.to(image.dtype), interpolation)
-    return torch.where(valid, out, torch.zeros_like(out)), valid
+    if image.dtype == torch.uint8 and out_dtype == torch.uint8 and torch.is_grad_enabled() \
+            and (rays.requires_grad or camera.params.requires_grad):
+        raise TypeError("image: a uint8 image into a uint8 image has no gradient; pass a "
+                        "floating out_dtype (or convert it with ot.io.to_float) to "
+                        "differentiate through the cameras or the rotation")
+    # float32 and float64 are sampled as they are; the others in float32 (a half-precision
+    # grid is off by pixels, and grid_sample has no uint8 kernel)
+    work = image if image.dtype in (torch.float32, torch.float64) else image.float()
+    out = grid_sample(work, grid.to(work.dtype), interpolation)
+    out = torch.where(valid, out, torch.zeros_like(out))
+    return _from_work(out, image.dtype, out_dtype), valid
 
 
 def reproject(image: Tensor, src_camera: Camera, dst_camera: Camera, *,
               rotation: Tensor | None = None, interpolation: str = "bilinear",
-              labels: bool | None = None, ignore_index: int = IGNORE_INDEX
-              ) -> tuple[Tensor, Tensor]:
+              labels: bool | None = None, ignore_index: int = IGNORE_INDEX,
+              out_dtype: torch.dtype | None = None) -> tuple[Tensor, Tensor]:
     """Resample ``image`` taken by ``src_camera`` into ``dst_camera`` (same centre).
 
     ``out[b, :, v, u] = image[b]`` sampled at ``src.project(R @ dst.unproject(u, v))``.
 
     Args:
-        image: ``(B, C, H_src, W_src)`` floating, or integer labels ``(B, H_src, W_src)`` /
-            ``(B, C, H_src, W_src)``. A batch of 1 is shared by a batch of cameras/rotations.
+        image: ``(B, C, H_src, W_src)`` floating or ``uint8`` (an 8-bit image), or integer
+            labels ``(B, H_src, W_src)`` / ``(B, C, H_src, W_src)``. A batch of 1 is shared by a
+            batch of cameras/rotations.
         src_camera, dst_camera: any cameras of the registry (one, or a batch of ``B``).
         rotation: optional ``(3, 3)`` or ``(B, 3, 3)`` mapping destination-camera rays into the
             source camera's frame, ``ray_src = R @ ray_dst`` (default: the same orientation).
         interpolation: ``"nearest"``, ``"bilinear"`` or ``"bicubic"``; labels are always nearest.
-        labels: treat ``image`` as integer class ids; ``None`` decides by its dtype.
+        labels: treat ``image`` as integer class ids; ``None`` decides by its dtype (integer
+            dtypes other than ``uint8``; pass ``labels=True`` for ``uint8`` class ids).
         ignore_index: label of invalid pixels.
+        out_dtype: the image's dtype: the input's (default; ``uint8`` rounded to nearest, half
+            up, and saturated), or a floating dtype (a ``uint8`` image scaled to [0, 1]).
 
     Returns:
-        ``image (B, C, H_dst, W_dst)`` (labels: int64, ``(B, H_dst, W_dst)`` for
-        ``(B, H_src, W_src)`` input) and ``valid (B, 1, H_dst, W_dst)``: valid in both cameras.
-        Invalid pixels are 0 (labels: ``ignore_index``). Differentiable with respect to the
-        image, both cameras' parameters and the rotation (bilinear and bicubic). The sampling
-        grid is built in the cameras' dtype and cast to the image's.
+        ``image (B, C, H_dst, W_dst)`` in ``out_dtype`` (labels: int64, ``(B, H_dst, W_dst)``
+        for ``(B, H_src, W_src)`` input) and ``valid (B, 1, H_dst, W_dst)``: valid in both
+        cameras. Invalid pixels are 0 (labels: ``ignore_index``). Differentiable with respect to
+        the image, both cameras' parameters and the rotation (bilinear and bicubic; a ``uint8``
+        image into a floating ``out_dtype``: the cameras and the rotation). The sampling grid is
+        built in the cameras' dtype and cast to the image's (float32 for ``uint8``, float16 and
+        bfloat16 images, which are sampled in float32 and rounded once).
 
     Example:
         >>> import omniscape_torch as ot, torch
@@ -169,6 +231,9 @@ def reproject(image: Tensor, src_camera: Camera, dst_camera: Camera, *,
         >>> out.shape, valid.shape
         (torch.Size([1, 3, 64, 64]), torch.Size([1, 1, 64, 64]))
     """
+    if not isinstance(image, Tensor):
+        raise TypeError(f"image: expected a tensor, got {type(image).__name__}")
+    labels = _is_labels(image, labels)
     rays, valid_dst = dst_camera.ray_grid()  # [(B,) h, w, 3]
     if rotation is not None:
         cm.check_rotation(rotation)
@@ -182,17 +247,18 @@ def reproject(image: Tensor, src_camera: Camera, dst_camera: Camera, *,
         rays = (torch.einsum("ij,...hwj->...hwi", rot, rays) if rot.dim() == 2
                 else torch.einsum("bij,bhwj->bhwi", rot, rays.expand(len(rot), *rays.shape[-3:])))
     values, valid = sample_camera(image, src_camera, rays, interpolation=interpolation,
-                                  labels=labels, ignore_index=ignore_index)
+                                  labels=labels, ignore_index=ignore_index, out_dtype=out_dtype)
     valid_dst = valid_dst.unsqueeze(0) if valid_dst.dim() == 2 else valid_dst
     valid = valid & valid_dst.unsqueeze(1)
-    if values.is_floating_point():
+    if not labels:
         return torch.where(valid, values, torch.zeros_like(values)), valid
     mask = valid[:, 0] if values.dim() == 3 else valid
     return torch.where(mask, values, torch.full_like(values, ignore_index)), valid
 
 
 def equirect_to_cubemap(panorama: Tensor, face_size: int, *, interpolation: str = "bilinear",
-                        labels: bool | None = None, ignore_index: int = IGNORE_INDEX) -> Tensor:
+                        labels: bool | None = None, ignore_index: int = IGNORE_INDEX,
+                        out_dtype: torch.dtype | None = None) -> Tensor:
     """The six faces (``FACES`` order, DESIGN.md's orientation) of a full equirectangular
     panorama.
 
@@ -201,14 +267,18 @@ def equirect_to_cubemap(panorama: Tensor, face_size: int, *, interpolation: str 
     ``cx = cy = (F - 1) / 2``; the six faces are sampled in one call, the geometry in float64.
 
     Args:
-        panorama: ``(B, C, H, W)`` floating, or integer labels ``(B, H, W)`` (nearest).
+        panorama: ``(B, C, H, W)`` floating or ``uint8`` (an 8-bit image), or integer labels
+            ``(B, H, W)`` (nearest).
         face_size: ``F``.
         interpolation: ``"nearest"``, ``"bilinear"`` or ``"bicubic"``.
-        labels: treat ``panorama`` as integer class ids; ``None`` decides by its dtype.
+        labels: treat ``panorama`` as integer class ids; ``None`` decides by its dtype (integer
+            dtypes other than ``uint8``; pass ``labels=True`` for ``uint8`` class ids).
+        out_dtype: the faces' dtype (:func:`sample_camera`): the panorama's (default; ``uint8``
+            rounded to nearest, half up), or a floating dtype (``uint8`` scaled to [0, 1]).
 
     Returns:
-        ``(B, 6, C, F, F)`` (labels ``(B, 6, F, F)`` int64, or ``(B, 6, C, F, F)`` for
-        ``(B, C, H, W)`` labels). Every texel is valid.
+        ``(B, 6, C, F, F)`` in ``out_dtype`` (labels ``(B, 6, F, F)`` int64, or
+        ``(B, 6, C, F, F)`` for ``(B, C, H, W)`` labels). Every texel is valid.
     """
     if not isinstance(face_size, int) or isinstance(face_size, bool) or face_size < 1:
         raise ValueError(f"face_size: expected a positive int, got {face_size!r}")
@@ -217,7 +287,7 @@ def equirect_to_cubemap(panorama: Tensor, face_size: int, *, interpolation: str 
     rays = cm.face_rays(face_size, dtype=torch.float64, device=panorama.device, normalize=True)
     values, _ = sample_camera(panorama, camera, rays.reshape(6 * face_size, face_size, 3),
                               interpolation=interpolation, labels=labels,
-                              ignore_index=ignore_index)
+                              ignore_index=ignore_index, out_dtype=out_dtype)
     if values.dim() == 3:  # labels (B, 6F, F)
         return values.reshape(-1, 6, face_size, face_size)
     return values.reshape(values.shape[0], values.shape[1], 6, face_size, face_size) \

@@ -65,14 +65,22 @@ class StereoRig(nn.Module):
         return {"T_rig_left": t_left, "T_rig_right": t_right,
                 "T_right_left": torch.linalg.inv(t_right) @ t_left}
 
-    def forward(self, left_cubemap: Tensor, right_cubemap: Tensor,
-                rotation: Tensor | None = None, **render: Tensor | None) -> dict:
+    def forward(self, left_cubemap: Tensor | None, right_cubemap: Tensor | None,
+                rotation: Tensor | None = None, *, out_dtype: torch.dtype | None = None,
+                channels_last: bool = False, **render: Tensor | None) -> dict:
         """Render both cameras.
 
         Args:
             left_cubemap, right_cubemap: ``(B, 6, C, F, F)`` RGB cubemaps rendered at each
-                camera's position (pass ``None`` to render only depth/labels through ``render``).
+                camera's position (``channels_last``: ``(B, 6, F, F, C)``), floating or
+                ``uint8`` (sampled as they are; no gradient); pass ``None`` to render only
+                depth/labels through ``render``.
             rotation: optional ``(B, 3, 3)`` rig -> cube-frame attitude.
+            out_dtype: dtype of both ``rgb`` images (``OmniProjection.render``): None for the
+                cubemap's (``uint8`` rounded to nearest, half up), or a floating dtype (a
+                ``uint8`` cube scaled to [0, 1]).
+            channels_last: both cubemaps are ``(B, 6, F, F, C)`` and both ``rgb`` images come
+                back ``(B, H, W, C)``.
             **render: per-camera extra modalities as ``left_depth``, ``right_labels``, ... passed
                 to ``OmniProjection.render``.
 
@@ -84,6 +92,12 @@ class StereoRig(nn.Module):
         if unknown:
             raise TypeError(f"unexpected keyword arguments {unknown}; use left_<modality> or "
                             f"right_<modality>")
+        if not isinstance(channels_last, bool):
+            raise TypeError(f"channels_last: expected a bool, got {channels_last!r}")
+        if left_cubemap is None and right_cubemap is None and (
+                out_dtype is not None or channels_last):
+            raise ValueError("out_dtype, channels_last: they describe the rgb cubemaps, and "
+                             "neither is given")
         eye = torch.eye(3, dtype=self.rotations.dtype, device=self.rotations.device)
         out = {}
         for i, (name, layer, cube) in enumerate((("left", self.left, left_cubemap),
@@ -95,6 +109,9 @@ class StereoRig(nn.Module):
                 r = rotation @ r.to(rotation)
             extra = {key[len(name) + 1:]: value for key, value in render.items()
                      if key.startswith(name + "_")}
+            if cube is not None:   # the layer refuses rgb options without rgb
+                extra.setdefault("out_dtype", out_dtype)   # a left_out_dtype=... wins
+                extra.setdefault("channels_last", channels_last)
             out[name] = layer.render(rgb=cube, rotation=r, **extra)
         out.update(self.extrinsics())
         return out
