@@ -24,10 +24,22 @@ any yaw) per sample and call. Timed round-robin in one run:
   ``peer_maps`` (numpy maps only) and ``peer_remap`` (atlas padding + the two remaps, maps
   prebuilt).
 
-Headline: ``ours`` images/s over ``peer`` images/s (target >= 2). A check renders the peer with
-our drawn parameters and reports how far the two outputs agree (label agreement on pixels both
-call valid, RGB mean / max abs difference; ours pads faces from their neighbours, the peer by
-edge replication, so texels next to a seam differ slightly).
+* ``uint8`` cubes (issue 16): the same module settings and seed on the same cube as ``uint8``
+  (``round(255 cube)``), so that the k-th call of every row below draws the same cameras and
+  attitudes as the k-th call of ``ours``: ``ours_u8`` (``uint8`` RGB + labels, against
+  ``ours``), and RGB alone, ``rgb_f32`` against ``rgb_u8`` (a ``uint8`` image, rounded half up)
+  and ``rgb_u8_hwc`` (``channels_last=True``: a ``(B, 6, F, F, 3)`` cube and a ``(B, H, W, 3)``
+  image, as image files hold them).
+
+Headlines: ``ours`` images/s over ``peer`` images/s (target >= 2); ``uint8`` images/s over
+float32 images/s (target >= 1.5, ``U8_TARGET``), for RGB alone (``rgb_u8`` / ``rgb_f32``: the
+cube's dtype is all that differs; ``rgb_u8_hwc`` / ``rgb_f32``: the layout too) and with the
+labels (``ours_u8`` / ``ours``: the labels' gather and their int64 image cost the same in both,
+so the ratio is smaller), all from the medians of the same interleaved run. A check renders
+the peer with our drawn parameters and reports how far the two outputs agree (label agreement
+on pixels both call valid, RGB mean / max abs difference; ours pads faces from their
+neighbours, the peer by edge replication, so texels next to a seam differ slightly), and the
+``uint8`` image against the float path on the same values rounded half up (at most 1 level).
 
 Timing: ``common.measure``: ``--warmup`` untimed calls of each, then ``--repeats`` timed calls
 round-robin, median and IQR. Randomness: seeded (``torch.Generator`` for the inputs and our
@@ -72,6 +84,7 @@ except ImportError:  # the OpenCV peer is skipped, our rows still run
 
 SEED = 20240611
 TARGET = 2.0  # ours / peer throughput
+U8_TARGET = 1.5  # uint8 / float32 cube throughput (issue 16)
 _DEG = math.pi / 180
 FOV_RANGE = (160 * _DEG, 200 * _DEG)
 ROLL_RANGE = (-25 * _DEG, 25 * _DEG)
@@ -173,6 +186,16 @@ def run(args: argparse.Namespace) -> dict:
     labels_np = [np.ascontiguousarray(lab.numpy()) for lab in labels]
 
     aug = RandomOmniCamera((size, size), face, mode="fisheye", seed=SEED)
+    # uint8 cubes: modules of the same settings and seed, so the k-th call of each draws the
+    # same cameras as the k-th call of ``aug`` (every row is called equally often)
+    cube_u8 = (cube * 255).round().to(torch.uint8)  # [B, 6, 3, F, F]
+
+    def same(**kwargs) -> RandomOmniCamera:
+        return RandomOmniCamera((size, size), face, mode="fisheye", seed=SEED, **kwargs)
+
+    aug_u8, aug_rgb_f32, aug_rgb_u8 = same(), same(), same()
+    aug_rgb_u8_hwc = same(channels_last=True)
+    cube_u8_hwc = cube_u8.permute(0, 1, 3, 4, 2).contiguous()  # [B, 6, F, F, 3]
     part_gen = torch.Generator().manual_seed(SEED + 1)
 
     # Our parts, on one fixed draw, chunked as render chunks a batch (a fresh layer per chunk,
@@ -208,11 +231,21 @@ def run(args: argparse.Namespace) -> dict:
 
     cases: list[tuple[str, str, Callable[[], object]]] = [
         ("ours", "ours", lambda: aug(cube, labels=labels)),
+        ("ours_u8", "ours", lambda: aug_u8(cube_u8, labels=labels)),
+        ("rgb_f32", "ours", lambda: aug_rgb_f32(cube)),
+        ("rgb_u8", "ours", lambda: aug_rgb_u8(cube_u8)),
+        ("rgb_u8_hwc", "ours", lambda: aug_rgb_u8_hwc(cube_u8_hwc)),
         ("params", "part", lambda: aug.forward_parameters(batch, generator=part_gen)),
         ("grid", "part", grid),
         ("sample", "part", sample),
     ]
     agreement: dict[str, float] = {}
+    u8_agreement: dict[str, float] = {}
+    with torch.no_grad():  # uint8 against the float path on the same values, rounded half up
+        got = aug(cube_u8, params=params0)["rgb"].to(torch.int16)
+        floats = aug(cube_u8.float(), params=params0)["rgb"]
+        u8_agreement["u8_vs_rounded_float_max_abs_diff"] = float(
+            (got - (floats + 0.5).floor().clamp(0, 255).to(torch.int16)).abs().max())
     if cv2 is not None:
         cases += [
             ("peer", "peer", lambda: peer_batch(rgb_np, labels_np, rng_peer, size, face)),
@@ -258,6 +291,16 @@ def run(args: argparse.Namespace) -> dict:
     parts_sum = sum(by_name[p]["median_s"] for p in parts)
     breakdown = {p: by_name[p]["median_s"] / by_name["ours"]["median_s"] for p in parts}
     breakdown["rest (cameras, batching, other)"] = 1 - parts_sum / by_name["ours"]["median_s"]
+    u8_headline = []
+    for ours_name, ref_name in (("rgb_u8", "rgb_f32"), ("rgb_u8_hwc", "rgb_f32"),
+                                ("ours_u8", "ours")):
+        if ours_name in by_name:
+            ratio = by_name[ours_name]["images_per_s"] / by_name[ref_name]["images_per_s"]
+            u8_headline.append({"uint8": ours_name, "float32": ref_name,
+                                "throughput_ratio": ratio,
+                                "min_ratio": by_name[ref_name]["min_s"]
+                                / by_name[ours_name]["min_s"],
+                                "target": U8_TARGET, "meets_target": ratio >= U8_TARGET})
     headline = None
     if "peer" in by_name:
         ratio = by_name["ours"]["images_per_s"] / by_name["peer"]["images_per_s"]
@@ -273,12 +316,16 @@ def run(args: argparse.Namespace) -> dict:
                   "roll_deg": [-25.0, 25.0], "pitch_deg": [-10.0, 10.0],
                   "yaw_deg": [-180.0, 180.0], "rgb": "float32, 3 channels",
                   "labels": "uint8 (ours returns int64)", "pad_ours": pad,
-                  "border_ours": projs[0].border, "samples_per_chunk_ours": step, "pad_peer": 1, "border_peer": "edge replication",
-                  "peer_float": "float32 numpy maps"},
+                  "border_ours": projs[0].border, "samples_per_chunk_ours": step,
+                  "pad_peer": 1, "border_peer": "edge replication",
+                  "peer_float": "float32 numpy maps",
+                  "rgb_u8": "uint8 round(255 x) of the float32 cube, same module settings and "
+                            "seed as ours (same draws per call)"},
         "repeats": args.repeats,
         "warmup": args.warmup,
         "seed": SEED,
         "peer_agreement": agreement,
+        "u8_agreement": u8_agreement,
         "timer": ("time.perf_counter around single calls, after warm-up, all rows round-robin; "
                   "median and IQR; an untimed 10 ms pause before every timed call "
                   "(common.SETTLE_S)"),
@@ -288,6 +335,7 @@ def run(args: argparse.Namespace) -> dict:
         "rows": rows,
         "breakdown_fraction_of_ours": breakdown,
         "headline": headline,
+        "u8_headline": u8_headline,
     }
 
 
@@ -312,6 +360,13 @@ def markdown(result: dict) -> str:
         lines.append(f"throughput ours / peer: {h['throughput_ratio_ours_over_peer']:.2f}x "
                      f"({h['ours_images_per_s']:.1f} vs {h['peer_images_per_s']:.1f} images/s; "
                      f"target >= {h['target']:.0f}x: {'ok' if h['meets_target'] else 'MISSED'})")
+    for q in result["u8_headline"]:
+        lines.append(f"throughput {q['uint8']} / {q['float32']}: {q['throughput_ratio']:.2f}x "
+                     f"(fastest calls {q['min_ratio']:.2f}x; target >= {q['target']:.1f}x: "
+                     f"{'ok' if q['meets_target'] else 'MISSED'})")
+    if result["u8_agreement"]:
+        lines.append("uint8 agreement (same draws, levels): " + ", ".join(
+            f"{k} {v:.4g}" for k, v in result["u8_agreement"].items()))
     if result["peer_agreement"]:
         lines.append("peer agreement (same draws): " + ", ".join(
             f"{k} {v:.4g}" for k, v in result["peer_agreement"].items()))

@@ -161,3 +161,68 @@ def test_bad_arguments(monkeypatch, capsys):
         bm.sphere_texture(torch.zeros(3, 3), -1.0)
     with pytest.raises(ValueError, match="directions"):
         bm.sphere_texture(torch.zeros(3, 2), 1.0)
+
+
+# --------------------------------------------------------------------------------------------
+# bench_projection.py and bench_augment.py: their quick modes, smaller still
+# --------------------------------------------------------------------------------------------
+
+def test_projection_benchmark_rows_ratios_and_floors(tmp_path):
+    """Issue 16's rows, ratios and memory-traffic floors, and the uint8 agreement."""
+    pytest.importorskip("cv2")
+    import bench_projection as bp
+
+    out = tmp_path / "projection.json"
+    face = 16
+    assert bp.main(["--quick", "--face", str(face), "--batches", "1", "2", "--repeats", "1",
+                    "--warmup", "0", "--no-fused", "--copy-mb", "1", "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    rows = {(r["batch"], r["name"]): r for r in result["rows"]}
+    new = ("u8_cached", "u8_cached_planes", "u8_rebuilt", "u8_cached_out", "f16_cached",
+           "bf16_cached", "remap_u8_fixed", "copy")
+    assert all((b, name) in rows for b in (1, 2) for name in new)
+    bandwidth = result["copy"]["bandwidth_bytes_per_s"]
+    assert set(bandwidth) == {"batch_1", "batch_2"} and min(bandwidth.values()) > 0
+    # the traffic model, written out for one row: cube + table shared by the batch + image
+    pixels = (2 * face) ** 2
+    moved = rows[(2, "u8_cached")]["traffic"]
+    assert moved["bytes_per_frame"]["total"] == 6 * face**2 * 3 + 12 * pixels / 2 + 3 * pixels
+    assert moved["floor_s_per_frame"] == pytest.approx(moved["bytes_per_frame"]["total"]
+                                                       / bandwidth["batch_2"])
+    assert rows[(1, "u8_cached_out")]["traffic"]["bytes_per_frame"]["valid"] == pixels
+    assert all(r["traffic"]["floor_ratio"] > 0 for r in result["rows"]
+               if r["name"] in bp.TRAFFIC)
+    assert all("traffic" not in r for r in result["rows"] if r["kind"] in ("part", "bandwidth"))
+    ratios = {(q["batch"], q["ours"], q["peer"]): q for q in result["ratios"]}
+    for (ours, peer), target in bp.TARGETS.items():
+        q = ratios[(2, ours, peer)]
+        assert q["target"] == target and q["meets_target"] == (q["ratio"] <= target)
+        assert q["min_ratio"] > 0
+    assert ratios[(1, "u8_cached", "remap_u8_fixed")]["aim"] == 0.8
+    agreement = result["agreement"]
+    assert agreement["batch_2_u8_vs_rounded_float_max_abs_diff"] <= 1
+    # cv2's fixed-point maps put the taps on a 1/32-pixel grid: a few levels on a random cube
+    assert agreement["batch_2_u8_vs_remap_u8_fixed_max_abs_diff"] <= 10
+    assert agreement["batch_2_f16_vs_float32_max_abs_diff"] < 1e-2
+    table = bp.markdown(result)
+    assert "| x floor |" in table and "copy bandwidth" in table and "(aim 0.8)" in table
+
+
+def test_augment_benchmark_uint8_rows(tmp_path):
+    """Issue 16: RandomOmniCamera on uint8 cubes against float32 ones, same draws."""
+    import bench_augment as ba
+
+    out = tmp_path / "augment.json"
+    assert ba.main(["--quick", "--batch", "2", "--face", "16", "--size", "32", "--repeats",
+                    "1", "--warmup", "0", "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    rows = {r["name"]: r for r in result["rows"]}
+    assert {"ours", "ours_u8", "rgb_f32", "rgb_u8", "rgb_u8_hwc"} <= set(rows)
+    pairs = {(q["uint8"], q["float32"]): q for q in result["u8_headline"]}
+    assert set(pairs) == {("rgb_u8", "rgb_f32"), ("rgb_u8_hwc", "rgb_f32"),
+                          ("ours_u8", "ours")}
+    for q in pairs.values():
+        assert q["target"] == ba.U8_TARGET and q["throughput_ratio"] > 0
+        assert q["meets_target"] == (q["throughput_ratio"] >= ba.U8_TARGET)
+    assert result["u8_agreement"]["u8_vs_rounded_float_max_abs_diff"] <= 1
+    assert "throughput rgb_u8 / rgb_f32" in ba.markdown(result)
