@@ -19,6 +19,14 @@ border plan exactly as :func:`~omniscape_torch.cubemap.cubemap_to_atlas` compute
 whose taps all lie outside the atlas (the invalid ones, grid ``(-2, -2)``) read 0, as with zero
 padding (or ``fill``).
 
+The cube is read as it comes: float32 and float64 blended in their precision; float16,
+bfloat16 and ``uint8`` blended in float32 (``uint8`` rounded to nearest, half up as OpenCV
+rounds, or written as float32 scaled to [0, 1]: :func:`output_dtypes`), any other dtype of 1,
+2, 4 or 8 bytes sampled nearest (copied); through its strides, so a channels-last cube (the
+faces of image files, ``(B, 6, F, F, C)`` in memory) costs no transposing copy and its image
+comes back channels-last (:func:`is_channels_last`). 8-bit channels-last RGB and RGBA take a
+vector path (SSE4.1: a texel's channels in one load).
+
 The pixel coordinates are those of ``grid_sample`` (``align_corners=False``) bit for bit:
 PyTorch's CPU kernel unnormalises with a fused multiply-add, ``x = fma(gx + 1, W / 2, -0.5)``,
 which is reproduced by computing it in float64 and rounding once (exact for float32 grids);
