@@ -202,9 +202,12 @@ class _Cubes(torch.utils.data.Dataset):
 
 
 def test_dataloader_workers_draw_distinct_reproducible_streams():
+    # workers' streams follow PyTorch's worker seeds: a run repeats with the loader's generator
+    # (tests/test_augment_workers.py: epochs, forked and spawned workers)
     def run():
         loader = torch.utils.data.DataLoader(_Cubes(RandomOmniCamera(SIZE, FACE, seed=11)),
-                                             batch_size=None, num_workers=2)
+                                             batch_size=None, num_workers=2,
+                                             generator=torch.Generator().manual_seed(0))
         return torch.stack(list(loader))
     a, b = run(), run()
     assert torch.equal(a, b)

@@ -11,8 +11,9 @@ with ``forward_parameters`` (or reuses the given ones) and applies them with ``r
 and ``same_on_batch`` have kornia's meaning (see the class docstring for what ``p`` gates here).
 
 Randomness comes only from a ``torch.Generator``: the one passed to a call, else the module's
-own, created on first use from ``seed`` (module docstring of ``RandomOmniCamera``). Parameters
-are drawn in float64 on the CPU, so a seed gives the same cameras on any device.
+own, seeded from ``seed`` and, inside a ``DataLoader`` worker, from PyTorch's per-worker seed
+(class docstring of ``RandomOmniCamera``). Parameters are drawn in float64 on the CPU, so a seed
+gives the same cameras on any device.
 
 Attitude (rig convention of :mod:`omniscape_torch.cameras.presets`): ``R = R_att @ R_mount`` with
 ``R_att = yaw_pitch_roll_to_matrix(yaw, pitch, roll)`` the vehicle's attitude relative to the
@@ -23,8 +24,10 @@ the "down" or "up" face's rotation for a catadioptric camera), ``ray_cube = R @ 
 from __future__ import annotations
 
 import math
+import os
 from typing import Sequence
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -49,6 +52,36 @@ _MAX_P = 9
 _KB_SHRINK_STEPS = 8
 #: Margin (radians) kept between the drawn half field of view and a model's ``max_angle``.
 _ANGLE_MARGIN = 1e-3
+
+
+def _context_key() -> tuple[int, int] | None:
+    """Where the module's generator is valid: None in a process that is no ``DataLoader``
+    worker; inside a worker ``(process id, torch.initial_seed())``, which changes with every new
+    worker process (PyTorch seeds a worker with ``base_seed + worker_id``, ``base_seed`` drawn
+    per iterator) and stays for a persistent worker's life."""
+    if torch.utils.data.get_worker_info() is None:
+        return None
+    return os.getpid(), torch.initial_seed()
+
+
+def _worker_seed(seed: int | None, initial_seed: int) -> int:
+    """The 64-bit seed of the module's generator in a ``DataLoader`` worker whose torch seed is
+    ``initial_seed``: NumPy's ``SeedSequence`` hash of both (stable across processes, Python
+    versions and platforms, unlike ``hash``), so neighbouring worker seeds give unrelated
+    streams, and none repeats the worker's global torch stream (kornia draws from that).
+    The 0/1 word keeps ``seed=None`` apart from every int seed (``SeedSequence`` pads the
+    entropy with zeros, so ``[a]`` and ``[a, 0]`` would collide)."""
+    entropy = [initial_seed, 0] if seed is None else [initial_seed, 1, seed % 2 ** 64]
+    high, low = np.random.SeedSequence(entropy).generate_state(2, dtype=np.uint32)
+    return (int(high) << 32) | int(low)
+
+
+def _check_seed(seed: object) -> None:
+    """The seeds ``torch.Generator.manual_seed`` takes (``-2**63 <= seed < 2**64``)."""
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise TypeError(f"seed: expected an int or None, got {seed!r}")
+    if not -2 ** 63 <= seed < 2 ** 64:
+        raise ValueError(f"seed: expected -2**63 <= seed < 2**64, got {seed}")
 
 
 def _check_range(value, name: str, low: float = -math.inf, high: float = math.inf
@@ -108,13 +141,32 @@ class RandomOmniCamera(nn.Module):
     nominal one (roll = pitch = yaw = 0). The camera itself is always drawn (the output is a
     different image from the input in any case). ``same_on_batch``: one draw for the batch.
 
-    Randomness: ``generator`` passed to a call, else the module's own generator, created on its
-    first use with ``seed`` (plus ``1_000_003 * worker_id`` inside a ``DataLoader`` worker, so
-    workers draw different streams, reproducibly); with ``seed=None`` it is seeded from
-    ``torch.initial_seed()``, which PyTorch sets per process and per ``DataLoader`` worker
-    (``base_seed + worker_id``, reproducible with ``DataLoader(generator=...)``). No global RNG
-    is consumed. The module (and its generator state) pickles. Inside ``DataLoader`` workers
-    the grid kernel runs eagerly (compiling in a forked worker can deadlock; see
+    Randomness: the ``generator`` passed to a call wins; else the module's own CPU generator
+    (:attr:`generator`), which follows PyTorch's own seeding of ``DataLoader`` workers (each
+    worker's ``torch.initial_seed()`` is ``base_seed + worker_id``, ``base_seed`` drawn afresh
+    for every iterator, i.e. every epoch, from ``DataLoader(generator=...)`` or else from the
+    global RNG):
+
+    * Outside ``DataLoader`` workers (``num_workers=0``, the training loop): one stream, started
+      on first use from ``seed`` (``torch.initial_seed()`` when ``seed`` is None) and continued
+      across calls and epochs, so epochs differ.
+    * Inside a worker: the generator is tied to the worker process and its torch seed. A worker
+      that finds none made there (the module is new, was used in the main process before the
+      workers started, or comes from an earlier epoch's workers, forked or pickled) starts one
+      from a hash of ``seed`` and ``torch.initial_seed()`` (``numpy.random.SeedSequence``). So
+      workers draw different streams, each epoch of non-persistent workers draws new ones, and
+      persistent workers continue theirs across epochs.
+    * :meth:`reseed` (e.g. in a ``worker_init_fn``) pins the stream to a seed in the process
+      and worker it is called in.
+
+    A run is reproduced by the same ``seed`` and the same
+    ``DataLoader(generator=torch.Generator().manual_seed(s))`` (or the same ``torch.manual_seed``
+    before the ``DataLoader``'s iterators are made), with the same worker count and order of
+    samples; the multiprocessing context (fork, spawn, forkserver) does not change the draws.
+    No global RNG is consumed. The module pickles with its generator's state. A process forked
+    by other means than a ``DataLoader`` inherits the stream as it was (as NumPy's and torch's
+    global generators are): reseed there. Inside ``DataLoader`` workers the grid kernel runs
+    eagerly (compiling in a forked worker can deadlock; see
     ``cubemap.grid.in_dataloader_worker``): render in the main process, or on the GPU, for speed.
 
     Args:
@@ -138,7 +190,7 @@ class RandomOmniCamera(nn.Module):
         interpolation: RGB interpolation of ``OmniProjection``.
         depth_output: ``"range"`` or ``"z"`` (see ``OmniProjection.render``).
         ignore_index: label of invalid pixels.
-        seed: seed of the module's generator (see above).
+        seed: seed of the module's generator (see above), ``-2**63 <= seed < 2**64``.
         channels_last: the RGB cubemap is ``(B, 6, F, F, C)`` (channels innermost, as image
             files and simulators give faces) and ``rgb`` comes back ``(B, H, W, C)``; read
             without a copy (``OmniProjection.render``'s ``channels_last``).
@@ -206,8 +258,8 @@ class RandomOmniCamera(nn.Module):
         if not (isinstance(center_jitter, (int, float)) and 0 <= center_jitter < min(h, w) / 2):
             raise ValueError(f"center_jitter: expected pixels in [0, min(H, W) / 2), got "
                              f"{center_jitter!r}")
-        if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int)):
-            raise TypeError(f"seed: expected an int or None, got {seed!r}")
+        if seed is not None:
+            _check_seed(seed)
         if not isinstance(channels_last, bool):
             raise TypeError(f"channels_last: expected a bool, got {channels_last!r}")
         if out_dtype is not None and not (isinstance(out_dtype, torch.dtype) and (
@@ -239,6 +291,7 @@ class RandomOmniCamera(nn.Module):
         self.channels_last = channels_last
         self.out_dtype = out_dtype
         self._generator: torch.Generator | None = None
+        self._generator_key: tuple[int, int] | None = None   # _context_key() it was made in
         self._check_ranges()
 
     def _check_ranges(self) -> None:
@@ -274,20 +327,50 @@ class RandomOmniCamera(nn.Module):
     # ---------------------------------------------------------------------------------------
     @property
     def generator(self) -> torch.Generator:
-        """The module's CPU generator, created on first use (class docstring)."""
-        if self._generator is None:
-            info = torch.utils.data.get_worker_info()
-            if self.seed is None:
-                seed = torch.initial_seed()
+        """The module's CPU generator for the current process and ``DataLoader`` worker, made on
+        first use there (class docstring): from ``seed`` (or ``torch.initial_seed()``) outside
+        workers, from a hash of ``seed`` and ``torch.initial_seed()`` inside one."""
+        key = _context_key()
+        if self._generator is None or self._generator_key != key:
+            if key is None:
+                seed = torch.initial_seed() if self.seed is None else self.seed
             else:
-                seed = self.seed + (0 if info is None else 1_000_003 * info.id)
+                seed = _worker_seed(self.seed, key[1])
             self._generator = torch.Generator().manual_seed(seed)
+            self._generator_key = key
         return self._generator
 
     def reseed(self, seed: int) -> None:
-        """Restart the module's generator from ``seed`` (e.g. in a ``worker_init_fn``)."""
+        """Restart the module's generator from ``seed`` exactly, for the current process and
+        ``DataLoader`` worker (e.g. in a ``worker_init_fn``, where a seed made from
+        ``torch.initial_seed()`` keeps epochs and workers apart; a constant one repeats them).
+        ``seed`` also becomes the module's ``seed`` for the workers it is later copied into."""
+        _check_seed(seed)
         self.seed = int(seed)
         self._generator = torch.Generator().manual_seed(self.seed)
+        self._generator_key = _context_key()
+
+    def __getstate__(self) -> dict:
+        # The generator travels as the bytes of its state. Not as a tensor (nor as the
+        # torch.Generator itself, which pickles a state tensor): a DataLoader pickles the
+        # dataset for spawned workers with torch's ForkingPickler, which moves tensors to
+        # shared memory, and a temporary one is freed before the worker maps it (the worker
+        # dies with "unable to resize file").
+        # (a copy: object.__getstate__ returns the live __dict__; Python 3.10 has none)
+        base = getattr(super(), "__getstate__", None)
+        state = dict(base() if base is not None else self.__dict__)
+        if state.get("_generator") is not None:
+            state["_generator"] = state["_generator"].get_state().numpy().tobytes()
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        state = dict(state)
+        saved = state.get("_generator")
+        if isinstance(saved, bytes):   # (an older pickle holds the torch.Generator itself)
+            state["_generator"] = torch.Generator()
+            state["_generator"].set_state(torch.frombuffer(bytearray(saved), dtype=torch.uint8))
+        state.setdefault("_generator_key", None)   # pickled before the key existed
+        super().__setstate__(state)
 
     # ---------------------------------------------------------------------------------------
     # Parameters

@@ -1,0 +1,67 @@
+"""Datasets for tests/test_augment_workers.py, importable by module path (spawned DataLoader
+workers unpickle them by name, so they cannot live in a test module)."""
+
+import torch
+
+from omniscape_torch.render.augment import RandomOmniCamera
+
+#: Small on purpose: output image (H, W), cube face side F, dataset length.
+SIZE, FACE, ITEMS = (16, 16), 8, 8
+
+
+def make_aug(seed: int | None = 0) -> RandomOmniCamera:
+    """A fisheye module with a random centre and focal as well as a random attitude."""
+    return RandomOmniCamera(SIZE, FACE, seed=seed, center_jitter=2.0,
+                            focal_scale_range=(0.9, 1.1))
+
+
+def params_rows(params: dict) -> torch.Tensor:
+    """``(B, 13)`` float64: each sample's rotation (9) and camera params (fx, fy, cx, cy)."""
+    return torch.cat((params["rotation"].flatten(1), params["camera_params"]), dim=1)
+
+
+def cubes() -> torch.Tensor:
+    """``(ITEMS, 6, 3, F, F)`` fixed RGB cubemaps."""
+    return torch.rand(ITEMS, 6, 3, FACE, FACE, generator=torch.Generator().manual_seed(0))
+
+
+class AugmentedCubes(torch.utils.data.Dataset):
+    """Cubemaps augmented one at a time in ``__getitem__``: an item is its params row."""
+
+    def __init__(self, aug: RandomOmniCamera) -> None:
+        self.aug = aug
+        self.cubes = cubes()
+
+    def __len__(self) -> int:
+        return ITEMS
+
+    def __getitem__(self, i: int) -> torch.Tensor:
+        return params_rows(self.aug(self.cubes[i:i + 1])["params"])[0]
+
+
+class PlainCubes(torch.utils.data.Dataset):
+    """The cubemaps as they are, for augmentation in ``collate_fn``."""
+
+    def __init__(self) -> None:
+        self.cubes = cubes()
+
+    def __len__(self) -> int:
+        return ITEMS
+
+    def __getitem__(self, i: int) -> torch.Tensor:
+        return self.cubes[i]
+
+
+class AugmentCollate:
+    """``collate_fn`` that augments the stacked batch: the batch's params rows ``(B, 13)``."""
+
+    def __init__(self, aug: RandomOmniCamera) -> None:
+        self.aug = aug
+
+    def __call__(self, items: list[torch.Tensor]) -> torch.Tensor:
+        return params_rows(self.aug(torch.stack(items))["params"])
+
+
+def reseed_worker(worker_id: int) -> None:
+    """``worker_init_fn`` pinning the dataset's module to ``100 + worker_id``."""
+    torch.utils.data.get_worker_info().dataset.aug.reseed(100 + worker_id)
