@@ -13,6 +13,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
+from ..cameras.radial import kannala_brandt_tabulate, kannala_brandt_unproject_table_xyz
 from ..cameras.registry import get_model
 from ..cameras.unified import unified_unproject_undistorted_xyz
 from ..cubemap.faces import _check_face_size, _check_pad
@@ -21,15 +22,20 @@ from ..cubemap.grid import compiled_kernel, fail, rotated_grid_xy, rotated_rays_
 __all__ = ["camera_grid"]
 
 
-#: The closed-form unprojections compiled whole into the camera kernel: those of the cameras
-#: ``augment.RandomOmniCamera`` draws (``unified`` only without lens distortion). The others
-#: unproject eagerly (the Newton inverses of kannala_brandt, scaramuzza and distorted unified
-#: have data-dependent loops); each entry costs a compilation (~5-10 s) in the tests.
+#: The unprojections compiled whole into the camera kernel: those of the cameras
+#: ``augment.RandomOmniCamera`` draws (``unified`` only without lens distortion), closed form,
+#: or for ``kannala_brandt`` through a radius -> angle table per camera (``_TABULATED``: the
+#: table is built first and passed with the parameters). The others unproject eagerly (the
+#: Newton inverses of scaramuzza and distorted unified have data-dependent loops); each entry
+#: costs a compilation (~5-10 s) in the tests.
 _CLOSED_FORM: dict[str, Callable] = {
     **{name: get_model(name).unproject_xyz
        for name in ("equidistant", "equisolid", "stereographic")},
     "unified": unified_unproject_undistorted_xyz,
+    "kannala_brandt": kannala_brandt_unproject_table_xyz,
 }
+#: Models whose kernel takes its parameters with a table: ``(params (B, P), (H, W)) -> (B, P')``.
+_TABULATED: dict[str, Callable] = {"kannala_brandt": kannala_brandt_tabulate}
 
 
 def _camera_grid_math(params: Tensor, rotation: Tensor, cone: Tensor, face_size, pad, height,
@@ -139,8 +145,11 @@ def camera_grid(model: str, params: Tensor, image_size: tuple[int, int], face_si
             key = ("camera", model, params.dtype, dtype, params.device.type, True)
             kernel = compiled_kernel(key, _camera_kernel(model), stacklevel=2)
             if kernel is not None:
+                tabulate = _TABULATED.get(model)
                 try:
-                    return kernel(*args)
+                    if tabulate is None:
+                        return kernel(*args)
+                    return kernel(tabulate(args[0], (h, w)), *args[1:])
                 except torch.OutOfMemoryError:
                     raise
                 except Exception as exc:
