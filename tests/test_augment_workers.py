@@ -6,7 +6,9 @@ and spawned workers alike. Asserted on the drawn params (rotation and camera par
 
 import pytest
 import torch
-from torch.utils.data import DataLoader
+from torch.utils.data import DataLoader, default_collate
+
+import omniscape_torch as ot
 
 from _worker_data import (FACE, AugmentCollate, AugmentedCubes, PlainCubes, make_aug,
                           params_rows, reseed_worker)
@@ -124,3 +126,19 @@ def test_a_calls_generator_wins_in_workers():
     loader = DataLoader(PlainCubes(), batch_size=2, num_workers=2, collate_fn=Fixed(make_aug()),
                         multiprocessing_context="fork")
     assert all(torch.equal(batch, expected) for batch in loader)
+
+
+def test_per_sample_draws_of_different_models_collate():
+    """Augmenting one sample at a time (in a ``Dataset``) with mixed models: the default
+    ``collate_fn`` stacks the drawn parameters (``camera_params`` is padded to the largest
+    model's count, ``num_params`` says how many are used) and the batch replays them."""
+    aug = ot.augment.RandomOmniCamera((16, 16), 8, mode="mixed", seed=1)
+    cube = torch.rand(1, 6, 3, 8, 8, generator=torch.Generator().manual_seed(0))
+    outs = [aug(cube) for _ in range(6)]
+    assert len({o["params"]["model"][0] for o in outs}) == 2   # fisheye and catadioptric
+    params = default_collate([{k: v for k, v in o["params"].items() if k != "model"}
+                              for o in outs])
+    assert params["camera_params"].shape == (6, 1, 9)
+    for o, row, n in zip(outs, params["camera_params"][:, 0], params["num_params"][:, 0]):
+        assert torch.equal(row[:n], o["params"]["camera_params"][0, :n])
+        assert bool((row[n:] == 0).all())

@@ -45,7 +45,8 @@ __all__ = ["ApplyToKey", "RandomOmniCamera"]
 FISHEYE_MODELS = ("equidistant", "equisolid", "stereographic", "kannala_brandt")
 MODES = ("fisheye", "catadioptric", "mixed")
 _DEG = math.pi / 180
-#: Largest parameter count of the models drawn here (unified: fx, fy, cx, cy, xi, k1, k2, p1, p2).
+#: Largest parameter count of the models drawn here (unified: fx, fy, cx, cy, xi, k1, k2, p1, p2):
+#: the width of ``camera_params``, whatever the models drawn.
 _MAX_P = 9
 #: Kannala-Brandt coefficients are halved (at most this many times, then zeroed) until the
 #: polynomial stays monotonic past the drawn half field of view.
@@ -210,7 +211,7 @@ class RandomOmniCamera(nn.Module):
         >>> aug = RandomOmniCamera((32, 32), 16, seed=0)
         >>> out = aug(torch.rand(2, 6, 3, 16, 16))
         >>> out["rgb"].shape, out["params"]["camera_params"].shape
-        (torch.Size([2, 3, 32, 32]), torch.Size([2, 4]))
+        (torch.Size([2, 3, 32, 32]), torch.Size([2, 9]))
     """
 
     def __init__(self, image_size: tuple[int, int], face_size: int, *, mode: str = "fisheye",
@@ -382,7 +383,8 @@ class RandomOmniCamera(nn.Module):
 
         Returns:
             dict, tensors float64 on the CPU: ``model`` (tuple of ``B`` model names),
-            ``camera_params (B, P)`` (zero-padded to the largest model's ``P`` in use),
+            ``camera_params (B, 9)`` (zero-padded to the largest model's parameter count, so
+            the default ``collate_fn`` stacks per-sample draws of different models),
             ``num_params (B,)``, ``fov (B,)`` and ``blind_fov (B,)`` (radians, 0 for none),
             ``yaw``, ``pitch``, ``roll (B,)``, ``applied (B,)`` bool (random attitude),
             ``rotation (B, 3, 3)`` camera -> cube frame.
@@ -445,7 +447,6 @@ class RandomOmniCamera(nn.Module):
             row = torch.cat((torch.stack((focal, focal, cx, cy), -1), extra), -1)
             params[idx, :row.shape[-1]] = row
             num_params[idx] = row.shape[-1]
-        params = params[:, :int(num_params.max())]
 
         zero = torch.zeros_like(yaw)
         yaw, pitch, roll = (torch.where(applied, a, zero) for a in (yaw, pitch, roll))
