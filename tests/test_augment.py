@@ -374,3 +374,17 @@ def test_apply_to_key_masks_channels_last_and_uint8():
     assert torch.equal(got[0, 0, 1], torch.ones(4, dtype=torch.uint8)) and int(got.sum()) == 4
     got = ApplyToKey(nn.Identity(), channels_last=False)(square)["rgb"]
     assert torch.equal(got[0, :, 0, 1], torch.ones(4, dtype=torch.uint8)) and int(got.sum()) == 4
+
+
+@pytest.mark.parametrize("build", [lambda K: K.RandomHorizontalFlip(p=1.0),
+                                   lambda K: K.RandomAffine(10.0),
+                                   lambda K: torch.nn.Sequential(K.ColorJitter(0.1),
+                                                                 K.RandomCrop((8, 8)))])
+def test_apply_to_key_refuses_augmentations_that_move_pixels(build):
+    """A flip through ``ApplyToKey`` would flip the RGB and not the labels or the mask: refused
+    with the module's name, nested ones included; colour augmentations are accepted."""
+    import kornia.augmentation as K
+    module = build(K)
+    with pytest.raises(TypeError, match="moves pixels"):
+        ApplyToKey(module)
+    ApplyToKey(K.ColorJitter(0.1, 0.1))

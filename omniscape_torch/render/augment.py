@@ -635,6 +635,17 @@ class RandomOmniCamera(nn.Module):
         return self.render(cubemap, params, labels=labels, depth=depth)
 
 
+def _check_pixelwise(module: nn.Module) -> None:
+    """Refuse a kornia augmentation that moves pixels (see :class:`ApplyToKey`)."""
+    from kornia.augmentation import GeometricAugmentationBase2D
+    moving = [m for m in module.modules() if isinstance(m, GeometricAugmentationBase2D)]
+    if moving:
+        raise TypeError(f"module: {type(moving[0]).__name__} moves pixels: applied to one key it "
+                        "would move the rgb and not the labels, depth and valid mask. Apply it "
+                        "to the cubes before RandomOmniCamera, or to every key with kornia's "
+                        "AugmentationSequential(data_keys=[...])")
+
+
 class ApplyToKey(nn.Module):
     """Apply an image augmentation (e.g. kornia's ``ColorJitter``) to one entry of the dict that
     :class:`RandomOmniCamera` returns, so both compose in an ``nn.Sequential``::
@@ -644,6 +655,13 @@ class ApplyToKey(nn.Module):
     The invalid pixels are zeroed again afterwards (``mask_invalid``), in the value's dtype
     (``uint8`` included). Note that kornia's own augmentations draw from torch's global RNG,
     not from this package's generators, and take ``(B, C, H, W)`` floating images.
+
+    Only augmentations that leave every pixel where it is (colour, noise, blur): a geometric
+    one (kornia's ``GeometricAugmentationBase2D``: flips, crops, affine warps) would move the
+    RGB and not the labels, depth and valid mask, so it is refused with a ``TypeError``. Apply
+    those to the cubes before :class:`RandomOmniCamera` (a new attitude is the geometric
+    augmentation here), or to every key at once with kornia's ``AugmentationSequential``
+    (``data_keys=["input", "mask", ...]``).
 
     Args:
         module: applied to ``batch[key]``.
@@ -660,6 +678,7 @@ class ApplyToKey(nn.Module):
         super().__init__()
         if channels_last is not None and not isinstance(channels_last, bool):
             raise TypeError(f"channels_last: expected a bool or None, got {channels_last!r}")
+        _check_pixelwise(module)
         self.module = module
         self.key = key
         self.mask_invalid = bool(mask_invalid)
