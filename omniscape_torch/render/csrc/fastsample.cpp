@@ -485,6 +485,95 @@ void interior_rgb8(const uint8_t* __restrict cube, Taps t, int64_t m, const Layo
 }
 #endif
 
+#ifdef __SSE4_1__
+// The four taps (nw, ne, sw, se) of one channel of a cube with texel stride 1 as floats: the two
+// taps of a row in one load (8-bit: 2 bytes; half precision: 4 bytes). Half precision needs
+// F16C; without it only 8-bit planes take this path.
+template <typename T>
+constexpr bool kPlanesPath = std::is_same_v<T, uint8_t> || std::is_same_v<T, c10::BFloat16>
+#ifdef __F16C__
+                             || std::is_same_v<T, c10::Half>
+#endif
+    ;
+
+template <typename T>
+inline __m128 row_taps(const T* q, int64_t dy) {
+    if constexpr (std::is_same_v<T, uint8_t>) {
+        uint16_t north, south;
+        std::memcpy(&north, q, 2);
+        std::memcpy(&south, q + dy, 2);
+        const int32_t taps = int32_t(north) | (int32_t(south) << 16);
+        return _mm_cvtepi32_ps(_mm_cvtepu8_epi32(_mm_cvtsi32_si128(taps)));
+    } else {
+        int32_t north, south;
+        std::memcpy(&north, q, 4);
+        std::memcpy(&south, q + dy, 4);
+        const __m128i halves = _mm_setr_epi32(north, south, 0, 0);
+        if constexpr (std::is_same_v<T, c10::BFloat16>) {   // bfloat16: float's upper half
+            return _mm_castsi128_ps(_mm_slli_epi32(_mm_cvtepu16_epi32(halves), 16));
+        } else {
+#ifdef __F16C__
+            return _mm_cvtph_ps(halves);
+#endif
+        }
+    }
+}
+
+// The blend of interior() for planes (texel stride 1, N <= 4 channels any stride apart) of
+// 8-bit or half-precision texels (x86 with SSE4.1): per channel the four taps as 4 floats
+// (row_taps), transposed so that each vector holds one tap of every channel, blended in
+// interior's order (nw, ne, sw, se: the same values), then written channel by channel as
+// store() writes them (8-bit: rounded half up and saturated by packus). No load reads beyond a
+// pixel's taps.
+template <typename T, typename O, int N, typename Taps>
+void interior_planes(const T* __restrict cube, int64_t src_chan, Taps t, int64_t m,
+                     const Layout& L, O fill, O* __restrict out, int64_t out_chan,
+                     int64_t out_pix) {
+    const int64_t dy = L.row;
+    for (int64_t p = 0; p < m; ++p) {
+        const int64_t k = t.code(p);
+        O* o = out + p * out_pix;
+        if (k < 0) {
+            for (int n = 0; n < N; ++n) {
+                o[n * out_chan] = fill;
+            }
+            continue;
+        }
+        if (p + kAhead < m) {   // the taps of a pixel ahead: not a stream the CPU foresees
+            const int64_t ahead = std::max<int64_t>(t.code(p + kAhead), 0);
+            for (int n = 0; n < N; ++n) {
+                __builtin_prefetch(cube + n * src_chan + ahead);
+                __builtin_prefetch(cube + n * src_chan + ahead + dy);
+            }
+        }
+        __m128 tap[4];   // channel n: (nw, ne, sw, se); after the transpose, tap j of every one
+        for (int n = 0; n < 4; ++n) {
+            tap[n] = n < N ? row_taps(cube + n * src_chan + k, dy) : _mm_setzero_ps();
+        }
+        _MM_TRANSPOSE4_PS(tap[0], tap[1], tap[2], tap[3]);
+        const float x = float(t.fx(p)), y = float(t.fy(p)), e = 1 - x, s = 1 - y;
+        __m128 acc = _mm_mul_ps(tap[0], _mm_set1_ps(s * e));   // blend()'s order
+        acc = _mm_add_ps(acc, _mm_mul_ps(tap[1], _mm_set1_ps(s * x)));
+        acc = _mm_add_ps(acc, _mm_mul_ps(tap[2], _mm_set1_ps(y * e)));
+        acc = _mm_add_ps(acc, _mm_mul_ps(tap[3], _mm_set1_ps(y * x)));
+        if constexpr (std::is_same_v<O, uint8_t>) {
+            const __m128i levels = _mm_cvttps_epi32(_mm_add_ps(acc, _mm_set1_ps(0.5f)));
+            const uint32_t v = static_cast<uint32_t>(_mm_cvtsi128_si32(
+                _mm_packus_epi16(_mm_packus_epi32(levels, levels), levels)));
+            for (int n = 0; n < N; ++n) {
+                o[n * out_chan] = static_cast<uint8_t>(v >> (8 * n));
+            }
+        } else {
+            alignas(16) float v[4];
+            _mm_store_ps(v, acc);
+            for (int n = 0; n < N; ++n) {
+                o[n * out_chan] = store<T, O>(v[n]);
+            }
+        }
+    }
+}
+#endif
+
 // Output pixels [lo, lo + m) of sample b: the entries `t` and `grid` (the pixels' grid
 // points, for the edge pixels) start at the first of them; the pixels outside read `fill`.
 // Up to 4 channels per pass over the pixels (interior), then the edge pixels again.
@@ -497,12 +586,18 @@ void sample_span(const T* cube, const Ring<T>& R, Taps t, const G* grid, int64_t
         const auto run = [&](auto channels) {
             constexpr int N = decltype(channels)::value;
 #ifdef __SSE4_1__
-            if constexpr (std::is_same_v<T, uint8_t> && (N == 3 || N == 4)) {
-                if (bilinear && S.src_chan == 1 && S.out_chan == 1 && S.out_pix == N &&
-                    S.chans == N) {
+            if constexpr (std::is_same_v<T, uint8_t>) {
+                if (bilinear && (N == 3 || N == 4) && S.src_chan == 1 && S.out_chan == 1 &&
+                    S.out_pix == N && S.chans == N) {
                     // the last tap's 4-byte load stays inside the cube
                     const int64_t safe = L.last() + (N - 1) - 3 - L.row - L.texel;
                     return interior_rgb8<O, N, Taps>(q, t, m, L, safe, fill, o, S.out_pix);
+                }
+            }
+            if constexpr (kPlanesPath<T>) {
+                if (bilinear && L.texel == 1) {
+                    return interior_planes<T, O, N, Taps>(q, S.src_chan, t, m, L, fill, o,
+                                                          S.out_chan, S.out_pix);
                 }
             }
 #endif
