@@ -173,6 +173,25 @@ def test_pickle_round_trip_keeps_the_stream():
                   clone(rgb, labels, torch.ones_like(labels).float()))
 
 
+def test_a_module_pickled_by_an_older_version_loads_and_renders():
+    """The state of a module pickled before ``channels_last``, ``out_dtype`` and the generator's
+    context key existed (and with the torch.Generator itself inside) loads with their defaults
+    and renders as the module it was."""
+    rgb, labels, _ = _batch()
+    aug = _mixed(seed=5)
+    aug(rgb)
+    old = dict(aug.__dict__)
+    for key in ("channels_last", "out_dtype", "_generator_key"):
+        del old[key]
+    old["_generator"] = torch.Generator()   # a copy in the same state, as unpickled
+    old["_generator"].set_state(aug._generator.get_state())
+    clone = RandomOmniCamera.__new__(RandomOmniCamera)
+    clone.__setstate__(old)
+    assert clone.channels_last is False and clone.out_dtype is None
+    depth = torch.ones_like(labels).float()
+    assert _equal(aug(rgb, labels, depth), clone(rgb, labels, depth))
+
+
 def test_composes_with_kornia_in_sequential():
     kornia = pytest.importorskip("kornia")
     rgb, labels, depth = _batch(b=2)

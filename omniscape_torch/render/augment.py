@@ -370,7 +370,10 @@ class RandomOmniCamera(nn.Module):
         if isinstance(saved, bytes):   # (an older pickle holds the torch.Generator itself)
             state["_generator"] = torch.Generator()
             state["_generator"].set_state(torch.frombuffer(bytearray(saved), dtype=torch.uint8))
-        state.setdefault("_generator_key", None)   # pickled before the key existed
+        # pickled before these existed: their defaults
+        for key, default in (("_generator_key", None), ("channels_last", False),
+                             ("out_dtype", None)):
+            state.setdefault(key, default)
         super().__setstate__(state)
 
     # ---------------------------------------------------------------------------------------
