@@ -98,7 +98,7 @@ MIN_FACE_SIZE = MIN_IMAGE_SIZE = 8
 #: renders (the town's ray caster shades every texel at once, and the six faces with depth and
 #: labels), bytes. With ``sizing.PROCESS_MEMORY`` and ``sizing.MEMORY_PER_PIXEL``, measured
 #: peaks on the built-in town, from 6 x 256^2 to 6 x 1351^2 texels, lie 15-45% below the
-#: estimate; the allocator makes the same frame peak anywhere from 0.6 to 1.0 GB at 6 x 320^2
+#: estimate; the allocator makes the same frame peak anywhere from 0.6 to 1.23 GB at 6 x 320^2
 #: (tests/test_dataset.py checks a run against it).
 MEMORY_PER_TEXEL = 800
 
