@@ -353,8 +353,10 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--workers", type=_positive_int, default=1, help="processes (default 1)")
     gen.add_argument("--seed", type=int, default=0, help="town, route and ride seed "
                      "(default 0)")
-    gen.add_argument("--save-cubemaps", action="store_true", help="also write the rendered "
-                     "cube faces")
+    gen.add_argument("--save-cubemaps", action="store_true", help="also write the cube faces "
+                     "each camera rendered (only those it sees, at its own face size): to "
+                     "inspect a frame, not a training source (full cubemaps for "
+                     "RandomOmniCamera: ot.scenes' Town.render_cubemap, as in notebooks/02)")
     gen.add_argument("--save-panorama", action="store_true", help="also write an "
                      "equirectangular panorama per frame")
     gen.add_argument("--no-progress", action="store_true", help="no progress bar")

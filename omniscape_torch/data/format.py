@@ -24,7 +24,9 @@ Layout of ``DIR``
         labels/NNNNNN.png          8-bit class ids 0..12 (CARLA's 13 classes), 255 not valid
         labels_color/NNNNNN.png    labels in CARLA's palette (white: not valid)
         valid/NNNNNN.png           8-bit mask: 255 valid, 0 not (valid == labels != 255)
-        cubemap/                   only with --save-cubemaps, only the faces rendered:
+        cubemap/                   only with --save-cubemaps, only the faces rendered (to
+                                   inspect a frame; not a training source: full cubemaps
+                                   come from Town.render_cubemap):
           rgb/NNNNNN_<face>.png      faces as rendered (DESIGN.md face table), cube axes =
           depth/NNNNNN_<face>.exr    world axes; depth is planar (along the face's axis), m
           labels/NNNNNN_<face>.png
