@@ -31,7 +31,7 @@ from .. import cubemap as cm
 from . import fast as fastsample
 from ..cameras import Camera
 from ..cubemap.grid import rotated_rays_to_grid
-from .reference import grid_sample, nearest_gather
+from .reference import check_out_dtype, from_float, grid_sample, nearest_gather
 
 INTERPOLATIONS = ("nearest", "bilinear", "bicubic")
 DEPTH_INTERPOLATIONS = ("nearest", "bilinear", "edge_aware")
@@ -301,7 +301,7 @@ class OmniProjection(nn.Module):
         if image is None:   # grid_sample on the padded atlas, in float32 (or float64)
             work = cube if cube.dtype in (torch.float32, torch.float64) else cube.float()
             atlas = self._atlas(work, pad_mode)
-            image = _convert(self._sample(atlas, _outside(grid, valid).to(atlas.dtype), mode),
+            image = from_float(self._sample(atlas, _outside(grid, valid).to(atlas.dtype), mode),
                              cube.dtype, out_dtype)
         else:
             image = image.to(out_dtype)   # another floating dtype: converted after
@@ -561,7 +561,7 @@ class OmniProjection(nn.Module):
                                            fast, None, work)
                 image = self._average(image, valid_s.expand(batch, *valid_s.shape[1:]))
                 image = torch.where(valid, image, torch.zeros_like(image))
-                image = _convert(image, work, call.out_dtype)
+                image = from_float(image, work, call.out_dtype)
             if call.channels_last:   # (B, H, W, C): a view where it was sampled channels-last
                 image = image.permute(0, 2, 3, 1).contiguous()
             out["rgb"] = image
@@ -685,24 +685,7 @@ def _check_rgb(rgb: object, out_dtype: object, channels_last: bool
     cm.check_cubemap(rgb, "rgb")
     if not (rgb.is_floating_point() or rgb.dtype == torch.uint8):
         raise TypeError(f"rgb: expected a floating-point or uint8 cubemap, got {rgb.dtype}")
-    if out_dtype is None:
-        return rgb, rgb.dtype
-    if not isinstance(out_dtype, torch.dtype) or not (
-            out_dtype == rgb.dtype or out_dtype.is_floating_point):
-        raise TypeError(f"out_dtype: expected None, {rgb.dtype} or a floating dtype, got "
-                        f"{out_dtype!r}")
-    return rgb, out_dtype
-
-
-def _convert(image: Tensor, dtype: torch.dtype, out_dtype: torch.dtype) -> Tensor:
-    """An image sampled in floats from a cube of ``dtype`` as ``out_dtype``: a ``uint8`` cube's
-    levels (0..255) into floats scaled to [0, 1]; into ``uint8`` rounded to nearest (half up,
-    as the fast sampler and OpenCV round) and saturated, from levels or from [0, 1]."""
-    levels = dtype == torch.uint8
-    if out_dtype == torch.uint8:
-        image = image if levels else image * 255
-        return torch.floor(image.clamp(0, 255) + 0.5).to(torch.uint8)
-    return (image / 255 if levels else image).to(out_dtype)
+    return rgb, check_out_dtype(rgb.dtype, out_dtype)
 
 
 class _RayGrid:

@@ -70,3 +70,27 @@ def nearest_gather(image: Tensor, grid: Tensor) -> Tensor:
     y = torch.round(unnormalize(grid[..., 1].detach(), hi)).clamp(0, hi - 1).long()
     idx = (y * wi + x).reshape(grid.shape[0], 1, -1).expand(b, c, -1)
     return image.reshape(b, c, hi * wi).gather(-1, idx).reshape(b, c, *grid.shape[1:3])
+
+
+def check_out_dtype(dtype: torch.dtype, out_dtype: object) -> torch.dtype:
+    """The dtype an image of ``dtype`` is sampled into: ``out_dtype`` (None: ``dtype``), which
+    must be ``dtype`` or floating (a ``uint8`` image is then scaled to [0, 1]: :func:`from_float`)."""
+    if out_dtype is None:
+        return dtype
+    if not isinstance(out_dtype, torch.dtype) or not (
+            out_dtype == dtype or out_dtype.is_floating_point):
+        raise TypeError(f"out_dtype: expected None, {dtype} or a floating dtype, got "
+                        f"{out_dtype!r}")
+    return out_dtype
+
+
+def from_float(image: Tensor, dtype: torch.dtype, out_dtype: torch.dtype) -> Tensor:
+    """An image sampled in floats from an image of ``dtype`` as ``out_dtype``: a ``uint8``
+    image's levels (0..255) into floats scaled to [0, 1]; into ``uint8`` rounded to nearest
+    (half up, as the fast sampler and OpenCV's ``remap`` round) and saturated, from levels or
+    from [0, 1]; floats cast."""
+    levels = dtype == torch.uint8
+    if out_dtype == torch.uint8:
+        image = image if levels else image * 255
+        return torch.floor(image.clamp(0, 255) + 0.5).to(torch.uint8)
+    return (image / 255 if levels else image).to(out_dtype)

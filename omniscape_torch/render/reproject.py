@@ -20,7 +20,8 @@ from torch import Tensor
 from .. import cubemap as cm
 from ..cameras import Camera
 from ..io.labels import IGNORE_INDEX
-from .reference import grid_sample, nearest_gather, pixels_to_grid
+from .reference import (check_out_dtype, from_float, grid_sample, nearest_gather,
+                        pixels_to_grid)
 
 INTERPOLATIONS = ("nearest", "bilinear", "bicubic")
 
@@ -79,24 +80,7 @@ def _image_dtype(image: Tensor, labels: bool, out_dtype: object) -> torch.dtype 
             raise ValueError(f"out_dtype: describes an image; labels come back int64, got "
                              f"{out_dtype!r}")
         return None
-    if out_dtype is None:
-        return image.dtype
-    if not isinstance(out_dtype, torch.dtype) or not (
-            out_dtype == image.dtype or out_dtype.is_floating_point):
-        raise TypeError(f"out_dtype: expected None, {image.dtype} or a floating dtype, got "
-                        f"{out_dtype!r}")
-    return out_dtype
-
-
-def _from_work(values: Tensor, dtype: torch.dtype, out_dtype: torch.dtype) -> Tensor:
-    """Values sampled in float32/float64 from an image of ``dtype`` as ``out_dtype``: a
-    ``uint8`` image's levels (0..255) rounded to nearest, half up, and saturated (as OpenCV's
-    ``remap``), or scaled to [0, 1] for a floating ``out_dtype``; floats cast."""
-    if dtype != torch.uint8:
-        return values if values.dtype == out_dtype else values.to(out_dtype)
-    if out_dtype == torch.uint8:
-        return torch.floor(values.clamp(0, 255) + 0.5).to(torch.uint8)
-    return (values / 255).to(out_dtype)
+    return check_out_dtype(image.dtype, out_dtype)
 
 
 def sample_camera(image: Tensor, camera: Camera, rays: Tensor, *,
@@ -189,7 +173,7 @@ def sample_camera(image: Tensor, camera: Camera, rays: Tensor, *,
     work = image if image.dtype in (torch.float32, torch.float64) else image.float()
     out = grid_sample(work, grid.to(work.dtype), interpolation)
     out = torch.where(valid, out, torch.zeros_like(out))
-    return _from_work(out, image.dtype, out_dtype), valid
+    return from_float(out, image.dtype, out_dtype), valid
 
 
 def reproject(image: Tensor, src_camera: Camera, dst_camera: Camera, *,
