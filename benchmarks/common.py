@@ -7,7 +7,6 @@ import ...``, after putting this folder on ``sys.path``), the speed-against-accu
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -25,6 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from omniscape_torch.cli import positive_int  # noqa: E402  (re-exported: argparse type)
 from omniscape_torch.io import atomic_write_text  # noqa: E402
 
 __all__ = ["begin_run", "ROOT", "SETTLE_S", "git_commit", "loadavg", "machine_info", "measure",
@@ -127,17 +127,6 @@ def begin_run(threads: int, cv2=None) -> list[float] | None:
     if cv2 is not None:
         cv2.setNumThreads(threads)
     return load
-
-
-def positive_int(text: str) -> int:
-    """``argparse`` type: an int >= 1."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return value
 
 
 def write_json_atomic(data: dict, path: Path) -> None:

@@ -87,7 +87,8 @@ def _image_size(text: str) -> tuple[int, int]:
     return size
 
 
-def _positive_int(text: str) -> int:
+def positive_int(text: str) -> int:
+    """``argparse`` type: an int >= 1 (the benchmarks' scripts use it too)."""
     try:
         value = int(text)
     except ValueError:
@@ -334,14 +335,14 @@ def build_parser() -> argparse.ArgumentParser:
                                           "omniscape_torch/data/format.py for the layout)")
     gen.add_argument("--out", type=Path, required=True, help="dataset folder (created; a "
                      "rerun completes an interrupted run)")
-    gen.add_argument("--frames", type=_positive_int, default=8, help="frames (default 8)")
+    gen.add_argument("--frames", type=positive_int, default=8, help="frames (default 8)")
     gen.add_argument("--fps", type=_positive_float, default=2.0, help="frames per second "
                      "(default 2)")
     gen.add_argument("--image-size", type=_image_size, default=(256, 256), metavar="N|HxW",
                      help="image size in pixels (default 256)")
-    gen.add_argument("--face-size", type=_positive_int, default=None, help="cube face size "
+    gen.add_argument("--face-size", type=positive_int, default=None, help="cube face size "
                      "for every camera (default: each camera's required_face_size)")
-    gen.add_argument("--max-face-size", type=_positive_int, default=1024,
+    gen.add_argument("--max-face-size", type=positive_int, default=1024,
                      help="cap on the default face sizes (default 1024)")
     gen.add_argument("--cameras", type=_names(CAMERAS, "camera"), nargs="+",
                      default=[list(CAMERAS)], metavar="NAME[,NAME]",
@@ -350,7 +351,7 @@ def build_parser() -> argparse.ArgumentParser:
                      default=[["clear_noon"]], metavar="NAME[,NAME]",
                      help=f"weather preset(s), drawn per frame when several "
                           f"({', '.join(WEATHERS)}; default clear_noon)")
-    gen.add_argument("--workers", type=_positive_int, default=1, help="processes (default 1)")
+    gen.add_argument("--workers", type=positive_int, default=1, help="processes (default 1)")
     gen.add_argument("--seed", type=int, default=0, help="town, route and ride seed "
                      "(default 0)")
     gen.add_argument("--save-cubemaps", action="store_true", help="also write the cube faces "
@@ -377,7 +378,7 @@ def build_parser() -> argparse.ArgumentParser:
                                      "(file format: omniscape_torch/calibration/files.py)")
     fit.add_argument("correspondences", type=Path, help="correspondence file")
     fit.add_argument("--model", choices=lenses, required=True, help="camera model")
-    fit.add_argument("--degree", type=_positive_int, default=4,
+    fit.add_argument("--degree", type=positive_int, default=4,
                      help="scaramuzza polynomial degree (default 4)")
     fit.add_argument("--method", choices=METHODS, default="lm", help="default lm")
     fit.add_argument("--loss", choices=tuple(LOSSES), default="linear", help="default linear")
@@ -388,7 +389,7 @@ def build_parser() -> argparse.ArgumentParser:
                      "distortion, affine) or names to hold at their start")
     fit.add_argument("--fov", type=_positive_float, default=None,
                      help="full field of view in degrees, for the start of non-polynomial models")
-    fit.add_argument("--max-iterations", type=_positive_int, default=None)
+    fit.add_argument("--max-iterations", type=positive_int, default=None)
     fit.add_argument("--out", type=Path, required=True, help="folder for camera.json (and "
                      "calib_results.txt for scaramuzza)")
     fit.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -401,9 +402,9 @@ def build_parser() -> argparse.ArgumentParser:
     source.add_argument("--json", type=Path, default=None, help="camera JSON (Camera.save_json)")
     conv.add_argument("--to", type=_names(lenses, "model"), required=True,
                       metavar="MODEL[,MODEL]", help=f"target models ({', '.join(lenses)})")
-    conv.add_argument("--degree", type=_positive_int, default=4,
+    conv.add_argument("--degree", type=positive_int, default=4,
                       help="scaramuzza target degree (default 4)")
-    conv.add_argument("--grid", type=_positive_int, default=48,
+    conv.add_argument("--grid", type=positive_int, default=48,
                       help="samples per image side (default 48)")
     conv.add_argument("--out", type=Path, default=None, help="folder for <model>.json")
     conv.set_defaults(func=cmd_convert_model)
