@@ -64,7 +64,7 @@ from ..cubemap.grid import _check_inputs as _check_rays
 
 __all__ = ["CubeLUT", "build_lut", "sample_cube", "sample_rays", "reads_rays", "sample_atlas",
            "available", "unavailable_reason", "compile_failures", "holds", "is_channels_last",
-           "work_dtype", "output_dtypes", "MODES", "BORDERS", "BLENDED"]
+           "work_dtype", "grid_dtype", "output_dtypes", "MODES", "BORDERS", "BLENDED"]
 
 MODES = ("nearest", "bilinear")
 #: How the atlas border is filled: resampled from the neighbours with the ``"bilinear"`` or
@@ -309,7 +309,7 @@ def build_lut(grid: Tensor, face_size: int, pad: int, mode: str = "bilinear", *,
     return CubeLUT(mode, face_size, pad, strides, table, flat, tuple(grid.shape[1:3]))
 
 
-def _grid_dtype(dtype: torch.dtype, mode: str, given: torch.dtype) -> torch.dtype:
+def grid_dtype(dtype: torch.dtype, mode: str, given: torch.dtype) -> torch.dtype:
     """The dtype the kernels read a grid in for a cube of ``dtype``: :func:`work_dtype` where
     they blend, the ``given`` grid's (float32 or float64) where they copy."""
     blends = dtype.is_floating_point or (mode == "bilinear" and dtype in BLENDED)
@@ -332,10 +332,10 @@ def _sample(faces: Tensor, grid: Tensor, mode: str, pad: int, border: str,
     bilinear = mode == "bilinear"
     ring_src, ring_weight = _ring_offsets(f, pad, border, faces.dtype, strides)
     if lut is None:
-        points = grid.to(_grid_dtype(faces.dtype, mode, grid.dtype)).contiguous()
+        points = grid.to(grid_dtype(faces.dtype, mode, grid.dtype)).contiguous()
         ops.sample_grid(faces, points, valid, ring_src, ring_weight, pad, bilinear, fill, out)
         return
-    points = lut.grid.to(_grid_dtype(faces.dtype, mode, lut.grid.dtype)).contiguous()
+    points = lut.grid.to(grid_dtype(faces.dtype, mode, lut.grid.dtype)).contiguous()
     table = lut.table
     if table.dtype != _ENTRY[points.dtype]:   # a table of another grid dtype: converted
         frac = lut.frac.to(points.dtype)

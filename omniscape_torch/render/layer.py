@@ -267,9 +267,7 @@ class OmniProjection(nn.Module):
                 self._lut_cache.clear()  # the grids changed: drop their tables
             lut = self._lut_cache.get(key)
             if lut is None:
-                blended = cube.is_floating_point() or (mode == "bilinear"
-                                                       and cube.dtype in fastsample.BLENDED)
-                lut_grid = grid.to(fastsample.work_dtype(cube.dtype)) if blended else grid
+                lut_grid = grid.to(fastsample.grid_dtype(cube.dtype, mode, grid.dtype))
                 lut = self._lut_cache[key] = fastsample.build_lut(
                     lut_grid, self.face_size, self.pad, mode, channels=cube.shape[2],
                     channels_last=last)
