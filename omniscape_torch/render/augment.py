@@ -39,6 +39,7 @@ from .kernels import camera_grid
 from ..cameras.presets import yaw_pitch_roll_to_matrix
 from . import layer as projection
 from .layer import OmniProjection
+from .reference import check_out_dtype
 
 __all__ = ["ApplyToKey", "RandomOmniCamera"]
 
@@ -599,12 +600,7 @@ class RandomOmniCamera(nn.Module):
             raise ValueError(f"cubemap: expected shape {layout} with F = face_size = {f} "
                              f"(channels_last={self.channels_last}), got "
                              f"{tuple(cubemap.shape)}{hint}")
-        if self.out_dtype is None:
-            return cubemap.dtype
-        if self.out_dtype == torch.uint8 and cubemap.dtype != torch.uint8:
-            raise TypeError(f"out_dtype: torch.uint8 needs a uint8 cubemap, got {cubemap.dtype} "
-                            "(a floating cube renders into its own or another floating dtype)")
-        return self.out_dtype
+        return check_out_dtype(cubemap.dtype, self.out_dtype)
 
     def forward(self, cubemap: Tensor | dict | None, labels: Tensor | None = None,
                 depth: Tensor | None = None, *, params: dict | None = None,
