@@ -71,8 +71,9 @@ def batch_of(model: str, dtype):
 @pytest.mark.parametrize("compiled", [False, True])
 def test_matches_the_camera_chain(model, compiled):
     params, size = batch_of(model, torch.float32)
-    if compiled and model not in fg._CLOSED_FORM:
-        pytest.skip("not closed form: the eager unprojection, tested with compiled=False")
+    if compiled and model not in fg._CLOSED_FORM and model not in fg.RADIAL:
+        pytest.skip("neither closed form nor radial: the eager unprojection, tested with "
+                    "compiled=False")
     rot = random_rotations(3, torch.float32, seed=4)
     fov = torch.tensor([3.0, 2.5, 1.9])
     blind = torch.tensor([0.2, 0.0, 0.4])
@@ -135,6 +136,7 @@ def test_compile_failure_warns_once_and_falls_back(monkeypatch):
         raise RuntimeError("no compiler here")
 
     monkeypatch.setattr(fg.torch, "compile", broken_compile)
+    monkeypatch.setattr(fg, "radial_table", lambda *args: None)   # the compiled kernel's case
     params, size = batch_of("stereographic", torch.float32)
     expected = fg.camera_grid("stereographic", params, size, FACE, PAD, compiled=False)
     with pytest.warns(UserWarning) as rec:   # the camera kernel, then the rotated grid's
@@ -195,3 +197,45 @@ def test_kannala_brandt_table_is_within_a_hundredth_of_a_pixel(dtype):
     # the pixels beyond the table's last radius (the fold or pi) are invalid, as for Newton
     _, newton_valid = ot.Camera("kannala_brandt", params[0], (1024, 1024)).ray_grid()
     assert torch.equal(valid[0], newton_valid[::7, ::7])
+
+
+@pytest.mark.parametrize("mode, model", [("fisheye", m) for m in ot.augment.FISHEYE_MODELS]
+                         + [("catadioptric", "unified")])
+def test_radial_table_grid_is_within_a_thousandth_of_a_texel_at_full_size(mode, model):
+    """On the CPU every radially symmetric camera goes through a radius -> ray table per
+    camera (``radial_table``, the C++ op): for the cameras ``RandomOmniCamera`` draws at 1024 px
+    (Kannala-Brandt up to its fold, unified mirrors), the grid is within 0.005 texel of the
+    exact chain in float64 (closed forms, Newton's inverse per pixel) on 512-texel faces (0.005
+    texel is 1e-5 rad), the same pixels valid; a texel there spans about 1.3 px of the image."""
+    face, pad, size = 512, 2, (1024, 1024)
+    aug = ot.augment.RandomOmniCamera(size, face, mode=mode, seed=3, **(
+        dict(fisheye_models=(model,)) if mode == "fisheye" else {}))
+    drawn = aug.forward_parameters(4)
+    params = drawn["camera_params"][:, :len(ot.cameras.registry.get_model(model).param_names)]
+    cones = dict(rotation=drawn["rotation"], fov=drawn["fov"], blind_fov=drawn["blind_fov"])
+    grid, valid = fg.camera_grid(model, params, size, face, pad, **cones)
+    n = face + 2 * pad
+    for i in range(4):
+        blind = float(drawn["blind_fov"][i])
+        cam = ot.Camera(model, params[i].double(), size, fov=float(drawn["fov"][i]),
+                        blind_fov=blind if blind > 0 else None)
+        rays, ref_valid = cam.ray_grid()
+        ref = cgrid.rotated_rays_to_grid_reference(rays, drawn["rotation"][i].double(), face,
+                                                   pad)[0]
+        assert torch.equal(valid[i], ref_valid)
+        texels = (grid[i].double() - ref)[ref_valid] * torch.tensor([n / 2, 6 * n / 2],
+                                                                    dtype=torch.float64)
+        assert float(texels.norm(dim=-1).max()) <= 5e-3
+
+
+def test_radial_table_refuses_what_is_not_radial():
+    """Tangential distortion (unified ``p1, p2``) has no radius -> ray table: those cameras
+    take the exact path, as does a model that is not radial."""
+    params, size = batch_of("unified", torch.float64)
+    tangential = params.clone()
+    tangential[:, 7] = 1e-3
+    assert fg.radial_table("unified", tangential, size) is None
+    assert fg.radial_table("unified", params.clone().index_fill_(1, torch.tensor([7, 8]), 0.0),
+                           size) is not None
+    eq = torch.tensor([[100.0, 100.0, 50.0, 40.0]], dtype=torch.float64)
+    assert fg.radial_table("equirectangular", eq, (80, 100)) is None

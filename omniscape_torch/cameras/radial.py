@@ -164,6 +164,12 @@ def kannala_brandt_max_angle(params: Tensor) -> Tensor:
     return torch.sqrt(t_fold).clamp(max=math.pi)
 
 
+def kannala_brandt_domain_end(params: Tensor) -> Tensor:
+    """The normalised radius ``r(max_angle)`` where the unprojection's domain ends: valid pixels
+    lie at ``r < end``."""
+    return _kb_r(kannala_brandt_max_angle(params), _kb_poly(params))[0]
+
+
 def _kb_r(theta: Tensor, coeffs: Tensor) -> tuple[Tensor, Tensor]:
     """r(theta) and dr/dtheta for ``coeffs = (1, k1, ..., k4)``."""
     t = theta * theta
@@ -204,7 +210,7 @@ def kannala_brandt_unproject(pixels: Tensor, params: Tensor, *,
     check_inputs("kannala_brandt", pixels, params, 2, 8, "pixels")
     coeffs = _kb_poly(params)
     limit = kannala_brandt_max_angle(params)
-    r_limit = _kb_r(limit, coeffs)[0]
+    r_limit = kannala_brandt_domain_end(params)
     tol = 4 * torch.finfo(params.dtype).eps
 
     def theta_of_r(r: Tensor) -> tuple[Tensor, Tensor]:

@@ -57,6 +57,12 @@ def _bracket(params: Tensor) -> tuple[Tensor, Tensor]:
     return rho_max, _theta_of_rho(rho_max, poly)[0]
 
 
+def scaramuzza_rho_limit(params: Tensor) -> Tensor:
+    """The radius (pixels, after the affine map) where the unprojection's domain ends: valid
+    pixels lie at ``rho < limit``."""
+    return _bracket(params)[0]
+
+
 def scaramuzza_max_angle(params: Tensor) -> Tensor:
     """theta(rho_max)."""
     return _bracket(params)[1]
@@ -128,7 +134,7 @@ def scaramuzza_unproject(pixels: Tensor, params: Tensor) -> tuple[Tensor, Tensor
     pv = (dv - d * du) / det
     rho2 = pu * pu + pv * pv
     rho = safe_sqrt(rho2, rho2 > torch.finfo(rho2.dtype).tiny)
-    valid = rho < _bracket(params)[0]
+    valid = rho < scaramuzza_rho_limit(params)
     g = -polyval(params[..., 5:], rho)
     rays = torch.stack((pu, pv, g), dim=-1)
     n2 = rho2 + g * g

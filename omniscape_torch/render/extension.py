@@ -12,9 +12,9 @@ compiler torch uses, ``$CXX`` else ``c++``; 12 s once per machine on 2 cores, 5 
 torch headers, against 30 s with ``torch/extension.h``) into torch's extension cache
 (``$TORCH_EXTENSIONS_DIR``, default ``~/.cache/torch_extensions/<python>_<device>/``) and
 loads it: the ops ``torch.ops.omniscape_torch.{build_lut, sample_lut, sample_grid,
-sample_rays}`` (schemas in the source), with their fake implementations for ``torch.compile``
-registered here. A later process finds it built (ninja checks the source and the flags) and
-loads it in 0.1-0.2 s, mostly the import of ``cpp_extension``. Concurrent first uses
+sample_rays, camera_grid}`` (schemas in the source), with their fake implementations for
+``torch.compile`` registered here. A later process finds it built (ninja checks the source and
+the flags) and loads it in 0.1-0.2 s, mostly the import of ``cpp_extension``. Concurrent first uses
 (processes, ``DataLoader`` workers) are serialised by ``cpp_extension``'s lock file in the
 build folder: one builds, the others wait and load. (A build killed outright, SIGKILL, leaves
 that file behind, and later loads wait for it forever: delete the folder's ``lock``.)
@@ -50,7 +50,7 @@ __all__ = ["load", "name", "face_case_flags", "CFLAGS", "LDFLAGS", "NAMESPACE", 
 
 SOURCE = Path(__file__).with_name("csrc") / "fastsample.cpp"
 NAMESPACE = "omniscape_torch"
-OPS = ("build_lut", "sample_lut", "sample_grid", "sample_rays")
+OPS = ("build_lut", "sample_lut", "sample_grid", "sample_rays", "camera_grid")
 #: ``-march=native``: the library is built for this machine's CPU (its flags are in the name);
 #: ``-fno-trapping-math``: float comparisons may be evaluated speculatively, so the tap
 #: computation vectorises (no result changes); ``-ffp-contract=off``: no fused multiply-adds
@@ -204,8 +204,14 @@ def _fake_sample_rays(cube, rays, rotation, valid, ring_src, ring_weight, pad, b
     _fake_sample(cube, out, rays, 3, "sample_rays")
 
 
+def _fake_camera_grid(affine, limits, table, rotation, face, pad, grid, valid) -> None:
+    _check(grid.dim() == 4 and grid.shape[-1] == 2 and valid.shape == grid.shape[:3],
+           "camera_grid: expected grid (B, H, W, 2) and valid (B, H, W)")
+
+
 _FAKES = {"build_lut": _fake_build_lut, "sample_lut": _fake_sample_lut,
-          "sample_grid": _fake_sample_grid, "sample_rays": _fake_sample_rays}
+          "sample_grid": _fake_sample_grid, "sample_rays": _fake_sample_rays,
+          "camera_grid": _fake_camera_grid}
 
 
 def _register_fakes() -> None:

@@ -475,6 +475,23 @@ def sample_rays(cubemap: Tensor, rays: Tensor, rotation: Tensor | None = None,
                 out_dtype, sample)
 
 
+def camera_grid(affine: Tensor, limits: Tensor, table: Tensor, rotation: Tensor,
+                face_size: int, pad: int, image_size: tuple[int, int], dtype: torch.dtype
+                ) -> tuple[Tensor, Tensor]:
+    """The atlas grid ``(B, H, W, 2)`` in ``dtype`` (float32 or float64) and validity ``(B, H,
+    W)`` of ``B`` radially symmetric cameras rotated by ``rotation (B, 3, 3)``, from their
+    tables (``kernels.radial_table``: ``affine (B, 6)``, ``limits (B, 4)``, ``table (B, K,
+    2)``); the invalid pixels at (-2, -2). The C++ op computes each pixel's ray from its table,
+    rotates it and writes its grid point, in one pass (``kernels.camera_grid``)."""
+    ops = _require()
+    batch = affine.shape[0]
+    grid = torch.empty((batch, *image_size, 2), dtype=dtype)
+    valid = torch.empty((batch, *image_size), dtype=torch.bool)
+    ops.camera_grid(*(t.to("cpu", dtype).contiguous() for t in (affine, limits, table, rotation)),
+                    face_size, pad, grid, valid)
+    return grid, valid
+
+
 def is_channels_last(t: Tensor) -> bool:
     """Whether the channels of ``t (..., C, H, W)`` (a cube or an image) are its innermost
     dimension in memory (a ``(..., H, W, C)`` tensor permuted, or ``torch.channels_last``);

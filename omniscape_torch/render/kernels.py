@@ -2,8 +2,16 @@
 
 For per-sample random cameras (``augment.RandomOmniCamera``) building the rays and the grid
 eagerly costs more than sampling the images; :func:`camera_grid` runs the whole chain as one
-compiled loop (``torch.compile`` through :func:`omniscape_torch.cubemap.grid.compiled_kernel`, the
-grid maths of :func:`~omniscape_torch.cubemap.grid.rotated_grid_xy`).
+loop. On the CPU, the radially symmetric models (:data:`RADIAL`) go through the C++ op
+``torch.ops.omniscape_torch.camera_grid`` (built with the fast sampler, :mod:`.extension`):
+per camera a table of the ray against the distance from the principal point, made from the
+model's own unprojection (so the iterative inverses of Kannala-Brandt, Scaramuzza and
+distorted unified cost a few thousand Newton solves per camera, not one per pixel), read with
+linear interpolation. Nothing compiles at run time, so it is as fast in ``DataLoader`` workers as
+in the main process and the same for every mix of models. Elsewhere (another device, or no C++
+compiler) the closed-form models compile whole with ``torch.compile``
+(:func:`omniscape_torch.cubemap.grid.compiled_kernel`, the grid maths of
+:func:`~omniscape_torch.cubemap.grid.rotated_grid_xy`).
 """
 
 from __future__ import annotations
@@ -13,13 +21,16 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from ..cameras.radial import kannala_brandt_tabulate, kannala_brandt_unproject_table_xyz
+from ..cameras.radial import (kannala_brandt_domain_end, kannala_brandt_tabulate,
+                              kannala_brandt_unproject_table_xyz)
+from ..cameras.scaramuzza import scaramuzza_rho_limit
 from ..cameras.registry import get_model
 from ..cameras.unified import unified_unproject_undistorted_xyz
 from ..cubemap.faces import _check_face_size, _check_pad
 from ..cubemap.grid import compiled_kernel, fail, rotated_grid_xy, rotated_rays_to_grid
+from . import fast
 
-__all__ = ["camera_grid"]
+__all__ = ["camera_grid", "radial_table", "RADIAL", "RADIAL_ENTRIES"]
 
 
 #: The unprojections compiled whole into the camera kernel: those of the cameras
@@ -36,6 +47,118 @@ _CLOSED_FORM: dict[str, Callable] = {
 }
 #: Models whose kernel takes its parameters with a table: ``(params (B, P), (H, W)) -> (B, P')``.
 _TABULATED: dict[str, Callable] = {"kannala_brandt": kannala_brandt_tabulate}
+
+#: The radially symmetric models: the ray of a pixel depends on its distance from the principal
+#: point in normalised coordinates (``(u - cx) / fx, (v - cy) / fy``; scaramuzza: through its
+#: affine map) alone, so one table per camera holds every pixel's ray. ``unified`` only without
+#: tangential distortion (``p1 = p2 = 0``).
+RADIAL = ("pinhole", "equidistant", "equisolid", "stereographic", "orthographic",
+          "kannala_brandt", "unified", "eucm", "double_sphere", "scaramuzza")
+#: Entries of a table of :func:`radial_table` (``tests/test_camera_grid.py`` bounds the error
+#: of linear interpolation between them).
+RADIAL_ENTRIES = 2048
+_SEARCH = 1024   # radii per round of the search for the end of a domain
+#: The radius (normalised) where a model's domain ends, for those whose validity is ``rho <
+#: end`` by their own rule: the table skips the search for it (the Newton inverses cost a
+#: call, ~10-30 ms, per round of the search).
+_DOMAIN_END: dict[str, Callable[[Tensor], Tensor]] = {
+    "kannala_brandt": kannala_brandt_domain_end,
+    "scaramuzza": scaramuzza_rho_limit,
+}
+
+
+def _affine(model: str, params: Tensor) -> Tensor:
+    """``(B, 6)``: the principal point and the row-major 2 x 2 map ``M`` from pixel offsets to
+    the normalised coordinates the model's rays are radially symmetric in."""
+    if model == "scaramuzza":
+        cx, cy, c, d, e = params[:, :5].unbind(-1)
+        det = c - d * e   # scaramuzza_unproject: pu = (c du - e dv) / det, pv = (dv - d du) / det
+        return torch.stack((cx, cy, c / det, -e / det, -d / det, 1 / det), -1)
+    fx, fy, cx, cy = params[:, :4].unbind(-1)
+    zero = torch.zeros_like(fx)
+    return torch.stack((cx, cy, 1 / fx, zero, zero, 1 / fy), -1)
+
+
+def radial_table(model: str, params: Tensor, image_size: tuple[int, int],
+                 entries: int = RADIAL_ENTRIES) -> tuple[Tensor, Tensor, Tensor] | None:
+    """The per-camera tables of ``torch.ops.omniscape_torch.camera_grid``, in float64, or None
+    where a camera's rays are not a function of the radius alone (tangential distortion) or its
+    domain is not a disc about the principal point.
+
+    A pixel ``(u, v)`` is at ``m = M (u - cx, v - cy)`` (``affine (B, 6)``: ``cx, cy`` and
+    ``M`` row-major), radius ``rho = |m|``; its unit ray is ``(S(rho) m, C(rho))``. ``table
+    (B, K, 2)`` holds ``S = sin(theta) / rho`` and ``C = cos(theta)`` from the model's own
+    ``unproject`` of points on the ``+x`` axis of ``m``, out to the farthest image corner or
+    to the end of the model's domain, whichever comes first (found by bisection on the
+    model's own validity). Without an end the entries are evenly spaced in ``rho``; with one
+    (a fold: there ``theta(rho)`` has a square-root singularity, so even spacing would leave
+    angle errors of a texel in the last cells) they are evenly spaced in ``w = sqrt(end -
+    rho)``, in which ``theta`` is smooth. ``limits (B, 5)``: ``scale``, ``root`` (``sqrt(end)``
+    or 0 for even spacing in ``rho``), ``end`` (``inf`` without one), and ``cos(fov / 2) =
+    -2``, ``cos(blind_fov / 2) = 2`` (no cones: :func:`camera_grid` sets them).
+    """
+    unproject = get_model(model).unproject
+    if model not in RADIAL or (model == "unified" and bool(params[:, 7:9].ne(0).any())):
+        return None
+    p = params.detach().to("cpu", torch.float64)
+    batch = p.shape[0]
+    affine = _affine(model, p)
+    h, w = image_size
+    corners = torch.tensor([[0.0, 0.0], [w - 1.0, 0.0], [0.0, h - 1.0], [w - 1.0, h - 1.0]],
+                           dtype=torch.float64)
+    m = affine[:, 2:].view(batch, 1, 2, 2)
+    offsets = corners[None] - affine[:, None, :2]                          # (B, 4, 2)
+    reach = torch.linalg.vector_norm((m @ offsets[..., None])[..., 0], dim=-1).amax(-1)
+    reach = reach.clamp_min(1e-12)
+    at = (affine, torch.linalg.inv(m[:, 0]), p)
+    # where the domain ends within the reach: the first invalid of an even sampling, then the
+    # same between it and the valid point before it, to float64 rounding (a unprojection call
+    # per round: for the Newton inverses the calls, not the points, cost)
+    lo, hi = torch.zeros_like(reach), reach
+    ends = torch.zeros(batch, dtype=torch.bool)
+    known = _DOMAIN_END.get(model)
+    if known is not None:   # the model's own rule: valid where rho < end
+        end = known(p)
+        ends = end < reach
+        lo = torch.where(ends, end * (1 - 1e-12), reach)
+        hi = torch.where(ends, end, reach)
+    for round in range(0 if known is not None else 8):
+        rho = lo[:, None] + torch.linspace(0, 1, _SEARCH, dtype=torch.float64) * (hi - lo)[:, None]
+        valid = _on_axis(unproject, *at, rho)[1]
+        first = torch.where(valid.all(-1), _SEARCH, (~valid).int().argmax(-1))   # (B,)
+        if round == 0:
+            if bool((first == 0).any()) or bool(
+                    (valid & (torch.arange(_SEARCH) > first[:, None])).any()):
+                return None   # invalid at the axis, or valid again past the end: not a disc
+            ends = first < _SEARCH
+            if not bool(ends.any()):
+                break
+        cut = ends & (first < _SEARCH)
+        lo = torch.where(cut, rho.gather(1, (first - 1).clamp_min(0)[:, None])[:, 0], lo)
+        hi = torch.where(cut, rho.gather(1, first.clamp_max(_SEARCH - 1)[:, None])[:, 0], hi)
+        if bool((hi - lo <= 4 * torch.finfo(torch.float64).eps * hi).all()):
+            break
+    end = torch.where(ends, hi, torch.inf)
+    root = torch.where(ends, lo.sqrt(), 0.0)
+    steps = torch.linspace(0, 1, entries - 1, dtype=torch.float64)
+    rho = torch.where(ends[:, None], lo[:, None] - (root[:, None] * (1 - steps)) ** 2,
+                      reach[:, None] * steps)
+    rho = torch.cat((rho, rho[:, -1:]), -1)    # entry K - 1 repeats K - 2: t = 0 there
+    rho[:, 0] = 1e-6 * rho[:, 1]               # S at the axis: its limit
+    rays = _on_axis(unproject, *at, rho)[0]
+    table = torch.stack((rays[..., 0] / rho, rays[..., 2]), -1)
+    scale = (entries - 2) / torch.where(ends, root, reach)
+    limits = torch.stack((scale, root, end, torch.full_like(end, -2.0),
+                          torch.full_like(end, 2.0)), -1)
+    return affine, limits, table
+
+
+def _on_axis(unproject: Callable, affine: Tensor, inverse: Tensor, params: Tensor, rho: Tensor
+             ) -> tuple[Tensor, Tensor]:
+    """The model's rays ``(E, N, 3)`` and validity ``(E, N)`` at radii ``rho (E, N)`` on the
+    ``+x`` axis of each camera's normalised coordinates."""
+    pixels = affine[:, None, :2] + rho[..., None] * inverse[:, None, :, 0]
+    return unproject(pixels, params[:, None])
 
 
 def _camera_grid_math(params: Tensor, rotation: Tensor, cone: Tensor, face_size, pad, height,
@@ -134,12 +257,21 @@ def camera_grid(model: str, params: Tensor, image_size: tuple[int, int], face_si
         else:   # a blind cone of angle 0 is empty (the axis pixel stays valid)
             cosine = torch.cos(0.5 * angle.detach().to("cpu", torch.float64))
             cone.append(cosine if name == "fov" else torch.where(angle.cpu() > 0, cosine, 2.0))
-    args = (params.detach(), rotation.detach().to(**kw), torch.stack(cone, -1).to(**kw),
+    cones = torch.stack(cone, -1)
+    args = (params.detach(), rotation.detach().to(**kw), cones.to(**kw),
             face_size, pad, h, w, dtype)
     if model == "unified" and bool(params[:, 5:].ne(0).any()):
         fused = None   # lens distortion: Newton undistortion, eagerly
     else:
         fused = _CLOSED_FORM.get(model)
+    if (compiled and params.device.type == "cpu" and dtype in (torch.float32, torch.float64)
+            and fast.available()):
+        tables = radial_table(model, params, (h, w))
+        if tables is not None:
+            affine, limits, table = tables
+            limits[:, 3:] = cones
+            return fast.camera_grid(affine, limits, table, rotation.detach(), face_size, pad, (h, w),
+                                    dtype)
     with torch.no_grad():
         if compiled and fused is not None:
             key = ("camera", model, params.dtype, dtype, params.device.type, True)

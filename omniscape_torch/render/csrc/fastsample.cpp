@@ -1,8 +1,8 @@
-// The fast sampler's per-pixel loops (omniscape_torch/render/fast.py) as PyTorch custom ops,
-// torch.ops.omniscape_torch.{build_lut, sample_lut, sample_grid, sample_rays}, built on first
-// use by omniscape_torch/render/extension.py (torch.utils.cpp_extension). The ops take tensors
-// and read their sizes and strides; the loops below take pointers, sizes and strides (in
-// elements).
+// The fast sampler's per-pixel loops (omniscape_torch/render/fast.py) and the camera grid of
+// render/kernels.py as PyTorch custom ops, torch.ops.omniscape_torch.{build_lut, sample_lut,
+// sample_grid, sample_rays, camera_grid}, built on first use by
+// omniscape_torch/render/extension.py (torch.utils.cpp_extension). The ops take tensors and
+// read their sizes and strides; the loops below take pointers, sizes and strides (in elements).
 //
 // The image is grid_sample(cubemap_to_atlas(cube, pad, border), grid, align_corners=False,
 // padding_mode="zeros") without the atlas: a grid point becomes atlas pixels as grid_sample's
@@ -797,6 +797,88 @@ void sample_rays(const T* src, const G* rays, int64_t rays_batch, const G* rot,
     });
 }
 
+
+// ------------------------------------------------------------------------------------------
+// Cameras straight to the atlas grid: radially symmetric models through a radius -> ray table
+// ------------------------------------------------------------------------------------------
+
+// One camera of camera_grid: pixel (u, v) -> m = M (u - cx, v - cy), rho = |m|; the unit ray
+// (S(rho) m, C(rho)) with S and C interpolated linearly in a table of K entries (S = sin(theta)
+// / rho, C = cos(theta), tabulated from the model's own unprojection); valid where rho < end
+// (the model's domain) and the ray lies in the cones cos_fov <= C < cos_blind. The entries are
+// evenly spaced in rho (root = 0: index rho scale) or, where the domain ends (a fold, where
+// theta(rho) has a square-root singularity), in w = sqrt(root^2 - rho) (index (root - w)
+// scale; root^2 the last radius tabulated, within rounding of the end), in which theta is
+// smooth up to the end.
+template <typename G>
+struct RadialCamera {
+    const G* affine;   // cx, cy, M00, M01, M10, M11
+    const G* limits;   // scale, root, end, cos_fov, cos_blind
+    const G* table;    // (K, 2): S, C
+    int64_t entries;
+};
+
+// The camera-frame rays of pixels [lo, lo + m) of a row-major image `width` wide, and their
+// validity: branch-free, so that the compiler vectorises it (the table reads are gathers).
+template <typename G>
+void radial_rays(const RadialCamera<G>& cam, int64_t width, int64_t lo, int64_t m, G* rays,
+                 uint8_t* valid) {
+    const G cx = cam.affine[0], cy = cam.affine[1];
+    const G m00 = cam.affine[2], m01 = cam.affine[3], m10 = cam.affine[4], m11 = cam.affine[5];
+    const G scale = cam.limits[0], root = cam.limits[1], end = cam.limits[2];
+    const G cos_fov = cam.limits[3], cos_blind = cam.limits[4];
+    const bool folded = root > 0;
+    const G last = G(cam.entries - 2);
+    const G* __restrict table = cam.table;
+    const int64_t row = lo / width, col = lo % width;   // a segment lies within one row
+    const G dv = G(row) - cy;
+    for (int64_t p = 0; p < m; ++p) {
+        const G du = G(col + p) - cx;
+        const G mx = m00 * du + m01 * dv, my = m10 * du + m11 * dv;
+        const G rho = std::sqrt(mx * mx + my * my);
+        const G at = folded ? (root - std::sqrt(std::max(root * root - rho, G(0)))) * scale
+                            : rho * scale;
+        // in [0, last], NaN to 0 (a NaN parameter: the pixel reads entry 0, and is invalid)
+        const G base = std::floor(at >= G(0) ? (at <= last ? at : last) : G(0));
+        const int32_t i = static_cast<int32_t>(base);
+        const G t = at - base;
+        const G s = table[2 * i] + t * (table[2 * i + 2] - table[2 * i]);
+        const G c = table[2 * i + 1] + t * (table[2 * i + 3] - table[2 * i + 1]);
+        rays[3 * p] = s * mx;
+        rays[3 * p + 1] = s * my;
+        rays[3 * p + 2] = c;
+        valid[p] = (rho < end) & (c >= cos_fov) & (c < cos_blind);
+    }
+}
+
+// The atlas grid (B, H, W, 2) of B cameras (their rays rotated by rot, row-major 3 x 3 each),
+// the invalid pixels at (-2, -2), outside the atlas, and the validity (B, H, W).
+template <typename G>
+void radial_grid(const G* affine, const G* limits, const G* table, int64_t entries,
+                 const G* rot, int64_t batch, int64_t height, int64_t width, const Layout& L,
+                 G* grid, uint8_t* valid) {
+    const int64_t pixels = height * width;
+    const int64_t segments = (width + kTileW - 1) / kTileW;
+    at::parallel_for(0, batch * height * segments, 16, [&](int64_t begin, int64_t end) {
+        G rays[3 * kTileW];
+        for (int64_t index = begin; index < end; ++index) {
+            const int64_t b = index / (height * segments), rest = index % (height * segments);
+            const int64_t y = rest / segments, x0 = (rest % segments) * kTileW;
+            const int64_t m = std::min(kTileW, width - x0), lo = y * width + x0;
+            const RadialCamera<G> cam{affine + 6 * b, limits + 5 * b,
+                                      table + 2 * entries * b, entries};
+            uint8_t* ok = valid + b * pixels + lo;
+            G* g = grid + 2 * (b * pixels + lo);
+            radial_rays<G>(cam, width, lo, m, rays, ok);
+            ray_grid<G, true>(rays, rot + 9 * b, m, L, g);
+            for (int64_t p = 0; p < m; ++p) {
+                g[2 * p] = ok[p] ? g[2 * p] : G(-2);
+                g[2 * p + 1] = ok[p] ? g[2 * p + 1] : G(-2);
+            }
+        }
+    });
+}
+
 }  // namespace
 
 
@@ -1173,6 +1255,53 @@ void sample_rays_op(const at::Tensor& cube, const at::Tensor& rays,
     });
 }
 
+
+// camera_grid: the atlas grid (B, H, W, 2) and validity (B, H, W) of B radially symmetric
+// cameras (radial_rays: affine (B, 6), limits (B, 5), table (B, K, 2), K >= 2) rotated by
+// rotation (B, 3, 3), for faces of `face` texels padded by `pad`; all in one floating dtype.
+void camera_grid_op(const at::Tensor& affine, const at::Tensor& limits, const at::Tensor& table,
+                    const at::Tensor& rotation, int64_t face, int64_t pad, const at::Tensor& grid,
+                    const at::Tensor& valid) {
+    const char* op = "omniscape_torch::camera_grid";
+    const Layout L = check_layout(op, face, pad, {0, 0, 0});
+    const int64_t batch = affine.size(0);
+    const at::ScalarType dtype = affine.scalar_type();
+    TORCH_CHECK(dtype == at::kFloat || dtype == at::kDouble, op,
+                ": affine: expected float32 or float64, got ", dtype);
+    const auto check = [&](const char* name, const at::Tensor& t, at::IntArrayRef shape) {
+        check_contiguous(op, name, t);
+        TORCH_CHECK(t.sizes() == shape && t.scalar_type() == dtype, op, ": ", name,
+                    ": expected shape ", shape, " in ", dtype, ", got ", t.sizes(), " in ",
+                    t.scalar_type());
+    };
+    check("affine", affine, {batch, 6});
+    check("limits", limits, {batch, 5});
+    check("table", table, {batch, table.dim() == 3 ? table.size(1) : -1, 2});
+    check("rotation", rotation, {batch, 3, 3});
+    check("grid", grid, {batch, grid.dim() == 4 ? grid.size(1) : -1,
+                         grid.dim() == 4 ? grid.size(2) : -1, 2});
+    TORCH_CHECK(table.size(1) >= 2 && table.size(1) < kMaxOffset / 2, op,
+                ": table: expected 2 or more entries, got ", table.size(1));
+    check_contiguous(op, "valid", valid);
+    TORCH_CHECK(valid.scalar_type() == at::kBool &&
+                    valid.sizes() == at::IntArrayRef({batch, grid.size(1), grid.size(2)}),
+                op, ": valid: expected bool (B, H, W) like grid, got ", valid.scalar_type(), " ",
+                valid.sizes());
+    if (dtype == at::kFloat) {
+        radial_grid<float>(affine.const_data_ptr<float>(), limits.const_data_ptr<float>(),
+                           table.const_data_ptr<float>(), table.size(1),
+                           rotation.const_data_ptr<float>(), batch, grid.size(1), grid.size(2),
+                           L, grid.mutable_data_ptr<float>(),
+                           static_cast<uint8_t*>(valid.mutable_data_ptr()));
+    } else {
+        radial_grid<double>(affine.const_data_ptr<double>(), limits.const_data_ptr<double>(),
+                            table.const_data_ptr<double>(), table.size(1),
+                            rotation.const_data_ptr<double>(), batch, grid.size(1),
+                            grid.size(2), L, grid.mutable_data_ptr<double>(),
+                            static_cast<uint8_t*>(valid.mutable_data_ptr()));
+    }
+}
+
 }  // namespace
 
 TORCH_LIBRARY(omniscape_torch, m) {
@@ -1188,6 +1317,8 @@ TORCH_LIBRARY(omniscape_torch, m) {
     m.def("sample_rays(Tensor cube, Tensor rays, Tensor? rotation, Tensor? valid, "
           "Tensor ring_src, Tensor? ring_weight, int pad, bool bilinear, int fill, "
           "Tensor(a!) out) -> ()");
+    m.def("camera_grid(Tensor affine, Tensor limits, Tensor table, Tensor rotation, int face, "
+          "int pad, Tensor(a!) grid, Tensor(b!) valid) -> ()");
 }
 
 TORCH_LIBRARY_IMPL(omniscape_torch, CPU, m) {
@@ -1195,4 +1326,5 @@ TORCH_LIBRARY_IMPL(omniscape_torch, CPU, m) {
     m.impl("sample_lut", &sample_lut_op);
     m.impl("sample_grid", &sample_grid_op);
     m.impl("sample_rays", &sample_rays_op);
+    m.impl("camera_grid", &camera_grid_op);
 }
