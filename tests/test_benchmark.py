@@ -226,3 +226,37 @@ def test_augment_benchmark_uint8_rows(tmp_path):
         assert q["meets_target"] == (q["throughput_ratio"] >= ba.U8_TARGET)
     assert result["u8_agreement"]["u8_vs_rounded_float_max_abs_diff"] <= 1
     assert "throughput rgb_u8 / rgb_f32" in ba.markdown(result)
+
+
+def test_workers_benchmark_rows_and_its_peer(tmp_path):
+    """Issue 17: RandomOmniCamera in DataLoader workers against the numpy + cv2.remap peer,
+    every fisheye model and the mix, float32 and uint8; the peer's Newton inverse of
+    Kannala-Brandt inverts its polynomial and its equidistant maps are bench_augment's."""
+    pytest.importorskip("cv2")
+    import numpy as np
+    import bench_augment as ba
+    import bench_workers as bw
+
+    k = np.array([0.02, -0.01, 0.005, -0.002], dtype=np.float32)
+    r = np.linspace(0, 1.4, 50, dtype=np.float32)   # short of every domain end and fold
+    for model in ("equidistant", "equisolid", "stereographic", "kannala_brandt"):
+        theta = bw.theta_of(model, r, k)
+        assert np.allclose(bw.radius_of(model, theta, k), r, atol=1e-5)
+    # same draws: the rng's first calls are peer_draw's in both
+    ours = bw.peer_maps("equidistant", np.random.default_rng(3), 24, 8)
+    theirs = ba.peer_maps(*ba.peer_draw(np.random.default_rng(3)), 24, 8)
+    assert all(np.allclose(a, b, atol=1e-4) for a, b in zip(ours, theirs))
+
+    out = tmp_path / "workers.json"
+    assert bw.main(["--quick", "--face", "8", "--size", "16", "--batch", "2", "--batches", "2",
+                    "--rounds", "1", "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    rows = {(r["model"], r["dtype"], r["row"]) for r in result["rows"]}
+    models = (*ot.augment.FISHEYE_MODELS, "mix")
+    assert rows == {(m, d, row) for m in models for d in ("float32", "uint8")
+                    for row in ("ours_collate", "ours_sample", "peer")}
+    assert all(r["images_per_s"] > 0 and r["first_batch_s"] > 0 for r in result["rows"])
+    for q in result["ratios"]:
+        assert q["meets_target"] == (q["ratio"] >= q["target"] if q["peer"] == "peer"
+                                     else q["ratio"] <= q["target"])
+    assert "| mix | uint8 | ours_collate / peer |" in bw.markdown(result)

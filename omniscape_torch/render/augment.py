@@ -555,23 +555,23 @@ class RandomOmniCamera(nn.Module):
                     rotation=params["rotation"][sel].to(dtype=dtype, device=device),
                     fov=params["fov"][sel].to(dtype=dtype, device=device),
                     blind_fov=params["blind_fov"][sel].to(dtype=dtype, device=device))
-                whole = len(sel) == batch
-                first, last = int(sel[0]), int(sel[-1]) + 1
-                # a run of samples is a view (no copy), rendered into its rows of the outputs;
-                # mixed models index
-                run = last - first == len(sel)
-                at = slice(first, last) if run else sel.to(device)
-                take = (lambda t: t) if whole else (lambda t: None if t is None else t[at])
-                out = proj.render(rgb=take(cubemap), labels=take(labels), depth=take(depth),
-                                  depth_output=self.depth_output, grid=grid, **rgb_options,
-                                  out={key: value[at] for key, value in result.items()}
-                                  if run else None)
-                if whole:
-                    result = out
-                    break
-                if not run:
-                    for key, value in out.items():
-                        result[key][at] = value
+                if not result:   # one part, the whole batch: the layer allocates
+                    result = proj.render(rgb=cubemap, labels=labels, depth=depth,
+                                         depth_output=self.depth_output, grid=grid,
+                                         **rgb_options)
+                    continue
+                # each run of consecutive samples as views of the inputs and of the outputs'
+                # rows (mixed models: several runs), so that nothing is copied
+                for a, b, first in _runs(sel.tolist()):
+                    at = slice(first, first + b - a)
+                    inputs = {key: None if t is None else t[at] for key, t in
+                              (("rgb", cubemap), ("labels", labels), ("depth", depth))}
+                    layer = proj if b - a == len(sel) else OmniProjection(
+                        Camera(name, cam.params[a:b], self.image_size), self.face_size,
+                        interpolation=self.interpolation, ignore_index=self.ignore_index)
+                    layer.render(**inputs, depth_output=self.depth_output,
+                                grid=(grid[0][a:b], grid[1][a:b]), **rgb_options,
+                                out={key: value[at] for key, value in result.items()})
         result["params"] = params
         return result
 
@@ -632,6 +632,17 @@ class RandomOmniCamera(nn.Module):
         if params is None:
             params = self.forward_parameters(ref.shape[0], generator=generator)
         return self.render(cubemap, params, labels=labels, depth=depth)
+
+
+def _runs(indices: list[int]) -> list[tuple[int, int, int]]:
+    """The runs of consecutive values of ``indices``: ``(start, stop, first value)`` of each,
+    positions into ``indices``."""
+    runs, start = [], 0
+    for k in range(1, len(indices) + 1):
+        if k == len(indices) or indices[k] != indices[k - 1] + 1:
+            runs.append((start, k, indices[start]))
+            start = k
+    return runs
 
 
 def _check_pixelwise(module: nn.Module) -> None:

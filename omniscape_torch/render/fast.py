@@ -480,8 +480,8 @@ def camera_grid(affine: Tensor, limits: Tensor, table: Tensor, rotation: Tensor,
                 ) -> tuple[Tensor, Tensor]:
     """The atlas grid ``(B, H, W, 2)`` in ``dtype`` (float32 or float64) and validity ``(B, H,
     W)`` of ``B`` radially symmetric cameras rotated by ``rotation (B, 3, 3)``, from their
-    tables (``kernels.radial_table``: ``affine (B, 6)``, ``limits (B, 4)``, ``table (B, K,
-    2)``); the invalid pixels at (-2, -2). The C++ op computes each pixel's ray from its table,
+    tables (``kernels.radial_table``: ``affine (B, 6)``, ``limits (B, 5)``, ``table (B, 2,
+    K)``); the invalid pixels at (-2, -2). The C++ op computes each pixel's ray from its table,
     rotates it and writes its grid point, in one pass (``kernels.camera_grid``)."""
     ops = _require()
     batch = affine.shape[0]

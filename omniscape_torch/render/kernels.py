@@ -87,7 +87,7 @@ def radial_table(model: str, params: Tensor, image_size: tuple[int, int],
 
     A pixel ``(u, v)`` is at ``m = M (u - cx, v - cy)`` (``affine (B, 6)``: ``cx, cy`` and
     ``M`` row-major), radius ``rho = |m|``; its unit ray is ``(S(rho) m, C(rho))``. ``table
-    (B, K, 2)`` holds ``S = sin(theta) / rho`` and ``C = cos(theta)`` from the model's own
+    (B, 2, K)`` holds ``S = sin(theta) / rho`` and ``C = cos(theta)`` from the model's own
     ``unproject`` of points on the ``+x`` axis of ``m``, out to the farthest image corner or
     to the end of the model's domain, whichever comes first (the end by the model's own rule,
     ``_DOMAIN_END``, else searched on its validity to float64 rounding). Without an end the
@@ -149,7 +149,7 @@ def radial_table(model: str, params: Tensor, image_size: tuple[int, int],
     rho = torch.cat((rho, rho[:, -1:]), -1)    # entry K - 1 repeats K - 2: t = 0 there
     rho[:, 0] = 1e-6 * rho[:, 1]               # S at the axis: its limit
     rays = _on_axis(unproject, *at, rho)[0]
-    table = torch.stack((rays[..., 0] / rho, rays[..., 2]), -1)
+    table = torch.stack((rays[..., 0] / rho, rays[..., 2]), 1)   # (B, 2, K)
     scale = (entries - 2) / torch.where(ends, root, reach)
     limits = torch.stack((scale, root, end, torch.full_like(end, -2.0),
                           torch.full_like(end, 2.0)), -1)

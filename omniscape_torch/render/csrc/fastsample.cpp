@@ -814,12 +814,14 @@ template <typename G>
 struct RadialCamera {
     const G* affine;   // cx, cy, M00, M01, M10, M11
     const G* limits;   // scale, root, end, cos_fov, cos_blind
-    const G* table;    // (K, 2): S, C
+    const G* table;    // (2, K): S, then C
     int64_t entries;
 };
 
-// The camera-frame rays of pixels [lo, lo + m) of a row-major image `width` wide, and their
-// validity: branch-free, so that the compiler vectorises it (the table reads are gathers).
+// The camera-frame rays of pixels [lo, lo + m) (m <= kTileW) of a row-major image `width`
+// wide, and their validity. Three loops: the radii and table positions (vectorised), the table
+// reads (scalar: GCC does not vectorise gathers for AMD CPUs, and they were slow there), the
+// rays and validity (vectorised).
 template <typename G>
 void radial_rays(const RadialCamera<G>& cam, int64_t width, int64_t lo, int64_t m, G* rays,
                  uint8_t* valid) {
@@ -829,9 +831,10 @@ void radial_rays(const RadialCamera<G>& cam, int64_t width, int64_t lo, int64_t 
     const G cos_fov = cam.limits[3], cos_blind = cam.limits[4];
     const bool folded = root > 0;
     const G last = G(cam.entries - 2);
-    const G* __restrict table = cam.table;
     const int64_t row = lo / width, col = lo % width;   // a segment lies within one row
     const G dv = G(row) - cy;
+    G mxs[kTileW], mys[kTileW], rhos[kTileW], ts[kTileW], ss[kTileW], cs[kTileW];
+    int32_t index[kTileW];
     for (int64_t p = 0; p < m; ++p) {
         const G du = G(col + p) - cx;
         const G mx = m00 * du + m01 * dv, my = m10 * du + m11 * dv;
@@ -840,14 +843,25 @@ void radial_rays(const RadialCamera<G>& cam, int64_t width, int64_t lo, int64_t 
                             : rho * scale;
         // in [0, last], NaN to 0 (a NaN parameter: the pixel reads entry 0, and is invalid)
         const G base = std::floor(at >= G(0) ? (at <= last ? at : last) : G(0));
-        const int32_t i = static_cast<int32_t>(base);
-        const G t = at - base;
-        const G s = table[2 * i] + t * (table[2 * i + 2] - table[2 * i]);
-        const G c = table[2 * i + 1] + t * (table[2 * i + 3] - table[2 * i + 1]);
-        rays[3 * p] = s * mx;
-        rays[3 * p + 1] = s * my;
+        mxs[p] = mx;
+        mys[p] = my;
+        rhos[p] = rho;
+        index[p] = static_cast<int32_t>(base);
+        ts[p] = at - base;
+    }
+    const G* __restrict sines = cam.table;                  // S
+    const G* __restrict cosines = cam.table + cam.entries;  // C
+    for (int64_t p = 0; p < m; ++p) {
+        const int32_t i = index[p];
+        ss[p] = sines[i] + ts[p] * (sines[i + 1] - sines[i]);
+        cs[p] = cosines[i] + ts[p] * (cosines[i + 1] - cosines[i]);
+    }
+    for (int64_t p = 0; p < m; ++p) {
+        const G c = cs[p];
+        rays[3 * p] = ss[p] * mxs[p];
+        rays[3 * p + 1] = ss[p] * mys[p];
         rays[3 * p + 2] = c;
-        valid[p] = (rho < end) & (c >= cos_fov) & (c < cos_blind);
+        valid[p] = (rhos[p] < end) & (c >= cos_fov) & (c < cos_blind);
     }
 }
 
@@ -1257,7 +1271,7 @@ void sample_rays_op(const at::Tensor& cube, const at::Tensor& rays,
 
 
 // camera_grid: the atlas grid (B, H, W, 2) and validity (B, H, W) of B radially symmetric
-// cameras (radial_rays: affine (B, 6), limits (B, 5), table (B, K, 2), K >= 2) rotated by
+// cameras (radial_rays: affine (B, 6), limits (B, 5), table (B, 2, K), K >= 2) rotated by
 // rotation (B, 3, 3), for faces of `face` texels padded by `pad`; all in one floating dtype.
 void camera_grid_op(const at::Tensor& affine, const at::Tensor& limits, const at::Tensor& table,
                     const at::Tensor& rotation, int64_t face, int64_t pad, const at::Tensor& grid,
@@ -1276,12 +1290,12 @@ void camera_grid_op(const at::Tensor& affine, const at::Tensor& limits, const at
     };
     check("affine", affine, {batch, 6});
     check("limits", limits, {batch, 5});
-    check("table", table, {batch, table.dim() == 3 ? table.size(1) : -1, 2});
+    check("table", table, {batch, 2, table.dim() == 3 ? table.size(2) : -1});
     check("rotation", rotation, {batch, 3, 3});
     check("grid", grid, {batch, grid.dim() == 4 ? grid.size(1) : -1,
                          grid.dim() == 4 ? grid.size(2) : -1, 2});
-    TORCH_CHECK(table.size(1) >= 2 && table.size(1) < kMaxOffset / 2, op,
-                ": table: expected 2 or more entries, got ", table.size(1));
+    TORCH_CHECK(table.size(2) >= 2 && table.size(2) < kMaxOffset / 2, op,
+                ": table: expected 2 or more entries, got ", table.size(2));
     check_contiguous(op, "valid", valid);
     TORCH_CHECK(valid.scalar_type() == at::kBool &&
                     valid.sizes() == at::IntArrayRef({batch, grid.size(1), grid.size(2)}),
@@ -1289,13 +1303,13 @@ void camera_grid_op(const at::Tensor& affine, const at::Tensor& limits, const at
                 valid.sizes());
     if (dtype == at::kFloat) {
         radial_grid<float>(affine.const_data_ptr<float>(), limits.const_data_ptr<float>(),
-                           table.const_data_ptr<float>(), table.size(1),
+                           table.const_data_ptr<float>(), table.size(2),
                            rotation.const_data_ptr<float>(), batch, grid.size(1), grid.size(2),
                            L, grid.mutable_data_ptr<float>(),
                            static_cast<uint8_t*>(valid.mutable_data_ptr()));
     } else {
         radial_grid<double>(affine.const_data_ptr<double>(), limits.const_data_ptr<double>(),
-                            table.const_data_ptr<double>(), table.size(1),
+                            table.const_data_ptr<double>(), table.size(2),
                             rotation.const_data_ptr<double>(), batch, grid.size(1),
                             grid.size(2), L, grid.mutable_data_ptr<double>(),
                             static_cast<uint8_t*>(valid.mutable_data_ptr()));

@@ -1,0 +1,324 @@
+"""Augmentation where models are trained: ``RandomOmniCamera`` inside ``DataLoader`` workers.
+
+Issue 17's throughput benchmark: images per second out of a ``torch.utils.data.DataLoader`` with
+``--workers`` workers (default 2, one thread each, as PyTorch sets them), batch ``B`` (default
+8), cubemaps ``6 x F x F`` (default F = 256: RGB + ``uint8`` labels) rendered to ``S x S``
+fisheyes (default S = 512), a new random camera and attitude per sample, for each fisheye model
+alone and for the mix of all four, with float32 and with ``uint8`` cubes. Rows, timed
+round-robin (every row once per round, ``--rounds`` rounds):
+
+* ``ours_collate``: the dataset returns cubes; ``collate_fn`` stacks a batch and applies
+  ``RandomOmniCamera((S, S), F, fisheye_models=...)`` (``seed`` fixed: a different draw per
+  worker and epoch);
+* ``ours_sample``: the dataset applies the module to each sample (a batch of 1);
+* ``peer``: what a user would write without this package, per sample in the dataset: numpy
+  draws a camera of the model (fov uniform in 160-200 deg, image circle inscribed, Kannala-
+  Brandt ``k1..k4`` uniform in +-0.02 with Newton's inverse in numpy), an attitude (roll +-25,
+  pitch +-10 deg, any yaw), builds the maps (``bench_augment.peer_maps``' face picking, the
+  edge-padded atlas) and ``cv2.remap``s RGB (bilinear) and labels (nearest); OpenCV on one
+  thread per worker.
+
+Each epoch builds a fresh ``DataLoader`` (non-persistent workers, fork) over ``--batches``
+batches; the throughput of an epoch is its images after the first batch over the time from the
+first batch to the last (the steady state), and ``first_batch_s`` the time from creating the
+iterator to the first batch (worker start included). Medians over the rounds.
+
+Targets (issue 17): every model, and the mix, at least 1.5x the peer's images/s (``TARGET``);
+Kannala-Brandt within 1.3x of equidistant's time (``KB_TARGET``).
+
+Usage::
+
+    python benchmarks/bench_workers.py            # 2 workers, B = 8, 6 x 256 -> 512 x 512
+    python benchmarks/bench_workers.py --quick    # seconds: 6 x 32 -> 64 x 64, 2 rounds
+
+Results: a markdown table on stdout and JSON (``--out``, default
+``benchmarks/results/workers.json``, written atomically).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Dataset
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_augment import FOV_RANGE, peer_atlas, peer_draw, SEED  # noqa: E402
+from bench_augment import FACE_A, FACE_B, FACE_R  # noqa: E402
+from common import (begin_run, loadavg, positive_int, run_record,  # noqa: E402
+                    write_json_atomic)
+from omniscape_torch.render.augment import FISHEYE_MODELS, RandomOmniCamera  # noqa: E402
+
+try:
+    import cv2
+except ImportError:   # the peer is skipped, our rows still run
+    cv2 = None
+
+TARGET = 1.5      # ours / peer images per second
+KB_TARGET = 1.3   # Kannala-Brandt / equidistant time per image
+KB_DISTORTION = 0.02   # RandomOmniCamera's default bound of k1..k4
+MIX = "mix"
+
+
+# --------------------------------------------------------------------------------------------
+# The peer: numpy maps of any of the four models + cv2.remap, per sample
+# --------------------------------------------------------------------------------------------
+
+def radius_of(model: str, theta: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """The normalised image radius of a ray ``theta`` off the axis."""
+    if model == "equidistant":
+        return theta
+    if model == "equisolid":
+        return 2 * np.sin(theta / 2)
+    if model == "stereographic":
+        return 2 * np.tan(theta / 2)
+    t2 = theta * theta
+    return theta * (1 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3]))))
+
+
+def theta_of(model: str, r: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`radius_of`: closed forms, Newton's method (10 steps) for
+    Kannala-Brandt, as a numpy user would write them."""
+    if model == "equidistant":
+        return r
+    if model == "equisolid":
+        return 2 * np.arcsin(np.minimum(r / 2, 1))
+    if model == "stereographic":
+        return 2 * np.arctan(r / 2)
+    theta = r.copy()
+    for _ in range(10):
+        t2 = theta * theta
+        f = theta * (1 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3])))) - r
+        df = 1 + t2 * (3 * k[0] + t2 * (5 * k[1] + t2 * (7 * k[2] + t2 * 9 * k[3])))
+        theta = theta - f / df
+    return theta
+
+
+def peer_maps(model: str, rng: np.random.Generator, size: int, face: int
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """``cv2.remap`` maps (float32, atlas pixels) of a random ``size x size`` fisheye of
+    ``model`` (image circle inscribed), randomly rotated; invalid pixels map outside."""
+    fov, rotation = peer_draw(rng)
+    k = rng.uniform(-KB_DISTORTION, KB_DISTORTION, 4) if model == "kannala_brandt" \
+        else np.zeros(4)
+    focal = (size / 2 - 0.5) / radius_of(model, np.array(fov / 2), k)
+    centre = (size - 1) / 2
+    coords = ((np.arange(size, dtype=np.float32) - centre) / focal).astype(np.float32)
+    x, y = np.meshgrid(coords, coords)
+    r = np.hypot(x, y)
+    theta = theta_of(model, r, k.astype(np.float32)).astype(np.float32)
+    scale = np.where(r > 0, np.sin(theta) / np.maximum(r, 1e-12), 1).astype(np.float32)
+    rays = np.stack((x * scale, y * scale, np.cos(theta)), axis=-1) @ rotation.astype(
+        np.float32).T
+    dots = rays @ FACE_A.T
+    index = np.argmax(dots, axis=-1)
+    along = np.take_along_axis(dots, index[..., None], axis=-1)[..., 0]
+    right = np.einsum("hwc,hwc->hw", rays, FACE_R[index])
+    down = np.einsum("hwc,hwc->hw", rays, FACE_B[index])
+    half, c_face, n_pad = face / 2, (face - 1) / 2, face + 2
+    map_x = (c_face + 1 + half * right / along).astype(np.float32)
+    map_y = (index * n_pad + c_face + 1 + half * down / along).astype(np.float32)
+    invalid = theta > fov / 2
+    map_x[invalid] = -10.0
+    map_y[invalid] = -10.0
+    return map_x, map_y
+
+
+# --------------------------------------------------------------------------------------------
+# Datasets and collate functions (module level: the workers pickle them)
+# --------------------------------------------------------------------------------------------
+
+class Cubes(Dataset):
+    """``length`` samples cycling through a pool of cubes: ``{"rgb": (6, 3, F, F), "labels":
+    (6, F, F) uint8}`` (``mode="cube"``), the same rendered by ``module`` (``"ours"``), or by
+    the peer (``"peer"``: numpy HWC faces, rendered per sample)."""
+
+    def __init__(self, rgb: torch.Tensor, labels: torch.Tensor, length: int, mode: str,
+                 module: RandomOmniCamera | None = None, model: str = "equidistant",
+                 size: int = 0) -> None:
+        self.rgb, self.labels, self.length, self.mode = rgb, labels, length, mode
+        self.module, self.model, self.size = module, model, size
+        if mode == "peer":
+            self.rgb_np = [np.ascontiguousarray(c.permute(0, 2, 3, 1).numpy()) for c in rgb]
+            self.labels_np = [np.ascontiguousarray(lab.numpy()) for lab in labels]
+            self.models = FISHEYE_MODELS if model == MIX else (model,)
+
+    def __len__(self) -> int:
+        return self.length
+
+    def __getitem__(self, i: int) -> dict:
+        j = i % len(self.rgb)
+        if self.mode == "cube":
+            return {"rgb": self.rgb[j], "labels": self.labels[j]}
+        if self.mode == "ours":
+            out = self.module(self.rgb[j:j + 1], labels=self.labels[j:j + 1])
+            return {"rgb": out["rgb"][0], "labels": out["labels"][0], "valid": out["valid"][0]}
+        rng = np.random.default_rng([SEED, torch.initial_seed() % 2**32, i])
+        model = self.models[int(rng.integers(len(self.models)))]
+        face = self.rgb_np[j].shape[1]
+        map_x, map_y = peer_maps(model, rng, self.size, face)
+        rgb = cv2.remap(peer_atlas(self.rgb_np[j]), map_x, map_y, cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0))
+        labels = cv2.remap(peer_atlas(self.labels_np[j]), map_x, map_y, cv2.INTER_NEAREST,
+                           borderMode=cv2.BORDER_CONSTANT, borderValue=255)
+        return {"rgb": torch.from_numpy(rgb).permute(2, 0, 1), "labels": torch.from_numpy(labels),
+                "valid": torch.from_numpy(map_x >= 0)}
+
+
+class Augment:
+    """``collate_fn``: the default collate, then the module on the batch."""
+
+    def __init__(self, module: RandomOmniCamera) -> None:
+        self.module = module
+
+    def __call__(self, samples: list[dict]) -> dict:
+        batch = torch.utils.data.default_collate(samples)
+        return self.module(batch["rgb"], labels=batch["labels"])
+
+
+def _one_thread(_: int) -> None:
+    if cv2 is not None:
+        cv2.setNumThreads(1)
+
+
+def epoch(dataset: Dataset, batch: int, workers: int, collate=None) -> tuple[float, float]:
+    """(seconds to the first batch, images per second after it) of one epoch."""
+    loader = DataLoader(dataset, batch_size=batch, num_workers=workers, collate_fn=collate,
+                        worker_init_fn=_one_thread, multiprocessing_context="fork"
+                        if workers else None)
+    start = time.perf_counter()
+    first = end = None
+    images = 0
+    for out in loader:
+        end = time.perf_counter()
+        if first is None:
+            first = end
+        else:
+            images += out["rgb"].shape[0]
+    return first - start, images / (end - first)
+
+
+# --------------------------------------------------------------------------------------------
+# The benchmark
+# --------------------------------------------------------------------------------------------
+
+def run(args: argparse.Namespace) -> dict:
+    load_start = begin_run(args.threads, cv2)
+    gen = torch.Generator().manual_seed(SEED)
+    pool = 4
+    cube = torch.rand(pool, 6, 3, args.face, args.face, generator=gen)
+    cubes = {"float32": cube, "uint8": (cube * 255).round().to(torch.uint8)}
+    labels = torch.randint(0, 13, (pool, 6, args.face, args.face), generator=gen,
+                           dtype=torch.uint8)
+    length = args.batch * args.batches
+    size = (args.size, args.size)
+    rows: list[tuple[dict, Dataset, object]] = []
+    for model in (*FISHEYE_MODELS, MIX):
+        models = FISHEYE_MODELS if model == MIX else (model,)
+        for dtype, rgb in cubes.items():
+            def module() -> RandomOmniCamera:
+                return RandomOmniCamera(size, args.face, mode="fisheye", fisheye_models=models,
+                                        seed=SEED)
+
+            head = {"model": model, "dtype": dtype}
+            rows.append(({**head, "row": "ours_collate"},
+                         Cubes(rgb, labels, length, "cube"), Augment(module())))
+            rows.append(({**head, "row": "ours_sample"},
+                         Cubes(rgb, labels, length, "ours", module()), None))
+            if cv2 is not None:
+                rows.append(({**head, "row": "peer"},
+                             Cubes(rgb, labels, length, "peer", model=model, size=args.size),
+                             None))
+    firsts: list[list[float]] = [[] for _ in rows]
+    rates: list[list[float]] = [[] for _ in rows]
+    from tqdm import tqdm
+    for _ in tqdm(range(args.rounds), desc="rounds", unit="round", file=sys.stderr):
+        for k, (_, dataset, collate) in enumerate(rows):
+            first, rate = epoch(dataset, args.batch, args.workers, collate)
+            firsts[k].append(first)
+            rates[k].append(rate)
+    results = []
+    for (head, _, _), first, rate in zip(rows, firsts, rates):
+        results.append({**head, "images_per_s": float(np.median(rate)),
+                        "images_per_s_all": rate, "first_batch_s": float(np.median(first))})
+    by = {(r["model"], r["dtype"], r["row"]): r for r in results}
+    ratios = []
+    for model in (*FISHEYE_MODELS, MIX):
+        for dtype in cubes:
+            peer = by.get((model, dtype, "peer"))
+            for row in ("ours_collate", "ours_sample"):
+                if peer is not None:
+                    value = by[model, dtype, row]["images_per_s"] / peer["images_per_s"]
+                    ratios.append({"model": model, "dtype": dtype, "ours": row, "peer": "peer",
+                                   "ratio": value, "target": TARGET,
+                                   "meets_target": value >= TARGET})
+    for dtype in cubes:
+        for row in ("ours_collate", "ours_sample"):
+            value = by["equidistant", dtype, row]["images_per_s"] / by[
+                "kannala_brandt", dtype, row]["images_per_s"]
+            ratios.append({"model": "kannala_brandt / equidistant (time)", "dtype": dtype,
+                           "ours": row, "peer": row, "ratio": value, "target": KB_TARGET,
+                           "meets_target": value <= KB_TARGET})
+    record = run_record("workers", torch.device("cpu"), args.threads, cv2)
+    record.update({"setup": {"workers": args.workers, "batch": args.batch, "face": args.face,
+                             "size": args.size, "batches": args.batches, "rounds": args.rounds,
+                             "fov_deg": [math.degrees(v) for v in FOV_RANGE]},
+                   "loadavg_start": load_start, "loadavg_end": loadavg(), "rows": results,
+                   "ratios": ratios})
+    return record
+
+
+def markdown(result: dict) -> str:
+    s = result["setup"]
+    lines = [f"DataLoader, {s['workers']} workers, batch {s['batch']}, 6 x {s['face']} -> "
+             f"{s['size']} x {s['size']}, medians of {s['rounds']} epochs of {s['batches']} "
+             f"batches; load {result['loadavg_start']} -> {result['loadavg_end']}", "",
+             "| model | cube | row | images/s | first batch |", "|---|---|---|---|---|"]
+    for r in result["rows"]:
+        lines.append(f"| {r['model']} | {r['dtype']} | {r['row']} | {r['images_per_s']:.1f} | "
+                     f"{r['first_batch_s']:.2f} s |")
+    lines += ["", "| model | cube | ours / peer | ratio | target |", "|---|---|---|---|---|"]
+    for q in result["ratios"]:
+        mark = "met" if q["meets_target"] else "missed"
+        sign = ">=" if q["peer"] == "peer" else "<="
+        lines.append(f"| {q['model']} | {q['dtype']} | {q['ours']} / {q['peer']} | "
+                     f"{q['ratio']:.2f} | {sign} {q['target']} ({mark}) |")
+    return "\n".join(lines)
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--workers", type=positive_int, default=2)
+    p.add_argument("--batch", type=positive_int, default=8)
+    p.add_argument("--face", type=positive_int, default=256)
+    p.add_argument("--size", type=positive_int, default=512)
+    p.add_argument("--batches", type=positive_int, default=8, help="batches per epoch")
+    p.add_argument("--rounds", type=positive_int, default=3)
+    p.add_argument("--threads", type=positive_int, default=2,
+                   help="torch threads of the main process (workers use one each)")
+    p.add_argument("--quick", action="store_true", help="6 x 32 -> 64 x 64, 2 rounds")
+    p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "workers.json")
+    args = p.parse_args(argv)
+    if args.quick:
+        args.face, args.size, args.rounds, args.batches = 32, 64, 2, 3
+    return args
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    result = run(args)
+    print(markdown(result))
+    write_json_atomic(result, args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
