@@ -39,6 +39,10 @@ class CameraModel:
         unproject_xyz: for a closed-form model, ``unproject`` as components:
             ``(u (...), v (...), params (..., P)) -> (x, y, z, valid)``, without input checks
             (for fused kernels: ``render.kernels.camera_grid``); None for the others.
+        domain_end: for a radially symmetric model whose unprojection is valid exactly where
+            the normalised radius is below a bound: ``params (..., P) -> (...)``, that bound
+            (``inf``: none), so that ``render.kernels.radial_table`` need not search for it;
+            None for the others.
     """
 
     name: str
@@ -50,6 +54,7 @@ class CameraModel:
     variadic: bool = False
     check_values: Callable[[Tensor], None] | None = None
     unproject_xyz: Callable[..., tuple[Tensor, Tensor, Tensor, Tensor]] | None = None
+    domain_end: Callable[[Tensor], Tensor] | None = None
 
     @property
     def num_params(self) -> int:

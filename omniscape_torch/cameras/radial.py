@@ -113,9 +113,16 @@ def _closed_form_model(name: str, r_of_theta, theta_of_r, r_limit: float, theta_
     def max_angle(params: Tensor) -> Tensor:
         return torch.full(params.shape[:-1], theta_limit, dtype=params.dtype, device=params.device)
 
+    # valid where r < end: the next number above an inclusive limit
+    end = math.nextafter(r_limit, math.inf) if inclusive else r_limit
+
+    def domain_end(params: Tensor) -> Tensor:
+        return torch.full(params.shape[:-1], end, dtype=params.dtype, device=params.device)
+
     project.__doc__ = unproject.__doc__ = doc
     return CameraModel(name, _FOCAL_NAMES, project, unproject, max_angle, _GROUPS,
-                       check_values=lambda p: _check_focal(p, name), unproject_xyz=unproject_xyz)
+                       check_values=lambda p: _check_focal(p, name), unproject_xyz=unproject_xyz,
+                       domain_end=domain_end)
 
 
 def _orthographic_theta(r: Tensor) -> Tensor:
@@ -316,4 +323,5 @@ def _check_kb(params: Tensor) -> None:
 
 KANNALA_BRANDT = CameraModel(
     "kannala_brandt", _KB_NAMES, kannala_brandt_project, kannala_brandt_unproject,
-    kannala_brandt_max_angle, {**_GROUPS, "distortion": (4, 5, 6, 7)}, check_values=_check_kb)
+    kannala_brandt_max_angle, {**_GROUPS, "distortion": (4, 5, 6, 7)}, check_values=_check_kb,
+    domain_end=kannala_brandt_domain_end)

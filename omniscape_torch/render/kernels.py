@@ -21,9 +21,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from ..cameras.radial import (kannala_brandt_domain_end, kannala_brandt_tabulate,
-                              kannala_brandt_unproject_table_xyz)
-from ..cameras.scaramuzza import scaramuzza_rho_limit
+from ..cameras.radial import kannala_brandt_tabulate, kannala_brandt_unproject_table_xyz
 from ..cameras.registry import get_model
 from ..cameras.unified import unified_unproject_undistorted_xyz
 from ..cubemap.faces import _check_face_size, _check_pad
@@ -58,13 +56,6 @@ RADIAL = ("pinhole", "equidistant", "equisolid", "stereographic", "orthographic"
 #: of linear interpolation between them).
 RADIAL_ENTRIES = 2048
 _SEARCH = 1024   # radii per round of the search for the end of a domain
-#: The radius (normalised) where a model's domain ends, for those whose validity is ``rho <
-#: end`` by their own rule: the table skips the search for it (the Newton inverses cost a
-#: call, ~10-30 ms, per round of the search).
-_DOMAIN_END: dict[str, Callable[[Tensor], Tensor]] = {
-    "kannala_brandt": kannala_brandt_domain_end,
-    "scaramuzza": scaramuzza_rho_limit,
-}
 
 
 def _affine(model: str, params: Tensor) -> Tensor:
@@ -90,7 +81,7 @@ def radial_table(model: str, params: Tensor, image_size: tuple[int, int],
     (B, 2, K)`` holds ``S = sin(theta) / rho`` and ``C = cos(theta)`` from the model's own
     ``unproject`` of points on the ``+x`` axis of ``m``, out to the farthest image corner or
     to the end of the model's domain, whichever comes first (the end by the model's own rule,
-    ``_DOMAIN_END``, else searched on its validity to float64 rounding). Without an end the
+    ``CameraModel.domain_end``, else searched on its validity to float64 rounding). Without an end the
     entries are evenly spaced in ``rho``; with one (a fold: there ``theta(rho)`` has a
     square-root singularity, so even spacing would leave angle errors of a texel in the last
     cells) they are evenly spaced in ``w = sqrt(root^2 - rho)``, in which ``theta`` is smooth,
@@ -118,8 +109,8 @@ def radial_table(model: str, params: Tensor, image_size: tuple[int, int],
     # per round: for the Newton inverses the calls, not the points, cost)
     lo, hi = torch.zeros_like(reach), reach
     ends = torch.zeros(batch, dtype=torch.bool)
-    known = _DOMAIN_END.get(model)
-    if known is not None:   # the model's own rule: valid where rho < end
+    known = get_model(model).domain_end
+    if known is not None:   # the model's own rule (the Newton inverses cost ~10-30 ms a call)
         end = known(p)
         ends = end < reach
         lo = torch.where(ends, end * (1 - 1e-12), reach)
