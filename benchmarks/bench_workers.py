@@ -300,8 +300,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--batch", type=positive_int, default=8)
     p.add_argument("--face", type=positive_int, default=256)
     p.add_argument("--size", type=positive_int, default=512)
-    p.add_argument("--batches", type=positive_int, default=8, help="batches per epoch")
-    p.add_argument("--rounds", type=positive_int, default=3)
+    p.add_argument("--batches", type=positive_int, default=16, help="batches per epoch")
+    p.add_argument("--rounds", type=positive_int, default=5)
     p.add_argument("--threads", type=positive_int, default=2,
                    help="torch threads of the main process (workers use one each)")
     p.add_argument("--quick", action="store_true", help="6 x 32 -> 64 x 64, 2 rounds")
