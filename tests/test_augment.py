@@ -407,3 +407,29 @@ def test_apply_to_key_refuses_augmentations_that_move_pixels(build):
     with pytest.raises(TypeError, match="moves pixels"):
         ApplyToKey(module)
     ApplyToKey(K.ColorJitter(0.1, 0.1))
+
+
+def test_kornia_geometric_augmentations_go_after_on_every_key():
+    """The README's composition: RandomOmniCamera, then kornia's AugmentationSequential on
+    rgb, labels and valid at once (masks: nearest); a flip moves all three alike, labels stay
+    labels (no blended values) and the pixels that an affine warp reveals are invalid, then
+    labelled ignore_index again."""
+    K = pytest.importorskip("kornia.augmentation")
+    gen = torch.Generator().manual_seed(0)
+    module = RandomOmniCamera((32, 32), 16, mode="fisheye", seed=1)
+    cube = torch.rand(2, 6, 3, 16, 16, generator=gen)
+    out = module(cube, labels=torch.randint(0, 5, (2, 6, 16, 16), generator=gen))
+    flip = K.AugmentationSequential(K.RandomHorizontalFlip(p=1.0),
+                                    data_keys=["input", "mask", "mask"])
+    rgb, labels, valid = flip(out["rgb"], out["labels"][:, None], out["valid"])
+    assert torch.equal(rgb, out["rgb"].flip(-1))
+    assert torch.equal(labels[:, 0], out["labels"].flip(-1))
+    assert torch.equal(valid, out["valid"].flip(-1))
+    warp = K.AugmentationSequential(K.RandomAffine(degrees=0, translate=(0.3, 0.3), p=1.0),
+                                    data_keys=["input", "mask", "mask"])
+    rgb, labels, valid = warp(out["rgb"], out["labels"][:, None], out["valid"])
+    assert labels.dtype == torch.int64 and valid.dtype == torch.bool
+    assert set(labels.unique().tolist()) <= set(out["labels"].unique().tolist()) | {0}
+    labels = labels[:, 0].masked_fill(~valid[:, 0], module.ignore_index)
+    assert bool((labels[~valid[:, 0]] == module.ignore_index).all())
+    assert int(valid.sum()) < int(out["valid"].sum())   # the shift revealed invalid pixels
