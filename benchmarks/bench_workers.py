@@ -16,7 +16,7 @@ round-robin (every row once per round, ``--rounds`` rounds):
   Brandt ``k1..k4`` uniform in +-0.02 with Newton's inverse in numpy), an attitude (roll +-25,
   pitch +-10 deg, any yaw), builds the maps (``bench_augment.peer_maps``' face picking, the
   edge-padded atlas) and ``cv2.remap``s RGB (bilinear) and labels (nearest); OpenCV on one
-  thread per worker.
+  thread per worker (set in the parent before the workers fork).
 
 Each epoch builds a fresh ``DataLoader`` (non-persistent workers, fork) over ``--batches``
 batches; the throughput of an epoch is its images after the first batch over the time from the
@@ -184,16 +184,10 @@ class Augment:
         return self.module(batch["rgb"], labels=batch["labels"])
 
 
-def _one_thread(_: int) -> None:
-    if cv2 is not None:
-        cv2.setNumThreads(1)
-
-
 def epoch(dataset: Dataset, batch: int, workers: int, collate=None) -> tuple[float, float]:
     """(seconds to the first batch, images per second after it) of one epoch."""
     loader = DataLoader(dataset, batch_size=batch, num_workers=workers, collate_fn=collate,
-                        worker_init_fn=_one_thread, multiprocessing_context="fork"
-                        if workers else None)
+                        multiprocessing_context="fork" if workers else None)
     start = time.perf_counter()
     first = end = None
     images = 0
@@ -211,7 +205,11 @@ def epoch(dataset: Dataset, batch: int, workers: int, collate=None) -> tuple[flo
 # --------------------------------------------------------------------------------------------
 
 def run(args: argparse.Namespace) -> dict:
-    load_start = begin_run(args.threads, cv2)
+    load_start = begin_run(args.threads)
+    if cv2 is not None:
+        # the peer runs in forked workers on one thread each: set before forking (OpenCV's
+        # thread pool does not survive a fork; changing it in a child deadlocked)
+        cv2.setNumThreads(1)
     gen = torch.Generator().manual_seed(SEED)
     pool = 4
     cube = torch.rand(pool, 6, 3, args.face, args.face, generator=gen)
