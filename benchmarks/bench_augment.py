@@ -129,7 +129,14 @@ def peer_maps(fov: float, rotation: np.ndarray, size: int, face: int
     theta = np.hypot(x, y)
     scale = np.sinc(theta / np.pi)  # sin(theta) / theta, 1 at 0
     rays = np.stack((x * scale, y * scale, np.cos(theta)), axis=-1)  # (S, S, 3)
-    rays = rays @ rotation.astype(np.float32).T  # ray_cube = R @ ray_cam
+    return atlas_maps(rays @ rotation.astype(np.float32).T, theta > fov / 2, face)
+
+
+def atlas_maps(rays: np.ndarray, invalid: np.ndarray, face: int
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """``cv2.remap`` maps (float32) into :func:`peer_atlas` of cube-frame ``rays (S, S, 3)``:
+    the face each ray looks at (argmax of the six face axes) and its face pixel; the
+    ``invalid`` pixels map outside the atlas."""
     dots = rays @ FACE_A.T  # (S, S, 6)
     k = np.argmax(dots, axis=-1)
     along = np.take_along_axis(dots, k[..., None], axis=-1)[..., 0]
@@ -138,7 +145,6 @@ def peer_maps(fov: float, rotation: np.ndarray, size: int, face: int
     half, c_face, n_pad = face / 2, (face - 1) / 2, face + 2
     map_x = (c_face + 1 + half * right / along).astype(np.float32)
     map_y = (k * n_pad + c_face + 1 + half * down / along).astype(np.float32)
-    invalid = theta > fov / 2
     map_x[invalid] = -10.0
     map_y[invalid] = -10.0
     return map_x, map_y

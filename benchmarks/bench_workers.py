@@ -14,8 +14,8 @@ round-robin (every row once per round, ``--rounds`` rounds):
 * ``peer``: what a user would write without this package, per sample in the dataset: numpy
   draws a camera of the model (fov uniform in 160-200 deg, image circle inscribed, Kannala-
   Brandt ``k1..k4`` uniform in +-0.02 with Newton's inverse in numpy), an attitude (roll +-25,
-  pitch +-10 deg, any yaw), builds the maps (``bench_augment.peer_maps``' face picking, the
-  edge-padded atlas) and ``cv2.remap``s RGB (bilinear) and labels (nearest); OpenCV on one
+  pitch +-10 deg, any yaw), builds the maps (``bench_augment.atlas_maps``: face picking into
+  the edge-padded atlas) and ``cv2.remap``s RGB (bilinear) and labels (nearest); OpenCV on one
   thread per worker (set in the parent before the workers fork).
 
 Each epoch builds a fresh ``DataLoader`` (non-persistent workers, fork) over ``--batches``
@@ -51,8 +51,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_augment import FOV_RANGE, peer_atlas, peer_draw, SEED  # noqa: E402
-from bench_augment import FACE_A, FACE_B, FACE_R  # noqa: E402
+from bench_augment import FOV_RANGE, atlas_maps, peer_atlas, peer_draw, SEED  # noqa: E402
 from common import (begin_run, loadavg, positive_int, run_record,  # noqa: E402
                     write_json_atomic)
 from omniscape_torch.render.augment import FISHEYE_MODELS, RandomOmniCamera  # noqa: E402
@@ -116,20 +115,8 @@ def peer_maps(model: str, rng: np.random.Generator, size: int, face: int
     r = np.hypot(x, y)
     theta = theta_of(model, r, k.astype(np.float32)).astype(np.float32)
     scale = np.where(r > 0, np.sin(theta) / np.maximum(r, 1e-12), 1).astype(np.float32)
-    rays = np.stack((x * scale, y * scale, np.cos(theta)), axis=-1) @ rotation.astype(
-        np.float32).T
-    dots = rays @ FACE_A.T
-    index = np.argmax(dots, axis=-1)
-    along = np.take_along_axis(dots, index[..., None], axis=-1)[..., 0]
-    right = np.einsum("hwc,hwc->hw", rays, FACE_R[index])
-    down = np.einsum("hwc,hwc->hw", rays, FACE_B[index])
-    half, c_face, n_pad = face / 2, (face - 1) / 2, face + 2
-    map_x = (c_face + 1 + half * right / along).astype(np.float32)
-    map_y = (index * n_pad + c_face + 1 + half * down / along).astype(np.float32)
-    invalid = theta > fov / 2
-    map_x[invalid] = -10.0
-    map_y[invalid] = -10.0
-    return map_x, map_y
+    rays = np.stack((x * scale, y * scale, np.cos(theta)), axis=-1)
+    return atlas_maps(rays @ rotation.astype(np.float32).T, theta > fov / 2, face)
 
 
 # --------------------------------------------------------------------------------------------
