@@ -468,16 +468,17 @@ class RandomOmniCamera(nn.Module):
         return out
 
     def _monotonic_kb(self, k: Tensor, half: Tensor) -> Tensor:
-        """``(n, 4)`` coefficients halved until ``max_angle > half + margin`` (zero at worst)."""
-        head = torch.ones(k.shape[0], 4, dtype=k.dtype)
-        model = get_model("kannala_brandt")
-        for _ in range(_KB_SHRINK_STEPS):
-            bad = model.max_angle(torch.cat((head, k), -1)) <= half + _ANGLE_MARGIN
-            if not bool(bad.any()):
-                return k
-            k = torch.where(bad[:, None], 0.5 * k, k)
-        bad = model.max_angle(torch.cat((head, k), -1)) <= half + _ANGLE_MARGIN
-        return torch.where(bad[:, None], torch.zeros_like(k), k)
+        """``(n, 4)`` coefficients halved until ``max_angle > half + margin`` (zero at worst):
+        every halving judged in one call of ``max_angle`` (a polynomial root per row), the
+        first good one kept."""
+        n, steps = k.shape[0], _KB_SHRINK_STEPS + 1
+        scales = 0.5 ** torch.arange(steps, dtype=k.dtype)
+        candidates = k[:, None, :] * scales[None, :, None]                   # (n, steps, 4)
+        params = torch.cat((torch.ones(n, steps, 4, dtype=k.dtype), candidates), -1)
+        good = get_model("kannala_brandt").max_angle(params) > (half + _ANGLE_MARGIN)[:, None]
+        first = torch.where(good.any(-1), good.int().argmax(-1), steps)      # (n,)
+        chosen = candidates.gather(1, first.clamp_max(steps - 1)[:, None, None].expand(n, 1, 4))
+        return torch.where((first < steps)[:, None], chosen[:, 0], torch.zeros_like(k))
 
     # ---------------------------------------------------------------------------------------
     # Rendering
