@@ -83,14 +83,18 @@ def assert_rounded(got: torch.Tensor, ref: torch.Tensor, what: str = "") -> None
 # ------------------------------------------------------------------------------------------
 # sample_cube / sample_atlas against grid_sample on the atlas
 # ------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("mode", ["nearest", "bilinear"])
-@pytest.mark.parametrize("dtype", [f32, f64])
-@pytest.mark.parametrize("size,pad,channels,batch,grid_batch,border", [
+#: size, pad, channels, batch, grid batch, border of the cubes sampled against grid_sample
+CUBE_CASES = [
     (8, 1, 3, 2, 1, "bilinear"),  # one grid for the batch (a frozen camera)
     (7, 2, 1, 2, 2, "nearest"),  # odd size, pad 2, a grid per sample
     (5, 1, 5, 1, 1, "copied"),  # 5 channels, each face padded with its own texels
     (6, 0, 2, 1, 1, "bilinear"),  # no border: taps across the stacked faces
-])
+]
+
+
+@pytest.mark.parametrize("mode", ["nearest", "bilinear"])
+@pytest.mark.parametrize("dtype", [f32, f64])
+@pytest.mark.parametrize("size,pad,channels,batch,grid_batch,border", CUBE_CASES)
 def test_sample_cube_equals_grid_sample(mode, dtype, size, pad, channels, batch, grid_batch,
                                         border):
     cube = make_cube(batch, channels, size, dtype)
@@ -112,11 +116,7 @@ def test_sample_cube_equals_grid_sample(mode, dtype, size, pad, channels, batch,
 
 @pytest.mark.parametrize("mode", ["nearest", "bilinear"])
 @pytest.mark.parametrize("channels_last", [False, True])
-@pytest.mark.parametrize("size,pad,channels,batch,grid_batch,border", [
-    (8, 1, 3, 2, 1, "bilinear"),  # one grid for the batch (a frozen camera)
-    (7, 2, 1, 2, 2, "nearest"),  # odd size, pad 2, a grid per sample
-    (5, 1, 5, 1, 1, "copied"),  # 5 channels, each face padded with its own texels
-    (6, 0, 2, 1, 1, "bilinear"),  # no border: taps across the stacked faces
+@pytest.mark.parametrize("size,pad,channels,batch,grid_batch,border", CUBE_CASES + [
     (8, 1, 4, 2, 2, "bilinear"),  # 4 channels (channels-last: one 4-byte load per texel)
 ])
 def test_sample_cube_of_uint8_is_the_rounded_grid_sample(mode, channels_last, size, pad,
