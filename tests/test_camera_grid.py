@@ -239,3 +239,31 @@ def test_radial_table_refuses_what_is_not_radial():
                            size) is not None
     eq = torch.tensor([[100.0, 100.0, 50.0, 40.0]], dtype=torch.float64)
     assert fg.radial_table("equirectangular", eq, (80, 100)) is None
+
+
+def test_radial_table_of_a_real_ocamcalib_calibration():
+    """The shared OCamCalib file (1600 x 1600, a real lens with its affine terms) through the
+    table path: the same valid pixels as the exact chain (Scaramuzza's polynomial, Newton per
+    pixel, float64) and grid points within 0.005 texel on 512-texel faces, except where a ray
+    lies within float32 rounding of an edge between two faces (one pixel here, 2e-8 apart):
+    there either face is right."""
+    from conftest import OCAMCALIB_FILE
+    cam = ot.Camera.from_ocamcalib(OCAMCALIB_FILE)
+    face, pad = 512, 2
+    rot = random_rotations(2, torch.float64, seed=7)
+    params = cam.params.double()[None].expand(2, -1)
+    assert fg.radial_table("scaramuzza", params, cam.image_size) is not None
+    grid, valid = fg.camera_grid("scaramuzza", params.float(), cam.image_size, face, pad,
+                                 rotation=rot.float())
+    rays, ref_valid = cam.ray_grid()
+    n = face + 2 * pad
+    for i in range(2):
+        ref = cgrid.rotated_rays_to_grid_reference(rays.double(), rot[i], face, pad)[0]
+        assert torch.equal(valid[i], ref_valid)
+        top = (rays.double() @ rot[i].T).abs().sort(-1, descending=True).values
+        tie = (top[..., 0] - top[..., 1]) < 1e-6
+        assert int((ref_valid & tie).sum()) <= 5
+        keep = ref_valid & ~tie
+        texels = (grid[i].double() - ref)[keep] * torch.tensor([n / 2, 6 * n / 2],
+                                                               dtype=torch.float64)
+        assert float(texels.norm(dim=-1).max()) <= 5e-3
