@@ -62,11 +62,11 @@ __all__ = ["MEMORY_PER_PIXEL", "PROCESS_MEMORY", "available_memory", "face_size_
 CRITERIA = ("anisotropic", "isotropic")
 
 #: Memory of a process that renders, before its images: Python, torch, the package (bytes;
-#: measured 340-460 MB, with headroom for the allocator: a fresh CI machine once peaked at
-#: 1.23 GB for a frame that usually peaks at 0.6-0.8 GB, above the 700 MB this was); and the
-#: peak bytes per pixel of an image rendered through the layer (rays, grid, RGB, depth, labels
-#: and mask, their encoding; measured 110 on the built-in town's dataset, tests/test_dataset.py).
-PROCESS_MEMORY, MEMORY_PER_PIXEL = 850e6, 160
+#: measured 340-460 MB, with headroom for the allocator: a frame of tests/test_dataset.py peaks
+#: at 0.6-0.8 GB against an estimate of 1.2 GB); and the peak bytes per pixel of an image
+#: rendered through the layer (rays, grid, RGB, depth, labels and mask, their encoding;
+#: measured 110 on the built-in town's dataset, tests/test_dataset.py).
+PROCESS_MEMORY, MEMORY_PER_PIXEL = 700e6, 160
 
 
 # --------------------------------------------------------------------------------------------
