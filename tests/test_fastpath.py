@@ -29,6 +29,16 @@ f32, f64 = torch.float32, torch.float64
 ATOL = {f32: 4 * torch.finfo(f32).eps, f64: 128 * torch.finfo(f64).eps}
 
 
+def grid_rounding(face_size: int, pad: int, dtype=f32) -> float:
+    """Texels by which a normalised grid point of the atlas (``6 n`` rows for ``2`` units of
+    the grid, ``n = F + 2 pad``) may miss the atlas pixel it was made from: an ulp of a grid
+    coordinate in ``[-1, 1]`` (at most eps) is ``3 n`` eps rows. ``fast.sample_rays`` computes
+    bilinear taps from the atlas pixel directly, so it differs from the image of the grid by up
+    to this much of a texel step (and lies closer to the exact image:
+    ``test_sample_rays_is_closer_to_the_exact_image_than_the_grid``)."""
+    return 3 * (face_size + 2 * pad) * torch.finfo(dtype).eps
+
+
 def make_cube(batch: int, channels: int, size: int, dtype=f32, seed: int = 0) -> torch.Tensor:
     gen = torch.Generator().manual_seed(seed)
     return torch.rand(batch, 6, channels, size, size, generator=gen, dtype=dtype)
@@ -248,14 +258,16 @@ def test_reference_path_without_a_compiler(monkeypatch, mode):
     with pytest.raises(RuntimeError, match="fast sampler is unavailable"):
         fastsample.sample_cube(cube, make_grid(1), mode, pad=1)
     reference = run(False)
-    for got, ref, fast in zip(without, reference * 2, compiled * 2):
+    for k, (got, ref, fast) in enumerate(zip(without, reference * 2, compiled * 2)):
         assert set(got) == set(ref) == set(fast)
         for key in got:   # the reference path itself
             assert torch.equal(got[key], ref[key]), key
         assert torch.equal(got["valid"], fast["valid"])
         assert torch.equal(got["labels"], fast["labels"])   # ids beyond float precision
-        for key in ("rgb", "depth"):
-            torch.testing.assert_close(got[key], fast[key], atol=ATOL[f32] * 10, rtol=0)
+        rotated = k % 2 == 1 and mode == "bilinear"   # sample_rays: taps from the rays
+        for key, span in (("rgb", 1.0), ("depth", 9.0)):   # the values' range
+            atol = ATOL[f32] * 10 + (grid_rounding(8, 1) * span if rotated else 0.0)
+            torch.testing.assert_close(got[key], fast[key], atol=atol, rtol=0)
 
 
 def test_out_valid_and_fill():
@@ -374,7 +386,9 @@ def spec_grid(rays: torch.Tensor, rotation, size: int, pad: int, dtype) -> torch
     (1, 1, 0, "bilinear"),   # no border
 ])
 def test_sample_rays_is_sample_cube_of_the_grid(mode, dtype, ray_batch, rot_batch, pad, border):
-    """Bit for bit the image of the grid of fastgrid's maths, and grid_sample's to rounding."""
+    """The image of the grid of fastgrid's maths: bit for bit for nearest (a tie rounds as
+    grid_sample rounds it), to the grid's own rounding for bilinear (the taps come from the rays
+    directly); grid_sample's to rounding."""
     cube = make_cube(2, 3, 8, dtype)
     rays = make_rays(ray_batch, dtype)
     rotation = None if rot_batch is None else rotations(rot_batch).to(dtype)
@@ -383,16 +397,37 @@ def test_sample_rays_is_sample_cube_of_the_grid(mode, dtype, ray_batch, rot_batc
     got = fastsample.sample_rays(cube, rays, rotation, mode, pad=pad, border=border,
                                  valid=valid)
     assert got.dtype == dtype and got.shape == (2, 3, 23, 17)
-    assert torch.equal(got, fastsample.sample_cube(cube, grid, mode, pad=pad, border=border,
-                                                   valid=valid))
+    of_grid = fastsample.sample_cube(cube, grid, mode, pad=pad, border=border, valid=valid)
+    atol = ATOL[dtype] + (grid_rounding(8, pad, dtype) if mode == "bilinear" else 0.0)
+    if mode == "nearest":
+        assert torch.equal(got, of_grid)
+    else:
+        torch.testing.assert_close(got, of_grid, atol=atol, rtol=0)
     if border == "copied":
         atlas = copied_atlas(cube, pad)
     else:
         atlas = cm.cubemap_to_atlas(cube, pad, border) if pad else cm.faces_to_atlas(cube)
     masked = torch.where(valid.unsqueeze(-1), grid, torch.full_like(grid, -2.0))
-    torch.testing.assert_close(got, reference(atlas, masked, mode), atol=ATOL[dtype], rtol=0)
+    torch.testing.assert_close(got, reference(atlas, masked, mode), atol=atol, rtol=0)
     if rotation is not None:   # the compiled grid (the layer's) is the same grid
         assert torch.equal(fastgrid.rotated_rays_to_grid(rays, rotation, 8, pad), grid)
+
+
+@pytest.mark.parametrize("face_size,pad", [(8, 1), (64, 2), (512, 2)])
+def test_sample_rays_is_closer_to_the_exact_image_than_the_grid(face_size, pad):
+    """Bilinear taps straight from float32 rays miss the exact image (float64 rays, grid and
+    cube) by less than the image of the float32 grid does: the normalised grid rounds each
+    atlas row by up to ``3 n`` eps (:func:`grid_rounding`), the rays path by ``n`` eps."""
+    cube = make_cube(2, 3, face_size)
+    rays, rotation = make_rays(1, h=64, w=64), rotations(2).float()
+    exact = fastsample.sample_cube(cube.double(), spec_grid(rays.double(), rotation.double(),
+                                                            face_size, pad, f64), pad=pad)
+    of_grid = fastsample.sample_cube(cube, spec_grid(rays, rotation, face_size, pad, f32),
+                                     pad=pad)
+    got = fastsample.sample_rays(cube, rays, rotation, pad=pad)
+    error = (got.double() - exact).abs().max()
+    assert error < (of_grid.double() - exact).abs().max()
+    assert error <= grid_rounding(face_size, pad) + ATOL[f32]
 
 
 def test_sample_rays_of_labels_and_half_precision():

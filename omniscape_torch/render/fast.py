@@ -442,12 +442,18 @@ def sample_rays(cubemap: Tensor, rays: Tensor, rotation: Tensor | None = None,
     """:func:`sample_cube` through the grid of camera-frame ``rays`` rotated into the cube
     frame, without storing the grid.
 
-    Equal, bit for bit, to ``sample_cube(cubemap, cubemap.grid.rotated_rays_to_grid(rays,
-    rotation, F, pad, dtype=work_dtype(cubemap.dtype)), ...)``: the C++ kernel computes each
-    pixel's grid point in the sampling pass, with the operations of the compiled
-    ``rotated_rays_to_grid`` in the same order, and reads the cube straight away, so a grid used
-    once (a new rotation per call) costs no pass over memory of its own. For rays in another
-    dtype than :func:`work_dtype` the grid is built first.
+    The image of ``sample_cube(cubemap, cubemap.grid.rotated_rays_to_grid(rays, rotation, F,
+    pad, dtype=work_dtype(cubemap.dtype)), ...)``, and the grid never stored: the C++ kernel
+    computes each pixel's face and face pixel ``(u, v)`` in the sampling pass, with the
+    operations of the compiled ``rotated_rays_to_grid`` in the same order, and reads the cube
+    straight away, so a grid used once (a new rotation per call) costs no pass over memory of
+    its own. Nearest sampling goes through the grid point itself (bit for bit, ties rounded as
+    ``grid_sample`` rounds them); bilinear taps come from the atlas pixel ``(u + pad, v + pad +
+    face n)`` directly, without the normalised grid and back (two divisions and a float64
+    unnormalisation fewer per pixel: 0.6x the time of a 1024 x 1024 ``uint8`` frame), so they
+    differ from the grid's image by the grid's own rounding (an ulp of a grid coordinate is up
+    to ``3 n`` eps atlas rows) and lie closer to the exact image. For rays in another dtype than
+    :func:`work_dtype` the grid is built first.
 
     Args:
         cubemap: ``(B, 6, C, F, F)`` on the CPU, as for :func:`sample_cube`.

@@ -52,7 +52,7 @@ namespace {
 
 constexpr int32_t kOutside = -1;
 constexpr int32_t kEdge = -2;
-constexpr int64_t kTileW = 64, kTileH = 16;  // pixels per unit of work of the samplers
+constexpr int64_t kSegment = 256;  // pixels of a row per unit of work of the samplers
 constexpr int64_t kChunk = 4096;  // grid points per unit of work of the table
 constexpr int64_t kAhead = 16;    // pixels between a prefetch and the read (-12% time)
 
@@ -202,8 +202,8 @@ struct Split {
 // The three arrays of a segment of pixels, on the stack.
 template <typename G>
 struct SplitBuffer {
-    int32_t code[kTileW];
-    G fx[kTileW], fy[kTileW];
+    int32_t code[kSegment];
+    G fx[kSegment], fy[kSegment];
     Split<G> taps() { return Split<G>{code, fx, fy}; }
 };
 
@@ -345,14 +345,13 @@ inline O emit(V v) {
     }
 }
 
-// An edge pixel at grid point (gx, gy) of one sample: its taps located once, then read through
+// An edge pixel at atlas pixel (x, y) of one sample: its taps located once, then read through
 // the virtual atlas for every channel into out[c out_chan]. Not inlined: rare, and inlined into
 // sample_span it slowed the whole pass by 10% (1M pixels, 0.2% of them edge pixels).
 template <typename T, typename O, typename G>
-__attribute__((noinline)) void edge_pixel(const T* cube, const Ring<T>& R, G gx, G gy,
+__attribute__((noinline)) void edge_pixel(const T* cube, const Ring<T>& R, G x, G y,
                                           const Layout& L, bool bilinear, const Planes& S,
                                           O* out) {
-    const G x = unnormalize(gx, L.half_x), y = unnormalize(gy, L.half_y);
     if (!bilinear) {
         const Tap t = atlas_tap(static_cast<int64_t>(std::nearbyint(x)),
                                 static_cast<int64_t>(std::nearbyint(y)), L);
@@ -574,11 +573,26 @@ void interior_planes(const T* __restrict cube, int64_t src_chan, Taps t, int64_t
 }
 #endif
 
-// Output pixels [lo, lo + m) of sample b: the entries `t` and `grid` (the pixels' grid
-// points, for the edge pixels) start at the first of them; the pixels outside read `fill`.
-// Up to 4 channels per pass over the pixels (interior), then the edge pixels again.
-template <typename T, typename O, typename G, typename Taps>
-void sample_span(const T* cube, const Ring<T>& R, Taps t, const G* grid, int64_t m,
+// Where the edge pixels of a segment lie: their grid points (x, y pairs, unnormalised as
+// grid_sample does) or their atlas pixels (two arrays, from locate_rays).
+template <typename G>
+struct GridPoints {
+    const G* grid;
+    G x(int64_t p, const Layout& L) const { return unnormalize(grid[2 * p], L.half_x); }
+    G y(int64_t p, const Layout& L) const { return unnormalize(grid[2 * p + 1], L.half_y); }
+};
+template <typename G>
+struct AtlasPoints {
+    const G *xs, *ys;
+    G x(int64_t p, const Layout&) const { return xs[p]; }
+    G y(int64_t p, const Layout&) const { return ys[p]; }
+};
+
+// Output pixels [lo, lo + m) of sample b: the entries `t` and the `points` (for the edge
+// pixels) start at the first of them; the pixels outside read `fill`. Up to 4 channels per
+// pass over the pixels (interior), then the edge pixels again.
+template <typename T, typename O, typename G, typename Taps, typename Points>
+void sample_span(const T* cube, const Ring<T>& R, Taps t, Points points, int64_t m,
                  const Layout& L, bool bilinear, O fill, const Planes& S, O* out) {
     for (int64_t c = 0; c < S.chans; c += 4) {
         const T* q = cube + c * S.src_chan;
@@ -620,33 +634,31 @@ void sample_span(const T* cube, const Ring<T>& R, Taps t, const G* grid, int64_t
     }
     for (int64_t p = 0; p < m; ++p) {
         if (t.code(p) == kEdge) {
-            edge_pixel<T, O, G>(cube, R, grid[2 * p], grid[2 * p + 1], L, bilinear, S,
+            edge_pixel<T, O, G>(cube, R, points.x(p, L), points.y(p, L), L, bilinear, S,
                                 out + p * S.out_pix);
         }
     }
 }
 
-// fn(b, lo, m) for the row segments [lo, lo + m) of every tile of kTileW x kTileH pixels of
-// every sample, the tiles spread over PyTorch's intra-op threads (at::parallel_for: a run of
-// consecutive tiles per thread; one thread in DataLoader workers), every sample of a tile in
-// turn, so that a table or rays shared by the batch are read from memory once. A tile, not a
-// row: the taps of a rotated camera's row can run down a face's columns, a new cache line
-// each; those of a tile stay in a small patch of the cube.
+// fn(b, lo, m) for the row segments [lo, lo + m) of kSegment pixels (fewer at a row's end) of
+// every sample, the segments spread over PyTorch's intra-op threads (at::parallel_for: a run of
+// consecutive segments per thread; one thread in DataLoader workers), every sample of a segment
+// in turn, so that a table or rays shared by the batch are read from memory once. Rows, not
+// tiles: the table or rays of a row segment are one stream that the CPU's prefetcher follows
+// (tiles of 64 x 16 pixels read 16 short streams and waited for memory: the rays path took 1.6x
+// as long, the table path 1.1x, 6 x 512 -> 1024 x 1024 on a 2-core AMD EPYC (Zen 3) VM).
 template <typename Fn>
-void for_tiles(const Planes& S, Fn fn) {
+void for_segments(const Planes& S, Fn fn) {
     if (S.pixels == 0 || S.chans == 0) {   // an empty image: nothing to write
         return;
     }
-    const int64_t height = S.pixels / S.width;
-    const int64_t nx = (S.width + kTileW - 1) / kTileW, ny = (height + kTileH - 1) / kTileH;
-    at::parallel_for(0, S.batch * nx * ny, 1, [&](int64_t begin, int64_t end) {
+    const int64_t per_row = (S.width + kSegment - 1) / kSegment;
+    const int64_t segments = S.pixels / S.width * per_row;
+    at::parallel_for(0, S.batch * segments, 1, [&](int64_t begin, int64_t end) {
         for (int64_t index = begin; index < end; ++index) {
-            const int64_t t = index / S.batch, b = index % S.batch;
-            const int64_t x0 = (t % nx) * kTileW, y0 = (t / nx) * kTileH;
-            const int64_t m = std::min(kTileW, S.width - x0);
-            for (int64_t y = y0; y < std::min(y0 + kTileH, height); ++y) {
-                fn(b, y * S.width + x0, m);
-            }
+            const int64_t segment = index / S.batch, b = index % S.batch;
+            const int64_t y = segment / per_row, x0 = (segment % per_row) * kSegment;
+            fn(b, y * S.width + x0, std::min(kSegment, S.width - x0));
         }
     });
 }
@@ -658,11 +670,11 @@ void sample_lut(const T* src, const Entry<G>* table, const G* grid, int64_t lut_
                 const Ring<T>& R, const Layout& L, bool bilinear, O fill, Planes S, O* out) {
     // the top-left tap of the last interior pixel: its 4 taps (nearest: its 1) in the last face
     const int64_t limit = L.last() - (bilinear ? L.row + L.texel : 0);
-    for_tiles(S, [&](int64_t b, int64_t lo, int64_t m) {
+    for_segments(S, [&](int64_t b, int64_t lo, int64_t m) {
         const int64_t at = b * lut_batch + lo;
         const Packed<G> taps{const_cast<Entry<G>*>(table) + at, limit};   // read only
-        sample_span<T, O, G>(src + b * S.src_batch, R, taps, grid + 2 * at, m, L, bilinear,
-                             fill, S, out + b * S.out_batch + lo * S.out_pix);
+        sample_span<T, O, G>(src + b * S.src_batch, R, taps, GridPoints<G>{grid + 2 * at}, m, L,
+                             bilinear, fill, S, out + b * S.out_batch + lo * S.out_pix);
     });
 }
 
@@ -673,7 +685,8 @@ void sample_points(const T* cube, const G* g, const uint8_t* valid, int64_t m, c
                    const Layout& L, bool bilinear, O fill, const Planes& S, O* out) {
     SplitBuffer<G> buffer;
     locate<G>(g, m, valid, L, bilinear, buffer.taps());
-    sample_span<T, O, G>(cube, R, buffer.taps(), g, m, L, bilinear, fill, S, out);
+    sample_span<T, O, G>(cube, R, buffer.taps(), GridPoints<G>{g}, m, L, bilinear, fill, S,
+                         out);
 }
 
 // A grid used once (grid_batch = 0: one grid for the batch, else 2 P): the codes computed in
@@ -683,7 +696,7 @@ template <typename T, typename O, typename G>
 void sample_grid(const T* src, const G* grid, int64_t grid_batch, const uint8_t* valid,
                  int64_t valid_batch, const Ring<T>& R, const Layout& L, bool bilinear, O fill,
                  Planes S, O* out) {
-    for_tiles(S, [&](int64_t b, int64_t lo, int64_t m) {
+    for_segments(S, [&](int64_t b, int64_t lo, int64_t m) {
         sample_points<T, O, G>(src + b * S.src_batch, grid + b * grid_batch + 2 * lo,
                                valid == nullptr ? nullptr : valid + b * valid_batch + lo, m, R,
                                L, bilinear, fill, S, out + b * S.out_batch + lo * S.out_pix);
@@ -780,20 +793,126 @@ void ray_grid(const G* rays, const G* rot, int64_t count, const Layout& L, G* gr
     }
 }
 
+// Column Col (1: r, 3: b) of the rotated ray (px, py, pz) in the two cases of dominant axis A
+// (0 x, 1 y, 2 z; `neg`: the negative one): the component and sign of the face table chosen at
+// compile time, so that a case is a component or its negation (a loop over the table did not
+// vectorise, nor did selections among the seven cases at once).
+template <typename G, int A, int Col>
+inline G axis_value(bool neg, G px, G py, G pz) {
+    constexpr int32_t axis = case_entry<2 * A, Col>(), sign = case_entry<2 * A, Col + 1>();
+    if constexpr (axis == case_entry<2 * A + 1, Col>()) {
+        const G v = axis == 0 ? px : (axis == 1 ? py : pz);
+        const G pos = sign > 0 ? v : -v;
+        if constexpr (sign == case_entry<2 * A + 1, Col + 1>()) {
+            return pos;
+        } else {
+            return neg ? -pos : pos;
+        }
+    } else {
+        return neg ? case_value<G, 2 * A + 1, Col>(px, py, pz)
+                   : case_value<G, 2 * A, Col>(px, py, pz);
+    }
+}
+
+// The bilinear taps of `count` rays rotated by `rot` (row-major 3 x 3, null: none): each ray's
+// face and face pixel (u, v) as ray_grid finds them (the rotation, the dominant axis, r . p and
+// b . p over a . p), then its atlas pixel x = u + pad, y = v + pad + face n straight away (what
+// grid_sample unnormalises the grid of ray_grid to, up to float rounding: two divisions and a
+// double-precision unnormalisation fewer per pixel), its code and fractions as locate computes
+// them, and the atlas pixel into xs, ys (for the edge pixels). Nearest sampling goes through the
+// grid itself (sample_rays): rounding to a texel is not continuous, so its ties are grid_sample's.
+template <typename G, bool Rotate>
+void locate_rays(const G* __restrict rays, const G* __restrict rot, int64_t count,
+                 const uint8_t* __restrict valid, const Layout& L, Split<G> out,
+                 G* __restrict xs, G* __restrict ys) {
+    const G f = G(L.face) / G(2), centre = G(L.pad) + G(L.face - 1) / G(2), n = G(L.n);
+    const int32_t face = static_cast<int32_t>(L.face), pad = static_cast<int32_t>(L.pad);
+    const uint32_t stride = static_cast<uint32_t>(L.face_stride);
+    const uint32_t row = static_cast<uint32_t>(L.row), texel = static_cast<uint32_t>(L.texel);
+    G r[9];
+    if (Rotate) {
+        std::copy(rot, rot + 9, r);
+    }
+    for (int64_t p = 0; p < count; ++p) {
+        const G x = rays[3 * p], y = rays[3 * p + 1], z = rays[3 * p + 2];
+        G px = x, py = y, pz = z;
+        if (Rotate) {   // ray_grid's order of operations
+            px = r[0] * x + r[1] * y;
+            px = px + r[2] * z;
+            py = r[3] * x + r[4] * y;
+            py = py + r[5] * z;
+            pz = r[6] * x + r[7] * y;
+            pz = pz + r[8] * z;
+        }
+        const G ax = std::fabs(px), ay = std::fabs(py), az = std::fabs(pz);
+        const bool use_x = (ax >= ay) & (ax >= az);
+        const bool use_y = !use_x & (ay >= az);
+        const G comp = use_x ? px : (use_y ? py : pz);
+        const G depth = use_x ? ax : (use_y ? ay : az);
+        const bool neg = comp < 0, zero = depth == 0;
+        // every case computed, then selected: no branch, so the loop vectorises
+        const G rx = axis_value<G, 0, 1>(neg, px, py, pz);
+        const G ry = axis_value<G, 1, 1>(neg, px, py, pz);
+        const G rz = axis_value<G, 2, 1>(neg, px, py, pz);
+        const G bx = axis_value<G, 0, 3>(neg, px, py, pz);
+        const G by = axis_value<G, 1, 3>(neg, px, py, pz);
+        const G bz = axis_value<G, 2, 3>(neg, px, py, pz);
+        const G num_r = use_x ? rx : (use_y ? ry : rz);
+        const G num_b = use_x ? bx : (use_y ? by : bz);
+        const int32_t kx = neg ? case_entry<1, 0>() : case_entry<0, 0>();
+        const int32_t ky = neg ? case_entry<3, 0>() : case_entry<2, 0>();
+        const int32_t kz = neg ? case_entry<5, 0>() : case_entry<4, 0>();
+        // the zero ray: the centre of the zero case's face (its components are all 0)
+        const int32_t k = zero ? case_entry<6, 0>() : (use_x ? kx : (use_y ? ky : kz));
+        const G scale = f / (zero ? G(1) : depth);
+        const G u = num_r * scale + centre, v = num_b * scale + centre;   // in the padded face
+        const G u0 = std::floor(u), v0 = std::floor(v);
+        const bool finite = (u0 >= G(-1)) & (u0 <= n) & (v0 >= G(-1)) & (v0 <= n);   // not NaN
+        const int32_t j = static_cast<int32_t>(finite ? u0 : G(0));
+        const int32_t i = static_cast<int32_t>(finite ? v0 : G(0));
+        const bool interior = (i >= pad) & (i + 1 < pad + face) & (j >= pad) & (j + 1 < pad + face);
+        const int32_t at = static_cast<int32_t>(static_cast<uint32_t>(k) * stride +
+                                                static_cast<uint32_t>(i - pad) * row +
+                                                static_cast<uint32_t>(j - pad) * texel);
+        out.set(p, interior ? at : (finite ? kEdge : kOutside), u - u0, v - v0);
+        xs[p] = u;
+        ys[p] = v + G(k) * n;
+    }
+    if (valid != nullptr) {
+        for (int64_t p = 0; p < count; ++p) {
+            out.set_code(p, valid[p] ? out.code(p) : kOutside);
+        }
+    }
+}
+
 // sample_grid of the grid of rays (rays_batch = 0: one set for the batch, else 3 P) rotated
-// per sample (rot_batch = 0 or 9; rot null: not rotated), computed a segment at a time into
-// the stack and sampled at once: the grid never goes to memory.
+// per sample (rot_batch = 0 or 9; rot null: not rotated), a segment at a time, without storing
+// a grid: bilinear taps straight from the rays (locate_rays), nearest ones through the grid of
+// the segment (ray_grid, on the stack).
 template <typename T, typename O, typename G>
 void sample_rays(const T* src, const G* rays, int64_t rays_batch, const G* rot,
                  int64_t rot_batch, const uint8_t* valid, int64_t valid_batch, const Ring<T>& R,
                  const Layout& L, bool bilinear, O fill, Planes S, O* out) {
-    for_tiles(S, [&](int64_t b, int64_t lo, int64_t m) {
-        G g[2 * kTileW];
-        ray_grid<G>(rays + b * rays_batch + 3 * lo, rot == nullptr ? nullptr : rot + b * rot_batch,
-                    m, L, g);
-        sample_points<T, O, G>(src + b * S.src_batch, g,
-                               valid == nullptr ? nullptr : valid + b * valid_batch + lo, m, R,
-                               L, bilinear, fill, S, out + b * S.out_batch + lo * S.out_pix);
+    for_segments(S, [&](int64_t b, int64_t lo, int64_t m) {
+        const T* cube = src + b * S.src_batch;
+        const G* ray = rays + b * rays_batch + 3 * lo;
+        const G* r = rot == nullptr ? nullptr : rot + b * rot_batch;
+        const uint8_t* ok = valid == nullptr ? nullptr : valid + b * valid_batch + lo;
+        O* o = out + b * S.out_batch + lo * S.out_pix;
+        if (!bilinear) {
+            G g[2 * kSegment];
+            ray_grid<G>(ray, r, m, L, g);
+            return sample_points<T, O, G>(cube, g, ok, m, R, L, false, fill, S, o);
+        }
+        G xs[kSegment], ys[kSegment];
+        SplitBuffer<G> buffer;
+        if (r != nullptr) {
+            locate_rays<G, true>(ray, r, m, ok, L, buffer.taps(), xs, ys);
+        } else {
+            locate_rays<G, false>(ray, r, m, ok, L, buffer.taps(), xs, ys);
+        }
+        sample_span<T, O, G>(cube, R, buffer.taps(), AtlasPoints<G>{xs, ys}, m, L, true, fill,
+                             S, o);
     });
 }
 
@@ -818,7 +937,7 @@ struct RadialCamera {
     int64_t entries;
 };
 
-// The camera-frame rays of pixels [lo, lo + m) (m <= kTileW) of a row-major image `width`
+// The camera-frame rays of pixels [lo, lo + m) (m <= kSegment) of a row-major image `width`
 // wide, and their validity. Three loops: the radii and table positions (vectorised), the table
 // reads (scalar: GCC does not vectorise gathers for AMD CPUs, and they were slow there), the
 // rays and validity (vectorised).
@@ -833,8 +952,8 @@ void radial_rays(const RadialCamera<G>& cam, int64_t width, int64_t lo, int64_t 
     const G last = G(cam.entries - 2);
     const int64_t row = lo / width, col = lo % width;   // a segment lies within one row
     const G dv = G(row) - cy;
-    G mxs[kTileW], mys[kTileW], rhos[kTileW], ts[kTileW], ss[kTileW], cs[kTileW];
-    int32_t index[kTileW];
+    G mxs[kSegment], mys[kSegment], rhos[kSegment], ts[kSegment], ss[kSegment], cs[kSegment];
+    int32_t index[kSegment];
     for (int64_t p = 0; p < m; ++p) {
         const G du = G(col + p) - cx;
         const G mx = m00 * du + m01 * dv, my = m10 * du + m11 * dv;
@@ -872,13 +991,13 @@ void radial_grid(const G* affine, const G* limits, const G* table, int64_t entri
                  const G* rot, int64_t batch, int64_t height, int64_t width, const Layout& L,
                  G* grid, uint8_t* valid) {
     const int64_t pixels = height * width;
-    const int64_t segments = (width + kTileW - 1) / kTileW;
+    const int64_t segments = (width + kSegment - 1) / kSegment;
     at::parallel_for(0, batch * height * segments, 16, [&](int64_t begin, int64_t end) {
-        G rays[3 * kTileW];
+        G rays[3 * kSegment];
         for (int64_t index = begin; index < end; ++index) {
             const int64_t b = index / (height * segments), rest = index % (height * segments);
-            const int64_t y = rest / segments, x0 = (rest % segments) * kTileW;
-            const int64_t m = std::min(kTileW, width - x0), lo = y * width + x0;
+            const int64_t y = rest / segments, x0 = (rest % segments) * kSegment;
+            const int64_t m = std::min(kSegment, width - x0), lo = y * width + x0;
             const RadialCamera<G> cam{affine + 6 * b, limits + 5 * b,
                                       table + 2 * entries * b, entries};
             uint8_t* ok = valid + b * pixels + lo;
