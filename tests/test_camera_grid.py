@@ -15,7 +15,7 @@ import torch
 
 import omniscape_torch as ot
 from omniscape_torch.cubemap import grid as cgrid
-from omniscape_torch.render import kernels as fg
+from omniscape_torch.render import fast, kernels as fg
 
 from conftest import CASES
 from test_fastgrid import random_rotations
@@ -267,3 +267,68 @@ def test_radial_table_of_a_real_ocamcalib_calibration():
         texels = (grid[i].double() - ref)[keep] * torch.tensor([n / 2, 6 * n / 2],
                                                                dtype=torch.float64)
         assert float(texels.norm(dim=-1).max()) <= 5e-3
+
+
+# ------------------------------------------------------------------------------------------
+# camera_grid(lazy=True): the cameras' rays, read by the sampling pass
+# ------------------------------------------------------------------------------------------
+def lazy_and_eager(model: str, dtype=torch.float32):
+    params, size = batch_of(model, dtype)
+    kwargs = dict(rotation=random_rotations(3, dtype, seed=4),
+                  fov=torch.tensor([3.0, 2.5, 1.9], dtype=dtype),
+                  blind_fov=torch.tensor([0.2, 0.0, 0.4], dtype=dtype))
+    lazy = fg.camera_grid(model, params, size, FACE, PAD, lazy=True, **kwargs)
+    return lazy, fg.camera_grid(model, params, size, FACE, PAD, **kwargs), size
+
+
+@pytest.mark.parametrize("model", sorted(m for m in CASES if m in fg.RADIAL))
+def test_lazy_grid_is_the_tables_grid(model):
+    """The lazy grid's validity is the table path's exactly; its grid, built from its rays by
+    the compiled grid maths, is the one the C++ op writes from the same rays (to float32
+    rounding of the rotation); ``rows`` are views of both."""
+    lazy, (grid, valid), size = lazy_and_eager(model)
+    if fg.radial_table(model, batch_of(model, torch.float32)[0], size) is None:
+        assert isinstance(lazy, tuple)   # no table (tangential distortion): the grid itself
+        return
+    assert isinstance(lazy, fast.CameraGrid) and len(lazy) == 3
+    assert lazy.rays.shape == (3, *size, 3) and lazy.dtype == torch.float32
+    assert torch.equal(lazy.valid, valid) and bool(valid.any())
+    torch.testing.assert_close(lazy.tensor(), grid, atol=1e-6, rtol=0)
+    part = lazy.rows(1, 3)
+    assert len(part) == 2 and torch.equal(part.valid, valid[1:3])
+    assert torch.equal(part.tensor(), lazy.tensor()[1:3])
+    assert torch.equal(lazy.rows(0, 2).rays, lazy.rays[:2])   # before tensor(): built apart
+    norms = torch.linalg.vector_norm(lazy.rays[lazy.valid], dim=-1)
+    torch.testing.assert_close(norms, torch.ones_like(norms), atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("fast_path", [True, False])
+def test_layer_renders_a_lazy_grid_as_the_grid(fast_path):
+    """``OmniProjection.render(grid=CameraGrid)`` gives the images of the grid itself: labels and
+    validity exactly (nearest taps go through the grid point), RGB and depth to the grid's
+    float32 rounding (bilinear taps come from the rays directly), uint8 within a level; on the
+    reference path (no fast sampler) the grid is built and the images are the grid's."""
+    lazy, (grid, valid), size = lazy_and_eager("kannala_brandt")
+    gen = torch.Generator().manual_seed(3)
+    cube = torch.rand(3, 6, 3, FACE, FACE, generator=gen)
+    depth = 1 + 9 * torch.rand(3, 6, FACE, FACE, generator=gen)
+    labels = torch.randint(0, 13, (3, 6, FACE, FACE), generator=gen)
+    layer = ot.OmniProjection(ot.Camera("equidistant", [10.0, 10.0, 15.5, 11.5], size), FACE,
+                              fast=fast_path)
+    with torch.no_grad():
+        got = layer.render(rgb=cube, depth=depth, labels=labels, grid=lazy)
+        want = layer.render(rgb=cube, depth=depth, labels=labels, grid=(grid, valid))
+        u8 = (cube * 255).round().to(torch.uint8)
+        got_u8 = layer.render(rgb=u8, grid=lazy)["rgb"]
+        want_u8 = layer.render(rgb=u8, grid=(grid, valid))["rgb"]
+    assert torch.equal(got["valid"], want["valid"]) and torch.equal(got["labels"],
+                                                                     want["labels"])
+    rounding = 3 * (FACE + 2 * PAD) * torch.finfo(torch.float32).eps   # tests/test_fastpath.py
+    for key, span in (("rgb", 1.0), ("depth", 9.0)):
+        torch.testing.assert_close(got[key], want[key], atol=rounding * span + 1e-6, rtol=0)
+    assert (got_u8.int() - want_u8.int()).abs().max() <= 1
+    with pytest.raises(ValueError, match="grid: expected cameras"):
+        ot.OmniProjection(layer.camera, FACE + 2).render(
+            rgb=torch.rand(3, 6, 3, FACE + 2, FACE + 2), grid=lazy)
+    with pytest.raises(ValueError, match="grid: a given grid already holds the attitude"):
+        layer.render(rgb=cube, grid=lazy, rotation=torch.eye(3))

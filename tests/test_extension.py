@@ -17,7 +17,7 @@ import pytest
 import torch
 
 import omniscape_torch as ot
-from omniscape_torch.render import extension, fast as fastsample
+from omniscape_torch.render import extension, fast as fastsample, kernels
 
 ROOT = Path(__file__).resolve().parents[1]
 f32, f64 = torch.float32, torch.float64
@@ -139,6 +139,25 @@ def test_opcheck_sample_rays(dtype, mode, masked, rotated):
     valid = make_valid(2, 5, 7) if masked else None
     torch.library.opcheck(ops().sample_rays, (cube, rays, rotation, valid, ring_src, ring_weight,
                                               1, mode == "bilinear", 7, out))
+
+
+@pytest.mark.parametrize("dtype", [f32, torch.float64])
+def test_opcheck_camera_grid_and_camera_rays(dtype):
+    params = torch.tensor([[4.0, 4.0, 3.0, 2.0], [3.0, 3.5, 3.5, 2.5]], dtype=torch.float64)
+    affine, limits, table = kernels.radial_table("equidistant", params, (5, 7), entries=16)
+    cameras = [t.to(dtype) for t in (affine, limits, table)]
+    valid = torch.empty(2, 5, 7, dtype=torch.bool)
+    torch.library.opcheck(ops().camera_grid, (*cameras, make_rotation(2, dtype), 8, 1,
+                                              torch.empty(2, 5, 7, 2, dtype=dtype), valid))
+    torch.library.opcheck(ops().camera_rays, (*cameras, torch.empty(2, 5, 7, 3, dtype=dtype),
+                                              valid))
+    with pytest.raises(RuntimeError, match="camera_rays: rays: expected \\(2, 5, 7, 3\\)"):
+        ops().camera_rays(*cameras, torch.empty(2, 5, 7, 2, dtype=dtype), valid)
+    with pytest.raises(RuntimeError, match="camera_rays: valid: expected bool \\(2, H, W\\)"):
+        ops().camera_rays(*cameras, torch.empty(2, 5, 7, 3, dtype=dtype), valid[:1])
+    with pytest.raises(RuntimeError, match="camera_rays: limits: expected shape"):
+        ops().camera_rays(cameras[0], cameras[1][:1], cameras[2],
+                          torch.empty(2, 5, 7, 3, dtype=dtype), valid)
 
 
 def test_ops_write_what_the_python_functions_return():

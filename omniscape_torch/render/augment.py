@@ -35,6 +35,7 @@ from ..cameras import Camera
 from ..cameras.registry import get_model
 from ..cubemap.faces import FACES, face_rotations
 from ..cubemap.rotation import check_rotation
+from .fast import CameraGrid
 from .kernels import camera_grid
 from ..cameras.presets import yaw_pitch_roll_to_matrix
 from . import layer as projection
@@ -167,9 +168,9 @@ class RandomOmniCamera(nn.Module):
     samples; the multiprocessing context (fork, spawn, forkserver) does not change the draws.
     No global RNG is consumed. The module pickles with its generator's state. A process forked
     by other means than a ``DataLoader`` inherits the stream as it was (as NumPy's and torch's
-    global generators are): reseed there. Inside ``DataLoader`` workers the grid kernel runs
-    eagerly (compiling in a forked worker can deadlock; see
-    ``cubemap.grid.in_dataloader_worker``): render in the main process, or on the GPU, for speed.
+    global generators are): reseed there. On the CPU every pixel's ray comes from a table per
+    camera inside the C++ sampling pass (``fast.sample_camera``; nothing compiles at run time),
+    so ``DataLoader`` workers render as fast as the main process.
 
     Args:
         image_size: ``(H, W)`` of the output.
@@ -551,11 +552,13 @@ class RandomOmniCamera(nn.Module):
                 proj = OmniProjection(cam, self.face_size, interpolation=self.interpolation,
                                       ignore_index=self.ignore_index)
                 # the grid of every pixel, with the sample's rotation and field-of-view cones
+                # (on the CPU the sampling pass computes it from the cameras' tables)
                 grid = camera_grid(
                     name, cam.params, self.image_size, self.face_size, proj.pad,
                     rotation=params["rotation"][sel].to(dtype=dtype, device=device),
                     fov=params["fov"][sel].to(dtype=dtype, device=device),
-                    blind_fov=params["blind_fov"][sel].to(dtype=dtype, device=device))
+                    blind_fov=params["blind_fov"][sel].to(dtype=dtype, device=device),
+                    lazy=True)
                 if not result:   # one part, the whole batch: the layer allocates
                     result = proj.render(rgb=cubemap, labels=labels, depth=depth,
                                          depth_output=self.depth_output, grid=grid,
@@ -570,9 +573,11 @@ class RandomOmniCamera(nn.Module):
                     layer = proj if b - a == len(sel) else OmniProjection(
                         Camera(name, cam.params[a:b], self.image_size), self.face_size,
                         interpolation=self.interpolation, ignore_index=self.ignore_index)
-                    layer.render(**inputs, depth_output=self.depth_output,
-                                grid=(grid[0][a:b], grid[1][a:b]), **rgb_options,
-                                out={key: value[at] for key, value in result.items()})
+                    rows = grid.rows(a, b) if isinstance(grid, CameraGrid) else (
+                        grid[0][a:b], grid[1][a:b])
+                    layer.render(**inputs, depth_output=self.depth_output, grid=rows,
+                                 **rgb_options,
+                                 out={key: value[at] for key, value in result.items()})
         result["params"] = params
         return result
 

@@ -50,7 +50,7 @@ __all__ = ["load", "name", "face_case_flags", "CFLAGS", "LDFLAGS", "NAMESPACE", 
 
 SOURCE = Path(__file__).with_name("csrc") / "fastsample.cpp"
 NAMESPACE = "omniscape_torch"
-OPS = ("build_lut", "sample_lut", "sample_grid", "sample_rays", "camera_grid")
+OPS = ("build_lut", "sample_lut", "sample_grid", "sample_rays", "camera_grid", "camera_rays")
 #: ``-march=native``: the library is built for this machine's CPU (its flags are in the name);
 #: ``-fno-trapping-math``: float comparisons may be evaluated speculatively, so the tap
 #: computation vectorises (no result changes); ``-ffp-contract=off``: no fused multiply-adds
@@ -209,9 +209,14 @@ def _fake_camera_grid(affine, limits, table, rotation, face, pad, grid, valid) -
            "camera_grid: expected grid (B, H, W, 2) and valid (B, H, W)")
 
 
+def _fake_camera_rays(affine, limits, table, rays, valid) -> None:
+    _check(rays.dim() == 4 and rays.shape[-1] == 3 and valid.shape == rays.shape[:3],
+           "camera_rays: expected rays (B, H, W, 3) and valid (B, H, W)")
+
+
 _FAKES = {"build_lut": _fake_build_lut, "sample_lut": _fake_sample_lut,
           "sample_grid": _fake_sample_grid, "sample_rays": _fake_sample_rays,
-          "camera_grid": _fake_camera_grid}
+          "camera_grid": _fake_camera_grid, "camera_rays": _fake_camera_rays}
 
 
 def _register_fakes() -> None:

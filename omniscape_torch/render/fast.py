@@ -62,7 +62,8 @@ from ..cubemap.padding import border_plan, check_cubemap
 from ..cubemap.grid import rotated_rays_to_grid
 from ..cubemap.grid import _check_inputs as _check_rays
 
-__all__ = ["CubeLUT", "build_lut", "sample_cube", "sample_rays", "reads_rays", "sample_atlas",
+__all__ = ["CubeLUT", "CameraGrid", "build_lut", "sample_cube", "sample_rays", "reads_rays",
+           "sample_atlas",
            "available", "unavailable_reason", "compile_failures", "holds", "is_channels_last",
            "work_dtype", "grid_dtype", "output_dtypes", "MODES", "BORDERS", "BLENDED"]
 
@@ -496,6 +497,58 @@ def camera_grid(affine: Tensor, limits: Tensor, table: Tensor, rotation: Tensor,
     ops.camera_grid(*(t.to("cpu", dtype).contiguous() for t in (affine, limits, table, rotation)),
                     face_size, pad, grid, valid)
     return grid, valid
+
+
+class CameraGrid:
+    """The atlas grid of ``B`` radially symmetric cameras, each with its rotation and cones,
+    as their rays: made in one pass of the C++ op over the pixels (each pixel's ray from its
+    camera's table, ``kernels.radial_table``), then read by :func:`sample_rays`, which computes
+    the grid inside its sampling pass (one table pass for every modality sampled, and no grid
+    in memory); other samplers read :meth:`tensor`, built on first use.
+    ``OmniProjection.render(grid=...)`` takes it (``kernels.camera_grid(..., lazy=True)`` makes
+    it).
+
+    Attributes:
+        rays: ``(B, H, W, 3)`` camera-frame unit rays, in ``dtype`` (float32 or float64, the
+            :func:`work_dtype` of the cubes it samples).
+        valid: ``(B, H, W)`` bool: the pixels within the camera's domain and cones.
+        rotation: ``(B, 3, 3)`` camera -> cube frame, in ``dtype``.
+        face_size, pad: the atlas the grid is made for.
+    """
+
+    def __init__(self, affine: Tensor, limits: Tensor, table: Tensor, rotation: Tensor,
+                 face_size: int, pad: int, image_size: tuple[int, int], dtype: torch.dtype):
+        tables = [t.to("cpu", dtype).contiguous() for t in (affine, limits, table)]
+        batch = affine.shape[0]
+        self.rays = torch.empty((batch, *image_size, 3), dtype=dtype)
+        self.valid = torch.empty((batch, *image_size), dtype=torch.bool)
+        _require().camera_rays(*tables, self.rays, self.valid)
+        self.rotation = rotation.to("cpu", dtype).contiguous()
+        self.face_size, self.pad = face_size, pad
+        self._grid: Tensor | None = None
+
+    def __len__(self) -> int:
+        return self.valid.shape[0]
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.rays.dtype
+
+    def tensor(self) -> Tensor:
+        """The grid ``(B, H, W, 2)``, its invalid pixels at (-2, -2) (built once)."""
+        if self._grid is None:
+            grid = rotated_rays_to_grid(self.rays, self.rotation, self.face_size, self.pad)
+            self._grid = torch.where(self.valid.unsqueeze(-1), grid, torch.full_like(grid, -2.0))
+        return self._grid
+
+    def rows(self, start: int, stop: int) -> "CameraGrid":
+        """The cameras ``start:stop`` (views: nothing is computed again)."""
+        part = object.__new__(CameraGrid)
+        part.__dict__.update(vars(self))
+        for key in ("rays", "valid", "rotation"):
+            setattr(part, key, getattr(self, key)[start:stop])
+        part._grid = None if self._grid is None else self._grid[start:stop]
+        return part
 
 
 def is_channels_last(t: Tensor) -> bool:

@@ -187,7 +187,8 @@ def _camera_kernel(model: str) -> Callable:
 def camera_grid(model: str, params: Tensor, image_size: tuple[int, int], face_size: int,
                 pad: int, *, rotation: Tensor | None = None, fov: Tensor | None = None,
                 blind_fov: Tensor | None = None, dtype: torch.dtype | None = None,
-                compiled: bool = True) -> tuple[Tensor, Tensor]:
+                compiled: bool = True, lazy: bool = False
+                ) -> tuple[Tensor, Tensor] | fast.CameraGrid:
     """Atlas grid of every pixel centre of ``B`` cameras of one model, each with its own
     rotation and field-of-view cone: the whole chain in one compiled kernel, without gradient.
 
@@ -218,9 +219,15 @@ def camera_grid(model: str, params: Tensor, image_size: tuple[int, int], face_si
         blind_fov: ``(B,)`` full angle of a central blind cone per camera (0: none), or None.
         dtype: floating dtype of the grid (default: that of ``params``).
         compiled: False runs the exact chain eagerly (no table, no compiled kernel).
+        lazy: where the cameras go through their tables, return them as a
+            :class:`~omniscape_torch.render.fast.CameraGrid` (its ``valid`` computed, the grid
+            not built: the fast sampler computes it inside its sampling pass,
+            ``OmniProjection.render(grid=...)`` takes it); elsewhere the tuple below all the
+            same.
 
     Returns:
-        ``grid (B, H, W, 2)`` in ``dtype`` and ``valid (B, H, W)`` bool.
+        ``grid (B, H, W, 2)`` in ``dtype`` and ``valid (B, H, W)`` bool (or, ``lazy``, a
+        ``CameraGrid``).
     """
     unproject = get_model(model).unproject  # raises for an unknown name
     if not isinstance(params, Tensor) or not params.is_floating_point() or params.dim() != 2:
@@ -267,8 +274,8 @@ def camera_grid(model: str, params: Tensor, image_size: tuple[int, int], face_si
         if tables is not None:
             affine, limits, table = tables
             limits[:, 3:] = cones
-            return fast.camera_grid(affine, limits, table, rotation.detach(), face_size, pad,
-                                    (h, w), dtype)
+            make = fast.CameraGrid if lazy else fast.camera_grid
+            return make(affine, limits, table, rotation.detach(), face_size, pad, (h, w), dtype)
     with torch.no_grad():
         if compiled and fused is not None:
             key = ("camera", model, params.dtype, dtype, params.device.type, True)

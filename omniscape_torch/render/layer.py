@@ -246,6 +246,12 @@ class OmniProjection(nn.Module):
                 and fastsample.available()):   # no C++ extension here: the reference path
             return None
         border = "copied" if self.border == "copied" else pad_mode
+        if isinstance(grid, fastsample.CameraGrid):   # per-sample rays and rotations
+            if fastsample.reads_rays(cube.dtype, grid.dtype):
+                return fastsample.sample_rays(cube, grid.rays, grid.rotation, mode, pad=self.pad,
+                                              border=border, valid=grid.valid, fill=fill,
+                                              out=out, out_dtype=out_dtype)
+            grid = grid.tensor()
         if isinstance(grid, _RayGrid):
             if fastsample.reads_rays(cube.dtype, grid.rays.dtype):
                 return fastsample.sample_rays(cube, grid.rays, grid.rotation, mode,
@@ -362,8 +368,10 @@ class OmniProjection(nn.Module):
             grid: ``(grid (B' in {1, B}, H, W, 2), valid (B', H, W))``: an atlas grid of this
                 layer's face size and border (``self.pad``) to sample through instead of the
                 camera's, its invalid pixels already outside the atlas (e.g. per-sample random
-                cameras and attitudes in one kernel, ``render.kernels.camera_grid``); not with
-                ``rotation`` or ``supersample > 1``. The camera then gives only the image size.
+                cameras and attitudes in one kernel, ``render.kernels.camera_grid``), or a
+                ``fast.CameraGrid`` of them (``camera_grid(..., lazy=True)``: the fast path
+                computes every pixel's ray inside its sampling pass); not with ``rotation`` or
+                ``supersample > 1``. The camera then gives only the image size.
             out_dtype: the dtype of the ``rgb`` image: the cube's (default; ``uint8`` rounded
                 to nearest, as OpenCV's ``remap`` rounds), or a floating dtype (a ``uint8``
                 cube scaled to [0, 1] in the same pass).
@@ -414,18 +422,19 @@ class OmniProjection(nn.Module):
             raise ValueError(f"cubemap: batch {batch} does not match the camera batch "
                              f"{tuple(cams)}")
         rotation = _check_rotation(rotation, batch, ref.device)
+        points = None   # a given grid's tensor, which may carry a gradient
         if grid is not None:
             grid = self._check_given_grid(grid, batch, ref.device, rotation)
+            points = None if isinstance(grid, fastsample.CameraGrid) else grid[0]
         if rgb is not None and not rgb.is_floating_point() and torch.is_grad_enabled() and any(
                 t is not None and t.requires_grad
-                for t in (rotation, self.camera.params, None if grid is None else grid[0])):
+                for t in (rotation, self.camera.params, points)):
             raise TypeError(f"rgb: a {rgb.dtype} cubemap has no gradient; convert it to float "
                             "(ot.io.to_float) to differentiate through the rotation or camera")
         # the fast path only where no gradient is asked for: gradients come from grid_sample
         fast = self.fast and not (torch.is_grad_enabled() and any(
             t is not None and t.requires_grad
-            for t in (rgb, depth, labels, rotation, self.camera.params,
-                      None if grid is None else grid[0])))
+            for t in (rgb, depth, labels, rotation, self.camera.params, points)))
         call = _Call(fast, depth_output, soft_labels, grid, out_dtype, channels_last)
         if soft_labels is not None:
             if labels is None:
@@ -464,9 +473,23 @@ class OmniProjection(nn.Module):
         return outputs
 
     def _check_given_grid(self, grid: object, batch: int, device: torch.device,
-                          rotation: Tensor | None) -> tuple[Tensor, Tensor]:
+                          rotation: Tensor | None
+                          ) -> tuple[Tensor, Tensor] | fastsample.CameraGrid:
         """``render``'s ``grid`` argument, checked."""
         h, w = self.camera.image_size
+        if rotation is not None or self.supersample != 1:
+            raise ValueError("grid: a given grid already holds the attitude and one sample per "
+                             "pixel: pass no rotation, use supersample=1")
+        if isinstance(grid, fastsample.CameraGrid):
+            if (len(grid) not in (1, batch) or tuple(grid.valid.shape[1:]) != (h, w)
+                    or (grid.face_size, grid.pad) != (self.face_size, self.pad)):
+                raise ValueError(f"grid: expected cameras (1 or {batch}) of {h} x {w} pixels "
+                                 f"for faces of {self.face_size} texels padded by {self.pad}, "
+                                 f"got {len(grid)} of {tuple(grid.valid.shape[1:])} for "
+                                 f"{grid.face_size} padded by {grid.pad}")
+            if device.type != "cpu":
+                raise ValueError(f"grid: a CameraGrid lies on the CPU, the cubemap on {device}")
+            return grid
         if not (isinstance(grid, tuple) and len(grid) == 2
                 and all(isinstance(t, Tensor) for t in grid)):
             raise TypeError(f"grid: expected a tuple (grid, valid) of tensors, got "
@@ -481,9 +504,6 @@ class OmniProjection(nn.Module):
                              f"got {valid.dtype} {tuple(valid.shape)}")
         if points.device != device or valid.device != device:
             raise ValueError(f"grid: on {points.device}, the cubemap is on {device}")
-        if rotation is not None or self.supersample != 1:
-            raise ValueError("grid: a given grid already holds the attitude and one sample per "
-                             "pixel: pass no rotation, use supersample=1")
         return points, valid
 
     def _grid_free(self, rgb: Tensor | None, depth: Tensor | None, labels: Tensor | None,
@@ -507,7 +527,11 @@ class OmniProjection(nn.Module):
         batch = ref.shape[0]
         grid_dtype = torch.float64 if ref.dtype == torch.float64 else torch.float32
         depth_output, soft_labels, fast = call.depth_output, call.soft_labels, call.fast
-        if call.grid is not None:
+        if isinstance(call.grid, fastsample.CameraGrid):
+            grid_s = grid_c = call.grid
+            valid_s = valid_c = call.grid.valid
+            mask_s = mask_c = None
+        elif call.grid is not None:
             points, valid_c = call.grid
             grid_s = grid_c = points.to(grid_dtype)
             valid_s = valid_c
@@ -702,10 +726,10 @@ class _RayGrid:
         return self._grid
 
 
-def _outside(grid: Tensor | _RayGrid, valid: Tensor | None) -> Tensor:
+def _outside(grid: Tensor | _RayGrid | fastsample.CameraGrid, valid: Tensor | None) -> Tensor:
     """``grid (B, h, w, 2)`` with the invalid entries moved outside the atlas (-2, -2); the
     grid itself where ``valid`` is None (already moved)."""
-    if isinstance(grid, _RayGrid):
+    if isinstance(grid, (_RayGrid, fastsample.CameraGrid)):
         grid = grid.tensor()
     if valid is None:
         return grid

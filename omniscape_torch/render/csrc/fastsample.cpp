@@ -955,7 +955,9 @@ void radial_rays(const RadialCamera<G>& cam, int64_t width, int64_t lo, int64_t 
     G mxs[kSegment], mys[kSegment], rhos[kSegment], ts[kSegment], ss[kSegment], cs[kSegment];
     int32_t index[kSegment];
     for (int64_t p = 0; p < m; ++p) {
-        const G du = G(col + p) - cx;
+        // the column as an int32 (exact): AVX2 converts no int64 to floats, so an int64 column
+        // kept this loop from vectorising (it took 70% of the camera pass)
+        const G du = G(static_cast<int32_t>(col + p)) - cx;
         const G mx = m00 * du + m01 * dv, my = m10 * du + m11 * dv;
         const G rho = std::sqrt(mx * mx + my * my);
         const G at = folded ? (root - std::sqrt(std::max(root * root - rho, G(0)))) * scale
@@ -985,15 +987,16 @@ void radial_rays(const RadialCamera<G>& cam, int64_t width, int64_t lo, int64_t 
 }
 
 // The atlas grid (B, H, W, 2) of B cameras (their rays rotated by rot, row-major 3 x 3 each),
-// the invalid pixels at (-2, -2), outside the atlas, and the validity (B, H, W).
+// the invalid pixels at (-2, -2), outside the atlas, and the validity (B, H, W); or, with
+// `rays` instead of `grid` (rot and L unused), their camera-frame rays (B, H, W, 3).
 template <typename G>
 void radial_grid(const G* affine, const G* limits, const G* table, int64_t entries,
                  const G* rot, int64_t batch, int64_t height, int64_t width, const Layout& L,
-                 G* grid, uint8_t* valid) {
+                 G* grid, G* rays, uint8_t* valid) {
     const int64_t pixels = height * width;
     const int64_t segments = (width + kSegment - 1) / kSegment;
     at::parallel_for(0, batch * height * segments, 16, [&](int64_t begin, int64_t end) {
-        G rays[3 * kSegment];
+        G buffer[3 * kSegment];
         for (int64_t index = begin; index < end; ++index) {
             const int64_t b = index / (height * segments), rest = index % (height * segments);
             const int64_t y = rest / segments, x0 = (rest % segments) * kSegment;
@@ -1001,9 +1004,13 @@ void radial_grid(const G* affine, const G* limits, const G* table, int64_t entri
             const RadialCamera<G> cam{affine + 6 * b, limits + 5 * b,
                                       table + 2 * entries * b, entries};
             uint8_t* ok = valid + b * pixels + lo;
+            G* r = rays == nullptr ? buffer : rays + 3 * (b * pixels + lo);
+            radial_rays<G>(cam, width, lo, m, r, ok);
+            if (grid == nullptr) {
+                continue;
+            }
             G* g = grid + 2 * (b * pixels + lo);
-            radial_rays<G>(cam, width, lo, m, rays, ok);
-            ray_grid<G, true>(rays, rot + 9 * b, m, L, g);
+            ray_grid<G, true>(r, rot + 9 * b, m, L, g);
             for (int64_t p = 0; p < m; ++p) {
                 g[2 * p] = ok[p] ? g[2 * p] : G(-2);
                 g[2 * p + 1] = ok[p] ? g[2 * p + 1] : G(-2);
@@ -1389,49 +1396,99 @@ void sample_rays_op(const at::Tensor& cube, const at::Tensor& rays,
 }
 
 
-// camera_grid: the atlas grid (B, H, W, 2) and validity (B, H, W) of B radially symmetric
-// cameras (radial_rays: affine (B, 6), limits (B, 5), table (B, 2, K), K >= 2) rotated by
-// rotation (B, 3, 3), for faces of `face` texels padded by `pad`; all in one floating dtype.
-void camera_grid_op(const at::Tensor& affine, const at::Tensor& limits, const at::Tensor& table,
-                    const at::Tensor& rotation, int64_t face, int64_t pad, const at::Tensor& grid,
-                    const at::Tensor& valid) {
-    const char* op = "omniscape_torch::camera_grid";
-    const Layout L = check_layout(op, face, pad, {0, 0, 0});
-    const int64_t batch = affine.size(0);
+// Radially symmetric cameras (radial_rays): affine (N, 6), limits (N, 5), table (N, 2, K),
+// K >= 2, N >= 1, contiguous, all in one floating dtype (returned).
+at::ScalarType check_cameras(const char* op, const at::Tensor& affine, const at::Tensor& limits,
+                             const at::Tensor& table) {
     const at::ScalarType dtype = affine.scalar_type();
     TORCH_CHECK(dtype == at::kFloat || dtype == at::kDouble, op,
                 ": affine: expected float32 or float64, got ", dtype);
+    const int64_t n = affine.dim() == 2 ? affine.size(0) : -1;
     const auto check = [&](const char* name, const at::Tensor& t, at::IntArrayRef shape) {
         check_contiguous(op, name, t);
         TORCH_CHECK(t.sizes() == shape && t.scalar_type() == dtype, op, ": ", name,
                     ": expected shape ", shape, " in ", dtype, ", got ", t.sizes(), " in ",
                     t.scalar_type());
     };
-    check("affine", affine, {batch, 6});
-    check("limits", limits, {batch, 5});
-    check("table", table, {batch, 2, table.dim() == 3 ? table.size(2) : -1});
-    check("rotation", rotation, {batch, 3, 3});
-    check("grid", grid, {batch, grid.dim() == 4 ? grid.size(1) : -1,
-                         grid.dim() == 4 ? grid.size(2) : -1, 2});
-    TORCH_CHECK(table.size(2) >= 2 && table.size(2) < kMaxOffset / 2, op,
-                ": table: expected 2 or more entries, got ", table.size(2));
+    check("affine", affine, {n, 6});
+    check("limits", limits, {n, 5});
+    check("table", table, {n, 2, table.dim() == 3 ? table.size(2) : -1});
+    TORCH_CHECK(n >= 1 && table.size(2) >= 2 && table.size(2) < kMaxOffset / 2, op,
+                ": table: expected 1 or more cameras of 2 or more entries, got ", table.sizes());
+    return dtype;
+}
+
+// valid (B, H, W) bool, contiguous, of `batch` cameras.
+void check_camera_valid(const char* op, const at::Tensor& valid, int64_t batch) {
     check_contiguous(op, "valid", valid);
-    TORCH_CHECK(valid.scalar_type() == at::kBool &&
-                    valid.sizes() == at::IntArrayRef({batch, grid.size(1), grid.size(2)}),
-                op, ": valid: expected bool (B, H, W) like grid, got ", valid.scalar_type(), " ",
+    TORCH_CHECK(valid.scalar_type() == at::kBool && valid.dim() == 3 && valid.size(0) == batch,
+                op, ": valid: expected bool (", batch, ", H, W), got ", valid.scalar_type(), " ",
                 valid.sizes());
+}
+
+// points (B, H, W, last) like valid (B, H, W), contiguous, in dtype.
+void check_camera_points(const char* op, const char* name, const at::Tensor& t,
+                         const at::Tensor& valid, int64_t last, at::ScalarType dtype) {
+    check_contiguous(op, name, t);
+    TORCH_CHECK(t.scalar_type() == dtype &&
+                    t.sizes() == at::IntArrayRef({valid.size(0), valid.size(1), valid.size(2),
+                                                  last}),
+                op, ": ", name, ": expected (", valid.size(0), ", ", valid.size(1), ", ",
+                valid.size(2), ", ", last, ") in ", dtype, " like valid, got ", t.sizes(),
+                " in ", t.scalar_type());
+}
+
+// camera_grid: the atlas grid (B, H, W, 2) and validity (B, H, W) of B radially symmetric
+// cameras (check_cameras) rotated by rotation (B, 3, 3), for faces of `face` texels padded by
+// `pad`; all in one floating dtype.
+void camera_grid_op(const at::Tensor& affine, const at::Tensor& limits, const at::Tensor& table,
+                    const at::Tensor& rotation, int64_t face, int64_t pad, const at::Tensor& grid,
+                    const at::Tensor& valid) {
+    const char* op = "omniscape_torch::camera_grid";
+    const Layout L = check_layout(op, face, pad, {0, 0, 0});
+    const at::ScalarType dtype = check_cameras(op, affine, limits, table);
+    const int64_t batch = affine.size(0);
+    check_contiguous(op, "rotation", rotation);
+    TORCH_CHECK(rotation.sizes() == at::IntArrayRef({batch, 3, 3}) &&
+                    rotation.scalar_type() == dtype,
+                op, ": rotation: expected (", batch, ", 3, 3) in ", dtype, ", got ",
+                rotation.sizes(), " in ", rotation.scalar_type());
+    check_camera_valid(op, valid, batch);
+    check_camera_points(op, "grid", grid, valid, 2, dtype);
+    const auto run = [&](auto g) {
+        using G = decltype(g);
+        radial_grid<G>(affine.const_data_ptr<G>(), limits.const_data_ptr<G>(),
+                       table.const_data_ptr<G>(), table.size(2), rotation.const_data_ptr<G>(),
+                       batch, valid.size(1), valid.size(2), L, grid.mutable_data_ptr<G>(),
+                       nullptr, static_cast<uint8_t*>(valid.mutable_data_ptr()));
+    };
     if (dtype == at::kFloat) {
-        radial_grid<float>(affine.const_data_ptr<float>(), limits.const_data_ptr<float>(),
-                           table.const_data_ptr<float>(), table.size(2),
-                           rotation.const_data_ptr<float>(), batch, grid.size(1), grid.size(2),
-                           L, grid.mutable_data_ptr<float>(),
-                           static_cast<uint8_t*>(valid.mutable_data_ptr()));
+        run(float{});
     } else {
-        radial_grid<double>(affine.const_data_ptr<double>(), limits.const_data_ptr<double>(),
-                            table.const_data_ptr<double>(), table.size(2),
-                            rotation.const_data_ptr<double>(), batch, grid.size(1),
-                            grid.size(2), L, grid.mutable_data_ptr<double>(),
-                            static_cast<uint8_t*>(valid.mutable_data_ptr()));
+        run(double{});
+    }
+}
+
+// camera_rays: the camera-frame unit rays (B, H, W, 3) and validity (B, H, W) of B radially
+// symmetric cameras (check_cameras, with their cones), in the cameras' dtype.
+void camera_rays_op(const at::Tensor& affine, const at::Tensor& limits, const at::Tensor& table,
+                    const at::Tensor& rays, const at::Tensor& valid) {
+    const char* op = "omniscape_torch::camera_rays";
+    const at::ScalarType dtype = check_cameras(op, affine, limits, table);
+    const int64_t batch = affine.size(0);
+    check_camera_valid(op, valid, batch);
+    check_camera_points(op, "rays", rays, valid, 3, dtype);
+    const auto run = [&](auto g) {
+        using G = decltype(g);
+        radial_grid<G>(affine.const_data_ptr<G>(), limits.const_data_ptr<G>(),
+                       table.const_data_ptr<G>(), table.size(2), nullptr, batch, valid.size(1),
+                       valid.size(2), Layout{}, nullptr, rays.mutable_data_ptr<G>(),
+                       static_cast<uint8_t*>(valid.mutable_data_ptr()));
+    };
+    if (dtype == at::kFloat) {
+        run(float{});
+    } else {
+        run(double{});
     }
 }
 
@@ -1452,6 +1509,8 @@ TORCH_LIBRARY(omniscape_torch, m) {
           "Tensor(a!) out) -> ()");
     m.def("camera_grid(Tensor affine, Tensor limits, Tensor table, Tensor rotation, int face, "
           "int pad, Tensor(a!) grid, Tensor(b!) valid) -> ()");
+    m.def("camera_rays(Tensor affine, Tensor limits, Tensor table, Tensor(a!) rays, "
+          "Tensor(b!) valid) -> ()");
 }
 
 TORCH_LIBRARY_IMPL(omniscape_torch, CPU, m) {
@@ -1460,4 +1519,5 @@ TORCH_LIBRARY_IMPL(omniscape_torch, CPU, m) {
     m.impl("sample_grid", &sample_grid_op);
     m.impl("sample_rays", &sample_rays_op);
     m.impl("camera_grid", &camera_grid_op);
+    m.impl("camera_rays", &camera_rays_op);
 }
