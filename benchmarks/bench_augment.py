@@ -16,11 +16,12 @@ any yaw) per sample and call. Timed round-robin in one run:
   ``cv2.remap`` the RGB atlas (HWC float32, ``INTER_LINEAR``) and the label atlas (uint8,
   ``INTER_NEAREST``), invalid pixels mapped outside (``BORDER_CONSTANT`` 0 / 255). Its inputs
   are numpy HWC arrays converted once, untimed (as a numpy user would hold them);
-* our parts apart (``part`` rows): ``params`` (``forward_parameters``), ``grid``
-  (``fastgrid.camera_grid``: rays, attitude, cones and the atlas grid of every pixel, one
-  compiled kernel), ``sample`` (the layer's rendering of RGB and labels through that grid, on
-  the fast path: no gradient is needed), both in chunks of samples as ``render`` chunks a
-  batch on the CPU (``projection.CHUNK_PIXELS``); and the peer's
+* our parts apart (``part`` rows): ``params`` (``forward_parameters``), ``rays``
+  (``kernels.camera_grid(..., lazy=True)``: every camera's table, then every pixel's ray and
+  validity, its cones included, in one C++ pass), ``sample`` (the layer's rendering of RGB and
+  labels through those rays and the attitudes, on the fast path: each pixel's taps computed in
+  the sampling pass), both in chunks of samples as ``render`` chunks a batch on the CPU
+  (``projection.CHUNK_PIXELS``); and the peer's
   ``peer_maps`` (numpy maps only) and ``peer_remap`` (atlas padding + the two remaps, maps
   prebuilt).
 
@@ -219,12 +220,12 @@ def run(args: argparse.Namespace) -> dict:
 
     pad = new_proj(chunks[0]).pad
 
-    def grid() -> list:
-        return [camera_grid(name0, camera0.params[part], (size, size), face, pad,
+    def rays() -> list:
+        return [camera_grid(name0, camera0.params[part], (size, size), face, pad, lazy=True,
                             **{k: v[part] for k, v in geometry0.items()}) for part in chunks]
 
     projs = [new_proj(part) for part in chunks]
-    grids = grid()
+    grids = rays()
 
     def sample() -> list:
         return [proj.render(rgb=cube[part], labels=labels[part], grid=g)
@@ -242,7 +243,7 @@ def run(args: argparse.Namespace) -> dict:
         ("rgb_u8", "ours", lambda: aug_rgb_u8(cube_u8)),
         ("rgb_u8_hwc", "ours", lambda: aug_rgb_u8_hwc(cube_u8_hwc)),
         ("params", "part", lambda: aug.forward_parameters(batch, generator=part_gen)),
-        ("grid", "part", grid),
+        ("rays", "part", rays),
         ("sample", "part", sample),
     ]
     agreement: dict[str, float] = {}
@@ -293,7 +294,7 @@ def run(args: argparse.Namespace) -> dict:
                "median_per_sample_s": res["median_s"] / batch}
         rows.append(row)
         by_name[name] = row
-    parts = ("params", "grid", "sample")
+    parts = ("params", "rays", "sample")
     parts_sum = sum(by_name[p]["median_s"] for p in parts)
     breakdown = {p: by_name[p]["median_s"] / by_name["ours"]["median_s"] for p in parts}
     breakdown["rest (cameras, batching, other)"] = 1 - parts_sum / by_name["ours"]["median_s"]

@@ -430,6 +430,31 @@ def test_sample_rays_is_closer_to_the_exact_image_than_the_grid(face_size, pad):
     assert error <= grid_rounding(face_size, pad) + ATOL[f32]
 
 
+def test_uint8_ids_sampled_into_int64():
+    """8-bit class ids (label images) sampled nearest straight into int64, as the layer's label
+    images are: the ids of the uint8 image widened, on every path (table, grid, rays) and for
+    edge pixels too, with a fill the uint8 ids could not hold (an ignore index of -1)."""
+    ids = torch.randint(0, 200, (2, 6, 1, 8, 8), generator=torch.Generator().manual_seed(6),
+                        dtype=torch.uint8)
+    grid = make_grid(2)
+    lut = fastsample.build_lut(grid, 8, 1, "nearest", channels=1)
+    rays, rotation = make_rays(1), rotations(2).float()
+    valid = torch.rand(1, 23, 17, generator=torch.Generator().manual_seed(7)) > 0.2
+    calls = [lambda **k: fastsample.sample_cube(ids, grid, "nearest", pad=1, border="nearest",
+                                                **k),
+             lambda **k: fastsample.sample_cube(ids, grid, "nearest", pad=1, border="nearest",
+                                                lut=lut, **k),
+             lambda **k: fastsample.sample_rays(ids, rays, rotation, "nearest", pad=1,
+                                                border="nearest", valid=valid, **k)]
+    for call in calls:
+        narrow = call(fill=255)
+        wide = call(fill=-1, out_dtype=torch.int64)
+        assert wide.dtype == torch.int64 and bool((narrow == 255).any())
+        assert torch.equal(wide, torch.where(narrow == 255, -1, narrow.long()))
+    with pytest.raises(TypeError, match="out_dtype: expected one of"):
+        fastsample.sample_cube(ids, grid, "bilinear", pad=1, out_dtype=torch.int64)
+
+
 def test_sample_rays_of_labels_and_half_precision():
     """Integer ids through float32 rays (exact, the ignore index outside); float16 sampled in
     float32; rays in another dtype than the grid's: the grid is built first, same image."""

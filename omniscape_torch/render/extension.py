@@ -185,8 +185,9 @@ def _fake_sample(cube, out, points, last: int, what: str) -> None:
     _check(cube.dim() == 5 and cube.shape[1] == 6, f"{what}: cube: expected (B, 6, C, F, F)")
     _check(points.shape[-1] == last, f"{what}: expected a last dimension of {last}")
     _check(out.dim() == 4 and out.shape[:2] == (cube.shape[0], cube.shape[2])
-           and (out.dtype == cube.dtype or out.dtype == torch.float32),
-           f"{what}: out: expected (B, C, H, W) in the cube's dtype or float32")
+           and (out.dtype in (cube.dtype, torch.float32)
+                or (out.dtype == torch.int64 and cube.dtype == torch.uint8)),
+           f"{what}: out: expected (B, C, H, W) in the cube's dtype, float32 or int64")
 
 
 def _fake_sample_lut(cube, table, grid, ring_src, ring_weight, pad, strides, bilinear, fill,

@@ -237,11 +237,13 @@ def work_dtype(dtype: torch.dtype) -> torch.dtype:
     return torch.float64 if dtype == torch.float64 else torch.float32
 
 
-def output_dtypes(dtype: torch.dtype) -> tuple[torch.dtype, ...]:
+def output_dtypes(dtype: torch.dtype, mode: str = "bilinear") -> tuple[torch.dtype, ...]:
     """The dtypes the kernels write a cube of ``dtype`` into: its own, and float32 for a
-    ``uint8`` cube (scaled to [0, 1]) or a half-precision one."""
+    ``uint8`` cube (scaled to [0, 1]) or a half-precision one; sampled nearest, a ``uint8`` cube
+    (class ids, as label images hold them) also into int64 (the ids, no copy after)."""
     scaled = dtype in (torch.uint8, torch.float16, torch.bfloat16)
-    return (dtype, torch.float32) if scaled else (dtype,)
+    ids = (torch.int64,) if mode == "nearest" and dtype == torch.uint8 else ()
+    return ((dtype, torch.float32) if scaled else (dtype,)) + ids
 
 
 def _strides(cube: Tensor) -> tuple[int, int, int]:
@@ -415,7 +417,8 @@ def sample_cube(cubemap: Tensor, grid: Tensor, mode: str = "bilinear", *, pad: i
             zero padding: 0), e.g. the ignore index of labels; an int that the output's dtype
             holds.
         out_dtype: the image's dtype (:func:`output_dtypes`): the cube's (default), or float32
-            for a ``uint8`` cube (scaled to [0, 1]) or a half-precision one.
+            for a ``uint8`` cube (scaled to [0, 1]) or a half-precision one, or int64 for a
+            ``uint8`` cube sampled nearest (class ids).
 
     Returns:
         ``(B, C, H, W)`` in ``out_dtype`` (``out`` when given); ``fill`` where every tap is
@@ -575,9 +578,9 @@ def _run(cubemap: Tensor, points: int, size: tuple[int, int], mode: str, border:
         raise TypeError(f"cubemap: nearest sampling copies elements of 1, 2, 4 or 8 bytes, got "
                         f"{cubemap.dtype}")
     out_dtype = cubemap.dtype if out_dtype is None else out_dtype
-    if out_dtype not in output_dtypes(cubemap.dtype):
+    if out_dtype not in output_dtypes(cubemap.dtype, mode):
         raise TypeError(f"out_dtype: expected one of "
-                        f"{[str(d) for d in output_dtypes(cubemap.dtype)]} for a "
+                        f"{[str(d) for d in output_dtypes(cubemap.dtype, mode)]} for a "
                         f"{cubemap.dtype} cubemap, got {out_dtype}")
     f = cubemap.shape[-1]
     if not _fits(_strides(cubemap), f):   # a view into a larger tensor: its elements copied

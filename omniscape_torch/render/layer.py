@@ -601,17 +601,23 @@ class OmniProjection(nn.Module):
             # gathered, not grid-sampled: ids of any integer dtype and size come back exact,
             # with the ignore index outside where the ids' dtype holds it
             ignore = self.ignore_index
-            filled = fastsample.holds(labels.dtype, ignore)
-            ids = self._fast_sample(labels, grid_c, "nearest", "nearest", mask_c,
-                                    fill=ignore if filled else 0) if fast else None
+            rows = target("labels", tuple(valid.shape[2:]), torch.int64)
+            # the kernels write int64 ids from 8-bit ones (label images) in their pass
+            wide = labels.dtype == torch.uint8 or labels.dtype == torch.int64
+            filled = wide or fastsample.holds(labels.dtype, ignore)
+            ids = self._fast_sample(
+                labels, grid_c, "nearest", "nearest", mask_c, fill=ignore if filled else 0,
+                out=None if rows is None or not wide else rows.unsqueeze(1),
+                out_dtype=torch.int64 if wide else None) if fast else None
             if ids is None:
                 filled = False
                 ids = nearest_gather(self._atlas(labels, "nearest"), _outside(grid_c, mask_c))
             ids = ids[:, 0]
-            rows = target("labels", ids.shape[1:], torch.int64)
-            rows = torch.empty(ids.shape, dtype=torch.int64, device=ids.device) \
-                if rows is None else rows
-            rows.copy_(ids)
+            if rows is None:
+                rows = ids if ids.dtype == torch.int64 else torch.empty(
+                    ids.shape, dtype=torch.int64, device=ids.device)
+            if rows.data_ptr() != ids.data_ptr():
+                rows.copy_(ids)
             if not filled:
                 rows.masked_fill_(~valid[:, 0], ignore)
             out["labels"] = rows

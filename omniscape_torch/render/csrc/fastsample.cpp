@@ -100,23 +100,27 @@ inline W<T> value(T v) {
 }
 
 // A blended value written as O: uint8 rounded to nearest (half up, as OpenCV's fixed point
-// rounds) and saturated; a uint8 cube written as float scaled to [0, 1]; otherwise converted.
+// rounds) and saturated; a uint8 cube written as float scaled to [0, 1]; otherwise converted
+// (8-bit ids as int64: the id, never blended).
 template <typename T, typename O>
 inline O store(W<T> v) {
     if constexpr (std::is_same_v<O, uint8_t>) {
         return static_cast<uint8_t>(std::min(std::max(v, W<T>(0)), W<T>(255)) + W<T>(0.5));
-    } else if constexpr (std::is_same_v<T, uint8_t>) {
+    } else if constexpr (std::is_same_v<T, uint8_t> && std::is_floating_point_v<O>) {
         return static_cast<O>(v * W<T>(1.0 / 255.0));
     } else {
         return static_cast<O>(v);
     }
 }
 
-// A texel copied (nearest): the element itself where O is T, else converted as by store.
+// A texel copied (nearest): the element itself where O is T, an 8-bit id widened (an int64
+// label image), else converted as by store.
 template <typename T, typename O>
 inline O copy(T v) {
     if constexpr (std::is_same_v<T, O>) {
         return v;
+    } else if constexpr (std::is_integral_v<T> && std::is_integral_v<O>) {
+        return static_cast<O>(v);
     } else {
         return store<T, O>(static_cast<W<T>>(v));
     }
@@ -600,7 +604,8 @@ void sample_span(const T* cube, const Ring<T>& R, Taps t, Points points, int64_t
         const auto run = [&](auto channels) {
             constexpr int N = decltype(channels)::value;
 #ifdef __SSE4_1__
-            if constexpr (std::is_same_v<T, uint8_t>) {
+            // (int64 ids are copied, never blended)
+            if constexpr (std::is_same_v<T, uint8_t> && !std::is_same_v<O, int64_t>) {
                 if (bilinear && (N == 3 || N == 4) && S.src_chan == 1 && S.out_chan == 1 &&
                     S.out_pix == N && S.chans == N) {
                     // the last tap's 4-byte load stays inside the cube
@@ -608,7 +613,7 @@ void sample_span(const T* cube, const Ring<T>& R, Taps t, Points points, int64_t
                     return interior_rgb8<O, N, Taps>(q, t, m, L, safe, fill, o, S.out_pix);
                 }
             }
-            if constexpr (kPlanesPath<T>) {
+            if constexpr (kPlanesPath<T> && !std::is_same_v<O, int64_t>) {
                 if (bilinear && L.texel == 1) {
                     return interior_planes<T, O, N, Taps>(q, S.src_chan, t, m, L, fill, o,
                                                           S.out_chan, S.out_pix);
@@ -1051,6 +1056,10 @@ at::ScalarType work_dtype(const at::Tensor& cube) {
 template <typename Fn>
 void dispatch(const at::Tensor& cube, const at::Tensor& out, at::ScalarType grid, Fn fn) {
     const bool to_float = out.scalar_type() == at::kFloat;
+    if (cube.scalar_type() == at::kByte && out.scalar_type() == at::kLong) {   // 8-bit ids
+        return grid == at::kFloat ? fn(uint8_t{}, int64_t{}, float{})
+                                  : fn(uint8_t{}, int64_t{}, double{});
+    }
     const auto with_grid = [&](auto element) {
         using E = decltype(element);
         if (grid == at::kFloat) {
@@ -1156,14 +1165,17 @@ void check_points(const char* op, const char* name, const at::Tensor& t, const a
 // pixels row-major `pix` elements apart: planes (pix 1, any channel stride) or channels-last
 // (channel stride 1, pix >= C).
 void check_out(const char* op, const at::Tensor& out, const at::Tensor& cube, int64_t height,
-               int64_t width) {
+               int64_t width, bool bilinear) {
     check_cpu(op, "out", out);
     const auto s = cube.scalar_type();
+    const bool ids = !bilinear && s == at::kByte;   // 8-bit ids may widen to int64
     TORCH_CHECK(out.scalar_type() == s || (out.scalar_type() == at::kFloat &&
                                            (s == at::kByte || s == at::kHalf ||
-                                            s == at::kBFloat16)),
+                                            s == at::kBFloat16)) ||
+                    (ids && out.scalar_type() == at::kLong),
                 op, ": out: expected ", s, s == at::kByte || s == at::kHalf ||
-                s == at::kBFloat16 ? " or float32" : "", ", got ", out.scalar_type());
+                s == at::kBFloat16 ? " or float32" : "", ids ? " or int64" : "", ", got ",
+                out.scalar_type());
     TORCH_CHECK(out.dim() == 4 && out.size(0) == cube.size(0) && out.size(1) == cube.size(2) &&
                     out.size(2) == height && out.size(3) == width,
                 op, ": out: expected shape (", cube.size(0), ", ", cube.size(2), ", ", height,
@@ -1326,7 +1338,7 @@ void sample_lut_op(const at::Tensor& cube, const at::Tensor& table, const at::Te
                 ", the cube's are (", L.face_stride, ", ", L.row, ", ", L.texel, ")");
     TORCH_CHECK(out.dim() == 4 && out.size(2) * out.size(3) == grid.size(1), op,
                 ": out: expected H W = ", grid.size(1), " pixels, got shape ", out.sizes());
-    check_out(op, out, cube, out.size(2), out.size(3));
+    check_out(op, out, cube, out.size(2), out.size(3), bilinear);
     check_ring(op, ring_src, ring_weight, cube, pad);
     dispatch(cube, out, grid.scalar_type(), [&](auto t, auto o, auto g) {
         using T = decltype(t);
@@ -1349,7 +1361,7 @@ void sample_grid_op(const at::Tensor& cube, const at::Tensor& grid,
     const char* op = "omniscape_torch::sample_grid";
     const Layout L = check_cube(op, cube, bilinear, pad);
     check_points(op, "grid", grid, cube, bilinear, 4, 2);
-    check_out(op, out, cube, grid.size(1), grid.size(2));
+    check_out(op, out, cube, grid.size(1), grid.size(2), bilinear);
     check_valid(op, valid, cube.size(0), grid.size(1), grid.size(2));
     check_ring(op, ring_src, ring_weight, cube, pad);
     dispatch(cube, out, grid.scalar_type(), [&](auto t, auto o, auto g) {
@@ -1380,7 +1392,7 @@ void sample_rays_op(const at::Tensor& cube, const at::Tensor& rays,
                     ": rotation: expected (1 or B, 3, 3) in the rays' dtype ", rays.scalar_type(),
                     ", got ", rotation->scalar_type(), " ", rotation->sizes());
     }
-    check_out(op, out, cube, rays.size(1), rays.size(2));
+    check_out(op, out, cube, rays.size(1), rays.size(2), bilinear);
     check_valid(op, valid, cube.size(0), rays.size(1), rays.size(2));
     check_ring(op, ring_src, ring_weight, cube, pad);
     dispatch(cube, out, rays.scalar_type(), [&](auto t, auto o, auto g) {
