@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import re
 import sys
 from pathlib import Path
 
@@ -260,3 +262,118 @@ def test_workers_benchmark_rows_and_its_peer(tmp_path):
         assert q["meets_target"] == (q["ratio"] >= q["target"] if q["peer"] == "peer"
                                      else q["ratio"] <= q["target"])
     assert "| mix | uint8 | ours_collate / peer |" in bw.markdown(result)
+
+
+# --------------------------------------------------------------------------------------------
+# bench_training.py: issue 17's "proof that it helps", in its quick mode
+# --------------------------------------------------------------------------------------------
+
+#: A temporary of omniscape_torch.io.atomic: ``.<name>.<pid>.<8 characters>[suffix]``.
+_TEMPORARY = re.compile(r"^\..+\.\d+\.[a-z0-9_]{8}(\..+)?$")
+
+
+def test_training_benchmark_quick(tmp_path, monkeypatch):
+    """Every condition and camera kind in the JSON, mIoUs finite in [0, 1], every run's loss
+    down, and every output and cached cube written by rename from a temporary beside it."""
+    import bench_training as bt
+
+    replaced = []
+    real_replace = os.replace
+
+    def spy(src, dst, *args, **kwargs):
+        replaced.append((Path(src), Path(dst)))
+        return real_replace(src, dst, *args, **kwargs)
+
+    monkeypatch.setattr(os, "replace", spy)
+    out = tmp_path / "results" / "training.json"
+    cache = tmp_path / "cache"
+    assert bt.main(["--quick", "--cache", str(cache), "--out", str(out), "--no-progress"]) == 0
+    result = json.loads(out.read_text())
+    assert {"commit", "dirty", "machine", "versions", "threads", "setup", "runs", "summary",
+            "augment_timing", "loadavg_start", "loadavg_end"} <= set(result)
+    assert list(result["conditions"]) == list(bt.CONDITIONS)
+    table = out.with_suffix(".md").read_text()
+    assert set(result["summary"]) == set(bt.CONDITIONS)
+    for name in bt.CONDITIONS:
+        assert set(result["summary"][name]) == set(bt.CAMERA_KINDS)
+        runs = [r for r in result["runs"] if r["condition"] == name]
+        assert [r["seed"] for r in runs] == result["seeds"] == [0]
+        for r in runs:
+            assert len(r["losses"]) == result["setup"]["steps"]
+            assert r["loss_decreased"] and r["loss_end"] < r["loss_start"]
+            for kind in bt.CAMERA_KINDS:
+                miou = r["eval"][kind]["miou"]
+                assert math.isfinite(miou) and 0 <= miou <= 1
+                assert r["eval"][kind]["classes_present"]
+        assert result["augment_timing"][name]["images_per_s"] > 0
+        assert f"| {bt.LABELS[name]} |" in table
+    assert out.with_suffix(".png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+    cubes = sorted((cache / "train_town0_face32").glob("cube_*.pt"))
+    assert len(cubes) == 4
+    renamed = {dst for src, dst in replaced
+               if src.parent == dst.parent and src.name.startswith(f".{dst.name}.")}
+    for path in [out, out.with_suffix(".md"), out.with_suffix(".png"), *cubes]:
+        assert path in renamed, path
+    assert not [p for p in tmp_path.rglob(".*") if _TEMPORARY.match(p.name)]
+
+    # a second read takes the cubes from the cache
+    lines = []
+    again = bt.training_cubes(cache, 0, 4, 32, log=lines.append)
+    assert "0 rendered" in lines[0] and again["rgb"].shape == (4, 6, 3, 32, 32)
+
+
+def test_training_benchmark_parts(monkeypatch):
+    """kornia's RandomFisheye with labels: the image's field, nearest, 255 where the image
+    is zero padding; conditions reproducible from their seed, the global RNG untouched;
+    RandomReproject given the faces' own intrinsics; IoU on a known case; bad flags named."""
+    import bench_training as bt
+
+    g = torch.Generator().manual_seed(0)
+    faces = {"rgb": torch.rand(4, 3, 16, 16, generator=g),
+             "labels": torch.randint(0, 13, (4, 16, 16), generator=g)}
+    cubes = {"rgb": torch.rand(1, 6, 3, 16, 16, generator=g),
+             "labels": torch.randint(0, 13, (1, 6, 16, 16), generator=g)}
+    ones = {"rgb": torch.ones(4, 3, 16, 16), "labels": torch.zeros(4, 16, 16, dtype=torch.long)}
+    rgb, labels = bt.make_condition("kornia_fisheye", ones, cubes, 0).batch(torch.arange(4))
+    inside, outside = rgb[:, 0] == 1, rgb[:, 0] == 0
+    assert inside.any() and outside.any()
+    assert bool((labels[inside] == 0).all()) and bool((labels[outside] == 255).all())
+
+    idx = torch.tensor([0, 2, 3])
+    for name in ("kornia_fisheye", "reproject", "omni_camera"):
+        state = torch.get_rng_state()
+        a = bt.make_condition(name, faces, cubes, 5).batch(idx if name != "omni_camera"
+                                                           else torch.zeros(3, dtype=torch.long))
+        assert torch.equal(torch.get_rng_state(), state)
+        b = bt.make_condition(name, faces, cubes, 5).batch(idx if name != "omni_camera"
+                                                           else torch.zeros(3, dtype=torch.long))
+        assert all(torch.equal(x, y) for x, y in zip(a, b))
+        assert a[1].dtype == torch.int64 and a[0].shape == (3, 3, 16, 16)
+    with pytest.raises(ValueError, match="name"):
+        bt.make_condition("albumentations", faces, cubes, 0)
+
+    condition = bt.make_condition("reproject", faces, cubes, 3)
+    calls = []
+    render = ot.augment.RandomReproject.render
+    monkeypatch.setattr(ot.augment.RandomReproject, "render",
+                        lambda self, *a, **k: calls.append(k["intrinsics"]) or render(self, *a,
+                                                                                      **k))
+    condition.batch(idx)
+    assert torch.equal(calls[0], torch.tensor([[8.0, 8.0, 7.5, 7.5]]).expand(3, 4))
+
+    truth = torch.tensor([[0, 0, 1, 255], [2, 2, 2, 255]])
+    pred = torch.tensor([[0, 1, 1, 0], [2, 2, 0, 1]])
+    scores = bt.iou_scores(bt.confusion(pred, truth, classes=4))
+    # class 0: 1 / 3, class 1: 1 / 2, class 2: 2 / 3; class 3 absent from the truth
+    assert scores["iou"][:3] == pytest.approx([1 / 3, 1 / 2, 2 / 3]) and scores["iou"][3] is None
+    assert scores["miou"] == pytest.approx((1 / 3 + 1 / 2 + 2 / 3) / 3)
+    assert scores["classes_present"] == [0, 1, 2] and scores["pixels"] == 6
+
+    for argv, message in ((["--train-town", "1"], "--train-town and --eval-seed"),
+                          (["--quick", "--size", "4"], "--size"),
+                          (["--quick", "--seeds", "0", "0"], "--seeds"),
+                          (["--quick", "--lr", "-1"], "--lr")):
+        with pytest.raises(SystemExit) as exit_:
+            bt.main(argv)
+        assert exit_.value.code == 2
