@@ -3,7 +3,7 @@ workers unpickle them by name, so they cannot live in a test module)."""
 
 import torch
 
-from omniscape_torch.render.augment import RandomOmniCamera
+from omniscape_torch.render.augment import FISHEYE_MODELS, RandomOmniCamera, RandomReproject
 
 #: Small on purpose: output image (H, W), cube face side F, dataset length.
 SIZE, FACE, ITEMS = (16, 16), 8, 8
@@ -65,3 +65,27 @@ class AugmentCollate:
 def reseed_worker(worker_id: int) -> None:
     """``worker_init_fn`` pinning the dataset's module to ``100 + worker_id``."""
     torch.utils.data.get_worker_info().dataset.aug.reseed(100 + worker_id)
+
+
+def make_reproject(seed: int | None = 0) -> RandomReproject:
+    """A perspective -> fisheye module with a random attitude and lens of every model."""
+    return RandomReproject(SIZE, source_fov=1.5, seed=seed, fisheye_models=FISHEYE_MODELS)
+
+
+class AugmentedImages(torch.utils.data.Dataset):
+    """Perspective images augmented one at a time (uint8 RGB and labels): an item is the params
+    row and the valid pixel count of its fisheye image."""
+
+    def __init__(self, aug: RandomReproject) -> None:
+        self.aug = aug
+        gen = torch.Generator().manual_seed(1)
+        self.images = torch.randint(0, 256, (ITEMS, 3, 12, 16), generator=gen, dtype=torch.uint8)
+        self.labels = torch.randint(0, 13, (ITEMS, 12, 16), generator=gen, dtype=torch.uint8)
+
+    def __len__(self) -> int:
+        return ITEMS
+
+    def __getitem__(self, i: int) -> torch.Tensor:
+        out = self.aug({"rgb": self.images[i:i + 1], "labels": self.labels[i:i + 1]})
+        assert out["rgb"].dtype == torch.uint8 and out["labels"].dtype == torch.int64
+        return torch.cat((params_rows(out["params"])[0], out["valid"].sum().reshape(1)))

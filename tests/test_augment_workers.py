@@ -10,8 +10,8 @@ from torch.utils.data import DataLoader, default_collate
 
 import omniscape_torch as ot
 
-from _worker_data import (FACE, AugmentCollate, AugmentedCubes, PlainCubes, make_aug,
-                          params_rows, reseed_worker)
+from _worker_data import (FACE, AugmentCollate, AugmentedCubes, AugmentedImages, PlainCubes,
+                          make_aug, make_reproject, params_rows, reseed_worker)
 
 EPOCHS = 2
 
@@ -142,3 +142,19 @@ def test_per_sample_draws_of_different_models_collate():
     for o, row, n in zip(outs, params["camera_params"][:, 0], params["num_params"][:, 0]):
         assert torch.equal(row[:n], o["params"]["camera_params"][0, :n])
         assert bool((row[n:] == 0).all())
+
+
+@pytest.mark.parametrize("context", ["fork", "spawn"])
+def test_random_reproject_in_workers(context):
+    """RandomReproject shares RandomOmniCamera's randomness: in forked and spawned workers
+    every batch of two epochs differs from every other, and the same seeds repeat the run."""
+    def run():
+        loader = DataLoader(AugmentedImages(make_reproject(seed=5)), batch_size=2,
+                            num_workers=2, multiprocessing_context=context,
+                            generator=torch.Generator().manual_seed(6))
+        return _run(loader)
+    first = run()
+    assert [len(epoch) for epoch in first] == [4] * EPOCHS
+    assert not _repeats(first[0] + first[1])
+    assert all(bool((batch[:, -1] > 0).all()) for epoch in first for batch in epoch)
+    assert _same_run(first, run())

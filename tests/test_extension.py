@@ -160,6 +160,22 @@ def test_opcheck_camera_grid_and_camera_rays(dtype):
                           torch.empty(2, 5, 7, 3, dtype=dtype), valid)
 
 
+@pytest.mark.parametrize("dtype,mode", CASES)
+def test_opcheck_sample_image(dtype, mode):
+    cube = make_inputs(dtype, mode)[0]
+    image = cube[:, 0].contiguous()   # (2, 3, 8, 8)
+    g = grid_dtype(dtype)
+    rays = torch.randn(1, 5, 7, 3, generator=torch.Generator().manual_seed(6), dtype=g)
+    k = torch.tensor([[4.0, 4.5, 3.5, 3.0]], dtype=g)
+    out = torch.empty(2, 3, 5, 7, dtype=cube.dtype)
+    seen = torch.empty(2, 5, 7, dtype=torch.bool)
+    torch.library.opcheck(ops().sample_image, (image, rays, make_rotation(2, g), k,
+                                               make_valid(1, 5, 7), mode == "bilinear", 0, out,
+                                               seen))
+    with pytest.raises(RuntimeError, match="sample_image: intrinsics: expected 2 dimensions"):
+        ops().sample_image(image, rays, None, k[0], None, mode == "bilinear", 0, out, seen)
+
+
 def test_ops_write_what_the_python_functions_return():
     """The ops called directly give ``fast.sample_cube``'s and ``fast.sample_rays``' images."""
     cube, ring_src, ring_weight, out = make_inputs(f32)

@@ -25,7 +25,8 @@ from __future__ import annotations
 
 import math
 import os
-from typing import Sequence
+from types import MappingProxyType
+from typing import NamedTuple, Sequence
 
 import numpy as np
 import torch
@@ -35,17 +36,37 @@ from ..cameras import Camera
 from ..cameras.registry import get_model
 from ..cubemap.faces import FACES, face_rotations
 from ..cubemap.rotation import check_rotation
+from . import fast
 from .fast import CameraGrid
-from .kernels import camera_grid
+from .kernels import camera_grid, camera_rays
 from ..cameras.presets import yaw_pitch_roll_to_matrix
 from . import layer as projection
 from .layer import OmniProjection
 from .reference import check_out_dtype
+from .reproject import INTERPOLATIONS, sample_camera
 
-__all__ = ["ApplyToKey", "RandomOmniCamera"]
+__all__ = ["ApplyToKey", "RandomOmniCamera", "RandomReproject", "FISHEYE_MODELS", "MODES"]
 
-FISHEYE_MODELS = ("equidistant", "equisolid", "stereographic", "kannala_brandt")
+#: The fisheye lenses drawn (``fisheye_models``): the radially symmetric models of the registry
+#: that see past 180 degrees.
+FISHEYE_MODELS = ("equidistant", "equisolid", "stereographic", "kannala_brandt", "unified",
+                  "eucm", "double_sphere")
 MODES = ("fisheye", "catadioptric", "mixed")
+#: Fisheye models whose reach is fixed: a ``fov_range`` beyond it is refused at construction.
+#: The others are fitted to each drawn field of view (:meth:`_RandomCameras._lens`).
+_FIXED_REACH = ("equidistant", "equisolid", "stereographic")
+#: The lens parameters drawn per model (beyond fx, fy, cx, cy), by the attribute of their range.
+_LENS_RANGES = MappingProxyType({"unified": ("unified_xi_range",),
+                                 "eucm": ("eucm_alpha_range", "eucm_beta_range"),
+                                 "double_sphere": ("ds_xi_range", "ds_alpha_range")})
+#: Their defaults, for modules pickled before they existed: typical fisheye lenses (Usenko et
+#: al. 2018 fit EUCM alpha 0.63, beta 1.04 and double sphere xi -0.2, alpha 0.59 to theirs).
+_LENS_DEFAULTS = MappingProxyType({"unified_xi_range": (0.5, 1.0),
+                                   "eucm_alpha_range": (0.55, 0.7),
+                                   "eucm_beta_range": (0.9, 1.2),
+                                   "ds_xi_range": (-0.3, 0.0), "ds_alpha_range": (0.5, 0.7)})
+#: The kind of a sample drawn as a catadioptric camera (a unified model under its mirror).
+_CATADIOPTRIC = "catadioptric"
 _DEG = math.pi / 180
 #: Largest parameter count of the models drawn here (unified: fx, fy, cx, cy, xi, k1, k2, p1, p2):
 #: the width of ``camera_params``, whatever the models drawn.
@@ -118,121 +139,20 @@ def _unit_radius(model: str, extra: Tensor, theta: Tensor) -> tuple[Tensor, Tens
     return radius, valid & (radius > 0) & torch.isfinite(radius)
 
 
-class RandomOmniCamera(nn.Module):
-    """Per sample, a random omnidirectional camera and attitude; renders the cubemap through it.
+class _RandomCameras(nn.Module):
+    """What :class:`RandomOmniCamera` and :class:`RandomReproject` share: the module's
+    generator (its seeding across epochs and ``DataLoader`` workers), the fisheye lenses and
+    attitudes they draw, and their checks. Not a public class: see those two."""
 
-    Cameras: the image circle of the drawn field of view ``fov`` is inscribed in the image (as in
-    :func:`~omniscape_torch.cameras.presets.fisheye` and :func:`~omniscape_torch.cameras.presets.catadioptric`):
-    ``f = s (min(H, W) / 2 - 0.5) / r1(fov / 2)`` with ``r1`` the model's radius at focal 1 and
-    ``s`` drawn in ``focal_scale_range`` (``s > 1`` zooms in and crops the circle); the centre is
-    the image centre plus a uniform jitter of at most ``center_jitter`` pixels on each axis.
-
-    * ``mode="fisheye"``: a model drawn uniformly among ``fisheye_models`` (``equidistant``,
-      ``equisolid``, ``stereographic``, ``kannala_brandt``). Kannala-Brandt draws
-      ``k1..k4`` uniformly in ``[-kb_distortion, kb_distortion]`` and halves them until the
-      model stays monotonic past ``fov / 2`` (its ``max_angle``; zero, i.e. equidistant, at
-      worst), so the distortion is always within the model's valid range.
-    * ``mode="catadioptric"``: a ``unified`` camera (xi drawn in ``xi_range``, no lens
-      distortion) under or over its mirror (``looking``), with a central ``blind_fov`` cone.
-    * ``mode="mixed"``: catadioptric with probability ``catadioptric_prob``, else a fisheye.
-
-    Attitude: roll, pitch, yaw drawn uniformly in their ranges (defaults from the OmniScape
-    paper's Table I: roll +-25 deg, pitch +-10 deg, any yaw); ``R = R_att @ R_mount`` (module
-    docstring).
-
-    ``p``: the probability, per sample, that the attitude is random; otherwise it is the
-    nominal one (roll = pitch = yaw = 0). The camera itself is always drawn (the output is a
-    different image from the input in any case). ``same_on_batch``: one draw for the batch.
-
-    Randomness: the ``generator`` passed to a call wins; else the module's own CPU generator
-    (:attr:`generator`), which follows PyTorch's own seeding of ``DataLoader`` workers (each
-    worker's ``torch.initial_seed()`` is ``base_seed + worker_id``, ``base_seed`` drawn afresh
-    for every iterator, i.e. every epoch, from ``DataLoader(generator=...)`` or else from the
-    global RNG):
-
-    * Outside ``DataLoader`` workers (``num_workers=0``, the training loop): one stream, started
-      on first use from ``seed`` (``torch.initial_seed()`` when ``seed`` is None) and continued
-      across calls and epochs, so epochs differ.
-    * Inside a worker: the generator is tied to the worker process and its torch seed. A worker
-      that finds none made there (the module is new, was used in the main process before the
-      workers started, or comes from an earlier epoch's workers, forked or pickled) starts one
-      from a hash of ``seed`` and ``torch.initial_seed()`` (``numpy.random.SeedSequence``). So
-      workers draw different streams, each epoch of non-persistent workers draws new ones, and
-      persistent workers continue theirs across epochs.
-    * :meth:`reseed` (e.g. in a ``worker_init_fn``) pins the stream to a seed in the process
-      and worker it is called in.
-
-    A run is reproduced by the same ``seed`` and the same
-    ``DataLoader(generator=torch.Generator().manual_seed(s))`` (or the same ``torch.manual_seed``
-    before the ``DataLoader``'s iterators are made), with the same worker count and order of
-    samples; the multiprocessing context (fork, spawn, forkserver) does not change the draws.
-    No global RNG is consumed. The module pickles with its generator's state. A process forked
-    by other means than a ``DataLoader`` inherits the stream as it was (as NumPy's and torch's
-    global generators are): reseed there. On the CPU every pixel's ray comes from a table per
-    camera inside the C++ sampling pass (``fast.sample_camera``; nothing compiles at run time),
-    so ``DataLoader`` workers render as fast as the main process.
-
-    Args:
-        image_size: ``(H, W)`` of the output.
-        face_size: ``F``, texels per cube face side of the input.
-        mode: ``"fisheye"``, ``"catadioptric"`` or ``"mixed"``.
-        fisheye_models: fisheye model names drawn from.
-        fov_range: ``(min, max)`` full fisheye field of view, radians (default 160-200 deg).
-        kb_distortion: bound of the Kannala-Brandt coefficients.
-        cata_fov_range: ``(min, max)`` full catadioptric field of view, radians (default 200-230
-            deg; must stay below ``2 acos(-xi)`` for every xi in ``xi_range``).
-        xi_range: ``(min, max)`` mirror parameter of the unified model (default 0.7-1.0).
-        blind_fov: full angle of the catadioptric blind cone, radians, or None.
-        looking: catadioptric mount, ``"down"`` (under its mirror, roof mount) or ``"up"``.
-        catadioptric_prob: probability of a catadioptric camera in ``"mixed"`` mode.
-        focal_scale_range: ``(min, max)`` focal multiplier.
-        center_jitter: maximum centre offset in pixels, on each axis.
-        roll_range, pitch_range, yaw_range: ``(min, max)`` radians.
-        p: probability of a random attitude per sample.
-        same_on_batch: draw one camera and attitude for the whole batch.
-        interpolation: RGB interpolation of ``OmniProjection``.
-        depth_output: ``"range"`` or ``"z"`` (see ``OmniProjection.render``).
-        ignore_index: label of invalid pixels.
-        seed: seed of the module's generator (see above), ``-2**63 <= seed < 2**64``.
-        channels_last: the RGB cubemap is ``(B, 6, F, F, C)`` (channels innermost, as image
-            files and simulators give faces) and ``rgb`` comes back ``(B, H, W, C)``; read
-            without a copy (``OmniProjection.render``'s ``channels_last``).
-        out_dtype: dtype of ``rgb``: None for the cubemap's (a ``uint8`` cube gives a ``uint8``
-            image, blended in float32 and rounded to nearest, half up), or a floating dtype (a
-            ``uint8`` cube is then scaled to [0, 1] in the same pass). ``torch.uint8`` is
-            accepted for ``uint8`` cubes only.
-
-    Shapes:
-        cubemap ``(B, 6, C, F, F)`` (``channels_last``: ``(B, 6, F, F, C)``) floating or
-        ``uint8``, labels ``(B, 6, F, F)``, depth ``(B, 6, F, F)`` planar -> ``rgb (B, C, H, W)``
-        (``channels_last``: ``(B, H, W, C)``) in ``out_dtype``, ``labels (B, H, W)`` int64,
-        ``depth (B, 1, H, W)``, ``valid (B, 1, H, W)`` bool. The drawn parameters do not depend
-        on the cubemap's dtype or layout: a seed gives the same cameras for all of them.
-
-    Example:
-        >>> aug = RandomOmniCamera((32, 32), 16, seed=0)
-        >>> out = aug(torch.rand(2, 6, 3, 16, 16))
-        >>> out["rgb"].shape, out["params"]["camera_params"].shape
-        (torch.Size([2, 3, 32, 32]), torch.Size([2, 9]))
-    """
-
-    def __init__(self, image_size: tuple[int, int], face_size: int, *, mode: str = "fisheye",
-                 fisheye_models: Sequence[str] = ("equidistant",),
-                 fov_range: tuple[float, float] = (160 * _DEG, 200 * _DEG),
-                 kb_distortion: float = 0.02,
-                 cata_fov_range: tuple[float, float] = (200 * _DEG, 230 * _DEG),
-                 xi_range: tuple[float, float] = (0.7, 1.0),
-                 blind_fov: float | None = 40 * _DEG, looking: str = "down",
-                 catadioptric_prob: float = 0.5,
-                 focal_scale_range: tuple[float, float] = (1.0, 1.0),
-                 center_jitter: float = 0.0,
-                 roll_range: tuple[float, float] = (-25 * _DEG, 25 * _DEG),
-                 pitch_range: tuple[float, float] = (-10 * _DEG, 10 * _DEG),
-                 yaw_range: tuple[float, float] = (-math.pi, math.pi),
-                 p: float = 1.0, same_on_batch: bool = False,
-                 interpolation: str = "bilinear", depth_output: str = "range",
-                 ignore_index: int = 255, seed: int | None = None,
-                 channels_last: bool = False, out_dtype: torch.dtype | None = None) -> None:
+    def __init__(self, image_size: tuple[int, int], *, fisheye_models: Sequence[str],
+                 fov_range: tuple[float, float], kb_distortion: float,
+                 unified_xi_range: tuple[float, float], eucm_alpha_range: tuple[float, float],
+                 eucm_beta_range: tuple[float, float], ds_xi_range: tuple[float, float],
+                 ds_alpha_range: tuple[float, float], focal_scale_range: tuple[float, float],
+                 center_jitter: float, roll_range: tuple[float, float],
+                 pitch_range: tuple[float, float], yaw_range: tuple[float, float], p: float,
+                 same_on_batch: bool, interpolation: str, depth_output: str, ignore_index: int,
+                 seed: int | None, channels_last: bool, out_dtype: torch.dtype | None) -> None:
         super().__init__()
         try:
             h, w = (int(v) for v in image_size)
@@ -240,22 +160,14 @@ class RandomOmniCamera(nn.Module):
             raise ValueError(f"image_size: expected (H, W), got {image_size!r}") from None
         if min(h, w) < 2:
             raise ValueError(f"image_size: needs at least 2 x 2 pixels, got {(h, w)}")
-        if isinstance(face_size, bool) or not isinstance(face_size, int) or face_size < 1:
-            raise ValueError(f"face_size: expected a positive int, got {face_size!r}")
-        if mode not in MODES:
-            raise ValueError(f"mode: expected one of {MODES}, got {mode!r}")
         if isinstance(fisheye_models, str):
             fisheye_models = (fisheye_models,)
         fisheye_models = tuple(fisheye_models)
         if not fisheye_models or any(m not in FISHEYE_MODELS for m in fisheye_models):
             raise ValueError(f"fisheye_models: expected names among {FISHEYE_MODELS}, got "
                              f"{fisheye_models!r}")
-        if looking not in ("down", "up"):
-            raise ValueError(f"looking: expected 'down' or 'up', got {looking!r}")
-        for name, value in (("p", p), ("catadioptric_prob", catadioptric_prob)):
-            if isinstance(value, bool) or not isinstance(value, (int, float)) \
-                    or not 0 <= value <= 1:
-                raise ValueError(f"{name}: expected a probability in [0, 1], got {value!r}")
+        if isinstance(p, bool) or not isinstance(p, (int, float)) or not 0 <= p <= 1:
+            raise ValueError(f"p: expected a probability in [0, 1], got {p!r}")
         if not (isinstance(kb_distortion, (int, float)) and 0 <= kb_distortion < 1):
             raise ValueError(f"kb_distortion: expected a number in [0, 1), got {kb_distortion!r}")
         if not (isinstance(center_jitter, (int, float)) and 0 <= center_jitter < min(h, w) / 2):
@@ -270,16 +182,14 @@ class RandomOmniCamera(nn.Module):
             raise TypeError(f"out_dtype: expected None, torch.uint8 or a floating dtype, got "
                             f"{out_dtype!r}")
         self.image_size = (h, w)
-        self.face_size = face_size
-        self.mode = mode
         self.fisheye_models = fisheye_models
         self.fov_range = _check_range(fov_range, "fov_range", 0.0, 2 * math.pi)
         self.kb_distortion = float(kb_distortion)
-        self.cata_fov_range = _check_range(cata_fov_range, "cata_fov_range", 0.0, 2 * math.pi)
-        self.xi_range = _check_range(xi_range, "xi_range", 0.0, 1.0)
-        self.blind_fov = None if blind_fov is None else float(blind_fov)
-        self.looking = looking
-        self.catadioptric_prob = float(catadioptric_prob)
+        self.unified_xi_range = _check_range(unified_xi_range, "unified_xi_range", 0.0, 1.0)
+        self.eucm_alpha_range = _check_range(eucm_alpha_range, "eucm_alpha_range", 0.0, 1.0)
+        self.eucm_beta_range = _check_range(eucm_beta_range, "eucm_beta_range", 1e-3)
+        self.ds_xi_range = _check_range(ds_xi_range, "ds_xi_range", -1.0, 1.0)
+        self.ds_alpha_range = _check_range(ds_alpha_range, "ds_alpha_range", 0.0, 1.0)
         self.focal_scale_range = _check_range(focal_scale_range, "focal_scale_range", 1e-3)
         self.center_jitter = float(center_jitter)
         self.roll_range = _check_range(roll_range, "roll_range")
@@ -295,35 +205,21 @@ class RandomOmniCamera(nn.Module):
         self.out_dtype = out_dtype
         self._generator: torch.Generator | None = None
         self._generator_key: tuple[int, int] | None = None   # _context_key() it was made in
-        self._check_ranges()
 
-    def _check_ranges(self) -> None:
-        """Fail at construction, not mid-training, if a range leaves a model's domain."""
-        if self.mode != "catadioptric":
-            half = torch.tensor([0.5 * self.fov_range[1]], dtype=torch.float64)
-            for name in self.fisheye_models:
-                extra = torch.zeros(1, 4 if name == "kannala_brandt" else 0, dtype=torch.float64)
-                _, ok = _unit_radius(name, extra, half)
-                limit = float(get_model(name).max_angle(
-                    torch.cat((torch.ones(1, 4, dtype=torch.float64), extra), -1)))
-                if not bool(ok) or half.item() > limit - _ANGLE_MARGIN:
-                    raise ValueError(f"fov_range: the {name} model sees at most "
-                                     f"{2 * limit / _DEG:.1f} deg, fov_range reaches "
-                                     f"{2 * half.item() / _DEG:.1f} deg")
-        if self.mode != "fisheye":
-            xi = self.xi_range[0]   # the smallest xi sees the least far
-            limit = math.acos(-xi)
-            if 0.5 * self.cata_fov_range[1] > limit - _ANGLE_MARGIN:
-                raise ValueError(f"cata_fov_range: a unified camera with xi = {xi} sees at most "
-                                 f"{2 * limit / _DEG:.1f} deg, the range reaches "
-                                 f"{self.cata_fov_range[1] / _DEG:.1f} deg")
-            if self.blind_fov is not None and not 0 < self.blind_fov < self.cata_fov_range[0]:
-                raise ValueError(f"blind_fov: expected in (0, min cata fov), got {self.blind_fov}")
-
-    def extra_repr(self) -> str:
-        return (f"image_size={self.image_size}, face_size={self.face_size}, mode={self.mode!r}, "
-                f"p={self.p}, same_on_batch={self.same_on_batch}, seed={self.seed}, "
-                f"channels_last={self.channels_last}, out_dtype={self.out_dtype}")
+    def _check_fisheye_ranges(self) -> None:
+        """Fail at construction, not mid-training, if ``fov_range`` leaves the domain of a
+        model whose reach is fixed (the drawn lenses of the others are fitted to each drawn
+        field of view: :meth:`_lens`)."""
+        half = torch.tensor([0.5 * self.fov_range[1]], dtype=torch.float64)
+        for name in self.fisheye_models:
+            if name not in _FIXED_REACH:
+                continue
+            _, ok = _unit_radius(name, torch.zeros(1, 0, dtype=torch.float64), half)
+            limit = float(get_model(name).max_angle(torch.ones(1, 4, dtype=torch.float64)))
+            if not bool(ok) or half.item() > limit - _ANGLE_MARGIN:
+                raise ValueError(f"fov_range: the {name} model sees at most "
+                                 f"{2 * limit / _DEG:.1f} deg, fov_range reaches "
+                                 f"{2 * half.item() / _DEG:.1f} deg")
 
     # ---------------------------------------------------------------------------------------
     # Randomness
@@ -374,9 +270,260 @@ class RandomOmniCamera(nn.Module):
             state["_generator"].set_state(torch.frombuffer(bytearray(saved), dtype=torch.uint8))
         # pickled before these existed: their defaults
         for key, default in (("_generator_key", None), ("channels_last", False),
-                             ("out_dtype", None)):
+                             ("out_dtype", None), *_LENS_DEFAULTS.items()):
             state.setdefault(key, default)
         super().__setstate__(state)
+
+    # ---------------------------------------------------------------------------------------
+    # Lenses
+    # ---------------------------------------------------------------------------------------
+    @property
+    def _draws_lens(self) -> bool:
+        """Whether a call draws the parameters of the models in :data:`_LENS_RANGES` (not for
+        the other models: their seeds keep the draws they had before those models existed)."""
+        return any(m in _LENS_RANGES for m in self.fisheye_models)
+
+    def _lens(self, name: str, half: Tensor, k: Tensor, lens: Tensor) -> tuple[Tensor, Tensor]:
+        """The parameters after (fx, fy, cx, cy) ``(n, E)`` of ``n`` fisheye lenses of model
+        ``name`` with half fields of view ``half (n,)``, and the half fields of view they see:
+        Kannala-Brandt ``k (n, 4)`` halved until monotonic past ``half``; the parameters of the
+        unified, EUCM and double sphere models from the uniforms ``lens (n, 2)`` in their
+        ranges, ``half`` capped ``_ANGLE_MARGIN`` inside the reach of the drawn lens."""
+        n = half.shape[0]
+        if name == "kannala_brandt":
+            return self._monotonic_kb(k, half), half
+        if name not in _LENS_RANGES:
+            return torch.zeros(n, 0, dtype=torch.float64), half
+        columns = []
+        for j, attr in enumerate(_LENS_RANGES[name]):
+            lo, hi = getattr(self, attr)
+            columns.append(lo + (hi - lo) * lens[:, j])
+        extra = torch.stack(columns, -1)
+        if name == "unified":   # no lens distortion: k1, k2, p1, p2 = 0
+            extra = torch.cat((extra, torch.zeros(n, 4, dtype=torch.float64)), -1)
+        reach = get_model(name).max_angle(torch.cat((torch.ones(n, 4, dtype=torch.float64),
+                                                     extra), -1))
+        return extra, torch.minimum(half, reach - _ANGLE_MARGIN)
+
+    def _monotonic_kb(self, k: Tensor, half: Tensor) -> Tensor:
+        """``(n, 4)`` coefficients halved until ``max_angle > half + margin`` (zero at worst):
+        every halving judged in one call of ``max_angle`` (a polynomial root per row), the
+        first good one kept."""
+        n, steps = k.shape[0], _KB_SHRINK_STEPS + 1
+        scales = 0.5 ** torch.arange(steps, dtype=k.dtype)
+        candidates = k[:, None, :] * scales[None, :, None]                   # (n, steps, 4)
+        params = torch.cat((torch.ones(n, steps, 4, dtype=k.dtype), candidates), -1)
+        good = get_model("kannala_brandt").max_angle(params) > (half + _ANGLE_MARGIN)[:, None]
+        first = torch.where(good.any(-1), good.int().argmax(-1), steps)      # (n,)
+        chosen = candidates.gather(1, first.clamp_max(steps - 1)[:, None, None].expand(n, 1, 4))
+        return torch.where((first < steps)[:, None], chosen[:, 0], torch.zeros_like(k))
+
+    def _camera_rows(self, name: str, extra: Tensor, half: Tensor, scale: Tensor,
+                     jitter: Tensor) -> Tensor:
+        """``(n, P)`` parameters of ``n`` cameras of model ``name``: the image circle of the
+        half field of view ``half`` inscribed in the image (times the focal ``scale``), the
+        centre the image's plus ``jitter (n, 2)``, then the lens parameters ``extra``."""
+        radius, ok = _unit_radius(name, extra, half)
+        if not bool(ok.all()):   # guarded by the range checks and _lens; a bug if it fires
+            raise RuntimeError(f"{name}: drawn field of view outside the model's domain")
+        h, w = self.image_size
+        focal = scale * (min(h, w) / 2 - 0.5) / radius
+        centre = torch.stack(((w - 1) / 2 + jitter[:, 0], (h - 1) / 2 + jitter[:, 1]), -1)
+        return torch.cat((focal[:, None], focal[:, None], centre, extra), -1)
+
+    def cameras(self, params: dict, dtype: torch.dtype = torch.float32,
+                device: torch.device | str | None = None) -> dict[str, tuple[Tensor, Camera]]:
+        """One batched :class:`~omniscape_torch.Camera` per model in ``params``:
+        ``{model: (sample indices (n,), camera with params (n, P))}``, without ``fov`` (the
+        per-sample cones are applied by ``render``)."""
+        out = {}
+        models = params["model"]
+        for name in sorted(set(models)):
+            idx = torch.tensor([i for i, m in enumerate(models) if m == name], dtype=torch.long)
+            p = int(params["num_params"][idx[0]])
+            cam_params = params["camera_params"][idx, :p].to(dtype=dtype, device=device)
+            out[name] = (idx, Camera(name, cam_params, self.image_size))
+        return out
+
+
+
+class RandomOmniCamera(_RandomCameras):
+    """Per sample, a random omnidirectional camera and attitude; renders the cubemap through it.
+
+    Cameras: the image circle of the drawn field of view ``fov`` is inscribed in the image (as in
+    :func:`~omniscape_torch.cameras.presets.fisheye` and :func:`~omniscape_torch.cameras.presets.catadioptric`):
+    ``f = s (min(H, W) / 2 - 0.5) / r1(fov / 2)`` with ``r1`` the model's radius at focal 1 and
+    ``s`` drawn in ``focal_scale_range`` (``s > 1`` zooms in and crops the circle); the centre is
+    the image centre plus a uniform jitter of at most ``center_jitter`` pixels on each axis.
+
+    * ``mode="fisheye"``: a model drawn uniformly among ``fisheye_models``
+      (:data:`FISHEYE_MODELS`: ``equidistant``, ``equisolid``, ``stereographic``,
+      ``kannala_brandt``, ``unified``, ``eucm``, ``double_sphere``). Kannala-Brandt draws
+      ``k1..k4`` uniformly in ``[-kb_distortion, kb_distortion]`` and halves them until the
+      model stays monotonic past ``fov / 2`` (its ``max_angle``; zero, i.e. equidistant, at
+      worst), so the distortion is always within the model's valid range. The unified
+      (Mei: a fisheye lens, no mirror and no mount rotation here), EUCM and double sphere
+      lenses draw their parameters uniformly in their ranges (``unified_xi_range``,
+      ``eucm_alpha_range``/``eucm_beta_range``, ``ds_xi_range``/``ds_alpha_range``), and a
+      drawn ``fov`` beyond the drawn lens's reach is cut to it (the ``fov`` returned is the
+      one rendered).
+    * ``mode="catadioptric"``: a ``unified`` camera (xi drawn in ``xi_range``, no lens
+      distortion) under or over its mirror (``looking``), with a central ``blind_fov`` cone.
+    * ``mode="mixed"``: catadioptric with probability ``catadioptric_prob``, else a fisheye.
+
+    Attitude: roll, pitch, yaw drawn uniformly in their ranges (defaults from the OmniScape
+    paper's Table I: roll +-25 deg, pitch +-10 deg, any yaw); ``R = R_att @ R_mount`` (module
+    docstring).
+
+    ``p``: the probability, per sample, that the attitude is random; otherwise it is the
+    nominal one (roll = pitch = yaw = 0). The camera itself is always drawn (the output is a
+    different image from the input in any case). ``same_on_batch``: one draw for the batch.
+
+    Randomness: the ``generator`` passed to a call wins; else the module's own CPU generator
+    (:attr:`generator`), which follows PyTorch's own seeding of ``DataLoader`` workers (each
+    worker's ``torch.initial_seed()`` is ``base_seed + worker_id``, ``base_seed`` drawn afresh
+    for every iterator, i.e. every epoch, from ``DataLoader(generator=...)`` or else from the
+    global RNG):
+
+    * Outside ``DataLoader`` workers (``num_workers=0``, the training loop): one stream, started
+      on first use from ``seed`` (``torch.initial_seed()`` when ``seed`` is None) and continued
+      across calls and epochs, so epochs differ.
+    * Inside a worker: the generator is tied to the worker process and its torch seed. A worker
+      that finds none made there (the module is new, was used in the main process before the
+      workers started, or comes from an earlier epoch's workers, forked or pickled) starts one
+      from a hash of ``seed`` and ``torch.initial_seed()`` (``numpy.random.SeedSequence``). So
+      workers draw different streams, each epoch of non-persistent workers draws new ones, and
+      persistent workers continue theirs across epochs.
+    * :meth:`reseed` (e.g. in a ``worker_init_fn``) pins the stream to a seed in the process
+      and worker it is called in.
+
+    A run is reproduced by the same ``seed`` and the same
+    ``DataLoader(generator=torch.Generator().manual_seed(s))`` (or the same ``torch.manual_seed``
+    before the ``DataLoader``'s iterators are made), with the same worker count and order of
+    samples; the multiprocessing context (fork, spawn, forkserver) does not change the draws.
+    No global RNG is consumed. The module pickles with its generator's state. A process forked
+    by other means than a ``DataLoader`` inherits the stream as it was (as NumPy's and torch's
+    global generators are): reseed there. On the CPU every pixel's ray comes from a table per
+    camera inside the C++ sampling pass (``fast.sample_camera``; nothing compiles at run time),
+    so ``DataLoader`` workers render as fast as the main process.
+
+    Args:
+        image_size: ``(H, W)`` of the output.
+        face_size: ``F``, texels per cube face side of the input.
+        mode: ``"fisheye"``, ``"catadioptric"`` or ``"mixed"``.
+        fisheye_models: fisheye model names drawn from.
+        fov_range: ``(min, max)`` full fisheye field of view, radians (default 160-200 deg).
+        kb_distortion: bound of the Kannala-Brandt coefficients.
+        unified_xi_range, eucm_alpha_range, eucm_beta_range, ds_xi_range, ds_alpha_range:
+            ``(min, max)`` of the fisheye lens parameters of those models (defaults: typical
+            fisheye lenses; Usenko et al. 2018 fit EUCM alpha 0.63, beta 1.04 and double
+            sphere xi -0.2, alpha 0.59 to theirs).
+        cata_fov_range: ``(min, max)`` full catadioptric field of view, radians (default 200-230
+            deg; must stay below ``2 acos(-xi)`` for every xi in ``xi_range``).
+        xi_range: ``(min, max)`` mirror parameter of the unified model (default 0.7-1.0).
+        blind_fov: full angle of the catadioptric blind cone, radians, or None.
+        looking: catadioptric mount, ``"down"`` (under its mirror, roof mount) or ``"up"``.
+        catadioptric_prob: probability of a catadioptric camera in ``"mixed"`` mode.
+        focal_scale_range: ``(min, max)`` focal multiplier.
+        center_jitter: maximum centre offset in pixels, on each axis.
+        roll_range, pitch_range, yaw_range: ``(min, max)`` radians.
+        p: probability of a random attitude per sample.
+        same_on_batch: draw one camera and attitude for the whole batch.
+        interpolation: RGB interpolation of ``OmniProjection``.
+        depth_output: ``"range"`` or ``"z"`` (see ``OmniProjection.render``).
+        ignore_index: label of invalid pixels.
+        seed: seed of the module's generator (see above), ``-2**63 <= seed < 2**64``.
+        channels_last: the RGB cubemap is ``(B, 6, F, F, C)`` (channels innermost, as image
+            files and simulators give faces) and ``rgb`` comes back ``(B, H, W, C)``; read
+            without a copy (``OmniProjection.render``'s ``channels_last``).
+        out_dtype: dtype of ``rgb``: None for the cubemap's (a ``uint8`` cube gives a ``uint8``
+            image, blended in float32 and rounded to nearest, half up), or a floating dtype (a
+            ``uint8`` cube is then scaled to [0, 1] in the same pass). ``torch.uint8`` is
+            accepted for ``uint8`` cubes only.
+
+    Shapes:
+        cubemap ``(B, 6, C, F, F)`` (``channels_last``: ``(B, 6, F, F, C)``) floating or
+        ``uint8``, labels ``(B, 6, F, F)``, depth ``(B, 6, F, F)`` planar -> ``rgb (B, C, H, W)``
+        (``channels_last``: ``(B, H, W, C)``) in ``out_dtype``, ``labels (B, H, W)`` int64,
+        ``depth (B, 1, H, W)``, ``valid (B, 1, H, W)`` bool. The drawn parameters do not depend
+        on the cubemap's dtype or layout: a seed gives the same cameras for all of them.
+
+    Example:
+        >>> aug = RandomOmniCamera((32, 32), 16, seed=0)
+        >>> out = aug(torch.rand(2, 6, 3, 16, 16))
+        >>> out["rgb"].shape, out["params"]["camera_params"].shape
+        (torch.Size([2, 3, 32, 32]), torch.Size([2, 9]))
+    """
+
+    def __init__(self, image_size: tuple[int, int], face_size: int, *, mode: str = "fisheye",
+                 fisheye_models: Sequence[str] = ("equidistant",),
+                 fov_range: tuple[float, float] = (160 * _DEG, 200 * _DEG),
+                 kb_distortion: float = 0.02,
+                 unified_xi_range: tuple[float, float] = _LENS_DEFAULTS["unified_xi_range"],
+                 eucm_alpha_range: tuple[float, float] = _LENS_DEFAULTS["eucm_alpha_range"],
+                 eucm_beta_range: tuple[float, float] = _LENS_DEFAULTS["eucm_beta_range"],
+                 ds_xi_range: tuple[float, float] = _LENS_DEFAULTS["ds_xi_range"],
+                 ds_alpha_range: tuple[float, float] = _LENS_DEFAULTS["ds_alpha_range"],
+                 cata_fov_range: tuple[float, float] = (200 * _DEG, 230 * _DEG),
+                 xi_range: tuple[float, float] = (0.7, 1.0),
+                 blind_fov: float | None = 40 * _DEG, looking: str = "down",
+                 catadioptric_prob: float = 0.5,
+                 focal_scale_range: tuple[float, float] = (1.0, 1.0),
+                 center_jitter: float = 0.0,
+                 roll_range: tuple[float, float] = (-25 * _DEG, 25 * _DEG),
+                 pitch_range: tuple[float, float] = (-10 * _DEG, 10 * _DEG),
+                 yaw_range: tuple[float, float] = (-math.pi, math.pi),
+                 p: float = 1.0, same_on_batch: bool = False,
+                 interpolation: str = "bilinear", depth_output: str = "range",
+                 ignore_index: int = 255, seed: int | None = None,
+                 channels_last: bool = False, out_dtype: torch.dtype | None = None) -> None:
+        super().__init__(
+            image_size, fisheye_models=fisheye_models, fov_range=fov_range,
+            kb_distortion=kb_distortion, unified_xi_range=unified_xi_range,
+            eucm_alpha_range=eucm_alpha_range, eucm_beta_range=eucm_beta_range,
+            ds_xi_range=ds_xi_range, ds_alpha_range=ds_alpha_range,
+            focal_scale_range=focal_scale_range, center_jitter=center_jitter,
+            roll_range=roll_range, pitch_range=pitch_range, yaw_range=yaw_range, p=p,
+            same_on_batch=same_on_batch, interpolation=interpolation, depth_output=depth_output,
+            ignore_index=ignore_index, seed=seed, channels_last=channels_last,
+            out_dtype=out_dtype)
+        if isinstance(face_size, bool) or not isinstance(face_size, int) or face_size < 1:
+            raise ValueError(f"face_size: expected a positive int, got {face_size!r}")
+        if mode not in MODES:
+            raise ValueError(f"mode: expected one of {MODES}, got {mode!r}")
+        if looking not in ("down", "up"):
+            raise ValueError(f"looking: expected 'down' or 'up', got {looking!r}")
+        if isinstance(catadioptric_prob, bool) or not isinstance(
+                catadioptric_prob, (int, float)) or not 0 <= catadioptric_prob <= 1:
+            raise ValueError(f"catadioptric_prob: expected a probability in [0, 1], got "
+                             f"{catadioptric_prob!r}")
+        self.face_size = face_size
+        self.mode = mode
+        self.cata_fov_range = _check_range(cata_fov_range, "cata_fov_range", 0.0, 2 * math.pi)
+        self.xi_range = _check_range(xi_range, "xi_range", 0.0, 1.0)
+        self.blind_fov = None if blind_fov is None else float(blind_fov)
+        self.looking = looking
+        self.catadioptric_prob = float(catadioptric_prob)
+        self._check_ranges()
+
+    def _check_ranges(self) -> None:
+        """Fail at construction, not mid-training, if a range leaves a model's domain."""
+        if self.mode != "catadioptric":
+            self._check_fisheye_ranges()
+        if self.mode != "fisheye":
+            xi = self.xi_range[0]   # the smallest xi sees the least far
+            limit = math.acos(-xi)
+            if 0.5 * self.cata_fov_range[1] > limit - _ANGLE_MARGIN:
+                raise ValueError(f"cata_fov_range: a unified camera with xi = {xi} sees at most "
+                                 f"{2 * limit / _DEG:.1f} deg, the range reaches "
+                                 f"{self.cata_fov_range[1] / _DEG:.1f} deg")
+            if self.blind_fov is not None and not 0 < self.blind_fov < self.cata_fov_range[0]:
+                raise ValueError(f"blind_fov: expected in (0, min cata fov), got {self.blind_fov}")
+
+    def extra_repr(self) -> str:
+        return (f"image_size={self.image_size}, face_size={self.face_size}, mode={self.mode!r}, "
+                f"p={self.p}, same_on_batch={self.same_on_batch}, seed={self.seed}, "
+                f"channels_last={self.channels_last}, out_dtype={self.out_dtype}")
 
     # ---------------------------------------------------------------------------------------
     # Parameters
@@ -412,6 +559,10 @@ class RandomOmniCamera(nn.Module):
         pitch = _uniform(n, self.pitch_range, g)
         roll = _uniform(n, self.roll_range, g)
         applied = torch.rand(n, generator=g, **f64) < self.p
+        # drawn last, and only where a model takes them: the other draws stay those of older
+        # versions for the same seed
+        lens = (torch.rand(n, 2, generator=g, **f64) if self._draws_lens
+                else torch.zeros(n, 2, **f64))
 
         if self.mode == "fisheye":
             cata = torch.zeros(n, dtype=torch.bool)
@@ -424,34 +575,28 @@ class RandomOmniCamera(nn.Module):
         u_fish = u_model if self.mode == "fisheye" else (
             (u_model - self.catadioptric_prob) / max(1 - self.catadioptric_prob, 1e-12))
         fish_index = (u_fish.clamp(0, 1 - 1e-12) * n_fish).long()
-        models = tuple("unified" if c else self.fisheye_models[i]
-                       for c, i in zip(cata.tolist(), fish_index.tolist()))
+        kinds = tuple(_CATADIOPTRIC if c else self.fisheye_models[i]
+                      for c, i in zip(cata.tolist(), fish_index.tolist()))
 
-        h, w = self.image_size
-        rim = min(h, w) / 2 - 0.5
         fov = torch.where(cata, cata_fov, fish_fov)
         blind = torch.where(cata, torch.full_like(fov, self.blind_fov or 0.0),
                             torch.zeros_like(fov))
         params = torch.zeros(n, _MAX_P, **f64)
         num_params = torch.zeros(n, dtype=torch.long)
-        for name in sorted(set(models)):
-            idx = torch.tensor([i for i, m in enumerate(models) if m == name])
+        for kind in sorted(set(kinds)):
+            idx = torch.tensor([i for i, m in enumerate(kinds) if m == kind])
             half = 0.5 * fov[idx]
-            if name == "unified":
+            if kind == _CATADIOPTRIC:   # under or over its mirror: xi_range, no distortion
+                name = "unified"
                 extra = torch.cat((xi[idx, None], torch.zeros(len(idx), 4, **f64)), -1)
-            elif name == "kannala_brandt":
-                extra = self._monotonic_kb(k[idx], half)
             else:
-                extra = torch.zeros(len(idx), 0, **f64)
-            radius, ok = _unit_radius(name, extra, half)
-            if not bool(ok.all()):   # guarded by _check_ranges; a bug if it fires
-                raise RuntimeError(f"{name}: drawn field of view outside the model's domain")
-            focal = scale[idx] * rim / radius
-            cx = (w - 1) / 2 + jitter[idx, 0]
-            cy = (h - 1) / 2 + jitter[idx, 1]
-            row = torch.cat((torch.stack((focal, focal, cx, cy), -1), extra), -1)
+                name = kind
+                extra, half = self._lens(name, half, k[idx], lens[idx])
+                fov[idx] = 2 * half
+            row = self._camera_rows(name, extra, half, scale[idx], jitter[idx])
             params[idx, :row.shape[-1]] = row
             num_params[idx] = row.shape[-1]
+        models = tuple("unified" if kind == _CATADIOPTRIC else kind for kind in kinds)
 
         zero = torch.zeros_like(yaw)
         yaw, pitch, roll = (torch.where(applied, a, zero) for a in (yaw, pitch, roll))
@@ -462,42 +607,11 @@ class RandomOmniCamera(nn.Module):
         out = dict(model=models, camera_params=params, num_params=num_params, fov=fov,
                    blind_fov=blind, yaw=yaw, pitch=pitch, roll=roll, applied=applied,
                    rotation=rotation)
-        if n != batch_size:   # same_on_batch
-            out = {key: (value * batch_size if key == "model"
-                         else value.expand(batch_size, *value.shape[1:]).clone())
-                   for key, value in out.items()}
-        return out
-
-    def _monotonic_kb(self, k: Tensor, half: Tensor) -> Tensor:
-        """``(n, 4)`` coefficients halved until ``max_angle > half + margin`` (zero at worst):
-        every halving judged in one call of ``max_angle`` (a polynomial root per row), the
-        first good one kept."""
-        n, steps = k.shape[0], _KB_SHRINK_STEPS + 1
-        scales = 0.5 ** torch.arange(steps, dtype=k.dtype)
-        candidates = k[:, None, :] * scales[None, :, None]                   # (n, steps, 4)
-        params = torch.cat((torch.ones(n, steps, 4, dtype=k.dtype), candidates), -1)
-        good = get_model("kannala_brandt").max_angle(params) > (half + _ANGLE_MARGIN)[:, None]
-        first = torch.where(good.any(-1), good.int().argmax(-1), steps)      # (n,)
-        chosen = candidates.gather(1, first.clamp_max(steps - 1)[:, None, None].expand(n, 1, 4))
-        return torch.where((first < steps)[:, None], chosen[:, 0], torch.zeros_like(k))
+        return _on_batch(out, n, batch_size)
 
     # ---------------------------------------------------------------------------------------
     # Rendering
     # ---------------------------------------------------------------------------------------
-    def cameras(self, params: dict, dtype: torch.dtype = torch.float32,
-                device: torch.device | str | None = None) -> dict[str, tuple[Tensor, Camera]]:
-        """One batched :class:`~omniscape_torch.Camera` per model in ``params``:
-        ``{model: (sample indices (n,), camera with params (n, P))}``, without ``fov`` (the
-        per-sample cones are applied by ``render``)."""
-        out = {}
-        models = params["model"]
-        for name in sorted(set(models)):
-            idx = torch.tensor([i for i, m in enumerate(models) if m == name], dtype=torch.long)
-            p = int(params["num_params"][idx[0]])
-            cam_params = params["camera_params"][idx, :p].to(dtype=dtype, device=device)
-            out[name] = (idx, Camera(name, cam_params, self.image_size))
-        return out
-
     def render(self, cubemap: Tensor | None, params: dict, *, labels: Tensor | None = None,
                depth: Tensor | None = None) -> dict:
         """Render the modalities through the cameras and rotations of ``params``.
@@ -616,7 +730,9 @@ class RandomOmniCamera(nn.Module):
         Args:
             cubemap: ``(B, 6, C, F, F)`` (``channels_last``: ``(B, 6, F, F, C)``) floating or
                 ``uint8``, or a dict with keys ``rgb`` and optionally ``labels`` and ``depth``
-                (so the module can start an ``nn.Sequential``).
+                (so the module can start an ``nn.Sequential``). Tensor subclasses
+                (torchvision's ``tv_tensors.Image``, ``Mask``) are read as the tensors they
+                hold, and their outputs come back in their classes.
             labels: ``(B, 6, F, F)`` integer class ids.
             depth: ``(B, 6, F, F)`` planar depth, metres.
             params: parameters from ``forward_parameters`` or a previous output, to replay.
@@ -632,12 +748,460 @@ class RandomOmniCamera(nn.Module):
             labels = cubemap.get("labels", labels)
             depth = cubemap.get("depth", depth)
             cubemap = cubemap.get("rgb")
-        ref = next((t for t in (cubemap, labels, depth) if t is not None), None)
+        given = {"rgb": cubemap, "labels": labels, "depth": depth}
+        ref = next((t for t in given.values() if t is not None), None)
         if ref is None:
             raise ValueError("forward: pass at least one of cubemap, labels, depth")
         if params is None:
             params = self.forward_parameters(ref.shape[0], generator=generator)
-        return self.render(cubemap, params, labels=labels, depth=depth)
+        out = self.render(_plain(cubemap), params, labels=_plain(labels), depth=_plain(depth))
+        return _like_inputs(out, given)
+
+
+
+
+class RandomReproject(_RandomCameras):
+    """Per sample, a perspective image seen through a random fisheye lens and attitude.
+
+    For the segmentation datasets of perspective images (Cityscapes, BDD100K, Mapillary, the
+    built-in town's pinhole views): each image, with its pinhole intrinsics, is reprojected
+    into a fisheye camera drawn as :class:`RandomOmniCamera` draws its fisheyes (``mode=
+    "fisheye"``: a model among ``fisheye_models``, the image circle of a field of view drawn in
+    ``fov_range`` inscribed in the image, the lens parameters in their ranges), turned by a
+    drawn attitude (``R = yaw_pitch_roll_to_matrix(yaw, pitch, roll)`` maps the fisheye's rays
+    into the source camera's frame, ``ray_src = R @ ray``): ``ot.reproject``'s image, its
+    labels (nearest, never blended, ``ignore_index`` outside) and depth, from one geometry. The
+    fisheye sees more than the perspective image: the pixels whose ray misses the source image
+    (or lies behind it) are invalid (``valid``, 0 in ``rgb``, ``ignore_index`` in ``labels``).
+
+    The source camera: ``intrinsics (B, 4)`` (``fx, fy, cx, cy`` in pixels, pixel centres at
+    integers) passed with the images, or else a horizontal field of view ``source_fov`` given
+    at construction (``fx = fy = (W / 2) / tan(source_fov / 2)``, the principal point at the
+    image centre).
+
+    Attitude defaults: roll +-25 deg (the OmniScape paper's Table I), pitch and yaw +-10 deg
+    (a perspective image holds a narrow cone: a larger turn leaves the fisheye mostly empty).
+    ``p``, ``same_on_batch``, ``seed``, :meth:`reseed` and the randomness across epochs and
+    ``DataLoader`` workers: as :class:`RandomOmniCamera`'s.
+
+    On the CPU without gradients (the fast path, as ``OmniProjection``'s), every pixel's ray
+    comes from a table per camera (``kernels.radial_table``) and the image is sampled by the C++
+    op ``sample_image`` straight from the image's memory: ``uint8`` in and out (rounded half
+    up, or scaled to [0, 1] by a floating ``out_dtype``), channels-last images read without a
+    copy (``channels_last``), labels written as int64 in the same pass. Elsewhere (another
+    device, a gradient asked for, ``bicubic``) the exact chain: ``Camera.ray_grid`` and
+    :func:`~omniscape_torch.render.reproject.sample_camera` (``grid_sample``).
+
+    Args:
+        image_size: ``(H, W)`` of the output.
+        source_fov: the horizontal field of view of the perspective images (radians), used
+            where no ``intrinsics`` are passed; None: they must be passed.
+        fisheye_models, fov_range, kb_distortion, unified_xi_range, eucm_alpha_range,
+            eucm_beta_range, ds_xi_range, ds_alpha_range, focal_scale_range, center_jitter:
+            the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
+        roll_range, pitch_range, yaw_range: ``(min, max)`` radians.
+        p: probability of a random attitude per sample (else roll = pitch = yaw = 0).
+        same_on_batch: one draw for the whole batch.
+        interpolation: ``"bilinear"`` (default), ``"nearest"`` or ``"bicubic"`` (exact chain).
+        depth_output: ``"range"`` (distance along the ray) or ``"z"`` (along the fisheye's
+            optical axis); the input depth is planar, along the source camera's axis.
+        ignore_index: label of invalid pixels.
+        seed: seed of the module's generator.
+        channels_last: the images are ``(B, H, W, C)`` and ``rgb`` comes back so.
+        out_dtype: dtype of ``rgb``: None for the image's, or a floating dtype (``uint8``
+            scaled to [0, 1]).
+
+    Shapes:
+        ``rgb (B, C, Hs, Ws)`` (``channels_last``: ``(B, Hs, Ws, C)``) floating or ``uint8``,
+        ``labels (B, Hs, Ws)`` integer, ``depth (B, Hs, Ws)`` or ``(B, 1, Hs, Ws)`` planar ->
+        ``rgb (B, C, H, W)`` (``(B, H, W, C)``), ``labels (B, H, W)`` int64,
+        ``depth (B, 1, H, W)``, ``valid (B, 1, H, W)`` bool; ``params`` as
+        :meth:`forward_parameters` returns them, with the ``intrinsics (B, 4)`` used.
+
+    Example:
+        >>> aug = RandomReproject((64, 64), source_fov=math.radians(90), seed=0)
+        >>> out = aug({"rgb": torch.rand(2, 3, 48, 64), "labels": torch.zeros(2, 48, 64).long()})
+        >>> out["rgb"].shape, out["labels"].shape, out["valid"].shape
+        (torch.Size([2, 3, 64, 64]), torch.Size([2, 64, 64]), torch.Size([2, 1, 64, 64]))
+    """
+
+    def __init__(self, image_size: tuple[int, int], *, source_fov: float | None = None,
+                 fisheye_models: Sequence[str] = ("equidistant",),
+                 fov_range: tuple[float, float] = (160 * _DEG, 200 * _DEG),
+                 kb_distortion: float = 0.02,
+                 unified_xi_range: tuple[float, float] = _LENS_DEFAULTS["unified_xi_range"],
+                 eucm_alpha_range: tuple[float, float] = _LENS_DEFAULTS["eucm_alpha_range"],
+                 eucm_beta_range: tuple[float, float] = _LENS_DEFAULTS["eucm_beta_range"],
+                 ds_xi_range: tuple[float, float] = _LENS_DEFAULTS["ds_xi_range"],
+                 ds_alpha_range: tuple[float, float] = _LENS_DEFAULTS["ds_alpha_range"],
+                 focal_scale_range: tuple[float, float] = (1.0, 1.0),
+                 center_jitter: float = 0.0,
+                 roll_range: tuple[float, float] = (-25 * _DEG, 25 * _DEG),
+                 pitch_range: tuple[float, float] = (-10 * _DEG, 10 * _DEG),
+                 yaw_range: tuple[float, float] = (-10 * _DEG, 10 * _DEG),
+                 p: float = 1.0, same_on_batch: bool = False,
+                 interpolation: str = "bilinear", depth_output: str = "range",
+                 ignore_index: int = 255, seed: int | None = None,
+                 channels_last: bool = False, out_dtype: torch.dtype | None = None) -> None:
+        super().__init__(
+            image_size, fisheye_models=fisheye_models, fov_range=fov_range,
+            kb_distortion=kb_distortion, unified_xi_range=unified_xi_range,
+            eucm_alpha_range=eucm_alpha_range, eucm_beta_range=eucm_beta_range,
+            ds_xi_range=ds_xi_range, ds_alpha_range=ds_alpha_range,
+            focal_scale_range=focal_scale_range, center_jitter=center_jitter,
+            roll_range=roll_range, pitch_range=pitch_range, yaw_range=yaw_range, p=p,
+            same_on_batch=same_on_batch, interpolation=interpolation, depth_output=depth_output,
+            ignore_index=ignore_index, seed=seed, channels_last=channels_last,
+            out_dtype=out_dtype)
+        if source_fov is not None and not (isinstance(source_fov, (int, float)) and not
+                                           isinstance(source_fov, bool) and
+                                           0 < source_fov < math.pi):
+            raise ValueError(f"source_fov: expected a horizontal field of view in (0, pi) "
+                             f"radians, or None, got {source_fov!r}")
+        if interpolation not in INTERPOLATIONS:
+            raise ValueError(f"interpolation: expected one of {INTERPOLATIONS}, got "
+                             f"{interpolation!r}")
+        if depth_output not in ("range", "z"):
+            raise ValueError(f"depth_output: expected 'range' or 'z', got {depth_output!r}")
+        self.source_fov = None if source_fov is None else float(source_fov)
+        self._check_fisheye_ranges()
+
+    def extra_repr(self) -> str:
+        return (f"image_size={self.image_size}, source_fov={self.source_fov}, "
+                f"fisheye_models={self.fisheye_models}, p={self.p}, "
+                f"same_on_batch={self.same_on_batch}, seed={self.seed}, "
+                f"channels_last={self.channels_last}, out_dtype={self.out_dtype}")
+
+    @torch.no_grad()
+    def forward_parameters(self, batch_size: int, *, generator: torch.Generator | None = None
+                           ) -> dict:
+        """Draw fisheye cameras and attitudes for ``batch_size`` samples.
+
+        Returns:
+            dict, tensors float64 on the CPU: ``model`` (tuple of ``B`` model names),
+            ``camera_params (B, 9)`` (zero-padded), ``num_params (B,)``, ``fov (B,)`` and
+            ``blind_fov (B,)`` (radians; 0), ``yaw``, ``pitch``, ``roll (B,)``, ``applied (B,)``,
+            ``rotation (B, 3, 3)`` fisheye -> source camera frame.
+        """
+        if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
+            raise ValueError(f"batch_size: expected a positive int, got {batch_size!r}")
+        g = self.generator if generator is None else generator
+        n = 1 if self.same_on_batch else batch_size
+        f64 = dict(dtype=torch.float64)
+        # every draw for every sample, whatever its model (the stream does not branch)
+        u_model = torch.rand(n, generator=g, **f64)
+        fov = _uniform(n, self.fov_range, g)
+        k = (2 * torch.rand(n, 4, generator=g, **f64) - 1) * self.kb_distortion
+        lens = torch.rand(n, 2, generator=g, **f64)
+        scale = _uniform(n, self.focal_scale_range, g)
+        jitter = (2 * torch.rand(n, 2, generator=g, **f64) - 1) * self.center_jitter
+        yaw = _uniform(n, self.yaw_range, g)
+        pitch = _uniform(n, self.pitch_range, g)
+        roll = _uniform(n, self.roll_range, g)
+        applied = torch.rand(n, generator=g, **f64) < self.p
+
+        index = (u_model.clamp(0, 1 - 1e-12) * len(self.fisheye_models)).long()
+        models = tuple(self.fisheye_models[i] for i in index.tolist())
+        params = torch.zeros(n, _MAX_P, **f64)
+        num_params = torch.zeros(n, dtype=torch.long)
+        for name in sorted(set(models)):
+            idx = torch.tensor([i for i, m in enumerate(models) if m == name])
+            extra, half = self._lens(name, 0.5 * fov[idx], k[idx], lens[idx])
+            fov[idx] = 2 * half
+            row = self._camera_rows(name, extra, half, scale[idx], jitter[idx])
+            params[idx, :row.shape[-1]] = row
+            num_params[idx] = row.shape[-1]
+        zero = torch.zeros_like(yaw)
+        yaw, pitch, roll = (torch.where(applied, a, zero) for a in (yaw, pitch, roll))
+        out = dict(model=models, camera_params=params, num_params=num_params, fov=fov,
+                   blind_fov=torch.zeros_like(fov), yaw=yaw, pitch=pitch, roll=roll,
+                   applied=applied, rotation=yaw_pitch_roll_to_matrix(yaw, pitch, roll))
+        return _on_batch(out, n, batch_size)
+
+    def source_intrinsics(self, image_size: tuple[int, int], batch: int) -> Tensor:
+        """``(batch, 4)`` float64 pinhole intrinsics of images of ``image_size`` from
+        ``source_fov``: ``fx = fy = (W / 2) / tan(source_fov / 2)``, ``cx = (W - 1) / 2``,
+        ``cy = (H - 1) / 2``."""
+        if self.source_fov is None:
+            raise ValueError("intrinsics: pass the images' pinhole intrinsics (B, 4) fx, fy, cx, "
+                             "cy, or construct RandomReproject with source_fov")
+        h, w = image_size
+        f = (w / 2) / math.tan(self.source_fov / 2)
+        return torch.tensor([f, f, (w - 1) / 2, (h - 1) / 2], dtype=torch.float64).expand(
+            batch, 4).clone()
+
+    def render(self, image: Tensor | None, params: dict, *, labels: Tensor | None = None,
+               depth: Tensor | None = None, intrinsics: Tensor | None = None) -> dict:
+        """Reproject the modalities through the cameras and rotations of ``params``.
+
+        Args:
+            image: ``(B, C, Hs, Ws)`` (``channels_last``: ``(B, Hs, Ws, C)``), floating or
+                ``uint8``, or None.
+            params: parameters from ``forward_parameters``.
+            labels: ``(B, Hs, Ws)`` integer class ids. depth: ``(B, Hs, Ws)`` or
+                ``(B, 1, Hs, Ws)`` planar depth (metres along the source camera's axis).
+            intrinsics: ``(B, 4)`` or ``(4,)`` the source pinhole ``fx, fy, cx, cy``; None:
+                from ``source_fov``.
+
+        Returns:
+            dict ``valid`` and, for each given input, ``rgb``, ``labels``, ``depth`` (class
+            docstring), plus ``params`` (with ``intrinsics``).
+        """
+        image, labels, depth, size = self._check_inputs(image, labels, depth)
+        batch = next(t for t in (image, labels, depth) if t is not None).shape[0]
+        if len(params["model"]) != batch:
+            raise ValueError(f"params: drawn for {len(params['model'])} samples, the batch has "
+                             f"{batch}")
+        check_rotation(params["rotation"], 'params["rotation"]')
+        k = self._intrinsics(intrinsics, size, batch)
+        ref = next(t for t in (image, labels, depth) if t is not None)
+        device = ref.device
+        dtype = torch.float64 if ref.dtype == torch.float64 else torch.float32
+        rgb_dtype = None if image is None else check_out_dtype(image.dtype, self.out_dtype)
+        h, w = self.image_size
+        result = {"valid": torch.empty(batch, 1, h, w, dtype=torch.bool, device=device)}
+        if image is not None:
+            chans = image.shape[1]
+            result["rgb"] = (torch.empty(batch, h, w, chans, dtype=rgb_dtype, device=device)
+                             .permute(0, 3, 1, 2) if self.channels_last
+                             else torch.empty(batch, chans, h, w, dtype=rgb_dtype,
+                                              device=device))
+        if labels is not None:
+            result["labels"] = torch.empty(batch, h, w, dtype=torch.int64, device=device)
+        if depth is not None:
+            result["depth"] = torch.empty(batch, 1, h, w, dtype=depth.dtype, device=device)
+        fast_path = (device.type == "cpu" and fast.available() and
+                     self.interpolation in fast.MODES and not (
+                         torch.is_grad_enabled() and any(
+                             t is not None and t.requires_grad for t in (image, depth, k))))
+        # on the CPU a few samples at a time (projection.CHUNK_PIXELS): the rays of a chunk
+        chunk = batch if device.type != "cpu" else max(1, projection.CHUNK_PIXELS // (h * w))
+        for name, (idx, camera) in self.cameras(params, dtype, device).items():
+            for start in range(0, len(idx), chunk):
+                sel = idx[start:start + chunk]
+                part = _Part(camera.params[start:start + chunk], sel,
+                             params["rotation"][sel].to(dtype=dtype, device=device),
+                             params["fov"][sel].to(dtype=dtype, device=device),
+                             k[sel].to(device), size)
+                render = self._render_fast if fast_path else self._render_exact
+                render(name, part, image, labels, depth, result)
+        if image is not None and self.channels_last:
+            result["rgb"] = result["rgb"].permute(0, 2, 3, 1)
+        result["params"] = dict(params, intrinsics=k.to("cpu", torch.float64))
+        return result
+
+    def _render_fast(self, name: str, part: "_Part", image: Tensor | None,
+                     labels: Tensor | None, depth: Tensor | None, result: dict) -> None:
+        """The samples ``part.index`` through the C++ ops: the cameras' rays from their tables
+        (or ``Camera.ray_grid`` where a model has none), then ``fast.sample_image``."""
+        rays, valid = camera_rays(name, part.params, self.image_size, fov=part.fov,
+                                  dtype=part.params.dtype)
+        k = part.intrinsics.to(rays.dtype)
+        for at, (a, b) in _slices(part.index):   # runs of consecutive samples: views
+            rows = slice(a, b)
+            seen = result["valid"][at, 0]
+            if image is not None:
+                _, seen_rgb = fast.sample_image(
+                    image[at], rays[rows], part.rotation[rows], k[rows], self.interpolation,
+                    valid=valid[rows], out=result["rgb"][at], out_dtype=result["rgb"].dtype)
+                seen.copy_(seen_rgb)
+            if labels is not None:
+                wide = labels.dtype in (torch.uint8, torch.int64)   # int64 ids in the pass
+                out = result["labels"][at].unsqueeze(1)
+                ids, seen_ids = fast.sample_image(
+                    labels[at].unsqueeze(1), rays[rows], part.rotation[rows], k[rows],
+                    "nearest", valid=valid[rows], fill=self.ignore_index if wide else 0,
+                    out=out if wide else None, out_dtype=torch.int64 if wide else None)
+                if not wide:
+                    out.copy_(torch.where(seen_ids.unsqueeze(1), ids.long(),
+                                          torch.full_like(out, self.ignore_index)))
+                seen.copy_(seen_ids)
+            if depth is not None:
+                z, seen_z = fast.sample_image(depth[at], rays[rows], part.rotation[rows],
+                                              k[rows], "nearest", valid=valid[rows])
+                result["depth"][at] = self._range(z, rays[rows], part.rotation[rows],
+                                                  seen_z.unsqueeze(1))
+                seen.copy_(seen_z)
+
+    def _render_exact(self, name: str, part: "_Part", image: Tensor | None,
+                      labels: Tensor | None, depth: Tensor | None, result: dict) -> None:
+        """The samples ``part.index`` through ``Camera.ray_grid`` and ``sample_camera``
+        (``grid_sample``; any device, differentiable with respect to the images)."""
+        camera = Camera(name, part.params, self.image_size)
+        rays, valid = camera.ray_grid()                                     # (n, h, w, 3)
+        valid = valid & (rays[..., 2] >= torch.cos(0.5 * part.fov)[:, None, None])
+        src = torch.einsum("bij,bhwj->bhwi", part.rotation, rays)
+        source = Camera("pinhole", part.intrinsics.to(rays.dtype), part.source_size)
+        mask = valid.unsqueeze(1)
+        sel = part.index.to(result["valid"].device)
+        seen = None
+        if image is not None:
+            values, ok = sample_camera(image[sel], source, src, interpolation=self.interpolation,
+                                       out_dtype=result["rgb"].dtype)
+            seen = ok & mask
+            result["rgb"][sel] = torch.where(seen, values, torch.zeros_like(values))
+        if labels is not None:
+            ids, ok = sample_camera(labels[sel], source, src, labels=True,
+                                    ignore_index=self.ignore_index)
+            seen = ok & mask
+            result["labels"][sel] = torch.where(seen[:, 0], ids, self.ignore_index)
+        if depth is not None:
+            z, ok = sample_camera(depth[sel], source, src, interpolation="nearest")
+            seen = ok & mask
+            result["depth"][sel] = self._range(z, rays, part.rotation, seen)
+        result["valid"][sel] = seen
+
+    def _range(self, z: Tensor, rays: Tensor, rotation: Tensor, seen: Tensor) -> Tensor:
+        """Planar source depth ``z (n, 1, h, w)`` sampled along unit fisheye ``rays (n, h, w,
+        3)`` -> their range (``|p| = z / cos`` of the ray to the source axis), or its ``z`` along
+        the fisheye's axis (``depth_output``); 0 where not ``seen``."""
+        axis = torch.einsum("bj,bhwj->bhw", rotation[:, 2].to(rays.dtype), rays)   # src z
+        cos = torch.where(seen[:, 0], axis, torch.ones_like(axis)).unsqueeze(1)
+        out = z.to(rays.dtype) / cos
+        if self.depth_output == "z":
+            out = out * rays[..., 2].unsqueeze(1)
+        return torch.where(seen, out, torch.zeros_like(out)).to(z.dtype)
+
+    def _check_inputs(self, image, labels, depth):
+        """The inputs as ``(B, C, Hs, Ws)`` image, ``(B, Hs, Ws)`` labels and ``(B, 1, Hs, Ws)``
+        depth (views), and the source size ``(Hs, Ws)``; raises naming what is wrong."""
+        if image is not None:
+            if not isinstance(image, Tensor):
+                raise TypeError(f"image: expected a tensor, got {type(image).__name__}")
+            image = _plain(image)
+            if image.dim() != 4:
+                layout = "(B, H, W, C)" if self.channels_last else "(B, C, H, W)"
+                raise ValueError(f"image: expected {layout} (channels_last="
+                                 f"{self.channels_last}), got {tuple(image.shape)}")
+            if not (image.is_floating_point() or image.dtype == torch.uint8):
+                raise TypeError(f"image: expected a floating-point or uint8 image, got "
+                                f"{image.dtype}")
+            if self.channels_last:
+                image = image.permute(0, 3, 1, 2)
+        if labels is not None:
+            labels = _plain(labels)
+            if labels.dim() == 4 and labels.shape[1] == 1:
+                labels = labels[:, 0]
+            if labels.dim() != 3 or labels.is_floating_point() or labels.is_complex():
+                raise ValueError(f"labels: expected integer class ids (B, H, W), got "
+                                 f"{labels.dtype} {tuple(labels.shape)}")
+        if depth is not None:
+            depth = _plain(depth)
+            if depth.dim() == 3:
+                depth = depth.unsqueeze(1)
+            if depth.dim() != 4 or depth.shape[1] != 1 or not depth.is_floating_point():
+                raise ValueError(f"depth: expected floating planar depth (B, H, W) or "
+                                 f"(B, 1, H, W), got {depth.dtype} {tuple(depth.shape)}")
+        given = [(name, t) for name, t in (("image", image), ("labels", labels),
+                                           ("depth", depth)) if t is not None]
+        if not given:
+            raise ValueError("render: pass at least one of image, labels, depth")
+        ref_name, ref = given[0]
+        for name, t in given[1:]:
+            if t.shape[0] != ref.shape[0] or t.shape[-2:] != ref.shape[-2:] or \
+                    t.device != ref.device:
+                raise ValueError(f"{name}: shape {tuple(t.shape)} on {t.device} does not match "
+                                 f"{ref_name} {tuple(ref.shape)} on {ref.device} (batch and "
+                                 f"image size)")
+        return image, labels, depth, tuple(ref.shape[-2:])
+
+    def _intrinsics(self, intrinsics: Tensor | None, size: tuple[int, int], batch: int
+                    ) -> Tensor:
+        """``(batch, 4)`` float64 source intrinsics, checked (or from ``source_fov``)."""
+        if intrinsics is None:
+            return self.source_intrinsics(size, batch)
+        k = torch.as_tensor(intrinsics, dtype=torch.float64).cpu()
+        if k.dim() == 1:
+            k = k.expand(batch, -1)
+        if k.shape != (batch, 4) or not bool(torch.isfinite(k).all()) or \
+                bool((k[:, :2] <= 0).any()):
+            raise ValueError(f"intrinsics: expected finite (B={batch}, 4) or (4,) fx, fy, cx, "
+                             f"cy with fx, fy > 0, got {tuple(k.shape)}")
+        return k
+
+    def forward(self, image: Tensor | dict | None, labels: Tensor | None = None,
+                depth: Tensor | None = None, *, intrinsics: Tensor | None = None,
+                params: dict | None = None, generator: torch.Generator | None = None) -> dict:
+        """Draw (or reuse ``params``) and reproject.
+
+        Args:
+            image: ``(B, C, H, W)`` (``channels_last``: ``(B, H, W, C)``) floating or ``uint8``
+                perspective images, or a dict with the keys ``rgb`` and optionally ``labels``,
+                ``depth`` and ``intrinsics``; ``tv_tensors.Image`` / ``tv_tensors.Mask``
+                are taken as the tensors they hold, and their outputs come back in their
+                classes.
+            labels: ``(B, H, W)`` integer class ids. depth: planar depth ``(B, H, W)``.
+            intrinsics: ``(B, 4)`` or ``(4,)`` pinhole ``fx, fy, cx, cy`` of the images (else
+                ``source_fov``).
+            params: parameters from ``forward_parameters`` or a previous output, to replay.
+            generator: the generator of this call (else the module's).
+
+        Returns:
+            dict ``rgb``, ``labels``, ``depth`` (those given), ``valid`` and ``params``.
+        """
+        if isinstance(image, dict):
+            unknown = set(image) - {"rgb", "labels", "depth", "intrinsics"}
+            if unknown:
+                raise ValueError(f"image: unknown keys {sorted(unknown)}")
+            labels = image.get("labels", labels)
+            depth = image.get("depth", depth)
+            intrinsics = image.get("intrinsics", intrinsics)
+            image = image.get("rgb")
+        given = {"rgb": image, "labels": labels, "depth": depth}
+        ref = next((t for t in given.values() if t is not None), None)
+        if ref is None:
+            raise ValueError("forward: pass at least one of image, labels, depth")
+        if params is None:
+            params = self.forward_parameters(ref.shape[0], generator=generator)
+        elif intrinsics is None:   # a replay: the intrinsics it was rendered with
+            intrinsics = params.get("intrinsics")
+        out = self.render(_plain(image), params, labels=_plain(labels), depth=_plain(depth),
+                          intrinsics=intrinsics)
+        return _like_inputs(out, given)
+
+
+class _Part(NamedTuple):
+    """A chunk of the samples of one model: ``params (n, P)``, their sample indices
+    ``index (n,)``, ``rotation (n, 3, 3)``, ``fov (n,)``, and the source images' pinhole
+    ``intrinsics (n, 4)`` and ``(H, W)``."""
+
+    params: Tensor
+    index: Tensor
+    rotation: Tensor
+    fov: Tensor
+    intrinsics: Tensor
+    source_size: tuple[int, int]
+
+
+def _slices(index: Tensor) -> list[tuple[slice, tuple[int, int]]]:
+    """The runs of consecutive sample indices of ``index``: ``(slice of the batch, (start,
+    stop) into index)`` each."""
+    return [(slice(first, first + b - a), (a, b)) for a, b, first in _runs(index.tolist())]
+
+
+def _plain(t: object) -> object:
+    """A tensor subclass (torchvision's ``tv_tensors.Image``, ``Mask``) as the plain tensor it
+    holds (no copy); anything else as it is."""
+    return t.as_subclass(Tensor) if isinstance(t, Tensor) and type(t) is not Tensor else t
+
+
+def _like_inputs(out: dict, given: dict) -> dict:
+    """The outputs of the inputs that came as a tensor subclass (``tv_tensors.Image``,
+    ``Mask``: torchvision's ``transforms.v2`` route each by its class) as that class again."""
+    for key, value in given.items():
+        if key in out and isinstance(value, Tensor) and type(value) is not Tensor:
+            out[key] = out[key].as_subclass(type(value))
+    return out
+
+
+def _on_batch(out: dict, n: int, batch_size: int) -> dict:
+    """Drawn parameters of ``n`` samples for ``batch_size`` (``same_on_batch``: one draw
+    repeated)."""
+    if n == batch_size:
+        return out
+    return {key: (value * batch_size if key == "model"
+                  else value.expand(batch_size, *value.shape[1:]).clone())
+            for key, value in out.items()}
 
 
 def _runs(indices: list[int]) -> list[tuple[int, int, int]]:

@@ -50,7 +50,8 @@ __all__ = ["load", "name", "face_case_flags", "CFLAGS", "LDFLAGS", "NAMESPACE", 
 
 SOURCE = Path(__file__).with_name("csrc") / "fastsample.cpp"
 NAMESPACE = "omniscape_torch"
-OPS = ("build_lut", "sample_lut", "sample_grid", "sample_rays", "camera_grid", "camera_rays")
+OPS = ("build_lut", "sample_lut", "sample_grid", "sample_rays", "camera_grid", "camera_rays",
+       "sample_image")
 #: ``-march=native``: the library is built for this machine's CPU (its flags are in the name);
 #: ``-fno-trapping-math``: float comparisons may be evaluated speculatively, so the tap
 #: computation vectorises (no result changes); ``-ffp-contract=off``: no fused multiply-adds
@@ -215,9 +216,17 @@ def _fake_camera_rays(affine, limits, table, rays, valid) -> None:
            "camera_rays: expected rays (B, H, W, 3) and valid (B, H, W)")
 
 
+def _fake_sample_image(image, rays, rotation, intrinsics, valid, bilinear, fill, out,
+                       valid_out) -> None:
+    _check(image.dim() == 4 and rays.dim() == 4 and rays.shape[-1] == 3
+           and out.shape == (image.shape[0], image.shape[1], *rays.shape[1:3]),
+           "sample_image: expected image (B, C, H, W), rays (B, h, w, 3), out (B, C, h, w)")
+
+
 _FAKES = {"build_lut": _fake_build_lut, "sample_lut": _fake_sample_lut,
           "sample_grid": _fake_sample_grid, "sample_rays": _fake_sample_rays,
-          "camera_grid": _fake_camera_grid, "camera_rays": _fake_camera_rays}
+          "camera_grid": _fake_camera_grid, "camera_rays": _fake_camera_rays,
+          "sample_image": _fake_sample_image}
 
 
 def _register_fakes() -> None:

@@ -62,10 +62,10 @@ from ..cubemap.padding import border_plan, check_cubemap
 from ..cubemap.grid import rotated_rays_to_grid
 from ..cubemap.grid import _check_inputs as _check_rays
 
-__all__ = ["CubeLUT", "CameraGrid", "build_lut", "sample_cube", "sample_rays", "reads_rays",
-           "sample_atlas",
-           "available", "unavailable_reason", "compile_failures", "holds", "is_channels_last",
-           "work_dtype", "grid_dtype", "output_dtypes", "MODES", "BORDERS", "BLENDED"]
+__all__ = ["CubeLUT", "CameraGrid", "build_lut", "camera_rays", "sample_cube", "sample_rays",
+           "sample_image", "reads_rays", "sample_atlas", "available", "unavailable_reason",
+           "compile_failures", "holds", "is_channels_last", "work_dtype", "grid_dtype",
+           "output_dtypes", "MODES", "BORDERS", "BLENDED"]
 
 MODES = ("nearest", "bilinear")
 #: How the atlas border is filled: resampled from the neighbours with the ``"bilinear"`` or
@@ -502,6 +502,19 @@ def camera_grid(affine: Tensor, limits: Tensor, table: Tensor, rotation: Tensor,
     return grid, valid
 
 
+def camera_rays(affine: Tensor, limits: Tensor, table: Tensor, image_size: tuple[int, int],
+                dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+    """The camera-frame unit rays ``(B, H, W, 3)`` in ``dtype`` (float32 or float64) and
+    validity ``(B, H, W)`` (domain and cones) of every pixel centre of ``B`` radially symmetric
+    cameras, from their tables (``kernels.radial_table``), in one pass of the C++ op."""
+    tables = [t.to("cpu", dtype).contiguous() for t in (affine, limits, table)]
+    batch = affine.shape[0]
+    rays = torch.empty((batch, *image_size, 3), dtype=dtype)
+    valid = torch.empty((batch, *image_size), dtype=torch.bool)
+    _require().camera_rays(*tables, rays, valid)
+    return rays, valid
+
+
 class CameraGrid:
     """The atlas grid of ``B`` radially symmetric cameras, each with its rotation and cones,
     as their rays: made in one pass of the C++ op over the pixels (each pixel's ray from its
@@ -521,11 +534,7 @@ class CameraGrid:
 
     def __init__(self, affine: Tensor, limits: Tensor, table: Tensor, rotation: Tensor,
                  face_size: int, pad: int, image_size: tuple[int, int], dtype: torch.dtype):
-        tables = [t.to("cpu", dtype).contiguous() for t in (affine, limits, table)]
-        batch = affine.shape[0]
-        self.rays = torch.empty((batch, *image_size, 3), dtype=dtype)
-        self.valid = torch.empty((batch, *image_size), dtype=torch.bool)
-        _require().camera_rays(*tables, self.rays, self.valid)
+        self.rays, self.valid = camera_rays(affine, limits, table, image_size, dtype)
         self.rotation = rotation.to("cpu", dtype).contiguous()
         self.face_size, self.pad = face_size, pad
         self._grid: Tensor | None = None
@@ -552,6 +561,93 @@ class CameraGrid:
             setattr(part, key, getattr(self, key)[start:stop])
         part._grid = None if self._grid is None else self._grid[start:stop]
         return part
+
+
+def sample_image(image: Tensor, rays: Tensor, rotation: Tensor | None, intrinsics: Tensor,
+                 mode: str = "bilinear", *, valid: Tensor | None = None, fill: int = 0,
+                 out: Tensor | None = None, out_dtype: torch.dtype | None = None
+                 ) -> tuple[Tensor, Tensor]:
+    """A perspective image sampled along rays: each ray rotated into the image's pinhole camera
+    and projected, ``u = fx (x / z) + cx``, ``v = fy (y / z) + cy``, then the image sampled
+    there (``grid_sample(align_corners=False)`` with border padding, to float rounding of the
+    pixel: ``ot.reproject``'s image of a pinhole source), in one C++ pass without a grid.
+
+    The image is read through its strides (a channels-last ``(B, H, W, C)`` tensor permuted to
+    ``(B, C, H, W)`` costs no copy and its samples come back channels-last) and in the dtypes
+    of :func:`sample_cube`: ``uint8`` blended in float32 and rounded half up (or scaled to
+    [0, 1], or, nearest, widened to int64 ids: :func:`output_dtypes`).
+
+    Args:
+        image: ``(B, C, H, W)`` on the CPU.
+        rays: ``(1 or B, h, w, 3)`` directions (any norm) in :func:`work_dtype` of the image
+            (float32 or float64 for an image sampled nearest).
+        rotation: ``(1 or B, 3, 3)`` rays -> the image's camera frame, or None.
+        intrinsics: ``(1 or B, 4)`` the image's pinhole ``fx, fy, cx, cy`` (pixel centres at
+            integers), in the rays' dtype.
+        mode: ``"nearest"`` or ``"bilinear"``.
+        valid: ``(1 or B, h, w)`` bool: the rays to sample (else ``fill``).
+        fill, out, out_dtype: as for :func:`sample_cube`.
+
+    Returns:
+        ``(B, C, h, w)`` in ``out_dtype`` (``out`` when given) and ``valid (B, h, w)``: the rays
+        in front of the camera (``z > 0``) whose pixel lies in the image (``[-0.5, W - 0.5] x
+        [-0.5, H - 0.5]``), and ``valid``.
+    """
+    _check_mode(mode, "bilinear")
+    if not isinstance(image, Tensor) or image.dim() != 4:
+        raise ValueError(f"image: expected a tensor (B, C, H, W), got "
+                         f"{tuple(getattr(image, 'shape', ())) or type(image).__name__}")
+    if image.device.type != "cpu":
+        raise ValueError(f"image: the fast path runs on the CPU, got {image.device}")
+    if not _samples(image.dtype, mode):
+        raise TypeError(f"image: {mode} sampling needs one of {[str(d) for d in BLENDED]}"
+                        f"{' (or any integer ids, nearest)' if mode == 'bilinear' else ''}, "
+                        f"got {image.dtype}")
+    batch, chans = image.shape[:2]
+    if not isinstance(rays, Tensor) or rays.dim() != 4 or rays.shape[-1] != 3 \
+            or rays.shape[0] not in (1, batch):
+        raise ValueError(f"rays: expected (1 or {batch}, h, w, 3), got "
+                         f"{tuple(getattr(rays, 'shape', ()))}")
+    size = tuple(rays.shape[1:3])
+    dtype = work_dtype(image.dtype) if image.dtype in BLENDED else rays.dtype
+    if dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"rays: expected float32 or float64, got {rays.dtype}")
+    if not isinstance(intrinsics, Tensor) or intrinsics.dim() != 2 or \
+            intrinsics.shape[1] != 4 or intrinsics.shape[0] not in (1, batch):
+        raise ValueError(f"intrinsics: expected (1 or {batch}, 4) fx, fy, cx, cy, got "
+                         f"{tuple(getattr(intrinsics, 'shape', ()))}")
+    if rotation is not None and (not isinstance(rotation, Tensor) or rotation.dim() != 3 or
+                                 rotation.shape[1:] != (3, 3) or
+                                 rotation.shape[0] not in (1, batch)):
+        raise ValueError(f"rotation: expected (1 or {batch}, 3, 3), got "
+                         f"{tuple(getattr(rotation, 'shape', ()))}")
+    out_dtype = image.dtype if out_dtype is None else out_dtype
+    if out_dtype not in output_dtypes(image.dtype, mode):
+        raise TypeError(f"out_dtype: expected one of "
+                        f"{[str(d) for d in output_dtypes(image.dtype, mode)]} for a "
+                        f"{image.dtype} image, got {out_dtype}")
+    if out is not None:
+        _check_out(out, (batch, chans, *size), out_dtype)
+    _check_fill(fill, out_dtype)
+    if valid is not None and (not isinstance(valid, Tensor) or valid.dtype != torch.bool or
+                              valid.dim() != 3 or valid.shape[0] not in (1, batch) or
+                              tuple(valid.shape[1:]) != size):
+        raise ValueError(f"valid: expected a bool tensor (1 or {batch}, {size[0]}, {size[1]}), "
+                         f"got {getattr(valid, 'dtype', type(valid).__name__)} "
+                         f"{tuple(getattr(valid, 'shape', ()))}")
+    ops = _require()
+    if out is None:
+        out = (torch.empty((batch, *size, chans), dtype=out_dtype).permute(0, 3, 1, 2)
+               if chans > 1 and image.stride(1) == 1 else
+               torch.empty((batch, chans, *size), dtype=out_dtype))
+    seen = torch.empty((batch, *size), dtype=torch.bool)
+    with torch.no_grad():
+        ops.sample_image(image, rays.to(dtype).contiguous(),
+                         None if rotation is None else rotation.to(dtype).contiguous(),
+                         intrinsics.to(dtype).contiguous(),
+                         None if valid is None else valid.contiguous(), mode == "bilinear",
+                         fill, out, seen)
+    return out, seen
 
 
 def is_channels_last(t: Tensor) -> bool:

@@ -21,6 +21,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
+from ..cameras import Camera
 from ..cameras.radial import kannala_brandt_tabulate, kannala_brandt_unproject_table_xyz
 from ..cameras.registry import get_model
 from ..cameras.unified import unified_unproject_undistorted_xyz
@@ -28,7 +29,7 @@ from ..cubemap.faces import _check_face_size, _check_pad
 from ..cubemap.grid import compiled_kernel, fail, rotated_grid_xy, rotated_rays_to_grid
 from . import fast
 
-__all__ = ["camera_grid", "radial_table", "RADIAL", "RADIAL_ENTRIES"]
+__all__ = ["camera_grid", "camera_rays", "radial_table", "RADIAL", "RADIAL_ENTRIES"]
 
 
 #: The unprojections compiled whole into the camera kernel: those of the cameras
@@ -300,3 +301,46 @@ def camera_grid(model: str, params: Tensor, image_size: tuple[int, int], face_si
             return rotated_rays_to_grid(rays, rot, f, p, dtype=dt, compiled=compiled).unbind(-1)
 
         return _camera_grid_math(*args, unproject_xyz, to_grid_xy)
+
+
+def camera_rays(model: str, params: Tensor, image_size: tuple[int, int], *,
+                fov: Tensor | None = None, dtype: torch.dtype | None = None
+                ) -> tuple[Tensor, Tensor]:
+    """Unit rays ``(B, H, W, 3)`` and validity ``(B, H, W)`` of every pixel centre of ``B``
+    cameras of one model, each within its own field of view ``fov (B,)`` (radians; None: the
+    model's domain), without gradient: on the CPU through the cameras' tables
+    (:func:`radial_table`, the C++ op ``camera_rays``; as :func:`camera_grid` reads them),
+    elsewhere (another device, no table, no fast sampler) ``Camera.ray_grid`` and the cones
+    ``z >= cos(fov / 2)``.
+
+    Args:
+        model: a registered camera model name.
+        params: ``(B, P)`` parameters, one row per camera.
+        image_size: ``(H, W)``.
+        fov: ``(B,)`` full fields of view, or None.
+        dtype: floating dtype of the rays (default: that of ``params``).
+    """
+    if not isinstance(params, Tensor) or not params.is_floating_point() or params.dim() != 2:
+        raise ValueError(f"params: expected a floating tensor (B, P), got "
+                         f"{getattr(params, 'shape', type(params).__name__)}")
+    dtype = params.dtype if dtype is None else dtype
+    h, w = image_size
+    batch = params.shape[0]
+    if fov is not None and (not isinstance(fov, Tensor) or fov.shape != (batch,)):
+        raise ValueError(f"fov: expected a tensor ({batch},) of angles, got "
+                         f"{getattr(fov, 'shape', type(fov).__name__)}")
+    cosine = (torch.full((batch,), -2.0, dtype=torch.float64) if fov is None
+              else torch.cos(0.5 * fov.detach().to("cpu", torch.float64)))
+    with torch.no_grad():
+        tables = (radial_table(model, params, (h, w)) if params.device.type == "cpu"
+                  and dtype in (torch.float32, torch.float64) and fast.available() else None)
+        if tables is not None:
+            affine, limits, table = tables
+            limits[:, 3] = cosine
+            return fast.camera_rays(affine, limits, table, (h, w), dtype)
+        rays, valid = Camera(model, params.detach(), (h, w)).ray_grid()
+        if rays.dim() == 3:
+            rays, valid = rays.unsqueeze(0), valid.unsqueeze(0)
+        rays = rays.to(dtype)
+        valid = valid & (rays[..., 2] >= cosine.to(rays)[:, None, None])
+        return rays, valid

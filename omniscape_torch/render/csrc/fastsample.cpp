@@ -132,22 +132,31 @@ inline O copy(T v) {
 
 // The padded cube: faces of `face` texels with a border of `pad`, `n = face + 2 pad` per
 // padded side; the cube's strides between faces, rows and texels of one channel (elements).
+// A perspective image (sample_image) is a layout of one face of height x width texels, no
+// border: only row, texel and last are read.
 struct Layout {
     int64_t face, pad, n;
     int64_t face_stride, row, texel;
     double half_x, half_y;  // n / 2 and 6 n / 2: the unnormalisation of grid_sample
+    int64_t last_at;        // the largest offset of a texel
 
     // the offset of texel (i, j) of face k
     int64_t at(int64_t k, int64_t i, int64_t j) const {
         return k * face_stride + i * row + j * texel;
     }
-    // the largest offset of a texel of the cube
-    int64_t last() const { return at(5, face - 1, face - 1); }
+    // the largest offset of a texel of the cube (or image)
+    int64_t last() const { return last_at; }
 };
 
 Layout layout(int64_t face, int64_t pad, int64_t face_stride, int64_t row, int64_t texel) {
     const int64_t n = face + 2 * pad;
-    return Layout{face, pad, n, face_stride, row, texel, 0.5 * n, 3.0 * n};
+    Layout L{face, pad, n, face_stride, row, texel, 0.5 * n, 3.0 * n, 0};
+    L.last_at = L.at(5, face - 1, face - 1);
+    return L;
+}
+
+Layout image_layout(int64_t height, int64_t width, int64_t row, int64_t texel) {
+    return Layout{1, 0, 0, 0, row, texel, 0.0, 0.0, (height - 1) * row + (width - 1) * texel};
 }
 
 // The border texels (row-major over the padded faces, interior skipped): texel t reads the
@@ -577,19 +586,69 @@ void interior_planes(const T* __restrict cube, int64_t src_chan, Taps t, int64_t
 }
 #endif
 
-// Where the edge pixels of a segment lie: their grid points (x, y pairs, unnormalised as
-// grid_sample does) or their atlas pixels (two arrays, from locate_rays).
+// An edge pixel at pixel (x, y) of a perspective image (sample_image): its taps clamped to the
+// image (grid_sample's border padding: the same values as the coordinate clamped), then read
+// for every channel into out[c out_chan]. Not inlined: rare (the image's rim).
+template <typename T, typename O, typename G>
+__attribute__((noinline)) void image_edge_pixel(const T* image, G x, G y, const Layout& L,
+                                                int64_t height, int64_t width, bool bilinear,
+                                                const Planes& S, O* out) {
+    const auto at = [&](int64_t j, int64_t i) {
+        return std::clamp<int64_t>(i, 0, height - 1) * L.row +
+               std::clamp<int64_t>(j, 0, width - 1) * L.texel;
+    };
+    if (!bilinear) {
+        const int64_t k = at(static_cast<int64_t>(std::nearbyint(x)),
+                             static_cast<int64_t>(std::nearbyint(y)));
+        for (int64_t c = 0; c < S.chans; ++c) {
+            out[c * S.out_chan] = copy<T, O>(image[c * S.src_chan + k]);
+        }
+        return;
+    }
+    if constexpr (kBlends<T>) {   // the other images are sampled nearest
+        using V = W<T>;
+        const G x0 = std::floor(x), y0 = std::floor(y);
+        const int64_t j = static_cast<int64_t>(x0), i = static_cast<int64_t>(y0);
+        const int64_t nw = at(j, i), ne = at(j + 1, i), sw = at(j, i + 1), se = at(j + 1, i + 1);
+        for (int64_t c = 0; c < S.chans; ++c) {
+            const T* q = image + c * S.src_chan;
+            out[c * S.out_chan] = store<T, O>(blend<V>(value(q[nw]), value(q[ne]), value(q[sw]),
+                                                       value(q[se]), V(x - x0), V(y - y0)));
+        }
+    }
+}
+
+// Where the edge pixels of a segment lie, and how they are read: their grid points (x, y
+// pairs, unnormalised as grid_sample does) or atlas pixels (two arrays, from locate_rays),
+// through the virtual atlas (edge_pixel); or pixels of a perspective image, clamped to it.
 template <typename G>
 struct GridPoints {
     const G* grid;
-    G x(int64_t p, const Layout& L) const { return unnormalize(grid[2 * p], L.half_x); }
-    G y(int64_t p, const Layout& L) const { return unnormalize(grid[2 * p + 1], L.half_y); }
+    template <typename T, typename O>
+    void edge(const T* cube, const Ring<T>& R, int64_t p, const Layout& L, bool bilinear,
+              const Planes& S, O* out) const {
+        edge_pixel<T, O, G>(cube, R, unnormalize(grid[2 * p], L.half_x),
+                            unnormalize(grid[2 * p + 1], L.half_y), L, bilinear, S, out);
+    }
 };
 template <typename G>
 struct AtlasPoints {
     const G *xs, *ys;
-    G x(int64_t p, const Layout&) const { return xs[p]; }
-    G y(int64_t p, const Layout&) const { return ys[p]; }
+    template <typename T, typename O>
+    void edge(const T* cube, const Ring<T>& R, int64_t p, const Layout& L, bool bilinear,
+              const Planes& S, O* out) const {
+        edge_pixel<T, O, G>(cube, R, xs[p], ys[p], L, bilinear, S, out);
+    }
+};
+template <typename G>
+struct ImagePoints {
+    const G *xs, *ys;
+    int64_t height, width;
+    template <typename T, typename O>
+    void edge(const T* image, const Ring<T>&, int64_t p, const Layout& L, bool bilinear,
+              const Planes& S, O* out) const {
+        image_edge_pixel<T, O, G>(image, xs[p], ys[p], L, height, width, bilinear, S, out);
+    }
 };
 
 // Output pixels [lo, lo + m) of sample b: the entries `t` and the `points` (for the edge
@@ -639,8 +698,7 @@ void sample_span(const T* cube, const Ring<T>& R, Taps t, Points points, int64_t
     }
     for (int64_t p = 0; p < m; ++p) {
         if (t.code(p) == kEdge) {
-            edge_pixel<T, O, G>(cube, R, points.x(p, L), points.y(p, L), L, bilinear, S,
-                                out + p * S.out_pix);
+            points.template edge<T, O>(cube, R, p, L, bilinear, S, out + p * S.out_pix);
         }
     }
 }
@@ -918,6 +976,107 @@ void sample_rays(const T* src, const G* rays, int64_t rays_batch, const G* rot,
         }
         sample_span<T, O, G>(cube, R, buffer.taps(), AtlasPoints<G>{xs, ys}, m, L, true, fill,
                              S, o);
+    });
+}
+
+
+// ------------------------------------------------------------------------------------------
+// Perspective images: rays rotated into a pinhole camera, its image sampled
+// ------------------------------------------------------------------------------------------
+
+// The taps in a perspective image of height x width texels (rows and texels L.row, L.texel
+// apart) of `count` rays rotated by `rot` (row-major 3 x 3, Rotate) into the pinhole camera
+// k = (fx, fy, cx, cy): pixel u = fx (x / z) + cx, v = fy (y / z) + cy (pinhole_project's
+// operations), valid where z > 0, the pixel lies in [-0.5, W - 0.5] x [-0.5, H - 0.5] (Camera's
+// image bounds) and `valid` (may be null) holds; written to valid_out (may be null). Codes as
+// locate's: the top-left tap (nearest: the texel, rounded half to even) where every tap lies
+// in the image, kEdge where a valid pixel's taps reach beyond it (read clamped), kOutside where
+// invalid; xs, ys: the pixels (for the edge pixels).
+template <typename G, bool Bilinear, bool Rotate>
+void locate_pinhole(const G* __restrict rays, const G* __restrict rot, const G* __restrict k,
+                    int64_t count, const uint8_t* __restrict valid, int64_t height,
+                    int64_t width, const Layout& L, Split<G> out, G* __restrict xs,
+                    G* __restrict ys, uint8_t* __restrict valid_out) {
+    const G fx = k[0], fy = k[1], cx = k[2], cy = k[3];
+    const G right = G(width) - G(0.5), bottom = G(height) - G(0.5);
+    const int32_t w = static_cast<int32_t>(width), h = static_cast<int32_t>(height);
+    const uint32_t row = static_cast<uint32_t>(L.row), texel = static_cast<uint32_t>(L.texel);
+    const int32_t span = Bilinear ? 1 : 0;
+    G r[9];
+    if (Rotate) {
+        std::copy(rot, rot + 9, r);
+    }
+    for (int64_t p = 0; p < count; ++p) {
+        const G x = rays[3 * p], y = rays[3 * p + 1], z = rays[3 * p + 2];
+        G px = x, py = y, pz = z;
+        if (Rotate) {   // ray_grid's order of operations
+            px = r[0] * x + r[1] * y;
+            px = px + r[2] * z;
+            py = r[3] * x + r[4] * y;
+            py = py + r[5] * z;
+            pz = r[6] * x + r[7] * y;
+            pz = pz + r[8] * z;
+        }
+        const bool front = pz > G(0);
+        const G depth = front ? pz : G(1);
+        const G u = fx * (px / depth) + cx, v = fy * (py / depth) + cy;
+        const bool inside = front & (u >= G(-0.5)) & (u <= right) & (v >= G(-0.5)) &
+                            (v <= bottom);
+        const G u0 = Bilinear ? std::floor(u) : std::nearbyint(u);
+        const G v0 = Bilinear ? std::floor(v) : std::nearbyint(v);
+        const int32_t j = static_cast<int32_t>(inside ? u0 : G(0));
+        const int32_t i = static_cast<int32_t>(inside ? v0 : G(0));
+        const bool interior = (j >= 0) & (j + span < w) & (i >= 0) & (i + span < h);
+        const int32_t at = static_cast<int32_t>(static_cast<uint32_t>(i) * row +
+                                                static_cast<uint32_t>(j) * texel);
+        out.set(p, inside ? (interior ? at : kEdge) : kOutside, u - u0, v - v0);
+        xs[p] = u;
+        ys[p] = v;
+        if (valid_out != nullptr) {
+            valid_out[p] = inside;
+        }
+    }
+    if (valid != nullptr) {
+        for (int64_t p = 0; p < count; ++p) {
+            out.set_code(p, valid[p] ? out.code(p) : kOutside);
+            if (valid_out != nullptr) {
+                valid_out[p] = valid_out[p] & valid[p];
+            }
+        }
+    }
+}
+
+// A perspective image (B, C, height, width) (any strides: L.row, L.texel; S) sampled along rays
+// (rays_batch 0 or 3 P) rotated per sample (rot_batch 0 or 9, rot null: not rotated) into its
+// pinhole camera (intrinsics k, k_batch 0 or 4), a segment at a time; the pixels outside read
+// `fill`; their validity into valid_out (B, P) where it is not null.
+template <typename T, typename O, typename G>
+void sample_image(const T* src, const G* rays, int64_t rays_batch, const G* rot,
+                  int64_t rot_batch, const G* k, int64_t k_batch, const uint8_t* valid,
+                  int64_t valid_batch, int64_t height, int64_t width, const Layout& L,
+                  bool bilinear, O fill, Planes S, O* out, uint8_t* valid_out) {
+    const Ring<T> none{nullptr, nullptr, 1, 0};   // no border: the taps are clamped
+    for_segments(S, [&](int64_t b, int64_t lo, int64_t m) {
+        G xs[kSegment], ys[kSegment];
+        SplitBuffer<G> buffer;
+        const G* ray = rays + b * rays_batch + 3 * lo;
+        const G* r = rot == nullptr ? nullptr : rot + b * rot_batch;
+        const uint8_t* ok = valid == nullptr ? nullptr : valid + b * valid_batch + lo;
+        uint8_t* seen = valid_out == nullptr ? nullptr : valid_out + b * S.pixels + lo;
+        const auto locate = [&](auto bilinear_, auto rotate) {
+            locate_pinhole<G, decltype(bilinear_)::value, decltype(rotate)::value>(
+                ray, r, k + b * k_batch, m, ok, height, width, L, buffer.taps(), xs, ys, seen);
+        };
+        using Yes = std::true_type;
+        using No = std::false_type;
+        if (bilinear) {
+            r != nullptr ? locate(Yes{}, Yes{}) : locate(Yes{}, No{});
+        } else {
+            r != nullptr ? locate(No{}, Yes{}) : locate(No{}, No{});
+        }
+        sample_span<T, O, G>(src + b * S.src_batch, none, buffer.taps(),
+                             ImagePoints<G>{xs, ys, height, width}, m, L, bilinear, fill, S,
+                             out + b * S.out_batch + lo * S.out_pix);
     });
 }
 
@@ -1408,6 +1567,74 @@ void sample_rays_op(const at::Tensor& cube, const at::Tensor& rays,
 }
 
 
+// sample_image: a perspective image (B, C, H, W), any strides, along rays (1 or B, h, w, 3)
+// rotated by rotation (1 or B, 3, 3, or none) into its pinhole camera, intrinsics (1 or B, 4)
+// fx, fy, cx, cy, all in the dtype the image is sampled with; where valid (1 or B, h, w) is
+// false, or the ray misses the image: fill; into out (B, C, h, w) and the validity into
+// valid_out (B, h, w).
+void sample_image_op(const at::Tensor& image, const at::Tensor& rays,
+                     const std::optional<at::Tensor>& rotation, const at::Tensor& intrinsics,
+                     const std::optional<at::Tensor>& valid, bool bilinear, int64_t fill,
+                     const at::Tensor& out, const std::optional<at::Tensor>& valid_out) {
+    const char* op = "omniscape_torch::sample_image";
+    check_cpu(op, "image", image);
+    TORCH_CHECK(image.dim() == 4 && image.size(2) >= 1 && image.size(3) >= 1, op,
+                ": image: expected shape (B, C, H, W), got ", image.sizes());
+    if (bilinear) {
+        TORCH_CHECK(blends(image), op, ": image: bilinear sampling needs float32, float64, "
+                    "float16, bfloat16 or uint8, got ", image.scalar_type());
+    } else {
+        const int64_t size = image.element_size();
+        TORCH_CHECK(blends(image) || size == 1 || size == 2 || size == 4 || size == 8, op,
+                    ": image: nearest sampling copies elements of 1, 2, 4 or 8 bytes, got ",
+                    image.scalar_type());
+    }
+    const int64_t height = image.size(2), width = image.size(3);
+    TORCH_CHECK(image.stride(2) >= 0 && image.stride(3) >= 0 &&
+                    (height - 1) * image.stride(2) + (width - 1) * image.stride(3) < kMaxOffset,
+                op, ": image: too large for int32 offsets (strides ", image.strides(), ")");
+    const Layout L = image_layout(height, width, image.stride(2), image.stride(3));
+    // the image stands for the cube of check_points: a (B, 1, C, 1, 1) view
+    const at::Tensor cube = image.unsqueeze(1).narrow(3, 0, 1).narrow(4, 0, 1);
+    check_points(op, "rays", rays, cube, bilinear, 4, 3);
+    check_points(op, "intrinsics", intrinsics, cube, bilinear, 2, 4);
+    if (rotation.has_value()) {
+        check_points(op, "rotation", *rotation, cube, bilinear, 3, 3);
+        TORCH_CHECK(rotation->size(1) == 3, op, ": rotation: expected (1 or B, 3, 3), got ",
+                    rotation->sizes());
+    }
+    TORCH_CHECK(intrinsics.scalar_type() == rays.scalar_type() &&
+                    (!rotation.has_value() || rotation->scalar_type() == rays.scalar_type()),
+                op, ": intrinsics, rotation: expected the rays' dtype ", rays.scalar_type());
+    check_out(op, out, cube, rays.size(1), rays.size(2), bilinear);
+    check_valid(op, valid, image.size(0), rays.size(1), rays.size(2));
+    if (valid_out.has_value()) {
+        check_contiguous(op, "valid_out", *valid_out);
+        TORCH_CHECK(valid_out->scalar_type() == at::kBool &&
+                        valid_out->sizes() ==
+                            at::IntArrayRef({image.size(0), rays.size(1), rays.size(2)}),
+                    op, ": valid_out: expected bool (", image.size(0), ", ", rays.size(1), ", ",
+                    rays.size(2), "), got ", valid_out->scalar_type(), " ", valid_out->sizes());
+    }
+    dispatch(image, out, rays.scalar_type(), [&](auto t, auto o, auto g) {
+        using T = decltype(t);
+        using O = decltype(o);
+        using G = decltype(g);
+        sample_image<T, O, G>(elements<T>(image), elements<G>(rays), batch_stride(rays),
+                              rotation.has_value() ? elements<G>(*rotation) : nullptr,
+                              batch_stride(rotation), elements<G>(intrinsics),
+                              batch_stride(intrinsics), mask(valid), batch_stride(valid),
+                              height, width, L, bilinear, fill_value<O>(fill),
+                              Planes{out.size(0), out.size(1), out.size(2) * out.size(3),
+                                     out.size(3), image.stride(0), image.stride(1),
+                                     out.stride(0), out.stride(1), out.stride(3)},
+                              static_cast<O*>(out.mutable_data_ptr()),
+                              valid_out.has_value()
+                                  ? static_cast<uint8_t*>(valid_out->mutable_data_ptr())
+                                  : nullptr);
+    });
+}
+
 // Radially symmetric cameras (radial_rays): affine (N, 6), limits (N, 5), table (N, 2, K),
 // K >= 2, N >= 1, contiguous, all in one floating dtype (returned).
 at::ScalarType check_cameras(const char* op, const at::Tensor& affine, const at::Tensor& limits,
@@ -1523,6 +1750,8 @@ TORCH_LIBRARY(omniscape_torch, m) {
           "int pad, Tensor(a!) grid, Tensor(b!) valid) -> ()");
     m.def("camera_rays(Tensor affine, Tensor limits, Tensor table, Tensor(a!) rays, "
           "Tensor(b!) valid) -> ()");
+    m.def("sample_image(Tensor image, Tensor rays, Tensor? rotation, Tensor intrinsics, "
+          "Tensor? valid, bool bilinear, int fill, Tensor(a!) out, Tensor(b!)? valid_out) -> ()");
 }
 
 TORCH_LIBRARY_IMPL(omniscape_torch, CPU, m) {
@@ -1532,4 +1761,5 @@ TORCH_LIBRARY_IMPL(omniscape_torch, CPU, m) {
     m.impl("sample_rays", &sample_rays_op);
     m.impl("camera_grid", &camera_grid_op);
     m.impl("camera_rays", &camera_rays_op);
+    m.impl("sample_image", &sample_image_op);
 }
