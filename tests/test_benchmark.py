@@ -230,6 +230,33 @@ def test_augment_benchmark_uint8_rows(tmp_path):
     assert "throughput rgb_u8 / rgb_f32" in ba.markdown(result)
 
 
+def test_reproject_benchmark_rows(tmp_path, monkeypatch):
+    """Issue 17: RandomReproject per image and per batch against albumentations (where it is
+    installed; else its row is skipped and said so) and kornia, with its agreement with the
+    exact chain on the same draws."""
+    import bench_reproject as br
+
+    out = tmp_path / "reproject.json"
+    assert br.main(["--quick", "--repeats", "1", "--warmup", "0", "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    rows = {r["name"]: r for r in result["rows"]}
+    assert {"ours_batch", "ours_sample", "ours_sample_hwc", "exact"} <= set(rows)
+    assert all(r["images_per_s"] > 0 for r in rows.values())
+    agreement = result["agreement"]
+    assert agreement["valid_mismatch_fraction"] < 0.01
+    assert agreement["rgb_max_abs_diff_levels"] <= 1 and agreement["label_agreement"] > 0.99
+    if br.albumentations is None:
+        assert "albumentations" in result["skipped"] and not result["headline"]
+    else:
+        assert {h["ours"] for h in result["headline"]} == {"ours_sample", "ours_sample_hwc",
+                                                             "ours_batch"}
+    monkeypatch.setattr(br, "albumentations", None)   # the peer missing: said, not failed
+    assert br.main(["--quick", "--repeats", "1", "--warmup", "0", "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert "albumentations" in result["skipped"] and "skipped albumentations" in br.markdown(
+        result)
+
+
 def test_workers_benchmark_rows_and_its_peer(tmp_path):
     """Issue 17: RandomOmniCamera in DataLoader workers against the numpy + cv2.remap peer,
     every fisheye model and the mix, float32 and uint8; the peer's Newton inverse of
