@@ -22,7 +22,8 @@ import torch
 from torch import Tensor
 
 from ..cameras import Camera
-from ..cameras.radial import kannala_brandt_tabulate, kannala_brandt_unproject_table_xyz
+from ..cameras.radial import (kannala_brandt_angles, kannala_brandt_tabulate,
+                               kannala_brandt_unproject_table_xyz)
 from ..cameras.registry import get_model
 from ..cameras.unified import unified_unproject_undistorted_xyz
 from ..cubemap.faces import _check_face_size, _check_pad
@@ -140,8 +141,12 @@ def radial_table(model: str, params: Tensor, image_size: tuple[int, int],
                       reach[:, None] * steps)
     rho = torch.cat((rho, rho[:, -1:]), -1)    # entry K - 1 repeats K - 2: t = 0 there
     rho[:, 0] = 1e-6 * rho[:, 1]               # S at the axis: its limit
-    rays = _on_axis(unproject, *at, rho)[0]
-    table = torch.stack((rays[..., 0] / rho, rays[..., 2]), 1)   # (B, 2, K)
+    if model == "kannala_brandt":   # its inverse by a forward sweep: no Newton per entry
+        theta = kannala_brandt_angles(p, rho)
+        table = torch.stack((torch.sin(theta) / rho, torch.cos(theta)), 1)
+    else:
+        rays = _on_axis(unproject, *at, rho)[0]
+        table = torch.stack((rays[..., 0] / rho, rays[..., 2]), 1)   # (B, 2, K)
     scale = (entries - 2) / torch.where(ends, root, reach)
     limits = torch.stack((scale, root, end, torch.full_like(end, -2.0),
                           torch.full_like(end, 2.0)), -1)
