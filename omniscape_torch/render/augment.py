@@ -659,20 +659,22 @@ class RandomOmniCamera(_RandomCameras):
             result = {key: torch.empty((batch, *shape), dtype=out_dtype, device=device)
                       for key, (shape, out_dtype) in shapes.items()}
         for name, (idx, camera) in cameras.items():
+            # the grid of every pixel, with the sample's rotation and field-of-view cones: on
+            # the CPU the cameras' tables, made for the model's samples at once, their rays a
+            # chunk at a time and the taps in the sampling pass
+            whole = camera_grid(
+                name, camera.params, self.image_size, self.face_size,
+                projection.pad_for(self.interpolation),
+                rotation=params["rotation"][idx].to(dtype=dtype, device=device),
+                fov=params["fov"][idx].to(dtype=dtype, device=device),
+                blind_fov=params["blind_fov"][idx].to(dtype=dtype, device=device), lazy=True)
             for start in range(0, len(idx), chunk):
                 part = slice(start, start + chunk)
                 cam = Camera(name, camera.params[part], self.image_size)
                 sel = idx[part]
                 proj = OmniProjection(cam, self.face_size, interpolation=self.interpolation,
                                       ignore_index=self.ignore_index)
-                # the grid of every pixel, with the sample's rotation and field-of-view cones
-                # (on the CPU the sampling pass computes it from the cameras' tables)
-                grid = camera_grid(
-                    name, cam.params, self.image_size, self.face_size, proj.pad,
-                    rotation=params["rotation"][sel].to(dtype=dtype, device=device),
-                    fov=params["fov"][sel].to(dtype=dtype, device=device),
-                    blind_fov=params["blind_fov"][sel].to(dtype=dtype, device=device),
-                    lazy=True)
+                grid = _grid_rows(whole, start, start + chunk)
                 if not result:   # one part, the whole batch: the layer allocates
                     result = proj.render(rgb=cubemap, labels=labels, depth=depth,
                                          depth_output=self.depth_output, grid=grid,
@@ -687,9 +689,8 @@ class RandomOmniCamera(_RandomCameras):
                     layer = proj if b - a == len(sel) else OmniProjection(
                         Camera(name, cam.params[a:b], self.image_size), self.face_size,
                         interpolation=self.interpolation, ignore_index=self.ignore_index)
-                    rows = grid.rows(a, b) if isinstance(grid, CameraGrid) else (
-                        grid[0][a:b], grid[1][a:b])
-                    layer.render(**inputs, depth_output=self.depth_output, grid=rows,
+                    layer.render(**inputs, depth_output=self.depth_output,
+                                 grid=_grid_rows(grid, a, b),
                                  **rgb_options,
                                  out={key: value[at] for key, value in result.items()})
         result["params"] = params
@@ -1171,6 +1172,14 @@ class _Part(NamedTuple):
     fov: Tensor
     intrinsics: Tensor
     source_size: tuple[int, int]
+
+
+def _grid_rows(grid: CameraGrid | tuple[Tensor, Tensor], start: int, stop: int
+               ) -> CameraGrid | tuple[Tensor, Tensor]:
+    """The samples ``start:stop`` of a grid of ``kernels.camera_grid`` (views)."""
+    if isinstance(grid, CameraGrid):
+        return grid.rows(start, stop)
+    return grid[0][start:stop], grid[1][start:stop]
 
 
 def _slices(index: Tensor) -> list[tuple[slice, tuple[int, int]]]:

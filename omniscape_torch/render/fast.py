@@ -517,10 +517,12 @@ def camera_rays(affine: Tensor, limits: Tensor, table: Tensor, image_size: tuple
 
 class CameraGrid:
     """The atlas grid of ``B`` radially symmetric cameras, each with its rotation and cones,
-    as their rays: made in one pass of the C++ op over the pixels (each pixel's ray from its
-    camera's table, ``kernels.radial_table``), then read by :func:`sample_rays`, which computes
-    the grid inside its sampling pass (one table pass for every modality sampled, and no grid
-    in memory); other samplers read :meth:`tensor`, built on first use.
+    as their tables (``kernels.radial_table``) until it is read: its rays and validity are
+    made on first use in one pass of the C++ op over the pixels (:func:`camera_rays`), then
+    read by :func:`sample_rays`, which computes the grid inside its sampling pass (one table
+    pass for every modality sampled, and no grid in memory); other samplers read
+    :meth:`tensor`, built on first use. ``rows`` takes a part of the cameras without computing
+    anything (a batch's tables made at once, its rays a few samples at a time).
     ``OmniProjection.render(grid=...)`` takes it (``kernels.camera_grid(..., lazy=True)`` makes
     it).
 
@@ -529,22 +531,33 @@ class CameraGrid:
             :func:`work_dtype` of the cubes it samples).
         valid: ``(B, H, W)`` bool: the pixels within the camera's domain and cones.
         rotation: ``(B, 3, 3)`` camera -> cube frame, in ``dtype``.
-        face_size, pad: the atlas the grid is made for.
+        face_size, pad: the atlas the grid is made for. image_size: ``(H, W)``.
     """
 
     def __init__(self, affine: Tensor, limits: Tensor, table: Tensor, rotation: Tensor,
                  face_size: int, pad: int, image_size: tuple[int, int], dtype: torch.dtype):
-        self.rays, self.valid = camera_rays(affine, limits, table, image_size, dtype)
+        self.tables = tuple(t.to("cpu", dtype).contiguous() for t in (affine, limits, table))
         self.rotation = rotation.to("cpu", dtype).contiguous()
-        self.face_size, self.pad = face_size, pad
+        self.face_size, self.pad, self.dtype = face_size, pad, dtype
+        self.image_size = tuple(image_size)
+        self._rays: tuple[Tensor, Tensor] | None = None
         self._grid: Tensor | None = None
 
     def __len__(self) -> int:
-        return self.valid.shape[0]
+        return self.rotation.shape[0]
+
+    def _made(self) -> tuple[Tensor, Tensor]:
+        if self._rays is None:
+            self._rays = camera_rays(*self.tables, self.image_size, self.dtype)
+        return self._rays
 
     @property
-    def dtype(self) -> torch.dtype:
-        return self.rays.dtype
+    def rays(self) -> Tensor:
+        return self._made()[0]
+
+    @property
+    def valid(self) -> Tensor:
+        return self._made()[1]
 
     def tensor(self) -> Tensor:
         """The grid ``(B, H, W, 2)``, its invalid pixels at (-2, -2) (built once)."""
@@ -554,11 +567,12 @@ class CameraGrid:
         return self._grid
 
     def rows(self, start: int, stop: int) -> "CameraGrid":
-        """The cameras ``start:stop`` (views: nothing is computed again)."""
+        """The cameras ``start:stop``: views of what is made already, nothing computed."""
         part = object.__new__(CameraGrid)
         part.__dict__.update(vars(self))
-        for key in ("rays", "valid", "rotation"):
-            setattr(part, key, getattr(self, key)[start:stop])
+        part.tables = tuple(t[start:stop] for t in self.tables)
+        part.rotation = self.rotation[start:stop]
+        part._rays = None if self._rays is None else tuple(t[start:stop] for t in self._rays)
         part._grid = None if self._grid is None else self._grid[start:stop]
         return part
 

@@ -47,6 +47,12 @@ CHUNK_PIXELS = 2 ** 20
 _PAD = {"nearest": 1, "bilinear": 1, "bicubic": 2}
 
 
+def pad_for(interpolation: str, border: str = "resampled") -> int:
+    """The atlas border of a layer of this ``interpolation`` and ``border`` (``OmniProjection``'s
+    ``pad``): the texels its kernel reads beyond a face edge, none without a border."""
+    return 0 if border == "none" else _PAD[interpolation]
+
+
 def _check_rotation(rotation: Tensor | None, batch: int, device, name: str = "rotation"):
     if rotation is None:
         return None
@@ -127,7 +133,7 @@ class OmniProjection(nn.Module):
         self.border = border
         self.fused_grid = bool(fused_grid)
         self.fast = bool(fast)
-        self.pad = 0 if border == "none" else _PAD[interpolation]
+        self.pad = pad_for(interpolation, border)
         self._rays_cache: tuple | None = None
         self._grid_cache: tuple | None = None
         self._lut_cache: dict = {}  # lookup tables of the cached grids (fastsample)
@@ -481,11 +487,11 @@ class OmniProjection(nn.Module):
             raise ValueError("grid: a given grid already holds the attitude and one sample per "
                              "pixel: pass no rotation, use supersample=1")
         if isinstance(grid, fastsample.CameraGrid):
-            if (len(grid) not in (1, batch) or tuple(grid.valid.shape[1:]) != (h, w)
+            if (len(grid) not in (1, batch) or grid.image_size != (h, w)
                     or (grid.face_size, grid.pad) != (self.face_size, self.pad)):
                 raise ValueError(f"grid: expected cameras (1 or {batch}) of {h} x {w} pixels "
                                  f"for faces of {self.face_size} texels padded by {self.pad}, "
-                                 f"got {len(grid)} of {tuple(grid.valid.shape[1:])} for "
+                                 f"got {len(grid)} of {grid.image_size} for "
                                  f"{grid.face_size} padded by {grid.pad}")
             if device.type != "cpu":
                 raise ValueError(f"grid: a CameraGrid lies on the CPU, the cubemap on {device}")
