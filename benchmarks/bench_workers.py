@@ -4,7 +4,7 @@ Issue 17's throughput benchmark: images per second out of a ``torch.utils.data.D
 ``--workers`` workers (default 2, one thread each, as PyTorch sets them), batch ``B`` (default
 8), cubemaps ``6 x F x F`` (default F = 256: RGB + ``uint8`` labels) rendered to ``S x S``
 fisheyes (default S = 512), a new random camera and attitude per sample, for each fisheye model
-alone and for the mix of all four, with float32 and with ``uint8`` cubes. Rows, timed
+alone (``FISHEYE_MODELS``) and for their mix, with float32 and with ``uint8`` cubes. Rows, timed
 round-robin (every row once per round, ``--rounds`` rounds):
 
 * ``ours_collate``: the dataset returns cubes; ``collate_fn`` stacks a batch and applies
@@ -13,7 +13,9 @@ round-robin (every row once per round, ``--rounds`` rounds):
 * ``ours_sample``: the dataset applies the module to each sample (a batch of 1);
 * ``peer``: what a user would write without this package, per sample in the dataset: numpy
   draws a camera of the model (fov uniform in 160-200 deg, image circle inscribed, Kannala-
-  Brandt ``k1..k4`` uniform in +-0.02 with Newton's inverse in numpy), an attitude (roll +-25,
+  Brandt ``k1..k4`` uniform in +-0.02 with Newton's inverse in numpy; the unified, EUCM and
+  double sphere lenses in RandomOmniCamera's ranges with their papers' closed-form
+  unprojections, ``rays_of``), an attitude (roll +-25,
   pitch +-10 deg, any yaw), builds the maps (``bench_augment.atlas_maps``: face picking into
   the edge-padded atlas) and ``cv2.remap``s RGB (bilinear) and labels (nearest); OpenCV on one
   thread per worker (set in the parent before the workers fork).
@@ -68,19 +70,62 @@ MIX = "mix"
 
 
 # --------------------------------------------------------------------------------------------
-# The peer: numpy maps of any of the four models + cv2.remap, per sample
+# The peer: numpy maps of every fisheye model + cv2.remap, per sample
 # --------------------------------------------------------------------------------------------
 
+#: The peer's lens parameters beyond the focal: RandomOmniCamera's default ranges.
+LENS = {"unified": ((0.5, 1.0),), "eucm": ((0.55, 0.7), (0.9, 1.2)),
+        "double_sphere": ((-0.3, 0.0), (0.5, 0.7))}
+
+
 def radius_of(model: str, theta: np.ndarray, k: np.ndarray) -> np.ndarray:
-    """The normalised image radius of a ray ``theta`` off the axis."""
+    """The normalised image radius of a ray ``theta`` off the axis (``k``: the Kannala-Brandt
+    coefficients, or the lens parameters of :data:`LENS`)."""
     if model == "equidistant":
         return theta
     if model == "equisolid":
         return 2 * np.sin(theta / 2)
     if model == "stereographic":
         return 2 * np.tan(theta / 2)
+    s, c = np.sin(theta), np.cos(theta)
+    if model == "unified":   # Mei, no distortion: x / (z + xi |p|)
+        return s / (c + k[0])
+    if model == "eucm":      # Khomenko et al.: x / (alpha d + (1 - alpha) z)
+        alpha, beta = k[0], k[1]
+        return s / (alpha * np.sqrt(beta * s * s + c * c) + (1 - alpha) * c)
+    if model == "double_sphere":   # Usenko et al.: z' = xi + z, x / (alpha d2 + (1 - alpha) z')
+        xi, alpha = k[0], k[1]
+        z = xi + c
+        return s / (alpha * np.sqrt(s * s + z * z) + (1 - alpha) * z)
     t2 = theta * theta
     return theta * (1 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3]))))
+
+
+def rays_of(model: str, x: np.ndarray, y: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """Unit rays ``(H, W, 3)`` of the normalised image points ``(x, y)``: each model's closed
+    form unprojection (the papers'), or the radius -> angle inverse of :func:`theta_of`."""
+    r2 = x * x + y * y
+    if model in ("unified", "eucm", "double_sphere"):
+        if model == "unified":
+            xi = k[0]
+            factor = (xi + np.sqrt(np.maximum(1 + (1 - xi * xi) * r2, 0))) / (r2 + 1)
+            mx, my, mz = factor * x, factor * y, factor - xi
+        else:
+            alpha, beta = (k[0], k[1]) if model == "eucm" else (k[1], 1.0)
+            mz = (1 - beta * alpha * alpha * r2) / (
+                alpha * np.sqrt(np.maximum(1 - (2 * alpha - 1) * beta * r2, 0)) + 1 - alpha)
+            mx, my = x, y
+            if model == "double_sphere":
+                xi = k[0]
+                factor = (mz * xi + np.sqrt(np.maximum(mz * mz + (1 - xi * xi) * r2, 0))) / (
+                    mz * mz + r2)
+                mx, my, mz = factor * x, factor * y, factor * mz - xi
+        rays = np.stack((mx, my, mz), axis=-1)
+        return rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+    r = np.sqrt(r2)
+    theta = theta_of(model, r, k.astype(np.float32)).astype(np.float32)
+    scale = np.where(r > 0, np.sin(theta) / np.maximum(r, 1e-12), 1).astype(np.float32)
+    return np.stack((x * scale, y * scale, np.cos(theta)), axis=-1)
 
 
 def theta_of(model: str, r: np.ndarray, k: np.ndarray) -> np.ndarray:
@@ -106,17 +151,19 @@ def peer_maps(model: str, rng: np.random.Generator, size: int, face: int
     """``cv2.remap`` maps (float32, atlas pixels) of a random ``size x size`` fisheye of
     ``model`` (image circle inscribed), randomly rotated; invalid pixels map outside."""
     fov, rotation = peer_draw(rng)
-    k = rng.uniform(-KB_DISTORTION, KB_DISTORTION, 4) if model == "kannala_brandt" \
-        else np.zeros(4)
+    if model == "kannala_brandt":
+        k = rng.uniform(-KB_DISTORTION, KB_DISTORTION, 4)
+    elif model in LENS:
+        k = np.array([rng.uniform(*bounds) for bounds in LENS[model]] + [0.0] * 2)[:4]
+    else:
+        k = np.zeros(4)
     focal = (size / 2 - 0.5) / radius_of(model, np.array(fov / 2), k)
     centre = (size - 1) / 2
     coords = ((np.arange(size, dtype=np.float32) - centre) / focal).astype(np.float32)
     x, y = np.meshgrid(coords, coords)
-    r = np.hypot(x, y)
-    theta = theta_of(model, r, k.astype(np.float32)).astype(np.float32)
-    scale = np.where(r > 0, np.sin(theta) / np.maximum(r, 1e-12), 1).astype(np.float32)
-    rays = np.stack((x * scale, y * scale, np.cos(theta)), axis=-1)
-    return atlas_maps(rays @ rotation.astype(np.float32).T, theta > fov / 2, face)
+    rays = rays_of(model, x, y, k).astype(np.float32)
+    outside = ~(rays[..., 2] >= np.cos(fov / 2))   # the cone (and rays the model has not)
+    return atlas_maps(rays @ rotation.astype(np.float32).T, outside, face)
 
 
 # --------------------------------------------------------------------------------------------

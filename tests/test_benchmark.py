@@ -260,7 +260,8 @@ def test_reproject_benchmark_rows(tmp_path, monkeypatch):
 def test_workers_benchmark_rows_and_its_peer(tmp_path):
     """Issue 17: RandomOmniCamera in DataLoader workers against the numpy + cv2.remap peer,
     every fisheye model and the mix, float32 and uint8; the peer's Newton inverse of
-    Kannala-Brandt inverts its polynomial and its equidistant maps are bench_augment's."""
+    Kannala-Brandt inverts its polynomial, its closed-form unprojections invert its radii,
+    and its equidistant maps are bench_augment's."""
     pytest.importorskip("cv2")
     import numpy as np
     import bench_augment as ba
@@ -271,6 +272,15 @@ def test_workers_benchmark_rows_and_its_peer(tmp_path):
     for model in ("equidistant", "equisolid", "stereographic", "kannala_brandt"):
         theta = bw.theta_of(model, r, k)
         assert np.allclose(bw.radius_of(model, theta, k), r, atol=1e-5)
+    # the peer's closed-form unprojections of the other lenses: each ray's angle projects
+    # back to its radius through the model's forward radius_of
+    x = np.linspace(0, 0.9, 40, dtype=np.float64)[None, :]
+    for model, lens in (("unified", [0.8]), ("eucm", [0.6, 1.1]),
+                        ("double_sphere", [-0.2, 0.6])):
+        lens = np.array(lens + [0.0] * (4 - len(lens)))
+        rays = bw.rays_of(model, x, np.zeros_like(x), lens)
+        theta = np.arctan2(rays[..., 0], rays[..., 2])
+        assert np.allclose(bw.radius_of(model, theta, lens), x, atol=1e-9)
     # same draws: the rng's first calls are peer_draw's in both
     ours = bw.peer_maps("equidistant", np.random.default_rng(3), 24, 8)
     theirs = ba.peer_maps(*ba.peer_draw(np.random.default_rng(3)), 24, 8)
