@@ -278,19 +278,21 @@ def kannala_brandt_tabulate(params: Tensor, image_size: tuple[int, int],
 
 
 #: Angles of the forward sweep of :func:`kannala_brandt_angles`, and its polishing steps.
-KB_SWEEP, KB_SWEEP_STEPS = 1024, 10
+KB_SWEEP, KB_SWEEP_STEPS = 256, 2
 
 
 def kannala_brandt_angles(params: Tensor, radii: Tensor, *, samples: int = KB_SWEEP,
                           steps: int = KB_SWEEP_STEPS) -> Tensor:
-    """The angles ``theta (B, K)`` with ``r(theta) = radii (B, K)`` (normalised radii below each
-    camera's ``r(max_angle)``) of ``B`` Kannala-Brandt cameras, for many radii at once (the
+    """The angles ``theta (B, K)`` with ``r(theta) = radii (B, K)`` (normalised radii up to
+    each camera's ``r(max_angle)``) of ``B`` Kannala-Brandt cameras, for many radii at once (the
     tables of ``render.kernels.radial_table``): ``r`` swept forward over ``samples + 1`` angles
     evenly spaced on ``[0, max_angle]`` (increasing there), each radius bracketed between two of
-    them (``searchsorted``), interpolated, then polished by ``steps`` Newton steps kept inside
-    the bracket (bisection where a step leaves it). The same roots as the safeguarded Newton of
-    :func:`kannala_brandt_unproject` to float64 rounding (tests/test_camera_grid.py), without
-    its 60 iterations over every radius; no gradient.
+    them (``searchsorted``) and its angle interpolated linearly in ``w = sqrt(r_end - r)``, in
+    which ``theta`` is smooth up to the fold (in ``r`` it has a square-root singularity there),
+    then polished by ``steps`` Newton steps kept inside the bracket (bisection where a step
+    leaves it). The roots of the safeguarded Newton of :func:`kannala_brandt_unproject` to
+    1e-9 rad (tests/test_camera_grid.py), without its 60 iterations over every radius; no
+    gradient.
     """
     with torch.no_grad():
         coeffs = _kb_poly(params)[:, None, :]                              # (B, 1, 5)
@@ -298,12 +300,14 @@ def kannala_brandt_angles(params: Tensor, radii: Tensor, *, samples: int = KB_SW
         sweep = limit * torch.linspace(0, 1, samples + 1, dtype=params.dtype,
                                        device=params.device)               # (B, S)
         r_sweep = _kb_r(sweep, coeffs)[0]
-        target = torch.minimum(radii, r_sweep[:, -1:])
+        r_end = r_sweep[:, -1:]
+        target = torch.minimum(radii, r_end)
         j = torch.searchsorted(r_sweep.contiguous(), target.contiguous()).clamp(1, samples)
         lo, hi = sweep.gather(1, j - 1), sweep.gather(1, j)
-        r_lo, r_hi = r_sweep.gather(1, j - 1), r_sweep.gather(1, j)
-        span = r_hi - r_lo
-        theta = lo + safe_div(target - r_lo, span, span > 0) * (hi - lo)
+        w_lo, w_hi, w = (torch.sqrt((r_end - r).clamp_min(0)) for r in
+                         (r_sweep.gather(1, j - 1), r_sweep.gather(1, j), target))
+        span = w_hi - w_lo
+        theta = lo + safe_div(w - w_lo, span, span != 0) * (hi - lo)
         for _ in range(steps):
             value, slope = _kb_r(theta, coeffs)
             residual = value - target
