@@ -277,6 +277,20 @@ def kannala_brandt_tabulate(params: Tensor, image_size: tuple[int, int],
     return torch.cat((params, r_limit[:, None], r_end[:, None], theta), -1)
 
 
+def _bracketed_newton(theta: Tensor, target: Tensor, lo: Tensor, hi: Tensor, coeffs: Tensor,
+                      steps: int) -> Tensor:
+    """``steps`` Newton steps on ``r(theta) = target`` from ``theta``, kept inside the bracket
+    ``[lo, hi]`` of the root (narrowed by every step; bisection where a step leaves it)."""
+    for _ in range(steps):
+        value, slope = _kb_r(theta, coeffs)
+        residual = value - target
+        lo = torch.where(residual < 0, theta, lo)
+        hi = torch.where(residual > 0, theta, hi)
+        step = theta - safe_div(residual, slope, slope > 0)
+        theta = torch.where((step >= lo) & (step <= hi), step, 0.5 * (lo + hi))
+    return theta
+
+
 #: Angles of the forward sweep of :func:`kannala_brandt_angles`, and its polishing steps.
 KB_SWEEP, KB_SWEEP_STEPS = 256, 2
 
@@ -308,14 +322,7 @@ def kannala_brandt_angles(params: Tensor, radii: Tensor, *, samples: int = KB_SW
                          (r_sweep.gather(1, j - 1), r_sweep.gather(1, j), target))
         span = w_hi - w_lo
         theta = lo + safe_div(w - w_lo, span, span != 0) * (hi - lo)
-        for _ in range(steps):
-            value, slope = _kb_r(theta, coeffs)
-            residual = value - target
-            lo = torch.where(residual < 0, theta, lo)
-            hi = torch.where(residual > 0, theta, hi)
-            step = theta - safe_div(residual, slope, slope > 0)
-            theta = torch.where((step >= lo) & (step <= hi), step, 0.5 * (lo + hi))
-        return theta
+        return _bracketed_newton(theta, target, lo, hi, coeffs, steps)
 
 
 def kannala_brandt_unproject_table_xyz(u: Tensor, v: Tensor, table: Tensor
@@ -345,15 +352,8 @@ def kannala_brandt_unproject_table_xyz(u: Tensor, v: Tensor, table: Tensor
         t0 = torch.gather(thetas.expand(*shape, entries + 1), -1, index).squeeze(-1)
         t1 = torch.gather(thetas.expand(*shape, entries + 1), -1, index + 1).squeeze(-1)
         theta = t0 + (s - j) * (t1 - t0)
-        lo, hi = t0, t1   # the entries bracket the root: r is monotonic
-        for _ in range(KB_TABLE_STEPS):   # safeguarded Newton within the bracket
-            value, slope = _kb_r(theta, coeffs)
-            residual = value - target
-            lo = torch.where(residual < 0, theta, lo)
-            hi = torch.where(residual > 0, theta, hi)
-            step = theta - safe_div(residual, slope, slope > 0)
-            theta = torch.where((step >= lo) & (step <= hi), step, 0.5 * (lo + hi))
-        return theta, inside
+        # the entries bracket the root: r is monotonic
+        return _bracketed_newton(theta, target, t0, t1, coeffs, KB_TABLE_STEPS), inside
 
     return _unproject_radial_xyz(u, v, table, theta_of_r)
 

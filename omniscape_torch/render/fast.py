@@ -635,11 +635,7 @@ def sample_image(image: Tensor, rays: Tensor, rotation: Tensor | None, intrinsic
                                  rotation.shape[0] not in (1, batch)):
         raise ValueError(f"rotation: expected (1 or {batch}, 3, 3), got "
                          f"{tuple(getattr(rotation, 'shape', ()))}")
-    out_dtype = image.dtype if out_dtype is None else out_dtype
-    if out_dtype not in output_dtypes(image.dtype, mode):
-        raise TypeError(f"out_dtype: expected one of "
-                        f"{[str(d) for d in output_dtypes(image.dtype, mode)]} for a "
-                        f"{image.dtype} image, got {out_dtype}")
+    out_dtype = _out_dtype(image.dtype, out_dtype, mode, "image")
     if out is not None:
         _check_out(out, (batch, chans, *size), out_dtype)
     _check_fill(fill, out_dtype)
@@ -687,11 +683,7 @@ def _run(cubemap: Tensor, points: int, size: tuple[int, int], mode: str, border:
                             f"{[str(d) for d in BLENDED]}, got {cubemap.dtype}")
         raise TypeError(f"cubemap: nearest sampling copies elements of 1, 2, 4 or 8 bytes, got "
                         f"{cubemap.dtype}")
-    out_dtype = cubemap.dtype if out_dtype is None else out_dtype
-    if out_dtype not in output_dtypes(cubemap.dtype, mode):
-        raise TypeError(f"out_dtype: expected one of "
-                        f"{[str(d) for d in output_dtypes(cubemap.dtype, mode)]} for a "
-                        f"{cubemap.dtype} cubemap, got {out_dtype}")
+    out_dtype = _out_dtype(cubemap.dtype, out_dtype, mode, "cubemap")
     f = cubemap.shape[-1]
     if not _fits(_strides(cubemap), f):   # a view into a larger tensor: its elements copied
         cubemap = cubemap.contiguous()
@@ -728,6 +720,18 @@ def holds(dtype: torch.dtype, value: int) -> bool:
         return value in (0, 1)
     info = torch.finfo(dtype) if dtype.is_floating_point else torch.iinfo(dtype)
     return info.min <= value <= info.max
+
+
+def _out_dtype(dtype: torch.dtype, out_dtype: torch.dtype | None, mode: str, what: str
+               ) -> torch.dtype:
+    """The dtype of the samples of a ``what`` of ``dtype``: ``out_dtype``, by default
+    ``dtype``; a ``TypeError`` where the kernels write no such samples (:func:`output_dtypes`)."""
+    out_dtype = dtype if out_dtype is None else out_dtype
+    if out_dtype not in output_dtypes(dtype, mode):
+        raise TypeError(f"out_dtype: expected one of "
+                        f"{[str(d) for d in output_dtypes(dtype, mode)]} for a {dtype} {what}, "
+                        f"got {out_dtype}")
+    return out_dtype
 
 
 def _check_fill(fill: int, dtype: torch.dtype) -> None:

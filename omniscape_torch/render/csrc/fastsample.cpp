@@ -806,6 +806,24 @@ inline G pick(bool use_x, bool use_y, bool neg, bool zero, G px, G py, G pz) {
     return zero ? case_value<G, 6, Col>(px, py, pz) : (neg ? ngt : pos);
 }
 
+// p = R (x, y, z) for a row-major 3 x 3 R (r), in this order of operations (the compiled
+// grid's: cubemap.grid.rotated_grid_xy), or (x, y, z) itself without a rotation.
+template <typename G, bool Rotate>
+inline void rotate(const G* r, G x, G y, G z, G& px, G& py, G& pz) {
+    if (Rotate) {
+        px = r[0] * x + r[1] * y;
+        px = px + r[2] * z;
+        py = r[3] * x + r[4] * y;
+        py = py + r[5] * z;
+        pz = r[6] * x + r[7] * y;
+        pz = pz + r[8] * z;
+    } else {
+        px = x;
+        py = y;
+        pz = z;
+    }
+}
+
 // The atlas grid of `count` rays (x, y, z at rays[3 p ..]) rotated by `rot` (row-major 3 x 3,
 // null: none), into grid[2 p], grid[2 p + 1]: cubemap.grid.rotated_grid_xy and grid_xy, the same
 // operations in the same order (so the grid is inductor's, bit for bit).
@@ -820,15 +838,8 @@ void ray_grid(const G* __restrict rays, const G* __restrict rot, int64_t count,
     }
     for (int64_t p = 0; p < count; ++p) {
         const G x = rays[3 * p], y = rays[3 * p + 1], z = rays[3 * p + 2];
-        G px = x, py = y, pz = z;
-        if (Rotate) {
-            px = r[0] * x + r[1] * y;
-            px = px + r[2] * z;
-            py = r[3] * x + r[4] * y;
-            py = py + r[5] * z;
-            pz = r[6] * x + r[7] * y;
-            pz = pz + r[8] * z;
-        }
+        G px, py, pz;
+        rotate<G, Rotate>(r, x, y, z, px, py, pz);
         const G ax = std::fabs(px), ay = std::fabs(py), az = std::fabs(pz);
         const bool use_x = (ax >= ay) & (ax >= az);
         const bool use_y = !use_x & (ay >= az);
@@ -898,15 +909,8 @@ void locate_rays(const G* __restrict rays, const G* __restrict rot, int64_t coun
     }
     for (int64_t p = 0; p < count; ++p) {
         const G x = rays[3 * p], y = rays[3 * p + 1], z = rays[3 * p + 2];
-        G px = x, py = y, pz = z;
-        if (Rotate) {   // ray_grid's order of operations
-            px = r[0] * x + r[1] * y;
-            px = px + r[2] * z;
-            py = r[3] * x + r[4] * y;
-            py = py + r[5] * z;
-            pz = r[6] * x + r[7] * y;
-            pz = pz + r[8] * z;
-        }
+        G px, py, pz;
+        rotate<G, Rotate>(r, x, y, z, px, py, pz);
         const G ax = std::fabs(px), ay = std::fabs(py), az = std::fabs(pz);
         const bool use_x = (ax >= ay) & (ax >= az);
         const bool use_y = !use_x & (ay >= az);
@@ -988,7 +992,7 @@ void sample_rays(const T* src, const G* rays, int64_t rays_batch, const G* rot,
 // apart) of `count` rays rotated by `rot` (row-major 3 x 3, Rotate) into the pinhole camera
 // k = (fx, fy, cx, cy): pixel u = fx (x / z) + cx, v = fy (y / z) + cy (pinhole_project's
 // operations), valid where z > 0, the pixel lies in [-0.5, W - 0.5] x [-0.5, H - 0.5] (Camera's
-// image bounds) and `valid` (may be null) holds; written to valid_out (may be null). Codes as
+// image bounds) and `valid` (may be null) holds; written to valid_out. Codes as
 // locate's: the top-left tap (nearest: the texel, rounded half to even) where every tap lies
 // in the image, kEdge where a valid pixel's taps reach beyond it (read clamped), kOutside where
 // invalid; xs, ys: the pixels (for the edge pixels).
@@ -1008,15 +1012,8 @@ void locate_pinhole(const G* __restrict rays, const G* __restrict rot, const G* 
     }
     for (int64_t p = 0; p < count; ++p) {
         const G x = rays[3 * p], y = rays[3 * p + 1], z = rays[3 * p + 2];
-        G px = x, py = y, pz = z;
-        if (Rotate) {   // ray_grid's order of operations
-            px = r[0] * x + r[1] * y;
-            px = px + r[2] * z;
-            py = r[3] * x + r[4] * y;
-            py = py + r[5] * z;
-            pz = r[6] * x + r[7] * y;
-            pz = pz + r[8] * z;
-        }
+        G px, py, pz;
+        rotate<G, Rotate>(r, x, y, z, px, py, pz);
         const bool front = pz > G(0);
         const G depth = front ? pz : G(1);
         const G u = fx * (px / depth) + cx, v = fy * (py / depth) + cy;
@@ -1032,16 +1029,12 @@ void locate_pinhole(const G* __restrict rays, const G* __restrict rot, const G* 
         out.set(p, inside ? (interior ? at : kEdge) : kOutside, u - u0, v - v0);
         xs[p] = u;
         ys[p] = v;
-        if (valid_out != nullptr) {
-            valid_out[p] = inside;
-        }
+        valid_out[p] = inside;   // (unconditional: a conditional store kept the loop scalar)
     }
     if (valid != nullptr) {
         for (int64_t p = 0; p < count; ++p) {
             out.set_code(p, valid[p] ? out.code(p) : kOutside);
-            if (valid_out != nullptr) {
-                valid_out[p] = valid_out[p] & valid[p];
-            }
+            valid_out[p] = valid_out[p] & valid[p];
         }
     }
 }
@@ -1058,11 +1051,12 @@ void sample_image(const T* src, const G* rays, int64_t rays_batch, const G* rot,
     const Ring<T> none{nullptr, nullptr, 1, 0};   // no border: the taps are clamped
     for_segments(S, [&](int64_t b, int64_t lo, int64_t m) {
         G xs[kSegment], ys[kSegment];
+        uint8_t unused[kSegment];
         SplitBuffer<G> buffer;
         const G* ray = rays + b * rays_batch + 3 * lo;
         const G* r = rot == nullptr ? nullptr : rot + b * rot_batch;
         const uint8_t* ok = valid == nullptr ? nullptr : valid + b * valid_batch + lo;
-        uint8_t* seen = valid_out == nullptr ? nullptr : valid_out + b * S.pixels + lo;
+        uint8_t* seen = valid_out == nullptr ? unused : valid_out + b * S.pixels + lo;
         const auto locate = [&](auto bilinear_, auto rotate) {
             locate_pinhole<G, decltype(bilinear_)::value, decltype(rotate)::value>(
                 ray, r, k + b * k_batch, m, ok, height, width, L, buffer.taps(), xs, ys, seen);
