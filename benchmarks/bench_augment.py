@@ -221,8 +221,11 @@ def run(args: argparse.Namespace) -> dict:
     pad = new_proj(chunks[0]).pad
 
     def rays() -> list:
-        return [camera_grid(name0, camera0.params[part], (size, size), face, pad, lazy=True,
-                            **{k: v[part] for k, v in geometry0.items()}) for part in chunks]
+        grids = [camera_grid(name0, camera0.params[part], (size, size), face, pad, lazy=True,
+                             **{k: v[part] for k, v in geometry0.items()}) for part in chunks]
+        for grid in grids:   # its rays, made on first use
+            grid.valid
+        return grids
 
     projs = [new_proj(part) for part in chunks]
     grids = rays()
