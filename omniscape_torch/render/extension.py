@@ -8,8 +8,9 @@ float32 through a lookup table, into a reused buffer: 7.0 -> 5.2 ms at batch 1 a
 at batch 8 (``cv2.remap`` of the same images: 5.9 and 34-47 ms).
 
 :func:`load` builds the source with ``torch.utils.cpp_extension.load`` (ninja and the C++
-compiler torch uses, ``$CXX`` else ``c++``; 12 s once per machine on 2 cores, 5 s of it the
-torch headers, against 30 s with ``torch/extension.h``) into torch's extension cache
+compiler torch uses, ``$CXX`` else ``c++``; about 40 s once per machine on 2 cores, most of it the
+instantiations of the samplers per element, output and grid type; the torch headers take 5 s,
+against 30 s with ``torch/extension.h``) into torch's extension cache
 (``$TORCH_EXTENSIONS_DIR``, default ``~/.cache/torch_extensions/<python>_<device>/``) and
 loads it: the ops ``torch.ops.omniscape_torch.{build_lut, sample_lut, sample_grid,
 sample_rays, camera_grid}`` (schemas in the source), with their fake implementations for
