@@ -500,7 +500,7 @@ def test_bad_input_messages():
     p = torch.tensor(CASES["kannala_brandt"][1][0], dtype=F64)
     with pytest.raises(ValueError, match=r"points: expected shape \(\.\.\., 3\)"):
         model.project(torch.zeros(5, 2, dtype=F64), p)
-    with pytest.raises(ValueError, match="takes 8 parameters"):
+    with pytest.raises(ValueError, match="takes 8 or 9 parameters"):
         model.project(torch.zeros(5, 3, dtype=F64), p[:6])
     with pytest.raises(ValueError, match=r"pixels: expected shape \(\.\.\., 2\)"):
         model.unproject(torch.zeros(5, 3, dtype=F64), p)

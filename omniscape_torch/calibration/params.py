@@ -70,8 +70,8 @@ def frozen_indices(model: CameraModel, names: Sequence[str], freeze: Sequence[st
         freeze = (freeze,)
     out: set[int] = set()
     for item in freeze:
-        if item in model.groups:
-            out.update(model.groups[item])
+        if item in model.groups:   # an optional group (the skew) counts where present
+            out.update(i for i in model.groups[item] if i < len(names))
         elif item in names:
             out.add(names.index(item))
         else:
@@ -148,8 +148,30 @@ class IntrinsicsMap:
         return torch.stack(values, dim=-1)
 
     def jacobian(self, z: Tensor) -> Tensor:
-        """``(P, n_free)`` d natural / d z (zero rows for frozen parameters)."""
-        return torch.func.jacrev(self.natural)(z.detach())
+        """``(P, n_free)`` d natural / d z (zero rows for frozen parameters).
+
+        Each natural parameter depends on its own free variable only, so the matrix holds one
+        derivative per column, written out here: ``torch.func`` would give the same values, but
+        its first call imports ``torch._dynamo`` (about 2 s, paid by every one-off fit).
+        """
+        z = z.detach()
+        out = torch.zeros(len(self.names), len(self.free), dtype=self.init.dtype,
+                          device=z.device)
+        for j, i in enumerate(self.free):
+            kind, zj = self.kinds[i], z[j]
+            if kind == "log":
+                d = self.init[i] * torch.exp(zj)
+            elif kind == "softplus":
+                d = torch.sigmoid(zj)
+            elif kind == "sigmoid":
+                s = torch.sigmoid(zj)
+                d = s * (1 - s)
+            elif kind == "tanh":
+                d = 1 - torch.tanh(zj) ** 2
+            else:
+                d = self.scales[i]
+            out[i, j] = d
+        return out
 
 
 def axis_angle_to_matrix(r: Tensor) -> Tensor:

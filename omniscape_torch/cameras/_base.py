@@ -35,6 +35,10 @@ class CameraModel:
         groups: parameter groups (``focal``, ``center``, ``distortion``, ``affine``) as index
             tuples, so that a fit can freeze a group.
         variadic: the polynomial at the end of ``param_names`` has any length >= 1.
+        optional: names that may follow ``param_names``, all of them or none (the skew ``s``
+            of ``kannala_brandt`` and ``unified``, as OpenCV's ``fisheye`` and ``omnidir`` have
+            it): a parameter vector holds ``len(param_names)`` or
+            ``len(param_names) + len(optional)`` values.
         check_values: raises ``ValueError`` for parameter values outside the model's range.
         unproject_xyz: for a closed-form model, ``unproject`` as components:
             ``(u (...), v (...), params (..., P)) -> (x, y, z, valid)``, without input checks
@@ -55,29 +59,38 @@ class CameraModel:
     check_values: Callable[[Tensor], None] | None = None
     unproject_xyz: Callable[..., tuple[Tensor, Tensor, Tensor, Tensor]] | None = None
     domain_end: Callable[[Tensor], Tensor] | None = None
+    optional: tuple[str, ...] = ()
 
     @property
     def num_params(self) -> int:
-        """Number of parameters (the minimum for a variadic model)."""
+        """Number of parameters (the minimum for a variadic model or one with optional ones)."""
         return len(self.param_names)
+
+    @property
+    def counts(self) -> tuple[int, ...]:
+        """The parameter counts a non-variadic model takes."""
+        n = len(self.param_names)
+        return (n, n + len(self.optional)) if self.optional else (n,)
 
     def names_for(self, num_params: int) -> tuple[str, ...]:
         """Parameter names for a parameter vector of length ``num_params``."""
         self.check_num_params(num_params, "params")
         if not self.variadic:
-            return self.param_names
+            return self.param_names + (self.optional if num_params > self.num_params else ())
         stem = self.param_names[-1].rstrip("0123456789")
         first = int(self.param_names[-1][len(stem):])
         return self.param_names[:-1] + tuple(
             f"{stem}{first + i}" for i in range(num_params - len(self.param_names) + 1))
 
     def check_num_params(self, num_params: int, what: str = "params") -> None:
-        ok = num_params >= self.num_params if self.variadic else num_params == self.num_params
+        ok = num_params >= self.num_params if self.variadic else num_params in self.counts
         if not ok:
-            expected = (f"at least {self.num_params}" if self.variadic else str(self.num_params))
+            expected = (f"at least {self.num_params}" if self.variadic
+                        else " or ".join(map(str, self.counts)))
+            optional = f", optionally {', '.join(self.optional)}" if self.optional else ""
             raise ValueError(
                 f"{what}: the {self.name} model takes {expected} parameters "
-                f"({', '.join(self.param_names)}{', ...' if self.variadic else ''}), "
+                f"({', '.join(self.param_names)}{', ...' if self.variadic else ''}{optional}), "
                 f"got {num_params}")
 
     def validate_params(self, params: Tensor, what: str = "params") -> None:
@@ -109,9 +122,10 @@ class CameraModel:
 # Entry checks (one per public function; shapes only: values are checked once, in Camera).
 # --------------------------------------------------------------------------------------------
 
-def check_inputs(model_name: str, values: Tensor, params: Tensor, dim: int, num_params: int,
-                 what: str, variadic: bool = False) -> None:
-    """Shape and dtype check at the entry of ``project``/``unproject``."""
+def check_inputs(model_name: str, values: Tensor, params: Tensor, dim: int,
+                 num_params: int | tuple[int, ...], what: str, variadic: bool = False) -> None:
+    """Shape and dtype check at the entry of ``project``/``unproject``; ``num_params``: the
+    count, the counts a model takes, or the least count of a ``variadic`` one."""
     for name, t in ((what, values), ("params", params)):
         if not isinstance(t, Tensor):
             raise TypeError(f"{name}: expected a torch.Tensor, got {type(t).__name__}")
@@ -120,8 +134,9 @@ def check_inputs(model_name: str, values: Tensor, params: Tensor, dim: int, num_
     if values.dim() == 0 or values.shape[-1] != dim:
         raise ValueError(f"{what}: expected shape (..., {dim}), got {tuple(values.shape)}")
     n = params.shape[-1] if params.dim() else 0
-    if (n < num_params) if variadic else (n != num_params):
-        expected = f"at least {num_params}" if variadic else str(num_params)
+    counts = num_params if isinstance(num_params, tuple) else (num_params,)
+    if (n < counts[0]) if variadic else (n not in counts):
+        expected = f"at least {counts[0]}" if variadic else " or ".join(map(str, counts))
         raise ValueError(f"params: the {model_name} model takes {expected} parameters on the "
                          f"last axis, got shape {tuple(params.shape)}")
     if values.dtype != params.dtype:

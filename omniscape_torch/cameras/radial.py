@@ -43,8 +43,14 @@ _GROUPS = {"focal": (0, 1), "center": (2, 3)}
 KB_ITERATIONS = 60
 
 
+def _skew(params: Tensor, index: int) -> Tensor | None:
+    """The optional skew ``s`` at ``index`` (``u = fx mx + s my + cx``), None where absent."""
+    return params[..., index] if params.shape[-1] > index else None
+
+
 def _project_radial(points: Tensor, params: Tensor, r_of_theta: Callable[[Tensor], Tensor],
-                    valid_theta: Callable[[Tensor], Tensor]) -> tuple[Tensor, Tensor]:
+                    valid_theta: Callable[[Tensor], Tensor], skew: Tensor | None = None
+                    ) -> tuple[Tensor, Tensor]:
     fx, fy, cx, cy = params[..., 0], params[..., 1], params[..., 2], params[..., 3]
     x, y, z = points.unbind(-1)
     rho, theta, axis = polar(points)
@@ -53,26 +59,28 @@ def _project_radial(points: Tensor, params: Tensor, r_of_theta: Callable[[Tensor
     r = r_of_theta(torch.where(valid, theta, torch.zeros_like(theta)))
     # r(theta) / rho, whose limit on the axis is r'(0) / z = 1 / z for every model here.
     scale = torch.where(axis, safe_div(ones, z, axis & valid), safe_div(r, rho, ~axis))
-    pixels = torch.stack((fx * x * scale + cx, fy * y * scale + cy), dim=-1)
+    u = fx * x * scale + cx if skew is None else (fx * x + skew * y) * scale + cx
+    pixels = torch.stack((u, fy * y * scale + cy), dim=-1)
     return pixels, valid
 
 
 def _unproject_radial(pixels: Tensor, params: Tensor,
-                      theta_of_r: Callable[[Tensor], tuple[Tensor, Tensor]]
-                      ) -> tuple[Tensor, Tensor]:
-    x, y, z, valid = _unproject_radial_xyz(pixels[..., 0], pixels[..., 1], params, theta_of_r)
+                      theta_of_r: Callable[[Tensor], tuple[Tensor, Tensor]],
+                      skew: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    x, y, z, valid = _unproject_radial_xyz(pixels[..., 0], pixels[..., 1], params, theta_of_r,
+                                           skew)
     return torch.stack((x, y, z), dim=-1), valid
 
 
 def _unproject_radial_xyz(u: Tensor, v: Tensor, params: Tensor,
-                          theta_of_r: Callable[[Tensor], tuple[Tensor, Tensor]]
-                          ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+                          theta_of_r: Callable[[Tensor], tuple[Tensor, Tensor]],
+                          skew: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The unit ray's components ``x, y, z`` of pixel ``(u, v)``, and its validity. Components
     rather than a stacked ``(..., 3)``: compiled into a larger kernel, a stack is a buffer
     written to memory, the components are not (``render.kernels.camera_grid``)."""
     fx, fy, cx, cy = params[..., 0], params[..., 1], params[..., 2], params[..., 3]
-    mx = (u - cx) / fx
     my = (v - cy) / fy
+    mx = (u - cx) / fx if skew is None else (u - cx - skew * my) / fx
     r2 = mx * mx + my * my
     axis = near_zero_radius(r2, 1.0)
     r = safe_sqrt(r2, ~axis)
@@ -190,16 +198,17 @@ def kannala_brandt_project(points: Tensor, params: Tensor) -> tuple[Tensor, Tens
 
     Args:
         points: ``(..., 3)`` points in the camera frame (OpenCV: x right, y down, z forward).
-        params: ``(..., 8)`` fx, fy, cx, cy, k1, k2, k3, k4.
+        params: ``(..., 8)`` fx, fy, cx, cy, k1, k2, k3, k4, or ``(..., 9)`` with the skew
+            ``s`` (``u = fx mx + s my + cx``; OpenCV's ``alpha`` is ``s / fx``).
 
     Returns:
         ``pixels (..., 2)`` and ``valid (...)``: ``theta < min(pi, fold)``.
     """
-    check_inputs("kannala_brandt", points, params, 3, 8, "points")
+    check_inputs("kannala_brandt", points, params, 3, (8, 9), "points")
     coeffs = _kb_poly(params)
     limit = kannala_brandt_max_angle(params)
     return _project_radial(points, params, lambda th: _kb_r(th, coeffs)[0],
-                           lambda th: th < limit)
+                           lambda th: th < limit, _skew(params, 8))
 
 
 def kannala_brandt_unproject(pixels: Tensor, params: Tensor, *,
@@ -208,13 +217,13 @@ def kannala_brandt_unproject(pixels: Tensor, params: Tensor, *,
 
     Args:
         pixels: ``(..., 2)`` pixel coordinates (u, v).
-        params: ``(..., 8)`` fx, fy, cx, cy, k1, k2, k3, k4.
+        params: ``(..., 8)`` fx, fy, cx, cy, k1, k2, k3, k4, or ``(..., 9)`` with the skew ``s``.
         iterations: maximum Newton iterations (fixed; see ``KB_ITERATIONS``).
 
     Returns:
         ``rays (..., 3)`` unit norm and ``valid (...)``: ``r < r(limit)`` and Newton converged.
     """
-    check_inputs("kannala_brandt", pixels, params, 2, 8, "pixels")
+    check_inputs("kannala_brandt", pixels, params, 2, (8, 9), "pixels")
     coeffs = _kb_poly(params)
     limit = kannala_brandt_max_angle(params)
     r_limit = kannala_brandt_domain_end(params)
@@ -231,7 +240,7 @@ def kannala_brandt_unproject(pixels: Tensor, params: Tensor, *,
         theta = implicit_step(theta, value - torch.where(inside, r, torch.zeros_like(r)), slope)
         return theta, inside & converged
 
-    return _unproject_radial(pixels, params, theta_of_r)
+    return _unproject_radial(pixels, params, theta_of_r, _skew(params, 8))
 
 
 #: Entries of the radius -> angle table of :func:`kannala_brandt_tabulate`, and the safeguarded
@@ -249,26 +258,28 @@ def kannala_brandt_tabulate(params: Tensor, image_size: tuple[int, int],
     model's limit (the fold, or pi).
 
     Args:
-        params: ``(B, 8)`` fx, fy, cx, cy, k1, k2, k3, k4.
+        params: ``(B, 8)`` fx, fy, cx, cy, k1, k2, k3, k4, or ``(B, 9)`` with the skew ``s``.
         image_size: ``(H, W)`` of the pixels to unproject.
         entries: intervals of the table.
 
     Returns:
-        ``(B, 8 + 2 + entries + 1)``: the parameters, ``r(limit)`` (the normalised radius
-        beyond which no ray exists), the table's last radius ``r_end``, then ``theta`` at
-        ``r_j = j r_end / entries``, ``j = 0..entries``.
+        ``(B, 9 + 2 + entries + 1)``: the parameters with the skew (0 where absent),
+        ``r(limit)`` (the normalised radius beyond which no ray exists), the table's last
+        radius ``r_end``, then ``theta`` at ``r_j = j r_end / entries``, ``j = 0..entries``.
     """
-    if not isinstance(params, Tensor) or params.dim() != 2 or params.shape[-1] != 8:
-        raise ValueError(f"params: expected (B, 8) Kannala-Brandt parameters, got "
+    if not isinstance(params, Tensor) or params.dim() != 2 or params.shape[-1] not in (8, 9):
+        raise ValueError(f"params: expected (B, 8) or (B, 9) Kannala-Brandt parameters, got "
                          f"{tuple(getattr(params, 'shape', ()))}")
+    if params.shape[-1] == 8:
+        params = torch.cat((params, torch.zeros_like(params[:, :1])), -1)
     with torch.no_grad():
         coeffs = _kb_poly(params)[:, None, :]
         limit = kannala_brandt_max_angle(params)
         r_limit = _kb_r(limit, coeffs[:, 0])[0]
         h, w = image_size
         corners = params.new_tensor([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1]])
-        mx = (corners[:, 0] - params[:, 2:3]) / params[:, 0:1]
         my = (corners[:, 1] - params[:, 3:4]) / params[:, 1:2]
+        mx = (corners[:, 0] - params[:, 2:3] - params[:, 8:9] * my) / params[:, 0:1]
         r_end = torch.minimum(torch.sqrt(mx * mx + my * my).amax(-1), r_limit)
         radii = r_end[:, None] * torch.linspace(0, 1, entries + 1, dtype=params.dtype,
                                                 device=params.device)
@@ -328,7 +339,7 @@ def kannala_brandt_angles(params: Tensor, radii: Tensor, *, samples: int = KB_SW
 def kannala_brandt_unproject_table_xyz(u: Tensor, v: Tensor, table: Tensor
                                        ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Kannala-Brandt unprojection of pixel ``(u, v)`` through a radius -> angle table of
-    :func:`kannala_brandt_tabulate` (broadcasting ``table (..., 8 + 2 + T + 1)`` against the
+    :func:`kannala_brandt_tabulate` (broadcasting ``table (..., 9 + 2 + T + 1)`` against the
     pixels): the angle interpolated linearly between the two entries around the pixel's
     radius, then polished by ``KB_TABLE_STEPS`` Newton steps on the polynomial, kept within the
     bracket of the two entries (bisection where a step leaves it); tests/test_camera_grid.py
@@ -338,9 +349,9 @@ def kannala_brandt_unproject_table_xyz(u: Tensor, v: Tensor, table: Tensor
     Returns:
         The unit ray's components ``x, y, z`` and ``valid``: ``r < r(limit)``.
     """
-    entries = table.shape[-1] - 11
+    entries = table.shape[-1] - 12
     coeffs = torch.cat((torch.ones_like(table[..., :1]), table[..., 4:8]), -1)
-    r_limit, r_end, thetas = table[..., 8], table[..., 9], table[..., 10:]
+    r_limit, r_end, thetas = table[..., 9], table[..., 10], table[..., 11:]
 
     def theta_of_r(r: Tensor) -> tuple[Tensor, Tensor]:
         inside = r < r_limit
@@ -355,7 +366,7 @@ def kannala_brandt_unproject_table_xyz(u: Tensor, v: Tensor, table: Tensor
         # the entries bracket the root: r is monotonic
         return _bracketed_newton(theta, target, t0, t1, coeffs, KB_TABLE_STEPS), inside
 
-    return _unproject_radial_xyz(u, v, table, theta_of_r)
+    return _unproject_radial_xyz(u, v, table, theta_of_r, table[..., 8])
 
 
 def _check_kb(params: Tensor) -> None:
@@ -364,5 +375,5 @@ def _check_kb(params: Tensor) -> None:
 
 KANNALA_BRANDT = CameraModel(
     "kannala_brandt", _KB_NAMES, kannala_brandt_project, kannala_brandt_unproject,
-    kannala_brandt_max_angle, {**_GROUPS, "distortion": (4, 5, 6, 7)}, check_values=_check_kb,
-    domain_end=kannala_brandt_domain_end)
+    kannala_brandt_max_angle, {**_GROUPS, "distortion": (4, 5, 6, 7), "skew": (8,)},
+    check_values=_check_kb, domain_end=kannala_brandt_domain_end, optional=("s",))

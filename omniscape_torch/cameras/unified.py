@@ -58,8 +58,12 @@ def _alpha_w(alpha: Tensor) -> Tensor:
 
 
 def _pixels(mx: Tensor, my: Tensor, params: Tensor) -> Tensor:
-    return torch.stack((params[..., 0] * mx + params[..., 2],
-                        params[..., 1] * my + params[..., 3]), dim=-1)
+    """``u = fx mx (+ s my) + cx``, ``v = fy my + cy``; the skew ``s`` of a 10-parameter
+    unified camera (OpenCV omnidir's ``K[0, 1]``)."""
+    u = params[..., 0] * mx
+    if params.shape[-1] == 10:
+        u = u + params[..., 9] * my
+    return torch.stack((u + params[..., 2], params[..., 1] * my + params[..., 3]), dim=-1)
 
 
 def _normalised(pixels: Tensor, params: Tensor) -> tuple[Tensor, Tensor]:
@@ -67,7 +71,11 @@ def _normalised(pixels: Tensor, params: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def _normalised_uv(u: Tensor, v: Tensor, params: Tensor) -> tuple[Tensor, Tensor]:
-    return (u - params[..., 2]) / params[..., 0], (v - params[..., 3]) / params[..., 1]
+    """The inverse of :func:`_pixels`."""
+    my = (v - params[..., 3]) / params[..., 1]
+    if params.shape[-1] == 10:
+        return (u - params[..., 2] - params[..., 9] * my) / params[..., 0], my
+    return (u - params[..., 2]) / params[..., 0], my
 
 
 # --------------------------------------------------------------------------------------------
@@ -110,13 +118,14 @@ def unified_project(points: Tensor, params: Tensor) -> tuple[Tensor, Tensor]:
 
     Args:
         points: ``(..., 3)`` points in the camera frame.
-        params: ``(..., 9)`` fx, fy, cx, cy, xi, k1, k2, p1, p2.
+        params: ``(..., 9)`` fx, fy, cx, cy, xi, k1, k2, p1, p2, or ``(..., 10)`` with the skew
+            ``s`` (``u = fx mx + s my + cx``, OpenCV omnidir's ``K[0, 1]``).
 
     Returns:
         ``pixels (..., 2)`` and ``valid (...)``: ``z > -w |X|`` (w = xi, or 1/xi for xi > 1) and
         ``|m|^2`` inside the distortion's fold.
     """
-    check_inputs("unified", points, params, 3, 9, "points")
+    check_inputs("unified", points, params, 3, (9, 10), "points")
     xi, k1, k2, p1, p2 = params[..., 4:9].unbind(-1)
     d, nonzero = _norm(points)
     x, y, z = points.unbind(-1)
@@ -188,14 +197,15 @@ def unified_unproject(pixels: Tensor, params: Tensor, *,
 
     Args:
         pixels: ``(..., 2)`` pixel coordinates.
-        params: ``(..., 9)`` fx, fy, cx, cy, xi, k1, k2, p1, p2.
+        params: ``(..., 9)`` fx, fy, cx, cy, xi, k1, k2, p1, p2, or ``(..., 10)`` with the skew
+            ``s`` (``u = fx mx + s my + cx``, OpenCV omnidir's ``K[0, 1]``).
         iterations: maximum Newton iterations of the undistortion (skipped when k = p = 0).
 
     Returns:
         ``rays (..., 3)`` unit norm and ``valid (...)``: ``1 + (1 - xi^2) r^2 > 0``, inside the
         distortion's fold, undistortion converged.
     """
-    check_inputs("unified", pixels, params, 2, 9, "pixels")
+    check_inputs("unified", pixels, params, 2, (9, 10), "pixels")
     if not (bool(params[..., 5:9].detach().ne(0).any()) or params.requires_grad):
         return unified_unproject_undistorted(pixels, params)
     mx, my, valid = _undistort(*_normalised(pixels, params), params, iterations)
@@ -207,7 +217,7 @@ def unified_unproject_undistorted(pixels: Tensor, params: Tensor) -> tuple[Tenso
     """:func:`unified_unproject` of a camera without lens distortion (k = p = 0, which this does
     not check): the closed form alone, without the data-dependent branch, so ``torch.compile``
     traces it whole (``render.kernels.camera_grid``)."""
-    check_inputs("unified", pixels, params, 2, 9, "pixels")
+    check_inputs("unified", pixels, params, 2, (9, 10), "pixels")
     mx, my = _normalised(pixels, params)
     return _lift(mx, my, params[..., 4], torch.ones_like(mx, dtype=torch.bool))
 
@@ -262,8 +272,8 @@ def _check_unified(params: Tensor) -> None:
 
 UNIFIED = CameraModel(
     "unified", _UNIFIED_NAMES, unified_project, unified_unproject, unified_max_angle,
-    {"focal": (0, 1), "center": (2, 3), "distortion": (4, 5, 6, 7, 8)},
-    check_values=_check_unified)
+    {"focal": (0, 1), "center": (2, 3), "distortion": (4, 5, 6, 7, 8), "skew": (9,)},
+    check_values=_check_unified, optional=("s",))
 
 
 def unified_from_mirror(mirror: str, *, p: float = 0.0, d: float = 0.0, focal: float,

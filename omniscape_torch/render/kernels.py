@@ -69,7 +69,9 @@ def _affine(model: str, params: Tensor) -> Tensor:
         return torch.stack((cx, cy, c / det, -e / det, -d / det, 1 / det), -1)
     fx, fy, cx, cy = params[:, :4].unbind(-1)
     zero = torch.zeros_like(fx)
-    return torch.stack((cx, cy, 1 / fx, zero, zero, 1 / fy), -1)
+    # the optional skew s (u = fx mx + s my + cx): mx = (du - s dv / fy) / fx
+    skew = params[:, -1] if params.shape[-1] > get_model(model).num_params else zero
+    return torch.stack((cx, cy, 1 / fx, -skew / (fx * fy), zero, 1 / fy), -1)
 
 
 def radial_table(model: str, params: Tensor, image_size: tuple[int, int],
