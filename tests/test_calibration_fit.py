@@ -65,7 +65,7 @@ def test_fit_reaches_the_noise_floor_and_the_truth(model):
     assert result.converged, result.reason
     m, n = result.num_observations, result.num_free
     assert m == 8 * 130 and n == len(result.free_names) + 6 * 8
-    floor = SIGMA * math.sqrt((2 * m - n) / (2 * m))
+    floor = SIGMA * math.sqrt(2) * math.sqrt((2 * m - n) / (2 * m))   # RMS distance
     # 5%: the spread of the RMS of 2M - n ~ 2000 squared Gaussians is 1.6%
     assert abs(result.rms - floor) <= 0.05 * floor, (result.rms, floor)
     free = [result.param_names.index(name) for name in result.free_names]

@@ -1,26 +1,47 @@
 """Model conversion: a camera of another model (or polynomial degree) fitted to an existing one.
 
-:func:`convert` samples the source camera's valid area on a regular pixel grid, unprojects it
-with the source, and fits the target's parameters so that ``target.project(ray)`` lands on the
-source pixel (Levenberg-Marquardt, :mod:`omniscape_torch.calibration.fit`, no poses). A second
-grid offset by half a step is held out: the reported errors are measured on it, as pixel error
-``|target.project(ray) - pixel|`` and angular error between the source's ray and
-``target.unproject(pixel)``.
+:func:`convert` samples the area the source camera images on a regular pixel grid (its valid
+pixels, within its field of view: ``fov``, by default the source's own, and within ``mask``, e.g.
+the image circle :func:`image_circle` finds in a photograph), unprojects them with the source,
+and fits the target's parameters so that ``target.project(R ray)`` lands on the source pixel
+(Levenberg-Marquardt, :mod:`omniscape_torch.calibration.fit`). A second grid offset by half a step
+is held out: the reported errors are measured on it, as pixel distance
+``|target.project(R ray) - pixel|`` (RMS: the root of the mean squared distance, and maximum)
+and as the angle between the source's ray and ``R^T target.unproject(pixel)``.
+
+Affine terms. OCamCalib fits a 2 x 2 affine map of the sensor (``c, d, e``). Any such map is an
+upper-triangular one (focal lengths and a skew) times a rotation about the optical axis, and a
+rotation of the image plane about the axis is a rotation of the rays (the lens is radially
+symmetric), so the other models represent it exactly with their skew ``s`` (``kannala_brandt``:
+OpenCV fisheye's ``alpha = s / fx``; ``unified``: OpenCV omnidir's ``K[0, 1]``) and the
+rotation ``R`` between the two camera frames, which the fit returns (``result.rotation``; all
+three angles are fitted, so a principal axis that differs is absorbed too). By default both
+are fitted where the source has an affine term and the target lacks one (not for a
+``scaramuzza`` target, which carries it): ``rotation=None``, ``skew=None``; elsewhere ``R`` is
+the identity. Extrinsics compose with it: a point ``X`` in the source camera's frame is
+``R X`` in the target's, so a source pose ``X_cam = R_s X_world + t_s`` becomes
+``X_cam' = (R R_s) X_world + R t_s``.
+
+The fit minimises the sum of squared distances, then (``minimax`` rounds, Lawson's iteratively
+reweighted least squares: each sample's weight times its distance) moves towards the smallest
+worst-case error, keeping the round whose largest error on the fitted grid is smallest: a model
+that cannot follow the lens exactly spreads its error instead of piling it at the rim.
 
 Samples that the target cannot represent at the solution (outside its domain) are dropped and
 the fit is run once more without them; their share of the held-out samples is reported as
-``unrepresentable`` (the fraction of the source's valid area the target cannot cover).
+``unrepresentable`` (the fraction of the source's area the target cannot cover).
 
 Starting values: the target's centre is the source's (``cx, cy``); a ``scaramuzza`` target gets
 its polynomial from a linear least-squares fit of ``g(rho) = rho z / |(x, y)|`` to the rays;
 the other models their undistorted defaults with the focal length that matches the source's
-median radius per unit-focal radius over the samples within 60 degrees of the axis.
+median radius per unit-focal radius over the samples within 60 degrees of the axis; the skew 0,
+the rotation the identity.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Sequence
 
 import torch
@@ -28,12 +49,15 @@ from torch import Tensor
 
 from ..cameras import Camera, CameraModel, get_model
 from .fit import DEFAULT_DISTORTION, FitResult, Problem, solve
-from .params import IntrinsicsMap, frozen_indices
+from .params import IntrinsicsMap, axis_angle_to_matrix, frozen_indices
 
 #: Parameters held in a first fit, released in a second from its solution: the unified model's
 #: distortion trades off against xi, and from the undistorted start the joint fit can settle in a
 #: local minimum that the Geyer-Daniilidis solution avoids.
 STAGED = {"unified": ("k1", "k2", "p1", "p2")}
+
+#: Levenberg-Marquardt iterations of a reweighting round (each starts from the previous one).
+MINIMAX_ITERATIONS = 25
 
 #: Parameters held by default in a conversion (OCamCalib's ``a1 = 0``; without poses the sensor
 #: roll ``e`` is determined, unlike in a calibration).
@@ -47,12 +71,16 @@ class ConversionResult:
 
     Attributes:
         camera: the target camera (None when the fit left the model's range).
-        fit: the :class:`FitResult` of the final fit (``converged``, ``reason``, ``std``...).
-        max_px, rms_px: largest and RMS pixel error (RMS of the distance, per sample).
+        fit: the :class:`FitResult` of the final fit (``converged``, ``reason``, ``std``...;
+            after ``minimax`` rounds, of the weighted problem: its ``rms`` is weighted).
+        max_px, rms_px: largest and RMS pixel distance (RMS: root of the mean squared distance).
         max_angle, rms_angle: largest and RMS angle between source and target rays, radians.
         unrepresentable: fraction of the held-out samples outside the target's domain.
-        num_params: the target's free parameters.
+        num_params: the target's free parameters (the rotation's three angles not counted).
         num_samples: fitted samples (after dropping the unrepresentable ones).
+        rotation: ``(3, 3)`` float64: a point ``X`` of the source camera's frame is ``R X`` in
+            the target's (module docstring); the identity where not fitted.
+        max_field: the largest angle from the optical axis of the converted area, radians.
     """
 
     camera: Camera | None
@@ -64,6 +92,8 @@ class ConversionResult:
     unrepresentable: float
     num_params: int
     num_samples: int
+    rotation: Tensor = field(default_factory=lambda: torch.eye(3, dtype=torch.float64))
+    max_field: float = math.nan
 
     @property
     def converged(self) -> bool:
@@ -77,13 +107,17 @@ class ConversionResult:
                 "max_angle_deg": math.degrees(self.max_angle),
                 "rms_angle_deg": math.degrees(self.rms_angle),
                 "unrepresentable": self.unrepresentable, "num_params": self.num_params,
-                "num_samples": self.num_samples,
+                "num_samples": self.num_samples, "max_field_deg": math.degrees(self.max_field),
+                "rotation": self.rotation.tolist(),
                 "params": dict(zip(self.fit.param_names, self.fit.params.tolist()))}
 
 
-def sample_pixels(camera: Camera, grid: int, offset: float) -> tuple[Tensor, Tensor]:
+def sample_pixels(camera: Camera, grid: int, offset: float, *, max_field: float | None = None,
+                  mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """``grid x grid`` pixels spread over the image at ``(i + offset) / grid`` of each side,
-    kept where ``camera`` unprojects them: ``(pixels (K, 2), rays (K, 3))`` in float64."""
+    kept where ``camera`` unprojects them, within ``max_field`` radians of the optical axis and
+    where ``mask (H, W)`` is true at the nearest pixel: ``(pixels (K, 2), rays (K, 3))`` in
+    float64."""
     h, w = camera.image_size
     steps = (torch.arange(grid, dtype=torch.float64) + offset) / grid
     v, u = torch.meshgrid(steps * h - 0.5, steps * w - 0.5, indexing="ij")
@@ -91,7 +125,73 @@ def sample_pixels(camera: Camera, grid: int, offset: float) -> tuple[Tensor, Ten
     double = Camera(camera.model, camera.params.detach().double(), camera.image_size,
                     fov=camera.fov, blind_fov=camera.blind_fov)
     rays, valid = double.unproject(pixels)
+    if max_field is not None:
+        valid &= rays[:, 2] >= math.cos(max_field)
+    if mask is not None:
+        col = pixels[:, 0].round().long().clamp(0, w - 1)
+        row = pixels[:, 1].round().long().clamp(0, h - 1)
+        valid &= mask[row, col]
     return pixels[valid], rays[valid]
+
+
+def image_circle(image, camera: Camera) -> float:
+    """The field of view (full angle, radians) of the image circle of a fisheye photograph.
+
+    The unlit border's level is the median of the four corner patches (1/32 of each side), the
+    lit level the median of the disc about the principal point (radius 1/8 of the shorter
+    side); a pixel is lit above a quarter of the way from the first to the second (after a
+    5 x 5 box blur). Ring by ring (1 degree wide) about the optical axis, the circle ends at the
+    first ring where fewer than half of ``camera``'s valid pixels are lit; ``2 pi`` where none is
+    (the image is lit to its edge, or has no unlit border).
+
+    Args:
+        image: ``(H, W)``, ``(H, W, C)`` or ``(C, H, W)`` array or tensor, any dtype.
+        camera: the camera that took it (its ``image_size`` is the image's).
+    """
+    img = torch.as_tensor(image).double()
+    h, w = camera.image_size
+    if img.dim() == 3:
+        img = img.mean(0) if img.shape[1:] == (h, w) else img.mean(-1)
+    if tuple(img.shape) != (h, w):
+        raise ValueError(f"image: expected an image of the camera's size {(h, w)}, got shape "
+                         f"{tuple(torch.as_tensor(image).shape)}")
+    blurred = torch.nn.functional.avg_pool2d(img[None, None], 5, 1, 2,
+                                             count_include_pad=False)[0, 0]
+    ch, cw = max(h // 32, 1), max(w // 32, 1)
+    corners = torch.cat([blurred[:ch, :cw], blurred[:ch, -cw:], blurred[-ch:, :cw],
+                         blurred[-ch:, -cw:]], 0)
+    rays, valid = Camera(camera.model, camera.params.detach().double(), (h, w)).ray_grid()
+    angle = torch.rad2deg(torch.acos(rays[..., 2].double().clamp(-1, 1)))
+    pixel = torch.stack(torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij"), -1)
+    centre = torch.nonzero(valid & (angle == angle[valid].min()))[0]
+    near = (pixel - centre).double().norm(dim=-1) < min(h, w) / 8
+    dark, bright = corners.median(), blurred[near].median()
+    lit = blurred > dark + 0.25 * (bright - dark)
+    ring = angle[valid].floor().long()
+    count = torch.bincount(ring, minlength=181)
+    share = torch.bincount(ring, lit[valid].double(), minlength=181) / count.clamp_min(1)
+    unlit = ((share < 0.5) & (count > 0)).nonzero()
+    return 2 * math.pi if len(unlit) == 0 or bright <= dark else \
+        2 * math.radians(float(unlit[0, 0]))
+
+
+def without_affine(camera: Camera) -> Camera:
+    """A ``scaramuzza`` camera with its affine term removed (``c = 1, d = e = 0``): the part of
+    a conversion's error that the lens model, not the affine term, causes (module docstring)."""
+    if camera.model.name != "scaramuzza":
+        raise ValueError(f"camera: expected a scaramuzza camera, got {camera.model.name}")
+    p = camera.params.detach().double().clone()
+    p[2:5] = torch.tensor([1.0, 0.0, 0.0], dtype=p.dtype)
+    return Camera("scaramuzza", p, camera.image_size, fov=camera.fov, blind_fov=camera.blind_fov)
+
+
+def _has_affine(camera: Camera) -> bool:
+    """Whether the source's pixel grid is sheared or turned (not a diagonal map)."""
+    p = camera.params.detach()
+    if camera.model.name == "scaramuzza":
+        return bool(p[3:5].ne(0).any())
+    optional = camera.model.optional
+    return bool(optional) and p.shape[-1] > camera.model.num_params and bool(p[-1].ne(0))
 
 
 def _source_center(camera: Camera) -> tuple[Tensor, Tensor]:
@@ -135,15 +235,25 @@ def _initial_params(target: CameraModel, source: Camera, degree: int, pixels: Te
 
 
 def convert(camera: Camera, to_model: str | CameraModel, *, degree: int = 4, grid: int = 48,
-            init=None, freeze: Sequence[str] | None = None, max_iterations: int = 200,
+            fov: float | None = None, mask: Tensor | None = None, rotation: bool | None = None,
+            skew: bool | None = None, minimax: int = 4, init=None,
+            freeze: Sequence[str] | None = None, max_iterations: int = 200,
             progress: bool | None = False) -> ConversionResult:
-    """Fit a camera of ``to_model`` to ``camera`` over its whole valid area (module docstring).
+    """Fit a camera of ``to_model`` to the area ``camera`` images (module docstring).
 
     Args:
-        camera: the source: one camera of any model (its ``fov`` limits the area).
+        camera: the source: one camera of any model.
         to_model: the target model name (not ``equirectangular``).
         degree: polynomial degree of a ``scaramuzza`` target.
         grid: samples per image side of the fitted grid (and of the held-out grid).
+        fov: full field of view of the converted area, radians (default: the source's
+            ``fov``, else its whole valid area); :func:`image_circle` measures a photograph's.
+        mask: ``(H, W)`` bool, the pixels to convert (e.g. inside the image circle).
+        rotation: fit the rotation between the camera frames (None: where the source has an
+            affine term and the target is not ``scaramuzza``).
+        skew: give the target its optional skew ``s`` (None: under the same condition, for the
+            models that have one).
+        minimax: reweighting rounds towards the smallest worst-case error (0: least squares).
         init: starting target parameters ``(P,)`` (default: module docstring).
         freeze: groups or names held at their start (default ``CONVERT_FREEZE``).
         max_iterations: Levenberg-Marquardt iterations per fit.
@@ -167,56 +277,115 @@ def convert(camera: Camera, to_model: str | CameraModel, *, degree: int = 4, gri
         raise ValueError(f"degree: expected an integer >= 1, got {degree!r}")
     if isinstance(grid, bool) or not isinstance(grid, int) or grid < 4:
         raise ValueError(f"grid: expected an integer >= 4, got {grid!r}")
-    pixels, rays = sample_pixels(camera, grid, 0.25)
-    held_pixels, held_rays = sample_pixels(camera, grid, 0.75)
+    if isinstance(minimax, bool) or not isinstance(minimax, int) or minimax < 0:
+        raise ValueError(f"minimax: expected an integer >= 0, got {minimax!r}")
+    if fov is None:
+        fov = camera.fov
+    elif not (isinstance(fov, (int, float)) and 0 < fov <= 2 * math.pi):
+        raise ValueError(f"fov: expected an angle in (0, 2 pi] radians, got {fov!r}")
+    if mask is not None:
+        mask = torch.as_tensor(mask)
+        if mask.dtype != torch.bool or tuple(mask.shape) != tuple(camera.image_size):
+            raise ValueError(f"mask: expected a bool tensor of the image's shape "
+                             f"{tuple(camera.image_size)}, got {mask.dtype} of shape "
+                             f"{tuple(mask.shape)}")
+    field = None if fov is None or fov >= 2 * math.pi else fov / 2
+    pixels, rays = sample_pixels(camera, grid, 0.25, max_field=field, mask=mask)
+    held_pixels, held_rays = sample_pixels(camera, grid, 0.75, max_field=field, mask=mask)
+    affine = _has_affine(camera) and target.name != "scaramuzza"
+    rotate = affine if rotation is None else bool(rotation)
+    skewed = (affine if skew is None else bool(skew)) and bool(target.optional)
     if init is None:
         params0 = _initial_params(target, camera, degree, pixels, rays)
+        if skewed:
+            params0 = torch.cat((params0, params0.new_zeros(len(target.optional))))
     else:
         params0 = torch.as_tensor(init, dtype=torch.float64).reshape(-1)
         target.validate_params(params0, "init")
     names = target.names_for(params0.shape[-1])
     frozen = frozen_indices(target, names, CONVERT_FREEZE.get(target.name, ()) if freeze is None
                             else freeze)
-    if 2 * len(pixels) <= params0.shape[-1] - len(frozen):
-        raise ValueError(f"camera: only {len(pixels)} valid samples; raise grid")
+    if 2 * len(pixels) <= params0.shape[-1] - len(frozen) + 3 * rotate:
+        raise ValueError(f"camera: only {len(pixels)} valid samples in the converted area; "
+                         f"raise grid or widen fov/mask")
+    views = torch.zeros(1 if rotate else 0, 6, dtype=torch.float64)
 
-    def run(start: Tensor, keep: Tensor, held: list[int]) -> FitResult:
+    def run(start: Tensor, poses: Tensor, keep: Tensor, held: list[int],
+            weights: Tensor | None = None, iterations: int = max_iterations) -> FitResult:
         intrinsics = IntrinsicsMap(target, start, camera.image_size, held)
+        n = int(keep.sum())
         problem = Problem(intrinsics, rays[keep], pixels[keep],
-                          torch.zeros(int(keep.sum()), dtype=torch.long),
-                          torch.zeros(0, 6, dtype=torch.float64))
+                          torch.zeros(n, dtype=torch.long), poses, rotation_only=True,
+                          weights=weights)
         return solve(problem, "lm", loss="linear", loss_scale=1.0,
-                     max_iterations=max_iterations, optimality_tol=1e-6, max_condition=1e12,
-                     max_std=1.0, progress=progress, sizes=[int(keep.sum())],
-                     image_size=camera.image_size)
+                     max_iterations=iterations, optimality_tol=1e-6, max_condition=1e12,
+                     max_std=1.0, progress=progress, sizes=[n], image_size=camera.image_size)
 
     keep = torch.ones(len(pixels), dtype=torch.bool)
     staged = [i for i in frozen_indices(target, names, STAGED.get(target.name, ()))
               if i not in frozen]
     if staged:
-        first = run(params0, keep, frozen + staged)
-        params0 = first.params if first.camera is not None else params0
-    result = run(params0, keep, frozen)
+        first = run(params0, views, keep, frozen + staged)
+        if first.camera is not None:
+            params0, views = first.params, first.poses
+    result = run(params0, views, keep, frozen)
     if result.num_invalid and result.camera is not None:
-        keep = target.project(rays, result.params)[1]
-        result = run(result.params, keep, frozen)
+        keep = target.project(_turn(rays, result.poses), result.params)[1]
+        result = run(result.params, result.poses, keep, frozen)
+    result = _minimax(result, lambda r, w: run(r.params, r.poses, keep, frozen, w,
+                                               min(max_iterations, MINIMAX_ITERATIONS)),
+                      rays[keep], pixels[keep], minimax)
 
     out = result.camera
+    turn = (axis_angle_to_matrix(result.poses[0, :3]) if rotate
+            else torch.eye(3, dtype=torch.float64))
     nan = math.nan
+    max_field = float(torch.acos(held_rays[:, 2].clamp(-1, 1)).max()) if len(held_rays) else nan
     if out is None:
         return ConversionResult(None, result, nan, nan, nan, nan, nan,
-                                len(result.free_names), int(keep.sum()))
-    projected, ok_p = target.project(held_rays, result.params)
+                                len(result.free_names), int(keep.sum()), turn, max_field)
+    turned = held_rays @ turn.T
+    projected, ok_p = target.project(turned, result.params)
     back, ok_u = target.unproject(held_pixels, result.params)
     ok = ok_p & ok_u
     px = (projected - held_pixels).norm(dim=-1)[ok]
-    cross = torch.linalg.cross(back, held_rays).norm(dim=-1)
-    angle = torch.atan2(cross, (back * held_rays).sum(-1))[ok]
+    cross = torch.linalg.cross(back, turned).norm(dim=-1)
+    angle = torch.atan2(cross, (back * turned).sum(-1))[ok]
     if not bool(ok.any()):
         return ConversionResult(out, result, nan, nan, nan, nan, 1.0, len(result.free_names),
-                                int(keep.sum()))
+                                int(keep.sum()), turn, max_field)
     return ConversionResult(
         out, result, max_px=float(px.max()), rms_px=float(torch.sqrt((px * px).mean())),
         max_angle=float(angle.max()), rms_angle=float(torch.sqrt((angle * angle).mean())),
         unrepresentable=float(1 - ok.double().mean()), num_params=len(result.free_names),
-        num_samples=int(keep.sum()))
+        num_samples=int(keep.sum()), rotation=turn, max_field=max_field)
+
+
+def _turn(rays: Tensor, poses: Tensor) -> Tensor:
+    """``rays`` rotated by the fit's one view (unchanged without one)."""
+    return rays if poses.shape[0] == 0 else rays @ axis_angle_to_matrix(poses[0, :3]).T
+
+
+def _minimax(result: FitResult, refit, rays: Tensor, pixels: Tensor, rounds: int) -> FitResult:
+    """Lawson's reweighting from the least-squares ``result`` over the samples ``rays, pixels``:
+    each sample's weight times its distance, renormalised, and ``refit(start, weights)``; the
+    converged round with the smallest largest distance is kept (the least-squares one if none
+    beats it)."""
+    def distances(r: FitResult) -> Tensor | None:
+        projected, ok = r.camera.model.project(_turn(rays, r.poses), r.params)
+        return (projected - pixels).norm(dim=-1) if bool(ok.all()) else None
+
+    if result.camera is None or not result.converged or distances(result) is None:
+        return result
+    best, best_worst = result, float(distances(result).max())
+    weights, current = torch.ones(len(pixels), dtype=torch.float64), result
+    for _ in range(rounds):
+        weights = weights * distances(current).clamp_min(1e-12)
+        weights = weights / weights.mean()
+        current = refit(current, weights)
+        d = distances(current) if current.camera is not None else None
+        if d is None:
+            break
+        if current.converged and float(d.max()) < best_worst:
+            best, best_worst = current, float(d.max())
+    return best

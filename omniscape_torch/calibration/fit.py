@@ -77,9 +77,10 @@ class FitResult:
         free_names: the names of the fitted (not frozen) parameters.
         poses: ``(V, 6)`` per view: axis-angle (radians) and translation (target units),
             ``X_cam = R X + t``; ``(0, 6)`` for a conversion.
-        rms: RMS reprojection error over the ``2 M`` pixel coordinates (pixels), so that Gaussian
-            noise of ``sigma`` per coordinate gives ``sigma sqrt((2 M - n) / (2 M))`` at the
-            optimum with ``n`` free variables.
+        rms: RMS reprojection error, the root of the mean squared pixel distance over the ``M``
+            observations (the one RMS of this package: conversions and model selection report
+            the same), so that Gaussian noise of ``sigma`` per coordinate gives
+            ``sigma sqrt(2) sqrt((2 M - n) / (2 M))`` at the optimum with ``n`` free variables.
         converged: all checks passed (module docstring); when False, ``reason`` says which not.
         reason: why the run stopped or which check failed.
         iterations: iterations of the method.
@@ -206,7 +207,10 @@ class Problem:
     """Residuals ``project(R_v X + t_v, params) - pixels`` and their Jacobian in free variables.
 
     With no views (``poses0`` of shape ``(0, 6)``) the points are already in the camera frame
-    (a model conversion fits rays to pixels).
+    (a model conversion fits rays to pixels); with ``rotation_only`` the views' translations
+    stay at ``poses0``'s (a conversion that fits the rotation between two camera frames).
+    ``weights`` ``(M,)`` scale each observation's squared residual (its residual by their
+    square root).
 
     Args:
         intrinsics: the :class:`IntrinsicsMap` of the model.
@@ -214,27 +218,36 @@ class Problem:
         pixels: ``(M, 2)`` observed pixels.
         view: ``(M,)`` view index of each observation.
         poses0: ``(V, 6)`` initial poses.
+        rotation_only: free rotations, held translations.
+        weights: ``(M,)`` positive weights (None: all 1).
     """
 
     def __init__(self, intrinsics: IntrinsicsMap, points: Tensor, pixels: Tensor, view: Tensor,
-                 poses0: Tensor) -> None:
+                 poses0: Tensor, *, rotation_only: bool = False,
+                 weights: Tensor | None = None) -> None:
         self.intrinsics = intrinsics
         self.model = intrinsics.model
         self.points, self.pixels, self.view = points, pixels, view
+        self.scale = None if weights is None else weights.sqrt()[:, None]
         self.poses0 = poses0.detach().clone()
         self.num_views = poses0.shape[0]
+        self.pose_dofs = 3 if rotation_only else 6
         self.pose_scale = float(poses0[:, 3:].norm(dim=-1).mean()) if self.num_views else 1.0
         self.num_intrinsics = len(intrinsics.free)
-        self.num_free = self.num_intrinsics + 6 * self.num_views
+        self.num_free = self.num_intrinsics + self.pose_dofs * self.num_views
 
     def z0(self) -> Tensor:
-        return torch.cat((self.intrinsics.z0(), torch.zeros(6 * self.num_views,
-                                                             dtype=torch.float64)))
+        return torch.cat((self.intrinsics.z0(),
+                          torch.zeros(self.pose_dofs * self.num_views, dtype=torch.float64)))
 
     def poses(self, z: Tensor) -> Tensor:
-        dz = z[self.num_intrinsics:].reshape(self.num_views, 6)
+        dz = z[self.num_intrinsics:].reshape(self.num_views, self.pose_dofs)
+        dz = torch.cat((dz, dz.new_zeros(self.num_views, 6 - self.pose_dofs)), -1)
         return self.poses0 + dz * torch.tensor([1.0] * 3 + [self.pose_scale] * 3,
                                                dtype=z.dtype)
+
+    def _weighted(self, residuals: Tensor) -> Tensor:
+        return residuals if self.scale is None else residuals * self.scale
 
     def project(self, params: Tensor, poses: Tensor | None) -> tuple[Tensor, Tensor]:
         """``(M, 2)`` pixels and ``(M,)`` model validity; ``params`` ``(P,)`` or ``(M, P)``,
@@ -246,7 +259,7 @@ class Problem:
         """``(M, 2)`` residuals (differentiable in ``z``) and ``(M,)`` validity."""
         poses = self.poses(z)[self.view] if self.num_views else None
         pixels, valid = self.project(self.intrinsics.natural(z[:self.num_intrinsics]), poses)
-        return pixels - self.pixels, valid
+        return self._weighted(pixels - self.pixels), valid
 
     def evaluate(self, z: Tensor, jacobian: bool) -> tuple[Tensor, Tensor | None]:
         """Residuals ``(M, 2)`` and, if asked, the Jacobian ``(M, 2, n)`` (module docstring)."""
@@ -261,17 +274,19 @@ class Problem:
         if self.num_views:
             pose_obs = self.poses(z).detach()[self.view].clone().requires_grad_(True)
             leaves.append(pose_obs)
-        res = self.project(p_obs, pose_obs)[0] - self.pixels
+        res = self._weighted(self.project(p_obs, pose_obs)[0] - self.pixels)
         grads = [torch.autograd.grad(res[:, k].sum(), leaves, retain_graph=k == 0)
                  for k in range(2)]
         jac = torch.zeros(m, 2, self.num_free, dtype=torch.float64)
         d_natural = self.intrinsics.jacobian(zi)  # [P, n_i]
         jac[:, :, :self.num_intrinsics] = torch.stack([g[0] for g in grads], 1) @ d_natural
         if self.num_views:
-            d_pose = torch.stack([g[1] for g in grads], 1)  # [M, 2, 6]
-            d_pose = d_pose * torch.tensor([1.0] * 3 + [self.pose_scale] * 3, dtype=z.dtype)
-            cols = self.num_intrinsics + 6 * self.view[:, None] + torch.arange(6)  # [M, 6]
-            rows = torch.arange(m)[:, None].expand(m, 6)
+            k = self.pose_dofs
+            d_pose = torch.stack([g[1] for g in grads], 1)[..., :k]  # [M, 2, k]
+            d_pose = d_pose * torch.tensor([1.0] * 3 + [self.pose_scale] * 3,
+                                           dtype=z.dtype)[:k]
+            cols = self.num_intrinsics + k * self.view[:, None] + torch.arange(k)  # [M, k]
+            rows = torch.arange(m)[:, None].expand(m, k)
             for k in range(2):
                 jac[:, k][rows, cols] = d_pose[:, k]
         return res.detach(), jac
@@ -559,7 +574,8 @@ def solve(problem: Problem, method: str, *, loss: str, loss_scale: float,
     return FitResult(
         camera=camera, params=params, param_names=problem.intrinsics.names,
         free_names=problem.intrinsics.free_names, poses=poses,
-        rms=float(torch.sqrt((residuals * residuals).mean())), converged=ok, reason=reason,
+        rms=float(torch.sqrt((residuals * residuals).sum(-1).mean())), converged=ok,
+        reason=reason,
         iterations=iterations, method=method, covariance=covariance,
         std=torch.sqrt(torch.diagonal(covariance).clamp(min=0)),
         residuals=list(residuals.split(sizes)) if problem.num_views else [residuals],

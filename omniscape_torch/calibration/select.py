@@ -4,15 +4,17 @@ Every candidate (a model, and a degree for ``scaramuzza``) is fitted on one set 
 judged on another it never saw:
 
 * from a camera (``ot.Camera``): :func:`~omniscape_torch.calibration.convert.convert`, fitted on
-  one pixel grid, judged on the grid offset by half a step (RMS pixel distance);
+  one pixel grid, judged on the grid offset by half a step;
 * from correspondences (``(object_points, image_points)``): every ``holdout``-th point of each
   view is held out, the rest fitted by :func:`~omniscape_torch.calibration.fit.fit`; the held-out
-  points are projected with the fitted intrinsics and poses (RMS over their pixel coordinates,
-  the same measure as ``FitResult.rms``; with Gaussian noise of ``sigma`` per coordinate it
-  tends to ``sigma``, so the tolerance must sit above the noise).
+  points are projected with the fitted intrinsics and poses.
 
-The selected candidate is the converged one with the fewest free parameters whose held-out error
-is within ``tolerance``, ties broken by the error.
+Errors are pixel distances: their RMS (the root of the mean squared distance, as
+``FitResult.rms`` and :class:`~omniscape_torch.calibration.convert.ConversionResult`; with
+Gaussian noise of ``sigma`` per coordinate it tends to ``sigma sqrt 2``, so a tolerance must sit
+above that) and their maximum. The selected candidate is the converged one with the fewest free
+parameters whose held-out RMS is within ``tolerance`` and, if ``max_tolerance`` is given,
+whose held-out maximum is within it, ties broken by the RMS.
 """
 
 from __future__ import annotations
@@ -39,14 +41,15 @@ DEFAULT_CANDIDATES = (
 
 @dataclass
 class Candidate:
-    """One row of the selection table: ``fit_rms`` and ``heldout_rms`` are both RMS errors per
-    pixel coordinate (as ``FitResult.rms``; a conversion's RMS distance over sqrt 2)."""
+    """One row of the selection table: ``fit_rms``, ``heldout_rms`` and ``heldout_max`` are RMS
+    and largest pixel distances (module docstring)."""
 
     model: str
     degree: int | None
     num_params: int
     fit_rms: float
     heldout_rms: float
+    heldout_max: float
     converged: bool
     reason: str
     within: bool
@@ -82,27 +85,29 @@ def _heldout_fit(object_points, image_points, image_size, model: str, degree: in
         held_pix.append(pix[mask])
     result = fit(fit_pts, fit_pix, model, image_size, degree=degree or 4, **fit_kwargs)
     if result.camera is None:
-        return result, math.nan
+        return result, math.nan, math.nan
     err = torch.cat([result.camera.model.project(transform(pose, pts), result.params)[0] - pix
-                     for pose, pts, pix in zip(result.poses, held_pts, held_pix)])
-    return result, float(torch.sqrt((err * err).mean()))
+                     for pose, pts, pix in zip(result.poses, held_pts, held_pix)]).norm(dim=-1)
+    return result, float(torch.sqrt((err * err).mean())), float(err.max())
 
 
-def select_model(source, tolerance: float, *, image_size: tuple[int, int] | None = None,
+def select_model(source, tolerance: float, *, max_tolerance: float | None = None,
+                 image_size: tuple[int, int] | None = None,
                  candidates: Sequence[tuple[str, int | None]] = DEFAULT_CANDIDATES,
                  holdout: int = 4, progress: bool | None = False, **fit_kwargs) -> Selection:
-    """The candidate with the fewest parameters whose held-out error is within ``tolerance``.
+    """The candidate with the fewest parameters whose held-out error is within the tolerances.
 
     Args:
         source: an ``ot.Camera`` (conversion), or ``(object_points, image_points)`` as
             :func:`~omniscape_torch.calibration.fit.fit` takes them (calibration).
-        tolerance: largest held-out RMS error per coordinate, pixels.
+        tolerance: largest held-out RMS pixel distance.
+        max_tolerance: largest held-out pixel distance (None: no bound on the worst case).
         image_size: ``(H, W)``, for correspondences.
         candidates: ``(model, degree)`` pairs (``DEFAULT_CANDIDATES``).
         holdout: with correspondences, every ``holdout``-th point of a view is held out.
         progress: show a tqdm bar over the candidates (``None``: when stderr is a terminal).
         **fit_kwargs: passed to ``fit`` for correspondences (``method``, ``loss``, ``fov``...),
-            to ``convert`` for a camera (``grid``, ``freeze``).
+            to ``convert`` for a camera (``grid``, ``fov``, ``mask``...).
 
     Returns:
         A :class:`Selection` with the table of all candidates.
@@ -111,6 +116,10 @@ def select_model(source, tolerance: float, *, image_size: tuple[int, int] | None
 
     if not (isinstance(tolerance, (int, float)) and math.isfinite(tolerance) and tolerance > 0):
         raise ValueError(f"tolerance: expected a positive number of pixels, got {tolerance!r}")
+    if max_tolerance is not None and not (isinstance(max_tolerance, (int, float))
+                                          and math.isfinite(max_tolerance) and max_tolerance > 0):
+        raise ValueError(f"max_tolerance: expected a positive number of pixels or None, got "
+                         f"{max_tolerance!r}")
     if isinstance(holdout, bool) or not isinstance(holdout, int) or holdout < 2:
         raise ValueError(f"holdout: expected an integer >= 2, got {holdout!r}")
     if not candidates:
@@ -131,15 +140,15 @@ def select_model(source, tolerance: float, *, image_size: tuple[int, int] | None
                               desc="select_model", file=sys.stderr):
         if from_camera:
             conv = convert(source, model, degree=degree or 4, **fit_kwargs)
-            # per coordinate, as fit's rms: the mean squared distance is twice its mean
-            result, held = conv.fit, conv.rms_px / math.sqrt(2)
+            result, held, worst = conv.fit, conv.rms_px, conv.max_px
         else:
-            result, held = _heldout_fit(object_points, image_points, image_size, model, degree,
-                                        holdout, fit_kwargs)
-        ok = result.converged and math.isfinite(held)
+            result, held, worst = _heldout_fit(object_points, image_points, image_size, model,
+                                               degree, holdout, fit_kwargs)
+        ok = result.converged and math.isfinite(held) and held <= tolerance
+        ok = ok and (max_tolerance is None or worst <= max_tolerance)
         table.append(Candidate(model, degree if model == "scaramuzza" else None,
-                               len(result.free_names), result.rms, held, result.converged,
-                               result.reason, ok and held <= tolerance))
+                               len(result.free_names), result.rms, held, worst,
+                               result.converged, result.reason, ok))
         cameras.append(result.camera)
     eligible = [i for i, c in enumerate(table) if c.within]
     if not eligible:
