@@ -226,28 +226,139 @@ def cmd_fit(args: argparse.Namespace) -> int:
     return 0
 
 
+def _conversion_area(args: argparse.Namespace, camera) -> dict:
+    """``convert``'s area options from ``--fov`` (degrees) or ``--image`` (its image circle)."""
+    from .calibration.convert import image_circle
+    from .io.images import read_image
+
+    if args.fov is not None and args.image is not None:
+        raise ValueError("--fov and --image both set the converted area; give one")
+    if args.image is not None:
+        fov = image_circle(read_image(args.image), camera)
+        print(f"image circle of {args.image}: {math.degrees(fov):.1f} deg")
+        return {"fov": fov}
+    return {} if args.fov is None else {"fov": math.radians(args.fov)}
+
+
+def _rotation_line(rotation: torch.Tensor) -> str:
+    """The fitted rotation as an angle about an axis, for the table."""
+    from .calibration.params import matrix_to_axis_angle
+
+    r = matrix_to_axis_angle(rotation)
+    angle = float(r.norm())
+    if angle == 0:
+        return "identity"
+    axis = ", ".join(f"{float(v):+.3f}" for v in r / angle)
+    return f"{math.degrees(angle):.4f} deg about ({axis})"
+
+
 def cmd_convert_model(args: argparse.Namespace) -> int:
     from .calibration import convert, save_result
+    from .calibration.convert import without_affine
 
+    _check_format_options(args)
     camera, source = _load_camera(args)
-    print(f"source {source} ({camera.model.name}); errors on held-out pixels")
+    area = _conversion_area(args, camera)
+    twin = None
+    if args.split:
+        if camera.model.name != "scaramuzza":
+            raise ValueError("--split: the source has no affine term to split off (not an "
+                             "OCamCalib camera)")
+        twin = without_affine(camera)
+    print(f"source {source} ({camera.model.name}); errors on held-out pixels"
+          + (f" within {math.degrees(area['fov']) / 2:.1f} deg of the axis" if area else ""))
     print(f"{'model':16s} {'params':>6s} {'max px':>9s} {'rms px':>9s} {'max deg':>9s} "
           f"{'rms deg':>9s} {'outside':>8s}  converged")
     failed = 0
     for model in args.to:
-        result = convert(camera, model, degree=args.degree, grid=args.grid)
+        result = convert(camera, model, degree=args.degree, grid=args.grid, **area)
         print(f"{model:16s} {result.num_params:6d} {result.max_px:9.4f} {result.rms_px:9.4f} "
               f"{math.degrees(result.max_angle):9.5f} {math.degrees(result.rms_angle):9.5f} "
               f"{100 * result.unrepresentable:7.2f}%  "
               f"{'yes' if result.converged else 'NO: ' + result.fit.reason}")
+        if not torch.equal(result.rotation, torch.eye(3, dtype=result.rotation.dtype)):
+            print(f"{'':16s} rotation source -> target frame: {_rotation_line(result.rotation)}")
+        if twin is not None:
+            model_part = convert(twin, model, degree=args.degree, grid=args.grid, **area)
+            print(f"{'':16s} max px: {model_part.max_px:.4f} the model's (c = 1, d = e = 0), "
+                  f"{result.max_px - model_part.max_px:+.4f} the affine term's")
         failed += not result.converged
-        if args.out is not None and result.converged:
+        if args.format is not None and result.converged:
+            _write_format(result, args)
+        elif args.out is not None and result.converged:
             save_result(result.camera, result.to_dict(), "conversion", args.out / f"{model}.json")
             if model == "scaramuzza":
                 result.camera.to_ocamcalib(args.out / "calib_results.txt")
-    if args.out is not None:
+    if args.out is not None and args.format is None:
         print(f"wrote the converged cameras to {args.out}")
     return 1 if failed else 0
+
+
+def cmd_select_model(args: argparse.Namespace) -> int:
+    from .calibration import save_result
+    from .calibration.select import DEFAULT_CANDIDATES, select_model
+
+    camera, source = _load_camera(args)
+    area = _conversion_area(args, camera)
+    candidates = DEFAULT_CANDIDATES if args.models is None else [
+        c for c in DEFAULT_CANDIDATES if c[0] in args.models] + [
+        (m, None) for m in args.models if m not in {c[0] for c in DEFAULT_CANDIDATES}]
+    selection = select_model(camera, args.rms, max_tolerance=args.max, grid=args.grid,
+                             candidates=candidates,
+                             progress=None if not args.no_progress else False, **area)
+    bound = f"RMS <= {args.rms:g} px" + ("" if args.max is None else f", max <= {args.max:g} px")
+    print(f"source {source} ({camera.model.name}); held-out pixel distances; {bound}")
+    print(f"{'model':16s} {'params':>6s} {'rms px':>9s} {'max px':>9s}  within")
+    for row in selection.table:
+        name = row.model + (f"({row.degree})" if row.degree is not None else "")
+        print(f"{name:16s} {row.num_params:6d} {row.heldout_rms:9.4f} {row.heldout_max:9.4f}  "
+              f"{'yes' if row.within else 'no' if row.converged else 'not converged'}")
+    if selection.best is None:
+        print("no model is within the tolerances")
+        return 1
+    print(f"selected: {selection.best.model}"
+          + (f" of degree {selection.best.degree}" if selection.best.degree else ""))
+    if args.out is not None:
+        save_result(selection.camera, selection.to_dict(), "selection", args.out)
+        print(f"wrote {args.out}")
+    return 0
+
+
+def _check_format_options(args: argparse.Namespace) -> None:
+    """``--format`` writes one file, ``--out``, of one model (before the slow fit)."""
+    from .cameras.export import supported_models
+
+    if args.format is None:
+        if args.accept_fov or args.accept_skew:
+            raise ValueError("--accept-fov and --accept-skew apply to --format's file; give "
+                             "--format")
+        return
+    if len(args.to) != 1:
+        raise ValueError(f"--format writes one file: give one model in --to, got "
+                         f"{', '.join(args.to)}")
+    if args.out is None:
+        raise ValueError("--format needs --out FILE, the file to write")
+    if args.to[0] not in supported_models(args.format):
+        raise ValueError(f"--to {args.to[0]}: the {args.format} format holds "
+                         f"{', '.join(supported_models(args.format))}")
+
+
+def _write_format(result, args: argparse.Namespace) -> None:
+    """The converted camera as ``--format``'s file; an accepted limit is printed as a warning."""
+    import warnings
+
+    from .calibration import save_result
+
+    if args.format == "json":   # with the conversion report, as without --format
+        save_result(result.camera, result.to_dict(), "conversion", args.out)
+    else:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            result.camera.save(args.out, args.format, accept_fov=args.accept_fov,
+                               accept_skew=args.accept_skew)
+        for warning in caught:
+            print(f"omniscape-torch convert-model: warning: {warning.message}", file=sys.stderr)
+    print(f"wrote {args.out} ({args.format})")
 
 
 def _add_convert_parser(sub) -> None:
@@ -373,6 +484,7 @@ def build_parser() -> argparse.ArgumentParser:
     from .calibration.fit import METHODS
     from .calibration.lm import LOSSES
     from .cameras import MODELS
+    from .cameras.export import FORMATS, supported_models
     lenses = [m for m in MODELS if m != "equirectangular"]
     fit = sub.add_parser("fit", help="calibrate a camera from target points and their pixels "
                                      "(file format: omniscape_torch/calibration/files.py)")
@@ -406,8 +518,50 @@ def build_parser() -> argparse.ArgumentParser:
                       help="scaramuzza target degree (default 4)")
     conv.add_argument("--grid", type=positive_int, default=48,
                       help="samples per image side (default 48)")
-    conv.add_argument("--out", type=Path, default=None, help="folder for <model>.json")
+    conv.add_argument("--fov", type=_positive_float, default=None,
+                      help="convert within this full field of view, degrees (default: the "
+                           "source's fov, else its whole valid area)")
+    conv.add_argument("--image", type=Path, default=None,
+                      help="a photograph from the source camera: convert within its image "
+                           "circle")
+    conv.add_argument("--split", action="store_true",
+                      help="also report the maximum error of the source without its affine "
+                           "term (OCamCalib c = 1, d = e = 0): the model's part and the "
+                           "affine term's")
+    conv.add_argument("--out", type=Path, default=None, help="folder for <model>.json; with "
+                      "--format, the file to write")
+    conv.add_argument("--format", choices=FORMATS, default=None,
+                      help="write the one model of --to as this tool's file (--out FILE): "
+                           + "; ".join(f"{f}: {', '.join(supported_models(f))}"
+                                       for f in FORMATS if f != "json") + "; json: any")
+    conv.add_argument("--accept-fov", action="store_true", help="write a camera that sees at or "
+                      "past 90 deg into a format that folds there (the file records it)")
+    conv.add_argument("--accept-skew", action="store_true", help="write a camera with a skew "
+                      "into a format without one, dropping it (the error is printed)")
     conv.set_defaults(func=cmd_convert_model)
+
+    sel = sub.add_parser("select-model", help="the model with the fewest parameters that "
+                                              "reproduces a camera within tolerances")
+    source = sel.add_mutually_exclusive_group()
+    source.add_argument("--ocamcalib", type=Path, default=None,
+                        help=f"OCamCalib calib_results.txt (default: {DEFAULT_OCAMCALIB})")
+    source.add_argument("--json", type=Path, default=None, help="camera JSON (Camera.save_json)")
+    sel.add_argument("--models", type=_names(lenses, "model"), default=None,
+                     metavar="MODEL[,MODEL]", help="candidates (default: all lens models; "
+                     "scaramuzza of degrees 2-6)")
+    sel.add_argument("--rms", type=_positive_float, required=True,
+                     help="largest held-out RMS pixel distance")
+    sel.add_argument("--max", type=_positive_float, default=None,
+                     help="largest held-out pixel distance (default: no bound)")
+    sel.add_argument("--fov", type=_positive_float, default=None,
+                     help="select within this full field of view, degrees")
+    sel.add_argument("--image", type=Path, default=None,
+                     help="a photograph from the camera: select within its image circle")
+    sel.add_argument("--grid", type=positive_int, default=32,
+                     help="samples per image side (default 32)")
+    sel.add_argument("--out", type=Path, default=None, help="write the selected camera as JSON")
+    sel.add_argument("--no-progress", action="store_true", help="no progress bar")
+    sel.set_defaults(func=cmd_select_model)
     return parser
 
 

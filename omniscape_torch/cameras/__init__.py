@@ -28,7 +28,9 @@ from __future__ import annotations
 
 from ._base import CameraModel
 from .camera import Camera
+from .export import FORMATS, write_camera
 from .registry import MODELS, get_model
 from .unified import unified_from_mirror
 
-__all__ = ["Camera", "CameraModel", "MODELS", "get_model", "unified_from_mirror"]
+__all__ = ["Camera", "CameraModel", "FORMATS", "MODELS", "get_model", "unified_from_mirror",
+           "write_camera"]

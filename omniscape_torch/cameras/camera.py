@@ -9,7 +9,7 @@ from typing import Sequence
 import torch
 from torch import Tensor, nn
 
-from . import formats
+from . import export, formats
 from ._base import CameraModel
 from .registry import get_model
 
@@ -298,6 +298,14 @@ class Camera(nn.Module):
     @classmethod
     def load_json(cls, path: str | Path, **kwargs) -> "Camera":
         return formats.load_json(cls, path, **kwargs)
+
+    def save(self, path: str | Path, format: str = "json", *, accept_fov: bool = False,
+             accept_skew: bool = False) -> Path:
+        """Write the file another tool reads: ``format`` is one of ``ot.cameras.FORMATS``
+        (json, ocamcalib, opencv, kalibr, basalt, orbslam3, colmap); a camera the format
+        cannot hold is refused unless accepted (``cameras/export.py``). Returns the path."""
+        return export.write_camera(self, path, format, accept_fov=accept_fov,
+                                   accept_skew=accept_skew)
 
 
 def _check_image_size(image_size) -> tuple[int, int]:

@@ -5,7 +5,8 @@ Conventions are converted here and only here: OCamCalib stores its centre as (ro
 
 The readers take the camera class to build (``cls``): they are ``Camera``'s constructors
 (``Camera.from_ocamcalib``, ``from_dict``, ...), which call them, and this module needs no
-import of ``camera.py`` (which imports it).
+import of ``camera.py`` (which imports it). The files of other tools (OpenCV YAML, Kalibr,
+basalt, ORB-SLAM3, COLMAP) are written by ``export.py``.
 """
 
 from __future__ import annotations
