@@ -277,6 +277,8 @@ def test_cli_convert_model(tmp_path, capsys):
     assert "the affine term's" in printed
     camera = ot.Camera.load_json(out / "kannala_brandt.json")
     assert camera.model.name == "kannala_brandt"
+    # valid where it was fitted: the image circle found in the photograph (92-97 deg)
+    assert camera.fov is not None and 184 <= math.degrees(camera.fov) <= 194
     report = json.loads((out / "kannala_brandt.json").read_text())["conversion"]
     assert report["converged"] and report["max_px"] < REAL_BOUNDS["kannala_brandt"][0]
     assert ot.Camera.from_ocamcalib(out / "calib_results.txt").params.shape == (11,)

@@ -70,7 +70,8 @@ class ConversionResult:
     radians, over the samples the target represents.
 
     Attributes:
-        camera: the target camera (None when the fit left the model's range).
+        camera: the target camera (None when the fit left the model's range), its ``fov`` the
+            converted area's (without one, twice the largest angle of its samples).
         fit: the :class:`FitResult` of the final fit (``converged``, ``reason``, ``std``...;
             after ``minimax`` rounds, of the weighted problem: its ``rms`` is weighted).
         max_px, rms_px: largest and RMS pixel distance (RMS: root of the mean squared distance).
@@ -336,11 +337,16 @@ def convert(camera: Camera, to_model: str | CameraModel, *, degree: int = 4, gri
                                                min(max_iterations, MINIMAX_ITERATIONS)),
                       rays[keep], pixels[keep], minimax)
 
-    out = result.camera
     turn = (axis_angle_to_matrix(result.poses[0, :3]) if rotate
             else torch.eye(3, dtype=torch.float64))
     nan = math.nan
     max_field = float(torch.acos(held_rays[:, 2].clamp(-1, 1)).max()) if len(held_rays) else nan
+    out = result.camera
+    if out is not None:   # valid where it was fitted: the area's fov, else the samples' reach
+        reach = float(torch.acos(torch.cat((rays, held_rays))[:, 2].clamp(-1, 1)).max())
+        out = Camera(target, result.params, camera.image_size,
+                     fov=fov if fov is not None else min(2 * reach, 2 * math.pi),
+                     blind_fov=camera.blind_fov)
     if out is None:
         return ConversionResult(None, result, nan, nan, nan, nan, nan,
                                 len(result.free_names), int(keep.sum()), turn, max_field)
