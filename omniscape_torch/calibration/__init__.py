@@ -24,7 +24,7 @@ Example:
     (True, 0.0)
 """
 
-from .convert import ConversionResult, convert
+from .convert import ConversionResult, convert, image_circle, without_affine
 from .files import Correspondences, read_correspondences, save_result, write_correspondences
 from .fit import FitResult, METHODS, default_intrinsics, fit
 from .linear import planar_pose, scaramuzza_linear
@@ -36,6 +36,6 @@ from .photometric import PHOTOMETRIC_LOSSES, PhotometricResult, fit_photometric,
 
 __all__ = ["Candidate", "ConversionResult", "Correspondences", "FitResult", "LOSSES", "METHODS",
            "PHOTOMETRIC_LOSSES", "PhotometricResult", "Selection", "fit_photometric",
-           "photometric_error", "checkerboard", "convert", "default_intrinsics", "fit", "planar_pose",
-           "random_views", "read_correspondences", "save_result", "scaramuzza_linear",
-           "select_model", "write_correspondences"]
+           "photometric_error", "checkerboard", "convert", "default_intrinsics", "fit", "image_circle",
+           "planar_pose", "random_views", "read_correspondences", "save_result", "scaramuzza_linear",
+           "select_model", "without_affine", "write_correspondences"]
