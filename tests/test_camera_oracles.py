@@ -477,10 +477,38 @@ def test_opencv_omnidir_round_trip_is_exact(xi_value):
     assert compared > 0
 
 
-def test_opencv_skew_is_rejected():
-    K = k_matrix(300.0, 300.0, 640.0, 480.0)
-    K[0, 1] = 0.5  # OpenCV's skew (omnidir's s, fisheye's alpha * fx)
-    with pytest.raises(ValueError, match="skew"):
-        ot.Camera.from_opencv_fisheye(K, np.zeros(4), (960, 1280))
-    with pytest.raises(ValueError, match="skew"):
-        ot.Camera.from_opencv_omnidir(K, np.zeros(4), np.array([1.0]), (960, 1280))
+def test_opencv_skew_round_trips():
+    """OpenCV's skew ``K[0, 1]`` is the optional ``s`` (omnidir's ``s``; fisheye's ``fx alpha``,
+    as ``cv2.fisheye.calibrate`` returns it): read, written back, and projecting as OpenCV's
+    own ``projectPoints`` does (``cv2.fisheye`` takes ``alpha = K[0, 1] / K[0, 0]``)."""
+    K = k_matrix(300.0, 310.0, 640.0, 480.0)
+    K[0, 1] = 2.5
+    D = np.array([0.01, -0.005, 0.001, 0.0])
+    points = sphere_grid(80.0, step_deg=10.0, n_azimuth=8)
+    fisheye = ot.Camera.from_opencv_fisheye(K, D, (960, 1280), fov=math.radians(170))
+    assert fisheye.param_names[-1] == "s" and float(fisheye.params[-1]) == 2.5
+    K2, D2 = fisheye.to_opencv_fisheye()
+    assert np.array_equal(K2, K) and np.array_equal(D2, D)
+    cv_px, _ = cv2.fisheye.projectPoints(points[:, None], np.zeros(3), np.zeros(3), K, D,
+                                         alpha=K[0, 1] / K[0, 0])
+    px, valid = fisheye.model.project(torch.from_numpy(points), fisheye.params)
+    assert np.abs(px.numpy() - cv_px[:, 0])[valid.numpy()].max() <= PIXEL_TOL
+    if hasattr(cv2, "omnidir"):
+        omni = ot.Camera.from_opencv_omnidir(K, D, np.array([0.9]), (960, 1280))
+        K3, D3, _ = omni.to_opencv_omnidir()
+        assert np.array_equal(K3, K) and np.array_equal(D3.ravel(), D)
+        cv_px = _cv_omnidir_project(points, K, D[None], 0.9)
+        px, valid = omni.model.project(torch.from_numpy(points), omni.params)
+        assert np.abs(px.numpy() - cv_px)[valid.numpy()].max() <= PIXEL_TOL
+
+
+def test_opencv_fisheye_export_refuses_what_it_folds():
+    """``cv2.fisheye`` folds rays at 90 degrees off the axis (``atan(r / z)``): a 190-degree
+    camera is refused, unless accepted; one restricted below 180 degrees is not."""
+    params = torch.tensor([200.0, 200.0, 639.5, 479.5, 0, 0, 0, 0], dtype=f64)
+    wide = ot.Camera("kannala_brandt", params, (960, 1280))
+    with pytest.raises(ValueError, match="90 deg"):
+        wide.to_opencv_fisheye()
+    assert wide.to_opencv_fisheye(accept_fov=True)[0][0, 0] == 200.0
+    narrow = ot.Camera("kannala_brandt", params, (960, 1280), fov=math.radians(170))
+    assert narrow.to_opencv_fisheye()[0][0, 0] == 200.0

@@ -270,9 +270,10 @@ class Camera(nn.Module):
         """``cv2.fisheye`` (K 3x3, D 4) as a ``kannala_brandt`` camera."""
         return formats.from_opencv_fisheye(cls, K, D, image_size, **kwargs)
 
-    def to_opencv_fisheye(self):
-        """``(K (3, 3), D (4,))`` numpy arrays for ``cv2.fisheye``."""
-        return formats.to_opencv_fisheye(self)
+    def to_opencv_fisheye(self, *, accept_fov: bool = False):
+        """``(K (3, 3), D (4,))`` numpy arrays for ``cv2.fisheye`` (the skew in ``K[0, 1]``;
+        refused past 90 degrees off the axis, where it folds, unless ``accept_fov``)."""
+        return formats.to_opencv_fisheye(self, accept_fov=accept_fov)
 
     @classmethod
     def from_opencv_omnidir(cls, K, D, xi, image_size: tuple[int, int], **kwargs) -> "Camera":

@@ -213,53 +213,72 @@ def _as_array(value, name: str, shapes: tuple[tuple[int, ...], ...]) -> np.ndarr
     return arr
 
 
-def _intrinsics(K) -> tuple[float, float, float, float]:
+def _intrinsics(K) -> list[float]:
+    """``fx, fy, cx, cy`` of ``K``, and its skew ``s = K[0, 1]`` where non-zero."""
     K = _as_array(K, "K", ((3, 3),))
-    if K[0, 1] != 0 or K[1, 0] != 0 or not np.allclose(K[2], [0, 0, 1]):
-        raise ValueError(f"K: expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (skew is not "
-                         f"supported), got {K.tolist()}")
-    return K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    if K[1, 0] != 0 or not np.allclose(K[2], [0, 0, 1]):
+        raise ValueError(f"K: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {K.tolist()}")
+    return [K[0, 0], K[1, 1], K[0, 2], K[1, 2]] + ([K[0, 1]] if K[0, 1] != 0 else [])
 
 
-def _one_camera(camera, model: str) -> list[float]:
+def _one_camera(camera, model: str) -> dict[str, float]:
     if camera.model.name != model or camera.batch_shape != ():
         raise ValueError(f"camera: expected one {model} camera, got {camera.model.name} with "
                          f"batch shape {tuple(camera.batch_shape)}")
-    return camera.params.detach().double().cpu().tolist()
+    return dict(zip(camera.param_names, camera.params.detach().double().cpu().tolist()))
 
 
-def _k_matrix(fx, fy, cx, cy) -> np.ndarray:
-    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+def _k_matrix(p: dict[str, float]) -> np.ndarray:
+    return np.array([[p["fx"], p.get("s", 0.0), p["cx"]], [0.0, p["fy"], p["cy"]],
+                     [0.0, 0.0, 1.0]])
 
 
 def from_opencv_fisheye(cls, K, D, image_size: tuple[int, int], *, dtype=torch.float64,
                         **kwargs):
-    """``cv2.fisheye`` intrinsics ``K (3, 3)`` and ``D (4,)`` as a ``kannala_brandt`` camera."""
+    """``cv2.fisheye`` intrinsics ``K (3, 3)`` and ``D (4,)`` as a ``kannala_brandt`` camera;
+    ``K[0, 1]`` (``fx alpha``, as ``cv2.fisheye.calibrate`` returns it) is the skew ``s``."""
     D = _as_array(D, "D", ((4,), (1, 4), (4, 1))).ravel()
-    return cls("kannala_brandt", torch.tensor([*_intrinsics(K), *D], dtype=dtype), image_size,
+    k = _intrinsics(K)
+    return cls("kannala_brandt", torch.tensor([*k[:4], *D, *k[4:]], dtype=dtype), image_size,
                **kwargs)
 
 
-def to_opencv_fisheye(camera) -> tuple[np.ndarray, np.ndarray]:
-    """``(K (3, 3), D (4,))`` of one ``kannala_brandt`` camera, for ``cv2.fisheye``."""
+def to_opencv_fisheye(camera, *, accept_fov: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """``(K (3, 3), D (4,))`` of one ``kannala_brandt`` camera, for ``cv2.fisheye``; its skew
+    ``s`` in ``K[0, 1]`` (as ``cv2.fisheye.calibrate`` writes it: ``projectPoints`` ignores
+    ``K[0, 1]`` and takes ``alpha = K[0, 1] / K[0, 0]``).
+
+    Raises:
+        ValueError: the camera sees 90 degrees or more off its axis, where ``cv2.fisheye``
+            folds (``atan(r / z)``), unless ``accept_fov``.
+    """
+    from .export import _farthest_angle   # export imports this module
+
     p = _one_camera(camera, "kannala_brandt")
-    return _k_matrix(*p[:4]), np.array(p[4:8])
+    angle = math.degrees(_farthest_angle(camera))
+    if angle >= 90.0 and not accept_fov:
+        raise ValueError(f"camera: it sees up to {angle:.2f} deg off its optical axis, but "
+                         f"cv2.fisheye folds rays at 90 deg and beyond (atan(r / z)); restrict "
+                         f"its fov below 180 deg, or pass accept_fov=True")
+    return _k_matrix(p), np.array([p["k1"], p["k2"], p["k3"], p["k4"]])
 
 
 def from_opencv_omnidir(cls, K, D, xi, image_size: tuple[int, int], *, dtype=torch.float64,
                         **kwargs):
-    """``cv2.omnidir`` intrinsics ``K (3, 3)``, ``D (k1, k2, p1, p2)`` and ``xi`` as a ``unified``
-    camera."""
+    """``cv2.omnidir`` intrinsics ``K (3, 3)`` (its skew ``K[0, 1]`` is ``s``), ``D (k1, k2, p1,
+    p2)`` and ``xi`` as a ``unified`` camera."""
     D = _as_array(D, "D", ((4,), (1, 4), (4, 1))).ravel()
     xi = _as_array(xi, "xi", ((), (1,), (1, 1))).ravel()
-    return cls("unified", torch.tensor([*_intrinsics(K), xi[0], *D], dtype=dtype), image_size,
+    k = _intrinsics(K)
+    return cls("unified", torch.tensor([*k[:4], xi[0], *D, *k[4:]], dtype=dtype), image_size,
                **kwargs)
 
 
 def to_opencv_omnidir(camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(K (3, 3), D (1, 4), xi (1,))`` of one ``unified`` camera, for ``cv2.omnidir``."""
+    """``(K (3, 3), D (1, 4), xi (1,))`` of one ``unified`` camera, for ``cv2.omnidir`` (its
+    skew ``s`` in ``K[0, 1]``)."""
     p = _one_camera(camera, "unified")
-    return _k_matrix(*p[:4]), np.array([p[5:9]]), np.array([p[4]])
+    return _k_matrix(p), np.array([[p["k1"], p["k2"], p["p1"], p["p2"]]]), np.array([p["xi"]])
 
 
 # --------------------------------------------------------------------------------------------
