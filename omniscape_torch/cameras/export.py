@@ -171,7 +171,7 @@ def write_camera(camera, path: str | Path, format: str, *, accept_fov: bool = Fa
     for target, folding, why in _FOLDS_AT_90:
         if (fmt, model) != (target, folding):
             continue
-        angle = math.degrees(_farthest_angle(camera))
+        angle = math.degrees(formats.farthest_angle(camera))
         if angle >= 90.0:
             message = f"the camera sees up to {angle:.2f} deg off its optical axis, but {why}"
             if not accept_fov:
@@ -196,33 +196,6 @@ def _check_format(format) -> str:
     if format not in FORMATS:
         raise ValueError(f"format: expected one of {', '.join(FORMATS)}, got {format!r}")
     return format
-
-
-def _farthest_angle(camera) -> float:
-    """Largest angle (radians) between the optical axis and the ray of a valid pixel centre of
-    a radially symmetric camera (Kannala-Brandt, pinhole: the models the 90-degree limit meets).
-
-    The angle grows with the distance from the principal point in normalised coordinates, so it
-    is largest at an image corner when the whole border is valid; otherwise the model's domain
-    or ``fov`` cuts the image and the valid pixels reach ``camera.max_angle()``. Only the border
-    is unprojected (a whole ray grid costs seconds for a Kannala-Brandt camera).
-    """
-    limit = float(camera.max_angle())
-    if limit < math.pi / 2:
-        return limit
-    h, w = camera.image_size
-    kw = dict(dtype=camera.params.dtype, device=camera.params.device)
-    u, v = torch.arange(w, **kw), torch.arange(h, **kw)
-    border = torch.cat([
-        torch.stack((u, torch.zeros_like(u)), -1), torch.stack((u, torch.full_like(u, h - 1)), -1),
-        torch.stack((torch.zeros_like(v), v), -1), torch.stack((torch.full_like(v, w - 1), v), -1),
-    ])   # [2 (H + W), 2]
-    with torch.no_grad():
-        rays, valid = camera.unproject(border)
-    if not bool(valid.all()):
-        return limit
-    theta = torch.atan2(torch.linalg.vector_norm(rays[..., :2], dim=-1), rays[..., 2])
-    return float(theta.max())
 
 
 def _num(value: float) -> str:

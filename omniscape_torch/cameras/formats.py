@@ -233,6 +233,33 @@ def _k_matrix(p: dict[str, float]) -> np.ndarray:
                      [0.0, 0.0, 1.0]])
 
 
+def farthest_angle(camera) -> float:
+    """Largest angle (radians) between the optical axis and the ray of a valid pixel centre of
+    a radially symmetric camera (Kannala-Brandt, pinhole: the models the 90-degree limit meets).
+
+    The angle grows with the distance from the principal point in normalised coordinates, so it
+    is largest at an image corner when the whole border is valid; otherwise the model's domain
+    or ``fov`` cuts the image and the valid pixels reach ``camera.max_angle()``. Only the border
+    is unprojected (a whole ray grid costs seconds for a Kannala-Brandt camera).
+    """
+    limit = float(camera.max_angle())
+    if limit < math.pi / 2:
+        return limit
+    h, w = camera.image_size
+    kw = dict(dtype=camera.params.dtype, device=camera.params.device)
+    u, v = torch.arange(w, **kw), torch.arange(h, **kw)
+    border = torch.cat([
+        torch.stack((u, torch.zeros_like(u)), -1), torch.stack((u, torch.full_like(u, h - 1)), -1),
+        torch.stack((torch.zeros_like(v), v), -1), torch.stack((torch.full_like(v, w - 1), v), -1),
+    ])   # [2 (H + W), 2]
+    with torch.no_grad():
+        rays, valid = camera.unproject(border)
+    if not bool(valid.all()):
+        return limit
+    theta = torch.atan2(torch.linalg.vector_norm(rays[..., :2], dim=-1), rays[..., 2])
+    return float(theta.max())
+
+
 def from_opencv_fisheye(cls, K, D, image_size: tuple[int, int], *, dtype=torch.float64,
                         **kwargs):
     """``cv2.fisheye`` intrinsics ``K (3, 3)`` and ``D (4,)`` as a ``kannala_brandt`` camera;
@@ -252,10 +279,8 @@ def to_opencv_fisheye(camera, *, accept_fov: bool = False) -> tuple[np.ndarray, 
         ValueError: the camera sees 90 degrees or more off its axis, where ``cv2.fisheye``
             folds (``atan(r / z)``), unless ``accept_fov``.
     """
-    from .export import _farthest_angle   # export imports this module
-
     p = _one_camera(camera, "kannala_brandt")
-    angle = math.degrees(_farthest_angle(camera))
+    angle = math.degrees(farthest_angle(camera))
     if angle >= 90.0 and not accept_fov:
         raise ValueError(f"camera: it sees up to {angle:.2f} deg off its optical axis, but "
                          f"cv2.fisheye folds rays at 90 deg and beyond (atan(r / z)); restrict "
