@@ -5,8 +5,9 @@ Angles are printed in degrees (the only place besides file formats where degrees
 Every error ends the command with one line on stderr and an exit code (``--traceback`` shows
 the Python traceback instead): 2 for bad input (options, files that are missing or malformed),
 1 for a run that could not be done (an output that cannot be written, memory, another run in
-the same folder, a failed fit), 130 for Ctrl-C, whose line says what was kept and whether the
-same command resumes.
+the same folder, a failed fit), 3 for a fit whose views leave the camera poorly constrained
+(``fit``: its files are written; ``--accept-coverage`` makes it 0), 130 for Ctrl-C, whose line
+says what was kept and whether the same command resumes.
 """
 
 from __future__ import annotations
@@ -184,20 +185,79 @@ def cmd_stats(args: argparse.Namespace) -> int:
     return 0
 
 
+#: Exit code of a fit whose views do not constrain it (``--accept-coverage`` turns it off).
+EXIT_POORLY_CONSTRAINED = 3
+
+
+def _fit_data(args: argparse.Namespace):
+    """The correspondences of ``fit``: the points file, or the corners detected in
+    ``--images``; and what to tell the report about them."""
+    from .calibration import read_correspondences
+
+    if (args.correspondences is None) == (args.images is None):
+        raise ValueError("give a correspondence file or --images DIR (with --board), not "
+                         + ("both" if args.images is not None else "neither"))
+    if args.images is None:
+        if args.board is not None:
+            raise ValueError("--board: only with --images (a correspondence file holds its "
+                             "target points)")
+        return read_correspondences(args.correspondences), str(args.correspondences), None, {}
+    from .calibration.detect import detect_corners, image_files
+    from .calibration.targets import Board
+
+    if args.board is None:
+        raise ValueError("--images: also give --board, e.g. checkerboard:9x6:0.03 (inner "
+                         "corners cols x rows : square side in metres)")
+    board = Board.parse(args.board)
+    files = image_files(args.images)
+    data = detect_corners(files, board)
+    print(f"{board}: found in {len(data.names)} of {len(files)} images of {args.images}")
+    for name, why in data.skipped.items():
+        print(f"  skipped {name}: {why}")
+    return data, str(args.images), str(board), data.skipped
+
+
+def _fit_area(args: argparse.Namespace, camera) -> float | None:
+    """The full field of view (radians) over which coverage is judged: ``--fov``, else the
+    image circle of the images, else None (the whole valid image)."""
+    if args.fov is not None:
+        return math.radians(args.fov)
+    if args.images is None:
+        return None
+    import numpy as np
+    from .calibration.convert import image_circle
+    from .calibration.detect import image_files
+    from .io.images import read_image
+
+    files = image_files(args.images)[:8]
+    mean = np.mean([read_image(f).double().numpy().reshape(camera.image_size + (-1,)).mean(-1)
+                    for f in files], axis=0)
+    fov = image_circle(mean, camera)
+    return None if fov >= 2 * math.pi else fov
+
+
 def cmd_fit(args: argparse.Namespace) -> int:
-    from .calibration import fit, read_correspondences, save_result
+    from .calibration import fit
+    from .calibration.coverage import assess_coverage
+    from .calibration.report import write_fit_files
     from .io.atomic import check_writable, publish
 
-    data = read_correspondences(args.correspondences)
+    data, source, board, skipped = _fit_data(args)
     check_writable(args.out)
+    options = {}
+    if args.reject_outliers:   # only where fit has the option (issue 19)
+        options = {"reject_outliers": True, "outlier_threshold": args.outlier_threshold}
     result = fit(data.object_points, data.image_points, args.model, data.image_size,
                  method=args.method, degree=args.degree, freeze=args.freeze,
                  fov=None if args.fov is None else math.radians(args.fov), loss=args.loss,
                  loss_scale=args.loss_scale, max_iterations=args.max_iterations,
-                 progress=False if args.no_progress else None)
+                 progress=False if args.no_progress else None, **options)
+    outliers = getattr(result, "outliers", None) or []
+    dropped = sum(len(o) for o in outliers)
     print(f"{args.model} ({args.method}): rms {result.rms:.4f} px over "
           f"{result.num_observations} points in {len(data.names)} views, "
-          f"{result.iterations} iterations; {result.reason}")
+          f"{result.iterations} iterations" + (f", {dropped} outliers dropped" if dropped
+                                               else "") + f"; {result.reason}")
     for name, value, std in zip(result.param_names, result.params.tolist(),
                                 result.std.tolist()):
         print(f"  {name:6s} {value:16.9g} +- {std:.3g}")
@@ -205,14 +265,20 @@ def cmd_fit(args: argparse.Namespace) -> int:
         print(f"omniscape-torch fit: did not converge ({result.reason}); nothing written",
               file=sys.stderr)
         return 1
+    fov = _fit_area(args, result.camera)
+    coverage = assess_coverage(result.camera, result.covariance, data.image_points, fov=fov)
+    area = "the whole image" if fov is None else f"a {math.degrees(fov):.1f} deg field of view"
+    print(f"coverage over {area}: corners in {100 * coverage.cells:.0f}% of the cells, up to "
+          f"{math.degrees(coverage.angle):.1f} of {math.degrees(coverage.half_fov):.1f} deg off "
+          f"axis; predicted pixel error up to {coverage.max_pixel_std:.3g} px (median "
+          f"{coverage.median_pixel_std:.3g})")
     # every file into a temporary folder first: a failed writer leaves nothing half-written,
     # and an output that cannot be written (disk full, removed) does not lose the fit
     staging = Path(tempfile.mkdtemp(prefix="omniscape-fit-"))
     try:
-        files = [save_result(result.camera, result.to_dict(), "fit", staging / "camera.json")]
-        if args.model == "scaramuzza":
-            files.append(staging / "calib_results.txt")
-            result.camera.to_ocamcalib(files[-1])
+        files, report = write_fit_files(staging, result, data, coverage=coverage,
+                                        source=source, board=board, skipped=skipped,
+                                        write_points=args.images is not None)
         written = publish(files, args.out)
     except OSError as err:
         print(f"omniscape-torch fit: error: {describe_os_error(err)}; the fitted camera is "
@@ -223,6 +289,13 @@ def cmd_fit(args: argparse.Namespace) -> int:
         raise
     shutil.rmtree(staging, ignore_errors=True)
     print("wrote " + ", ".join(map(str, written)))
+    for line in report["warnings"]:
+        print(f"omniscape-torch fit: warning: {line}", file=sys.stderr)
+    if not coverage.ok and not args.accept_coverage:
+        print(f"omniscape-torch fit: poorly constrained: the views do not pin the camera down "
+              f"over the image (see {Path(args.out) / 'report.md'} and uncertainty.png); add "
+              f"views, or pass --accept-coverage to accept it", file=sys.stderr)
+        return EXIT_POORLY_CONSTRAINED
     return 0
 
 
@@ -486,9 +559,24 @@ def build_parser() -> argparse.ArgumentParser:
     from .cameras import MODELS
     from .cameras.export import FORMATS, supported_models
     lenses = [m for m in MODELS if m != "equirectangular"]
-    fit = sub.add_parser("fit", help="calibrate a camera from target points and their pixels "
-                                     "(file format: omniscape_torch/calibration/files.py)")
-    fit.add_argument("correspondences", type=Path, help="correspondence file")
+    fit = sub.add_parser(
+        "fit", help="calibrate a camera from images of a board, or from target points and "
+                    "their pixels (file format: omniscape_torch/calibration/files.py)",
+        description="Fit a camera model to a board's corners: detected in --images (OpenCV) or "
+                    "read from a correspondence file. Writes camera.json, report.json, "
+                    "report.md, residuals.png, uncertainty.png (and calib_results.txt for "
+                    "scaramuzza, correspondences.txt for --images) into --out, all or none. "
+                    f"Exits {EXIT_POORLY_CONSTRAINED} (files written) when the views leave the "
+                    "camera poorly constrained (omniscape_torch/calibration/coverage.py), "
+                    "unless --accept-coverage.")
+    fit.add_argument("correspondences", type=Path, nargs="?", default=None,
+                     help="correspondence file (or give --images)")
+    fit.add_argument("--images", type=Path, default=None, metavar="DIR",
+                     help="folder of images of a calibration board (needs --board)")
+    fit.add_argument("--board", default=None, metavar="SPEC",
+                     help="the board in --images: checkerboard:COLSxROWS:SQUARE (inner corners, "
+                          "metres), charuco:COLSxROWS:SQUARE:MARKER[:DICT] (squares, metres, "
+                          "ArUco dictionary, default 6X6_250); e.g. checkerboard:9x6:0.03")
     fit.add_argument("--model", choices=lenses, required=True, help="camera model")
     fit.add_argument("--degree", type=positive_int, default=4,
                      help="scaramuzza polynomial degree (default 4)")
@@ -496,14 +584,23 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--loss", choices=tuple(LOSSES), default="linear", help="default linear")
     fit.add_argument("--loss-scale", type=_positive_float, default=1.0,
                      help="robust loss scale, pixels (default 1)")
+    fit.add_argument("--reject-outliers", action="store_true",
+                     help="drop corners whose residual is an outlier and refit (listed in "
+                          "report.json)")
+    fit.add_argument("--outlier-threshold", type=_positive_float, default=3.0,
+                     help="with --reject-outliers: the threshold in sigmas (default 3)")
     fit.add_argument("--freeze", type=lambda t: [n.strip() for n in t.split(",") if n.strip()],
                      default=None, metavar="NAME[,NAME]", help="parameter groups (focal, center, "
                      "distortion, affine) or names to hold at their start")
     fit.add_argument("--fov", type=_positive_float, default=None,
-                     help="full field of view in degrees, for the start of non-polynomial models")
+                     help="full field of view in degrees: a start for non-polynomial models, "
+                          "and the area whose coverage is judged (default: the image circle "
+                          "of --images, else the whole image)")
+    fit.add_argument("--accept-coverage", action="store_true",
+                     help=f"exit 0, not {EXIT_POORLY_CONSTRAINED}, when the views leave the "
+                          f"camera poorly constrained (the warnings are still printed)")
     fit.add_argument("--max-iterations", type=positive_int, default=None)
-    fit.add_argument("--out", type=Path, required=True, help="folder for camera.json (and "
-                     "calib_results.txt for scaramuzza)")
+    fit.add_argument("--out", type=Path, required=True, help="output folder")
     fit.add_argument("--no-progress", action="store_true", help="no progress bar")
     fit.set_defaults(func=cmd_fit)
 
