@@ -60,8 +60,8 @@ def require_cv2():
     try:
         import cv2
     except ImportError:
-        raise ImportError("corner detection needs OpenCV: pip install "
-                          "opencv-contrib-python-headless") from None
+        raise ImportError("corner detection needs OpenCV: pip install -e \".[calibration]\" "
+                          "(or pip install opencv-contrib-python-headless)") from None
     return cv2
 
 
