@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -11,12 +12,17 @@ import torch
 
 import omniscape_torch as ot
 from omniscape_torch import cli
-from omniscape_torch.data.captures import (ConvertError, convert_captures, find_captures,
-                                           load_capture)
+from omniscape_torch.data import ocamcalib
+from omniscape_torch.data.captures import (ConvertError, calib_file, convert_captures,
+                                           find_captures, load_capture)
 from omniscape_torch.cubemap import FACES, face_rays
 from omniscape_torch.io.atomic import LOCK_NAME
 from omniscape_torch.io.carla import (EXT23_TO_13, NEW_CLASSES, NEW_TO_13, decode_depth,
                                       decode_labels, encode_depth, map_labels, to_13)
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _ocamcalib_checks import OCAMCALIB_PX, check_calib_results  # noqa: E402
+from test_ocamcalib_reference import harness  # noqa: E402,F401 (the compiled C fixture)
 
 STEP = 1000.0 / (256 ** 3 - 1)   # one depth code, metres
 CAPTURE_SCRIPT = Path(__file__).resolve().parents[1] / "examples" / "carla_capture.py"
@@ -169,6 +175,9 @@ def test_convert_writes_fisheye_and_catadioptric(capture_root, tmp_path):
     assert not list(cap.glob(".*"))   # no temporary files left
     meta = json.loads((out / "cameras.json").read_text())
     assert meta["fisheye"]["camera"]["model"] == "equidistant"
+    for cam in ("fisheye", "catadioptric"):
+        assert (out / calib_file(cam)).is_file()
+        assert meta[cam]["ocamcalib"]["file"] == calib_file(cam)
     # the fisheye looks forward: range near the centre ~ 5 + 2 dx + dy with d ~ +z
     rng = ot.io.read_exr(cap / "fisheye_depth.exr")
     assert rng.shape == (48, 48)
@@ -182,6 +191,34 @@ def test_convert_writes_fisheye_and_catadioptric(capture_root, tmp_path):
     cvalid = ot.io.read_image(cap / "catadioptric_valid.png") > 0
     assert bool(cvalid.any()) and not bool(cvalid[23:25, 23:25].any())   # blind centre
     assert bool((cata[cvalid] > 2.5).all())
+
+
+@pytest.mark.numerics
+def test_convert_writes_ocamcalib_files_that_agree_with_the_cameras(capture_root, tmp_path,
+                                                                    harness, monkeypatch):
+    """OUT/<camera>_calib_results.txt: OCamCalib's C code reads it, and its cam2world and
+    world2cam agree with the camera of cameras.json within 0.05 px at every pixel it sees; a
+    rerun into the same folder fits nothing and keeps the files."""
+    root, _ = capture_root
+    out = tmp_path / "out"
+    convert_captures(root, out, label_set="new", image_size=(48, 48))
+    meta = json.loads((out / "cameras.json").read_text())
+    for cam in ("fisheye", "catadioptric"):
+        record = meta[cam]["ocamcalib"]
+        assert record["within_tolerance"] and record["max_px"] <= ocamcalib.TOLERANCE_PX
+        camera = ot.Camera.from_dict(meta[cam]["camera"])
+        errors = check_calib_results(harness, out / calib_file(cam), camera, record)
+        print(f"{cam}: degree {record['degree']}, {errors}")
+        assert errors["cam2world_px"] <= OCAMCALIB_PX and errors["world2cam_px"] <= OCAMCALIB_PX
+    files = {cam: (out / calib_file(cam)).read_bytes() for cam in ("fisheye", "catadioptric")}
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("fitted again")
+
+    monkeypatch.setattr(ocamcalib, "fit_polynomial", refuse)
+    convert_captures(root, out, label_set="new", image_size=(48, 48))
+    assert json.loads((out / "cameras.json").read_text()) == meta
+    assert {cam: (out / calib_file(cam)).read_bytes() for cam in files} == files
 
 
 def test_convert_samples_8bit_faces_as_they_are(tmp_path, monkeypatch):
@@ -396,7 +433,8 @@ def test_convert_skips_a_bad_capture_and_reports_it(tmp_path, breakage):
             p.name for p in (out / name).iterdir())
     assert not (out / "000002").exists()
     assert sorted(p.name for p in out.iterdir() if p.name != LOCK_NAME) == [
-        "000001", "000003", "cameras.json"]
+        "000001", "000003", "cameras.json", "catadioptric_calib_results.txt",
+        "fisheye_calib_results.txt"]
 
 
 def test_corrupt_exr_depth_face_names_the_file(tmp_path):
@@ -440,7 +478,7 @@ def test_render_failure_leaves_nothing_half_written(tmp_path, monkeypatch):
     assert set(info.value.failures) == {"000002"}
     assert "disk full" in info.value.failures["000002"]
     assert sorted(p.name for p in out.iterdir() if p.name != LOCK_NAME) == [
-        "000001", "000003", "cameras.json"]
+        "000001", "000003", "cameras.json", "fisheye_calib_results.txt"]
 
 
 def test_cli_convert_reports_failures_and_exits_non_zero(tmp_path, capsys):

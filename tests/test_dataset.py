@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import shutil
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,11 +14,18 @@ import torch
 import omniscape_torch as ot
 from omniscape_torch.io.atomic import LOCK_NAME
 from omniscape_torch import cli
-from omniscape_torch.data.format import MODALITIES
+from omniscape_torch.cameras import presets
+from omniscape_torch.data import ocamcalib
+from omniscape_torch.data.format import MODALITIES, OCAMCALIB
 from omniscape_torch.data.generate import CAMERAS, DatasetConfig, generate
+from omniscape_torch.data.readers import read_camera, read_camera_dict, read_ocamcalib
 from omniscape_torch.data.stats import format_stats
 from omniscape_torch.io import read_exr, read_image
 from omniscape_torch.scenes.town import Town
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _ocamcalib_checks import OCAMCALIB_PX, check_calib_results  # noqa: E402
+from test_ocamcalib_reference import harness  # noqa: E402,F401 (the compiled C fixture)
 
 SIZE = (48, 48)
 FRAMES = 2
@@ -55,6 +64,7 @@ def test_layout(dataset):
                 assert f"{cam}/{modality}/{k:06d}.{ext}" in files
     for cam in CAMERAS:
         assert f"{cam}/camera.json" in files and f"{cam}/extrinsics.json" in files
+        assert f"{cam}/calib_results.txt" in files
     assert not [f for f in files if f.endswith(".tmp") or ".tmp." in f]
     manifest = json.loads(files["dataset.json"].read_text())
     assert manifest["config"] == _config().to_dict()
@@ -144,6 +154,77 @@ def test_rerun_is_noop_and_resume_completes(dataset, tmp_path):
     # a marker without its files is not a finished frame either
     (out / "fisheye_right" / "rgb" / "000000.png").unlink()
     assert generate(out, _config(), workers=1, progress=False)["rendered"] == [0]
+
+
+@pytest.mark.numerics
+def test_calib_results_agree_with_the_cameras_in_ocamcalib_c_code(dataset, harness):
+    """Every camera folder holds OCamCalib's calib_results.txt: OCamCalib's C code reads it,
+    and its cam2world and world2cam agree with the camera's own rays (camera.json) within
+    0.05 px at every pixel the camera sees; camera.json records the fit and the valid area."""
+    for cam in CAMERAS:
+        camera = read_camera(dataset, cam)
+        record = read_camera_dict(dataset, cam)["ocamcalib"]
+        assert record["file"] == OCAMCALIB and record["model"] == "scaramuzza"
+        assert record["degree"] in ocamcalib.DEGREES and record["within_tolerance"]
+        assert 0 < record["rms_px"] <= record["max_px"] <= ocamcalib.TOLERANCE_PX
+        assert record["invpol_max_px"] <= ocamcalib.INVPOL_PX
+        errors = check_calib_results(harness, dataset / cam / OCAMCALIB, camera, record)
+        print(f"{cam}: degree {record['degree']}, {errors}")
+        assert errors["cam2world_px"] <= OCAMCALIB_PX and errors["world2cam_px"] <= OCAMCALIB_PX
+        poly = read_ocamcalib(dataset, cam)
+        assert poly.model.name == "scaramuzza" and poly.image_size == camera.image_size
+        assert (poly.fov, poly.blind_fov) == (camera.fov, camera.blind_fov)
+
+
+@pytest.mark.numerics
+def test_calib_results_at_the_default_image_size(tmp_path, harness):
+    """The rig's two kinds of camera (module docstring of generate.py: presets.fisheye and
+    presets.catadioptric looking down) at generate's default image size, without rendering:
+    the polynomial of the smallest degree within the tolerance, OCamCalib's functions within
+    0.05 px."""
+    size = DatasetConfig().image_size
+    for kind, camera in (("fisheye", presets.fisheye(size)),
+                         ("catadioptric", presets.catadioptric(size, looking="down")[0])):
+        fit = ocamcalib.fit_polynomial(camera)
+        record = ocamcalib.write_calib_results(fit, tmp_path / f"{kind}.txt")
+        assert record["within_tolerance"] and record["max_px"] <= ocamcalib.TOLERANCE_PX
+        if record["degree"] > ocamcalib.DEGREES[0]:    # the smallest degree that reaches it
+            lower = ocamcalib.fit_polynomial(camera, degrees=(record["degree"] - 1,))
+            assert lower.max_px > ocamcalib.TOLERANCE_PX
+        errors = check_calib_results(harness, tmp_path / f"{kind}.txt", camera, record)
+        print(f"{kind} {size}: degree {record['degree']}, held-out max {record['max_px']:.4f} "
+              f"px, {errors}")
+        assert errors["cam2world_px"] <= OCAMCALIB_PX and errors["world2cam_px"] <= OCAMCALIB_PX
+
+
+def test_calib_results_are_fitted_once_per_camera_and_kept_on_rerun(dataset, tmp_path,
+                                                                      monkeypatch):
+    """A rerun fits nothing; a missing file or record is fitted again (once for a stereo pair,
+    whose intrinsics are the same), to the same bytes."""
+    out = tmp_path / "copy"
+    shutil.copytree(dataset, out)
+    fitted = []
+    real = ocamcalib.fit_polynomial
+
+    def counting(camera, **kwargs):
+        fitted.append(camera.model.name)
+        return real(camera, **kwargs)
+
+    monkeypatch.setattr(ocamcalib, "fit_polynomial", counting)
+    assert generate(out, _config(), progress=False)["rendered"] == []
+    assert fitted == []
+    for cam in ("fisheye_left", "fisheye_right"):
+        (out / cam / OCAMCALIB).unlink()
+    # a dataset written before the files: camera.json without the record
+    path = out / "catadioptric_right" / "camera.json"
+    data = json.loads(path.read_text())
+    del data["ocamcalib"]
+    path.write_text(json.dumps(data))
+    generate(out, _config(), progress=False)
+    assert fitted == ["equidistant", "unified"]
+    for cam in CAMERAS:
+        for name in (OCAMCALIB, "camera.json"):
+            assert (out / cam / name).read_bytes() == (dataset / cam / name).read_bytes()
 
 
 def test_other_config_refused(dataset, tmp_path):

@@ -216,7 +216,7 @@ def _initial_params(target: CameraModel, source: Camera, degree: int, pixels: Te
         s = 0.5 * math.hypot(*source.image_size)
         powers = [0] + list(range(2, degree + 1))
         cols = torch.stack([s * (rho / s) ** i for i in powers], -1)
-        sol = torch.linalg.lstsq(cols, -g[:, None]).solution[:, 0]
+        sol = torch.linalg.lstsq(cols, -g[:, None], driver="gelsd").solution[:, 0]
         poly = torch.zeros(degree + 1, dtype=torch.float64)
         for j, i in enumerate(powers):
             poly[i] = sol[j] * s ** (1 - i)

@@ -37,7 +37,14 @@ Written per capture and camera (``fisheye``, ``catadioptric``)::
     OUT/<capture_id>/<camera>_labels.png       8-bit class ids, 255 outside the valid area
     OUT/<capture_id>/<camera>_labels_color.png the ids in CARLA's palette
     OUT/<capture_id>/<camera>_valid.png        255 where the pixel sees the scene
-    OUT/cameras.json                           the cameras (Camera JSON) and their rotations
+    OUT/cameras.json                           the cameras (Camera JSON), their rotations
+                                               and, under "ocamcalib", the record of their
+                                               OCamCalib file (degree, errors, fov_deg,
+                                               blind_fov_deg: :mod:`.ocamcalib`)
+    OUT/<camera>_calib_results.txt             the camera as OCamCalib's polynomial model
+
+The polynomial models are fitted once per run, before the captures are read, and not at all
+when ``OUT`` holds them already for the same cameras (a rerun).
 
 Every file is written atomically (temporary file then rename).
 """
@@ -65,9 +72,11 @@ from ..io.exr import read_exr, write_exr
 from ..io.images import read_image, write_image
 from ..io.labels import colorize
 from ..render.sizing import MEMORY_PER_PIXEL, PROCESS_MEMORY, available_memory
+from . import ocamcalib
 
-__all__ = ["MODALITIES", "CAMERAS", "ConvertError", "build_cameras", "check_pixels",
-           "convert_captures", "find_captures", "load_capture", "render_capture"]
+__all__ = ["MODALITIES", "CAMERAS", "ConvertError", "build_cameras", "calib_file",
+           "check_pixels", "convert_captures", "find_captures", "load_capture",
+           "render_capture"]
 
 MODALITIES = ("rgb", "depth", "labels")
 CAMERAS = ("fisheye", "catadioptric")
@@ -89,6 +98,11 @@ class ConvertError(RuntimeError):
                  "convert:"]
         lines += [f"  {capture}: {message}" for capture, message in failures.items()]
         super().__init__("\n".join(lines))
+
+
+def calib_file(camera: str) -> str:
+    """The name, in ``OUT``, of camera ``camera``'s OCamCalib file (module docstring)."""
+    return f"{camera}_calib_results.txt"
 
 
 def _face_file(capture: Path, face: str, modality: str) -> Path:
@@ -393,6 +407,7 @@ def convert_captures(cubemaps_dir: str | Path, out_dir: str | Path, *, label_set
     failures: dict[str, str] = {}
     with folder_lock(out_dir) as lock:
         remove_stale_temporaries(out_dir)
+        records, fits = _polynomial_models(built, meta, out_dir)
         for capture in captures:
             try:
                 cube = load_capture(capture, label_set=label_set, unknown_label=unknown_label,
@@ -404,6 +419,10 @@ def convert_captures(cubemaps_dir: str | Path, out_dir: str | Path, *, label_set
                 failures[capture.name] = f"{type(err).__name__}: {err}" \
                     if not isinstance(err, (ValueError, FileNotFoundError)) else str(err)
         if results:
+            for name, fit in fits.items():     # the files before the records that name them
+                records[name] = ocamcalib.write_calib_results(fit, out_dir / calib_file(name))
+            for name in meta:
+                meta[name]["ocamcalib"] = records[name]
             atomic_write_text(out_dir / "cameras.json", json.dumps(meta, indent=2) + "\n")
         elif created:    # nothing converted: nothing left behind either
             lock.unlink()
@@ -413,6 +432,28 @@ def convert_captures(cubemaps_dir: str | Path, out_dir: str | Path, *, label_set
     if failures:
         raise ConvertError(failures, results)
     return results
+
+
+def _polynomial_models(built: dict[str, tuple], meta: dict, out_dir: Path
+                       ) -> tuple[dict[str, dict], dict]:
+    """``(records, fits)``: the OCamCalib record of each camera whose file ``out_dir`` holds
+    already for the same camera (``cameras.json`` of an earlier run), and the polynomial
+    model fitted to each other camera (``ocamcalib.fit_polynomial``), to write."""
+    try:
+        old = json.loads((out_dir / "cameras.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        old = None
+    records, fits = {}, {}
+    for name, (camera, _) in built.items():
+        prev = old.get(name) if isinstance(old, dict) else None
+        prev = prev if isinstance(prev, dict) else {}
+        record = ocamcalib.cached_record(prev.get("ocamcalib"), out_dir / calib_file(name),
+                                         meta[name]["camera"], prev.get("camera"))
+        if record is None:
+            fits[name] = ocamcalib.fit_polynomial(camera)
+        else:
+            records[name] = record
+    return records, fits
 
 
 def check_pixels(image_size: tuple[int, int]) -> None:

@@ -14,7 +14,12 @@ Layout of ``DIR``
                                    and units (x north, y east, z up, metres; degrees)
       dynamics.csv                 the same, one row per frame (flattened columns)
       <camera>/                    fisheye_left, fisheye_right, catadioptric_left, ...
-        camera.json                intrinsics (Camera.save_json)
+        camera.json                intrinsics (Camera.save_json), and under "ocamcalib" the
+                                   record of calib_results.txt (degree, rms_px, max_px,
+                                   fov_deg, blind_fov_deg: :mod:`.ocamcalib`)
+        calib_results.txt          the camera as OCamCalib's polynomial model (Scaramuzza),
+                                   fitted within 0.04 px over its valid area (the file holds
+                                   no field of view: camera.json's record does)
         extrinsics.json            T_rig_camera (camera -> rig, 4 x 4), and per frame
                                    T_world_camera (camera -> world) and the faces rendered
         rgb/NNNNNN.png             8-bit RGB
@@ -52,9 +57,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Sequence
 
-__all__ = ["CONTACT_SHEET", "CUBE_MODALITIES", "DONE", "DYNAMICS", "DYNAMICS_CSV", "FORMAT",
-           "FORMAT_VERSION", "MANIFEST", "MODALITIES", "STATS", "STATS_PLOT", "cubemap_file",
-           "finished_frames", "frame_file", "frame_name", "layout", "marker", "panorama_file"]
+__all__ = ["CAMERA", "CONTACT_SHEET", "CUBE_MODALITIES", "DONE", "DYNAMICS", "DYNAMICS_CSV",
+           "FORMAT", "FORMAT_VERSION", "MANIFEST", "MODALITIES", "OCAMCALIB", "STATS",
+           "STATS_PLOT", "cubemap_file", "finished_frames", "frame_file", "frame_name", "layout",
+           "marker", "panorama_file"]
 
 FORMAT = "omniscape_torch dataset"
 FORMAT_VERSION = 1
@@ -65,6 +71,8 @@ CONTACT_SHEET = "contact_sheet.png"
 STATS, STATS_PLOT = "stats.json", "stats.png"
 #: The folder of the finished-frame markers.
 DONE = ".done"
+#: Per-camera files: the intrinsics (Camera JSON), and the camera as OCamCalib's model.
+CAMERA, OCAMCALIB = "camera.json", "calib_results.txt"
 
 #: Per-frame files of each camera: folder -> extension.
 MODALITIES = {"rgb": "png", "depth": "exr", "labels": "png", "labels_color": "png",
@@ -133,7 +141,11 @@ def layout(save_cubemaps: bool, save_panorama: bool) -> dict[str, str]:
     out = {MANIFEST: "this manifest",
            DYNAMICS: "ride.records(): per-frame vehicle state, CARLA names/frame/units",
            DYNAMICS_CSV: "dynamics.json flattened, one row per frame",
-           "<camera>/camera.json": "intrinsics, Camera.save_json",
+           "<camera>/camera.json": "intrinsics, Camera.save_json; under 'ocamcalib' the "
+                                   "record of calib_results.txt (degree, rms_px, max_px, "
+                                   "fov_deg, blind_fov_deg)",
+           f"<camera>/{OCAMCALIB}": "the camera as OCamCalib's polynomial model, fitted "
+                                    "over its valid area (no field of view in the file)",
            "<camera>/extrinsics.json": "T_rig_camera and per-frame T_world_camera",
            "<camera>/rgb/NNNNNN.png": "8-bit RGB",
            "<camera>/depth/NNNNNN.exr": "range along the ray, float32 metres, channel Z, "

@@ -1,6 +1,8 @@
 """Write an OmniScape-like dataset: a motorcycle ride through the built-in town, seen by a rig of
-stereo fisheye and stereo catadioptric cameras, with range depth, labels, intrinsics,
-extrinsics and vehicle dynamics (``omniscape-torch generate``; the files: :mod:`.format`).
+stereo fisheye and stereo catadioptric cameras, with range depth, labels, intrinsics (also as
+OCamCalib's ``calib_results.txt``, as the OmniScape dataset ships them: :mod:`.ocamcalib`, fitted
+once per run), extrinsics and vehicle dynamics (``omniscape-torch generate``; the files:
+:mod:`.format`).
 
 The rig
 -------
@@ -64,6 +66,7 @@ from ..io import (CLASSES, IGNORE_INDEX, atomic_write_bytes, atomic_write_text, 
                  read_image, write_exr, write_image)
 from ..io.atomic import folder_lock, remove_stale_temporaries
 from . import format as fmt
+from . import ocamcalib
 from ..io.labels import PALETTE
 from ..cameras.presets import catadioptric, fisheye
 from ..render.layer import OmniProjection
@@ -426,16 +429,52 @@ def _dynamics_csv(recs: list[dict]) -> str:
     return buf.getvalue()
 
 
-def _write_run_files(plan: _Plan, out: Path) -> None:
+def _read_json(path: Path):
+    """The JSON in ``path``, or None when it is missing or unreadable (a file to rewrite)."""
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+
+
+def _write_camera_files(name: str, camera, base: Path, fits: dict,
+                        log: Callable[[str], None]) -> None:
+    """``camera.json`` and ``calib_results.txt`` of one camera. The polynomial model is fitted
+    once per distinct camera of the run (``fits``: Camera JSON -> fit, shared by the stereo
+    pairs) and not at all when the folder already holds the file and its record for this
+    camera (a rerun); the file is written before the record that names it."""
+    data = camera.to_dict()
+    old = _read_json(base / fmt.CAMERA)
+    written = ({k: v for k, v in old.items() if k != "ocamcalib"}
+               if isinstance(old, dict) else None)
+    record = ocamcalib.cached_record(old.get("ocamcalib") if isinstance(old, dict) else None,
+                                     base / fmt.OCAMCALIB, data, written)
+    if record is None:
+        key = json.dumps(data, sort_keys=True)
+        if key not in fits:
+            fits[key] = ocamcalib.fit_polynomial(camera)
+        fit = fits[key]
+        record = ocamcalib.write_calib_results(fit, base / fmt.OCAMCALIB)
+        log(f"{name}: {fmt.OCAMCALIB}, polynomial of degree {fit.degree}, held-out error "
+            f"max {fit.max_px:.3f} px, RMS {fit.rms_px:.3f} px"
+            + ("" if fit.within_tolerance else
+               f" (above the {ocamcalib.TOLERANCE_PX} px aimed at: the best of degrees "
+               f"{list(ocamcalib.DEGREES)})"))
+    _write_if_changed(base / fmt.CAMERA, _dumps({**data, "ocamcalib": record}))
+
+
+def _write_run_files(plan: _Plan, out: Path,
+                     log: Callable[[str], None] = lambda msg: None) -> None:
     config = plan.config
     recs = _ride.records(plan.frames)
     _write_if_changed(out / fmt.DYNAMICS, _dumps(recs))
     _write_if_changed(out / fmt.DYNAMICS_CSV, _dynamics_csv(recs))
     cameras = {}
+    fits: dict = {}
     for name, c in plan.cameras.items():
         base = out / name
         base.mkdir(parents=True, exist_ok=True)
-        _write_if_changed(base / "camera.json", _dumps(c["camera"].to_dict()))
+        _write_camera_files(name, c["camera"], base, fits, log)
         t_rig = _pose(c["r_cam"], c["position"])
         poses = []
         for k in range(config.frames):
@@ -523,7 +562,7 @@ def _generate(out: Path, config: DatasetConfig, workers: int, progress: bool | N
         log(f"removed {len(stale)} temporary file(s) of an interrupted run")
     renderer = FrameRenderer(config)
     plan = renderer.plan
-    _write_run_files(plan, out)
+    _write_run_files(plan, out, log)
     todo = [k for k in range(config.frames) if not plan.finished(out, k)]
     skipped = [k for k in range(config.frames) if k not in todo]
     sizes = {n: c["face_size"] for n, c in plan.cameras.items()}

@@ -25,10 +25,11 @@ from torch import Tensor
 from ..cameras import Camera
 from ..io.exr import read_exr
 from ..io.images import read_image
-from .format import DYNAMICS, MANIFEST, MODALITIES, finished_frames, frame_file
+from .format import CAMERA, DYNAMICS, MANIFEST, MODALITIES, OCAMCALIB, finished_frames, frame_file
+from .ocamcalib import polynomial_camera
 
 __all__ = ["list_cameras", "list_frames", "read_camera", "read_camera_dict", "read_dynamics",
-           "read_extrinsics", "read_frame", "read_manifest"]
+           "read_extrinsics", "read_frame", "read_manifest", "read_ocamcalib"]
 
 _DEFAULT = ("rgb", "depth", "labels", "valid")
 
@@ -121,6 +122,25 @@ def read_camera(root: str | Path, camera: str, **kwargs):
         return Camera.from_dict(_json(path), **kwargs)
     except (ValueError, TypeError) as err:
         raise type(err)(f"{path}: {err}") from None
+
+
+def read_ocamcalib(root: str | Path, camera: str, **kwargs):
+    """``<camera>/calib_results.txt``, the camera as OCamCalib's polynomial model: a
+    ``scaramuzza`` :class:`omniscape_torch.Camera` with the valid area (``fov``, ``blind_fov``)
+    that ``camera.json``'s ``"ocamcalib"`` record gives (``kwargs`` go to
+    ``Camera.from_ocamcalib``). The record's ``max_px`` is its held-out error.
+
+    Raises:
+        FileNotFoundError: no such file or record (a dataset written before they were).
+    """
+    root = _root(root)
+    record = read_camera_dict(root, camera).get("ocamcalib")
+    path = root / camera / OCAMCALIB
+    if not isinstance(record, dict) or not path.is_file():
+        raise FileNotFoundError(f"{path}: missing, or no 'ocamcalib' record in "
+                                f"{root / camera / CAMERA} (a dataset written before "
+                                f"omniscape_torch wrote OCamCalib files?)")
+    return polynomial_camera(path, record, **kwargs)
 
 
 def read_extrinsics(root: str | Path, camera: str) -> dict:
