@@ -9,6 +9,7 @@ its own standard deviations of the truth.
 
 from __future__ import annotations
 
+import importlib
 import json
 import math
 
@@ -18,10 +19,10 @@ import torch
 
 import omniscape_torch as ot
 from omniscape_torch import cli
-from omniscape_torch.calibration import (Correspondences, checkerboard, fit, random_views,
-                                         read_correspondences, scaramuzza_linear,
-                                         write_correspondences)
-from omniscape_torch.calibration.params import IntrinsicsMap
+from omniscape_torch.calibration import (Correspondences, checkerboard, default_intrinsics, fit,
+                                         planar_pose, random_views, read_correspondences,
+                                         scaramuzza_linear, write_correspondences)
+from omniscape_torch.calibration.params import IntrinsicsMap, transform
 
 from conftest import CASES, OCAMCALIB_FILE, fibonacci_sphere
 
@@ -110,6 +111,22 @@ def test_linear_solution_is_exact_on_noise_free_data():
     assert torch.allclose(est, poses, atol=1e-9)
 
 
+def test_planar_pose_batched_and_masked_is_the_per_view_pose():
+    """Views of one size in one batched call, and points masked out by ``valid``, give the pose
+    of the per-view call on the kept points (to rounding); noise-free rays give the truth."""
+    truth, size, board, pixels, poses, _ = _views("equidistant", n_views=4, rows=6, cols=8,
+                                                  noise=0.0)
+    model = ot.cameras.get_model("equidistant")
+    rays = torch.stack([model.unproject(p, truth)[0] for p in pixels])
+    valid = torch.ones(4, 48, dtype=torch.bool)
+    valid[1, ::3] = False
+    batched = planar_pose(board.expand(4, -1, -1), rays, valid)
+    for i in range(4):
+        alone = planar_pose(board[valid[i]], rays[i][valid[i]])
+        assert torch.allclose(batched[i], alone, atol=1e-12)
+    assert torch.allclose(batched, poses, atol=1e-9)
+
+
 def test_linear_method_is_reported_as_unrefined_and_lm_improves_on_it():
     truth, size, board, pixels, _, _ = _views("scaramuzza", n_views=5, rows=6, cols=8)
     linear = fit(board, pixels, "scaramuzza", size, method="linear")
@@ -167,6 +184,20 @@ def test_reparametrisation_keeps_any_free_vector_in_the_model_range(model):
     assert torch.allclose(mapping.natural(mapping.z0()), params)
 
 
+@pytest.mark.parametrize("model", sorted(CASES))
+def test_the_written_out_jacobian_of_the_reparametrisation_is_autograd_s(model):
+    """``IntrinsicsMap.jacobian`` (derivatives written out, every kind: log, softplus, sigmoid,
+    tanh, shifts) against ``torch.func.jacrev`` of ``natural``, with some parameters held."""
+    gen = torch.Generator().manual_seed(1)
+    for params, size in CASES[model]:
+        params = torch.tensor(params, dtype=D)
+        for frozen in ([], [0, 2]):
+            mapping = IntrinsicsMap(ot.cameras.get_model(model), params, size, frozen)
+            z = mapping.z0() + 0.3 * torch.randn(len(mapping.free), generator=gen, dtype=D)
+            expected = torch.func.jacrev(mapping.natural)(z)
+            assert torch.allclose(mapping.jacobian(z), expected, rtol=1e-13, atol=0)
+
+
 def test_robust_losses_resist_gross_outliers():
     truth, size, board, pixels, _, _ = _views("equidistant", n_views=6, rows=6, cols=8)
     gen = torch.Generator().manual_seed(5)
@@ -183,6 +214,102 @@ def test_robust_losses_resist_gross_outliers():
         err = (robust.params - truth).abs()
         assert bool((err <= 4 * clean.std).all()), (loss, (err / clean.std).tolist())
     assert float(((plain.params - truth).abs() / clean.std).max()) > 10
+
+
+def _ray_rms(camera, truth, poses, board) -> float:
+    """RMS pixel distance between ``camera``'s and ``truth``'s projections of the truth's rays
+    on a 32 x 32 grid, within the largest angle off the axis the boards covered (as
+    ``benchmarks/calibration_stability.py`` measures it)."""
+    h, w = truth.image_size
+    v, u = torch.meshgrid((torch.arange(32, dtype=D) + 0.5) / 32 * h - 0.5,
+                          (torch.arange(32, dtype=D) + 0.5) / 32 * w - 0.5, indexing="ij")
+    grid = torch.stack((u, v), -1).reshape(-1, 2)
+    rays, ok = truth.unproject(grid)
+    seen = transform(poses[:, None], board)
+    covered = torch.atan2(seen[..., :2].norm(dim=-1), seen[..., 2]).max()
+    ok = ok & (torch.atan2(rays[:, :2].norm(dim=-1), rays[:, 2]) <= covered)
+    projected, valid = camera.model.project(rays[ok], camera.params)
+    assert bool(valid.all())
+    return float(((projected - grid[ok]) ** 2).sum(-1).mean().sqrt())
+
+
+def _mei_230():
+    """A Mei camera (unified with distortion) whose 230 degrees fill an 800 x 800 image."""
+    camera, _ = ot.cameras.presets.catadioptric((800, 800), fov=math.radians(230),
+                                                blind_fov=None, dtype=D)
+    params = camera.params.clone()
+    params[5:9] = torch.tensor([-0.05, 0.01, 2e-4, -1e-4], dtype=D)
+    return ot.Camera("unified", params, (800, 800), fov=math.radians(230))
+
+
+def test_the_default_starts_converge_where_the_single_start_did_not():
+    """Issue 19: a 230-degree Mei camera, 5 views of a 9 x 6 board. The former default (one
+    start, the focal of a 180-degree lens, at most 100 iterations) crawls along the xi-focal-k1
+    valley and stops unconverged; the default now ranks the linear solution and several
+    fields of view by a short run and finishes the best in a few tens of iterations."""
+    truth = _mei_230()
+    board = checkerboard(6, 9, 0.08)
+    pixels, poses, _ = random_views(truth, board, 5, noise=0.3,
+                                    generator=torch.Generator().manual_seed(8))
+    single = fit(board, pixels, "unified", (800, 800), max_iterations=100,
+                 init=default_intrinsics("unified", (800, 800)))
+    assert not single.converged and "100 iterations without converging" in single.reason
+    result = fit(board, pixels, "unified", (800, 800))
+    assert result.converged, result.reason
+    assert result.iterations < 100 and result.start in ("linear", "fov 180", "fov 120",
+                                                        "fov 230")
+    assert _ray_rms(result.camera, truth, poses, board) < 1.0
+    assert result.cost < single.cost
+
+
+def test_levenberg_marquardt_goes_on_while_the_cost_falls(monkeypatch):
+    """Without max_iterations, LM runs in rounds (LM_ROUND) and starts another while the last
+    lowered the cost by more than LM_PROGRESS; an explicit max_iterations is a hard limit."""
+    fit_module = importlib.import_module("omniscape_torch.calibration.fit")  # not the function
+    truth, size, board, pixels, _, _ = _views("unified", n_views=4, rows=6, cols=8)
+    init = torch.tensor([250.0, 250.0, 319.5, 319.5, 1.0, 0.0, 0.0, 0.0, 0.0], dtype=D)
+    monkeypatch.setattr(fit_module, "LM_ROUND", 3)
+    monkeypatch.setattr(fit_module, "LM_PROGRESS", 1e-12)
+    rounds = fit(board, pixels, "unified", size, init=init)
+    assert rounds.converged and rounds.iterations > 3, rounds.reason
+    assert [h["iteration"] for h in rounds.history if h["accepted"]] == list(
+        range(1, rounds.iterations + 1))
+    capped = fit(board, pixels, "unified", size, init=init, max_iterations=3)
+    assert not capped.converged and capped.iterations == 3
+    monkeypatch.setattr(fit_module, "LM_PROGRESS", math.inf)  # no round lowers the cost enough
+    stalled = fit(board, pixels, "unified", size, init=init)
+    assert not stalled.converged and stalled.iterations == 3
+    assert "3 iterations without converging (the last 3 lowered the cost by" in stalled.reason
+
+
+def test_outlier_rejection_lists_the_gross_outliers_and_refits_without_them():
+    """Three corners moved by 20 px among 288: the robust fit, then the 3-sigma rounds, drop
+    exactly those and the plain refit lands within 1 px of the truth's rays."""
+    truth, size = _truth("kannala_brandt")
+    camera = ot.Camera("kannala_brandt", truth, size)
+    board = checkerboard(6, 8, 0.08)  # large enough that 6 views pin the lens down to 1 px
+    pixels, poses, _ = random_views(camera, board, 6, noise=SIGMA,
+                                    generator=torch.Generator().manual_seed(1))
+    moved = {(0, 5): (20.0, 0.0), (2, 17): (0.0, -20.0), (4, 40): (-14.0, 14.0)}
+    pixels = [p.clone() for p in pixels]
+    for (v, i), shift in moved.items():
+        pixels[v][i] += torch.tensor(shift, dtype=D)
+    result = fit(board, pixels, "kannala_brandt", size, reject_outliers=True)
+    assert result.converged, result.reason
+    assert all(o.dtype == torch.int64 for o in result.outliers) and len(result.outliers) == 6
+    assert {(v, int(i)) for v, o in enumerate(result.outliers) for i in o} == set(moved)
+    assert result.num_observations == 6 * 48 - 3
+    assert [r.shape for r in result.residuals] == [(48, 2)] * 6  # every input point
+    assert float(result.residuals[0][5].norm()) > 15  # the dropped one, at the solution
+    assert _ray_rms(result.camera, camera, poses, board) < 1.0
+    plain = fit(board, pixels, "kannala_brandt", size)
+    assert [o.numel() for o in plain.outliers] == [0] * 6
+    assert plain.rms > 2 * result.rms
+    assert result.to_dict()["outliers"] == [[5], [], [17], [], [40], []]
+    with pytest.raises(ValueError, match="outlier_threshold"):
+        fit(board, pixels, "kannala_brandt", size, reject_outliers=True, outlier_threshold=0)
+    with pytest.raises(TypeError, match="reject_outliers"):
+        fit(board, pixels, "kannala_brandt", size, reject_outliers="yes")
 
 
 @pytest.mark.parametrize("model, seed", [("pinhole", 1), ("scaramuzza", 0)])
@@ -297,8 +424,9 @@ def test_correspondence_file_in_the_wrong_format_is_refused(tmp_path, text, matc
 def test_cli_fit_writes_json_and_calib_results(tmp_path, capsys):
     truth, size, path = _write(tmp_path, n_views=5, rows=6, cols=8)
     out = tmp_path / "out"
+    # 5 views of a 6 x 8 board leave the image poorly covered (exit 3 without the option)
     assert cli.main(["fit", str(path), "--model", "scaramuzza", "--out", str(out),
-                        "--no-progress"]) == 0
+                        "--no-progress", "--accept-coverage"]) == 0
     report = json.loads((out / "camera.json").read_text())
     assert report["fit"]["converged"] and report["model"] == "scaramuzza"
     std = torch.tensor(list(report["fit"]["std"].values()), dtype=D)

@@ -14,10 +14,44 @@ normalised polynomial radius are described in :mod:`omniscape_torch.calibration.
 damping in :mod:`omniscape_torch.calibration.lm`.
 
 Initialisation: OCamCalib's linear solution for ``scaramuzza``
-(:func:`omniscape_torch.calibration.linear.scaramuzza_linear`); for the other models the focal
-length from the field of view (a ray at ``fov / 2`` lands on the inscribed image circle) with
-the model's undistorted defaults, then each view's pose from a planar homography on the
-unprojected rays (:func:`omniscape_torch.calibration.linear.planar_pose`).
+(:func:`omniscape_torch.calibration.linear.scaramuzza_linear`). The other models try several
+starts and keep the best (``method="lm"``, no ``init``): the linear solution converted to the
+model (its rays at the observed pixels fitted by the model, centre held at the image centre,
+the unified model's ``k1, k2, p1, p2`` at 0), and the undistorted defaults whose focal length
+puts a ray at ``fov / 2`` on the inscribed image circle (:func:`default_intrinsics`) for the
+model's default field of view, ``START_FOVS`` (120, 180 and 230 degrees, those the model can
+see) and the caller's ``fov``; each view's pose comes from a planar homography on the
+unprojected rays (:func:`omniscape_torch.calibration.linear.planar_pose`). A short
+Levenberg-Marquardt run (``START_ITERATIONS``, on at most ``START_POINTS`` points of each view)
+from every start ranks them by cost (fewest observations outside the model's domain first);
+the fit goes on from the best one (``FitResult.start`` names it). Where Levenberg-Marquardt
+stops on its own test at a point the checks below reject, the next starts are finished in turn
+(at most ``RETRY_STARTS``) and the first that passes is kept. L-BFGS and Adam start from the
+single default start (no least-squares run chooses it for them).
+
+Iterations: by default Levenberg-Marquardt runs in rounds of ``LM_ROUND`` iterations and starts
+another while the last round lowered the cost by more than ``LM_PROGRESS`` (relative) and the
+data determine the parameters at its end (the condition and standard-deviation checks below),
+up to ``LM_MAX_ITERATIONS``: a run crawling along a narrow valley (the unified model's ``xi``,
+focal length and ``k1`` trade off) is not stopped while it still makes progress, and one on
+degenerate views is not kept crawling. An explicit ``max_iterations`` is a hard limit.
+
+Outliers (``reject_outliers=True``): a first fit with a robust loss (``loss``, Cauchy by
+default), then rounds that mark as outliers the observations whose residual distance exceeds
+what a Gaussian residual exceeds with the probability of an ``outlier_threshold``-sigma event
+(``sigma``: 1.4826 times the median absolute deviation of the kept residuals' coordinates, a
+robust estimate of the noise per coordinate) and refit the others with the plain squared loss,
+until a round marks the same observations as the round before; ``FitResult.outliers`` lists
+them per view. A clean observation is marked with the probability of that event (0.27% at
+``k = 3``).
+
+Methods: Levenberg-Marquardt is the method for correspondences (a small dense least-squares
+problem whose Jacobian is at hand: it converges in tens of iterations where the scaled
+condition number of ``J^T J`` reaches 1e7). L-BFGS and Adam are first-order methods, for losses
+without a least-squares Jacobian (photometric fitting: :func:`fit_photometric` uses Adam);
+here they serve as a cross-check of the LM minimum on well-conditioned problems, and
+``benchmarks/calibration_stability.py`` shows them not converging within their budgets on a
+real lens: use them on points only to compare.
 
 Every method ends with the same checks, so that a failure is reported as one: the result is
 ``converged`` only when the method's own test passed, no observation projects outside the
@@ -34,7 +68,7 @@ from __future__ import annotations
 import math
 import sys
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Callable, Sequence
 
 import torch
 from torch import Tensor
@@ -42,8 +76,8 @@ from torch import Tensor
 from ..cameras import Camera, CameraModel, get_model
 from ..cameras.camera import _check_image_size
 from .linear import planar_pose, scaramuzza_linear
-from .lm import (check_loss, gauss_newton_gain, levenberg_marquardt, normal_equations,
-                 robust_cost, scaled_condition)
+from .lm import (MAX_LAMBDA, check_loss, gauss_newton_gain, levenberg_marquardt,
+                 normal_equations, robust_cost, scaled_condition)
 from .params import IntrinsicsMap, frozen_indices, transform
 
 #: Optimisation methods of :func:`fit`.
@@ -63,6 +97,34 @@ COST_FLOOR = 0.5e-18
 
 #: Default full field of view of :func:`default_intrinsics`, radians.
 DEFAULT_FOV = {"pinhole": math.radians(90)}
+
+#: Full fields of view (radians) of the default starts of :func:`fit`, besides the model's
+#: ``DEFAULT_FOV`` (else pi) and the caller's ``fov``; those the model cannot see are skipped.
+START_FOVS = (math.radians(120), math.radians(180), math.radians(230))
+
+#: Levenberg-Marquardt iterations of the short run that ranks each start.
+START_ITERATIONS = 4
+
+#: Points per view (evenly spaced in the view's order) of that short run: it ranks basins, it
+#: does not need every point.
+START_POINTS = 24
+
+#: Where the fit from the best start fails a check, the next starts (in their order) finished
+#: at most: along the unified model's xi-focal-k1 valley LM can stop where ``J^T J`` is nearly
+#: singular (reported as near-degenerate) while another start reaches a determined minimum.
+RETRY_STARTS = 2
+
+#: Default Levenberg-Marquardt budget: rounds of ``LM_ROUND`` iterations, another while the last
+#: lowered the cost by more than ``LM_PROGRESS`` relative, at most ``LM_MAX_ITERATIONS``.
+LM_ROUND = 100
+LM_PROGRESS = 1e-6
+LM_MAX_ITERATIONS = 1000
+
+#: Rounds of outlier rejection at most (each drops points, so few are ever needed).
+MAX_REJECTION_ROUNDS = 10
+
+#: Residual distance (pixels) below which no observation is an outlier: rounding, on exact data.
+OUTLIER_FLOOR = 1e-6
 
 
 @dataclass
@@ -99,6 +161,15 @@ class FitResult:
         cost: final robust cost (pixels squared).
         history: per iteration ``{"iteration", "cost", ...}`` (L-BFGS: per cost evaluation,
             ``{"evaluation", "cost"}``, several per iteration with its line search).
+        outliers: per view, the ``int64`` indices (into that view's points) of the
+            observations dropped as outliers (``reject_outliers``); empty tensors where none
+            (or without rejection), ``[]`` for a conversion. Dropped observations count in no
+            other field but ``residuals``.
+        start: which start the fit went on from (``"init"``, ``"linear"``, ``"fov 180"``...).
+
+    With outliers dropped, ``residuals`` still holds every input observation (the dropped ones'
+    residuals at the final parameters, to show them); ``rms``, ``cost``, ``num_observations`` and
+    the covariance are the kept observations'.
     """
 
     camera: Camera | None
@@ -121,6 +192,8 @@ class FitResult:
     num_free: int
     cost: float
     history: list[dict] = field(default_factory=list, repr=False)
+    outliers: list[Tensor] = field(default_factory=list)
+    start: str = "init"
 
     def to_dict(self) -> dict:
         """A JSON-ready report (no residuals or history)."""
@@ -133,6 +206,7 @@ class FitResult:
             "params": dict(zip(self.param_names, self.params.tolist())),
             "std": dict(zip(self.param_names, self.std.tolist())),
             "free": list(self.free_names), "poses": self.poses.tolist(),
+            "start": self.start, "outliers": [o.tolist() for o in self.outliers],
         }
 
 
@@ -266,19 +340,31 @@ class Problem:
         if not jacobian:
             with torch.no_grad():
                 return self.residuals(z)[0], None
+        p_obs, pose_obs = self.leaves(z)
+        res = self._weighted(self.project(p_obs, pose_obs)[0] - self.pixels)
+        inputs = [p_obs] if pose_obs is None else [p_obs, pose_obs]
+        grads = [torch.autograd.grad(res[:, k].sum(), inputs, retain_graph=k == 0)
+                 for k in range(2)]
+        return res.detach(), self.assemble(z, grads)
+
+    def leaves(self, z: Tensor) -> tuple[Tensor, Tensor | None]:
+        """Per-observation copies of the intrinsics ``(M, P)`` and poses ``(M, 6)`` (None
+        without views) at ``z``, requiring grad: each residual depends on its own copies."""
         m = self.points.shape[0]
-        zi = z[:self.num_intrinsics]
-        params = self.intrinsics.natural(zi).detach()
+        params = self.intrinsics.natural(z[:self.num_intrinsics]).detach()
         p_obs = params.expand(m, -1).clone().requires_grad_(True)
-        leaves, pose_obs = [p_obs], None
+        pose_obs = None
         if self.num_views:
             pose_obs = self.poses(z).detach()[self.view].clone().requires_grad_(True)
-            leaves.append(pose_obs)
-        res = self._weighted(self.project(p_obs, pose_obs)[0] - self.pixels)
-        grads = [torch.autograd.grad(res[:, k].sum(), leaves, retain_graph=k == 0)
-                 for k in range(2)]
+        return p_obs, pose_obs
+
+    def assemble(self, z: Tensor, grads: list[tuple[Tensor, ...]]) -> Tensor:
+        """The Jacobian ``(M, 2, n)`` in free variables from the gradients of the sum of each
+        pixel coordinate's residuals (``grads[k]``: ``(M, P)`` and, with views, ``(M, 6)``) with
+        respect to the :meth:`leaves`."""
+        m = self.points.shape[0]
         jac = torch.zeros(m, 2, self.num_free, dtype=torch.float64)
-        d_natural = self.intrinsics.jacobian(zi)  # [P, n_i]
+        d_natural = self.intrinsics.jacobian(z[:self.num_intrinsics])  # [P, n_i]
         jac[:, :, :self.num_intrinsics] = torch.stack([g[0] for g in grads], 1) @ d_natural
         if self.num_views:
             k = self.pose_dofs
@@ -289,7 +375,7 @@ class Problem:
             rows = torch.arange(m)[:, None].expand(m, k)
             for k in range(2):
                 jac[:, k][rows, cols] = d_pose[:, k]
-        return res.detach(), jac
+        return jac
 
 
 # --------------------------------------------------------------------------------------------
@@ -402,14 +488,22 @@ def default_intrinsics(model: str | CameraModel, image_size: tuple[int, int],
 
 def _initial_poses(model: CameraModel, params: Tensor, points: list[Tensor],
                    pixels: list[Tensor]) -> Tensor:
-    poses = []
-    for i, (pts, pix) in enumerate(zip(points, pixels)):
-        rays, valid = model.unproject(pix, params)
-        if int(valid.sum()) < 4:
+    """``(V, 6)`` poses from a planar homography on the rays of ``params`` (one unprojection,
+    one batched solve per group of views of the same size)."""
+    rays, valid = model.unproject(torch.cat(pixels), params)
+    sizes = [len(p) for p in pixels]
+    rays, valid = rays.split(sizes), valid.split(sizes)
+    for i, ok in enumerate(valid):
+        if int(ok.sum()) < 4:
             raise ValueError(f"view {i}: fewer than 4 pixels are inside the initial camera's "
                              f"domain; pass init (or fov) closer to the camera")
-        poses.append(planar_pose(pts[valid], rays[valid]))
-    return torch.stack(poses)
+    poses = torch.zeros(len(points), 6, dtype=torch.float64)
+    for size in set(sizes):
+        group = [i for i, n in enumerate(sizes) if n == size]
+        poses[group] = planar_pose(torch.stack([points[i] for i in group]),
+                                   torch.stack([rays[i] for i in group]),
+                                   torch.stack([valid[i] for i in group]))
+    return poses
 
 
 def _check_choice(value, name: str, choices) -> None:
@@ -420,10 +514,16 @@ def _check_choice(value, name: str, choices) -> None:
 def fit(object_points, image_points, model: str | CameraModel, image_size: tuple[int, int], *,
         method: str = "lm", degree: int = 4, init=None, poses=None, fov: float | None = None,
         freeze: Sequence[str] | None = None, loss: str = "linear", loss_scale: float = 1.0,
+        reject_outliers: bool = False, outlier_threshold: float = 3.0,
         max_iterations: int | None = None, optimality_tol: float = 1e-6,
         max_condition: float = 1e12, max_std: float = 1.0,
         progress: bool | None = False) -> FitResult:
     """Fit the intrinsics of ``model`` and the pose of every view to correspondences.
+
+    Use ``method="lm"`` (the default) on correspondences: L-BFGS and Adam are first-order
+    methods for losses without a least-squares Jacobian (photometric fitting); on points they
+    serve to cross-check LM's minimum and do not converge on ill-conditioned lenses within their
+    budgets (module docstring).
 
     Args:
         object_points: target points: one ``(N, 3)`` target seen in every view, ``(V, N, 3)``,
@@ -435,14 +535,30 @@ def fit(object_points, image_points, model: str | CameraModel, image_size: tuple
         method: ``"lm"`` (Levenberg-Marquardt), ``"lbfgs"``, ``"adam"``, or ``"linear"``
             (``scaramuzza`` only: OCamCalib's linear solution, not refined).
         degree: ``scaramuzza`` polynomial degree N (a0, ..., aN) when ``init`` is None.
-        init: starting intrinsics ``(P,)`` or a ``Camera`` (default: module docstring).
-        poses: starting poses ``(V, 6)`` (default: from ``init``, by planar homography).
-        fov: full field of view in radians for the default start of non-polynomial models.
+        init: starting intrinsics ``(P,)`` or a ``Camera`` (default: several starts, the best
+            kept; module docstring).
+        poses: starting poses ``(V, 6)`` (default: from the start, by planar homography).
+        fov: full field of view in radians: one more start for non-polynomial models (the
+            only one for L-BFGS and Adam).
         freeze: parameter groups (``focal``, ``center``, ``distortion``, ``affine``) or names
             held at their start (default ``DEFAULT_FREEZE``: a1 of ``scaramuzza``).
-        loss: ``"linear"``, ``"huber"`` or ``"cauchy"`` (``omniscape_torch.calibration.lm``).
+        loss: ``"linear"``, ``"huber"`` or ``"cauchy"`` (``omniscape_torch.calibration.lm``);
+            with ``reject_outliers``, the loss of the first fit (``"linear"`` means Cauchy
+            there), the refits being plain least squares.
         loss_scale: where the robust loss departs from the square, pixels.
-        max_iterations: iterations of the method (default 100 LM, 500 L-BFGS, 3000 Adam).
+        reject_outliers: fit with a robust loss, drop the observations beyond
+            ``outlier_threshold`` and refit with the plain loss until none is dropped
+            (``FitResult.outliers`` lists them). Off by default: it discards data, which
+            should be a choice; with clean data it drops about 0.3% of the points (at the
+            default threshold) for nothing.
+        outlier_threshold: ``k``: an observation is an outlier when its residual distance
+            exceeds ``sigma sqrt(-2 ln p)``, ``p = erfc(k / sqrt 2)``, the distance a Gaussian
+            residual of ``sigma`` per coordinate exceeds with the probability of a ``k``-sigma
+            deviation of one coordinate (``k = 3``: 3.44 sigma, 0.27%); ``sigma = 1.4826 MAD``
+            of the kept residuals' coordinates. At least 4 points of each view are kept.
+        max_iterations: iterations of the method, a hard limit (default LM: rounds of
+            ``LM_ROUND`` while the cost still falls by more than ``LM_PROGRESS``, at most
+            ``LM_MAX_ITERATIONS``; 500 L-BFGS, 3000 Adam).
         optimality_tol: largest relative cost reduction a Gauss-Newton step may still promise
             at a converged result.
         max_condition: largest scaled condition number of ``J^T J`` at a converged result.
@@ -473,12 +589,23 @@ def fit(object_points, image_points, model: str | CameraModel, image_size: tuple
     if max_iterations is not None and (isinstance(max_iterations, bool) or not isinstance(
             max_iterations, int) or max_iterations < 1):
         raise ValueError(f"max_iterations: expected a positive integer, got {max_iterations!r}")
+    if not isinstance(reject_outliers, bool):
+        raise TypeError(f"reject_outliers: expected True or False, got {reject_outliers!r}")
+    if isinstance(outlier_threshold, bool) or not isinstance(outlier_threshold, (int, float)) \
+            or not (math.isfinite(outlier_threshold) and outlier_threshold > 0):
+        raise ValueError(f"outlier_threshold: expected a positive number of sigmas, got "
+                         f"{outlier_threshold!r}")
+    if reject_outliers and method == "linear":
+        raise ValueError("reject_outliers: the linear method fits nothing to reject from; use "
+                         "method='lm'")
 
     start_poses = None
     if init is None and model.name == "scaramuzza":
         params0, start_poses = scaramuzza_linear(points, pixels, image_size, degree)
+        starts = [("linear", params0)]
     elif init is None:
-        params0 = default_intrinsics(model, image_size, fov)
+        starts = [(f"fov {math.degrees(fov if fov is not None else _default_fov(model)):g}",
+                   default_intrinsics(model, image_size, fov))]
     else:
         params0 = (init.params if isinstance(init, Camera) else _as_float64(init, "init"))
         params0 = params0.detach().to(torch.float64).reshape(-1)
@@ -486,29 +613,344 @@ def fit(object_points, image_points, model: str | CameraModel, image_size: tuple
             model.validate_params(params0, "init")
         except ValueError as err:
             raise ValueError(f"init: {err}") from None
+        starts = [("init", params0)]
     if poses is not None:
         start_poses = _as_float64(poses, "poses")
         if start_poses.shape != (len(points), 6):
             raise ValueError(f"poses: expected shape ({len(points)}, 6), got "
                              f"{tuple(start_poses.shape)}")
-    elif start_poses is None:
-        start_poses = _initial_poses(model, params0, points, pixels)
 
-    names = model.names_for(params0.shape[-1])
+    names = model.names_for(starts[0][1].shape[-1])
     frozen = frozen_indices(model, names, DEFAULT_FREEZE.get(model.name, ()) if freeze is None
                             else freeze)
-    intrinsics = IntrinsicsMap(model, params0, image_size, frozen)
-    view = torch.cat([torch.full((len(p),), i) for i, p in enumerate(points)])
-    problem = Problem(intrinsics, torch.cat(points), torch.cat(pixels), view, start_poses)
-    m = problem.points.shape[0]
-    if 2 * m <= problem.num_free:
+    m = sum(len(p) for p in points)
+    num_free = len(names) - len(frozen) + 6 * len(points)
+    if 2 * m <= num_free:
         raise ValueError(f"object_points: {m} points give {2 * m} residuals, not more than the "
-                         f"{problem.num_free} free parameters ({len(intrinsics.free)} "
+                         f"{num_free} free parameters ({len(names) - len(frozen)} "
                          f"intrinsics + 6 per view)")
-    return solve(problem, method, loss=loss, loss_scale=loss_scale,
-                 max_iterations=max_iterations, optimality_tol=optimality_tol,
-                 max_condition=max_condition, max_std=max_std, progress=progress,
-                 sizes=[len(p) for p in points], image_size=image_size)
+    first_loss = "cauchy" if reject_outliers and loss == "linear" else loss
+    if method == "lm" and init is None and model.name != "scaramuzza":
+        starts = _default_starts(model, image_size, fov, points, pixels, frozen)
+        ranked = _rank_starts(model, starts, image_size, frozen, points, pixels, start_poses,
+                              first_loss, loss_scale)[:1 + RETRY_STARTS]
+    else:
+        label, params0 = starts[0]
+        ranked = [(label, params0, start_poses if start_poses is not None
+                   else _initial_poses(model, params0, points, pixels))]
+
+    view = _view_index(points)
+    settings = dict(max_iterations=max_iterations, optimality_tol=optimality_tol,
+                    max_condition=max_condition, max_std=max_std, progress=progress,
+                    image_size=image_size)
+    result = None
+    for label, params0, start_poses in ranked:
+        problem = Problem(IntrinsicsMap(model, params0, image_size, frozen), torch.cat(points),
+                          torch.cat(pixels), view, start_poses)
+        candidate, stopped_at_minimum = _solve(problem, method, loss=first_loss,
+                                               loss_scale=loss_scale,
+                                               sizes=[len(p) for p in points], **settings)
+        candidate.start = label
+        if result is None or (candidate.converged, -candidate.cost) > (result.converged,
+                                                                       -result.cost):
+            result = candidate
+        # another start only after a stop at a point the checks reject; where LM ran out of
+        # budget or of determined parameters, other starts fare no better
+        if result.converged or not stopped_at_minimum:
+            break
+    if reject_outliers:
+        result = _reject_outliers(result, model, frozen, points, pixels, outlier_threshold,
+                                  method, loss_scale, settings)
+    return result
+
+
+def _default_fov(model: CameraModel) -> float:
+    return DEFAULT_FOV.get(model.name, math.pi)
+
+
+def _view_index(points: list[Tensor]) -> Tensor:
+    return torch.cat([torch.full((len(p),), i) for i, p in enumerate(points)])
+
+
+def _default_starts(model: CameraModel, image_size: tuple[int, int], fov: float | None,
+                    points: list[Tensor], pixels: list[Tensor], frozen: list[int]
+                    ) -> list[tuple[str, Tensor]]:
+    """``(label, params)`` of every start of a non-polynomial model (module docstring)."""
+    starts = []
+    linear = _linear_start(model, image_size, points, pixels, frozen)
+    if linear is not None:
+        starts.append(("linear", linear))
+    unit = default_intrinsics(model, (2, 2), math.radians(90))
+    limit = 2 * float(model.max_angle(unit))
+    fovs: list[float] = []
+    for f in [_default_fov(model)] + ([] if fov is None else [fov]) + [
+            f for f in START_FOVS if f < limit]:
+        if all(abs(f - g) > 1e-9 for g in fovs):
+            fovs.append(f)
+            starts.append((f"fov {math.degrees(f):g}", default_intrinsics(model, image_size, f)))
+    return starts
+
+
+def _linear_start(model: CameraModel, image_size: tuple[int, int], points: list[Tensor],
+                  pixels: list[Tensor], frozen: list[int]) -> Tensor | None:
+    """OCamCalib's linear solution converted to ``model``: its rays at (at most 200 of) the
+    observed pixels, fitted by the model with the centre at the image centre, the focal length
+    from the median ratio of radii, the unified model's ``k1, k2, p1, p2`` and ``frozen`` held
+    at their defaults. None where the linear solution fails or is not a camera."""
+    try:
+        linear, _ = scaramuzza_linear(points, pixels, image_size, 4)
+    except (ValueError, RuntimeError):  # not planar, not a camera, a singular system
+        return None
+    pix = torch.cat(pixels)
+    pix = pix[torch.linspace(0, len(pix) - 1, min(len(pix), 200)).round().long()]
+    poly = get_model("scaramuzza")
+    rays, valid = poly.unproject(pix, linear)
+    if int(valid.sum()) < 8:
+        return None
+    rays, pix = rays[valid], pix[valid]
+    theta = torch.atan2(rays[:, :2].norm(dim=-1), rays[:, 2])
+    start = default_intrinsics(model, image_size, min(2 * float(theta.max()), 2 * math.pi))
+    unit = start.clone()
+    unit[:2] = 1.0
+    unit[2:4] = 0.0
+    near, ok = model.project(rays, unit)
+    radius = (pix - start[2:4]).norm(dim=-1)
+    ratio = radius / near.norm(dim=-1).clamp(min=1e-12)
+    ok = ok & torch.isfinite(ratio) & (near.norm(dim=-1) > 1e-6)
+    if int(ok.sum()) < 8:
+        return None
+    start[:2] = ratio[ok].median()
+    names = model.names_for(start.shape[-1])
+    hold = set(frozen) | set(model.groups["center"])
+    if model.name == "unified":
+        hold |= {names.index(n) for n in ("k1", "k2", "p1", "p2")}
+    intrinsics = IntrinsicsMap(model, start, image_size, sorted(hold))
+    if not intrinsics.free:
+        return start
+    problem = Problem(intrinsics, rays, pix, torch.zeros(len(pix), dtype=torch.long),
+                      torch.zeros(0, 6, dtype=torch.float64))
+    state = levenberg_marquardt(problem.evaluate, problem.z0(), max_iterations=10,
+                                cost_floor=COST_FLOOR * len(pix))
+    params = intrinsics.natural(state.z).detach()
+    try:
+        model.validate_params(params)
+    except ValueError:
+        return None
+    return params if math.isfinite(state.cost) else None
+
+
+def _rank_starts(model: CameraModel, starts: list[tuple[str, Tensor]],
+                 image_size: tuple[int, int], frozen: list[int], points: list[Tensor],
+                 pixels: list[Tensor], poses: Tensor | None, loss: str, loss_scale: float
+                 ) -> list[tuple[str, Tensor, Tensor]]:
+    """``(label, params, poses)`` at the end of a short Levenberg-Marquardt run
+    (``START_ITERATIONS`` on at most ``START_POINTS`` points per view) from every start, the
+    fewest invalid observations first, then the lowest cost."""
+    picks = [torch.linspace(0, len(p) - 1, min(len(p), START_POINTS)).round().long()
+             for p in points]
+    sub_points = [p[i] for p, i in zip(points, picks)]
+    sub_pixels = [q[i] for q, i in zip(pixels, picks)]
+    if 2 * sum(len(p) for p in sub_points) <= (len(starts[0][1]) - len(frozen)
+                                               + 6 * len(points)):
+        sub_points, sub_pixels = points, pixels
+    view = _view_index(sub_points)
+    problems, labels, errors = [], [], []
+    for label, params0 in starts:
+        try:
+            poses0 = poses if poses is not None else _initial_poses(model, params0, sub_points,
+                                                                     sub_pixels)
+        except ValueError as err:
+            errors.append(f"{label}: {err}")
+            continue
+        problems.append(Problem(IntrinsicsMap(model, params0, image_size, frozen),
+                                torch.cat(sub_points), torch.cat(sub_pixels), view, poses0))
+        labels.append(label)
+    ranked = []
+    for label, problem, (z, cost) in zip(labels, problems, _short_runs(
+            problems, loss, loss_scale, START_ITERATIONS)):
+        if not math.isfinite(cost):
+            errors.append(f"{label}: the cost is not finite")
+            continue
+        key = (int((~problem.residuals(z)[1]).sum()), cost)
+        params = problem.intrinsics.natural(z[:problem.num_intrinsics]).detach()
+        ranked.append((key, label, params, problem.poses(z).detach()))
+    if not ranked:
+        raise ValueError("no start sees 4 points of every view (" + "; ".join(errors) + "); pass "
+                         "init (or fov) closer to the camera")
+    ranked.sort(key=lambda item: item[0])
+    return [item[1:] for item in ranked]
+
+
+def _evaluate_stack(problems: list[Problem], zs: list[Tensor], jacobian: bool
+                    ) -> list[tuple[Tensor, Tensor | None]]:
+    """:meth:`Problem.evaluate` of several problems of one model (with views) in one call of
+    its projection and two backward passes: the fixed cost of a call dominates small ones."""
+    model = problems[0].model
+    if not jacobian:
+        with torch.no_grad():
+            params = torch.cat([pr.intrinsics.natural(z[:pr.num_intrinsics]).expand(
+                len(pr.points), -1) for pr, z in zip(problems, zs)])
+            poses = torch.cat([pr.poses(z)[pr.view] for pr, z in zip(problems, zs)])
+            points = torch.cat([pr.points for pr in problems])
+            res = model.project(transform(poses, points), params)[0]
+        return [(pr._weighted(r - pr.pixels), None) for pr, r in zip(
+            problems, res.split([len(pr.points) for pr in problems]))]
+    leaves = [pr.leaves(z) for pr, z in zip(problems, zs)]
+    points = torch.cat([pr.points for pr in problems])
+    projected = model.project(transform(torch.cat([lv[1] for lv in leaves]), points),
+                              torch.cat([lv[0] for lv in leaves]))[0]
+    res = [pr._weighted(r - pr.pixels) for pr, r in zip(
+        problems, projected.split([len(pr.points) for pr in problems]))]
+    inputs = [x for lv in leaves for x in lv]
+    stacked = torch.cat(res)
+    grads = [torch.autograd.grad(stacked[:, k].sum(), inputs, retain_graph=k == 0)
+             for k in range(2)]
+    return [(r.detach(), pr.assemble(z, [g[2 * i:2 * i + 2] for g in grads]))
+            for i, (pr, z, r) in enumerate(zip(problems, zs, res))]
+
+
+def _short_runs(problems: list[Problem], loss: str, loss_scale: float, iterations: int
+                ) -> list[tuple[Tensor, float]]:
+    """Levenberg-Marquardt from the start of every problem, all evaluated together
+    (:func:`_evaluate_stack`): ``iterations`` accepted steps each at most, Marquardt's damping
+    as in :mod:`omniscape_torch.calibration.lm` (divided by 10 after an accepted step,
+    multiplied by 10 after a rejected one). Returns ``(z, cost)`` per problem."""
+    if not problems:
+        return []
+    zs = [pr.z0() for pr in problems]
+    systems = [normal_equations(r, j, loss, loss_scale)
+               for r, j in _evaluate_stack(problems, zs, True)]
+    lam = [1e-3] * len(problems)
+    steps = [0] * len(problems)
+    active = list(range(len(problems)))
+    for _ in range(3 * iterations):
+        trials = {}
+        for i in active:
+            a, g, _ = systems[i]
+            diag = torch.diagonal(a).clamp(min=1e-300 + 1e-12 * float(torch.diagonal(a).max()))
+            factor, info = torch.linalg.cholesky_ex(a + lam[i] * torch.diag(diag))
+            delta = torch.cholesky_solve(-g[:, None], factor)[:, 0] if int(info) == 0 else None
+            if delta is None or not bool(torch.isfinite(delta).all()):
+                lam[i] *= 10
+            else:
+                trials[i] = zs[i] + delta
+        moved = []
+        if trials:
+            keys = list(trials)
+            for i, (r, _) in zip(keys, _evaluate_stack([problems[i] for i in keys],
+                                                       [trials[i] for i in keys], False)):
+                cost = float(robust_cost(r, loss, loss_scale)[0])
+                if math.isfinite(cost) and cost < float(systems[i][2]):
+                    zs[i], lam[i] = trials[i], max(lam[i] / 10, 1e-15)
+                    steps[i] += 1
+                    moved.append(i)
+                else:
+                    lam[i] *= 10
+        if moved:
+            for i, (r, j) in zip(moved, _evaluate_stack([problems[i] for i in moved],
+                                                        [zs[i] for i in moved], True)):
+                systems[i] = normal_equations(r, j, loss, loss_scale)
+        active = [i for i in active if steps[i] < iterations and lam[i] <= MAX_LAMBDA]
+        if not active:
+            break
+    return [(z, float(system[2])) for z, system in zip(zs, systems)]
+
+
+def _outlier_distance(residuals: Tensor, threshold: float) -> float:
+    """The residual distance beyond which an observation is an outlier (``fit``'s
+    ``outlier_threshold``), from the residuals ``(M, 2)`` of the kept observations."""
+    coords = residuals.reshape(-1)
+    sigma = 1.4826 * float((coords - coords.median()).abs().median())
+    tail = math.erfc(threshold / math.sqrt(2))
+    # residuals at rounding level are never outliers (exact data)
+    return max(sigma * math.sqrt(-2 * math.log(tail)), OUTLIER_FLOOR)
+
+
+def _reject_outliers(result: FitResult, model: CameraModel, frozen: list[int],
+                     points: list[Tensor], pixels: list[Tensor], threshold: float,
+                     method: str, loss_scale: float, settings: dict) -> FitResult:
+    """Rounds of: the outliers among all observations at the current solution (the threshold
+    from the residuals of the observations kept so far), a refit of the others with the plain
+    loss from the current solution; until a round finds the outliers of the round before.
+
+    The set is found anew each round rather than grown, so that a point dropped while the
+    solution was still pulled by the gross errors comes back, and the inliers are not eroded
+    a tail at a time."""
+    view = _view_index(points)
+    all_points, all_pixels = torch.cat(points), torch.cat(pixels)
+    keep = torch.ones(len(view), dtype=torch.bool)
+    previous = None
+    iterations, history = result.iterations, [dict(h, round=0) for h in result.history]
+    for round_ in range(1, MAX_REJECTION_ROUNDS + 1):
+        residuals = _all_residuals(result, model, all_points, all_pixels, view)
+        distance = residuals.norm(dim=-1)
+        outlier = distance > _outlier_distance(residuals[keep], threshold)
+        for i in range(len(points)):  # every view keeps its 4 best points
+            mine = torch.nonzero(view == i).squeeze(-1)
+            if int((~outlier[mine]).sum()) < 4:
+                outlier[mine[distance[mine].argsort()[:4]]] = False
+        if previous is not None and torch.equal(outlier, previous):
+            break
+        if 2 * int((~outlier).sum()) <= result.num_free:
+            break
+        previous, keep = outlier, ~outlier
+        problem = Problem(IntrinsicsMap(model, result.params, settings["image_size"], frozen),
+                          all_points[keep], all_pixels[keep], view[keep], result.poses)
+        sizes = [int(((view == i) & keep).sum()) for i in range(len(points))]
+        start = result.start
+        result = solve(problem, method, loss="linear", loss_scale=loss_scale, sizes=sizes,
+                       **settings)
+        result.start = start
+        iterations += result.iterations
+        history += [dict(h, round=round_) for h in result.history]
+    result.residuals = list(_all_residuals(result, model, all_points, all_pixels, view).split(
+        [len(p) for p in points]))
+    result.outliers = [torch.nonzero(~keep[view == i]).squeeze(-1) for i in range(len(points))]
+    result.iterations, result.history = iterations, history
+    return result
+
+
+def _all_residuals(result: FitResult, model: CameraModel, points: Tensor, pixels: Tensor,
+                   view: Tensor) -> Tensor:
+    """``(M, 2)`` residuals of every observation (kept or not) at ``result``'s solution."""
+    with torch.no_grad():
+        projected, _ = model.project(transform(result.poses[view], points), result.params)
+    return projected - pixels
+
+
+def _levenberg_marquardt(problem: Problem, z0: Tensor, loss: str, loss_scale: float,
+                         max_iterations: int | None, progress,
+                         determined: Callable[[Tensor], bool]
+                         ) -> tuple[Tensor, bool, str, int, list[dict]]:
+    """Levenberg-Marquardt with ``max_iterations`` as a hard limit, or by default in rounds
+    (module docstring: ``LM_ROUND``, ``LM_PROGRESS``, ``LM_MAX_ITERATIONS``); a round starts
+    only where ``determined(z)``: the data determine the parameters there."""
+    floor = COST_FLOOR * problem.points.shape[0]
+    if max_iterations is not None:
+        state = levenberg_marquardt(problem.evaluate, z0, loss=loss, loss_scale=loss_scale,
+                                    max_iterations=max_iterations, progress=progress,
+                                    cost_floor=floor)
+        return state.z, state.converged, state.reason, state.iterations, state.history
+    z, lam, done, history = z0, 1e-3, 0, []
+    while True:
+        before = float(robust_cost(problem.evaluate(z, False)[0], loss, loss_scale)[0])
+        state = levenberg_marquardt(problem.evaluate, z, loss=loss, loss_scale=loss_scale,
+                                    max_iterations=min(LM_ROUND, LM_MAX_ITERATIONS - done),
+                                    lambda0=lam, progress=progress, cost_floor=floor)
+        history += [dict(h, iteration=h["iteration"] + done) for h in state.history]
+        done += state.iterations
+        z = state.z
+        if state.converged or "iterations without converging" not in state.reason:
+            return z, state.converged, state.reason, done, history
+        fall = (before - state.cost) / state.cost if state.cost > 0 else 0.0
+        why = ("the most by default" if done >= LM_MAX_ITERATIONS else
+               f"the last {LM_ROUND} lowered the cost by {fall:.2g} (relative)"
+               if not fall > LM_PROGRESS else
+               "no more: these views do not determine the parameters there"
+               if not determined(z) else None)
+        if why is not None:
+            return z, False, f"{done} iterations without converging ({why})", done, history
+        lam = max(state.history[-1]["lambda"] / 10, 1e-15) if state.history else lam
 
 
 def solve(problem: Problem, method: str, *, loss: str, loss_scale: float,
@@ -516,16 +958,41 @@ def solve(problem: Problem, method: str, *, loss: str, loss_scale: float,
           max_std: float, progress, sizes: list[int], image_size: tuple[int, int]
           ) -> FitResult:
     """Run ``method`` on ``problem`` from its start and check the result (module docstring)."""
+    return _solve(problem, method, loss=loss, loss_scale=loss_scale,
+                  max_iterations=max_iterations, optimality_tol=optimality_tol,
+                  max_condition=max_condition, max_std=max_std, progress=progress,
+                  sizes=sizes, image_size=image_size)[0]
+
+
+def _uncertainty(problem: Problem, z: Tensor, loss: str, loss_scale: float,
+                max_condition: float, max_std: float) -> tuple[float, Tensor, Tensor]:
+    """``(condition, covariance, std_free)`` at ``z`` (the checks of the module docstring)."""
+    residuals, jac = problem.evaluate(z, True)
+    a, _, _ = normal_equations(residuals, jac, loss, loss_scale)
+    condition = scaled_condition(a) if bool(torch.isfinite(a).all()) else math.inf
+    m, n = residuals.shape[0], problem.num_free
+    sigma2 = _weighted_square(residuals, loss, loss_scale) / (2 * m - n)
+    return (condition, *_covariance(a, sigma2, problem, z, condition, max_condition))
+
+
+def _solve(problem: Problem, method: str, *, loss: str, loss_scale: float,
+           max_iterations: int | None, optimality_tol: float, max_condition: float,
+           max_std: float, progress, sizes: list[int], image_size: tuple[int, int]
+           ) -> tuple[FitResult, bool]:
+    """:func:`solve`, and whether the method itself stopped on a convergence test (rather than
+    on its budget, or on data that do not determine the parameters)."""
+    def determined(z: Tensor) -> bool:
+        condition, _, std_free = _uncertainty(problem, z, loss, loss_scale, max_condition,
+                                             max_std)
+        return condition <= max_condition and not bool((std_free > max_std).any())
+
     z0 = problem.z0()
     if method == "linear":
         z, ok, reason, iterations, history = z0, True, "closed-form linear solution (not " \
             "refined; not a least-squares minimum)", 0, []
     elif method == "lm":
-        state = levenberg_marquardt(problem.evaluate, z0, loss=loss, loss_scale=loss_scale,
-                                    max_iterations=max_iterations or 100, progress=progress,
-                                    cost_floor=COST_FLOOR * problem.points.shape[0])
-        z, ok, reason, iterations, history = (state.z, state.converged, state.reason,
-                                              state.iterations, state.history)
+        z, ok, reason, iterations, history = _levenberg_marquardt(
+            problem, z0, loss, loss_scale, max_iterations, progress, determined)
     else:
         run = _lbfgs if method == "lbfgs" else _adam
         z, ok, reason, iterations, history = run(
@@ -570,6 +1037,7 @@ def solve(problem: Problem, method: str, *, loss: str, loss_scale: float,
             failures.append(f"near-degenerate data: {', '.join(loose)} not determined by these "
                             f"views (standard deviation above max_std {max_std:g} in free "
                             f"units)")
+    method_ok = ok
     ok, reason = (True, reason) if not failures else (False, "; ".join(failures))
     return FitResult(
         camera=camera, params=params, param_names=problem.intrinsics.names,
@@ -580,7 +1048,9 @@ def solve(problem: Problem, method: str, *, loss: str, loss_scale: float,
         std=torch.sqrt(torch.diagonal(covariance).clamp(min=0)),
         residuals=list(residuals.split(sizes)) if problem.num_views else [residuals],
         num_invalid=num_invalid, gauss_newton_gain=gain, condition=condition,
-        num_observations=m, num_free=n, cost=cost, history=history)
+        num_observations=m, num_free=n, cost=cost, history=history,
+        outliers=[torch.zeros(0, dtype=torch.long) for _ in sizes]
+        if problem.num_views else []), method_ok
 
 
 def _weighted_square(residuals: Tensor, loss: str, scale: float) -> float:

@@ -30,56 +30,69 @@ from .params import matrix_to_axis_angle
 
 
 def _nearest_rotation(m: Tensor) -> Tensor:
+    """The rotations nearest to ``m (..., 3, 3)`` (SVD, determinant +1)."""
     u, _, vh = torch.linalg.svd(m)
     d = torch.sign(torch.linalg.det(u @ vh))
-    fix = torch.diag(torch.stack((torch.ones_like(d), torch.ones_like(d), d)))
-    return u @ fix @ vh
+    fix = torch.stack((torch.ones_like(d), torch.ones_like(d), d), -1)  # [..., 3]
+    return (u * fix[..., None, :]) @ vh
 
 
 def _null_vector(a: Tensor) -> Tensor:
-    return torch.linalg.svd(a, full_matrices=False)[2][-1]
+    return torch.linalg.svd(a, full_matrices=False)[2][..., -1, :]
 
 
 def _check_planar(points: Tensor, what: str = "object_points") -> None:
-    extent = float(points[:, :2].abs().max())
-    if float(points[:, 2].abs().max()) > 1e-9 * max(extent, 1.0):
+    extent = float(points[..., :2].abs().max())
+    if float(points[..., 2].abs().max()) > 1e-9 * max(extent, 1.0):
         raise ValueError(f"{what}: the linear initialisation needs a planar target (Z = 0 for "
                          f"every point); pass init and poses for other targets")
 
 
-def planar_pose(points: Tensor, rays: Tensor) -> Tensor:
-    """Pose ``(6,)`` (axis-angle, translation) of a planar target from the unit rays that see it.
+def planar_pose(points: Tensor, rays: Tensor, valid: Tensor | None = None) -> Tensor:
+    """Pose ``(..., 6)`` (axis-angle, translation) of a planar target from the unit rays that see
+    it; batched over leading dimensions (several views of the same number of points).
 
     Args:
-        points: ``(N, 3)`` target points with Z = 0, N >= 4.
-        rays: ``(N, 3)`` rays (any length, pointing at the points) in the camera frame.
+        points: ``(..., N, 3)`` target points with Z = 0, N >= 4 (valid ones).
+        rays: ``(..., N, 3)`` rays (any length, pointing at the points) in the camera frame.
+        valid: ``(..., N)`` the points to use (default all; at least 4 per pose): the others
+            get zero weight in every sum, as if absent.
 
     Returns:
-        ``(6,)`` with ``rays ~ R points + t``, float64.
+        ``(..., 6)`` with ``rays ~ R points + t``, float64.
     """
     _check_planar(points)
-    xy = points[:, :2]
-    mean = xy.mean(0)
-    scale = math.sqrt(2) / float((xy - mean).norm(dim=-1).mean().clamp(min=1e-300))
-    q = torch.cat(((xy - mean) * scale, torch.ones_like(xy[:, :1])), dim=-1)  # [N, 3]
-    rx, ry, rz = rays.unbind(-1)
+    w = (torch.ones(points.shape[:-1], dtype=points.dtype) if valid is None
+         else valid.to(points.dtype))  # [..., N]
+    xy = points[..., :2]
+    count = w.sum(-1)  # [...]
+    mean = (xy * w[..., None]).sum(-2) / count[..., None]  # [..., 2]
+    spread = ((xy - mean[..., None, :]).norm(dim=-1) * w).sum(-1) / count
+    scale = math.sqrt(2) / spread.clamp(min=1e-300)  # [...]
+    q = torch.cat(((xy - mean[..., None, :]) * scale[..., None, None],
+                   torch.ones_like(xy[..., :1])), dim=-1)  # [..., N, 3]
+    rx, ry, rz = (c[..., None] for c in rays.unbind(-1))
     zero = torch.zeros_like(q)
-    # rows of ray x (H q) = 0, unknowns the rows h1, h2, h3 of H
+    # rows of ray x (H q) = 0, unknowns the rows h1, h2, h3 of H; absent points weigh 0
     rows = torch.cat((
-        torch.cat((zero, -rz[:, None] * q, ry[:, None] * q), -1),
-        torch.cat((rz[:, None] * q, zero, -rx[:, None] * q), -1),
-        torch.cat((-ry[:, None] * q, rx[:, None] * q, zero), -1)), 0)
-    h = _null_vector(rows).reshape(3, 3)
-    norm = torch.tensor([[scale, 0.0, -scale * mean[0]], [0.0, scale, -scale * mean[1]],
-                         [0.0, 0.0, 1.0]], dtype=h.dtype)
+        torch.cat((zero, -rz * q, ry * q), -1),
+        torch.cat((rz * q, zero, -rx * q), -1),
+        torch.cat((-ry * q, rx * q, zero), -1)), -2) * torch.cat((w, w, w), -1)[..., None]
+    h = _null_vector(rows).reshape(rows.shape[:-2] + (3, 3))
+    zeros, ones = torch.zeros_like(scale), torch.ones_like(scale)
+    norm = torch.stack((torch.stack((scale, zeros, -scale * mean[..., 0]), -1),
+                        torch.stack((zeros, scale, -scale * mean[..., 1]), -1),
+                        torch.stack((zeros, zeros, ones), -1)), -2)  # [..., 3, 3]
     h = h @ norm
-    h = h / (0.5 * (h[:, 0].norm() + h[:, 1].norm()))
-    xy1 = torch.cat((xy, torch.ones_like(xy[:, :1])), -1)
-    if float(((xy1 @ h.T) * rays).sum()) < 0:
-        h = -h
-    r1, r2 = h[:, 0], h[:, 1]
+    h = h / (0.5 * (h[..., :, 0].norm(dim=-1) + h[..., :, 1].norm(dim=-1)))[..., None, None]
+    xy1 = torch.cat((xy, torch.ones_like(xy[..., :1])), -1)
+    facing = (((xy1 @ h.transpose(-1, -2)) * rays).sum(-1) * w).sum(-1)  # [...]
+    h = torch.where((facing < 0)[..., None, None], -h, h)
+    r1, r2 = h[..., :, 0], h[..., :, 1]
     rotation = _nearest_rotation(torch.stack((r1, r2, torch.linalg.cross(r1, r2)), dim=-1))
-    return torch.cat((matrix_to_axis_angle(rotation), h[:, 2]))
+    axis_angle = matrix_to_axis_angle(rotation.reshape(-1, 3, 3)).reshape(rotation.shape[:-2]
+                                                                          + (3,))
+    return torch.cat((axis_angle, h[..., :, 2]), -1)
 
 
 def _extrinsic_candidates(xy: Tensor, pu: Tensor, pv: Tensor) -> list[Tensor]:
