@@ -163,9 +163,9 @@ def image_circle(image, camera: Camera) -> float:
                          blurred[-ch:, -cw:]], 0)
     rays, valid = Camera(camera.model, camera.params.detach().double(), (h, w)).ray_grid()
     angle = torch.rad2deg(torch.acos(rays[..., 2].double().clamp(-1, 1)))
-    pixel = torch.stack(torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij"), -1)
-    centre = torch.nonzero(valid & (angle == angle[valid].min()))[0]
-    near = (pixel - centre).double().norm(dim=-1) < min(h, w) / 8
+    row, col = torch.nonzero(valid & (angle == angle[valid].min()))[0].tolist()
+    near = torch.hypot(torch.arange(h, dtype=torch.float64)[:, None] - row,
+                       torch.arange(w, dtype=torch.float64) - col) < min(h, w) / 8
     dark, bright = corners.median(), blurred[near].median()
     lit = blurred > dark + 0.25 * (bright - dark)
     ring = angle[valid].floor().long()

@@ -29,11 +29,11 @@ tangential distortion: every preset; checked numerically by :func:`radially_symm
 its centre and no affine term (``c = 1, d = e = 0``) in the file, as it has them; only the
 polynomial is fitted. Otherwise OCamCalib's centre and affine term are fitted too.
 
-The conversion starts from a linear least-squares polynomial solved with numpy (the module
-docstring of :mod:`omniscape_torch.calibration.convert` describes the same start): torch's
-default CPU least-squares driver depends on the memory alignment of its inputs, and the fit
-would then end a few ulps apart from run to run, and so would the file's digits. For the same
-reason, and for speed, the fit runs on one thread (the previous thread count is restored after):
+The conversion starts from its own linear least-squares polynomial (the module docstring of
+:mod:`omniscape_torch.calibration.convert`), solved by the ``gelsd`` driver: torch's default CPU
+driver depends on the memory alignment of its inputs, and the fit would then end a few ulps
+apart from run to run, and so would the file's digits. For the same reason, and for speed, the
+fit runs on one thread (the previous thread count is restored after):
 its sums then do not depend on the machine's thread count, and on a few thousand samples the
 start-up of several threads costs more than it saves (2-3x the time on a busy 2-core machine).
 """
@@ -46,7 +46,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
-import numpy as np
 import torch
 
 from ..calibration import convert
@@ -148,36 +147,6 @@ def _one_thread():
         torch.set_num_threads(before)
 
 
-def _start(camera: Camera, degree: int, grid: int) -> torch.Tensor:
-    """Starting ``scaramuzza`` parameters ``(6 + degree,)``: the source's centre, no affine
-    term, and the polynomial ``-rho z / |(x, y)|`` of the rays of a ``grid x grid`` pixel
-    grid by linear least squares (numpy: deterministic, module docstring)."""
-    h, w = camera.image_size
-    steps = (torch.arange(grid, dtype=torch.float64) + 0.25) / grid
-    v, u = torch.meshgrid(steps * h - 0.5, steps * w - 0.5, indexing="ij")
-    pixels = torch.stack((u, v), -1).reshape(-1, 2)
-    p = camera.params.detach().double().cpu()
-    source = Camera(camera.model, p, camera.image_size, fov=camera.fov,
-                    blind_fov=camera.blind_fov)
-    rays, valid = source.unproject(pixels)
-    centre = _centre(camera)
-    rxy = rays[:, :2].norm(dim=-1)
-    use = valid & (rxy > 1e-9)
-    rho = (pixels[use] - centre).norm(dim=-1).numpy()
-    g = (rho * rays[use, 2].numpy() / rxy[use].numpy())
-    powers = [0] + list(range(2, degree + 1))       # OCamCalib's a1 = 0
-    if len(rho) <= len(powers):
-        raise ValueError(f"camera: only {len(rho)} valid pixels on a {grid} x {grid} grid; "
-                         f"too few to fit a degree-{degree} polynomial")
-    scale = 0.5 * math.hypot(h, w)
-    columns = np.stack([(rho / scale) ** i for i in powers], -1)
-    solution = np.linalg.lstsq(columns, -g, rcond=None)[0]
-    poly = np.zeros(degree + 1)
-    for j, i in enumerate(powers):
-        poly[i] = solution[j] / scale ** i
-    return torch.tensor([*centre.tolist(), 1.0, 0.0, 0.0, *poly.tolist()], dtype=torch.float64)
-
-
 def fit_polynomial(camera: Camera, *, degrees: Sequence[int] = DEGREES,
                    tolerance_px: float = TOLERANCE_PX, grid: int = GRID) -> PolynomialFit:
     """OCamCalib's polynomial model of ``camera`` (module docstring): the smallest degree of
@@ -225,7 +194,7 @@ def _fit_polynomial(camera: Camera, degrees: tuple[int, ...], tolerance_px: floa
     failures = []
     for degree in degrees:
         result = convert(camera, "scaramuzza", degree=degree, grid=grid, minimax=0,
-                         init=_start(camera, degree, grid), freeze=freeze)
+                         freeze=freeze)
         if result.camera is None or not math.isfinite(result.max_px) \
                 or result.unrepresentable > 0:
             failures.append(f"degree {degree}: "
