@@ -151,8 +151,9 @@ def test_real_files_convert_to_kannala_brandt_within_a_pixel(path):
     and the rotation), so the two errors are the model's alone."""
     real = ot.Camera.from_ocamcalib(path)
     fov = _inscribed_fov(real)
-    result = convert(real, "kannala_brandt", fov=fov, grid=32)
-    twin = convert(without_affine(real), "kannala_brandt", fov=fov, grid=32)
+    # least squares (minimax=0): the worst case is already within the bound, 3x faster
+    result = convert(real, "kannala_brandt", fov=fov, grid=32, minimax=0)
+    twin = convert(without_affine(real), "kannala_brandt", fov=fov, grid=32, minimax=0)
     assert result.converged and twin.converged, (result.fit.reason, twin.fit.reason)
     assert result.max_px <= 1.0, result.max_px
     assert result.max_px - twin.max_px <= 0.1, (result.max_px, twin.max_px)
