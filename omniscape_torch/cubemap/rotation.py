@@ -9,6 +9,7 @@ scaled matrix would otherwise render as its rotation).
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -51,12 +52,22 @@ def check_rotation(rotation: object, name: str = "rotation", *,
         return rotation
     tol = max(float(atol), 4 * torch.finfo(rotation.dtype).eps)
     r = rotation.detach().reshape(-1, 3, 3).to(torch.float64)
-    eye = torch.eye(3, dtype=r.dtype, device=r.device)
-    error = (r @ r.transpose(-1, -2) - eye).abs().amax(dim=(1, 2))
-    det = (r[:, 0] * torch.linalg.cross(r[:, 1], r[:, 2])).sum(-1)   # the triple product
+    # Every call of the layer checks: on the CPU in numpy (40 us; torch's small ops took 200 us,
+    # 6% of rendering a 1024 x 1024 uint8 frame), elsewhere in torch (one sync).
+    a = r.numpy() if r.device.type == "cpu" else r
+    with np.errstate(invalid="ignore", over="ignore"):   # NaN, inf: refused below
+        gram = a @ a.swapaxes(-1, -2)
+        gram[:, [0, 1, 2], [0, 1, 2]] -= 1   # R R^T - I
+        error = abs(gram).reshape(-1, 9).max(1)
+        error = error if isinstance(error, np.ndarray) else error.values
+        x, y, z = a[:, 0], a[:, 1], a[:, 2]   # det R: the triple product x . (y cross z)
+        det = (x[:, 0] * (y[:, 1] * z[:, 2] - y[:, 2] * z[:, 1])
+               - x[:, 1] * (y[:, 0] * z[:, 2] - y[:, 2] * z[:, 0])
+               + x[:, 2] * (y[:, 0] * z[:, 1] - y[:, 1] * z[:, 0]))
     ok = (error <= tol) & (det > 0)   # NaN compares false: not ok
-    if bool(ok.all()):   # one sync, a few small ops (40 us): every call of the layer checks
+    if bool(ok.all()):
         return rotation
+    ok, error, det = torch.as_tensor(ok), torch.as_tensor(error), torch.as_tensor(det)
     i = int((~ok).nonzero()[0, 0])
     index = tuple(int(k) for k in torch.unravel_index(torch.tensor(i), rotation.shape[:-2]))
     where = f"{name}[{', '.join(map(str, index))}]" if index else name

@@ -32,6 +32,7 @@
 #include <torch/library.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
@@ -55,6 +56,12 @@ constexpr int32_t kEdge = -2;
 constexpr int64_t kSegment = 256;  // pixels of a row per unit of work of the samplers
 constexpr int64_t kChunk = 4096;  // grid points per unit of work of the table
 constexpr int64_t kAhead = 16;    // pixels between a prefetch and the read (-12% time)
+// Work of fewer pixels runs on the calling thread: waking a second one costs more than it
+// saves, and on a busy machine (other processes on every core) the wait until it is scheduled
+// is a time slice (a 128 x 128 uint8 image, 0.44 ms on one thread: 16 ms median on two, at load
+// 6 on 2 cores).
+constexpr int64_t kParallelPixels = 1 << 15;
+constexpr int64_t kRun = 8;       // units of work a thread claims at a time
 
 // ------------------------------------------------------------------------------------------
 // Elements: what a cube of T is blended in (W), and how a value is written as O (the cube's
@@ -703,9 +710,29 @@ void sample_span(const T* cube, const Ring<T>& R, Taps t, Points points, int64_t
     }
 }
 
+// fn(i) for i in [0, units), units of about `unit_pixels` pixels each, on PyTorch's intra-op
+// threads (at::parallel_for; one thread in DataLoader workers, or below kParallelPixels), every
+// thread claiming runs of kRun consecutive units as it gets to them: a thread that the system
+// deschedules (a busy machine) delays the call by what it holds, a run, not by half the work.
+// Each unit writes pixels of its own, so the result does not depend on who computes what.
+template <typename Fn>
+void parallel_units(int64_t units, int64_t unit_pixels, Fn fn) {
+    const int64_t runs = (units + kRun - 1) / kRun;
+    const int64_t grain =
+        std::max<int64_t>(1, kParallelPixels / (std::max<int64_t>(unit_pixels, 1) * kRun));
+    std::atomic<int64_t> next{0};
+    at::parallel_for(0, runs, grain, [&](int64_t, int64_t) {
+        for (int64_t r = next.fetch_add(1, std::memory_order_relaxed); r < runs;
+             r = next.fetch_add(1, std::memory_order_relaxed)) {
+            for (int64_t i = r * kRun, end = std::min(units, i + kRun); i < end; ++i) {
+                fn(i);
+            }
+        }
+    });
+}
+
 // fn(b, lo, m) for the row segments [lo, lo + m) of kSegment pixels (fewer at a row's end) of
-// every sample, the segments spread over PyTorch's intra-op threads (at::parallel_for: a run of
-// consecutive segments per thread; one thread in DataLoader workers), every sample of a segment
+// every sample, the segments spread over the threads (parallel_units), every sample of a segment
 // in turn, so that a table or rays shared by the batch are read from memory once. Rows, not
 // tiles: the table or rays of a row segment are one stream that the CPU's prefetcher follows
 // (tiles of 64 x 16 pixels read 16 short streams and waited for memory: the rays path took 1.6x
@@ -717,12 +744,10 @@ void for_segments(const Planes& S, Fn fn) {
     }
     const int64_t per_row = (S.width + kSegment - 1) / kSegment;
     const int64_t segments = S.pixels / S.width * per_row;
-    at::parallel_for(0, S.batch * segments, 1, [&](int64_t begin, int64_t end) {
-        for (int64_t index = begin; index < end; ++index) {
-            const int64_t segment = index / S.batch, b = index % S.batch;
-            const int64_t y = segment / per_row, x0 = (segment % per_row) * kSegment;
-            fn(b, y * S.width + x0, std::min(kSegment, S.width - x0));
-        }
+    parallel_units(S.batch * segments, std::min(kSegment, S.width), [&](int64_t index) {
+        const int64_t segment = index / S.batch, b = index % S.batch;
+        const int64_t y = segment / per_row, x0 = (segment % per_row) * kSegment;
+        fn(b, y * S.width + x0, std::min(kSegment, S.width - x0));
     });
 }
 
@@ -1153,26 +1178,24 @@ void radial_grid(const G* affine, const G* limits, const G* table, int64_t entri
                  G* grid, G* rays, uint8_t* valid) {
     const int64_t pixels = height * width;
     const int64_t segments = (width + kSegment - 1) / kSegment;
-    at::parallel_for(0, batch * height * segments, 16, [&](int64_t begin, int64_t end) {
+    parallel_units(batch * height * segments, std::min(kSegment, width), [&](int64_t index) {
         G buffer[3 * kSegment];
-        for (int64_t index = begin; index < end; ++index) {
-            const int64_t b = index / (height * segments), rest = index % (height * segments);
-            const int64_t y = rest / segments, x0 = (rest % segments) * kSegment;
-            const int64_t m = std::min(kSegment, width - x0), lo = y * width + x0;
-            const RadialCamera<G> cam{affine + 6 * b, limits + 5 * b,
-                                      table + 2 * entries * b, entries};
-            uint8_t* ok = valid + b * pixels + lo;
-            G* r = rays == nullptr ? buffer : rays + 3 * (b * pixels + lo);
-            radial_rays<G>(cam, width, lo, m, r, ok);
-            if (grid == nullptr) {
-                continue;
-            }
-            G* g = grid + 2 * (b * pixels + lo);
-            ray_grid<G, true>(r, rot + 9 * b, m, L, g);
-            for (int64_t p = 0; p < m; ++p) {
-                g[2 * p] = ok[p] ? g[2 * p] : G(-2);
-                g[2 * p + 1] = ok[p] ? g[2 * p + 1] : G(-2);
-            }
+        const int64_t b = index / (height * segments), rest = index % (height * segments);
+        const int64_t y = rest / segments, x0 = (rest % segments) * kSegment;
+        const int64_t m = std::min(kSegment, width - x0), lo = y * width + x0;
+        const RadialCamera<G> cam{affine + 6 * b, limits + 5 * b,
+                                  table + 2 * entries * b, entries};
+        uint8_t* ok = valid + b * pixels + lo;
+        G* r = rays == nullptr ? buffer : rays + 3 * (b * pixels + lo);
+        radial_rays<G>(cam, width, lo, m, r, ok);
+        if (grid == nullptr) {
+            return;
+        }
+        G* g = grid + 2 * (b * pixels + lo);
+        ray_grid<G, true>(r, rot + 9 * b, m, L, g);
+        for (int64_t p = 0; p < m; ++p) {
+            g[2 * p] = ok[p] ? g[2 * p] : G(-2);
+            g[2 * p + 1] = ok[p] ? g[2 * p + 1] : G(-2);
         }
     });
 }
@@ -1460,12 +1483,10 @@ void build_lut_op(const at::Tensor& grid, int64_t face, int64_t pad, at::IntArra
         const G* points = elements<G>(grid);
         Entry<G>* entries = static_cast<Entry<G>*>(table.mutable_data_ptr());
         const int64_t chunks = (count + kChunk - 1) / kChunk;
-        at::parallel_for(0, chunks, 1, [&](int64_t begin, int64_t end) {
-            for (int64_t c = begin; c < end; ++c) {
-                const int64_t lo = c * kChunk, m = std::min(kChunk, count - lo);
-                locate<G>(points + 2 * lo, m, nullptr, L, bilinear,
-                          Packed<G>{entries, INT64_MAX} + lo);
-            }
+        parallel_units(chunks, kChunk, [&](int64_t c) {
+            const int64_t lo = c * kChunk, m = std::min(kChunk, count - lo);
+            locate<G>(points + 2 * lo, m, nullptr, L, bilinear,
+                      Packed<G>{entries, INT64_MAX} + lo);
         });
     };
     if (grid.scalar_type() == at::kFloat) {
