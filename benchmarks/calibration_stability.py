@@ -48,6 +48,11 @@ against OpenCV:
 * ``kannala-brandt 190``: the same lens at 190 degrees, boards near the rim only (centres at
   least 55 degrees off the axis, every corner within 90 degrees, where OpenCV's model holds).
 
+``at the optimum`` (``fit`` only) tells a start's failure from the data's: the fit ended at
+the cost (within ``OPTIMUM_RTOL``) of the same fit started at the true intrinsics and poses, so
+its start found the least-squares minimum; a fit at the optimum that is still over 1 px from the
+truth is as far as this data determines the lens (OpenCV's minimum is then the same).
+
 OpenCV starts from its own initialisation, as ``fit`` does; its parameters are read into our
 camera of the same model (omnidir is the unified model with the same parameters, fisheye
 Kannala-Brandt) to measure the ray RMS the same way.
@@ -249,6 +254,11 @@ def markdown(rows: list[dict]) -> str:
 NOISE_WIDE = 0.3
 KB_DISTORTION = (-0.02, 0.004, -0.001, 0.0002)
 
+#: A fit is at the optimum when its final cost is within this relative margin of the same
+#: fit started at the truth (the costs of one minimum agree to ~1e-12; a fit stopped short or
+#: in another minimum is off by far more).
+OPTIMUM_RTOL = 1e-6
+
 #: The cases: camera, views, how the boards are placed, outliers, and the methods run.
 CASES = (
     {"case": "unified 230, 15 views", "camera": "mei230", "views": 15,
@@ -336,11 +346,21 @@ def run_ours(data: dict, method: str) -> dict:
     kwargs = {"lm": {}, "lm cauchy": {"loss": "cauchy"},
               "lm reject_outliers": {"reject_outliers": True}}[method]
     truth = data["truth"]
+    start = time.perf_counter()
     result = fit(data["board"], data["pixels"], truth.model.name, truth.image_size, **kwargs)
+    seconds = time.perf_counter() - start
+    # The reference minimum: the same fit started at the true intrinsics and poses. The default
+    # start found the optimum when it ends at that cost or lower (a start cannot do better;
+    # what is left between the optimum and the truth is the data's, not the start's).
+    oracle = fit(data["board"], data["pixels"], truth.model.name, truth.image_size,
+                 init=truth.params, poses=data["poses"], **kwargs)
     listed = [set(o.tolist()) for o in result.outliers]
     found = sum(len(s & set(m)) for s, m in zip(listed, data["moved"]))
     return {"converged": result.converged, "reason": result.reason, "rms_px": result.rms,
             "iterations": result.iterations, "start": result.start, "camera": result.camera,
+            "seconds": seconds, "cost": result.cost, "oracle_cost": oracle.cost,
+            "at_optimum": bool(result.converged
+                               and result.cost <= oracle.cost * (1 + OPTIMUM_RTOL)),
             "outliers_found": found, "outliers_false": sum(len(s) for s in listed) - found}
 
 
@@ -389,8 +409,10 @@ def wide_trial(case: dict, seed: int) -> list[dict]:
             out = {"converged": False, "reason": f"raised: {str(err).strip()[:200]}",
                    "rms_px": math.nan, "iterations": None, "start": None, "camera": None,
                    "outliers_found": 0, "outliers_false": 0}
+            if method not in ("omnidir", "fisheye"):
+                out["at_optimum"] = False
             exception = type(err).__name__
-        seconds = time.perf_counter() - start
+        seconds = out.pop("seconds", time.perf_counter() - start)  # ours: without the oracle
         error, covered = ray_error(out.pop("camera"), data["truth"], data["poses"],
                                    data["board"])
         records.append({"case": case["case"], "seed": seed, "method": method, **out,
@@ -415,6 +437,8 @@ def summarise_wide(records: list[dict]) -> list[dict]:
             "success_rate": float(np.mean([r["converged"] and r["ray_rms_px"] < SUCCESS_PX
                                            for r in rs])),
             "converged_rate": float(np.mean([r["converged"] for r in rs])),
+            "optimum_rate": (float(np.mean([r["at_optimum"] for r in rs]))
+                             if all("at_optimum" in r for r in rs) else None),
             "converged_over_1px": int(sum(r["converged"] and not r["ray_rms_px"] < SUCCESS_PX
                                           for r in rs)),
             "exceptions": int(sum(r["exception"] is not None for r in rs)),
@@ -439,16 +463,18 @@ def _quantile(values: np.ndarray, q: float) -> float:
 
 
 def markdown_wide(rows: list[dict]) -> str:
-    lines = ["| case | method | success | converged | converged, > 1 px | exceptions | "
-             "median / p90 ray RMS px | iterations median (max) | outliers listed | median s |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| case | method | success | converged | at the optimum | converged, > 1 px | "
+             "exceptions | median / p90 ray RMS px | iterations median (max) | outliers listed "
+             "| median s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         its = ("-" if r["median_iterations"] is None
                else f"{r['median_iterations']:g} ({r['max_iterations']})")
         listed = (f"{r['outliers_found']} of {r['outliers_moved']} (+{r['outliers_false']})"
                   if r["method"] == "lm reject_outliers" else "-")
+        optimum = "-" if r.get("optimum_rate") is None else f"{r['optimum_rate']:.0%}"
         lines.append(f"| {r['case']} | {r['method']} | {r['success_rate']:.0%} | "
-                     f"{r['converged_rate']:.0%} | {r['converged_over_1px']} | "
+                     f"{r['converged_rate']:.0%} | {optimum} | {r['converged_over_1px']} | "
                      f"{r['exceptions']} | {r['median_ray_rms_px']:.3g} / "
                      f"{r['p90_ray_rms_px']:.3g} | {its} | {listed} | "
                      f"{r['median_seconds']:.2f} |")
@@ -474,7 +500,7 @@ def _task(kind: str, spec: dict, seed: int) -> list[dict]:
 def run(trials: int, seeds: int, quick: bool, jobs: int, threads: int
         ) -> tuple[list[dict], list[dict]]:
     """Every task (one scenario or case and seed) in ``jobs`` processes; records in task
-    order whatever the order they finish in."""
+    order whatever the order they finish in. ``trials = 0``: the wide cases only."""
     from tqdm import tqdm
 
     tasks = [("polynomial", s, t) for s in scenarios(quick) for t in range(trials)]
@@ -505,6 +531,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, default=None, help="seeds per wide-lens case "
                         "(default 20, 2 with --quick)")
     parser.add_argument("--quick", action="store_true", help="fewer scenarios and seeds")
+    parser.add_argument("--wide-only", action="store_true", help="run the wide-lens cases only; "
+                        "the polynomial records are kept from --out (with their commit)")
     parser.add_argument("--jobs", type=int, default=2, help="processes (default 2)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads per process "
                         "(default 1)")
@@ -518,9 +546,17 @@ def main(argv: list[str] | None = None) -> int:
     else:
         trials = args.trials or (1 if args.quick else 3)
         seeds = args.seeds or (2 if args.quick else 20)
+        kept = {}
+        if args.wide_only:
+            old = json.loads(args.out.read_text())
+            kept = {"polynomial_commit": old.get("polynomial_commit", old["commit"])}
+            trials = old["trials"]
         load_start = loadavg()
         start = time.perf_counter()
-        records, wide = run(trials, seeds, args.quick, args.jobs, args.threads)
+        records, wide = run(0 if args.wide_only else trials, seeds, args.quick, args.jobs,
+                            args.threads)
+        if args.wide_only:
+            records = old["records"]
         commit, dirty = git_commit()
         report = {
             "benchmark": "calibration_stability", "commit": commit, "dirty": dirty,
@@ -531,7 +567,7 @@ def main(argv: list[str] | None = None) -> int:
             "loadavg_start": load_start, "loadavg_end": loadavg(),
             "wall_seconds": time.perf_counter() - start, "trials": trials, "seeds": seeds,
             "success_px": SUCCESS_PX, "truth": str(OCAMCALIB.relative_to(ROOT.parent)),
-            "records": records, "wide_records": wide}
+            "records": records, "wide_records": wide, **kept}
     report["summary"] = summarise(report["records"])
     report["wide_summary"] = summarise_wide(report["wide_records"])
     write_json_atomic(report, args.out)
@@ -545,7 +581,9 @@ def main(argv: list[str] | None = None) -> int:
             + markdown_wide(report["wide_summary"]) +
             f"\n## Polynomial lens: the methods of `fit`\n\n"
             f"Real OCamCalib camera (e = 0) as truth, 9 x 12 board, {report['trials']} trials "
-            f"per row.\n\n" + markdown(report["summary"]))
+            f"per row" + (f" (run at commit {report['polynomial_commit'][:7]})"
+                          if "polynomial_commit" in report else "") + ".\n\n"
+            + markdown(report["summary"]))
     atomic_write_text(args.out.with_suffix(".md"), text)
     print(text)
     return 0
