@@ -109,6 +109,15 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _shard(text: str) -> tuple[int, int]:
+    """``argparse`` type: ``K/N``, run K of N (from 0)."""
+    from .data.distributed import parse_shard
+    try:
+        return parse_shard(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err).removeprefix("shard: ")) from None
+
+
 def _names(choices, what: str):
     def parse(text: str) -> list[str]:
         names = [n.strip() for n in text.split(",") if n.strip()]
@@ -142,6 +151,7 @@ _INTERRUPTED = {
     "generate": "the finished frames are kept; the same command resumes the run",
     "convert": "the captures converted so far are complete; the same command converts them "
                "all again",
+    "pack": "the shards written so far are whole; the same command writes the rest",
 }
 
 
@@ -154,6 +164,7 @@ def describe_os_error(err: OSError) -> str:
 
 def cmd_generate(args: argparse.Namespace) -> int:
     import time
+    from .data.distributed import TaskErrors
     from .data.generate import DatasetConfig, generate
     from .io.atomic import check_writable
 
@@ -163,14 +174,40 @@ def cmd_generate(args: argparse.Namespace) -> int:
                            face_size=args.face_size, max_face_size=args.max_face_size,
                            cameras=tuple(dict.fromkeys(cameras)),
                            weather=tuple(dict.fromkeys(weather)), seed=args.seed,
-                           save_cubemaps=args.save_cubemaps, save_panorama=args.save_panorama)
+                           save_cubemaps=args.save_cubemaps, save_panorama=args.save_panorama,
+                           town=args.town)
     check_writable(args.out)
     start = time.perf_counter()
-    result = generate(args.out, config, workers=args.workers,
-                      progress=None if not args.no_progress else False,
-                      log=lambda msg: print(msg, file=sys.stderr))
+    try:
+        result = generate(args.out, config, workers=args.workers, ray=args.ray,
+                          shard=args.shard, format=args.format,
+                          frames_per_shard=args.frames_per_shard,
+                          progress=None if not args.no_progress else False,
+                          log=lambda msg: print(msg, file=sys.stderr))
+    except TaskErrors as err:
+        print(f"omniscape-torch generate: {len(err.failures)} frame(s) failed (the others are "
+              f"written; the same command renders only what is missing):", file=sys.stderr)
+        for frame, message in err.failures.items():
+            print(f"  frame {frame}: {message}", file=sys.stderr)
+        return 1
     print(f"wrote {len(result['rendered'])} frame(s), skipped {len(result['skipped'])} "
           f"finished, to {args.out} in {time.perf_counter() - start:.1f} s")
+    return 0
+
+
+def cmd_pack(args: argparse.Namespace) -> int:
+    from .data.shards import pack
+
+    result = pack(args.dir, args.frames_per_shard,
+                  progress=None if not args.no_progress else False,
+                  log=lambda msg: print(msg, file=sys.stderr))
+    print(f"wrote {len(result['written'])} shard(s), {len(result['skipped'])} already there, "
+          f"to {args.dir / 'shards'}")
+    if result["incomplete"]:
+        print(f"omniscape-torch pack: {len(result['incomplete'])} shard(s) not written, their "
+              f"frames unfinished ({', '.join(result['incomplete'])}): run generate again, "
+              "then pack", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -466,7 +503,18 @@ def _add_convert_parser(sub) -> None:
     p.add_argument("--interpolation", choices=("nearest", "bilinear", "bicubic"),
                    default="bilinear", help="for rgb")
     p.add_argument("--device", default="cpu")
+    _add_ray_option(p, "captures")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_convert)
+
+
+def _add_ray_option(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--ray", nargs="?", const=True, default=None, metavar="ADDRESS",
+                   help=f"chunks of {what} as tasks on a Ray cluster: ADDRESS (HOST:PORT of "
+                        "its head, or auto), else $RAY_ADDRESS, else the cluster of 'ray "
+                        "start' on this machine, else a local one started for the run (needs "
+                        "pip install -e \".[ray]\"); the folders must be at the same path "
+                        "on every node")
 
 
 def cmd_convert(args: argparse.Namespace) -> int:
@@ -485,7 +533,7 @@ def cmd_convert(args: argparse.Namespace) -> int:
                                     else None),
             catadioptric_looking=args.cata_looking, depth_output=args.depth_output,
             interpolation=args.interpolation, unknown_label=args.unknown_label,
-            device=args.device)
+            device=args.device, ray=args.ray, progress=None if not args.no_progress else False)
     except ConvertError as err:
         results, failures = err.results, err.failures
     for capture, paths in results.items():
@@ -514,7 +562,7 @@ def build_parser() -> argparse.ArgumentParser:
     info.set_defaults(func=cmd_info)
 
     from .data.generate import CAMERAS
-    from .scenes.town import WEATHERS
+    from .scenes.town import LAYOUTS, WEATHERS
     gen = sub.add_parser("generate", help="write an OmniScape-like dataset (see "
                                           "omniscape_torch/data/format.py for the layout)")
     gen.add_argument("--out", type=Path, required=True, help="dataset folder (created; a "
@@ -535,9 +583,23 @@ def build_parser() -> argparse.ArgumentParser:
                      default=[["clear_noon"]], metavar="NAME[,NAME]",
                      help=f"weather preset(s), drawn per frame when several "
                           f"({', '.join(WEATHERS)}; default clear_noon)")
-    gen.add_argument("--workers", type=positive_int, default=1, help="processes (default 1)")
+    gen.add_argument("--workers", type=positive_int, default=1, help="processes on this "
+                     "machine (default 1)")
+    _add_ray_option(gen, "frames")
+    gen.add_argument("--shard", type=_shard, default=None, metavar="K/N",
+                     help="render only run K of N's share of the frames (K from 0; e.g. "
+                          "$SLURM_ARRAY_TASK_ID/N): N such runs, at once on any machines, "
+                          "write the dataset one run writes")
+    gen.add_argument("--format", choices=("folder", "webdataset"), default="folder",
+                     help="webdataset: also pack the frames into WebDataset tar shards, "
+                          "DIR/shards/shard-NNNNNN.tar (default folder)")
+    gen.add_argument("--frames-per-shard", type=positive_int, default=None, metavar="N",
+                     help="frames per WebDataset shard (default 16)")
     gen.add_argument("--seed", type=int, default=0, help="town, route and ride seed "
                      "(default 0)")
+    gen.add_argument("--town", type=int, choices=sorted(LAYOUTS), default=1,
+                     help="the town's layout: " + ", ".join(f"{k} {v}" for k, v in
+                                                           LAYOUTS.items()) + " (default 1)")
     gen.add_argument("--save-cubemaps", action="store_true", help="also write the cube faces "
                      "each camera rendered (only those it sees, at its own face size): to "
                      "inspect a frame, not a training source (full cubemaps for "
@@ -546,6 +608,14 @@ def build_parser() -> argparse.ArgumentParser:
                      "equirectangular panorama per frame")
     gen.add_argument("--no-progress", action="store_true", help="no progress bar")
     gen.set_defaults(func=cmd_generate)
+
+    pk = sub.add_parser("pack", help="pack a generated dataset into WebDataset tar shards "
+                                     "(DIR/shards/shard-NNNNNN.tar) for streaming into training")
+    pk.add_argument("dir", type=Path, help="dataset folder")
+    pk.add_argument("--frames-per-shard", type=positive_int, default=None, metavar="N",
+                    help="frames per shard (default 16)")
+    pk.add_argument("--no-progress", action="store_true", help="no progress bar")
+    pk.set_defaults(func=cmd_pack)
 
     st = sub.add_parser("stats", help="Table I and class shares of a generated dataset")
     st.add_argument("dir", type=Path, help="dataset folder")
@@ -685,6 +755,8 @@ def main(argv: list[str] | None = None) -> int:
             message, code = str(err), 2
         elif isinstance(err, MemoryError):
             message, code = str(err) or "out of memory", 1
+        elif isinstance(err, ImportError):   # an optional dependency; the message says which
+            message, code = str(err), 1
         else:
             message, code = f"{type(err).__name__}: {err}", 1
         print(f"{prefix}: error: {' '.join(message.split())}", file=sys.stderr)

@@ -110,3 +110,16 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="session")
+def ray_cluster():
+    """A real local Ray cluster for every Ray test of the session, started once (it takes
+    about 5 s and 1 GB): 2 CPUs, no dashboard, a small object store (the tasks return file
+    lists). Code under test that asks for Ray finds it connected and uses it."""
+    ray = pytest.importorskip("ray")
+    # "local": a cluster of its own, even where `ray start` runs one on this machine
+    ray.init(address="local", num_cpus=2, include_dashboard=False,
+             object_store_memory=100 * 2 ** 20, logging_level="WARNING")
+    yield ray
+    ray.shutdown()

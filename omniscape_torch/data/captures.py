@@ -56,6 +56,7 @@ import json
 import math
 import os
 import shutil
+import sys
 import tempfile
 from pathlib import Path
 from typing import Sequence
@@ -72,10 +73,10 @@ from ..io.exr import read_exr, write_exr
 from ..io.images import read_image, write_image
 from ..io.labels import colorize
 from ..render.sizing import MEMORY_PER_PIXEL, PROCESS_MEMORY, available_memory
-from . import ocamcalib
+from . import distributed, ocamcalib
 
 __all__ = ["MODALITIES", "CAMERAS", "ConvertError", "build_cameras", "calib_file",
-           "check_pixels", "convert_captures", "find_captures", "load_capture",
+           "check_pixels", "convert_captures", "convert_chunk", "find_captures", "load_capture",
            "render_capture"]
 
 MODALITIES = ("rgb", "depth", "labels")
@@ -365,7 +366,8 @@ def convert_captures(cubemaps_dir: str | Path, out_dir: str | Path, *, label_set
                      catadioptric_blind_fov: float | None = math.radians(40),
                      catadioptric_looking: str = "down", depth_output: str = "range",
                      interpolation: str = "bilinear", unknown_label: int | None = None,
-                     device: str | torch.device = "cpu") -> dict[str, list[Path]]:
+                     device: str | torch.device = "cpu", ray: str | bool | None = None,
+                     progress: bool | None = None) -> dict[str, list[Path]]:
     """Convert every capture under ``cubemaps_dir`` into omni images under ``out_dir``.
 
     Angles are radians. Cameras come from :func:`omniscape_torch.cameras.presets.fisheye` (optical
@@ -376,6 +378,12 @@ def convert_captures(cubemaps_dir: str | Path, out_dir: str | Path, *, label_set
     rendering or writing) is skipped with nothing written for it, and the others are still
     converted; the failures are raised together at the end.
 
+    ``ray``: convert chunks of captures as Ray tasks (:func:`.distributed.run_on_ray`: the
+    address of a cluster, or True for the one :func:`.distributed.ray_cluster` finds or
+    starts; on CPUs, ``device="cpu"``), with the same files as without; ``cubemaps_dir`` and
+    ``out_dir`` must be at the same path on every node. ``progress``: a tqdm bar over the
+    captures on stderr (default: when stderr is a terminal).
+
     Returns:
         ``{capture_id: [paths written]}``.
 
@@ -384,7 +392,14 @@ def convert_captures(cubemaps_dir: str | Path, out_dir: str | Path, *, label_set
             message naming the file at fault; ``.results`` the captures converted).
         FileNotFoundError, ValueError: no captures at all, or bad arguments (before anything
             is converted).
+        ImportError: ``ray`` without Ray installed (at once).
     """
+    use_ray = ray is not None and ray is not False
+    if use_ray:
+        distributed.import_ray()
+        if torch.device(device).type != "cpu":
+            raise ValueError(f"device: with ray, captures are converted on the cluster's CPUs; "
+                             f"got {device!r}")
     if depth_output not in ("range", "z"):
         raise ValueError(f"depth_output: expected 'range' or 'z', got {depth_output!r}")
     if label_set not in LABEL_SETS:
@@ -405,19 +420,32 @@ def convert_captures(cubemaps_dir: str | Path, out_dir: str | Path, *, label_set
     layers: dict = {}
     results: dict[str, list[Path]] = {}
     failures: dict[str, str] = {}
+    options = {"label_set": label_set, "unknown_label": unknown_label,
+               "depth_output": depth_output, "interpolation": interpolation}
     with folder_lock(out_dir) as lock:
         remove_stale_temporaries(out_dir)
         records, fits = _polynomial_models(built, meta, out_dir)
-        for capture in captures:
-            try:
-                cube = load_capture(capture, label_set=label_set, unknown_label=unknown_label,
-                                    rgb_uint8=True)
-                results[capture.name] = render_capture(
-                    cube, built, out_dir / capture.name, depth_output=depth_output,
-                    interpolation=interpolation, device=device, _layers=layers)
-            except Exception as err:   # noqa: BLE001 - reported per capture below
-                failures[capture.name] = f"{type(err).__name__}: {err}" \
-                    if not isinstance(err, (ValueError, FileNotFoundError)) else str(err)
+        if use_ray:
+            h, w = image_size
+            done, failed = distributed.run_on_ray(
+                convert_chunk, (str(out_dir.resolve()), built, options),
+                [str(c.resolve()) for c in captures], address=ray,
+                memory=PROCESS_MEMORY + MEMORY_PER_PIXEL * h * w, progress=progress,
+                desc="convert", unit="capture")
+            results = {Path(c).name: paths for c, paths in done.items()}
+            failures = {Path(c).name: message for c, message in failed.items()}
+        else:
+            from tqdm import tqdm
+            if progress is None:
+                progress = sys.stderr.isatty()
+            for capture in tqdm(captures, disable=not progress, file=sys.stderr,
+                                unit="capture", desc="convert"):
+                done, failed = convert_chunk(out_dir, built, options, [capture],
+                                             device=device, layers=layers)
+                results.update({Path(c).name: paths for c, paths in done.items()})
+                failures.update({Path(c).name: message for c, message in failed.items()})
+        results = {c.name: results[c.name] for c in captures if c.name in results}
+        failures = {c.name: failures[c.name] for c in captures if c.name in failures}
         if results:
             for name, fit in fits.items():     # the files before the records that name them
                 records[name] = ocamcalib.write_calib_results(fit, out_dir / calib_file(name))
@@ -432,6 +460,39 @@ def convert_captures(cubemaps_dir: str | Path, out_dir: str | Path, *, label_set
     if failures:
         raise ConvertError(failures, results)
     return results
+
+
+def convert_chunk(out_dir: str | Path, cameras: dict[str, tuple], options: dict,
+                  captures: list[str | Path], *, device: str | torch.device = "cpu",
+                  layers: dict | None = None) -> tuple[dict, dict]:
+    """Convert ``captures`` (capture folders) into ``out_dir``, each on its own: a plain
+    function of its arguments, which a local run and a Ray task
+    (:func:`.distributed.run_on_ray`) call alike.
+
+    Args:
+        cameras: :func:`build_cameras`' dict. options: ``label_set``, ``unknown_label``,
+            ``depth_output``, ``interpolation`` (as for :func:`convert_captures`).
+        layers: a dict that keeps the layers across calls (default: this call's).
+
+    Returns:
+        ``({capture: [paths written]}, {capture: message})``, keyed by the captures as given;
+        a failed capture has nothing written, and its message names the file at fault.
+    """
+    out_dir = Path(out_dir)
+    layers = {} if layers is None else layers
+    done: dict = {}
+    failures: dict = {}
+    for capture in captures:
+        try:
+            cube = load_capture(capture, label_set=options["label_set"],
+                                unknown_label=options["unknown_label"], rgb_uint8=True)
+            done[capture] = render_capture(
+                cube, cameras, out_dir / Path(capture).name,
+                depth_output=options["depth_output"], interpolation=options["interpolation"],
+                device=device, _layers=layers)
+        except Exception as err:   # noqa: BLE001 - reported per capture
+            failures[capture] = distributed.describe_error(err)
+    return done, failures
 
 
 def _polynomial_models(built: dict[str, tuple], meta: dict, out_dir: Path

@@ -2,27 +2,30 @@
 
 * :class:`OmniDataset`: a dataset written by ``omniscape-torch generate`` (layout in
   :mod:`omniscape_torch.data.generate`), one item per (finished frame, camera).
+* :class:`OmniShardDataset`: the same items streamed from WebDataset shards
+  (:mod:`omniscape_torch.data.shards`; local files or URLs), an iterable dataset.
 * :class:`CubemapCaptureDataset`: simulator cubemap captures (layout in
   :mod:`omniscape_torch.data.captures`), one item per capture folder.
 
-Both hold only plain data (paths, tensors, dicts): they pickle, so they work with
+All hold only plain data (paths, tensors, dicts): they pickle, so they work with
 ``DataLoader(num_workers=N)`` and the default collate function.
 """
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Sequence
 
 import torch
-from torch.utils.data import Dataset
+from torch.utils.data import Dataset, IterableDataset, get_worker_info
 
 from ..cameras import Camera
 from .format import MODALITIES
 from .readers import (list_cameras, list_frames, read_camera_dict, read_dynamics,
                       read_extrinsics, read_frame, read_manifest)
 
-__all__ = ["CubemapCaptureDataset", "OmniDataset", "collate"]
+__all__ = ["CubemapCaptureDataset", "OmniDataset", "OmniShardDataset", "collate"]
 
 _DEFAULT = ("rgb", "depth", "labels", "valid")
 
@@ -131,6 +134,75 @@ class OmniDataset(Dataset):
         if self._weather is not None and k < len(self._weather):
             item["weather"] = self._weather[k]
         return item
+
+
+class OmniShardDataset(IterableDataset):
+    """The items of :class:`OmniDataset`, streamed from WebDataset shards with ``webdataset``
+    (``pip install -e ".[webdataset]"``): for training where the dataset's folder is not, from
+    shards on a shared disk, a web server or an object store.
+
+    Each item is the dict :class:`OmniDataset` gives for the same frame and camera (same keys,
+    types and values). Shards are split between ``torch.distributed`` ranks and then between
+    ``DataLoader`` workers (each reads whole shards: use at least as many shards as ranks times
+    workers), so ``DataLoader(OmniShardDataset(...), batch_size=B, num_workers=N)`` reads each
+    sample once per epoch.
+
+    Args:
+        source: a dataset folder (its ``shards/``), a shard folder, a list of shard paths or
+            URLs, or one WebDataset URL (``".../shard-{000000..000063}.tar"``, ``"pipe:curl -s
+            URL"``, ...): :func:`omniscape_torch.data.shards.shard_urls`.
+        cameras: the cameras to serve (default: all).
+        modalities: the images to read, some of ``rgb, depth, labels, labels_color, valid``.
+        rgb_uint8: rgb as ``(3, H, W)`` uint8 rather than float in [0, 1].
+        shuffle: 0 (default) reads shards and samples in order; ``n > 0`` shuffles the shards,
+            and the samples in a buffer of ``n``, from ``seed`` and the epoch
+            (:meth:`set_epoch`): the same order for the same seed, epoch and worker count.
+        seed: the shuffle's seed.
+    """
+
+    def __init__(self, source, cameras: Sequence[str] | None = None,
+                 modalities: Sequence[str] = _DEFAULT, *, rgb_uint8: bool = False,
+                 shuffle: int = 0, seed: int = 0):
+        from .shards import shard_urls
+
+        self.urls = shard_urls(source)
+        self.cameras = None if cameras is None else list(cameras)
+        self.modalities = tuple(modalities)
+        for m in self.modalities:
+            if m not in MODALITIES:
+                raise ValueError(f"modalities: expected some of {tuple(MODALITIES)}, got {m!r}")
+        if isinstance(shuffle, bool) or not isinstance(shuffle, int) or shuffle < 0:
+            raise ValueError(f"shuffle: expected a buffer size >= 0, got {shuffle!r}")
+        if isinstance(seed, bool) or not isinstance(seed, int):
+            raise TypeError(f"seed: expected an integer, got {seed!r}")
+        self.rgb_uint8 = bool(rgb_uint8)
+        self.shuffle, self.seed, self.epoch = shuffle, seed, 0
+
+    def set_epoch(self, epoch: int) -> None:
+        """Shuffle the next pass differently (call before each epoch, as with
+        ``DistributedSampler``)."""
+        self.epoch = int(epoch)
+
+    def __iter__(self):
+        import random
+
+        import webdataset as wds
+
+        from .shards import decode_sample
+
+        worker = get_worker_info()
+        stages = [wds.SimpleShardList(self.urls)]
+        if self.shuffle:
+            stages.append(wds.detshuffle(len(self.urls), seed=self.seed, epoch=self.epoch - 1))
+        stages += [wds.split_by_node, wds.split_by_worker, wds.tarfile_to_samples()]
+        if self.shuffle:
+            rng = random.Random(f"{self.seed}/{self.epoch}/{0 if worker is None else worker.id}")
+            stages.append(wds.shuffle(self.shuffle, rng=rng))
+        for sample in wds.DataPipeline(*stages):
+            if self.cameras is not None and \
+                    json.loads(sample["camera.json"])["camera"] not in self.cameras:
+                continue
+            yield decode_sample(sample, self.modalities, rgb_uint8=self.rgb_uint8)
 
 
 class CubemapCaptureDataset(Dataset):

@@ -47,6 +47,11 @@ Layout of ``DIR``
       .lock                        held by the run writing the folder (``io.atomic``); a second
                                    run into the folder stops
       stats.json, stats.png        written by ``omniscape-torch stats``
+      shards/                      only with ``generate --format webdataset`` or ``pack``:
+        index.json                 frames per shard, and the frames of each shard
+        shard-NNNNNN.tar           WebDataset shard NNNNNN: frames NNNNNN * S to
+                                   (NNNNNN + 1) * S - 1 (S: frames per shard), one sample
+                                   per camera and frame (:mod:`.shards`)
 
 NNNNNN is the frame number (zero-padded to 6 digits). Every file is written atomically
 (temporary file + rename). A frame is finished when its marker and all its files exist.
@@ -60,7 +65,7 @@ from typing import Sequence
 __all__ = ["CAMERA", "CONTACT_SHEET", "CUBE_MODALITIES", "DONE", "DYNAMICS", "DYNAMICS_CSV",
            "FORMAT", "FORMAT_VERSION", "MANIFEST", "MODALITIES", "OCAMCALIB", "STATS",
            "STATS_PLOT", "cubemap_file", "finished_frames", "frame_file", "frame_name", "layout",
-           "marker", "panorama_file"]
+           "marker", "panorama_file", "SHARDS", "SHARD_INDEX", "shard_file"]
 
 FORMAT = "omniscape_torch dataset"
 FORMAT_VERSION = 1
@@ -71,6 +76,9 @@ CONTACT_SHEET = "contact_sheet.png"
 STATS, STATS_PLOT = "stats.json", "stats.png"
 #: The folder of the finished-frame markers.
 DONE = ".done"
+#: The folder of the WebDataset shards, and their index (:mod:`.shards`).
+SHARDS = "shards"
+SHARD_INDEX = f"{SHARDS}/index.json"
 #: Per-camera files: the intrinsics (Camera JSON), and the camera as OCamCalib's model.
 CAMERA, OCAMCALIB = "camera.json", "calib_results.txt"
 
@@ -114,6 +122,11 @@ def panorama_file(modality: str, frame: int | str) -> str:
     """Relative path of a panorama file (``--save-panorama``)."""
     ext = _check_modality(modality, CUBE_MODALITIES)
     return f"panorama/{modality}/{frame_name(frame)}.{ext}"
+
+
+def shard_file(index: int) -> str:
+    """Relative path of WebDataset shard ``index`` (``shards/shard-NNNNNN.tar``)."""
+    return f"{SHARDS}/shard-{frame_name(index)}.tar"
 
 
 def marker(frame: int | str) -> str:

@@ -24,12 +24,14 @@ cameras 1.0 m. Each frame, the motorcycle's attitude ``R_bike`` (rig -> world,
 ``ride.camera_rotation``: yaw, pitch, lean) places and turns every camera: camera centre
 ``c = location + R_bike @ position``, and its rays go to the world by ``R_bike @ R_cam``. Each
 camera gets its own cubemap rendered at ``c`` with the cube axes along the world axes (x east,
-y down, z north), only the faces it sees (``sizing.visible_faces``), at the face size it needs
+y down, z north), only the texels it reads (those in its cone of view), at the face size it needs
 (``sizing.required_face_size`` over every attitude, capped by ``max_face_size``; or
 ``face_size`` for all), so that frame ``k`` depends on the configuration and ``k`` only, not
 on the number of frames (a run of 12 frames extends a run of 8). The built-in town is flat,
-so the ride is made with ``town_route(seed)``, S-bends between the lanes of its straight road: pitch comes from the
-suspension only, and the leans stay moderate.
+so the ride is made with ``town_route(seed, town)`` (S-bends between the lanes of the main
+street in town 1, right turns at the crossings of towns 2 and 3): pitch comes from the
+suspension only. The images are encoded and written by threads while the next camera renders
+(:class:`FrameRenderer`).
 
 ``NNNNNN`` is the frame number (zero-padded to 6 digits). Every file is written atomically
 (temporary file + rename). A frame is finished when its ``.done`` marker and all its files
@@ -40,11 +42,17 @@ processes render shares of the frames (:func:`render_frames`, a plain function o
 configuration and the frame numbers); nothing uses a global random state (the weather of a frame,
 when several are given, is drawn from ``numpy.random.default_rng([seed, frame])``), so the
 files do not depend on the number of workers.
+
+Past one machine (:mod:`.distributed`): ``ray`` runs chunks of frames as Ray tasks
+(:func:`render_task`), ``shard=(K, N)`` renders run ``K`` of ``N``'s share for schedulers
+without Ray; both write the same files as one process. ``format="webdataset"`` also packs the
+frames into WebDataset shards (:mod:`.shards`), each by the task that rendered them.
 """
 
 from __future__ import annotations
 
 import csv
+import functools
 import io as _io
 import json
 import math
@@ -61,22 +69,26 @@ import numpy as np
 import torch
 
 from ..scenes import ride as _ride
+from ..scenes import routes as _routes
 from ..cubemap.faces import FACES
 from ..io import (CLASSES, IGNORE_INDEX, atomic_write_bytes, atomic_write_text, colorize,
                  read_image, write_exr, write_image)
 from ..io.atomic import folder_lock, remove_stale_temporaries
+from . import distributed, shards
 from . import format as fmt
 from . import ocamcalib
 from ..io.labels import PALETTE
 from ..cameras.presets import catadioptric, fisheye
+from ..cubemap.faces import face_axes
 from ..render.layer import OmniProjection
 from ..render.reproject import equirectangular_camera
-from ..scenes.town import WEATHERS, Town
-from ..render.sizing import (MEMORY_PER_PIXEL, PROCESS_MEMORY, available_memory, required_face_size,
-                     visible_faces)
+from ..scenes.town import LAYOUTS, WEATHERS, Town
+from ..render.sizing import (MEMORY_PER_PIXEL, PROCESS_MEMORY, available_memory,
+                             required_face_size)
 
-__all__ = ["CAMERAS", "RIG_POSITIONS", "DatasetConfig", "FrameRenderer", "check_memory",
-           "contact_sheet", "estimate_memory", "generate", "render_frame", "render_frames"]
+__all__ = ["CAMERAS", "FORMATS", "RIG_POSITIONS", "DatasetConfig", "FrameRenderer",
+           "check_memory", "contact_sheet", "estimate_memory", "generate", "render_chunk",
+           "render_frame", "render_frames", "render_task"]
 
 #: The rig's cameras, in this order.
 CAMERAS = ("fisheye_left", "fisheye_right", "catadioptric_left", "catadioptric_right")
@@ -98,12 +110,15 @@ PANORAMA_POSITION = (0.0, -0.9, 0.0)
 MIN_FACE_SIZE = MIN_IMAGE_SIZE = 8
 
 #: Peak memory of one process rendering a frame, per texel of the largest cube one camera
-#: renders (the town's ray caster shades every texel at once, and the six faces with depth and
-#: labels), bytes. With ``sizing.PROCESS_MEMORY`` and ``sizing.MEMORY_PER_PIXEL``, measured
-#: peaks on the built-in town, from 6 x 256^2 to 6 x 1351^2 texels, lie 15-45% below the
-#: estimate; the allocator makes the same frame peak anywhere from 0.6 to 1.23 GB at 6 x 320^2
-#: (tests/test_dataset.py checks a run against it).
-MEMORY_PER_TEXEL = 800
+#: renders, bytes: the cube's outputs (RGB, planar depth, range, labels: 28 bytes, in buffers
+#: kept from camera to camera), its rays (12, kept per face size), the layer's padded atlases,
+#: and the Embree scene and ray batches (a few MB, not per texel). Measured peaks
+#: (``VmHWM`` of a fresh process, ``render_frame``; 2 cores, the Embree town) above the
+#: process's own 295-327 MB: 197 bytes per texel at 6 x 320^2 (one camera, 160^2 image),
+#: 230 at the default (256^2 images), 181 at 512^2 and 116 at 1024^2 once the pixels' share
+#: (``MEMORY_PER_PIXEL``) is taken off; with ``sizing.PROCESS_MEMORY`` (700 MB) the estimate
+#: lies 1.6-2x above these peaks (tests/test_dataset.py checks a run against it).
+MEMORY_PER_TEXEL = 220
 
 
 @dataclass
@@ -120,6 +135,7 @@ class DatasetConfig:
     seed: int = 0
     save_cubemaps: bool = False
     save_panorama: bool = False
+    town: int = 1                                 # the town's layout: scenes.town.LAYOUTS
 
     def __post_init__(self):
         self.image_size = tuple(int(s) for s in self.image_size)
@@ -136,6 +152,10 @@ class DatasetConfig:
         positive_int("max_face_size", self.max_face_size, MIN_FACE_SIZE, " texels")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f"seed: expected an integer >= 0, got {self.seed!r}")
+        if isinstance(self.town, bool) or self.town not in LAYOUTS:
+            raise ValueError(f"town: expected one of {sorted(LAYOUTS)} "
+                             f"({', '.join(f'{k} {v}' for k, v in LAYOUTS.items())}), got "
+                             f"{self.town!r}")
         if self.face_size is not None:
             positive_int("face_size", self.face_size, MIN_FACE_SIZE, " texels")
         if not (isinstance(self.fps, (int, float)) and math.isfinite(self.fps) and self.fps > 0):
@@ -176,31 +196,21 @@ def _make_camera(name: str, image_size: tuple[int, int]):
     return catadioptric(image_size, looking="down")
 
 
-#: Half the built-in town's length along its road (``Town.length / 2``, metres) and its lanes.
-_TOWN_HALF_LENGTH, _LANE = 80.0, 1.75
+#: Half the built-in town's length along its road (``Town.length / 2``, metres).
+_TOWN_HALF_LENGTH = 80.0
 
 
-def town_route(seed: int) -> _ride.Route:
-    """A ride along the built-in town's road: it starts in the right-hand lane at the south end,
-    heading north, and weaves between the lanes (S-bends of two opposite arcs, radius 60 to
-    120 m) so that the lean and yaw change, without leaving the road; about 140 m long. The
-    town's road is straight, so the leans stay moderate (a few degrees at 10 m/s)."""
-    rng = np.random.default_rng([seed, 7])
-    segments = [_ride.straight(10.0)]
-    side = -1.0  # first to the left lane, then back
-    while sum(seg.length for seg in segments) < 2 * _TOWN_HALF_LENGTH - 60.0:
-        radius = float(rng.uniform(60.0, 120.0))
-        # two opposite arcs of angle t shift the path sideways by 2 R (1 - cos t) = one lane
-        turn = math.degrees(math.acos(1 - 2 * _LANE / (2 * radius)))
-        segments += [_ride.arc(radius, side * turn), _ride.arc(radius, -side * turn),
-                     _ride.straight(float(rng.uniform(8.0, 20.0)))]
-        side = -side
-    return _ride.Route(segments, start=(_LANE, 0.0, -_TOWN_HALF_LENGTH + 5.0), heading_deg=0.0)
+def town_route(seed: int, town: int = 1) -> _ride.Route:
+    """The ride through the built-in town's layout ``town`` (:func:`..scenes.routes.route`):
+    in town 1 it starts in the right-hand lane at the south end, heading north, and weaves
+    between the lanes (S-bends of two opposite arcs, radius 60 to 120 m), about 140 m; in
+    town 2 it turns right at the crossroads, in town 3 it goes round a block."""
+    return _routes.route(town, seed, _TOWN_HALF_LENGTH)
 
 
 def _make_ride(config: DatasetConfig) -> dict:
-    return _ride.simulate(town_route(config.seed), float(config.fps), frames=config.frames,
-                          seed=config.seed)
+    return _ride.simulate(town_route(config.seed, config.town), float(config.fps),
+                          frames=config.frames, seed=config.seed)
 
 
 def _frame_weather(config: DatasetConfig, frame: int) -> str:
@@ -220,6 +230,7 @@ class _Plan:
         self.location = _ride.carla_to_world(self.frames["location"]).double()  # (N, 3)
         self.cameras = {}
         self._faces: dict[tuple[str, int], torch.Tensor] = {}
+        self._texels: tuple[tuple[str, int], torch.Tensor] | None = None
         sizes = _face_sizes(config)
         for name in config.cameras:
             camera, r_cam = _make_camera(name, config.image_size)
@@ -239,12 +250,26 @@ class _Plan:
         return self.location[k] + self.R_bike[k] @ self.cameras[name]["position"]
 
     def faces(self, name: str, k: int) -> torch.Tensor:
-        """``(6,)`` bool: the faces camera ``name`` sees at frame ``k`` (cached)."""
+        """``(6,)`` bool: the faces camera ``name`` reads at frame ``k``: those with a texel in
+        its cone of view (:meth:`texels`; cached). A superset of ``sizing.visible_faces``'
+        exact answer, which costs seconds per camera and frame at 1024 x 1024 (measured: the
+        same faces on the default ride at 256 x 256; at 48 x 48 and on the turns of towns 2
+        and 3, now and then one more face, of which a few texels are traced)."""
         if (name, k) not in self._faces:
-            c = self.cameras[name]
-            self._faces[name, k] = visible_faces(c["camera"], self.rotation(name, k).float(),
-                                                 face_size=c["face_size"])
+            self._faces[name, k] = self.texels(name, k).flatten(1).any(1)
         return self._faces[name, k]
+
+    def texels(self, name: str, k: int) -> torch.Tensor:
+        """``(6, F, F)`` bool: the cube texels within camera ``name``'s cone of view at frame
+        ``k`` (:func:`camera_cone`, :func:`cone_texels`), a superset of those its layer reads
+        (the last one kept)."""
+        if self._texels is None or self._texels[0] != (name, k):
+            c = self.cameras[name]
+            if "cone" not in c:
+                c["cone"] = camera_cone(c["camera"], c["face_size"])
+            axis = self.rotation(name, k)[:, 2]   # the optical axis, in the world (cube) frame
+            self._texels = ((name, k), cone_texels(c["face_size"], axis, c["cone"]))
+        return self._texels[1]
 
     def files(self, k: int) -> list[str]:
         """Relative paths of every file of frame ``k`` (the marker excluded)."""
@@ -272,13 +297,23 @@ class _Plan:
 class FrameRenderer:
     """Renders frames of one configuration: the plan, the town and a layer per camera, built
     once and kept for every frame it renders (in the main process, or in one task of a
-    worker)."""
+    worker).
 
-    def __init__(self, config: DatasetConfig) -> None:
+    Per camera, the town traces only the texels the layer reads: those within the camera's
+    cone of view (:func:`camera_cone`, :func:`cone_texels`; the layer's output is the same bit
+    for bit as from whole faces, tests/test_dataset.py), unless ``save_cubemaps`` asks for
+    whole faces. The cubes are rendered into buffers kept
+    from camera to camera and frame to frame, and each camera's images are converted,
+    encoded and written by ``writers`` threads while the next camera renders (a frame's
+    marker once all its files are written)."""
+
+    def __init__(self, config: DatasetConfig, *, writers: int = 2) -> None:
         self.config = config
         self.plan = _Plan(config)
-        self.town = Town(config.seed)
+        self.town = Town(config.seed, layout=config.town)
+        self.writers = int(writers)
         self._layers: dict[str, OmniProjection] = {}
+        self._cubes: dict[int, dict[str, torch.Tensor]] = {}
 
     def _layer(self, key: str, camera, face_size: int) -> OmniProjection:
         if key not in self._layers:
@@ -286,53 +321,147 @@ class FrameRenderer:
             self._layers[key] = OmniProjection(camera, face_size, fused_grid=False)
         return self._layers[key]
 
+    def _cube_buffers(self, face_size: int) -> dict[str, torch.Tensor]:
+        """Output tensors of ``Town.render_cubemap`` for this face size, kept and reused (the
+        last two face sizes)."""
+        if face_size not in self._cubes:
+            if len(self._cubes) >= 2:
+                self._cubes.pop(next(iter(self._cubes)))
+            F = face_size
+            self._cubes[F] = {"rgb": torch.empty(1, 6, 3, F, F),
+                              "depth": torch.empty(1, 6, F, F),
+                              "labels": torch.empty(1, 6, F, F, dtype=torch.int64),
+                              "range": torch.empty(1, 6, F, F)}
+        return self._cubes[face_size]
+
+    def texels(self, name: str, k: int) -> torch.Tensor | None:
+        """``(6, F, F)`` bool: the texels camera ``name`` reads at frame ``k`` (a superset:
+        ``_Plan.texels``), or None with ``save_cubemaps`` (whole faces)."""
+        return None if self.config.save_cubemaps else self.plan.texels(name, k)
+
     def render(self, out: str | Path, k: int) -> int:
         """Render and write every file of frame ``k``, then its marker. Returns ``k``."""
+        from concurrent.futures import ThreadPoolExecutor, wait
+
         out = Path(out)
         config, plan, town = self.config, self.plan, self.town
         t = float(plan.frames["time"][k])
         weather = _frame_weather(config, k)
-        with torch.no_grad():
-            for name in config.cameras:
-                c = plan.cameras[name]
-                F = c["face_size"]
-                faces = plan.faces(name, k)
-                rot = plan.rotation(name, k).float()
-                cube = town.render_cubemap(plan.centre(name, k).float(), None, F, faces=faces,
-                                           t=t, weather=weather)
-                res = self._layer(name, c["camera"], F).render(
-                    rgb=cube["rgb"], depth=cube["depth"], labels=cube["labels"], rotation=rot)
-                labels = res["labels"][0]
-                valid = res["valid"][0, 0]
-
-                def path(modality: str) -> Path:
-                    return out / fmt.frame_file(name, modality, k)
-
-                write_image(path("rgb"), _to_uint8(res["rgb"][0]))
-                write_exr(path("depth"), res["depth"][0, 0].float())
-                write_image(path("labels"), labels.to(torch.uint8).numpy())
-                write_image(path("labels_color"), colorize(labels))
-                write_image(path("valid"), (valid.to(torch.uint8) * 255).numpy())
-                if config.save_cubemaps:
-                    for i, (face, need) in enumerate(zip(FACES, faces.tolist())):
-                        if need:
-                            _write_modalities(
-                                lambda m: out / fmt.cubemap_file(name, m, k, face),
-                                cube["rgb"][0, i], cube["depth"][0, i], cube["labels"][0, i])
-            if config.save_panorama:
-                centre = plan.location[k] + plan.R_bike[k] @ torch.tensor(PANORAMA_POSITION,
-                                                                          dtype=torch.float64)
-                F = plan.panorama_face
-                cube = town.render_cubemap(centre.float(), None, F, t=t, weather=weather)
-                h, w = plan.panorama_size
-                res = self._layer("panorama", equirectangular_camera(w, h), F).render(
-                    rgb=cube["rgb"], depth=cube["depth"], labels=cube["labels"],
-                    rotation=plan.R_bike[k].float())
-                _write_modalities(lambda m: out / fmt.panorama_file(m, k), res["rgb"][0],
-                                  res["depth"][0, 0], res["labels"][0])
+        pending = []
+        with ThreadPoolExecutor(max(1, self.writers)) as pool:
+            try:
+                with torch.no_grad():
+                    for name in config.cameras:
+                        c = plan.cameras[name]
+                        F = c["face_size"]
+                        faces = plan.faces(name, k)
+                        cube = town.render_cubemap(
+                            plan.centre(name, k).float(), None, F, faces=faces,
+                            texels=self.texels(name, k), t=t, weather=weather,
+                            out=self._cube_buffers(F))
+                        res = self._layer(name, c["camera"], F).render(
+                            rgb=cube["rgb"], depth=cube["depth"], labels=cube["labels"],
+                            rotation=plan.rotation(name, k).float())
+                        # res is this camera's own: its writers may run while the next renders
+                        pending.append(pool.submit(_write_camera, out, name, k, res))
+                        if config.save_cubemaps:
+                            for i, (face, need) in enumerate(zip(FACES, faces.tolist())):
+                                if need:
+                                    pending.append(pool.submit(
+                                        _write_modalities,
+                                        functools.partial(_cube_path, out, name, k, face),
+                                        cube["rgb"][0, i].clone(), cube["depth"][0, i].clone(),
+                                        cube["labels"][0, i].clone()))
+                    if config.save_panorama:
+                        centre = plan.location[k] + plan.R_bike[k] @ torch.tensor(
+                            PANORAMA_POSITION, dtype=torch.float64)
+                        F = plan.panorama_face
+                        cube = town.render_cubemap(centre.float(), None, F, t=t,
+                                                   weather=weather, out=self._cube_buffers(F))
+                        h, w = plan.panorama_size
+                        res = self._layer("panorama", equirectangular_camera(w, h), F).render(
+                            rgb=cube["rgb"], depth=cube["depth"], labels=cube["labels"],
+                            rotation=plan.R_bike[k].float())
+                        pending.append(pool.submit(
+                            _write_modalities, functools.partial(_panorama_path, out, k),
+                            res["rgb"][0], res["depth"][0, 0], res["labels"][0]))
+            finally:
+                wait(pending)   # no write goes on after this returns or raises
+            for job in pending:
+                job.result()    # the first error of a writer
         atomic_write_text(out / fmt.marker(k), json.dumps({"frame": k, "weather": weather})
                           + "\n")
         return k
+
+
+def camera_cone(camera, face_size: int) -> float:
+    """The half-angle (radians) of a cone around a camera's optical axis that holds every cube
+    texel its layer reads at ``face_size``: the camera's widest angle (``Camera.max_angle``,
+    its model's domain within its ``fov``, an upper bound of its valid pixels'), plus one and a
+    half times the largest angle between neighbouring pixels along the image's centre row and
+    column (a pixel's footprint, which ``sizing.visible_faces`` counts too, with room for the
+    diagonal and the tangential direction) and two and a half texels at a face's centre
+    (``2 / F`` radians each, the largest: the bilinear taps, within a texel of the ray, and the
+    atlas border, resampled from the next face's texels within a texel and a half of the
+    seam)."""
+    h, w = camera.image_size
+    cu, cv = (w - 1) / 2, (h - 1) / 2
+    u = torch.arange(w, dtype=torch.float64)
+    v = torch.arange(h, dtype=torch.float64)
+    step = 0.0
+    params = camera.params.detach().reshape(-1, camera.params.shape[-1])[0].double()
+    for pixels in (torch.stack([u, torch.full_like(u, cv)], -1),
+                   torch.stack([torch.full_like(v, cu), v], -1)):
+        rays, valid = camera.model.unproject(pixels, params)
+        rays = rays / rays.norm(dim=-1, keepdim=True)
+        both = valid[1:] & valid[:-1]
+        if both.any():
+            cos = (rays[1:] * rays[:-1]).sum(-1)[both].clamp(-1, 1)
+            step = max(step, float(torch.acos(cos).max()))
+    widest = float(camera.max_angle().detach().reshape(-1)[0])
+    return widest + 1.5 * step + 2.5 * (2.0 / face_size)
+
+
+def cone_texels(face_size: int, axis: torch.Tensor, half_angle: float) -> torch.Tensor:
+    """``(6, F, F)`` bool: the cube texels (cube axes = world) whose ray lies within
+    ``half_angle`` radians of the unit vector ``axis (3,)`` (float32: its rounding is far
+    below the margins of :func:`camera_cone`)."""
+    F = face_size
+    if half_angle >= math.pi:
+        return torch.ones(6, F, F, dtype=torch.bool)
+    f, c = F / 2, (F - 1) / 2
+    x = (torch.arange(F, dtype=torch.float32) - c) / f           # texel u (columns), v (rows)
+    norm = torch.sqrt(1 + x.view(1, F) ** 2 + x.view(F, 1) ** 2) * math.cos(half_angle)
+    axes = face_axes(torch.float64)                                # (6, [a, b, r], 3)
+    proj = (axes @ axis.to(torch.float64).reshape(3)).float()     # (6, 3): a.A, b.A, r.A
+    out = torch.empty(6, F, F, dtype=torch.bool)
+    for k in range(6):   # a face at a time: no (6, F, F) float temporaries
+        dot = proj[k, 2] * x.view(1, F) + proj[k, 1] * x.view(F, 1) + proj[k, 0]
+        torch.ge(dot, norm, out=out[k])
+    return out
+
+
+def _cube_path(out: Path, name: str, k: int, face: str, modality: str) -> Path:
+    return out / fmt.cubemap_file(name, modality, k, face)
+
+
+def _panorama_path(out: Path, k: int, modality: str) -> Path:
+    return out / fmt.panorama_file(modality, k)
+
+
+def _write_camera(out: Path, name: str, k: int, res: dict[str, torch.Tensor]) -> None:
+    """Write one camera's images of frame ``k`` (``res``: the layer's outputs)."""
+    labels = res["labels"][0]
+    valid = res["valid"][0, 0]
+
+    def path(modality: str) -> Path:
+        return out / fmt.frame_file(name, modality, k)
+
+    write_image(path("rgb"), _to_uint8(res["rgb"][0]))
+    write_exr(path("depth"), res["depth"][0, 0].float())
+    write_image(path("labels"), labels.to(torch.uint8).numpy())
+    write_image(path("labels_color"), colorize(labels))
+    write_image(path("valid"), (valid.to(torch.uint8) * 255).numpy())
 
 
 def _write_modalities(path: Callable[[str], Path], rgb: torch.Tensor, depth: torch.Tensor,
@@ -512,40 +641,88 @@ def _write_run_files(plan: _Plan, out: Path,
 # generate
 # --------------------------------------------------------------------------------------------
 
+#: ``generate``'s output formats: the folder (:mod:`.format`), and the folder with WebDataset
+#: shards (:mod:`.shards`).
+FORMATS = ("folder", "webdataset")
+
+
 def generate(out: str | Path, config: DatasetConfig | None = None, *, workers: int = 1,
+             ray: str | bool | None = None, shard: tuple[int, int] | None = None,
+             format: str = "folder", frames_per_shard: int | None = None,
              progress: bool | None = None, log: Callable[[str], None] | None = None) -> dict:
     """Write (or complete) the dataset of ``config`` in ``out``.
 
     Args:
-        out: the dataset folder (created).
+        out: the dataset folder (created). With ``ray`` or ``shard`` across machines, a
+            folder every machine sees at the same path (shared storage).
         config: a :class:`DatasetConfig` (default: all defaults).
-        workers: processes rendering frames in parallel (1: in this process).
+        workers: processes rendering frames in parallel on this machine (1: in this process).
+        ray: chunks of frames as Ray tasks (:func:`.distributed.run_on_ray`): the address of a
+            cluster (``"HOST:PORT"``, ``"auto"``), or True for ``$RAY_ADDRESS``, else the
+            cluster of ``ray start`` on this machine, else a local cluster started for the run
+            (:func:`.distributed.ray_cluster`); None (default): no Ray. Not with ``workers``.
+        shard: ``(K, N)``: only run ``K`` of ``N``'s share, frames ``K, K + N, ...`` (with
+            ``format="webdataset"``, the frames of shards ``K, K + N, ...``); ``N`` such runs,
+            anywhere and at once, write the dataset one run writes. Each locks its own share.
+        format: ``"folder"`` (default), or ``"webdataset"``: also pack the frames into
+            WebDataset shards of ``frames_per_shard`` frames (:mod:`.shards`), each by the
+            task that rendered them.
+        frames_per_shard: default, that of the shards in ``out``, else
+            ``shards.FRAMES_PER_SHARD``; only with ``format="webdataset"``.
         progress: show a tqdm bar on stderr (default: when stderr is a terminal).
         log: called with one-line messages (default: nothing).
 
     Returns:
-        ``{"rendered": [frame numbers], "skipped": [frame numbers], "face_sizes": {camera: F}}``.
+        ``{"rendered": [frame numbers], "skipped": [frame numbers], "face_sizes": {camera: F}}``
+        (``skipped``: finished before the run).
 
     Raises:
-        ValueError: bad configuration, or ``out`` holds a dataset of another configuration.
-        MemoryError: the run would not fit in memory (:func:`check_memory`; before any work).
-        omniscape_torch.io.atomic.FolderBusyError: another run is writing ``out``.
+        ValueError: bad configuration or argument, or ``out`` holds a dataset of another
+            configuration (or shards of another ``frames_per_shard``).
+        ImportError: ``ray`` without Ray installed (at once).
+        MemoryError: the run would not fit in memory (:func:`check_memory`; with ``ray``, in
+            any node of the cluster; before any work).
+        omniscape_torch.data.distributed.TaskErrors: with ``ray``, frames that failed for good,
+            each with its error; the others are written, and the same call renders the rest.
+        omniscape_torch.io.atomic.FolderBusyError: another run is writing ``out`` (or the same
+            share of it).
         OSError: ``out`` cannot be written (the message names the path).
     """
     config = DatasetConfig() if config is None else config
     config.validate()
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ValueError(f"workers: expected a positive integer, got {workers!r}")
+    use_ray = ray is not None and ray is not False
+    if use_ray:
+        distributed.import_ray()
+        if workers != 1:
+            raise ValueError(f"workers: with ray, the cluster's CPUs render the frames; give "
+                             f"one or the other, got workers={workers}")
+    if format not in FORMATS:
+        raise ValueError(f"format: expected one of {FORMATS}, got {format!r}")
+    if frames_per_shard is not None:
+        shards.check_frames_per_shard(frames_per_shard)
+        if format != "webdataset":
+            raise ValueError("frames_per_shard: only with format='webdataset'")
+    shard = distributed.check_shard(shard)
     log = log or (lambda msg: None)
     out = Path(out)
-    check_memory(config, workers)
-    with folder_lock(out):
-        return _generate(out, config, workers, progress, log)
+    if not use_ray:
+        check_memory(config, workers)
+    # runs of other shares of the frames may write the folder at the same time
+    lock = out if shard is None else out / f".shard-{shard[0]}-of-{shard[1]}"
+    with folder_lock(lock):
+        return _generate(out, config, workers, progress, log, ray=ray if use_ray else None,
+                         shard=shard, frames_per_shard=(
+                             shards.resolve_frames_per_shard(out, frames_per_shard)
+                             if format == "webdataset" else None))
 
 
 def _generate(out: Path, config: DatasetConfig, workers: int, progress: bool | None,
-              log: Callable[[str], None]) -> dict:
-    """``generate`` inside the folder's lock."""
+              log: Callable[[str], None], *, ray: str | bool | None = None,
+              shard: tuple[int, int] | None = None,
+              frames_per_shard: int | None = None) -> dict:
+    """``generate`` inside the folder's lock (``frames_per_shard``: WebDataset shards)."""
     manifest = out / fmt.MANIFEST
     if manifest.is_file():
         try:
@@ -557,55 +734,143 @@ def _generate(out: Path, config: DatasetConfig, workers: int, progress: bool | N
                              f"use another --out folder or remove it")
     # A run killed mid-write leaves its temporaries (the finished files are whole: written by
     # rename); they carry their process id, and only those of ended processes are removed.
-    stale = remove_stale_temporaries(out)
+    # Not by a share of a run: the others may run on other machines, whose processes this one
+    # cannot see.
+    stale = remove_stale_temporaries(out) if shard is None else []
     if stale:
         log(f"removed {len(stale)} temporary file(s) of an interrupted run")
     renderer = FrameRenderer(config)
     plan = renderer.plan
     _write_run_files(plan, out, log)
-    todo = [k for k in range(config.frames) if not plan.finished(out, k)]
-    skipped = [k for k in range(config.frames) if k not in todo]
+    s = frames_per_shard
+    if s is None:
+        units = [[k] for k in range(config.frames)]
+    else:
+        shards.write_index(out, config.frames, config.cameras, s)
+        units = shards.shard_groups(config.frames, s)
+    units = distributed.shard_part(units, shard)
+
+    def finished(k: int) -> bool:
+        return plan.finished(out, k) and (s is None or (out / fmt.shard_file(k // s)).is_file())
+
+    todo_units = [u for u in units if not all(finished(k) for k in u)]
+    frames = [k for u in units for k in u]
+    todo = [k for u in todo_units for k in u]
+    skipped = [k for k in frames if plan.finished(out, k)]
     sizes = {n: c["face_size"] for n, c in plan.cameras.items()}
-    log(f"{len(todo)} frame(s) to render, {len(skipped)} finished; face sizes "
-        + ", ".join(f"{n} {s}" for n, s in sizes.items()))
+    log(f"{len([k for k in todo if k not in skipped])} frame(s) to render, {len(skipped)} "
+        f"finished" + ("" if shard is None else f" (share {shard[0]} of {shard[1]})")
+        + "; face sizes " + ", ".join(f"{n} {sz}" for n, sz in sizes.items()))
     if progress is None:
         progress = sys.stderr.isatty()
-    from tqdm import tqdm
-    bar = tqdm(total=config.frames, initial=len(skipped), disable=not progress, file=sys.stderr,
-               unit="frame", desc="generate")
-    rendered = []
-    try:
-        if workers == 1 or len(todo) <= 1:
-            for k in todo:
-                rendered.append(renderer.render(out, k))
-                bar.update(1)
-        else:
-            # a few chunks of frames per worker: each task builds its renderer once
-            size = -(-len(todo) // (2 * workers))
-            chunks = [todo[i:i + size] for i in range(0, len(todo), size)]
-            with ProcessPoolExecutor(min(workers, len(chunks)), mp_context=get_context("spawn"),
-                                     initializer=_init_worker) as pool:
-                futures = [pool.submit(render_frames, config, str(out), chunk)
-                           for chunk in chunks]
-                try:
-                    for fut in as_completed(futures):
-                        done = fut.result()
-                        rendered += done
-                        bar.update(len(done))
-                except BaseException:
-                    for fut in futures:
-                        fut.cancel()
-                    raise
-    finally:
-        bar.close()
+    rendered: list[int] = []
+    failures: dict[int, str] = {}
+    if ray is not None and todo:
+        done, failures = distributed.run_on_ray(
+            render_task, (config, str(out.resolve()), s), todo, address=ray,
+            chunks=None if s is None else todo_units, memory=estimate_memory(config, 1),
+            progress=progress, total=len(frames), initial=len(frames) - len(todo),
+            desc="generate", unit="frame", log=log)
+        rendered = sorted(done)
+        failures = {k: m for k, m in failures.items() if not finished(k)}
+    elif todo:
+        from tqdm import tqdm
+        bar = tqdm(total=len(frames), initial=len(frames) - len(todo), disable=not progress,
+                   file=sys.stderr, unit="frame", desc="generate")
+        try:
+            if s is not None:
+                chunks = todo_units
+            else:   # a few chunks of frames per worker: each task builds its renderer once
+                size = -(-len(todo) // (2 * workers))
+                chunks = [todo[i:i + size] for i in range(0, len(todo), size)]
+            if workers == 1 or len(chunks) <= 1:
+                for chunk in chunks:
+                    rendered += render_chunk(config, out, chunk, s, renderer=renderer)
+                    bar.update(len(chunk))
+            else:
+                with ProcessPoolExecutor(min(workers, len(chunks)),
+                                         mp_context=get_context("spawn"),
+                                         initializer=_init_worker) as pool:
+                    futures = {pool.submit(render_chunk, config, str(out), chunk, s): chunk
+                               for chunk in chunks}
+                    try:
+                        for fut in as_completed(futures):
+                            rendered += fut.result()
+                            bar.update(len(futures[fut]))
+                    except BaseException:
+                        for fut in futures:
+                            fut.cancel()
+                        raise
+        finally:
+            bar.close()
     sheet = out / fmt.CONTACT_SHEET
     if rendered or not sheet.is_file():
-        finished = [k for k in range(config.frames) if plan.finished(out, k)]
-        if finished:
-            data = contact_sheet(out, config.cameras, finished[len(finished) // 2])
+        if shard is None:
+            done = [k for k in range(config.frames) if plan.finished(out, k)]
+            middle = done[len(done) // 2] if done else None
+        else:   # the frame a whole run shows, by the share that renders it
+            middle = config.frames // 2
+            middle = middle if middle in frames and plan.finished(out, middle) else None
+        if middle is not None:
+            data = contact_sheet(out, config.cameras, middle)
             if not sheet.is_file() or sheet.read_bytes() != data:
                 atomic_write_bytes(sheet, data)
+    if failures:
+        raise distributed.TaskErrors("frame", failures, sorted(rendered))
     return {"rendered": sorted(rendered), "skipped": skipped, "face_sizes": sizes}
+
+
+def render_chunk(config: DatasetConfig, out: str | Path, frames: list[int],
+                 frames_per_shard: int | None = None, *,
+                 renderer: FrameRenderer | None = None) -> list[int]:
+    """Render the unfinished frames among ``frames`` of ``config`` into ``out`` and, with
+    ``frames_per_shard``, pack each WebDataset shard of theirs whose frames are all finished
+    and which is not there yet: a plain function of its arguments, which any process or
+    scheduler can call for any share of the frames, as often as it likes (a repeated call
+    finishes what an earlier one left). Stops at the first error. Returns the frames rendered.
+
+    ``renderer``: a :class:`FrameRenderer` of ``config`` to reuse (default: a new one).
+    """
+    out = Path(out)
+    renderer = FrameRenderer(config) if renderer is None else renderer
+    rendered = [renderer.render(out, k) for k in frames if not renderer.plan.finished(out, k)]
+    if frames_per_shard is not None:
+        _pack_shards(renderer.plan, out, frames, frames_per_shard)
+    return rendered
+
+
+def render_task(config: DatasetConfig, out: str, frames_per_shard: int | None,
+                frames: list[int]) -> tuple[dict[int, str], dict[int, str]]:
+    """A Ray task of ``generate`` (:func:`.distributed.run_on_ray`): :func:`render_chunk`,
+    frame by frame, an error stopping only its frame. Returns ``({frame: "rendered"}, {frame:
+    error message})``."""
+    renderer = FrameRenderer(config)
+    done: dict[int, str] = {}
+    failures: dict[int, str] = {}
+    for k in frames:
+        try:
+            for r in render_chunk(config, out, [k], renderer=renderer):
+                done[r] = "rendered"
+        except Exception as err:   # noqa: BLE001 - reported by frame, the others go on
+            failures[k] = distributed.describe_error(err)
+    if frames_per_shard is not None:
+        try:
+            _pack_shards(renderer.plan, Path(out), frames, frames_per_shard)
+        except Exception as err:   # noqa: BLE001 - the shard's frames are not finished
+            for k in frames:
+                failures.setdefault(k, distributed.describe_error(err))
+    return done, failures
+
+
+def _pack_shards(plan: _Plan, out: Path, frames: list[int], frames_per_shard: int) -> None:
+    """Write the WebDataset shards among those of ``frames`` whose frames are all finished and
+    which are not written yet."""
+    groups = shards.shard_groups(plan.config.frames, frames_per_shard)
+    for index in sorted({k // frames_per_shard for k in frames}):
+        group = groups[index]
+        if not (out / fmt.shard_file(index)).is_file() and \
+                all(plan.finished(out, k) for k in group):
+            shards.write_shard(out, index, group, plan.config.cameras)
 
 
 #: The size of one of the contact sheet's cells (pixels), and its columns.

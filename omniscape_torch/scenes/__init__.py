@@ -1,10 +1,13 @@
 """Built-in procedural scenes: the embedded default data source.
 
-``Town`` is a small procedural town ray-cast in torch from analytic primitives; it renders
-cubemaps (RGB, planar depth, CARLA's 13 labels) at any pose, and any camera's rays directly
-(the exact ground truth). See :mod:`omniscape_torch.scenes.town` for the world frame.
+``Town`` is a small procedural town of triangle meshes traced by Embree (:mod:`.mesh`) and
+shaded in C (:mod:`.native`, with a torch reference); it renders cubemaps (RGB, planar depth,
+CARLA's 13 labels) at any pose, only the faces and texels asked for, and any camera's rays
+directly (the exact ground truth), under CARLA's 14 weather presets and a few of its own, in
+three street layouts (:data:`LAYOUTS`), each with its ride (:mod:`.routes`). See
+:mod:`omniscape_torch.scenes.town` for the world frame.
 """
 
-from .town import CLASS_IDS, WEATHERS, Town, Weather
+from .town import CARLA_WEATHERS, CLASS_IDS, LAYOUTS, WEATHERS, Street, Town, Weather
 
-__all__ = ["CLASS_IDS", "Town", "WEATHERS", "Weather"]
+__all__ = ["CARLA_WEATHERS", "CLASS_IDS", "LAYOUTS", "Street", "Town", "WEATHERS", "Weather"]

@@ -1,68 +1,114 @@
-"""A small procedural town, ray-cast in torch from analytic primitives.
+"""A small procedural town of triangle meshes, traced by Embree and shaded in C (or torch).
 
 World frame (metres): x east, y down (gravity is +y, like the OpenCV camera's y), z north. The
-ground is the plane ``y = 0``; things above the ground have ``y < 0``. The road runs along z,
-centred on ``x = 0``: two driving lanes (``|x| < 3.5``, centre line dashed, lane edges solid),
-a parking strip on each side (``3.5 < |x| < 5.25``), sidewalks (``5.25 < |x| < 8.5``), and
-beyond them buildings, walls, fences and open lots (ground labelled ``Other``). The town spans
-``|z| < length / 2``; the ground and the road go on beyond it. A camera with identity rotation at
-``(0, -1.2, 0)`` stands on the centre line at eye height and looks north, along the road.
+ground is the plane ``y = 0``; things above the ground have ``y < 0``. Streets share one
+cross-section, ``across`` metres from their centre line: two driving lanes (``|across| < 3.5``,
+centre line dashed, lane edges solid, zebra crossings every 60 m), a parking strip on each side
+(``3.5 < |across| < 5.25``), sidewalks (``5.25 < |across| < 8.5``), and beyond them buildings,
+walls, fences and open lots (ground labelled ``Other``). Layouts (:data:`LAYOUTS`, ``layout=``):
 
-Primitives (no meshes): the ground plane, textured by world coordinates (road, lane markings,
-crossings, sidewalk, lots); axis-aligned boxes (buildings, walls, fences, vehicles, sign plates,
-bins); vertical cylinders with a top cap (poles, tree trunks, pedestrians' bodies); spheres (tree
-crowns, pedestrians' heads). Primitives are seen from outside: a ray starting inside one does not
-see it. Moving vehicles and pedestrians go straight along z at constant speed and wrap around
-the town's length (:meth:`Town.moving_objects`).
+1. main street: one street along z, centred on ``x = 0`` (the default);
+2. crossroads: the main street and a cross street along x, centred on ``z = 0``;
+3. blocks: two streets along z (``x = 0`` and ``x = 70``) and two along x (``z = -40`` and
+   ``z = 40``), a block between them.
+
+The town's objects line the streets over ``|z| < length / 2`` (and the cross streets' own
+extents); the ground and the roads go on beyond, to ``far + length`` metres. A camera with
+identity rotation at ``(0, -1.2, 0)`` stands on the main street's centre line at eye height and
+looks north, along the road.
+
+Geometry: the objects are primitives (axis-aligned boxes: buildings, walls, fences, vehicles,
+sign plates, bins; vertical cylinders with a top cap: poles, tree trunks, pedestrians' bodies;
+spheres: tree crowns, pedestrians' heads; ground rectangles: road, sidewalk, lots), turned into
+one triangle mesh (:mod:`.mesh`: 32-sided prisms, icospheres of 1280 triangles) in which every
+triangle knows its primitive, so its class and colour. Primitives are seen from outside: a ray
+that meets a triangle from behind (it started inside) goes on through it. Moving vehicles and
+pedestrians go straight along z at constant speed and wrap around the town's length
+(:meth:`Town.moving_objects`); the mesh at time ``t`` is traced by an Embree scene built for
+``t`` (the last one is kept).
 
 Outputs (:meth:`Town.render_rays`, :meth:`Town.render_cubemap`): RGB in ``[0, 1]``, the range
 (Euclidean distance along the ray; for the sky: ``town.far``, default 1000 m) or the cubemap's
 planar depth (along each face's axis; for the sky: ``town.far``, the far plane of a simulator's
-depth camera), and CARLA's 13 class ids (sky is ``Unlabeled``). Colour is
-``albedo(class, world point) * (ambient + sun * lambert) + emission``, then distance fog; the
-weather preset (:data:`WEATHERS`) changes light, colour and fog, never geometry or labels.
+depth camera), and CARLA's 13 class ids (sky is ``Unlabeled``; road markings are ``RoadLine``,
+painted on the road by world coordinates). Colour is
+``albedo(class, world point) * (ambient + sun * lambert * lit) + emission``, then distance fog,
+where ``lit`` is 0 when a shadow ray towards the sun (traced by Embree as well) meets anything;
+the weather preset (:data:`WEATHERS`) changes light, colour, wetness and fog, never geometry or
+labels.
 
-Exactness: the cubemap path culls primitives per tile of texels but computes every ray with the
-same element-wise operations as :meth:`Town.render_rays`, and uses no transcendental functions
-(only ``+ - * /``, ``sqrt``, comparisons, integer hashing), so ``render_rays`` of the cube's own
-texel rays (:meth:`Town.cubemap_rays`) equals ``render_cubemap`` bit for bit.
+Shading runs in C (:mod:`.native`, ``csrc/town_shade.c``) where a compiler builds it, else in
+torch (:meth:`Town._shade_reference`, the same operations in the same order: the same labels and
+depths, colours within a few float32 roundings, torch's ``sqrt`` not being correctly rounded on
+every CPU).
+
+Exactness: every ray is traced and shaded on its own (Embree's closest hit, which does not
+depend on the batch; then ``+ - * /``, ``sqrt``, comparisons and integer hashing, no
+transcendental functions and no reductions), so the result of a ray does not depend on the batch
+it is in, the chunking or the threads: ``render_rays`` of the cube's own texel rays
+(:meth:`Town.cubemap_rays`) equals ``render_cubemap`` bit for bit, and so do any two runs.
 """
 
 from __future__ import annotations
 
 import math
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
-from ..cubemap.faces import face_axes, face_intrinsics, face_rays
+from ..cubemap.faces import face_axes, face_rays
+from . import mesh as _mesh
+from . import native as _native
 
-__all__ = ["Town", "Weather", "WEATHERS", "CLASS_IDS"]
+__all__ = ["CARLA_WEATHERS", "CLASS_IDS", "LAYOUTS", "Street", "Town", "Weather", "WEATHERS",
+           "carla_weather"]
 
 CLASS_IDS = {name: i for i, name in enumerate(
     ("Unlabeled", "Building", "Fence", "Other", "Pedestrian", "Pole", "RoadLine", "Road",
      "Sidewalk", "Vegetation", "Vehicle", "Wall", "TrafficSign"))}
 _C = CLASS_IDS
 
-EPS = 1e-4  # minimum hit distance (m)
-_INF = float("inf")
-
-# Road cross-section (|x|, metres).
+# Street cross-section (|across|, metres).
 LANE_EDGE = 3.5
 ROAD_HALF = 5.25
 SIDEWALK_HALF = 8.5
 LINE_HALF = 0.08
+#: Half-width of the band around a crossing street kept free of a street's buildings, metres.
+CROSSING_BAND = SIDEWALK_HALF + 1.0
 
+#: Tessellation: sides of a cylinder, subdivisions of an icosphere (1280 triangles).
+CYLINDER_SEGMENTS = 32
+SPHERE_SUBDIVISIONS = 3
+
+#: A shadow ray starts ``SHADOW_BIAS + SHADOW_BIAS_PER_M * range`` metres off the surface,
+#: along its normal: far above the rounding of the hit point (about ``1e-7 * range``).
+SHADOW_BIAS, SHADOW_BIAS_PER_M = 1e-3, 1e-5
+#: A ray that meets a triangle from behind goes on from this far past it (metres), at most
+#: ``MAX_PASSES`` times.
+PASS_STEP, MAX_PASSES = 1e-4, 4
+#: Rays traced and shaded per task (the tasks run on ``threads`` threads).
+CHUNK = 16384
+
+
+# --------------------------------------------------------------------------------------------
+# Weather
+# --------------------------------------------------------------------------------------------
 
 @dataclass(frozen=True)
 class Weather:
-    """Light, sky and fog of a weather / time-of-day preset. Colours are linear RGB in [0, 1]
-    (emission and sun may exceed 1; the result is clamped).
+    """Light, sky, wetness and fog of a weather / time-of-day preset. Colours are linear RGB in
+    [0, 1] (emission and sun may exceed 1; the result is clamped).
 
     ``sun_elevation`` and ``sun_azimuth`` are in degrees (azimuth from north, z, towards east,
     x). ``fog_density`` is per metre: the fog weight is ``1 - exp(-fog_density * range)``.
-    ``lamps``: street-lamp intensity (0: off). ``windows``: emission of lit windows."""
+    ``lamps``: street-lamp intensity (0: off). ``windows``: emission of lit windows.
+    ``wetness`` (0..1): puddles on the ground (the share of the road and sidewalk they cover,
+    mirroring the sky) and darker, wet surfaces; ``rain`` (0..1): falling rain, which darkens
+    and greys the scene (its haze is in ``fog_density``)."""
 
     sun_elevation: float
     sun_azimuth: float
@@ -74,16 +120,85 @@ class Weather:
     fog_density: float
     lamps: float = 0.0
     windows: float = 0.0
+    wetness: float = 0.0
+    rain: float = 0.0
 
     def sun_direction(self) -> tuple[float, float, float]:
         """Unit vector towards the sun in the world frame (y down, so up is -y)."""
         e, a = math.radians(self.sun_elevation), math.radians(self.sun_azimuth)
         return (math.sin(a) * math.cos(e), -math.sin(e), math.cos(a) * math.cos(e))
 
+    def surface_factor(self) -> float:
+        """Albedo factor of wet surfaces: ``1 - 0.35 rain - 0.3 wetness``."""
+        return 1.0 - 0.35 * self.rain - 0.3 * self.wetness
 
+    def sky_factor(self) -> float:
+        """Brightness of the sky under rain: ``1 - 0.45 rain``."""
+        return 1.0 - 0.45 * self.rain
+
+
+#: CARLA's 14 weather presets (``carla.WeatherParameters.ClearNoon`` etc., CARLA 0.9.x), with
+#: the parameters this town uses: cloudiness, precipitation, precipitation_deposits and
+#: fog_density in percent, sun_altitude_angle in degrees (sun_azimuth_angle is -1 in all of
+#: them: the map's default, here 150 deg).
+CARLA_WEATHERS: dict[str, dict[str, float]] = {
+    name: dict(zip(("cloudiness", "precipitation", "precipitation_deposits",
+                    "sun_altitude_angle", "fog_density"), values))
+    for name, values in {
+        "ClearNoon": (5, 0, 0, 45, 2), "CloudyNoon": (60, 0, 0, 45, 3),
+        "WetNoon": (5, 0, 50, 45, 3), "WetCloudyNoon": (60, 0, 50, 45, 3),
+        "MidRainyNoon": (60, 60, 60, 45, 3), "HardRainNoon": (100, 100, 90, 45, 7),
+        "SoftRainNoon": (20, 30, 50, 45, 3),
+        "ClearSunset": (5, 0, 0, 15, 2), "CloudySunset": (60, 0, 0, 15, 3),
+        "WetSunset": (5, 0, 50, 15, 2), "WetCloudySunset": (60, 0, 50, 15, 2),
+        "MidRainSunset": (60, 60, 60, 15, 3), "HardRainSunset": (100, 100, 90, 15, 7),
+        "SoftRainSunset": (20, 30, 50, 15, 2),
+    }.items()}
+
+
+def _mix(a, b, w: float) -> tuple[float, float, float]:
+    return tuple(float(x + (y - x) * w) for x, y in zip(a, b))
+
+
+def _scale(a, s: float) -> tuple[float, float, float]:
+    return tuple(float(x * s) for x in a)
+
+
+def carla_weather(cloudiness: float, precipitation: float, precipitation_deposits: float,
+                  sun_altitude_angle: float, fog_density: float, *,
+                  sun_azimuth_angle: float = 150.0) -> Weather:
+    """The town's :class:`Weather` for CARLA's weather parameters (percent and degrees, as
+    ``carla.WeatherParameters``): the sun's colour reddens towards the horizon (noon white at
+    45 deg and above, orange at 15 deg) and dims under clouds (by up to 85 %) and rain; the
+    ambient light and the sky grey with clouds; fog is ``0.00075 * fog_density`` per metre plus
+    ``0.012`` at full rain (the rain's haze); ``wetness`` is the deposits' share, ``rain`` the
+    precipitation's (:meth:`Weather.surface_factor`, :meth:`Weather.sky_factor`)."""
+    c, p, q = cloudiness / 100.0, precipitation / 100.0, precipitation_deposits / 100.0
+    low = min(1.0, max(0.0, (45.0 - sun_altitude_angle) / 30.0))  # 0 at noon, 1 at 15 deg
+    sun = _mix((1.0, 0.96, 0.88), (1.0, 0.55, 0.25), low)
+    sun = _scale(sun, (1.0 - 0.85 * c) * (1.0 - 0.5 * p))
+    ambient = _mix((0.30, 0.34, 0.42), (0.26, 0.22, 0.26), low)
+    ambient = _scale(_mix(ambient, (0.42, 0.43, 0.46), 0.8 * c), 1.0 + 0.5 * c - 0.35 * p)
+    zenith = _mix((0.22, 0.42, 0.85), (0.18, 0.24, 0.52), low)
+    horizon = _mix((0.68, 0.80, 0.95), (1.0, 0.58, 0.32), low)
+    grey = _scale((0.62, 0.63, 0.66), 1.0 - 0.35 * p - 0.2 * low)
+    zenith, horizon = _mix(zenith, grey, 0.9 * c), _mix(horizon, grey, 0.85 * c)
+    fog = _mix(_mix((0.72, 0.80, 0.92), (0.88, 0.62, 0.46), low), grey, max(c, p))
+    return Weather(float(max(sun_altitude_angle, 1.0)), float(sun_azimuth_angle), sun, ambient,
+                   zenith, horizon, fog, 0.00075 * fog_density + 0.012 * p,
+                   wetness=float(q), rain=float(p))
+
+
+def _snake(name: str) -> str:
+    return "".join("_" + ch.lower() if ch.isupper() and i else ch.lower()
+                   for i, ch in enumerate(name))
+
+
+#: The weather presets: CARLA's 14 (:data:`CARLA_WEATHERS`, in snake case: ``clear_noon``,
+#: ``cloudy_noon``, ..., ``soft_rain_sunset``) and four of this town's own: ``overcast``,
+#: ``sunset`` (a low, red sun, 6 deg), ``night`` (street lamps and lit windows) and ``fog``.
 WEATHERS: dict[str, Weather] = {
-    "clear_noon": Weather(65.0, 150.0, (1.0, 0.96, 0.88), (0.30, 0.34, 0.42),
-                          (0.22, 0.42, 0.85), (0.68, 0.80, 0.95), (0.72, 0.80, 0.92), 0.0015),
+    **{_snake(name): carla_weather(**p) for name, p in CARLA_WEATHERS.items()},
     "overcast": Weather(50.0, 150.0, (0.18, 0.18, 0.19), (0.62, 0.63, 0.66),
                         (0.52, 0.54, 0.58), (0.74, 0.75, 0.77), (0.70, 0.71, 0.73), 0.010),
     "sunset": Weather(6.0, 260.0, (1.0, 0.52, 0.22), (0.28, 0.22, 0.26),
@@ -101,57 +216,118 @@ def _get_weather(weather: str | Weather) -> Weather:
         return weather
     try:
         return WEATHERS[weather]
-    except KeyError:
-        raise ValueError(f"unknown weather {weather!r}; presets: {sorted(WEATHERS)}") from None
+    except (KeyError, TypeError):
+        raise ValueError(f"weather: unknown preset {weather!r}; presets: "
+                         f"{', '.join(WEATHERS)}") from None
 
 
 # --------------------------------------------------------------------------------------------
-# Element-wise intersection kernels. Ray tensors are (..., R, 1), primitive tensors (..., 1, K)
-# or (..., K); all broadcast to (..., R, K). Only + - * / sqrt min max and comparisons.
+# Layouts
+# --------------------------------------------------------------------------------------------
 
-def _box_t(o, inv, lo, hi):
-    ox, oy, oz = o
-    ix, iy, iz = inv
-    tx1, tx2 = (lo[0] - ox) * ix, (hi[0] - ox) * ix
-    ty1, ty2 = (lo[1] - oy) * iy, (hi[1] - oy) * iy
-    tz1, tz2 = (lo[2] - oz) * iz, (hi[2] - oz) * iz
-    tnear = torch.maximum(torch.maximum(torch.minimum(tx1, tx2), torch.minimum(ty1, ty2)),
-                          torch.minimum(tz1, tz2))
-    tfar = torch.minimum(torch.minimum(torch.maximum(tx1, tx2), torch.maximum(ty1, ty2)),
-                         torch.maximum(tz1, tz2))
-    hit = (tfar >= tnear) & (tnear > EPS)
-    return torch.where(hit, tnear, _INF)
+@dataclass(frozen=True)
+class Street:
+    """A straight street of the town's cross-section, endless on the ground.
 
+    ``axis``: ``"z"`` (it runs north-south, its centre line at ``x = offset``) or ``"x"``
+    (east-west, at ``z = offset``). ``frontage``: the interval along the street (metres) lined
+    with buildings, lamps, trees and parked vehicles (less the crossing streets' bands)."""
 
-def _cyl_t(o, d, iy, a_xz, cx, cz, r, ytop, ybot):
-    """Vertical cylinder |(x, z) - (cx, cz)| = r, ytop <= y <= ybot, with a top cap at ytop.
-    Returns (t, cap): cap is True where the cap is hit first."""
-    ox, oy, oz = o
-    dx, dy, dz = d
-    ocx, ocz = ox - cx, oz - cz
-    r2 = r * r
-    b = dx * ocx + dz * ocz
-    c = ocx * ocx + ocz * ocz - r2
-    disc = b * b - a_xz * c
-    ts = (-b - torch.sqrt(torch.clamp(disc, min=0.0))) / a_xz
-    ys = oy + ts * dy
-    side = (disc >= 0) & (ts > EPS) & (ys >= ytop) & (ys <= ybot)
-    ts = torch.where(side, ts, _INF)
-    tc = (ytop - oy) * iy
-    px, pz = ocx + tc * dx, ocz + tc * dz
-    cap = (tc > EPS) & (px * px + pz * pz <= r2)
-    tc = torch.where(cap, tc, _INF)
-    return torch.minimum(ts, tc), tc < ts
+    axis: str
+    offset: float
+    frontage: tuple[float, float]
+
+    def world(self, across, along) -> tuple:
+        """World ``(x, z)`` of a point ``across`` metres from the centre line (towards +x for
+        a z street, +z for an x street) and ``along`` metres along it."""
+        if self.axis == "z":
+            return self.offset + across, along
+        return along, self.offset + across
 
 
-def _sph_t(o, d, cen, r):
-    ocx, ocy, ocz = o[0] - cen[0], o[1] - cen[1], o[2] - cen[2]
-    b = d[0] * ocx + d[1] * ocy + d[2] * ocz
-    c = ocx * ocx + ocy * ocy + ocz * ocz - r * r
-    disc = b * b - c
-    t = -b - torch.sqrt(torch.clamp(disc, min=0.0))
-    return torch.where((disc >= 0) & (t > EPS), t, _INF)
+#: The town layouts, by number: a name and a description.
+LAYOUTS = {1: "main street", 2: "crossroads", 3: "blocks"}
 
+
+def layout_streets(layout: int, length: float) -> tuple[Street, ...]:
+    """The streets of ``layout`` (:data:`LAYOUTS`) for a town of ``length`` metres."""
+    h = length / 2
+    if layout == 1:
+        return (Street("z", 0.0, (-h, h)),)
+    if layout == 2:
+        return (Street("z", 0.0, (-h, h)), Street("x", 0.0, (-h, h)))
+    if layout == 3:
+        return (Street("z", 0.0, (-h, h)), Street("z", 70.0, (-h, h)),
+                Street("x", -40.0, (-h / 2, 70.0 + h / 2)),
+                Street("x", 40.0, (-h / 2, 70.0 + h / 2)))
+    raise ValueError(f"layout: expected one of {sorted(LAYOUTS)}, got {layout!r}")
+
+
+def _bands(street: Street, streets) -> list[tuple[float, float]]:
+    """Intervals along ``street`` crossed by the other streets (with their sidewalks)."""
+    return [(s.offset - CROSSING_BAND, s.offset + CROSSING_BAND) for s in streets
+            if s.axis != street.axis]
+
+
+def _free(a: float, b: float, bands) -> list[tuple[float, float]]:
+    """``[a, b]`` less the bands, as a list of intervals (in order)."""
+    out = [(a, b)]
+    for lo, hi in sorted(bands):
+        nxt = []
+        for x, y in out:
+            if hi <= x or lo >= y:
+                nxt.append((x, y))
+                continue
+            if lo > x:
+                nxt.append((x, lo))
+            if hi < y:
+                nxt.append((hi, y))
+        out = nxt
+    return out
+
+
+def _in_bands(x: float, bands, margin: float = 0.0) -> bool:
+    return any(lo - margin < x < hi + margin for lo, hi in bands)
+
+
+def _ground_cells(streets, extent: float):
+    """The ground as axis-aligned rectangles of one class each: ``(x0, x1, z0, z1, label,
+    paint axis, paint offset)``, the paint axis ``"z"`` or ``"x"`` on a single street's road
+    (where its markings are painted), ``""`` elsewhere (sidewalks, lots, crossings)."""
+    xs, zs = {-extent, extent}, {-extent, extent}
+    for s in streets:
+        cuts = {s.offset + k * w for k in (-1, 1) for w in (ROAD_HALF, SIDEWALK_HALF)}
+        (xs if s.axis == "z" else zs).update(cuts)
+    xs, zs = sorted(xs), sorted(zs)
+    cells = []
+    for x0, x1 in zip(xs[:-1], xs[1:]):
+        # merge the runs of equal cells along z
+        run = None
+        for z0, z1 in zip(zs[:-1], zs[1:]):
+            cx, cz = (x0 + x1) / 2, (z0 + z1) / 2
+            roads = [s for s in streets
+                     if abs((cx if s.axis == "z" else cz) - s.offset) < ROAD_HALF]
+            walks = [s for s in streets
+                     if abs((cx if s.axis == "z" else cz) - s.offset) < SIDEWALK_HALF]
+            if roads:
+                label = _C["Road"]
+                axis, off = (roads[0].axis, roads[0].offset) if len(roads) == 1 else ("", 0.0)
+            else:
+                label, axis, off = (_C["Sidewalk"] if walks else _C["Other"]), "", 0.0
+            key = (label, axis, off)
+            if run is not None and run[1] == key:
+                run = (run[0], key, z1)
+            else:
+                if run is not None:
+                    cells.append((x0, x1, run[0], run[2]) + run[1])
+                run = (z0, key, z1)
+        cells.append((x0, x1, run[0], run[2]) + run[1])
+    return cells
+
+
+# --------------------------------------------------------------------------------------------
+# Procedural texture helpers (integer hashing and floor only: exact on every code path)
+# --------------------------------------------------------------------------------------------
 
 def _hash(*ints: Tensor, salt: int = 0) -> Tensor:
     """Integer hash of int64 tensors -> float in [0, 1)."""
@@ -171,133 +347,261 @@ def _frac(x: Tensor) -> Tensor:
     return x - torch.floor(x)
 
 
+def _noise(x: Tensor, y: Tensor, z: Tensor, scale: float, salt: int) -> Tensor:
+    """Value noise in [0, 1): a hash of the cell of ``(x, y, z)`` on a grid of ``1 / scale``
+    metres."""
+    h = (_cell(x, scale) * 73856093) ^ (_cell(y, scale) * 19349663) ^ \
+        (_cell(z, scale) * 83492791) ^ (0x9E3779B9 + salt * 0x632BE5AB)
+    h = (h * 0x45D9F3B) & 0xFFFFFFFF
+    h = h ^ (h >> 16)
+    h = (h * 0x45D9F3B) & 0xFFFFFFFF
+    h = h ^ (h >> 16)
+    return (h & 0xFFFF).to(torch.float32) * (1.0 / 65536.0)
+
+
+def _smooth_noise(x: Tensor, z: Tensor, scale: float, salt: int) -> Tensor:
+    """Smooth value noise in [0, 1) over the ground: the hashes of the four corners of the cell
+    of ``(x, z)`` on a grid of ``1 / scale`` metres, blended with smoothstep weights."""
+    sx, sz = x * scale, z * scale
+    ix, iz = torch.floor(sx), torch.floor(sz)
+    fx, fz = sx - ix, sz - iz
+    wx, wz = fx * fx * (3.0 - 2.0 * fx), fz * fz * (3.0 - 2.0 * fz)
+    ix, iz = ix.to(torch.int64), iz.to(torch.int64)
+    zero = torch.zeros_like(ix)
+    h00, h10 = _hash(ix, zero, iz, salt=salt), _hash(ix + 1, zero, iz, salt=salt)
+    h01, h11 = _hash(ix, zero, iz + 1, salt=salt), _hash(ix + 1, zero, iz + 1, salt=salt)
+    a = h00 + (h10 - h00) * wx
+    b = h01 + (h11 - h01) * wx
+    return a + (b - a) * wz
+
+
+def _column(*values: float) -> Tensor:
+    """A colour as a ``(3, 1)`` column, to broadcast over ``(3, N)`` rows."""
+    return torch.tensor(values, dtype=torch.float32).reshape(-1, 1)
+
+
+def _dot(a: Tensor, b) -> Tensor:
+    """Row-wise dot product of ``(N, 3)`` with ``(N, 3)`` or ``(3,)``, as explicit sums (the
+    same rounding whatever the batch)."""
+    return a[:, 0] * b[..., 0] + a[:, 1] * b[..., 1] + a[:, 2] * b[..., 2]
+
+
+def _pointer(a: np.ndarray) -> int:
+    """The address of a C-contiguous array's data, for ctypes."""
+    assert a.flags.c_contiguous
+    return a.ctypes.data
+
+
+def _native_weather(w: Weather, far: float) -> np.ndarray:
+    """The weather's numbers as the C loops read them (``W_*`` in ``csrc/town_shade.c``),
+    float32 as torch rounds Python numbers in :meth:`Town._shade_reference`."""
+    values = [*w.sun_direction(), *w.sun_colour, *w.ambient, *w.sky_zenith, *w.sky_horizon,
+              *w.fog_colour, w.fog_density / 256.0, w.lamps * 30.0, w.windows,
+              0.75 * w.wetness,
+              w.surface_factor() if (w.rain > 0 or w.wetness > 0) else 1.0,
+              w.sky_factor() if w.rain > 0 else 1.0, min(1.0, w.fog_density * 40.0), far]
+    return np.array(values, dtype=np.float32)
+
+
+# Ground colours by class (the road markings' RoadLine, the lots' Other).
+_GROUND_COLOUR = torch.zeros(13, 3)
+_GROUND_COLOUR[_C["Road"]] = torch.tensor([0.26, 0.26, 0.27])
+_GROUND_COLOUR[_C["RoadLine"]] = torch.tensor([0.85, 0.85, 0.8])
+_GROUND_COLOUR[_C["Sidewalk"]] = torch.tensor([0.62, 0.60, 0.56])
+_GROUND_COLOUR[_C["Other"]] = torch.tensor([0.42, 0.38, 0.28])
+
+# Part kinds.
+_GROUND, _BOX, _CYLINDER, _SPHERE = 0, 1, 2, 3
+
+
 class Town:
     """A procedural town, deterministic by ``seed`` (a ``torch.Generator``; no global RNG).
 
     Args:
         seed: the random layout (buildings, gaps, parked cars, trees, colours, movers).
+        layout: the street plan, a key of :data:`LAYOUTS` (1: main street, 2: crossroads,
+            3: blocks).
         length: extent of the town along z (metres), centred on ``z = 0``.
-        far: range (and planar depth) reported for the sky, metres.
-        tile: texels per side of the tiles that :meth:`render_cubemap` culls primitives over.
-        groups: :meth:`render_cubemap` traces its tiles in this many groups of similar
-            candidate counts (speed only; the result does not depend on it).
+        far: range (and planar depth) reported for the sky, metres; nothing farther is seen.
+        threads: threads that trace and shade (default: ``torch.get_num_threads()``); the
+            result does not depend on it.
 
     Attributes hold the primitives as float32 tensors: ``boxes_lo/boxes_hi (Nb, 3)``,
     ``cyl (Nc, 5)`` = (cx, cz, r, ytop, ybot), ``sph (Ns, 4)`` = (cx, cy, cz, r), each with
     ``*_label`` (int64 class ids), ``*_colour (N, 3)`` albedo and ``*_mover`` (index into the
     movers, -1 for static). ``movers`` is ``(M, 3)`` = (z0, speed m/s, kind 0 vehicle / 1
-    pedestrian).
+    pedestrian). ``streets`` the layout's :class:`Street` list; ``mesh`` the triangles at
+    ``t = 0`` (:class:`.mesh.Mesh`).
     """
 
-    def __init__(self, seed: int = 0, *, length: float = 160.0, far: float = 1000.0,
-                 tile: int = 16, groups: int = 8):
+    def __init__(self, seed: int = 0, *, layout: int = 1, length: float = 160.0,
+                 far: float = 1000.0, threads: int | None = None):
+        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+            raise ValueError(f"seed: expected an integer >= 0, got {seed!r}")
+        if isinstance(layout, bool) or layout not in LAYOUTS:
+            raise ValueError(f"layout: expected one of {sorted(LAYOUTS)}, got {layout!r}")
+        if not (isinstance(length, (int, float)) and 20 <= length <= 2000):
+            raise ValueError(f"length: expected 20 to 2000 metres, got {length!r}")
+        if not (isinstance(far, (int, float)) and far > 0 and math.isfinite(far)):
+            raise ValueError(f"far: expected a positive number of metres, got {far!r}")
+        if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int)
+                                    or threads < 1):
+            raise ValueError(f"threads: expected a positive integer or None, got {threads!r}")
         self.seed = int(seed)
+        self.layout = int(layout)
         self.length = float(length)
         self.far = float(far)
-        self.tile = int(tile)
-        self.groups = int(groups)
+        self.threads = threads
+        self.streets = layout_streets(self.layout, self.length)
         g = torch.Generator().manual_seed(self.seed)
         self._build(g)
+        self._build_mesh()
+        self._lock = threading.Lock()
+        self._scene_cache: tuple[float, _mesh.MeshScene] | None = None
+        self._rays_cache: dict[int, Tensor] = {}
+
+    def __getstate__(self):
+        state = self.__dict__.copy()
+        state["_lock"], state["_scene_cache"], state["_rays_cache"] = None, None, {}
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._lock = threading.Lock()
 
     # ---------------------------------------------------------------- layout
     def _build(self, g: torch.Generator) -> None:
         def U(a: float, b: float) -> float:
             return a + (b - a) * float(torch.rand((), generator=g, dtype=torch.float64))
 
-        L2 = self.length / 2
         boxes, cyls, sphs, movers, lamps = [], [], [], [], []
 
-        def box(lo, hi, label, colour, mover=-1):
-            boxes.append((lo, hi, label, colour, mover))
+        def place_box(st, a0, a1, y0, y1, l0, l1, label, colour, mover=-1):
+            (x0, z0), (x1, z1) = st.world(a0, l0), st.world(a1, l1)
+            xa, xb = sorted((x0, x1))
+            za, zb = sorted((z0, z1))
+            boxes.append(((xa, y0, za), (xb, y1, zb), label, colour, mover))
 
-        def vehicle(xc, zc, colour, mover=-1, flip=1.0):
-            box((xc - 0.85, -1.05, zc - 2.15), (xc + 0.85, -0.32, zc + 2.15), _C["Vehicle"],
-                colour, mover)
-            z0, z1 = sorted((zc - 1.2 * flip, zc + 0.9 * flip))
-            box((xc - 0.75, -1.5, z0), (xc + 0.75, -1.05, z1), _C["Vehicle"],
-                (0.10, 0.12, 0.15), mover)
+        def place_cyl(st, a, l, r, ytop, label, colour, mover=-1):
+            x, z = st.world(a, l)
+            cyls.append((x, z, r, ytop, 0.0, label, colour, mover))
 
-        for s in (-1.0, 1.0):
-            # buildings along the block, gaps filled with walls, fences or left open
-            z = -L2
-            near_done = False
-            while z < L2 - 6:
-                ln = min(U(8, 20), L2 - z)
-                x0, depth, h = 9.0 + U(0, 1.5), U(8, 16), U(6, 28)
-                grey = U(0.35, 0.75)
-                col = (grey * U(0.9, 1.1), grey * U(0.85, 1.0), grey * U(0.75, 0.95))
-                xa, xb = sorted((s * x0, s * (x0 + depth)))
-                box((xa, -h, z), (xb, 0.0, z + ln), _C["Building"], col)
-                z += ln
-                gap = U(2, 7)
-                kind = U(0, 1)
-                if not near_done and z > -4.0:
-                    # the first gap ahead of the origin: a wall (east) or a fence (west), so
-                    # that every class shows from the default pose
-                    near_done, gap, kind = True, max(gap, 4.0), (0.0 if s > 0 else 0.5)
-                if z + gap < L2:
-                    if kind < 0.4:
-                        xa, xb = sorted((s * 9.0, s * 9.35))
-                        box((xa, -U(1.8, 3.0), z), (xb, 0.0, z + gap), _C["Wall"],
-                            (U(0.45, 0.6), U(0.25, 0.35), U(0.2, 0.28)))
-                    elif kind < 0.8:
-                        xa, xb = sorted((s * 8.9, s * 8.96))
-                        box((xa, -1.5, z), (xb, 0.0, z + gap), _C["Fence"],
-                            (U(0.5, 0.7), U(0.45, 0.6), U(0.35, 0.45)))
-                z += gap
-            # street lamps (poles), staggered
-            zl = -L2 + 5 + (5 if s > 0 else 0)
-            while zl < L2:
-                cyls.append((s * 7.9, zl, 0.11, -6.5, 0.0, _C["Pole"], (0.45, 0.46, 0.48), -1))
-                lamps.append((s * 7.9, -6.6, zl))
-                zl += 20
-            # trees on the sidewalk
-            zt = -L2 + 3
-            while zt < L2 - 2:
-                if U(0, 1) < 0.7:
-                    r = U(1.1, 1.9)
-                    cyls.append((s * 6.4, zt, 0.18, -2.8, 0.0, _C["Vegetation"],
-                                 (0.30, 0.20, 0.12), -1))
-                    sphs.append((s * 6.4, -(2.8 + 0.7 * r), zt, r, _C["Vegetation"],
-                                 (0.16 * U(0.8, 1.2), 0.36 * U(0.8, 1.2), 0.10), -1))
-                zt += 12
-            # bins (Other) on the sidewalk
-            for _ in range(4):
-                zb = U(-L2 + 4, L2 - 4)
-                xa, xb = sorted((s * 7.3, s * 7.9))
-                box((xa, -1.0, zb), (xb, 0.0, zb + 0.6), _C["Other"],
-                    (0.15, U(0.25, 0.4), 0.18))
-            # parked vehicles on the parking strip
-            zp = -L2 + 3
-            while zp < L2 - 3:
-                if U(0, 1) < 0.45:
-                    vehicle(s * 4.4, zp, (U(0.1, 0.9), U(0.1, 0.9), U(0.1, 0.9)))
-                zp += 6.0
-        # traffic signs: pole + plate facing the traffic; the first is near the origin
+        def place_sph(st, a, y, l, r, label, colour, mover=-1):
+            x, z = st.world(a, l)
+            sphs.append((x, y, z, r, label, colour, mover))
+
+        def vehicle(st, ac, lc, colour, mover=-1, flip=1.0):
+            place_box(st, ac - 0.85, ac + 0.85, -1.05, -0.32, lc - 2.15, lc + 2.15,
+                      _C["Vehicle"], colour, mover)
+            l0, l1 = sorted((lc - 1.2 * flip, lc + 0.9 * flip))
+            place_box(st, ac - 0.75, ac + 0.75, -1.5, -1.05, l0, l1, _C["Vehicle"],
+                      (0.10, 0.12, 0.15), mover)
+
+        for si, st in enumerate(self.streets):
+            bands = _bands(st, self.streets)
+            lo_f, hi_f = st.frontage
+            for s in (-1.0, 1.0):
+                # buildings along the block, gaps filled with walls, fences or left open;
+                # the first gap ahead of the origin on the main street is a wall (east) or a
+                # fence (west), so that every class shows from the default pose
+                near_done = si > 0
+                for a, b in _free(lo_f, hi_f, bands):
+                    z = a
+                    while z < b - 6:
+                        ln = min(U(8, 20), b - z)
+                        x0, depth, h = 9.0 + U(0, 1.5), U(8, 16), U(6, 28)
+                        grey = U(0.35, 0.75)
+                        col = (grey * U(0.9, 1.1), grey * U(0.85, 1.0), grey * U(0.75, 0.95))
+                        place_box(st, s * x0, s * (x0 + depth), -h, 0.0, z, z + ln,
+                                  _C["Building"], col)
+                        z += ln
+                        gap = U(2, 7)
+                        kind = U(0, 1)
+                        if not near_done and z > -4.0:
+                            near_done, gap, kind = True, max(gap, 4.0), (0.0 if s > 0 else 0.5)
+                        if z + gap < b:
+                            if kind < 0.4:
+                                place_box(st, s * 9.0, s * 9.35, -U(1.8, 3.0), 0.0, z, z + gap,
+                                          _C["Wall"], (U(0.45, 0.6), U(0.25, 0.35),
+                                                       U(0.2, 0.28)))
+                            elif kind < 0.8:
+                                place_box(st, s * 8.9, s * 8.96, -1.5, 0.0, z, z + gap,
+                                          _C["Fence"], (U(0.5, 0.7), U(0.45, 0.6),
+                                                        U(0.35, 0.45)))
+                        z += gap
+                # street lamps (poles), staggered
+                zl = lo_f + 5 + (5 if s > 0 else 0)
+                while zl < hi_f:
+                    if not _in_bands(zl, bands):
+                        place_cyl(st, s * 7.9, zl, 0.11, -6.5, _C["Pole"], (0.45, 0.46, 0.48))
+                        x, z = st.world(s * 7.9, zl)
+                        lamps.append((x, -6.6, z))
+                    zl += 20
+                # trees on the sidewalk
+                zt = lo_f + 3
+                while zt < hi_f - 2:
+                    if U(0, 1) < 0.7:
+                        r = U(1.1, 1.9)
+                        crown = (0.16 * U(0.8, 1.2), 0.36 * U(0.8, 1.2), 0.10)
+                        if not _in_bands(zt, bands, r):
+                            place_cyl(st, s * 6.4, zt, 0.18, -2.8, _C["Vegetation"],
+                                      (0.30, 0.20, 0.12))
+                            place_sph(st, s * 6.4, -(2.8 + 0.7 * r), zt, r, _C["Vegetation"],
+                                      crown)
+                    zt += 12
+                # bins (Other) on the sidewalk
+                for _ in range(4):
+                    zb = U(lo_f + 4, hi_f - 4)
+                    colour = (0.15, U(0.25, 0.4), 0.18)
+                    if not _in_bands(zb, bands, 0.6):
+                        place_box(st, s * 7.3, s * 7.9, -1.0, 0.0, zb, zb + 0.6, _C["Other"],
+                                  colour)
+                # parked vehicles on the parking strip
+                zp = lo_f + 3
+                while zp < hi_f - 3:
+                    if U(0, 1) < 0.45:
+                        colour = (U(0.1, 0.9), U(0.1, 0.9), U(0.1, 0.9))
+                        if not _in_bands(zp, bands, 2.5):
+                            vehicle(st, s * 4.4, zp, colour)
+                    zp += 6.0
+        # traffic signs on the main street: pole + plate facing the traffic; the first is near
+        # the origin (moved out of a crossing street's band)
+        main = self.streets[0]
+        bands = _bands(main, self.streets)
         for i, (s, zs) in enumerate([(1.0, 14.0), (-1.0, -22.0), (1.0, U(30, 70)),
                                      (-1.0, U(-70, -30))]):
+            for lo, hi in bands:
+                if lo - 1 < zs < hi + 1:
+                    zs = hi + 2 if zs > (lo + hi) / 2 else lo - 2
             x = s * 5.6
-            cyls.append((x, zs, 0.05, -2.9, 0.0, _C["Pole"], (0.55, 0.55, 0.57), -1))
+            place_cyl(main, x, zs, 0.05, -2.9, _C["Pole"], (0.55, 0.55, 0.57))
             col = [(0.1, 0.25, 0.7), (0.75, 0.1, 0.1), (0.9, 0.75, 0.1)][i % 3]
             zf = zs - 0.06 if s > 0 else zs + 0.02
-            box((x - 0.35, -2.95, zf), (x + 0.35, -2.25, zf + 0.04), _C["TrafficSign"], col)
-        # moving vehicles: northbound in the east lane, southbound in the west lane
-        for i in range(6):
-            s = 1.0 if i % 2 == 0 else -1.0
-            z0 = (-30.0 if i == 0 else U(-L2, L2))
-            speed = s * U(6, 12)
-            movers.append((z0, speed, 0.0))
-            vehicle(s * 1.75, z0, (U(0.1, 0.9), U(0.1, 0.9), U(0.1, 0.9)), len(movers) - 1, s)
-        # pedestrians on the sidewalks; the first is near the origin
-        for i in range(8):
-            s = 1.0 if i % 2 == 0 else -1.0
-            z0 = 7.0 if i == 0 else U(-L2, L2)
-            speed = U(-1.6, 1.6)
-            movers.append((z0, speed, 1.0))
-            x = s * U(6.9, 7.5)
-            cyls.append((x, z0, 0.22, -1.45, 0.0, _C["Pedestrian"],
-                         (U(0.1, 0.8), U(0.1, 0.8), U(0.1, 0.8)), len(movers) - 1))
-            sphs.append((x, -1.6, z0, 0.14, _C["Pedestrian"], (0.8, 0.6, 0.48), len(movers) - 1))
+            place_box(main, x - 0.35, x + 0.35, -2.95, -2.25, zf, zf + 0.04,
+                      _C["TrafficSign"], col)
+        # movers on every north-south street: vehicles northbound in the east lane,
+        # southbound in the west lane; pedestrians on the sidewalks (the first near the origin)
+        L2 = self.length / 2
+        for st in self.streets:
+            if st.axis != "z":
+                continue
+            for i in range(6):
+                s = 1.0 if i % 2 == 0 else -1.0
+                z0 = (-30.0 if i == 0 else U(-L2, L2))
+                speed = s * U(6, 12)
+                movers.append((z0, speed, 0.0))
+                vehicle(st, s * 1.75, z0, (U(0.1, 0.9), U(0.1, 0.9), U(0.1, 0.9)),
+                        len(movers) - 1, s)
+            for i in range(8):
+                s = 1.0 if i % 2 == 0 else -1.0
+                z0 = 7.0 if i == 0 else U(-L2, L2)
+                speed = U(-1.6, 1.6)
+                movers.append((z0, speed, 1.0))
+                a = s * U(6.9, 7.5)
+                place_cyl(st, a, z0, 0.22, -1.45, _C["Pedestrian"],
+                          (U(0.1, 0.8), U(0.1, 0.8), U(0.1, 0.8)), len(movers) - 1)
+                place_sph(st, a, -1.6, z0, 0.14, _C["Pedestrian"], (0.8, 0.6, 0.48),
+                          len(movers) - 1)
 
         f32 = torch.float32
         self.boxes_lo = torch.tensor([b[0] for b in boxes], dtype=f32)
@@ -313,8 +617,60 @@ class Town:
         self.sph_label = torch.tensor([c[4] for c in sphs], dtype=torch.int64)
         self.sph_colour = torch.tensor([c[5] for c in sphs], dtype=f32)
         self.sph_mover = torch.tensor([c[6] for c in sphs], dtype=torch.int64)
-        self.movers = torch.tensor(movers, dtype=torch.float64)
+        self.movers = torch.tensor(movers, dtype=torch.float64).reshape(-1, 3)
         self.lamps = torch.tensor(lamps, dtype=f32)
+        self.ground = _ground_cells(self.streets, self.far + self.length)
+
+    def _build_mesh(self) -> None:
+        """The triangle mesh at ``t = 0`` and the parts' tables: parts are the ground cells,
+        then the boxes, the cylinders and the spheres, in their tables' order."""
+        cells = self.ground
+        ng, nb, nc, ns = len(cells), len(self.boxes_lo), len(self.cyl), len(self.sph)
+        first = np.cumsum([0, ng, nb, nc])
+        gx0, gx1, gz0, gz1 = (np.array([c[k] for c in cells]) for k in range(4))
+        self.mesh = _mesh.concat([
+            _mesh.rectangle_mesh(gx0, gx1, gz0, gz1, np.arange(ng)),
+            _mesh.box_mesh(self.boxes_lo.numpy(), self.boxes_hi.numpy(),
+                           first[1] + np.arange(nb)),
+            _mesh.cylinder_mesh(self.cyl.numpy(), first[2] + np.arange(nc), CYLINDER_SEGMENTS),
+            _mesh.sphere_mesh(self.sph.numpy(), first[3] + np.arange(ns), SPHERE_SUBDIVISIONS),
+        ])
+        i64 = torch.int64
+        kind = torch.tensor([_GROUND] * ng + [_BOX] * nb + [_CYLINDER] * nc + [_SPHERE] * ns,
+                            dtype=i64)
+        label = torch.cat([torch.tensor([c[4] for c in cells], dtype=i64), self.boxes_label,
+                           self.cyl_label, self.sph_label])
+        colour = torch.cat([torch.zeros(ng, 3), self.boxes_colour, self.cyl_colour,
+                            self.sph_colour])
+        mover = torch.cat([torch.full((ng,), -1, dtype=i64), self.boxes_mover, self.cyl_mover,
+                           self.sph_mover])
+        paint = torch.tensor([{"": 0, "z": 1, "x": 2}[c[5]] for c in cells]
+                             + [0] * (nb + nc + ns), dtype=torch.float32)
+        paint_offset = torch.tensor([c[6] for c in cells] + [0.0] * (nb + nc + ns),
+                                    dtype=torch.float32)
+        centre = torch.zeros(ng + nb + nc + ns, 3)
+        centre[first[1]:first[2]] = (self.boxes_lo + self.boxes_hi) / 2
+        index = torch.cat([torch.arange(n, dtype=i64) for n in (ng, nb, nc, ns)])
+        smooth = (kind == _CYLINDER) | (kind == _SPHERE)
+        m = self.mesh
+        part = torch.from_numpy(m.part)
+        # one row per attribute, one column per triangle: a hit's attributes are one gather
+        self._tri_attr = torch.cat([
+            torch.from_numpy(m.face_normals).T,                    # 0-2 outward face normal
+            label[part].to(torch.float32)[None],                   # 3 class id
+            kind[part].to(torch.float32)[None],                    # 4 part kind
+            colour[part].T,                                        # 5-7 albedo
+            paint[part][None], paint_offset[part][None],           # 8-9 road paint
+            centre[part, :2].T,                                    # 10-11 box centre x, y
+            index[part].to(torch.float32)[None],                   # 12 index in its kind
+            smooth[part].to(torch.float32)[None],                  # 13 smooth normals
+        ]).contiguous()
+        self._triangles = torch.from_numpy(m.triangles.astype(np.int64))
+        self._vertex_normal = torch.from_numpy(m.normals)
+        self._vertex_mover = mover[torch.from_numpy(m.vertex_part)]
+        # what the C loops read: attributes (K, T), corners (T, 3) int32, vertex normals, lamps
+        self._tables = (self._tri_attr.numpy(), m.triangles, m.normals,
+                        np.ascontiguousarray(self.lamps.numpy().reshape(-1, 3)))
 
     @property
     def classes_present(self) -> set[int]:
@@ -335,239 +691,289 @@ class Town:
         z = torch.remainder(z0 + v * float(t) + L / 2, L) - L / 2
         return {"z": z, "speed": v, "kind": kind.to(torch.int64)}
 
+    def _shifts(self, t: float) -> Tensor:
+        """``(M + 1,)`` float32 shift along z of each mover at ``t`` (the last: 0, static)."""
+        dz = (self.moving_objects(t)["z"] - self.movers[:, 0]).to(torch.float32)
+        return torch.cat([dz, torch.zeros(1)])
+
     def geometry(self, t: float = 0.0) -> dict[str, Tensor]:
         """Primitive parameters at time ``t``: the movers shifted along z."""
-        dz = (self.moving_objects(t)["z"] - self.movers[:, 0]).to(torch.float32)
-        dz = torch.cat([dz, torch.zeros(1)])  # index -1 -> static
-
-        def shift(m):
-            return dz[m]
+        dz = self._shifts(t)
         lo, hi = self.boxes_lo.clone(), self.boxes_hi.clone()
-        lo[:, 2] += shift(self.boxes_mover)
-        hi[:, 2] += shift(self.boxes_mover)
+        lo[:, 2] += dz[self.boxes_mover]
+        hi[:, 2] += dz[self.boxes_mover]
         cyl = self.cyl.clone()
-        cyl[:, 1] += shift(self.cyl_mover)
+        cyl[:, 1] += dz[self.cyl_mover]
         sph = self.sph.clone()
-        sph[:, 2] += shift(self.sph_mover)
+        sph[:, 2] += dz[self.sph_mover]
         return {"lo": lo, "hi": hi, "cyl": cyl, "sph": sph}
 
+    def vertices(self, t: float = 0.0) -> Tensor:
+        """``(V, 3)`` float32 mesh vertices at time ``t`` (the movers' shifted along z)."""
+        v = torch.from_numpy(self.mesh.vertices).clone()
+        v[:, 2] += self._shifts(t)[self._vertex_mover]
+        return v
+
+    def scene(self, t: float = 0.0) -> _mesh.MeshScene:
+        """The Embree scene of the mesh at time ``t`` (built once per ``t``; the last kept)."""
+        t = float(t)
+        with self._lock:
+            if self._scene_cache is None or self._scene_cache[0] != t:
+                self._scene_cache = (t, _mesh.MeshScene(self.vertices(t).numpy(),
+                                                        self.mesh.triangles))
+            return self._scene_cache[1]
+
     # ---------------------------------------------------------------- tracing
-    @staticmethod
-    def _ray_parts(o: Tensor, d: Tensor):
-        """Per-ray components and inverse directions (no zero divisors)."""
-        dd = torch.where(d == 0, torch.full_like(d, 1e-20), d)
-        inv = 1.0 / dd
-        a_xz = d[..., 0] * d[..., 0] + d[..., 2] * d[..., 2]
-        a_xz = torch.where(a_xz < 1e-20, torch.full_like(a_xz, 1e-20), a_xz)
-        return o.unbind(-1), d.unbind(-1), inv.unbind(-1), a_xz
+    def _trace(self, scene: _mesh.MeshScene, o: np.ndarray, d: np.ndarray):
+        """Closest front-facing hits of rays ``o (N, 3) or (1, 3)``, ``d (N, 3)`` (numpy
+        float32) within ``far``: ``t (N,)`` (inf: none), triangle ``(N,)`` (-1: none),
+        barycentric ``u, v (N,)``. A ray that meets a triangle from behind (it started inside a
+        primitive) goes on from ``PASS_STEP`` past it, up to ``MAX_PASSES`` times (then it sees
+        nothing)."""
+        n = d.shape[0]
+        o = np.broadcast_to(o, (n, 3))
+        t, tri, u, v = scene.intersect(o, d, self.far)
+        todo = np.arange(n)
+        for rest in range(MAX_PASSES, -1, -1):
+            todo = todo[self._backfaces(d[todo], tri[todo])]
+            if todo.size == 0:
+                break
+            if rest == 0:
+                t[todo], tri[todo] = np.inf, -1
+                break
+            skip = t[todo] + np.float32(PASS_STEP)
+            t2, tri2, u2, v2 = scene.intersect(o[todo] + skip[:, None] * d[todo], d[todo],
+                                               np.float32(self.far) - skip)
+            t[todo] = np.where(tri2 >= 0, skip + t2, np.float32(np.inf))
+            tri[todo], u[todo], v[todo] = tri2, u2, v2
+        return t, tri, u, v
 
-    def _closest(self, o, d, geo, cand=None):
-        """Closest hit. ``o``, ``d`` (..., R, 3); ``cand``: None (all primitives) or per-type
-        ``(index (..., K), valid (..., K))`` candidate lists broadcast over R.
-        Returns t (..., R) (inf: no hit), kind (0 ground, 1 box, 2 cylinder, 3 sphere), global
-        primitive index, cap flag."""
-        (ox, oy, oz), (dx, dy, dz), (ix, iy, iz), a_xz = self._ray_parts(o, d)
-        e = lambda x: x.unsqueeze(-1)  # noqa: E731  (..., R) -> (..., R, 1)
-        O, D, I = (e(ox), e(oy), e(oz)), (e(dx), e(dy), e(dz)), (e(ix), e(iy), e(iz))
-        tg = torch.where((dy > 0) & (oy < 0), (0.0 - oy) * iy, _INF)
-        tg = torch.where(tg > EPS, tg, _INF)
-
-        def params(x: Tensor, k: int):
-            # x (P, C) -> list of C tensors (..., 1, K) [candidates] or (P,)
-            if cand is None:
-                return [x[:, j] for j in range(x.shape[1])], None
-            idx, valid = cand[k]
-            g = x[idx]  # (..., K, C)
-            return [g[..., j].unsqueeze(-2) for j in range(x.shape[1])], valid.unsqueeze(-2)
-
-        def reduce(t, valid, k):
-            if valid is not None:
-                t = torch.where(valid, t, _INF)
-            if t.shape[-1] == 0:
-                z = torch.zeros(t.shape[:-1], dtype=torch.int64, device=t.device)
-                return torch.full(t.shape[:-1], _INF), z
-            tm, am = t.min(-1)
-            if cand is not None:
-                idx = cand[k][0].unsqueeze(-2).expand(*am.shape, -1)
-                am = torch.gather(idx, -1, am.unsqueeze(-1)).squeeze(-1)
-            return tm, am
-
-        p, valid = params(torch.cat([geo["lo"], geo["hi"]], 1), 0)
-        tb, ib = reduce(_box_t(O, I, p[:3], p[3:]), valid, 0)
-        p, valid = params(geo["cyl"], 1)
-        tc_all, cap_all = _cyl_t(O, D, I[1], e(a_xz), *p)
-        tc, ic = reduce(tc_all, valid, 1)
-        if cap_all.shape[-1]:
-            kk = tc_all.min(-1)[1] if valid is None else torch.where(valid, tc_all, _INF).min(-1)[1]
-            cap = torch.gather(cap_all, -1, kk.unsqueeze(-1)).squeeze(-1)
-        else:
-            cap = torch.zeros_like(tc, dtype=torch.bool)
-        p, valid = params(geo["sph"], 2)
-        ts, is_ = reduce(_sph_t(O, D, p[:3], p[3]), valid, 2)
-        t = torch.stack([tg, tb, tc, ts], -1)
-        tmin, kind = t.min(-1)
-        idx = torch.stack([torch.zeros_like(ib), ib, ic, is_], -1)
-        idx = torch.gather(idx, -1, kind.unsqueeze(-1)).squeeze(-1)
-        tmin = torch.where(tmin < self.far, tmin, _INF)
-        return tmin, kind, idx, cap & (kind == 2)
+    def _backfaces(self, d: np.ndarray, tri: np.ndarray) -> np.ndarray:
+        """``(N,)`` bool: the hits ``tri`` that rays ``d`` meet from behind their face."""
+        lib = _native.library()
+        if lib is None:
+            fn = self.mesh.face_normals[np.maximum(tri, 0)]
+            return (tri >= 0) & (fn[:, 0] * d[:, 0] + fn[:, 1] * d[:, 1] + fn[:, 2] * d[:, 2]
+                                 > 0)
+        d = np.ascontiguousarray(d, np.float32)
+        tri = np.ascontiguousarray(tri, np.int64)
+        out = np.empty(d.shape[0], np.uint8)
+        lib.town_backfaces(d.shape[0], _pointer(d), _pointer(tri), _pointer(self._tables[0]),
+                           self._tables[0].shape[1], _pointer(out))
+        return out.view(bool)
 
     # ---------------------------------------------------------------- shading
-    def _shade(self, o, d, t, kind, idx, cap, geo, w: Weather):
-        """Per-ray labels, range and colour from the closest hit. All inputs flat (N, ...)."""
-        hit = torch.isfinite(t)
-        tt = torch.where(hit, t, torch.zeros_like(t))
-        p = o + tt.unsqueeze(-1) * d  # (N, 3)
-        px, py, pz = p.unbind(-1)
-        n = torch.zeros_like(p)
-        n[:, 1] = -1.0  # ground / caps: up
-        col = torch.zeros_like(p)
-        label = torch.zeros_like(idx)
-        ax = px.abs()
+    def _shade(self, o: np.ndarray, d: np.ndarray, t: np.ndarray, tri: np.ndarray,
+               u: np.ndarray, v: np.ndarray, w: Weather, scene: _mesh.MeshScene
+               ) -> dict[str, Tensor]:
+        """Labels, range, normal and colour of rays ``o (N, 3) or (1, 3)``, ``d (N, 3)`` (numpy
+        float32) from their closest hits (:meth:`_trace`), with shadow rays towards the sun
+        through ``scene``: the C loops (:mod:`.native`) where they are built, else
+        :meth:`_shade_reference` (the same result)."""
+        lib = _native.library()
+        if lib is None:
+            return self._shade_reference(*(torch.from_numpy(np.ascontiguousarray(x))
+                                           for x in (o, d, t, tri, u, v)), w, scene)
+        n = d.shape[0]
+        o = np.ascontiguousarray(o, np.float32)
+        d = np.ascontiguousarray(d, np.float32)
+        tri = np.ascontiguousarray(tri, np.int64)
+        wp = _native_weather(w, self.far)
+        tables = self._tables
+        ptr = _pointer
+        common = [n, ptr(o), 3 if o.shape[0] > 1 else 0, ptr(d), ptr(t), ptr(tri), ptr(u),
+                  ptr(v), ptr(tables[0]), tables[0].shape[1], ptr(tables[1]), ptr(tables[2]),
+                  ptr(wp)]
+        need = np.empty(n, np.uint8)
+        origin = np.empty((n, 3), np.float32)
+        shadow = np.empty(n, np.uint8)
+        lib.town_prepare(*common, SHADOW_BIAS, SHADOW_BIAS_PER_M, ptr(need), ptr(origin),
+                         ptr(shadow))
+        lit = np.flatnonzero(need)
+        if lit.size:
+            towards = np.broadcast_to(np.array(w.sun_direction(), np.float32), (lit.size, 3))
+            shadow[lit] = scene.occluded(origin[lit], towards)
+        rgb = np.empty((n, 3), np.float32)
+        rng = np.empty(n, np.float32)
+        labels = np.empty(n, np.int64)
+        normal = np.empty((n, 3), np.float32)
+        lamps = tables[3] if w.lamps > 0 else tables[3][:0]
+        lib.town_shade(*common, ptr(shadow), ptr(lamps), lamps.shape[0], ptr(rgb), ptr(rng),
+                       ptr(labels), ptr(normal))
+        return {"rgb": torch.from_numpy(rgb), "range": torch.from_numpy(rng),
+                "labels": torch.from_numpy(labels), "normal": torch.from_numpy(normal),
+                "hit": torch.from_numpy(tri >= 0)}
 
-        # ground
-        g = hit & (kind == 0)
-        road = ax < ROAD_HALF
-        centre = (ax < LINE_HALF) & (_frac(pz / 6.0) < 0.5)
-        edge = (ax - LANE_EDGE).abs() < LINE_HALF
-        cross = (_frac((pz - 20.0) / 60.0) < 4.0 / 60.0) & (ax < LANE_EDGE) & \
-            (_frac(px / 1.0) < 0.5)
-        line = road & (centre | edge | cross)
-        glabel = torch.where(road, torch.where(line, _C["RoadLine"], _C["Road"]),
-                             torch.where(ax < SIDEWALK_HALF, _C["Sidewalk"], _C["Other"]))
-        label = torch.where(g, glabel, label)
-        tiles = (_frac(px / 0.6) < 0.06) | (_frac(pz / 0.6) < 0.06)
-        gcol = torch.where(
-            (glabel == _C["Road"]).unsqueeze(-1), torch.tensor([0.26, 0.26, 0.27]),
-            torch.where((glabel == _C["RoadLine"]).unsqueeze(-1), torch.tensor([0.85, 0.85, 0.8]),
-                        torch.where((glabel == _C["Sidewalk"]).unsqueeze(-1),
-                                    torch.tensor([0.62, 0.60, 0.56]),
-                                    torch.tensor([0.42, 0.38, 0.28]))))
-        gcol = gcol * torch.where((tiles & (glabel == _C["Sidewalk"])), 0.75, 1.0).unsqueeze(-1)
-        col = torch.where(g.unsqueeze(-1), gcol, col)
+    def _shade_reference(self, o: Tensor, d: Tensor, t: Tensor, tri: Tensor, u: Tensor,
+                         v: Tensor, w: Weather, scene: _mesh.MeshScene) -> dict[str, Tensor]:
+        """:meth:`_shade` in torch: the same operations in the same order, over rows of rays
+        (``x (N,)``, colours ``(3, N)``)."""
+        hit = tri >= 0
+        tri0 = torch.where(hit, tri, 0)
+        tt = torch.where(hit, t, 0.0)
+        dx, dy, dz = d.T.contiguous()
+        ox, oy, oz = o.T.contiguous()
+        px, py, pz = ox + tt * dx, oy + tt * dy, oz + tt * dz
+        a = self._tri_attr.index_select(1, tri0)  # (K, N)
+        nfx, nfy, nfz = a[0], a[1], a[2]  # flat, outward (towards the ray)
+        label, kind, col = a[3], torch.where(hit, a[4], -1.0), a[5:8]
+        nx, ny, nz = nfx.clone(), nfy.clone(), nfz.clone()
+        # smooth normals on cylinders and spheres: the vertex normals, interpolated
+        sm = torch.nonzero(hit & (a[13] > 0)).flatten()
+        if sm.numel():
+            corners = self._triangles.index_select(0, tri0[sm])
+            us, vs = u[sm].unsqueeze(-1), v[sm].unsqueeze(-1)
+            vn = self._vertex_normal
+            ns = (1.0 - us - vs) * vn.index_select(0, corners[:, 0]) + \
+                us * vn.index_select(0, corners[:, 1]) + vs * vn.index_select(0, corners[:, 2])
+            ns = ns / torch.sqrt(_dot(ns, ns)).unsqueeze(-1)
+            nx[sm], ny[sm], nz[sm] = ns.T
 
-        # boxes
-        b = hit & (kind == 1)
-        bi = torch.where(b, idx, 0)
-        lo, hi = geo["lo"][bi], geo["hi"][bi]
-        # normal: the face the point lies on (smallest distance to a slab plane)
-        dist = torch.stack([(p - lo).abs(), (hi - p).abs()], -2)  # (N, 2, 3)
-        dmin, which = dist.min(-2)  # (N, 3)
-        axis = dmin.min(-1)[1]
-        sign = torch.where(torch.gather(which, -1, axis.unsqueeze(-1)).squeeze(-1) == 0, -1.0, 1.0)
-        nb = torch.zeros_like(p).scatter_(-1, axis.unsqueeze(-1), sign.unsqueeze(-1))
-        n = torch.where(b.unsqueeze(-1), nb, n)
-        blabel = self.boxes_label[bi]
-        label = torch.where(b, blabel, label)
-        col = torch.where(b.unsqueeze(-1), self.boxes_colour[bi], col)
+        # ground: the cell's class, road markings painted on a street's road
+        g = kind == _GROUND
+        paint, off = a[8], a[9]
+        along = torch.where(paint == 2, px, pz)
+        across = torch.where(paint == 2, pz, px) - off
+        aa = across.abs()
+        centre = (aa < LINE_HALF) & (_frac(along / 6.0) < 0.5)
+        edge = (aa - LANE_EDGE).abs() < LINE_HALF
+        cross = (_frac((along - 20.0) / 60.0) < 4.0 / 60.0) & (aa < LANE_EDGE) & \
+            (_frac(across) < 0.5)
+        line = g & (paint > 0) & (centre | edge | cross)
+        label = torch.where(line, float(_C["RoadLine"]), label)
+        walk = g & (label == _C["Sidewalk"])
+        tiles = walk & ((_frac(px / 0.6) < 0.06) | (_frac(pz / 0.6) < 0.06))
+        gcol = _GROUND_COLOUR.T.index_select(1, torch.where(g, label, 0.0).to(torch.int64))
+        col = torch.where(g, gcol * torch.where(tiles, 0.75, 1.0), col)
 
-        # cylinders
-        c = hit & (kind == 2)
-        ci = torch.where(c, idx, 0)
-        cp = geo["cyl"][ci]
-        nc = torch.stack([(px - cp[:, 0]) / cp[:, 2], torch.zeros_like(px),
-                          (pz - cp[:, 1]) / cp[:, 2]], -1)
-        nc = torch.where(cap.unsqueeze(-1), n, nc)
-        n = torch.where(c.unsqueeze(-1), nc, n)
-        label = torch.where(c, self.cyl_label[ci], label)
-        col = torch.where(c.unsqueeze(-1), self.cyl_colour[ci], col)
-
-        # spheres
-        s = hit & (kind == 3)
-        si = torch.where(s, idx, 0)
-        sp = geo["sph"][si]
-        ns = (p - sp[:, :3]) / sp[:, 3:4]
-        n = torch.where(s.unsqueeze(-1), ns, n)
-        label = torch.where(s, self.sph_label[si], label)
-        col = torch.where(s.unsqueeze(-1), self.sph_colour[si], col)
-
-        # textures: noise everywhere, patterns per class
-        fine = _hash(_cell(px, 6.0), _cell(py, 6.0), _cell(pz, 6.0), salt=1)
-        coarse = _hash(_cell(px, 0.7), _cell(py, 0.7), _cell(pz, 0.7), salt=2)
-        col = col * (0.8 + 0.25 * fine + 0.15 * coarse).unsqueeze(-1)
-        facade_u = torch.where(nb[:, 0].abs() > 0.5, pz, px)
-        side = (b & (nb[:, 1] == 0))
-        win = side & (label == _C["Building"]) & (_frac(facade_u / 2.5) > 0.25) & \
-            (_frac(facade_u / 2.5) < 0.75) & (_frac(py / 3.0) > 0.3) & (_frac(py / 3.0) < 0.8) & \
-            (py < -1.0)
-        col = torch.where(win.unsqueeze(-1), torch.tensor([0.12, 0.16, 0.22]) * (
-            0.7 + 0.6 * fine).unsqueeze(-1), col)
-        roof = b & (nb[:, 1] < 0) & (label == _C["Building"])
-        col = torch.where(roof.unsqueeze(-1), col * 0.45, col)
+        # textures: noise everywhere, patterns per class on the boxes' faces
+        fine = _noise(px, py, pz, 6.0, 1)
+        coarse = _noise(px, py, pz, 0.7, 2)
+        col = col * (0.8 + 0.25 * fine + 0.15 * coarse)
+        b = kind == _BOX
+        facade_u = torch.where(nfx.abs() > 0.5, pz, px)
+        side = b & (nfy == 0)
+        fu, fy = _frac(facade_u / 2.5), _frac(py / 3.0)
+        win = side & (label == _C["Building"]) & (fu > 0.25) & (fu < 0.75) & (fy > 0.3) & \
+            (fy < 0.8) & (py < -1.0)
+        col = torch.where(win, _column(0.12, 0.16, 0.22) * (0.7 + 0.6 * fine), col)
+        roof = b & (nfy < 0) & (label == _C["Building"])
+        col = torch.where(roof, col * 0.45, col)
         row = torch.floor(py / 0.25)
         brick_u = facade_u / 0.5 + 0.5 * (row - 2 * torch.floor(row / 2))
-        mortar = (_frac(py / 0.25) < 0.12) | (_frac(brick_u) < 0.06)
-        col = torch.where((side & (label == _C["Wall"]) & mortar).unsqueeze(-1),
-                          torch.tensor([0.7, 0.68, 0.62]), col)
+        mortar = side & (label == _C["Wall"]) & ((_frac(py / 0.25) < 0.12) |
+                                                 (_frac(brick_u) < 0.06))
+        col = torch.where(mortar, _column(0.7, 0.68, 0.62), col)
         slat = side & (label == _C["Fence"]) & (_frac(facade_u / 0.15) > 0.75)
-        col = torch.where(slat.unsqueeze(-1), col * 0.5, col)
+        col = torch.where(slat, col * 0.5, col)
         sign = b & (label == _C["TrafficSign"])
-        cx_, cy_ = (lo[:, 0] + hi[:, 0]) / 2, (lo[:, 1] + hi[:, 1]) / 2
-        border = torch.maximum((px - cx_).abs(), (py - cy_).abs()) > 0.27
-        col = torch.where((sign & (border | (nb[:, 2] > 0))).unsqueeze(-1),
-                          torch.tensor([0.85, 0.85, 0.85]), col)
+        border = torch.maximum((px - a[10]).abs(), (py - a[11]).abs()) > 0.27
+        col = torch.where(sign & (border | (nfz > 0)), _column(0.85, 0.85, 0.85), col)
 
-        # light
-        sun = torch.tensor(w.sun_direction())
-        lam = torch.clamp(n[:, 0] * sun[0] + n[:, 1] * sun[1] + n[:, 2] * sun[2], min=0.0)
-        light = torch.tensor(w.ambient) * (0.75 - 0.25 * n[:, 1]).unsqueeze(-1) + \
-            torch.tensor(w.sun_colour) * lam.unsqueeze(-1)
+        # wet weather: darker surfaces; puddles on the road and sidewalk mirror the sky
+        if w.rain > 0 or w.wetness > 0:
+            col = col * w.surface_factor()
+
+        # light: ambient, the sun unless a shadow ray meets something, street lamps
+        sx, sy, sz = w.sun_direction()
+        lam = torch.clamp(nx * sx + ny * sy + nz * sz, min=0.0)
+        shadow = hit & (lam > 0)
+        lit = torch.nonzero(shadow & (nfx * sx + nfy * sy + nfz * sz > 0)).flatten()
+        if lit.numel():
+            bias = SHADOW_BIAS + SHADOW_BIAS_PER_M * tt[lit]
+            origin = torch.stack([px[lit] + nfx[lit] * bias, py[lit] + nfy[lit] * bias,
+                                  pz[lit] + nfz[lit] * bias], -1)
+            towards = torch.tensor([[sx, sy, sz]], dtype=torch.float32).expand(lit.numel(), 3)
+            shadow[lit] = torch.from_numpy(scene.occluded(origin.numpy(), towards.numpy()))
+        lam = torch.where(shadow, 0.0, lam)
+        light = _column(*w.ambient) * (0.75 - 0.25 * ny) + _column(*w.sun_colour) * lam
         if w.lamps > 0:
             acc = torch.zeros_like(px)
             for lx, ly, lz in self.lamps.tolist():
                 vx, vy, vz = lx - px, ly - py, lz - pz
                 d2 = vx * vx + vy * vy + vz * vz + 0.25
-                ndv = torch.clamp(n[:, 0] * vx + n[:, 1] * vy + n[:, 2] * vz, min=0.0)
+                ndv = torch.clamp(nx * vx + ny * vy + nz * vz, min=0.0)
                 acc = acc + ndv / (d2 * torch.sqrt(d2))
-            light = light + (w.lamps * 30.0) * acc.unsqueeze(-1) * torch.tensor([1.0, 0.8, 0.5])
+            light = light + (w.lamps * 30.0) * acc * _column(1.0, 0.8, 0.5)
         rgb = col * light
         if w.windows > 0:
-            lit = win & (_hash(_cell(facade_u, 0.4), _cell(py, 1 / 3.0), bi, salt=3) > 0.55)
-            rgb = torch.where(lit.unsqueeze(-1), torch.tensor([1.0, 0.82, 0.5]) * w.windows, rgb)
+            lit_win = win & (_hash(_cell(facade_u, 0.4), _cell(py, 1 / 3.0),
+                                   a[12].to(torch.int64), salt=3) > 0.55)
+            rgb = torch.where(lit_win, _column(1.0, 0.82, 0.5) * w.windows, rgb)
+
+        # the sky of a direction
+        fog = _column(*w.fog_colour)
+        sky_h, sky_z = _column(*w.sky_horizon), _column(*w.sky_zenith)
+        sun_c = _column(*w.sun_colour)
+        hf_scale = min(1.0, w.fog_density * 40.0)
+
+        def sky_of(ex: Tensor, ey: Tensor, ez: Tensor) -> Tensor:
+            up = torch.clamp(-ey, min=0.0)
+            h = 1.0 - up
+            h = 1.0 - h * h * h
+            sky = sky_h + (sky_z - sky_h) * h
+            cs = torch.clamp(ex * sx + ey * sy + ez * sz, min=0.0)
+            g8 = cs * cs
+            g8 = g8 * g8
+            g8 = g8 * g8
+            g256 = g8
+            for _ in range(5):
+                g256 = g256 * g256
+            sky = sky + sun_c * (0.15 * g8 + 0.8 * g256)
+            sky = torch.where(cs > 0.99995, sun_c * 4.0, sky)
+            # the sky takes the fog colour near the horizon, more so in thicker fog
+            hf = torch.clamp(1.0 - up * 8.0, min=0.0) * hf_scale
+            sky = sky + (fog - sky) * hf
+            return sky * w.sky_factor() if w.rain > 0 else sky
+
+        if w.wetness > 0:
+            blot = _smooth_noise(px, pz, 0.35, 4) * 0.65 + _smooth_noise(px, pz, 1.3, 5) * 0.35
+            puddle = g & ((label == _C["Road"]) | (label == _C["Sidewalk"]) |
+                          (label == _C["RoadLine"])) & (blot < 0.75 * w.wetness)
+            q = torch.nonzero(puddle).flatten()
+            if q.numel():  # the mirror direction of a horizontal puddle: d with y flipped
+                rgb[:, q] = rgb[:, q] * 0.35 + sky_of(dx[q], -dy[q], dz[q]) * 0.55
 
         # fog: exp(-x) as (1 + x / 256)^-256 (no transcendental, exact across code paths)
-        x = w.fog_density * tt
-        q = 1.0 / (1.0 + x / 256.0)
+        qf = 1.0 / (1.0 + (w.fog_density / 256.0) * tt)
         for _ in range(8):
-            q = q * q
-        fog = torch.tensor(w.fog_colour)
-        rgb = rgb * q.unsqueeze(-1) + fog * (1.0 - q).unsqueeze(-1)
+            qf = qf * qf
+        rgb = rgb * qf + fog * (1.0 - qf)
+        rgb = torch.where(hit, rgb, sky_of(dx, dy, dz)).clamp_(0.0, 1.0)
+        rng = torch.where(hit, t, self.far)
+        labels = torch.where(hit, label, 0.0).to(torch.int64)
+        normal = torch.where(hit, torch.stack([nx, ny, nz]), -d.T)
+        return {"rgb": rgb.T, "range": rng, "labels": labels, "normal": normal.T, "hit": hit}
 
-        # sky
-        up = torch.clamp(-d[:, 1], min=0.0)
-        h = 1.0 - up
-        h = 1.0 - h * h * h
-        sky = torch.tensor(w.sky_horizon) + (torch.tensor(w.sky_zenith) -
-                                             torch.tensor(w.sky_horizon)) * h.unsqueeze(-1)
-        cs = torch.clamp(d[:, 0] * sun[0] + d[:, 1] * sun[1] + d[:, 2] * sun[2], min=0.0)
-        g8 = cs
-        for _ in range(3):
-            g8 = g8 * g8
-        g256 = g8
-        for _ in range(5):
-            g256 = g256 * g256
-        sky = sky + torch.tensor(w.sun_colour) * (0.15 * g8 + 0.8 * g256).unsqueeze(-1)
-        sky = torch.where((cs > 0.99995).unsqueeze(-1), torch.tensor(w.sun_colour) * 4.0, sky)
-        # the sky takes the fog colour near the horizon, more so in thicker fog
-        hf = torch.clamp(1.0 - up * 8.0, min=0.0) * min(1.0, w.fog_density * 40.0)
-        sky = sky + (fog - sky) * hf.unsqueeze(-1)
-        rgb = torch.where(hit.unsqueeze(-1), rgb, sky)
-        rgb = torch.clamp(rgb, 0.0, 1.0)
-        rng = torch.where(hit, t, torch.full_like(t, self.far))
-        label = torch.where(hit, label, _C["Unlabeled"])
-        n = torch.where(hit.unsqueeze(-1), n, -d)
-        return {"rgb": rgb, "range": rng, "labels": label, "normal": n, "hit": hit}
+    def _trace_shade(self, o: Tensor, d: Tensor, scene: _mesh.MeshScene, w: Weather
+                     ) -> dict[str, Tensor]:
+        """:meth:`_trace` then :meth:`_shade` of one batch (``o (N, 3) or (1, 3)``)."""
+        o, d = o.numpy(), d.numpy()
+        return self._shade(o, d, *self._trace(scene, o, d), w, scene)
+
+    def _run(self, tasks: list, job) -> None:
+        """``job(task)`` for every task, on ``threads`` worker threads (Embree's queries release
+        the GIL, and so do torch's kernels). Worker threads even for one: on the caller's thread
+        torch may split each small kernel over OpenMP threads, which a busy machine makes up to
+        40 times slower (measured on 2 cores at a load of 5)."""
+        threads = self.threads or torch.get_num_threads()
+        with ThreadPoolExecutor(max(1, min(threads, len(tasks)))) as pool:
+            for _ in pool.map(job, tasks):
+                pass
 
     # ---------------------------------------------------------------- public API
     def render_rays(self, origins: Tensor, directions: Tensor, *, t: float = 0.0,
-                    weather: str | Weather = "clear_noon", chunk: int = 8192) -> dict[str, Tensor]:
-        """Ray-cast arbitrary rays: the exact ground truth.
+                    weather: str | Weather = "clear_noon", chunk: int = CHUNK
+                    ) -> dict[str, Tensor]:
+        """Trace arbitrary rays: the exact ground truth.
 
         Args:
             origins: ``(..., 3)`` or ``(3,)`` ray origins, world frame, metres.
-            directions: ``(..., 3)`` unit directions, world frame (not renormalised).
+            directions: ``(..., 3)`` unit directions, world frame (not renormalised); the
+                leading dimensions of the two broadcast.
             t: time (s) for the moving objects.
             weather: a :data:`WEATHERS` name or a :class:`Weather`.
-            chunk: rays per batch (memory bound; results do not depend on it).
+            chunk: rays per task (results do not depend on it).
 
         Returns:
             dict with ``rgb (..., 3)`` float32 in [0, 1], ``range (...)`` metres along the ray
@@ -575,18 +981,37 @@ class Town:
             (world frame, facing the ray; ``-direction`` for the sky), ``hit (...)`` bool.
         """
         w = _get_weather(weather)
-        d = directions.to(torch.float32)
-        shape = d.shape[:-1]
-        d = d.reshape(-1, 3)
-        o = origins.to(torch.float32)
-        o = o.expand(*shape, 3).reshape(-1, 3) if o.dim() > 1 else o.expand(d.shape[0], 3)
-        geo = self.geometry(t)
-        outs = []
-        for s in range(0, d.shape[0], chunk):
-            oc, dc = o[s:s + chunk], d[s:s + chunk]
-            hit = self._closest(oc, dc, geo)
-            outs.append(self._shade(oc, dc, *hit, geo, w))
-        out = {k: torch.cat([x[k] for x in outs]) for k in outs[0]}
+        if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
+            raise ValueError(f"chunk: expected a positive integer, got {chunk!r}")
+        d = torch.as_tensor(directions).to(torch.float32)
+        o = torch.as_tensor(origins).to(torch.float32)
+        if d.shape[-1:] != (3,):
+            raise ValueError(f"directions: expected (..., 3), got {tuple(d.shape)}")
+        if o.shape[-1:] != (3,):
+            raise ValueError(f"origins: expected (..., 3) or (3,), got {tuple(o.shape)}")
+        try:
+            shape = torch.broadcast_shapes(o.shape[:-1], d.shape[:-1])
+        except RuntimeError:
+            raise ValueError(f"origins {tuple(o.shape)} and directions {tuple(d.shape)}: "
+                             "their leading dimensions do not broadcast") from None
+        d = d.expand(*shape, 3).reshape(-1, 3).contiguous()
+        if o.dim() > 1:
+            o = o.expand(*shape, 3).reshape(-1, 3).contiguous()
+        else:
+            o = o.reshape(1, 3)
+        n = d.shape[0]
+        scene = self.scene(t)
+        out = {"rgb": torch.empty(n, 3), "range": torch.empty(n),
+               "labels": torch.empty(n, dtype=torch.int64), "normal": torch.empty(n, 3),
+               "hit": torch.empty(n, dtype=torch.bool)}
+
+        def job(s: int) -> None:
+            e = min(s + chunk, n)
+            res = self._trace_shade(o[s:e] if o.shape[0] > 1 else o, d[s:e], scene, w)
+            for k, v in res.items():
+                out[k][s:e] = v
+
+        self._run(list(range(0, n, chunk)), job)
         return {k: v.reshape(tuple(shape) + tuple(v.shape[1:])) for k, v in out.items()}
 
     @staticmethod
@@ -595,59 +1020,27 @@ class Town:
         :meth:`render_cubemap` traces (``rotation`` maps cube frame to world)."""
         r = face_rays(face_size, normalize=True, dtype=torch.float32)
         if rotation is not None:
-            r = r @ rotation.to(torch.float32).T
+            r = r @ torch.as_tensor(rotation).to(torch.float32).T
         return r
 
-    def _tile_candidates(self, geo, origin, rot, F: int, ts: int, T: int):
-        """Per (face, tile) candidate lists for each primitive type, conservative: the
-        primitive's world AABB, taken to the cube frame (its AABB there), clipped to each face's
-        half-space ``a . x >= 1e-5`` (closer points are within ``EPS`` of the origin, never
-        hit), projected onto the face, grown by a margin, and tested against every tile."""
-        f, c = face_intrinsics(F)
-        axes = face_axes(torch.float32)  # cube frame
-        lo, hi = geo["lo"], geo["hi"]
-        cyl, sph = geo["cyl"], geo["sph"]
-        aabbs = [
-            (lo, hi),
-            (torch.stack([cyl[:, 0] - cyl[:, 2], cyl[:, 3], cyl[:, 1] - cyl[:, 2]], -1),
-             torch.stack([cyl[:, 0] + cyl[:, 2], cyl[:, 4], cyl[:, 1] + cyl[:, 2]], -1)),
-            (sph[:, :3] - sph[:, 3:], sph[:, :3] + sph[:, 3:]),
-        ]
-        sel = torch.tensor([[0, 0, 0], [0, 0, 1], [0, 1, 0], [0, 1, 1], [1, 0, 0], [1, 0, 1],
-                            [1, 1, 0], [1, 1, 1]], dtype=torch.bool)
-        start = torch.arange(T, dtype=torch.float32) * ts
-        delta = 1e-5
-        out = []
-        for a_lo, a_hi in aabbs:
-            P = a_lo.shape[0]
-            corners = torch.where(sel, a_hi.unsqueeze(1), a_lo.unsqueeze(1)) - origin  # (P,8,3)
-            if rot is not None:  # world -> cube frame, then the AABB there
-                corners = corners @ rot
-                cmin, cmax = corners.amin(1), corners.amax(1)
-                corners = torch.where(sel, cmax.unsqueeze(1), cmin.unsqueeze(1))
-            za = torch.einsum("pcj,kj->kpc", corners, axes[:, 0])  # (6, P, 8)
-            yb = torch.einsum("pcj,kj->kpc", corners, axes[:, 1])
-            xr = torch.einsum("pcj,kj->kpc", corners, axes[:, 2])
-            behind = (za < delta).all(-1)  # (6, P)
-            zs = torch.clamp(za, min=delta)  # clip the (cube-frame axis-aligned) box
-            u, v = c + f * xr / zs, c + f * yb / zs
-            m = 1.5
-            umin, umax = u.amin(-1) - m, u.amax(-1) + m
-            vmin, vmax = v.amin(-1) - m, v.amax(-1) + m
-            cu = (start[None, :, None] <= umax[:, None]) & \
-                (start[None, :, None] + ts - 1 >= umin[:, None])  # (6, T, P)
-            cv = (start[None, :, None] <= vmax[:, None]) & \
-                (start[None, :, None] + ts - 1 >= vmin[:, None])
-            mask = cv[:, :, None, :] & cu[:, None, :, :] & ~behind[:, None, None, :]
-            K = max(int(mask.sum(-1).max()) if P else 0, 1)
-            order = torch.where(mask, torch.arange(P), P).sort(-1)[0][..., :K]
-            valid = order < P
-            out.append((torch.clamp(order, max=max(P - 1, 0)), valid))
-        return out
+    def _cube_rays(self, face_size: int, rotation: Tensor | None) -> Tensor:
+        """:meth:`cubemap_rays`, kept for the last two face sizes when ``rotation`` is None."""
+        if rotation is not None:
+            return self.cubemap_rays(face_size, rotation)
+        with self._lock:
+            rays = self._rays_cache.get(face_size)
+            if rays is None:
+                rays = self.cubemap_rays(face_size)
+                if len(self._rays_cache) >= 2:
+                    self._rays_cache.pop(next(iter(self._rays_cache)))
+                self._rays_cache[face_size] = rays
+            return rays
 
     def render_cubemap(self, position, rotation: Tensor | None = None, face_size: int = 256, *,
-                       faces: Tensor | None = None, t: float = 0.0,
-                       weather: str | Weather = "clear_noon") -> dict[str, Tensor]:
+                       faces: Tensor | None = None, texels: Tensor | None = None,
+                       t: float = 0.0, weather: str | Weather = "clear_noon",
+                       chunk: int = CHUNK, out: dict[str, Tensor] | None = None
+                       ) -> dict[str, Tensor]:
         """Render a cubemap at ``position`` (world, metres).
 
         Args:
@@ -657,8 +1050,14 @@ class Town:
             face_size: ``F``.
             faces: optional ``(6,)`` bool mask of the faces to render; the others are left at
                 rgb 0, depth 0 and label 255 (``IGNORE_INDEX``).
+            texels: optional ``(6, F, F)`` bool mask of the texels to render (within
+                ``faces``), the others left as the faces not rendered.
             t: time (s) for the moving objects.
             weather: a :data:`WEATHERS` name or a :class:`Weather`.
+            chunk: texels per task (results do not depend on it).
+            out: contiguous tensors to write the outputs into (some or all of the keys below,
+                each of its shape and dtype), reused from call to call instead of new memory;
+                the others are allocated.
 
         Returns:
             dict with ``rgb (1, 6, 3, F, F)`` float32, ``depth (1, 6, F, F)`` planar depth in
@@ -666,68 +1065,72 @@ class Town:
             int64, and ``range (1, 6, F, F)`` (``self.far`` for the sky).
         """
         w = _get_weather(weather)
-        F = int(face_size)
-        origin = torch.as_tensor(position, dtype=torch.float32).reshape(3)
-        rot = None if rotation is None else torch.as_tensor(rotation, dtype=torch.float32)
-        axes = face_axes(torch.float32)  # (6, 3 [a, b, r], 3) cube frame
+        if isinstance(face_size, bool) or not isinstance(face_size, int) or face_size < 1:
+            raise ValueError(f"face_size: expected a positive integer, got {face_size!r}")
+        F = face_size
+        origin = torch.as_tensor(position).to(torch.float32).reshape(1, 3)
+        rot = None if rotation is None else torch.as_tensor(rotation).to(torch.float32)
+        axes = face_axes(torch.float32)[:, 0]  # (6, 3) each face's axis a, cube frame
         if rot is not None:
             axes = axes @ rot.T
-        rays = self.cubemap_rays(F, rot)  # (6, F, F, 3)
-        sel = torch.ones(6, dtype=torch.bool) if faces is None else torch.as_tensor(faces).bool()
-        fidx = torch.nonzero(sel).flatten()
-        nf = len(fidx)
-        ts = min(self.tile, F)
-        T = -(-F // ts)
-        geo = self.geometry(t)
-        cands = self._tile_candidates(geo, origin, rot, F, ts, T)
-        cands = [(i[fidx].reshape(nf * T * T, -1), v[fidx].reshape(nf * T * T, -1))
-                 for i, v in cands]
-        # gather rays into tiles (replicating the last row/column where F % ts != 0)
-        a = torch.arange(T * ts)
-        rc = torch.clamp(a, max=F - 1).view(T, ts)
-        rows = rc.view(T, 1, ts, 1).expand(T, T, ts, ts)
-        cols = rc.view(1, T, 1, ts).expand(T, T, ts, ts)
-        flat = (rows * F + cols).reshape(T * T, ts * ts)  # (T*T, R)
-        tr = rays[fidx].reshape(nf, F * F, 3)[:, flat]  # (nf, T*T, R, 3)
-        tr = tr.reshape(nf * T * T, ts * ts, 3)
-        # tiles sorted by their candidate count, in groups, each padded to its own maximum
-        # (the per-ray arithmetic is the same, so the result does not depend on the grouping)
-        G = tr.shape[0]
-        cost = sum(v.sum(-1) * wgt for (_, v), wgt in zip(cands, (3, 2, 1)))
-        order = torch.argsort(cost, stable=True)
-        res = [torch.empty(G, ts * ts)] + [torch.empty(G, ts * ts, dtype=dt)
-                                           for dt in (torch.int64, torch.int64, torch.bool)]
-        ngroups = min(self.groups, G)
-        for grp in torch.tensor_split(order, ngroups):
-            if grp.numel() == 0:
+        rays = self._cube_rays(F, rot).reshape(6, F * F, 3)
+        sel = torch.ones(6, dtype=torch.bool) if faces is None else \
+            torch.as_tensor(faces).to(torch.bool).reshape(6)
+        if texels is not None:
+            texels = torch.as_tensor(texels).to(torch.bool)
+            if texels.shape != (6, F, F):
+                raise ValueError(f"texels: expected a (6, {F}, {F}) mask, got "
+                                 f"{tuple(texels.shape)}")
+        out = {} if out is None else out
+        buffers = {}
+        for key, shape, dtype, fill in (("rgb", (1, 6, 3, F, F), torch.float32, 0),
+                                        ("depth", (1, 6, F, F), torch.float32, 0),
+                                        ("labels", (1, 6, F, F), torch.int64, 255),
+                                        ("range", (1, 6, F, F), torch.float32, 0)):
+            buf = out.get(key)
+            if buf is None:
+                buffers[key] = torch.full(shape, fill, dtype=dtype)
                 continue
-            sub = []
-            for i, v in cands:
-                k = max(int(v[grp].sum(-1).max()), 1)
-                sub.append((i[grp, :k], v[grp, :k]))
-            rg = tr[grp]
-            out = self._closest(origin.expand_as(rg), rg, geo, sub)
-            for r, x in zip(res, out):
-                r[grp] = x
-        tmin, kind, idx, cap = res
-        # back to texel order
-        ii = torch.arange(F)
-        back = ((ii.view(F, 1) // ts) * T + ii.view(1, F) // ts) * (ts * ts) + \
-            (ii.view(F, 1) % ts) * ts + ii.view(1, F) % ts  # (F, F)
-        back = (torch.arange(nf).view(nf, 1, 1) * (T * T * ts * ts) + back).reshape(-1)
-        tmin, kind, idx, cap = (x.reshape(-1)[back] for x in (tmin, kind, idx, cap))
-        d = rays[fidx].reshape(-1, 3)
-        sh = self._shade(origin.expand_as(d), d, tmin, kind, idx, cap, geo, w)
-        acomp = (d * axes[fidx, 0].repeat_interleave(F * F, 0)).sum(-1)
-        depth = torch.where(sh["hit"], sh["range"] * acomp, torch.full_like(acomp, self.far))
-        rgb = torch.zeros(6, F, F, 3)
-        dep = torch.zeros(6, F, F)
-        rng = torch.zeros(6, F, F)
-        lab = torch.full((6, F, F), 255, dtype=torch.int64)
-        rgb[fidx] = sh["rgb"].reshape(nf, F, F, 3)
-        dep[fidx] = depth.reshape(nf, F, F)
-        rng[fidx] = sh["range"].reshape(nf, F, F)
-        lab[fidx] = sh["labels"].reshape(nf, F, F)
-        return {"rgb": rgb.permute(0, 3, 1, 2).unsqueeze(0).contiguous(),
-                "depth": dep.unsqueeze(0), "labels": lab.unsqueeze(0),
-                "range": rng.unsqueeze(0)}
+            if tuple(buf.shape) != shape or buf.dtype != dtype or not buf.is_contiguous() \
+                    or buf.device.type != "cpu":
+                raise ValueError(f"out[{key!r}]: expected a contiguous CPU {dtype} tensor of "
+                                 f"shape {shape}, got {buf.dtype} {tuple(buf.shape)}")
+            buffers[key] = buf.fill_(fill)
+        rgb = buffers["rgb"].view(1, 6, 3, F * F)
+        dep, rng, lab = (buffers[k].view(1, 6, F * F) for k in ("depth", "range", "labels"))
+        tasks = []
+        for f in torch.nonzero(sel).flatten().tolist():
+            if texels is None:
+                tasks += [(f, slice(s, min(s + chunk, F * F))) for s in range(0, F * F, chunk)]
+            else:
+                idx = np.flatnonzero(texels[f].reshape(-1).numpy())
+                tasks += [(f, idx[s:s + chunk]) for s in range(0, idx.size, chunk)]
+        scene = self.scene(t)
+        rays_np, origin_np = rays.numpy(), origin.numpy()
+        rgb_np, dep_np, rng_np, lab_np = (x.numpy() for x in (rgb, dep, rng, lab))
+        axes_np = axes.numpy()
+        lib = _native.library()
+
+        def job(task) -> None:
+            f, q = task
+            d = rays_np[f, q]
+            res = {k: v.numpy() for k, v in self._shade(
+                origin_np, d, *self._trace(scene, origin_np, d), w, scene).items()}
+            a = axes_np[f]
+            if lib is None:
+                depth = np.where(res["hit"], res["range"] * (d[:, 0] * a[0] + d[:, 1] * a[1]
+                                                             + d[:, 2] * a[2]), self.far)
+                rgb_np[0, f, :, q] = res["rgb"].T
+                dep_np[0, f, q], rng_np[0, f, q], lab_np[0, f, q] = \
+                    depth, res["range"], res["labels"]
+                return
+            ptr = _pointer
+            index, start = (None, q.start) if isinstance(q, slice) else (ptr(q), 0)
+            lib.town_store(d.shape[0], index, start, ptr(np.ascontiguousarray(d)),
+                           ptr(res["rgb"]), ptr(res["range"]), ptr(res["labels"]),
+                           ptr(res["hit"]), ptr(np.ascontiguousarray(a)), self.far, F * F,
+                           ptr(rgb_np[0, f]), ptr(dep_np[0, f]), ptr(rng_np[0, f]),
+                           ptr(lab_np[0, f]))
+
+        self._run(tasks, job)
+        return buffers
