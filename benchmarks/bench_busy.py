@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_projection import remap_maps  # noqa: E402
 from common import ROOT, begin_run, loadavg, measure, run_record, write_json_atomic  # noqa: E402
 
 import omniscape_torch as ot  # noqa: E402
@@ -50,14 +51,6 @@ def spin(stop) -> None:
     while not stop.is_set():
         for _ in range(100000):
             x += 1
-
-
-def remap_maps(grid: torch.Tensor, atlas_hw: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel maps of an ``align_corners=False`` grid into an atlas of ``atlas_hw`` (rows, cols)."""
-    rows, cols = atlas_hw
-    map_x = ((grid[..., 0] + 1) * cols - 1) / 2
-    map_y = ((grid[..., 1] + 1) * rows - 1) / 2
-    return map_x.numpy().astype(np.float32), map_y.numpy().astype(np.float32)
 
 
 def cases(face: int, cv2) -> list[tuple[str, callable]]:
