@@ -16,6 +16,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Callable, Mapping
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -122,6 +123,15 @@ class CameraModel:
 # Entry checks (one per public function; shapes only: values are checked once, in Camera).
 # --------------------------------------------------------------------------------------------
 
+def broadcast_shapes(*shapes) -> torch.Size:
+    """``torch.broadcast_shapes`` (same rules, same ``RuntimeError``), without the 0.5 s its
+    first call takes to import ``torch._refs``: numpy's implementation of the rules."""
+    try:
+        return torch.Size(np.broadcast_shapes(*(tuple(s) for s in shapes)))
+    except ValueError as err:
+        raise RuntimeError(str(err)) from None
+
+
 def check_inputs(model_name: str, values: Tensor, params: Tensor, dim: int,
                  num_params: int | tuple[int, ...], what: str, variadic: bool = False) -> None:
     """Shape and dtype check at the entry of ``project``/``unproject``; ``num_params``: the
@@ -146,7 +156,7 @@ def check_inputs(model_name: str, values: Tensor, params: Tensor, dim: int,
         raise ValueError(f"{what} and params must be on the same device, got {values.device} "
                          f"and {params.device}")
     try:
-        torch.broadcast_shapes(values.shape[:-1], params.shape[:-1])
+        broadcast_shapes(values.shape[:-1], params.shape[:-1])
     except RuntimeError:
         raise ValueError(f"{what} of shape {tuple(values.shape)} and params of shape "
                          f"{tuple(params.shape)} do not broadcast over their leading dimensions"
@@ -251,7 +261,7 @@ def smallest_positive_root(coeffs: Tensor, scale: Tensor | float = 1.0) -> Tenso
         c = coeffs.detach().to(torch.float64)
         scale = torch.as_tensor(scale, dtype=torch.float64, device=c.device)
         n = c.shape[-1] - 1
-        out_shape = torch.broadcast_shapes(c.shape[:-1], scale.shape)
+        out_shape = broadcast_shapes(c.shape[:-1], scale.shape)
         if n == 0:
             return torch.full(out_shape, math.inf, dtype=coeffs.dtype, device=coeffs.device)
         powers = scale.unsqueeze(-1) ** torch.arange(n + 1, dtype=torch.float64, device=c.device)

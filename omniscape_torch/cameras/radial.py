@@ -30,9 +30,9 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from ._base import (CameraModel, check_inputs, check_positive, implicit_step, invert_monotone,
-                    near_zero_radius, polar, polyder, polyval, safe_div, safe_sqrt,
-                    smallest_positive_root)
+from ._base import (CameraModel, broadcast_shapes, check_inputs, check_positive, implicit_step,
+                    invert_monotone, near_zero_radius, polar, polyder, polyval, safe_div,
+                    safe_sqrt, smallest_positive_root)
 
 _FOCAL_NAMES = ("fx", "fy", "cx", "cy")
 _GROUPS = {"focal": (0, 1), "center": (2, 3)}
@@ -358,7 +358,7 @@ def kannala_brandt_unproject_table_xyz(u: Tensor, v: Tensor, table: Tensor
         target = torch.where(inside, r, torch.zeros_like(r))
         s = (target / r_end * entries).clamp(0, entries)
         j = torch.floor(s).clamp(max=entries - 1)
-        shape = torch.broadcast_shapes(s.shape, thetas.shape[:-1])
+        shape = broadcast_shapes(s.shape, thetas.shape[:-1])
         index = j.long().expand(shape).unsqueeze(-1)
         t0 = torch.gather(thetas.expand(*shape, entries + 1), -1, index).squeeze(-1)
         t1 = torch.gather(thetas.expand(*shape, entries + 1), -1, index + 1).squeeze(-1)

@@ -51,6 +51,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from ..cameras._base import broadcast_shapes
 from ..cameras.camera import Camera
 from ..cubemap.faces import FACES, _check_face_size, _check_pad, face_axes, ray_to_face
 from ..cubemap.padding import border_plan
@@ -92,7 +93,7 @@ def _pairs(camera: Camera, rotation: Tensor) -> tuple[torch.Size, list[tuple[int
     output element, (flat camera index, flat rotation index)."""
     cam_batch, rot_batch = camera.batch_shape, rotation.shape[:-2]
     try:
-        shape = torch.broadcast_shapes(cam_batch, rot_batch)
+        shape = broadcast_shapes(cam_batch, rot_batch)
     except RuntimeError:
         raise ValueError(f"rotation: batch shape {tuple(rot_batch)} does not broadcast with the "
                          f"camera batch {tuple(cam_batch)}") from None
