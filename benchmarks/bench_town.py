@@ -2,13 +2,15 @@
 error against face size (issue 20).
 
 Speed (``--sizes``, default 256 512 1024 2048): per image size, the rig's four cameras (stereo
-fisheye, stereo catadioptric) of ``generate``'s default configuration at that size, three rows
-timed round-robin over ``--repeats`` frames after a warm-up frame (``benchmarks/common.py``'s
-conventions: medians, IQR, the load before and after):
+fisheye, stereo catadioptric) of ``generate``'s default configuration at that size, with each
+``--antialias`` value (default 1 2 3), rows timed round-robin over ``--repeats`` frames after a
+warm-up frame (``benchmarks/common.py``'s conventions: medians, IQR, the load before and after):
 
-* ``frame``: ``FrameRenderer.render``, what ``generate`` does per frame: each camera's cubemap
-  (the texels it reads, traced and shaded), the layer, the PNG/EXR files written;
-* ``cubemaps``: the four cubemaps alone (``Town.render_cubemap`` of the same texels);
+* ``frame`` (per antialias): ``FrameRenderer.render``, what ``generate`` does per frame: each
+  camera's cubemap (the texels it reads, traced and shaded), the layer, the PNG/EXR files
+  written;
+* ``cubemaps`` (per antialias): the four cubemaps alone (``Town.render_cubemap`` of the same
+  texels, in the frame's weather: the share of texels anti-aliasing supersamples depends on it);
 * ``direct``: the peer, the ground truth: every valid pixel's own ray traced and shaded
   (``Town.render_rays``), no cube, no files.
 
@@ -23,11 +25,14 @@ Face sizes are ``generate``'s (``required_face_size``, capped at ``max_face_size
 Accuracy (``--faces``, multiples of the default face size, at ``--accuracy-size`` pixels,
 default 256): per camera kind, over ``--accuracy-frames`` frames of the default ride, the
 cubemap path (``render_cubemap`` + ``OmniProjection``) against the direct trace of the same
-camera at the same pose: PSNR of the 8-bit RGB over the valid area, the same away from edges
-(pixels whose 3 x 3 neighbourhood in the direct image holds one label and ranges within 5 %),
-label agreement over the valid area, and an anti-aliased PSNR: the layer averaging 2 x 2 rays a
-pixel (``supersample=2``) against the mean of 4 x 4 traced rays a pixel (both estimate the
-pixel's area, where a point sample of a hard edge or texture cell is a coin toss).
+camera at the same pose, per ``--antialias`` value of the cube (``render_cubemap(antialias=k)``:
+the texels on an edge the mean of ``k x k`` rays): PSNR of the 8-bit RGB over the valid area,
+the same away from edges (pixels whose 3 x 3 neighbourhood in the direct image holds one label
+and ranges within 5 %), label agreement over the valid area, the share of the texels in the
+camera's cone that ``antialias > 1`` supersamples, and an anti-aliased PSNR: the layer averaging
+2 x 2 rays a pixel (``supersample=2``, what ``generate`` does with ``antialias > 1``) against the
+mean of 8 x 8 traced rays a pixel (``REFERENCE_RAYS``; both estimate the pixel's area, where a
+point sample of a hard edge or texture cell is a coin toss).
 
 Usage::
 
@@ -55,8 +60,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from common import begin_run, loadavg, measure, run_record, write_json_atomic  # noqa: E402
-from omniscape_torch.data.generate import DatasetConfig, FrameRenderer  # noqa: E402
+from omniscape_torch.data.generate import (DatasetConfig, FrameRenderer,  # noqa: E402
+                                           _frame_weather, camera_cone, cone_texels)
 from omniscape_torch.render.layer import OmniProjection  # noqa: E402
+from omniscape_torch.scenes.town import edge_texels  # noqa: E402
 
 
 def _camera_rays(layer: OmniProjection, rotation: torch.Tensor, supersample: bool = False):
@@ -70,60 +77,74 @@ def _camera_rays(layer: OmniProjection, rotation: torch.Tensor, supersample: boo
 def speed(args) -> list[dict]:
     rows = []
     for size in args.sizes:
-        config = DatasetConfig(frames=args.repeats + 1, image_size=(size, size))
-        renderer = FrameRenderer(config)
+        # one renderer per antialias (its layers and buffers); the same frames for every row
+        renderers = {aa: FrameRenderer(DatasetConfig(frames=args.repeats + 1,
+                                                     image_size=(size, size), antialias=aa))
+                     for aa in args.antialias}
+        renderer = renderers[args.antialias[0]]
         plan, town = renderer.plan, renderer.town
         out = Path(tempfile.mkdtemp(prefix="bench_town_"))
         layers = {n: renderer._layer(n, c["camera"], c["face_size"])
                   for n, c in plan.cameras.items()}
-        frame = {"frame": 0, "cubemaps": 0, "direct": 0}
+        keys = [(name, aa) for aa in args.antialias for name in ("frame", "cubemaps")] + \
+            [("direct", None)]
+        frame = {key: 0 for key in keys}
 
-        def render_frame():
-            renderer.render(out, frame["frame"])
-            frame["frame"] += 1
+        def render_frame(aa):
+            def run():
+                renderers[aa].render(out / f"aa{aa}", frame["frame", aa])
+                frame["frame", aa] += 1
+            return run
 
-        def cubemaps():
-            k = frame["cubemaps"]
-            t = float(plan.frames["time"][k])
-            for name, c in plan.cameras.items():
-                town.render_cubemap(plan.centre(name, k).float(), None, c["face_size"],
-                                    faces=plan.faces(name, k), texels=plan.texels(name, k),
-                                    t=t, out=renderer._cube_buffers(c["face_size"]))
-            frame["cubemaps"] += 1
+        def cubemaps(aa):
+            def run():
+                r = renderers[aa]
+                k = frame["cubemaps", aa]
+                t = float(plan.frames["time"][k])
+                for name, c in plan.cameras.items():
+                    town.render_cubemap(plan.centre(name, k).float(), None, c["face_size"],
+                                        faces=plan.faces(name, k), texels=r.texels(name, k),
+                                        t=t, weather=_frame_weather(r.config, k),
+                                        out=r._cube_buffers(c["face_size"]), antialias=aa)
+                frame["cubemaps", aa] += 1
+            return run
 
         def direct():
-            k = frame["direct"]
+            k = frame["direct", None]
             t = float(plan.frames["time"][k])
             for name in plan.cameras:
                 d, valid = _camera_rays(layers[name], plan.rotation(name, k).float())
-                town.render_rays(plan.centre(name, k).float(), d[valid], t=t)
-            frame["direct"] += 1
+                town.render_rays(plan.centre(name, k).float(), d[valid], t=t,
+                                 weather=_frame_weather(renderer.config, k))
+            frame["direct", None] += 1
 
-        cpu: dict[str, list[float]] = {"frame": [], "cubemaps": [], "direct": []}
+        cpu: dict[tuple, list[float]] = {key: [] for key in keys}
 
-        def with_cpu(name, fn):
+        def with_cpu(key, fn):
             """``fn``, its process CPU time (every thread's) recorded: the figure a busy
             machine inflates least (2 free cores would take about half of it as wall time)."""
             def timed():
                 start = time.process_time()
                 fn()
-                cpu[name].append(time.process_time() - start)
+                cpu[key].append(time.process_time() - start)
             return timed
 
-        stats = measure([with_cpu("frame", render_frame), with_cpu("cubemaps", cubemaps),
-                         with_cpu("direct", direct)], args.repeats, 1, progress=True)
+        fns = {"frame": render_frame, "cubemaps": cubemaps}
+        stats = measure([with_cpu(key, fns[key[0]](key[1]) if key[1] is not None else direct)
+                         for key in keys], args.repeats, 1, progress=True)
         shutil.rmtree(out, ignore_errors=True)
         texels = sum(int(plan.texels(n, 0).sum()) for n in plan.cameras)
         pixels = sum(int(layers[n].camera_rays()[3].sum()) for n in plan.cameras)
-        for name, s in zip(("frame", "cubemaps", "direct"), stats):
-            timed_cpu = cpu[name][1:]   # the warm-up call first
-            rows.append({"name": name, "image_size": size,
+        for (name, aa), s in zip(keys, stats):
+            timed_cpu = cpu[name, aa][1:]   # the warm-up call first
+            rows.append({"name": name, "antialias": aa, "image_size": size,
                          "face_sizes": {n: c["face_size"] for n, c in plan.cameras.items()},
                          "texels": texels, "valid_pixels": pixels,
                          "frames_per_s": 1.0 / s["median_s"],
                          "cpu_median_s": statistics.median(timed_cpu),
                          "cpu_s": timed_cpu, **s})
-            print(f"{size:5d} px  {name:9s} {s['median_s']:7.2f} s/frame (IQR "
+            label = name if aa is None else f"{name} aa={aa}"
+            print(f"{size:5d} px  {label:14s} {s['median_s']:7.2f} s/frame (IQR "
                   f"{s['iqr_s']:.2f}, CPU {rows[-1]['cpu_median_s']:.2f} s)  "
                   f"{1 / s['median_s']:6.2f} frames/s", flush=True)
     return rows
@@ -145,6 +166,24 @@ def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
     return 10 * math.log10(255 ** 2 / max(mse, 1e-12))
 
 
+#: Rays a pixel (per side) of the anti-aliased reference: the mean of 8 x 8 traced rays. 4 x 4
+#: rays lie 44.6-46.0 dB from it (default faces, 256 x 256, frames 0 and 2), a sampling noise
+#: that takes 1.1-1.3 dB off an anti-aliased cube's 40-42 dB.
+REFERENCE_RAYS = 8
+
+
+def _area_mean(town, layer: OmniProjection, rotation, position, t: float) -> torch.Tensor:
+    """``(H, W, 3)`` mean RGB of ``layer``'s valid sub-pixel rays (its ``supersample``) per
+    pixel: the pixel's area, traced."""
+    s = layer.supersample
+    ds, vs = _camera_rays(layer, rotation, supersample=True)
+    fine = town.render_rays(position, ds, t=t)["rgb"]
+    h, w = ds.shape[0] // s, ds.shape[1] // s
+    vs = vs.float().reshape(h, s, w, s)
+    return (fine.reshape(h, s, w, s, 3) * vs[..., None]).sum((1, 3)) / \
+        vs.sum((1, 3)).clamp(min=1)[..., None]
+
+
 def accuracy(args) -> list[dict]:
     size = args.accuracy_size
     config = DatasetConfig(frames=max(args.accuracy_frames * 2, 2), image_size=(size, size))
@@ -158,52 +197,65 @@ def accuracy(args) -> list[dict]:
         for k in frames:
             rot, pos = plan.rotation(name, k).float(), plan.centre(name, k).float()
             t = float(plan.frames["time"][k])
-            probe = OmniProjection(camera, default, supersample=4, fused_grid=False)
+            probe = OmniProjection(camera, default, supersample=REFERENCE_RAYS, fused_grid=False)
             d, valid = _camera_rays(probe, rot)
             direct = town.render_rays(pos, d, t=t)
-            ds, vs = _camera_rays(probe, rot, supersample=True)
-            fine = town.render_rays(pos, ds, t=t)["rgb"]
-            h, w = valid.shape
-            vs = vs.float().reshape(h, 4, w, 4)
-            area = (fine.reshape(h, 4, w, 4, 3) * vs[..., None]).sum((1, 3)) / \
-                vs.sum((1, 3)).clamp(min=1)[..., None]
-            truth[k] = (direct, valid, _edges(direct["labels"], direct["range"]), area)
+            truth[k] = (direct, valid, _edges(direct["labels"], direct["range"]),
+                        _area_mean(town, probe, rot, pos, t))
         for scale in args.faces:
             F = max(8, round(default * scale))
             layer = OmniProjection(camera, F, fused_grid=False)
             layer2 = OmniProjection(camera, F, supersample=2, fused_grid=False)
-            acc = {"rgb": [], "clean": [], "aa": [], "agree": 0, "valid": 0}
-            for k in frames:
-                rot, pos = plan.rotation(name, k).float(), plan.centre(name, k).float()
-                t = float(plan.frames["time"][k])
-                direct, valid, edge, area = truth[k]
-                cube = town.render_cubemap(pos, None, F, t=t)
-                with torch.no_grad():
-                    res = layer.render(rgb=cube["rgb"], depth=cube["depth"],
-                                       labels=cube["labels"], rotation=rot)
-                    aa = layer2.render(rgb=cube["rgb"], rotation=rot)["rgb"]
-                rgb = res["rgb"][0].permute(1, 2, 0)
-                acc["rgb"].append((rgb[valid], direct["rgb"][valid]))
-                acc["clean"].append((rgb[valid & ~edge], direct["rgb"][valid & ~edge]))
-                acc["aa"].append((aa[0].permute(1, 2, 0)[valid], area[valid]))
-                acc["agree"] += int((res["labels"][0] == direct["labels"])[valid].sum())
-                acc["valid"] += int(valid.sum())
-            row = {"camera": name, "image_size": size, "face_size": F,
-                   "default_face_size": default, "frames": frames}
-            for key in ("rgb", "clean", "aa"):
-                a = torch.cat([p[0] for p in acc[key]])
-                b = torch.cat([p[1] for p in acc[key]])
-                row[{"rgb": "psnr_db", "clean": "psnr_away_from_edges_db",
-                     "aa": "psnr_antialiased_db"}[key]] = _psnr(a, b)
-            row["label_agreement"] = acc["agree"] / acc["valid"]
-            row["edge_share"] = float(torch.cat([(e & v)[v].float() for _, v, e, _ in
-                                                 truth.values()]).mean())
-            rows.append(row)
-            print(f"{name:18s} F={F:5d}{' (default)' if F == default else '':10s} "
-                  f"PSNR {row['psnr_db']:5.2f} dB, away from edges "
-                  f"{row['psnr_away_from_edges_db']:5.2f}, anti-aliased "
-                  f"{row['psnr_antialiased_db']:5.2f}; labels {row['label_agreement']:.2%}",
-                  flush=True)
+            centres: dict[int, dict] = {}
+            for aa in args.antialias:
+                acc = {"rgb": [], "clean": [], "aa": [], "agree": 0, "valid": 0,
+                       "edge_texels": 0, "texels": 0}
+                for k in frames:
+                    rot, pos = plan.rotation(name, k).float(), plan.centre(name, k).float()
+                    t = float(plan.frames["time"][k])
+                    direct, valid, edge, area = truth[k]
+                    if k not in centres:   # the cube of centre rays (antialias 1)
+                        centres[k] = town.render_cubemap(pos, None, F, t=t)
+                    cube = centres[k] if aa == 1 else \
+                        town.render_cubemap(pos, None, F, t=t, antialias=aa)
+                    # the texels the camera reads, and those antialias > 1 supersamples: the
+                    # edges of the centre rays' cube
+                    seen = cone_texels(F, plan.rotation(name, k)[:, 2], camera_cone(camera, F))
+                    acc["texels"] += int(seen.sum())
+                    c1 = centres[k]
+                    acc["edge_texels"] += sum(int((edge_texels(
+                        c1["labels"][0, f], c1["range"][0, f], c1["rgb"][0, f]) &
+                        seen[f]).sum()) for f in range(6)) if aa > 1 else 0
+                    with torch.no_grad():
+                        res = layer.render(rgb=cube["rgb"], depth=cube["depth"],
+                                           labels=cube["labels"], rotation=rot)
+                        aa_rgb = layer2.render(rgb=cube["rgb"], rotation=rot)["rgb"]
+                    rgb = res["rgb"][0].permute(1, 2, 0)
+                    acc["rgb"].append((rgb[valid], direct["rgb"][valid]))
+                    acc["clean"].append((rgb[valid & ~edge], direct["rgb"][valid & ~edge]))
+                    acc["aa"].append((aa_rgb[0].permute(1, 2, 0)[valid], area[valid]))
+                    acc["agree"] += int((res["labels"][0] == direct["labels"])[valid].sum())
+                    acc["valid"] += int(valid.sum())
+                row = {"camera": name, "image_size": size, "face_size": F,
+                       "default_face_size": default, "antialias": aa, "frames": frames,
+                       "reference_rays": REFERENCE_RAYS ** 2}
+                for key in ("rgb", "clean", "aa"):
+                    a = torch.cat([p[0] for p in acc[key]])
+                    b = torch.cat([p[1] for p in acc[key]])
+                    row[{"rgb": "psnr_db", "clean": "psnr_away_from_edges_db",
+                         "aa": "psnr_antialiased_db"}[key]] = _psnr(a, b)
+                row["label_agreement"] = acc["agree"] / acc["valid"]
+                row["edge_share"] = float(torch.cat([(e & v)[v].float() for _, v, e, _ in
+                                                     truth.values()]).mean())
+                # edge_texels of the centre rays' cube (the same labels, ranges; the colours of
+                # the texels not supersampled), among the texels in the camera's cone
+                row["supersampled_share"] = acc["edge_texels"] / acc["texels"]
+                rows.append(row)
+                print(f"{name:18s} F={F:5d}{' (default)' if F == default else '':10s} aa={aa} "
+                      f"PSNR {row['psnr_db']:5.2f} dB, away from edges "
+                      f"{row['psnr_away_from_edges_db']:5.2f}, anti-aliased "
+                      f"{row['psnr_antialiased_db']:5.2f}; labels {row['label_agreement']:.2%}"
+                      f"; supersampled {row['supersampled_share']:.1%}", flush=True)
     return rows
 
 
@@ -214,12 +266,16 @@ def figure(speed_rows: list[dict], accuracy_rows: list[dict], path: Path) -> Non
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
     ax = axes[0]
+    aas = sorted({x["antialias"] for x in speed_rows if x["antialias"] is not None})
     for name, style in (("frame", "o-"), ("cubemaps", "s--"), ("direct", "^:")):
-        r = [x for x in speed_rows if x["name"] == name]
-        if r:
-            ax.plot([x["image_size"] for x in r], [x["frames_per_s"] for x in r], style,
-                    label={"frame": "generate frame (4 cameras, files)",
-                           "cubemaps": "cubemaps only", "direct": "direct trace (peer)"}[name])
+        for i, aa in enumerate(aas if name != "direct" else [None]):
+            r = [x for x in speed_rows if x["name"] == name and x["antialias"] == aa]
+            if r:
+                label = {"frame": "generate frame (4 cameras, files)",
+                         "cubemaps": "cubemaps only", "direct": "direct trace (peer)"}[name]
+                ax.plot([x["image_size"] for x in r], [x["frames_per_s"] for x in r], style,
+                        color=f"C{i}" if aa is not None else "k",
+                        label=label if aa is None else f"{label}, antialias {aa}")
     ax.set_xscale("log", base=2)
     ax.set_yscale("log")
     ax.set_xlabel("image size (pixels, square)")
@@ -230,15 +286,22 @@ def figure(speed_rows: list[dict], accuracy_rows: list[dict], path: Path) -> Non
     for i, key in enumerate(("psnr", "label_agreement")):
         ax = axes[1 + i]
         for cam, colour in (("fisheye_left", "C0"), ("catadioptric_left", "C1")):
-            r = [x for x in accuracy_rows if x["camera"] == cam]
-            if not r:
+            every = [x for x in accuracy_rows if x["camera"] == cam]
+            if not every:
                 continue
+            first = min(x["antialias"] for x in every)   # point samples: the first antialias
+            r = [x for x in every if x["antialias"] == first]
             fs = [x["face_size"] for x in r]
             if key == "psnr":
                 ax.plot(fs, [x["psnr_db"] for x in r], "o-", color=colour,
-                        label=f"{cam.split('_')[0]}: point samples")
-                ax.plot(fs, [x["psnr_antialiased_db"] for x in r], "s--", color=colour,
-                        label=f"{cam.split('_')[0]}: anti-aliased")
+                        label=f"{cam.split('_')[0]}: point samples, antialias {first}")
+                for aa, style in zip(sorted({x["antialias"] for x in every}),
+                                     ("s--", "d-.", "v:", "x--")):
+                    ra = [x for x in every if x["antialias"] == aa]
+                    ax.plot([x["face_size"] for x in ra],
+                            [x["psnr_antialiased_db"] for x in ra], style, color=colour,
+                            alpha=0.5 + 0.5 / aa,
+                            label=f"{cam.split('_')[0]}: antialias {aa}, 2 x 2 rays a pixel")
             else:
                 ax.plot(fs, [100 * x["label_agreement"] for x in r], "o-", color=colour,
                         label=cam.split("_")[0])
@@ -262,17 +325,21 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--faces", type=float, nargs="+",
                     default=[0.5, 0.75, 1.0, 1.5, 2.0, 3.0],
                     help="face sizes, as multiples of each camera's default")
+    ap.add_argument("--antialias", type=int, nargs="+", default=[1, 2, 3],
+                    help="Town.render_cubemap's antialias values: a frame and a cubemaps row "
+                         "each in speed, a row each per face size in accuracy (default 1 2 3)")
     ap.add_argument("--accuracy-size", type=int, default=256)
     ap.add_argument("--accuracy-frames", type=int, default=2)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--skip-speed", action="store_true")
     ap.add_argument("--skip-accuracy", action="store_true")
-    ap.add_argument("--quick", action="store_true", help="256 and 512, 2 repeats, 3 faces")
+    ap.add_argument("--quick", action="store_true", help="256 and 512, 2 repeats, 3 faces, "
+                    "antialias 1 and 2")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "town.json")
     args = ap.parse_args(argv)
     if args.quick:
-        args.sizes, args.repeats, args.faces, args.accuracy_frames = [256, 512], 2, \
-            [0.5, 1.0, 2.0], 1
+        args.sizes, args.repeats, args.faces, args.accuracy_frames, args.antialias = \
+            [256, 512], 2, [0.5, 1.0, 2.0], 1, [1, 2]
     load = begin_run(args.threads)
     record = {**run_record("town", torch.device("cpu"), args.threads), "load_start": load,
               "sizes": args.sizes, "repeats": args.repeats}

@@ -250,10 +250,31 @@ def test_cubemap_capture_dataset(tmp_path):
 # ---------------------------------------------------------------------------- contact sheet
 
 def test_contact_sheet(root):
+    import cv2
+
     from omniscape_torch.data.generate import SHEET_CELL, SHEET_COLUMNS
     path = root / "contact_sheet.png"
     assert path.is_file()
-    image = ot.io.read_image(path)
-    assert tuple(image.shape[:2]) == (len(CAMERAS) * SHEET_CELL, len(SHEET_COLUMNS) * SHEET_CELL)
-    assert image.float().std() > 10          # not blank
+    image = ot.io.read_image(path).numpy()
+    weathers = {}
+    for k, w in enumerate(read_manifest(root)["weather_per_frame"]):
+        weathers.setdefault(w, k)
+    extra = 0 if len(weathers) < 2 else -(-len(weathers) // len(SHEET_COLUMNS))
+    assert image.shape[:2] == ((len(CAMERAS) + extra) * SHEET_CELL,
+                               len(SHEET_COLUMNS) * SHEET_CELL)
+    assert image.std() > 10          # not blank
     assert "contact_sheet.png" in read_manifest(root)["layout"]
+
+    # with more than one weather, a row of the first camera's RGB at the given frame of each
+    # (below the title band), in order; missing cells black
+    from omniscape_torch.data.generate import contact_sheet
+    sheet = cv2.imdecode(np.frombuffer(contact_sheet(root, CAMERAS, 0, {"a": 1, "b": 0}),
+                                       np.uint8), cv2.IMREAD_COLOR)[..., ::-1]
+    assert sheet.shape[:2] == ((len(CAMERAS) + 1) * SHEET_CELL, len(SHEET_COLUMNS) * SHEET_CELL)
+    row = sheet[len(CAMERAS) * SHEET_CELL:]
+    for i, k in enumerate((1, 0)):
+        rgb = ot.io.read_image(root / CAMERAS[0] / "rgb" / f"{k:06d}.png").numpy()
+        want = cv2.resize(rgb, (SHEET_CELL, SHEET_CELL), interpolation=cv2.INTER_NEAREST)
+        cell = row[:, i * SHEET_CELL:(i + 1) * SHEET_CELL]
+        assert np.abs(cell[20:].astype(int) - want[20:].astype(int)).max() <= 1, k
+    assert row[:, 2 * SHEET_CELL:].max() == 0

@@ -13,9 +13,9 @@ import pytest
 import torch
 
 from omniscape_torch.cubemap import FACES
-from omniscape_torch.cubemap.faces import face_rays
+from omniscape_torch.cubemap.faces import face_pixel_to_ray, face_rays
 from omniscape_torch.scenes import CLASS_IDS, WEATHERS, Town, mesh, native, routes
-from omniscape_torch.scenes.town import CARLA_WEATHERS, LAYOUTS, _get_weather
+from omniscape_torch.scenes.town import CARLA_WEATHERS, LAYOUTS, _get_weather, edge_texels
 
 POSE = torch.tensor([0.0, -1.2, 0.0])  # on the centre line, eye height, looking north
 
@@ -435,3 +435,95 @@ def test_without_a_c_compiler_the_town_renders_the_same_with_torch(town, cube, m
     for key in ("labels", "depth", "range"):
         assert torch.equal(slow[key], cube[key]), key
     torch.testing.assert_close(slow["rgb"], cube["rgb"], rtol=0, atol=1e-6)
+
+
+# -------------------------------------------------------------------- anti-aliasing
+
+@pytest.mark.parametrize("k", [2, 3])
+def test_antialias_keeps_labels_depth_range_and_flat_texels(town, cube, k):
+    """``antialias=k`` changes only the RGB of the texels on an edge (``edge_texels`` of the
+    centre rays' cube); labels, depth and range are the centre rays', as with ``k = 1``."""
+    aa = town.render_cubemap(POSE, face_size=48, antialias=k)
+    for key in ("labels", "depth", "range"):
+        assert torch.equal(aa[key], cube[key]), key
+    edge = torch.stack([edge_texels(cube["labels"][0, f], cube["range"][0, f],
+                                    cube["rgb"][0, f]) for f in range(6)])
+    changed = (aa["rgb"][0] != cube["rgb"][0]).any(1)
+    assert not (changed & ~edge).any()
+    assert changed.sum() > 0.5 * edge.sum()
+    # straight up, far from the sun (45 deg up): a smooth sky, not supersampled
+    up = FACES.index("up")
+    assert not edge[up, 20:28, 20:28].any()
+    assert torch.equal(aa["rgb"][0, up, :, 20:28, 20:28], cube["rgb"][0, up, :, 20:28, 20:28])
+
+
+@pytest.mark.parametrize("rotated", [False, True])
+@pytest.mark.parametrize("k", [2, 3])
+def test_antialias_rgb_is_the_mean_of_the_sub_texel_rays(town, k, rotated):
+    """A supersampled texel's RGB is the mean of its ``k x k`` stratified sub-texel rays
+    (sub-texel ``(u, v)`` at ``(i + 0.5) / k - 0.5`` of a texel from the centre), traced here on
+    their own (``render_rays``). The rays are built bit for bit as the cube builds them
+    (``face_pixel_to_ray``, the rotation as element-wise sums; for odd ``k`` the middle one is
+    the texel's own ray): the town's textures tell a ray's last bit apart (the ground's noise
+    cells split at ``y = 0``, where its hit points' rounding falls)."""
+    F, pos = 24, torch.tensor([1.0, -1.4, -3.0])
+    rot = _rotation(0.3, -0.5, 0.1) if rotated else None
+    one = town.render_cubemap(pos, rot, F, t=2.0)
+    aa = town.render_cubemap(pos, rot, F, t=2.0, antialias=k)
+    edge = torch.stack([edge_texels(one["labels"][0, f], one["range"][0, f], one["rgb"][0, f])
+                        for f in range(6)])
+    picked = torch.nonzero(edge)[torch.randperm(int(edge.sum()),
+                                                generator=torch.Generator().manual_seed(0))[:40]]
+    off = (torch.arange(k, dtype=torch.float32) + 0.5) / k - 0.5
+    dv, du = (x.reshape(-1) for x in torch.meshgrid(off, off, indexing="ij"))
+    centre = (du == 0) & (dv == 0)
+    for f, i, j in picked.tolist():
+        uv = torch.stack([j + du[~centre], i + dv[~centre]], -1)
+        rays = face_pixel_to_ray(f, uv, F, normalize=True)
+        if rot is not None:
+            rays = rays[:, :1] * rot[:, 0] + rays[:, 1:2] * rot[:, 1] + rays[:, 2:] * rot[:, 2]
+        if centre.any():
+            rays = torch.cat([rays, town.cubemap_rays(F, rot)[f, i, j][None]])
+        assert len(rays) == k * k
+        mean = town.render_rays(pos, rays, t=2.0)["rgb"].mean(0)
+        torch.testing.assert_close(aa["rgb"][0, f, :, i, j], mean, rtol=0, atol=1e-6)
+    # most texels on an edge change colour
+    assert (aa["rgb"][0].movedim(1, -1)[edge] != one["rgb"][0].movedim(1, -1)[edge]).any(-1) \
+        .float().mean() > 0.5
+
+
+def test_antialias_with_texel_masks_and_buffers(town):
+    """Within ``texels``, a texel whose 8 neighbours are all rendered is anti-aliased as on a
+    whole face; the others stay unrendered; ``out`` buffers are written in place."""
+    F = 32
+    whole = town.render_cubemap(POSE, face_size=F, antialias=2)
+    mask = torch.zeros(6, F, F, dtype=torch.bool)
+    mask[:, 4:20, 6:30] = True
+    out = {"rgb": torch.full((1, 6, 3, F, F), 7.0)}
+    part = town.render_cubemap(POSE, face_size=F, texels=mask, out=out, antialias=2)
+    assert part["rgb"].data_ptr() == out["rgb"].data_ptr()
+    assert torch.equal(part["rgb"][0, :, :, 5:19, 7:29], whole["rgb"][0, :, :, 5:19, 7:29])
+    assert (part["rgb"][0].movedim(1, -1)[~mask] == 0).all()
+    assert (part["labels"][0][~mask] == 255).all()
+    faces = torch.tensor([True, False, False, False, True, False])
+    sub = town.render_cubemap(POSE, face_size=F, faces=faces, antialias=2)
+    assert torch.equal(sub["rgb"][0, faces], whole["rgb"][0, faces])
+    assert (sub["rgb"][0, ~faces] == 0).all()
+
+
+def test_bad_antialias(town):
+    for bad in (0, -2, 1.5, True, "2", None):
+        with pytest.raises(ValueError, match="antialias"):
+            town.render_cubemap(POSE, face_size=8, antialias=bad)
+
+
+def test_texel_subset_without_a_c_compiler(town, cube, monkeypatch):
+    """The torch fallback writes a texel subset's colours too (and anti-aliases them)."""
+    monkeypatch.setattr(native, "library", lambda: None)
+    mask = torch.zeros(6, 48, 48, dtype=torch.bool)
+    mask[:, 10:30, 5:25] = True
+    part = town.render_cubemap(POSE, face_size=48, texels=mask)
+    torch.testing.assert_close(part["rgb"][0].movedim(1, -1)[mask],
+                               cube["rgb"][0].movedim(1, -1)[mask], rtol=0, atol=1e-6)
+    aa = town.render_cubemap(POSE, face_size=48, texels=mask, antialias=2)
+    assert torch.equal(aa["labels"], part["labels"])

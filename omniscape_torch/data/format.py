@@ -42,8 +42,10 @@ Layout of ``DIR``
       .done/NNNNNN                 written last, atomically, when all files of a frame exist
       contact_sheet.png            a look at the middle finished frame: one row per camera,
                                    columns rgb, depth (log colour map, black not valid),
-                                   labels_color, valid; 200 x 200 pixels per cell; rewritten
-                                   only when its bytes change
+                                   labels_color, valid; then, with several weathers, the first
+                                   camera's rgb at the first frame of each (four a row);
+                                   200 x 200 pixels per cell; rewritten only when its bytes
+                                   change
       .lock                        held by the run writing the folder (``io.atomic``); a second
                                    run into the folder stops
       stats.json, stats.png        written by ``omniscape-torch stats``
@@ -168,7 +170,8 @@ def layout(save_cubemaps: bool, save_panorama: bool) -> dict[str, str]:
            "<camera>/valid/NNNNNN.png": "255 valid, 0 not",
            f"{DONE}/NNNNNN": "frame finished marker, written last",
            CONTACT_SHEET: "middle finished frame: a row per camera, columns rgb, depth, "
-                          "labels_color, valid"}
+                          "labels_color, valid; then the first camera's rgb in each "
+                          "weather"}
     if save_cubemaps:
         out["<camera>/cubemap/{rgb,depth,labels}/NNNNNN_<face>.{png,exr,png}"] = \
             "rendered cube faces (planar depth), cube axes = world axes"
