@@ -958,9 +958,10 @@ def _sheet_cell(image: np.ndarray, title: str) -> np.ndarray:
     cell = np.zeros((SHEET_CELL, SHEET_CELL, 3), np.uint8)
     y0, x0 = (SHEET_CELL - size[1]) // 2, (SHEET_CELL - size[0]) // 2
     cell[y0:y0 + size[1], x0:x0 + size[0]] = small
-    for colour, thick in (((0, 0, 0), 3), ((255, 255, 255), 1)):   # white on a dark outline
-        cv2.putText(cell, title, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, colour, thick,
-                    cv2.LINE_AA)
+    (w_text, h_text), base = cv2.getTextSize(title, cv2.FONT_HERSHEY_SIMPLEX, 0.4, 1)
+    cell[:h_text + base + 6, :w_text + 8] //= 3          # a dark band under the title
+    cv2.putText(cell, title, (4, h_text + 3), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1,
+                cv2.LINE_AA)
     return cell
 
 
