@@ -71,7 +71,7 @@ ROOT = Path(__file__).resolve().parents[1]
 # Benchmark the checkout this script lives in, not whatever copy is installed.
 sys.path.insert(0, str(ROOT))
 
-from common import loadavg, measure, run_record, begin_run, write_json_atomic  # noqa: E402
+from common import begin_run, loadavg, measure, run_main, run_record  # noqa: E402
 from omniscape_torch.render.augment import RandomOmniCamera  # noqa: E402
 from omniscape_torch.cameras import Camera  # noqa: E402
 from omniscape_torch.cubemap import face_axes  # noqa: E402
@@ -416,12 +416,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def main(argv=None) -> int:
-    args = parse_args(argv)
-    result = run(args)
-    print(markdown(result))
-    write_json_atomic(result, args.out)
-    print(f"\nwrote {args.out}")
-    return 0
+    return run_main(parse_args, run, markdown, argv)
 
 
 if __name__ == "__main__":

@@ -36,7 +36,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_projection import remap_maps  # noqa: E402
-from common import ROOT, begin_run, loadavg, measure, run_record, write_json_atomic  # noqa: E402
+from common import ROOT, begin_run, loadavg, measure, run_main, run_record  # noqa: E402
 
 import omniscape_torch as ot  # noqa: E402
 from omniscape_torch import cubemap as cm  # noqa: E402
@@ -155,12 +155,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def main(argv=None) -> int:
-    args = parse_args(argv)
-    result = run(args)
-    print(markdown(result))
-    write_json_atomic(result, args.out)
-    print(f"\nwrote {args.out}")
-    return 0
+    return run_main(parse_args, run, markdown, argv)
 
 
 if __name__ == "__main__":

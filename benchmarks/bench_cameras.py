@@ -51,7 +51,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import omniscape_torch as ot  # noqa: E402
-from common import loadavg, measure, run_record, write_json_atomic  # noqa: E402
+from common import loadavg, measure, run_main, run_record  # noqa: E402
 from omniscape_torch.cameras.scaramuzza import scaramuzza_project  # noqa: E402
 
 try:
@@ -402,12 +402,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def main(argv=None) -> int:
-    args = parse_args(argv)
-    result = run(args)
-    print(markdown(result))
-    write_json_atomic(result, args.out)
-    print(f"\nwrote {args.out}")
-    return 0
+    return run_main(parse_args, run, markdown, argv)
 
 
 if __name__ == "__main__":

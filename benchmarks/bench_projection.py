@@ -115,7 +115,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import omniscape_torch as ot  # noqa: E402
-from common import loadavg, measure, run_record, begin_run, write_json_atomic  # noqa: E402
+from common import begin_run, loadavg, measure, run_main, run_record  # noqa: E402
 from omniscape_torch import cubemap as cm  # noqa: E402
 from omniscape_torch.cubemap import grid as fastgrid  # noqa: E402
 from omniscape_torch.render import fast as fastsample  # noqa: E402
@@ -591,12 +591,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def main(argv=None) -> int:
-    args = parse_args(argv)
-    result = run(args)
-    print(markdown(result))
-    write_json_atomic(result, args.out)
-    print(f"\nwrote {args.out}")
-    return 0
+    return run_main(parse_args, run, markdown, argv)
 
 
 if __name__ == "__main__":

@@ -53,7 +53,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import begin_run, loadavg, positive_int, run_record, write_json_atomic  # noqa: E402
+from common import begin_run, loadavg, positive_int, run_main, run_record  # noqa: E402
 from omniscape_torch.data import format as fmt  # noqa: E402
 from omniscape_torch.data.generate import (  # noqa: E402
     DatasetConfig, FrameRenderer, contact_sheet, generate, render_task)
@@ -260,11 +260,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def main(argv=None) -> int:
-    args = parse_args(argv)
-    result = run(args)
-    print(markdown(result))
-    write_json_atomic(result, args.out)
-    return 0
+    return run_main(parse_args, run, markdown, argv)
 
 
 if __name__ == "__main__":

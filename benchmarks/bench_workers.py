@@ -54,8 +54,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_augment import FOV_RANGE, atlas_maps, peer_atlas, peer_draw, SEED  # noqa: E402
-from common import (begin_run, loadavg, positive_int, run_record,  # noqa: E402
-                    write_json_atomic)
+from common import begin_run, loadavg, positive_int, run_main, run_record  # noqa: E402
 from omniscape_torch.render.augment import FISHEYE_MODELS, RandomOmniCamera  # noqa: E402
 
 try:
@@ -345,11 +344,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def main(argv=None) -> int:
-    args = parse_args(argv)
-    result = run(args)
-    print(markdown(result))
-    write_json_atomic(result, args.out)
-    return 0
+    return run_main(parse_args, run, markdown, argv)
 
 
 if __name__ == "__main__":

@@ -134,6 +134,18 @@ def write_json_atomic(data: dict, path: Path) -> None:
     atomic_write_text(path, json.dumps(data, indent=2) + "\n")
 
 
+def run_main(parse_args: Callable, run: Callable, markdown: Callable,
+             argv: list[str] | None = None) -> int:
+    """A benchmark's command line: ``parse_args(argv)``, ``run(args)``, its ``markdown(result)``
+    printed and the result written as JSON to ``args.out`` (atomically). Returns 0."""
+    args = parse_args(argv)
+    result = run(args)
+    print(markdown(result))
+    write_json_atomic(result, args.out)
+    print(f"\nwrote {args.out}")
+    return 0
+
+
 def run_record(name: str, device: torch.device, threads: int, cv2=None) -> dict:
     """The head of a benchmark's JSON: name, commit (and dirty flag), machine, versions, the
     environment knobs that change timings without changing the code (threads, allocator,
