@@ -484,14 +484,9 @@ def cone_texels(face_size: int, axis: torch.Tensor, half_angle: float) -> torch.
 
 
 def _grow(texels: torch.Tensor) -> torch.Tensor:
-    """``texels (6, F, F)`` bool and their 8 neighbours on each face."""
-    out = texels.clone()
-    out[:, 1:] |= texels[:, :-1]
-    out[:, :-1] |= texels[:, 1:]
-    rows = out.clone()
-    out[:, :, 1:] |= rows[:, :, :-1]
-    out[:, :, :-1] |= rows[:, :, 1:]
-    return out
+    """``texels (6, F, F)`` bool and their 8 neighbours on each face (a 3 x 3 dilation)."""
+    grown = torch.nn.functional.max_pool2d(texels[:, None].float(), 3, stride=1, padding=1)
+    return grown[:, 0] > 0
 
 
 def _cube_path(out: Path, name: str, k: int, face: str, modality: str) -> Path:
