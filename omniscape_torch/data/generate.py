@@ -507,8 +507,9 @@ def _write_camera(out: Path, name: str, k: int, res: dict[str, torch.Tensor]) ->
 
     write_image(path("rgb"), _to_uint8(res["rgb"][0]))
     write_exr(path("depth"), res["depth"][0, 0].float())
-    write_image(path("labels"), labels.to(torch.uint8).numpy())
-    write_image(path("labels_color"), colorize(labels))
+    ids = labels.to(torch.uint8).numpy()   # 0..12 and 255 (IGNORE_INDEX)
+    write_image(path("labels"), ids)
+    write_image(path("labels_color"), colorize(ids))
     write_image(path("valid"), (valid.to(torch.uint8) * 255).numpy())
 
 

@@ -41,9 +41,14 @@ def colorize(labels: Tensor | np.ndarray, palette: np.ndarray = PALETTE) -> np.n
     labels = np.asarray(labels)
     if not np.issubdtype(labels.dtype, np.integer):
         raise TypeError(f"labels: expected integer class ids, got {labels.dtype}")
+    # np.take, not table[idx]: a third of the time on a 1024 x 1024 image
+    if labels.dtype == np.uint8:   # a table of all 256 ids: no range check
+        table = np.tile(np.array(IGNORE_COLOUR, dtype=np.uint8), (256, 1))
+        table[:min(len(palette), 256)] = palette[:256]
+        return np.take(table, labels, axis=0)
     table = np.vstack([palette, np.array([IGNORE_COLOUR], dtype=np.uint8)])
     idx = np.where((labels >= 0) & (labels < len(palette)), labels, len(palette))
-    return table[idx]
+    return np.take(table, idx, axis=0)
 
 
 def palette_to_labels(rgb: Tensor | np.ndarray, palette: np.ndarray = PALETTE,

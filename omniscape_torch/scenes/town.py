@@ -97,7 +97,7 @@ SHADOW_BIAS, SHADOW_BIAS_PER_M = 1e-3, 1e-5
 #: ``MAX_PASSES`` times.
 PASS_STEP, MAX_PASSES = 1e-4, 4
 #: Rays traced and shaded per task (the tasks run on ``threads`` threads).
-CHUNK = 16384
+CHUNK = 65536
 #: Anti-aliased cubemaps (``render_cubemap(antialias=k)``, :func:`edge_texels`): two
 #: neighbouring texels on a face straddle an edge, and both are supersampled, where their labels
 #: differ, their ranges by more than ``AA_RANGE_STEP`` of the nearer, or a colour channel by more
@@ -775,9 +775,10 @@ class Town:
         n = d.shape[0]
         o = np.broadcast_to(o, (n, 3))
         t, tri, u, v = scene.intersect(o, d, self.far)
-        todo = np.arange(n)
+        todo = None   # every ray (not gathered)
         for rest in range(MAX_PASSES, -1, -1):
-            todo = todo[self._backfaces(d[todo], tri[todo])]
+            todo = np.flatnonzero(self._backfaces(d, tri)) if todo is None else \
+                todo[self._backfaces(d[todo], tri[todo])]
             if todo.size == 0:
                 break
             if rest == 0:
