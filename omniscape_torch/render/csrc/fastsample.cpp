@@ -459,31 +459,16 @@ void interior_rgb8(const uint8_t* __restrict cube, Taps t, int64_t m, const Layo
         std::memcpy(&v, q, 4);
         return _mm_cvtepi32_ps(_mm_cvtepu8_epi32(_mm_cvtsi32_si128(v)));
     };
-    for (int64_t p = 0; p < m; ++p) {
-        const int64_t k = t.code(p);
-        O* o = out + p * out_pix;
-        if (k < 0) {
-            for (int n = 0; n < N; ++n) {
-                o[n] = fill;
-            }
-            continue;
-        }
-        if (k > safe) {
-            interior<uint8_t, O, N>(cube, 1, t + p, 1, L, true, fill, o, 1, 0);
-            continue;
-        }
-        if (p + kAhead < m) {   // the taps of a pixel ahead: not a stream the CPU foresees
+    const auto prefetch = [&](int64_t p) {   // the taps of a pixel ahead: not a stream the
+        if (p + kAhead < m) {                // CPU foresees
             const int64_t ahead = std::max<int64_t>(t.code(p + kAhead), 0);
             __builtin_prefetch(cube + ahead);
             __builtin_prefetch(cube + ahead + dy);
         }
-        const float x = float(t.fx(p)), y = float(t.fy(p)), e = 1 - x, s = 1 - y;
-        const uint8_t* q = cube + k;
-        __m128 acc = _mm_mul_ps(texel(q), _mm_set1_ps(s * e));   // blend()'s order
-        acc = _mm_add_ps(acc, _mm_mul_ps(texel(q + dx), _mm_set1_ps(s * x)));
-        acc = _mm_add_ps(acc, _mm_mul_ps(texel(q + dy), _mm_set1_ps(y * e)));
-        acc = _mm_add_ps(acc, _mm_mul_ps(texel(q + dy + dx), _mm_set1_ps(y * x)));
-        // stores of a constant size (a variable one is a loop), from registers
+    };
+    // stores of a constant size (a variable one is a loop), from registers
+    const auto write = [&](__m128 acc, int64_t p) {
+        O* o = out + p * out_pix;
         const bool whole = N == 4 || p + 1 < m;
         if constexpr (std::is_same_v<O, uint8_t>) {
             const __m128i levels = _mm_cvttps_epi32(_mm_add_ps(acc, _mm_set1_ps(0.5f)));
@@ -500,6 +485,69 @@ void interior_rgb8(const uint8_t* __restrict cube, Taps t, int64_t m, const Layo
                 std::memcpy(o, w, N * sizeof(float));
             }
         }
+    };
+    const auto one = [&](int64_t p) {
+        const int64_t k = t.code(p);
+        if (k < 0) {
+            for (int n = 0; n < N; ++n) {
+                out[p * out_pix + n] = fill;
+            }
+            return;
+        }
+        if (k > safe) {
+            interior<uint8_t, O, N>(cube, 1, t + p, 1, L, true, fill, out + p * out_pix, 1, 0);
+            return;
+        }
+        const float x = float(t.fx(p)), y = float(t.fy(p)), e = 1 - x, s = 1 - y;
+        const uint8_t* q = cube + k;
+        __m128 acc = _mm_mul_ps(texel(q), _mm_set1_ps(s * e));   // blend()'s order
+        acc = _mm_add_ps(acc, _mm_mul_ps(texel(q + dx), _mm_set1_ps(s * x)));
+        acc = _mm_add_ps(acc, _mm_mul_ps(texel(q + dy), _mm_set1_ps(y * e)));
+        acc = _mm_add_ps(acc, _mm_mul_ps(texel(q + dy + dx), _mm_set1_ps(y * x)));
+        write(acc, p);
+    };
+    int64_t p = 0;
+#ifdef __AVX2__
+    // Two pixels at a time, one in each 128-bit lane: the same operations as one() on each
+    // (the same values), with half the conversions and blends. Pixel p + 1's store comes
+    // after pixel p's, which writes the first channel of p + 1 when N = 3.
+    const auto texels = [](const uint8_t* a, const uint8_t* b) {
+        uint32_t va, vb;
+        std::memcpy(&va, a, 4);
+        std::memcpy(&vb, b, 4);
+        return _mm256_cvtepi32_ps(_mm256_cvtepu8_epi32(
+            _mm_cvtsi64_si128(int64_t(uint64_t(va) | (uint64_t(vb) << 32)))));
+    };
+    for (; p + 1 < m; p += 2) {
+        prefetch(p);
+        prefetch(p + 1);
+        const int64_t ka = t.code(p), kb = t.code(p + 1);
+        if (ka < 0 || kb < 0 || ka > safe || kb > safe) {
+            one(p);
+            one(p + 1);
+            continue;
+        }
+        const float xa = float(t.fx(p)), ya = float(t.fy(p)), xb = float(t.fx(p + 1)),
+                    yb = float(t.fy(p + 1));
+        // per lane (s e, s x, y e, y x): one() 's weights, each one product
+        const __m256 w = _mm256_mul_ps(
+            _mm256_setr_ps(1 - ya, 1 - ya, ya, ya, 1 - yb, 1 - yb, yb, yb),
+            _mm256_setr_ps(1 - xa, xa, 1 - xa, xa, 1 - xb, xb, 1 - xb, xb));
+        const uint8_t *qa = cube + ka, *qb = cube + kb;
+        __m256 acc = _mm256_mul_ps(texels(qa, qb), _mm256_permute_ps(w, 0x00));
+        acc = _mm256_add_ps(acc, _mm256_mul_ps(texels(qa + dx, qb + dx),
+                                               _mm256_permute_ps(w, 0x55)));
+        acc = _mm256_add_ps(acc, _mm256_mul_ps(texels(qa + dy, qb + dy),
+                                               _mm256_permute_ps(w, 0xAA)));
+        acc = _mm256_add_ps(acc, _mm256_mul_ps(texels(qa + dy + dx, qb + dy + dx),
+                                               _mm256_permute_ps(w, 0xFF)));
+        write(_mm256_castps256_ps128(acc), p);
+        write(_mm256_extractf128_ps(acc, 1), p + 1);
+    }
+#endif
+    for (; p < m; ++p) {
+        prefetch(p);
+        one(p);
     }
 }
 #endif
@@ -569,6 +617,60 @@ inline uint64_t half_bits(__m128 v) {
     return static_cast<uint64_t>(_mm_cvtsi128_si64(bits));
 }
 
+// The N blended channels of a pixel (acc's first N lanes) written as store() writes them
+// (8-bit: rounded half up and saturated by packus; half precision: half_bits).
+template <typename T, typename O, int N>
+inline void write_planes(__m128 acc, O* o, int64_t out_chan) {
+    if constexpr (std::is_same_v<O, uint8_t>) {
+        const __m128i levels = _mm_cvttps_epi32(_mm_add_ps(acc, _mm_set1_ps(0.5f)));
+        const uint32_t v = static_cast<uint32_t>(_mm_cvtsi128_si32(
+            _mm_packus_epi16(_mm_packus_epi32(levels, levels), levels)));
+        for (int n = 0; n < N; ++n) {
+            o[n * out_chan] = static_cast<uint8_t>(v >> (8 * n));
+        }
+    } else if constexpr (kHalfOut<O>) {
+        const uint64_t v = half_bits<O>(acc);
+        for (int n = 0; n < N; ++n) {
+            o[n * out_chan] = O(static_cast<uint16_t>(v >> (16 * n)), O::from_bits());
+        }
+    } else {
+        alignas(16) float v[4];
+        _mm_store_ps(v, acc);
+        for (int n = 0; n < N; ++n) {
+            o[n * out_chan] = store<T, O>(v[n]);
+        }
+    }
+}
+
+#ifdef __AVX2__
+// row_taps of two pixels (texel offsets a and b), one in each 128-bit lane.
+template <typename T>
+inline __m256 pair_taps(const T* q, int64_t a, int64_t b, int64_t dy) {
+    if constexpr (std::is_same_v<T, uint8_t>) {
+        uint16_t na, sa, nb, sb;
+        std::memcpy(&na, q + a, 2);
+        std::memcpy(&sa, q + a + dy, 2);
+        std::memcpy(&nb, q + b, 2);
+        std::memcpy(&sb, q + b + dy, 2);
+        const uint64_t taps = uint64_t(na) | (uint64_t(sa) << 16) | (uint64_t(nb) << 32) |
+                              (uint64_t(sb) << 48);
+        return _mm256_cvtepi32_ps(_mm256_cvtepu8_epi32(_mm_cvtsi64_si128(int64_t(taps))));
+    } else {
+        int32_t na, sa, nb, sb;
+        std::memcpy(&na, q + a, 4);
+        std::memcpy(&sa, q + a + dy, 4);
+        std::memcpy(&nb, q + b, 4);
+        std::memcpy(&sb, q + b + dy, 4);
+        const __m128i halves = _mm_setr_epi32(na, sa, nb, sb);
+        if constexpr (std::is_same_v<T, c10::BFloat16>) {   // bfloat16: float's upper half
+            return _mm256_castsi256_ps(_mm256_slli_epi32(_mm256_cvtepu16_epi32(halves), 16));
+        } else {
+            return _mm256_cvtph_ps(halves);
+        }
+    }
+}
+#endif
+
 // The blend of interior() for planes (texel stride 1, N <= 4 channels any stride apart) of
 // 8-bit or half-precision texels (x86 with SSE4.1): per channel the four taps as 4 floats
 // (row_taps), transposed so that each vector holds one tap of every channel, blended in
@@ -580,21 +682,23 @@ void interior_planes(const T* __restrict cube, int64_t src_chan, Taps t, int64_t
                      const Layout& L, O fill, O* __restrict out, int64_t out_chan,
                      int64_t out_pix) {
     const int64_t dy = L.row;
-    for (int64_t p = 0; p < m; ++p) {
+    const auto prefetch = [&](int64_t p) {   // the taps of a pixel ahead: not a stream the
+        if (p + kAhead < m) {                // CPU foresees
+            const int64_t ahead = std::max<int64_t>(t.code(p + kAhead), 0);
+            for (int n = 0; n < N; ++n) {
+                __builtin_prefetch(cube + n * src_chan + ahead);
+                __builtin_prefetch(cube + n * src_chan + ahead + dy);
+            }
+        }
+    };
+    const auto one = [&](int64_t p) {
         const int64_t k = t.code(p);
         O* o = out + p * out_pix;
         if (k < 0) {
             for (int n = 0; n < N; ++n) {
                 o[n * out_chan] = fill;
             }
-            continue;
-        }
-        if (p + kAhead < m) {   // the taps of a pixel ahead: not a stream the CPU foresees
-            const int64_t ahead = std::max<int64_t>(t.code(p + kAhead), 0);
-            for (int n = 0; n < N; ++n) {
-                __builtin_prefetch(cube + n * src_chan + ahead);
-                __builtin_prefetch(cube + n * src_chan + ahead + dy);
-            }
+            return;
         }
         __m128 tap[4];   // channel n: (nw, ne, sw, se); after the transpose, tap j of every one
         for (int n = 0; n < 4; ++n) {
@@ -606,25 +710,47 @@ void interior_planes(const T* __restrict cube, int64_t src_chan, Taps t, int64_t
         acc = _mm_add_ps(acc, _mm_mul_ps(tap[1], _mm_set1_ps(s * x)));
         acc = _mm_add_ps(acc, _mm_mul_ps(tap[2], _mm_set1_ps(y * e)));
         acc = _mm_add_ps(acc, _mm_mul_ps(tap[3], _mm_set1_ps(y * x)));
-        if constexpr (std::is_same_v<O, uint8_t>) {
-            const __m128i levels = _mm_cvttps_epi32(_mm_add_ps(acc, _mm_set1_ps(0.5f)));
-            const uint32_t v = static_cast<uint32_t>(_mm_cvtsi128_si32(
-                _mm_packus_epi16(_mm_packus_epi32(levels, levels), levels)));
-            for (int n = 0; n < N; ++n) {
-                o[n * out_chan] = static_cast<uint8_t>(v >> (8 * n));
-            }
-        } else if constexpr (kHalfOut<O>) {
-            const uint64_t v = half_bits<O>(acc);
-            for (int n = 0; n < N; ++n) {
-                o[n * out_chan] = O(static_cast<uint16_t>(v >> (16 * n)), O::from_bits());
-            }
-        } else {
-            alignas(16) float v[4];
-            _mm_store_ps(v, acc);
-            for (int n = 0; n < N; ++n) {
-                o[n * out_chan] = store<T, O>(v[n]);
-            }
+        write_planes<T, O, N>(acc, o, out_chan);
+    };
+    int64_t p = 0;
+#ifdef __AVX2__
+    // Two pixels at a time, one in each 128-bit lane: the same operations as one() on each
+    // (the same values), with half the shuffles, blends and conversions.
+    for (; p + 1 < m; p += 2) {
+        prefetch(p);
+        prefetch(p + 1);
+        const int64_t ka = t.code(p), kb = t.code(p + 1);
+        if (ka < 0 || kb < 0) {
+            one(p);
+            one(p + 1);
+            continue;
         }
+        __m256 tap[4];
+        for (int n = 0; n < 4; ++n) {
+            tap[n] = n < N ? pair_taps(cube + n * src_chan, ka, kb, dy) : _mm256_setzero_ps();
+        }
+        // _MM_TRANSPOSE4_PS in each lane
+        const __m256 t0 = _mm256_unpacklo_ps(tap[0], tap[1]), t1 = _mm256_unpackhi_ps(tap[0], tap[1]);
+        const __m256 t2 = _mm256_unpacklo_ps(tap[2], tap[3]), t3 = _mm256_unpackhi_ps(tap[2], tap[3]);
+        const __m256 nw = _mm256_shuffle_ps(t0, t2, 0x44), ne = _mm256_shuffle_ps(t0, t2, 0xEE);
+        const __m256 sw = _mm256_shuffle_ps(t1, t3, 0x44), se = _mm256_shuffle_ps(t1, t3, 0xEE);
+        const float xa = float(t.fx(p)), ya = float(t.fy(p)), xb = float(t.fx(p + 1)),
+                    yb = float(t.fy(p + 1));
+        // per lane (s e, s x, y e, y x): one() 's weights, each one product
+        const __m256 w = _mm256_mul_ps(
+            _mm256_setr_ps(1 - ya, 1 - ya, ya, ya, 1 - yb, 1 - yb, yb, yb),
+            _mm256_setr_ps(1 - xa, xa, 1 - xa, xa, 1 - xb, xb, 1 - xb, xb));
+        __m256 acc = _mm256_mul_ps(nw, _mm256_permute_ps(w, 0x00));   // blend()'s order
+        acc = _mm256_add_ps(acc, _mm256_mul_ps(ne, _mm256_permute_ps(w, 0x55)));
+        acc = _mm256_add_ps(acc, _mm256_mul_ps(sw, _mm256_permute_ps(w, 0xAA)));
+        acc = _mm256_add_ps(acc, _mm256_mul_ps(se, _mm256_permute_ps(w, 0xFF)));
+        write_planes<T, O, N>(_mm256_castps256_ps128(acc), out + p * out_pix, out_chan);
+        write_planes<T, O, N>(_mm256_extractf128_ps(acc, 1), out + (p + 1) * out_pix, out_chan);
+    }
+#endif
+    for (; p < m; ++p) {
+        prefetch(p);
+        one(p);
     }
 }
 #endif
