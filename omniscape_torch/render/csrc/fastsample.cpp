@@ -459,16 +459,31 @@ void interior_rgb8(const uint8_t* __restrict cube, Taps t, int64_t m, const Layo
         std::memcpy(&v, q, 4);
         return _mm_cvtepi32_ps(_mm_cvtepu8_epi32(_mm_cvtsi32_si128(v)));
     };
-    const auto prefetch = [&](int64_t p) {   // the taps of a pixel ahead: not a stream the
-        if (p + kAhead < m) {                // CPU foresees
+    for (int64_t p = 0; p < m; ++p) {
+        const int64_t k = t.code(p);
+        O* o = out + p * out_pix;
+        if (k < 0) {
+            for (int n = 0; n < N; ++n) {
+                o[n] = fill;
+            }
+            continue;
+        }
+        if (k > safe) {
+            interior<uint8_t, O, N>(cube, 1, t + p, 1, L, true, fill, o, 1, 0);
+            continue;
+        }
+        if (p + kAhead < m) {   // the taps of a pixel ahead: not a stream the CPU foresees
             const int64_t ahead = std::max<int64_t>(t.code(p + kAhead), 0);
             __builtin_prefetch(cube + ahead);
             __builtin_prefetch(cube + ahead + dy);
         }
-    };
-    // stores of a constant size (a variable one is a loop), from registers
-    const auto write = [&](__m128 acc, int64_t p) {
-        O* o = out + p * out_pix;
+        const float x = float(t.fx(p)), y = float(t.fy(p)), e = 1 - x, s = 1 - y;
+        const uint8_t* q = cube + k;
+        __m128 acc = _mm_mul_ps(texel(q), _mm_set1_ps(s * e));   // blend()'s order
+        acc = _mm_add_ps(acc, _mm_mul_ps(texel(q + dx), _mm_set1_ps(s * x)));
+        acc = _mm_add_ps(acc, _mm_mul_ps(texel(q + dy), _mm_set1_ps(y * e)));
+        acc = _mm_add_ps(acc, _mm_mul_ps(texel(q + dy + dx), _mm_set1_ps(y * x)));
+        // stores of a constant size (a variable one is a loop), from registers
         const bool whole = N == 4 || p + 1 < m;
         if constexpr (std::is_same_v<O, uint8_t>) {
             const __m128i levels = _mm_cvttps_epi32(_mm_add_ps(acc, _mm_set1_ps(0.5f)));
@@ -485,69 +500,6 @@ void interior_rgb8(const uint8_t* __restrict cube, Taps t, int64_t m, const Layo
                 std::memcpy(o, w, N * sizeof(float));
             }
         }
-    };
-    const auto one = [&](int64_t p) {
-        const int64_t k = t.code(p);
-        if (k < 0) {
-            for (int n = 0; n < N; ++n) {
-                out[p * out_pix + n] = fill;
-            }
-            return;
-        }
-        if (k > safe) {
-            interior<uint8_t, O, N>(cube, 1, t + p, 1, L, true, fill, out + p * out_pix, 1, 0);
-            return;
-        }
-        const float x = float(t.fx(p)), y = float(t.fy(p)), e = 1 - x, s = 1 - y;
-        const uint8_t* q = cube + k;
-        __m128 acc = _mm_mul_ps(texel(q), _mm_set1_ps(s * e));   // blend()'s order
-        acc = _mm_add_ps(acc, _mm_mul_ps(texel(q + dx), _mm_set1_ps(s * x)));
-        acc = _mm_add_ps(acc, _mm_mul_ps(texel(q + dy), _mm_set1_ps(y * e)));
-        acc = _mm_add_ps(acc, _mm_mul_ps(texel(q + dy + dx), _mm_set1_ps(y * x)));
-        write(acc, p);
-    };
-    int64_t p = 0;
-#ifdef __AVX2__
-    // Two pixels at a time, one in each 128-bit lane: the same operations as one() on each
-    // (the same values), with half the conversions and blends. Pixel p + 1's store comes
-    // after pixel p's, which writes the first channel of p + 1 when N = 3.
-    const auto texels = [](const uint8_t* a, const uint8_t* b) {
-        uint32_t va, vb;
-        std::memcpy(&va, a, 4);
-        std::memcpy(&vb, b, 4);
-        return _mm256_cvtepi32_ps(_mm256_cvtepu8_epi32(
-            _mm_cvtsi64_si128(int64_t(uint64_t(va) | (uint64_t(vb) << 32)))));
-    };
-    for (; p + 1 < m; p += 2) {
-        prefetch(p);
-        prefetch(p + 1);
-        const int64_t ka = t.code(p), kb = t.code(p + 1);
-        if (ka < 0 || kb < 0 || ka > safe || kb > safe) {
-            one(p);
-            one(p + 1);
-            continue;
-        }
-        const float xa = float(t.fx(p)), ya = float(t.fy(p)), xb = float(t.fx(p + 1)),
-                    yb = float(t.fy(p + 1));
-        // per lane (s e, s x, y e, y x): one() 's weights, each one product
-        const __m256 w = _mm256_mul_ps(
-            _mm256_setr_ps(1 - ya, 1 - ya, ya, ya, 1 - yb, 1 - yb, yb, yb),
-            _mm256_setr_ps(1 - xa, xa, 1 - xa, xa, 1 - xb, xb, 1 - xb, xb));
-        const uint8_t *qa = cube + ka, *qb = cube + kb;
-        __m256 acc = _mm256_mul_ps(texels(qa, qb), _mm256_permute_ps(w, 0x00));
-        acc = _mm256_add_ps(acc, _mm256_mul_ps(texels(qa + dx, qb + dx),
-                                               _mm256_permute_ps(w, 0x55)));
-        acc = _mm256_add_ps(acc, _mm256_mul_ps(texels(qa + dy, qb + dy),
-                                               _mm256_permute_ps(w, 0xAA)));
-        acc = _mm256_add_ps(acc, _mm256_mul_ps(texels(qa + dy + dx, qb + dy + dx),
-                                               _mm256_permute_ps(w, 0xFF)));
-        write(_mm256_castps256_ps128(acc), p);
-        write(_mm256_extractf128_ps(acc, 1), p + 1);
-    }
-#endif
-    for (; p < m; ++p) {
-        prefetch(p);
-        one(p);
     }
 }
 #endif
