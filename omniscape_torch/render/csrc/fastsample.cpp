@@ -595,6 +595,30 @@ inline void write_planes(__m128 acc, O* o, int64_t out_chan) {
 }
 
 #ifdef __AVX2__
+// write_planes' conversion of two pixels' blends (one in each 128-bit lane) at once: each
+// lane's low 64 bits hold its pixel's 4 values as O (uint8: rounded half up and saturated;
+// half precision: as half_bits rounds).
+template <typename O>
+inline __m256i pair_bits(__m256 acc) {
+    if constexpr (std::is_same_v<O, uint8_t>) {
+        const __m256i levels = _mm256_cvttps_epi32(_mm256_add_ps(acc, _mm256_set1_ps(0.5f)));
+        const __m256i words = _mm256_packus_epi32(levels, levels);
+        return _mm256_packus_epi16(words, words);
+    } else if constexpr (std::is_same_v<O, c10::BFloat16>) {
+        const __m256i u = _mm256_castps_si256(acc);
+        const __m256i bias = _mm256_add_epi32(
+            _mm256_and_si256(_mm256_srli_epi32(u, 16), _mm256_set1_epi32(1)),
+            _mm256_set1_epi32(0x7FFF));
+        __m256i bits = _mm256_srli_epi32(_mm256_add_epi32(u, bias), 16);
+        bits = _mm256_blendv_epi8(bits, _mm256_set1_epi32(0x7FC0),
+                                  _mm256_castps_si256(_mm256_cmp_ps(acc, acc, _CMP_UNORD_Q)));
+        return _mm256_packus_epi32(bits, bits);
+    } else {   // float16: A's 4 values, then B's, in 128 bits
+        const __m128i h = _mm256_cvtps_ph(acc, _MM_FROUND_TO_NEAREST_INT);
+        return _mm256_setr_m128i(h, _mm_unpackhi_epi64(h, h));
+    }
+}
+
 // row_taps of two pixels (texel offsets a and b), one in each 128-bit lane.
 template <typename T>
 inline __m256 pair_taps(const T* q, int64_t a, int64_t b, int64_t dy) {
@@ -696,8 +720,25 @@ void interior_planes(const T* __restrict cube, int64_t src_chan, Taps t, int64_t
         acc = _mm256_add_ps(acc, _mm256_mul_ps(ne, _mm256_permute_ps(w, 0x55)));
         acc = _mm256_add_ps(acc, _mm256_mul_ps(sw, _mm256_permute_ps(w, 0xAA)));
         acc = _mm256_add_ps(acc, _mm256_mul_ps(se, _mm256_permute_ps(w, 0xFF)));
-        write_planes<T, O, N>(_mm256_castps256_ps128(acc), out + p * out_pix, out_chan);
-        write_planes<T, O, N>(_mm256_extractf128_ps(acc, 1), out + (p + 1) * out_pix, out_chan);
+        O *oa = out + p * out_pix, *ob = oa + out_pix;
+        if constexpr (std::is_same_v<O, uint8_t> || kHalfOut<O>) {   // both lanes at once
+            const __m256i packed = pair_bits<O>(acc);
+            const uint64_t va = uint64_t(_mm_cvtsi128_si64(_mm256_castsi256_si128(packed)));
+            const uint64_t vb = uint64_t(_mm_cvtsi128_si64(_mm256_extracti128_si256(packed, 1)));
+            constexpr int bits = 8 * sizeof(O);
+            for (int n = 0; n < N; ++n) {
+                if constexpr (std::is_same_v<O, uint8_t>) {
+                    oa[n * out_chan] = static_cast<uint8_t>(va >> (bits * n));
+                    ob[n * out_chan] = static_cast<uint8_t>(vb >> (bits * n));
+                } else {
+                    oa[n * out_chan] = O(static_cast<uint16_t>(va >> (bits * n)), O::from_bits());
+                    ob[n * out_chan] = O(static_cast<uint16_t>(vb >> (bits * n)), O::from_bits());
+                }
+            }
+        } else {
+            write_planes<T, O, N>(_mm256_castps256_ps128(acc), oa, out_chan);
+            write_planes<T, O, N>(_mm256_extractf128_ps(acc, 1), ob, out_chan);
+        }
     }
 #endif
     for (; p < m; ++p) {
