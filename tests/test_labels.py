@@ -58,7 +58,6 @@ def test_colorize_and_palette_to_labels_invert_each_other():
         colorize(torch.zeros(2, 2))
 
 
-
 def test_colorize_uint8_ids_as_int64_ones():
     """uint8 ids (a table of all 256) draw every id as the same ids in int64 do: the palette's
     colours for 0..12, white for the rest (IGNORE_INDEX included)."""
@@ -68,6 +67,7 @@ def test_colorize_uint8_ids_as_int64_ones():
     assert np.array_equal(drawn, colorize(ids.astype(np.int64)))
     assert np.array_equal(drawn.reshape(256, 3)[:13], PALETTE)
     assert bool((drawn.reshape(256, 3)[13:] == 255).all())
+
 
 def test_palette_to_labels_is_the_nearest_colour():
     """Against a brute-force nearest-colour search over every pixel and every colour."""

@@ -569,22 +569,30 @@ inline uint64_t half_bits(__m128 v) {
     return static_cast<uint64_t>(_mm_cvtsi128_si64(bits));
 }
 
+// A pixel's N channels, packed in v (uint8: a byte each; half precision: 16 bits each, the
+// first lowest), written out_chan apart.
+template <typename O, int N>
+inline void put_packed(uint64_t v, O* o, int64_t out_chan) {
+    constexpr int bits = 8 * sizeof(O);
+    for (int n = 0; n < N; ++n) {
+        if constexpr (std::is_same_v<O, uint8_t>) {
+            o[n * out_chan] = static_cast<uint8_t>(v >> (bits * n));
+        } else {
+            o[n * out_chan] = O(static_cast<uint16_t>(v >> (bits * n)), O::from_bits());
+        }
+    }
+}
+
 // The N blended channels of a pixel (acc's first N lanes) written as store() writes them
 // (8-bit: rounded half up and saturated by packus; half precision: half_bits).
 template <typename T, typename O, int N>
 inline void write_planes(__m128 acc, O* o, int64_t out_chan) {
     if constexpr (std::is_same_v<O, uint8_t>) {
         const __m128i levels = _mm_cvttps_epi32(_mm_add_ps(acc, _mm_set1_ps(0.5f)));
-        const uint32_t v = static_cast<uint32_t>(_mm_cvtsi128_si32(
-            _mm_packus_epi16(_mm_packus_epi32(levels, levels), levels)));
-        for (int n = 0; n < N; ++n) {
-            o[n * out_chan] = static_cast<uint8_t>(v >> (8 * n));
-        }
+        put_packed<O, N>(uint32_t(_mm_cvtsi128_si32(
+            _mm_packus_epi16(_mm_packus_epi32(levels, levels), levels))), o, out_chan);
     } else if constexpr (kHalfOut<O>) {
-        const uint64_t v = half_bits<O>(acc);
-        for (int n = 0; n < N; ++n) {
-            o[n * out_chan] = O(static_cast<uint16_t>(v >> (16 * n)), O::from_bits());
-        }
+        put_packed<O, N>(half_bits<O>(acc), o, out_chan);
     } else {
         alignas(16) float v[4];
         _mm_store_ps(v, acc);
@@ -706,8 +714,10 @@ void interior_planes(const T* __restrict cube, int64_t src_chan, Taps t, int64_t
             tap[n] = n < N ? pair_taps(cube + n * src_chan, ka, kb, dy) : _mm256_setzero_ps();
         }
         // _MM_TRANSPOSE4_PS in each lane
-        const __m256 t0 = _mm256_unpacklo_ps(tap[0], tap[1]), t1 = _mm256_unpackhi_ps(tap[0], tap[1]);
-        const __m256 t2 = _mm256_unpacklo_ps(tap[2], tap[3]), t3 = _mm256_unpackhi_ps(tap[2], tap[3]);
+        const __m256 t0 = _mm256_unpacklo_ps(tap[0], tap[1]);
+        const __m256 t1 = _mm256_unpackhi_ps(tap[0], tap[1]);
+        const __m256 t2 = _mm256_unpacklo_ps(tap[2], tap[3]);
+        const __m256 t3 = _mm256_unpackhi_ps(tap[2], tap[3]);
         const __m256 nw = _mm256_shuffle_ps(t0, t2, 0x44), ne = _mm256_shuffle_ps(t0, t2, 0xEE);
         const __m256 sw = _mm256_shuffle_ps(t1, t3, 0x44), se = _mm256_shuffle_ps(t1, t3, 0xEE);
         const float xa = float(t.fx(p)), ya = float(t.fy(p)), xb = float(t.fx(p + 1)),
@@ -723,18 +733,10 @@ void interior_planes(const T* __restrict cube, int64_t src_chan, Taps t, int64_t
         O *oa = out + p * out_pix, *ob = oa + out_pix;
         if constexpr (std::is_same_v<O, uint8_t> || kHalfOut<O>) {   // both lanes at once
             const __m256i packed = pair_bits<O>(acc);
-            const uint64_t va = uint64_t(_mm_cvtsi128_si64(_mm256_castsi256_si128(packed)));
-            const uint64_t vb = uint64_t(_mm_cvtsi128_si64(_mm256_extracti128_si256(packed, 1)));
-            constexpr int bits = 8 * sizeof(O);
-            for (int n = 0; n < N; ++n) {
-                if constexpr (std::is_same_v<O, uint8_t>) {
-                    oa[n * out_chan] = static_cast<uint8_t>(va >> (bits * n));
-                    ob[n * out_chan] = static_cast<uint8_t>(vb >> (bits * n));
-                } else {
-                    oa[n * out_chan] = O(static_cast<uint16_t>(va >> (bits * n)), O::from_bits());
-                    ob[n * out_chan] = O(static_cast<uint16_t>(vb >> (bits * n)), O::from_bits());
-                }
-            }
+            put_packed<O, N>(uint64_t(_mm_cvtsi128_si64(_mm256_castsi256_si128(packed))), oa,
+                             out_chan);
+            put_packed<O, N>(uint64_t(_mm_cvtsi128_si64(_mm256_extracti128_si256(packed, 1))),
+                             ob, out_chan);
         } else {
             write_planes<T, O, N>(_mm256_castps256_ps128(acc), oa, out_chan);
             write_planes<T, O, N>(_mm256_extractf128_ps(acc, 1), ob, out_chan);
