@@ -174,6 +174,18 @@ def test_any_os_error_inside_a_command_becomes_one_line(tmp_path, capsys, monkey
     assert "rgb/000000.png: no space left on the device" in line
 
 
+def test_generate_without_opencv_fails_at_once_naming_the_install(tmp_path, capsys,
+                                                                 monkeypatch):
+    """OpenCV is optional (it writes the PNGs): a run without it stops before any work, in one
+    line that says what to install, and leaves no folder behind."""
+    monkeypatch.setitem(sys.modules, "cv2", None)      # `import cv2` raises ImportError
+    out = tmp_path / "never"
+    assert cli.main(["generate", "--out", str(out), *SMALL]) == 1
+    line = _line(capsys.readouterr().err)
+    assert "needs OpenCV" in line and "pip install opencv-contrib-python-headless" in line
+    assert not out.exists()
+
+
 def test_an_unexpected_error_is_one_line_or_a_traceback_when_asked(tmp_path, capsys,
                                                                    monkeypatch):
     import omniscape_torch.data.generate as dataset

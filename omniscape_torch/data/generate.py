@@ -82,6 +82,7 @@ from . import distributed, shards
 from . import format as fmt
 from . import ocamcalib
 from ..io.labels import PALETTE
+from ..io.images import require_cv2
 from ..cameras.presets import catadioptric, fisheye
 from ..cubemap.faces import face_axes
 from ..render.layer import OmniProjection
@@ -728,7 +729,8 @@ def generate(out: str | Path, config: DatasetConfig | None = None, *, workers: i
     Raises:
         ValueError: bad configuration or argument, or ``out`` holds a dataset of another
             configuration (or shards of another ``frames_per_shard``).
-        ImportError: ``ray`` without Ray installed (at once).
+        ImportError: ``ray`` without Ray installed, or no OpenCV to write the images with
+            (at once).
         MemoryError: the run would not fit in memory (:func:`check_memory`; with ``ray``, in
             any node of the cluster; before any work).
         omniscape_torch.data.distributed.TaskErrors: with ``ray``, frames that failed for good,
@@ -741,6 +743,7 @@ def generate(out: str | Path, config: DatasetConfig | None = None, *, workers: i
     config.validate()
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ValueError(f"workers: expected a positive integer, got {workers!r}")
+    require_cv2()   # the images are PNGs written with OpenCV: say so before any work
     use_ray = ray is not None and ray is not False
     if use_ray:
         distributed.import_ray()

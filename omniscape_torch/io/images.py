@@ -11,9 +11,21 @@ from torch import Tensor
 from .atomic import atomic_write_bytes
 
 
+def require_cv2():
+    """``cv2``, or an ImportError saying how to install it: images are read and written with
+    OpenCV, an optional dependency (the ``calibration`` and ``dev`` extras install it)."""
+    try:
+        import cv2
+    except ImportError:
+        raise ImportError("reading and writing images needs OpenCV: pip install "
+                          "opencv-contrib-python-headless (or the package's [calibration] "
+                          "extra)") from None
+    return cv2
+
+
 def read_image(path: str | Path) -> Tensor:
     """``(H, W, 3)`` uint8 RGB (or ``(H, W)`` for a grey image) of a PNG or JPEG file."""
-    import cv2
+    cv2 = require_cv2()
 
     path = Path(path)
     if not path.is_file():
@@ -29,7 +41,7 @@ def read_image(path: str | Path) -> Tensor:
 
 def write_image(path: str | Path, image: Tensor | np.ndarray) -> Path:
     """Write ``(H, W, 3)`` RGB or ``(H, W)`` grey uint8 (or uint16 PNG) atomically."""
-    import cv2
+    cv2 = require_cv2()
 
     if isinstance(image, Tensor):
         image = image.detach().cpu().numpy()
