@@ -99,13 +99,8 @@ def speed(args) -> list[dict]:
         def cubemaps(aa):
             def run():
                 r = renderers[aa]
-                k = frame["cubemaps", aa]
-                t = float(plan.frames["time"][k])
-                for name, c in plan.cameras.items():
-                    town.render_cubemap(plan.centre(name, k).float(), None, c["face_size"],
-                                        faces=plan.faces(name, k), texels=r.texels(name, k),
-                                        t=t, weather=_frame_weather(r.config, k),
-                                        out=r._cube_buffers(c["face_size"]), antialias=aa)
+                for name in plan.cameras:
+                    r.cubemap(name, frame["cubemaps", aa])
                 frame["cubemaps", aa] += 1
             return run
 

@@ -210,9 +210,8 @@ def default_antialias(image_size: tuple[int, ...]) -> int:
     (``benchmarks/bench_town.py``, 2 cores, the default CARLA weathers): at 256 x 256 and the
     default face sizes the RGB against 8 x 8 traced rays a pixel goes from 36.4 dB (fisheye) and
     37.9 dB (catadioptric) with ``k = 1`` to 40.2 and 42.2 dB with ``k = 2`` (41.3 and 43.1 with
-    ``k = 3``), and a frame from 0.58 s to 1.07 s (CPU 0.97 to 1.85 s; ``clear_noon`` alone,
-    whose colour steps are larger, supersamples more: 2.3 times the CPU time). At 1024 x 1024
-    ``k = 2`` takes a frame from 4.9 s to 7.3 s (CPU 9.1 to 13.7 s), past the 4 s a frame of the
+    ``k = 3``), and a frame from 0.51 s to 0.95 s (CPU 0.84 to 1.55 s). At 1024 x 1024
+    ``k = 2`` takes a frame from 3.7 s to 6.3 s (CPU 7.0 to 11.9 s), past the 4 s a frame of the
     four cameras is meant to take on 2 cores: 1 there (``--antialias 2`` asks for it anyway).
     """
     return 2 if math.prod(image_size) <= ANTIALIAS_PIXELS else 1
@@ -381,6 +380,18 @@ class FrameRenderer:
         texels = self.plan.texels(name, k)
         return texels if self.config.antialias == 1 else _grow(texels)
 
+    def cubemap(self, name: str, k: int) -> dict[str, torch.Tensor]:
+        """Camera ``name``'s cubemap of frame ``k`` (``Town.render_cubemap``: the faces and
+        texels it reads, in the frame's weather, with the configuration's ``antialias``), in
+        this renderer's buffers: valid until the next cubemap of the same face size."""
+        config, plan = self.config, self.plan
+        F = plan.cameras[name]["face_size"]
+        return self.town.render_cubemap(
+            plan.centre(name, k).float(), None, F, faces=plan.faces(name, k),
+            texels=self.texels(name, k), t=float(plan.frames["time"][k]),
+            weather=_frame_weather(config, k), out=self._cube_buffers(F),
+            antialias=config.antialias)
+
     def render(self, out: str | Path, k: int) -> int:
         """Render and write every file of frame ``k``, then its marker. Returns ``k``."""
         from concurrent.futures import ThreadPoolExecutor, wait
@@ -397,10 +408,7 @@ class FrameRenderer:
                         c = plan.cameras[name]
                         F = c["face_size"]
                         faces = plan.faces(name, k)
-                        cube = town.render_cubemap(
-                            plan.centre(name, k).float(), None, F, faces=faces,
-                            texels=self.texels(name, k), t=t, weather=weather,
-                            out=self._cube_buffers(F), antialias=config.antialias)
+                        cube = self.cubemap(name, k)
                         res = self._layer(name, c["camera"], F).render(
                             rgb=cube["rgb"], depth=cube["depth"], labels=cube["labels"],
                             rotation=plan.rotation(name, k).float())
