@@ -31,12 +31,17 @@ any yaw) per sample and call. Timed round-robin in one run:
   ``ours``), and RGB alone, ``rgb_f32`` against ``rgb_u8`` (a ``uint8`` image, rounded half up)
   and ``rgb_u8_hwc`` (``channels_last=True``: a ``(B, 6, F, F, 3)`` cube and a ``(B, H, W, 3)``
   image, as image files hold them).
+* one sample per call, as a ``Dataset``'s ``__getitem__`` applies the module: ``rgb_f32_per_sample``
+  and ``rgb_u8_per_sample`` (the batch's B samples, one call each, timed together), and
+  ``call_16px``: a call on one 16 x 16 image from 8-texel faces, the fixed cost of a call
+  (drawing, the camera's table, checks, Python).
 
 Headlines: ``ours`` images/s over ``peer`` images/s (target >= 2); ``uint8`` images/s over
 float32 images/s (target >= 1.5, ``U8_TARGET``), for RGB alone (``rgb_u8`` / ``rgb_f32``: the
 cube's dtype is all that differs; ``rgb_u8_hwc`` / ``rgb_f32``: the layout too) and with the
 labels (``ours_u8`` / ``ours``: the labels' gather and their int64 image cost the same in both,
-so the ratio is smaller), all from the medians of the same interleaved run. A check renders
+so the ratio is smaller) and one sample per call (``rgb_u8_per_sample`` /
+``rgb_f32_per_sample``), all from the medians of the same interleaved run. A check renders
 the peer with our drawn parameters and reports how far the two outputs agree (label agreement
 on pixels both call valid, RGB mean / max abs difference; ours pads faces from their
 neighbours, the peer by edge replication, so texels next to a seam differ slightly), and the
@@ -71,7 +76,8 @@ ROOT = Path(__file__).resolve().parents[1]
 # Benchmark the checkout this script lives in, not whatever copy is installed.
 sys.path.insert(0, str(ROOT))
 
-from common import begin_run, loadavg, measure, run_main, run_record  # noqa: E402
+from common import (HEAP_MODES, begin_run, loadavg, measure, run_main, run_record,  # noqa: E402
+                    set_heap)
 from omniscape_torch.render.augment import RandomOmniCamera  # noqa: E402
 from omniscape_torch.cameras import Camera  # noqa: E402
 from omniscape_torch.cubemap import face_axes  # noqa: E402
@@ -183,6 +189,7 @@ def peer_batch(rgb: list[np.ndarray], labels: list[np.ndarray], rng: np.random.G
 
 def run(args: argparse.Namespace) -> dict:
     load_start = begin_run(args.threads, cv2)
+    set_heap(args.heap)
     device = torch.device("cpu")
     batch, face, size = args.batch, args.face, args.size
 
@@ -202,6 +209,11 @@ def run(args: argparse.Namespace) -> dict:
 
     aug_u8, aug_rgb_f32, aug_rgb_u8 = same(), same(), same()
     aug_rgb_u8_hwc = same(channels_last=True)
+    # one sample per call, as a Dataset's __getitem__ applies it (each module's k-th call
+    # draws the same camera as the other's), and the fixed cost of a call: one 16 x 16 image
+    aug_f32_one, aug_u8_one = same(), same()
+    aug_tiny = RandomOmniCamera((16, 16), 8, mode="fisheye", seed=SEED)
+    cube_tiny = torch.rand(1, 6, 3, 8, 8, generator=gen)
     cube_u8_hwc = cube_u8.permute(0, 1, 3, 4, 2).contiguous()  # [B, 6, F, F, 3]
     part_gen = torch.Generator().manual_seed(SEED + 1)
 
@@ -245,6 +257,10 @@ def run(args: argparse.Namespace) -> dict:
         ("rgb_f32", "ours", lambda: aug_rgb_f32(cube)),
         ("rgb_u8", "ours", lambda: aug_rgb_u8(cube_u8)),
         ("rgb_u8_hwc", "ours", lambda: aug_rgb_u8_hwc(cube_u8_hwc)),
+        ("rgb_f32_per_sample", "ours", lambda: [aug_f32_one(cube[i:i + 1]) for i in range(batch)]),
+        ("rgb_u8_per_sample", "ours",
+         lambda: [aug_u8_one(cube_u8[i:i + 1]) for i in range(batch)]),
+        ("call_16px", "part", lambda: aug_tiny(cube_tiny)),
         ("params", "part", lambda: aug.forward_parameters(batch, generator=part_gen)),
         ("rays", "part", rays),
         ("sample", "part", sample),
@@ -292,9 +308,10 @@ def run(args: argparse.Namespace) -> dict:
     rows = []
     by_name = {}
     for (name, kind, _), res in zip(cases, results):
-        row = {"name": name, "kind": kind, "batch": batch, **res,
-               "images_per_s": batch / res["median_s"],
-               "median_per_sample_s": res["median_s"] / batch}
+        images = 1 if name == "call_16px" else batch
+        row = {"name": name, "kind": kind, "batch": images, **res,
+               "images_per_s": images / res["median_s"],
+               "median_per_sample_s": res["median_s"] / images}
         rows.append(row)
         by_name[name] = row
     parts = ("params", "rays", "sample")
@@ -303,7 +320,7 @@ def run(args: argparse.Namespace) -> dict:
     breakdown["rest (cameras, batching, other)"] = 1 - parts_sum / by_name["ours"]["median_s"]
     u8_headline = []
     for ours_name, ref_name in (("rgb_u8", "rgb_f32"), ("rgb_u8_hwc", "rgb_f32"),
-                                ("ours_u8", "ours")):
+                                ("ours_u8", "ours"), ("rgb_u8_per_sample", "rgb_f32_per_sample")):
         if ours_name in by_name:
             ratio = by_name[ours_name]["images_per_s"] / by_name[ref_name]["images_per_s"]
             u8_headline.append({"uint8": ours_name, "float32": ref_name,
@@ -321,7 +338,8 @@ def run(args: argparse.Namespace) -> dict:
 
     return {
         **run_record("augment", device, args.threads, cv2),
-        "setup": {"batch": batch, "face_size": face, "image_size": [size, size],
+        "setup": {"batch": batch, "heap": args.heap, "face_size": face,
+                  "image_size": [size, size],
                   "mode": "fisheye", "model": "equidistant", "fov_deg": [160.0, 200.0],
                   "roll_deg": [-25.0, 25.0], "pitch_deg": [-10.0, 10.0],
                   "yaw_deg": [-180.0, 180.0], "rgb": "float32, 3 channels",
@@ -356,13 +374,15 @@ def markdown(result: dict) -> str:
     s = result["setup"]
     lines = [f"augment: B = {s['batch']}, 6 x {s['face_size']} -> {s['image_size'][0]} x "
              f"{s['image_size'][1]} fisheye (random camera + attitude per sample), RGB + labels, "
-             f"{result['threads']} threads, commit {result['commit'][:12]}"
+             f"{result['threads']} threads, heap {s.get('heap', 'default')}, commit "
+             f"{result['commit'][:12]}"
              f"{' (dirty)' if result['dirty'] else ''}", "",
-             "| row | kind | median ms / batch | IQR ms | min ms | images/s |",
-             "|---|---|---:|---:|---:|---:|"]
+             "| row | kind | median ms / batch | IQR ms | min ms | images/s | page faults |",
+             "|---|---|---:|---:|---:|---:|---:|"]
     for r in result["rows"]:
+        faults = "" if r.get("page_faults") is None else f"{r['page_faults']:.0f}"
         lines.append(f"| {r['name']} | {r['kind']} | {ms(r['median_s'])} | {ms(r['iqr_s'])} | "
-                     f"{ms(r['min_s'])} | {r['images_per_s']:.1f} |")
+                     f"{ms(r['min_s'])} | {r['images_per_s']:.1f} | {faults} |")
     lines += ["", "where our time goes (part medians / ours median): " + ", ".join(
         f"{k} {100 * v:.0f}%" for k, v in result["breakdown_fraction_of_ours"].items())]
     h = result["headline"]
@@ -393,16 +413,20 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--threads", type=int, default=2,
                         help="torch and OpenCV thread count (default 2)")
     parser.add_argument("--repeats", type=int, default=None,
-                        help="timed calls per row (default 10; 3 with --quick)")
+                        help="timed calls per row (default 15; 3 with --quick)")
     parser.add_argument("--warmup", type=int, default=None,
                         help="untimed calls before timing (default 2; 1 with --quick)")
     parser.add_argument("--quick", action="store_true",
                         help="B = 4, 6 x 64 -> 128 x 128, few repeats: a smoke run (seconds)")
-    parser.add_argument("--out", type=Path,
-                        default=ROOT / "benchmarks" / "results" / "augment.json",
-                        help="JSON output (default benchmarks/results/augment.json)")
+    parser.add_argument("--heap", choices=HEAP_MODES, default="default",
+                        help="where the outputs' memory comes from (common.set_heap): glibc's "
+                             "own choice (default), memory the heap kept (warm: no page "
+                             "faults), or a fresh mapping per output (fresh)")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="JSON output (default benchmarks/results/augment.json; "
+                             "augment_<heap>.json with --heap warm or fresh)")
     args = parser.parse_args(argv)
-    defaults = {"batch": (16, 4), "face": (256, 64), "size": (512, 128), "repeats": (10, 3),
+    defaults = {"batch": (16, 4), "face": (256, 64), "size": (512, 128), "repeats": (15, 3),
                 "warmup": (2, 1)}
     for name, (full, quick) in defaults.items():
         if getattr(args, name) is None:
@@ -410,6 +434,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     for name in ("batch", "face", "size", "threads", "repeats"):
         if getattr(args, name) < 1:
             parser.error(f"--{name} must be >= 1")
+    if args.out is None:
+        suffix = "" if args.heap == "default" else f"_{args.heap}"
+        args.out = ROOT / "benchmarks" / "results" / f"augment{suffix}.json"
     if args.warmup < 0:
         parser.error("--warmup must be >= 0")
     return args

@@ -27,14 +27,22 @@ if str(ROOT) not in sys.path:
 from omniscape_torch.cli import positive_int  # noqa: E402  (re-exported: argparse type)
 from omniscape_torch.io import atomic_write_text  # noqa: E402
 
-__all__ = ["begin_run", "ROOT", "SETTLE_S", "git_commit", "loadavg", "machine_info", "measure",
-           "positive_int", "run_record", "write_json_atomic"]
+__all__ = ["begin_run", "HEAP_MODES", "ROOT", "SETTLE_S", "git_commit", "loadavg",
+           "machine_info", "measure", "positive_int", "run_record", "set_heap",
+           "write_json_atomic"]
 
 #: Untimed pause before every timed call: the worker threads of the previous call (OpenMP's,
 #: OpenCV's, OpenBLAS's) keep spinning for a while after it, and on 2 cores they take the next
 #: row's cores (measured: the augmentation benchmark's IQR 20 ms without the pause, 10-12 ms
 #: with it). Short: after 50 ms idle this VM ran the next 5 ms call at up to 13 ms.
 SETTLE_S = 0.01
+
+#: Where a run's large allocations come from (:func:`set_heap`). A call whose output is a fresh
+#: mapping faults in each of its pages (a 50 MB float32 batch: 12,290 faults, ~40 ms on this
+#: VM), one whose output the heap kept from an earlier call none; glibc's own choice between the
+#: two moves within a run (its mmap threshold adapts, up to 32 MB), so a ratio of two rows of
+#: different output sizes can flip with the rows around them.
+HEAP_MODES = ("default", "warm", "fresh")
 
 
 def measure(fns: list[Callable[[], object]], repeats: int, warmup: int,
@@ -48,30 +56,72 @@ def measure(fns: list[Callable[[], object]], repeats: int, warmup: int,
     on stderr.
 
     Returns:
-        per function ``{"median_s", "iqr_s", "min_s", "times_s"}``.
+        per function ``{"median_s", "iqr_s", "min_s", "times_s", "page_faults"}``: the last,
+        the median count of minor page faults of the process during a timed call (fresh memory
+        touched for the first time: a new allocation the heap did not hold; ``getrusage``,
+        every thread of the process), where the platform counts them.
     """
     from tqdm import tqdm
 
     cuda = torch.device(device).type == "cuda"
     sync = torch.cuda.synchronize if cuda else (lambda: None)
     times: list[list[float]] = [[] for _ in fns]
+    faults: list[list[int]] = [[] for _ in fns]
     for r in tqdm(range(warmup + repeats), desc="timing", unit="round", disable=not progress,
                   file=sys.stderr):
-        for fn, t in zip(fns, times):
+        for fn, t, f in zip(fns, times, faults):
             sync()
             if r >= warmup and settle_s > 0:
                 time.sleep(settle_s)
+            flt = _minor_faults()
             start = time.perf_counter()
             fn()
             sync()
             if r >= warmup:
                 t.append(time.perf_counter() - start)
+                if flt is not None:
+                    f.append(_minor_faults() - flt)
     out = []
-    for t in times:
+    for t, f in zip(times, faults):
         q1, median, q3 = np.percentile(t, [25, 50, 75])
         out.append({"median_s": float(median), "iqr_s": float(q3 - q1), "min_s": float(min(t)),
-                    "times_s": [float(x) for x in t]})
+                    "times_s": [float(x) for x in t],
+                    "page_faults": float(np.median(f)) if f else None})
     return out
+
+
+def set_heap(mode: str) -> None:
+    """Set the C heap (glibc's ``malloc``, which PyTorch's CPU tensors come from) for the rest of
+    the process: ``default``, glibc's own (adaptive); ``warm``, every allocation from the heap
+    and nothing returned to the system (no page faults once it has grown: a loop whose outputs
+    reuse freed memory); ``fresh``, every allocation of 1 MiB or more a new mapping (every
+    output faults in its pages: a loop that keeps no such block free). Raises ``ValueError``
+    for another mode, ``RuntimeError`` where the C library is not glibc."""
+    if mode not in HEAP_MODES:
+        raise ValueError(f"heap: expected one of {HEAP_MODES}, got {mode!r}")
+    if mode == "default":
+        return
+    import ctypes
+    import ctypes.util
+
+    libc = ctypes.CDLL(ctypes.util.find_library("c"))
+    if not hasattr(libc, "mallopt"):
+        raise RuntimeError(f"--heap {mode}: needs glibc's mallopt, not in this C library")
+    m_trim_threshold, m_mmap_threshold, m_mmap_max = -1, -3, -4   # glibc's malloc.h
+    settings = ([(m_mmap_max, 0), (m_trim_threshold, 2 ** 31 - 1)] if mode == "warm"
+                else [(m_mmap_threshold, 1 << 20)])
+    for param, value in settings:
+        if libc.mallopt(param, value) != 1:
+            raise RuntimeError(f"--heap {mode}: mallopt({param}, {value}) failed")
+
+
+def _minor_faults() -> int | None:
+    """The process's minor page faults so far (``getrusage``), None where not counted."""
+    try:
+        import resource
+    except ImportError:   # not on Windows
+        return None
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
 
 
 def git_commit() -> tuple[str, bool | None]:

@@ -7,6 +7,7 @@ import json
 import math
 import os
 import re
+import subprocess
 import sys
 from pathlib import Path
 
@@ -219,15 +220,43 @@ def test_augment_benchmark_uint8_rows(tmp_path):
                     "1", "--warmup", "0", "--out", str(out)]) == 0
     result = json.loads(out.read_text())
     rows = {r["name"]: r for r in result["rows"]}
-    assert {"ours", "ours_u8", "rgb_f32", "rgb_u8", "rgb_u8_hwc"} <= set(rows)
+    assert {"ours", "ours_u8", "rgb_f32", "rgb_u8", "rgb_u8_hwc", "rgb_f32_per_sample",
+            "rgb_u8_per_sample", "call_16px"} <= set(rows)
+    assert rows["call_16px"]["batch"] == 1 and rows["rgb_u8_per_sample"]["batch"] == 2
+    if sys.platform.startswith("linux"):   # getrusage counts them
+        assert all(r["page_faults"] >= 0 for r in rows.values())
     pairs = {(q["uint8"], q["float32"]): q for q in result["u8_headline"]}
     assert set(pairs) == {("rgb_u8", "rgb_f32"), ("rgb_u8_hwc", "rgb_f32"),
-                          ("ours_u8", "ours")}
+                          ("ours_u8", "ours"), ("rgb_u8_per_sample", "rgb_f32_per_sample")}
     for q in pairs.values():
         assert q["target"] == ba.U8_TARGET and q["throughput_ratio"] > 0
         assert q["meets_target"] == (q["throughput_ratio"] >= ba.U8_TARGET)
     assert result["u8_agreement"]["u8_vs_rounded_float_max_abs_diff"] <= 1
     assert "throughput rgb_u8 / rgb_f32" in ba.markdown(result)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
+@pytest.mark.parametrize("heap", ["warm", "fresh"])
+def test_set_heap_decides_whether_large_allocations_fault(heap):
+    """common.set_heap, in a process of its own (it changes the heap for good): a 4 MiB tensor
+    made per call faults in its 1024 pages every call with fresh mappings, none once the heap
+    keeps its memory."""
+    code = ("import sys, torch; sys.path.insert(0, 'benchmarks'); "
+            "from common import measure, set_heap; "
+            f"set_heap({heap!r}); "
+            "print(measure([lambda: torch.ones(1 << 20)], repeats=5, warmup=2)[0]['page_faults'])")
+    done = subprocess.run([sys.executable, "-c", code], cwd=Path(__file__).resolve().parents[1],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    faults = float(done.stdout.split()[-1])
+    assert faults >= 1024 if heap == "fresh" else faults < 16
+
+
+def test_set_heap_refuses_unknown_modes():
+    from common import set_heap
+
+    with pytest.raises(ValueError, match="heap: expected one of"):
+        set_heap("cold")
 
 
 def test_reproject_benchmark_rows(tmp_path, monkeypatch):
