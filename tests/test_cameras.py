@@ -653,3 +653,26 @@ def test_cameras_pickle_for_dataloader_workers():
         assert back.model is cam.model and torch.equal(back.params, cam.params)
         pts = fibonacci_sphere(50)
         assert torch.equal(back.project(pts)[0], cam.project(pts)[0])
+
+
+def test_smallest_positive_root_against_numpy_roots():
+    """The fold finder (``cameras._base.smallest_positive_root``) against numpy's own roots, on a
+    batch mixing polynomials with positive roots, without any, and constant ones (higher
+    coefficients all zero, an undistorted lens: inf, alone or in the batch)."""
+    import numpy as np
+
+    from omniscape_torch.cameras._base import smallest_positive_root
+
+    gen = torch.Generator().manual_seed(0)
+    coeffs = torch.cat((torch.ones(64, 1, dtype=F64),
+                        torch.randn(64, 3, generator=gen, dtype=F64)), -1)
+    coeffs[::4, 1:] = 0.0          # constants
+    coeffs[1::4, 2:] = 0.0         # linear: a root where c1 < 0
+    got = smallest_positive_root(coeffs)
+    for row, value in zip(coeffs.numpy(), got.tolist()):
+        roots = np.roots(np.trim_zeros(row[::-1], "f"))   # highest power first
+        positive = [r.real for r in roots if abs(r.imag) <= 1e-7 * abs(r) and r.real > 0]
+        want = min(positive) if positive else math.inf
+        assert value == pytest.approx(want, rel=1e-9)
+    constant = torch.tensor([[2.0, 0.0, 0.0], [1.0, 0.0, 0.0]], dtype=F64)
+    assert torch.equal(smallest_positive_root(constant), torch.full((2,), math.inf, dtype=F64))

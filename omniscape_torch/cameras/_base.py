@@ -262,7 +262,9 @@ def smallest_positive_root(coeffs: Tensor, scale: Tensor | float = 1.0) -> Tenso
         scale = torch.as_tensor(scale, dtype=torch.float64, device=c.device)
         n = c.shape[-1] - 1
         out_shape = broadcast_shapes(c.shape[:-1], scale.shape)
-        if n == 0:
+        # a constant polynomial has no root (nor has one whose higher coefficients all vanish,
+        # e.g. an undistorted lens's fold: the eigenvalue solve would give the same inf)
+        if n == 0 or not bool(c[..., 1:].any()):
             return torch.full(out_shape, math.inf, dtype=coeffs.dtype, device=coeffs.device)
         powers = scale.unsqueeze(-1) ** torch.arange(n + 1, dtype=torch.float64, device=c.device)
         c = c * powers

@@ -670,7 +670,8 @@ class RandomOmniCamera(_RandomCameras):
                 blind_fov=params["blind_fov"][idx].to(dtype=dtype, device=device), lazy=True)
             for start in range(0, len(idx), chunk):
                 part = slice(start, start + chunk)
-                cam = Camera(name, camera.params[part], self.image_size)
+                cam = camera if len(idx) <= chunk else Camera(name, camera.params[part],
+                                                              self.image_size)
                 sel = idx[part]
                 proj = OmniProjection(cam, self.face_size, interpolation=self.interpolation,
                                       ignore_index=self.ignore_index)
