@@ -285,7 +285,14 @@ def test_name_holds_a_hash_of_the_cpu_flags_and_the_source(monkeypatch, tmp_path
     edited = tmp_path / "fastsample.cpp"
     edited.write_bytes(extension.SOURCE.read_bytes() + b"\n")
     monkeypatch.setattr(extension, "SOURCE", edited)
-    assert len(names | {extension.name()}) == 4
+    names.add(extension.name())
+    # the same source in another checkout: a folder of its own (a shared one names one path in
+    # its build file, and ninja rebuilt the library at every switch between the two)
+    copy = tmp_path / "checkout" / "fastsample.cpp"
+    copy.parent.mkdir()
+    copy.write_bytes(edited.read_bytes())
+    monkeypatch.setattr(extension, "SOURCE", copy)
+    assert len(names | {extension.name()}) == 5
 
 
 def test_built_in_torchs_extension_cache():

@@ -22,9 +22,12 @@ that file behind, and later loads wait for it forever: delete the folder's ``loc
 
 The extension's name holds a hash of the CPU's feature flags (``-march=native`` code must not
 be loaded on another CPU that shares the home directory, e.g. over NFS), of the torch version
-and Python ABI it links against, of the flags and of the source: each gets its own build
-folder, so that no process loads, or rebuilds under another's feet, a library built from
-another source (two checkouts sharing a home); an edited source leaves its old folder behind.
+and Python ABI it links against, of the flags, of the source and of its path: each gets its
+own build folder, so that no process loads, or rebuilds under another's feet, a library built
+from another source (two checkouts sharing a home); an edited source leaves its old folder
+behind. The path: two checkouts of the same source would otherwise share a folder whose build
+file names one of them, and ninja rebuilt the library (about 60 s) each time the other was
+used.
 The face table is generated from ``cubemap/faces.py`` (the only one) and passed as
 ``-DOS_FACE_CASES=...``: a changed table is a new build.
 
@@ -79,9 +82,10 @@ def _cpu() -> str:
 def name() -> str:
     """The extension's name: ``omniscape_torch_fastsample_`` and a hash of what the library is
     built for and from: this CPU's feature flags, the torch version and Python ABI it links
-    against, the flags (the face table among them) and the source."""
+    against, the flags (the face table among them), the source and where it lies."""
     parts = [_cpu().strip(), torch.__version__, sys.implementation.cache_tag or "",
-             getattr(sys, "abiflags", ""), *CFLAGS, *LDFLAGS, *face_case_flags()]
+             getattr(sys, "abiflags", ""), *CFLAGS, *LDFLAGS, *face_case_flags(),
+             str(SOURCE.resolve())]
     digest = hashlib.sha256("\0".join(parts).encode() + b"\0" + SOURCE.read_bytes())
     return f"omniscape_torch_fastsample_{digest.hexdigest()[:12]}"
 
