@@ -16,7 +16,7 @@
 * :func:`assess_coverage`: where the corners lie and the predicted error over the image;
   :func:`write_fit_files`: everything ``omniscape-torch fit`` writes (report, plots).
 
-Example:
+Examples:
     >>> import torch, omniscape_torch as ot
     >>> from omniscape_torch.calibration import checkerboard, fit, random_views
     >>> truth = ot.Camera("equidistant", torch.tensor([200.0, 200.0, 319.5, 239.5],

@@ -77,7 +77,8 @@ def photometric_error(image: Tensor, target: Tensor, mask: Tensor) -> Tensor:
     images. A constant channel counts as uncorrelated.
 
     Args:
-        image, target: ``(B, C, H, W)`` floating.
+        image: ``(B, C, H, W)`` floating.
+        target: ``(B, C, H, W)`` floating.
         mask: ``(B, 1, H, W)`` bool, the pixels compared.
 
     Returns:

@@ -324,7 +324,9 @@ def write_fit_files(folder: str | Path, result, data: Correspondences, *,
         result: the converged ``FitResult``.
         data: the correspondences it was fitted to.
         coverage: the coverage figures (``assess_coverage``).
-        source, board, skipped: for the report (:func:`fit_report`).
+        source: for the report (:func:`fit_report`).
+        board: for the report (:func:`fit_report`).
+        skipped: for the report (:func:`fit_report`).
         write_points: also write ``correspondences.txt`` (corners detected in images).
         plots: draw ``residuals.png`` and ``uncertainty.png`` (skipped without matplotlib).
 

@@ -78,7 +78,8 @@ class Board:
 
     Attributes:
         kind: one of ``BOARD_KINDS``.
-        cols, rows: checkerboard: inner corners along a row and a column; charuco: squares.
+        cols: checkerboard: inner corners along a row; charuco: squares.
+        rows: checkerboard: inner corners along a column; charuco: squares.
         square: square side, metres.
         marker: charuco: marker side, metres; None for a checkerboard.
         dictionary: charuco: ArUco dictionary name (``6X6_250``); None for a checkerboard.
@@ -317,8 +318,9 @@ def render_board(camera: Camera, board: Board, pose: Tensor, *, supersample: int
         supersample: rays per pixel side (anti-aliasing); sample ``(i, j)`` of pixel ``(u, v)``
             is at ``(u - 0.5 + (j + 0.5) / s, v - 0.5 + (i + 0.5) / s)`` (pixel centres at
             integers).
-        background, dark, light: grey levels in [0, 1] of the scene behind the board, and of
-            the board's black and white.
+        background: grey level in [0, 1] of the scene behind the board.
+        dark: grey level in [0, 1] of the board's black.
+        light: grey level in [0, 1] of the board's white.
         noise: standard deviation of Gaussian noise added to the levels (needs ``generator``).
         texture: ``board.texture()``, to reuse it over several views.
         circle: ``image_circle_mask(camera)``, likewise.

@@ -32,7 +32,7 @@ class Camera(nn.Module):
         learnable: hold ``params`` as an ``nn.Parameter`` (else a buffer).
         blind_fov: optional full angle in radians of the central blind cone, below ``fov``.
 
-    Example:
+    Examples:
         >>> import omniscape_torch as ot, torch
         >>> cam = ot.Camera("equidistant", [300.0, 300.0, 319.5, 319.5], (640, 640))
         >>> rays, valid = cam.ray_grid()

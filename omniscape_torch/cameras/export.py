@@ -51,7 +51,7 @@ caller accepts it (the file then records it and a ``UserWarning`` says what was 
 * A non-zero skew in a format without one. ``accept_skew=True`` drops it; the warning and a
   comment in the file give the pixel error: ``|s| |v - cy| / fy`` at the image's top or bottom.
 
-Example:
+Examples:
     >>> import tempfile, pathlib, omniscape_torch as ot
     >>> cam = ot.Camera("kannala_brandt", [300.0, 300.0, 319.5, 239.5, 0.01, 0, 0, 0], (480, 640))
     >>> with tempfile.TemporaryDirectory() as tmp:

@@ -98,13 +98,15 @@ def yaw_pitch_roll_to_matrix(yaw: float | Tensor, pitch: float | Tensor,
         R_roll  = [[cr, -sr, 0], [sr, cr, 0], [0, 0, 1]]    (+x -> +y for roll = +90 deg)
 
     Args:
-        yaw, pitch, roll: radians, numbers or floating tensors broadcasting together.
+        yaw: radians, a number or a floating tensor; the three angles broadcast together.
+        pitch: radians, likewise.
+        roll: radians, likewise.
 
     Returns:
         ``(..., 3, 3)`` rotations (camera to cube frame), differentiable, in the angles' dtype
         (the default dtype for numbers) and device.
 
-    Example:
+    Examples:
         >>> R = yaw_pitch_roll_to_matrix(math.pi / 2, 0.0, 0.0)   # turn right
         >>> (R @ torch.tensor([0.0, 0.0, 1.0])).round().tolist()  # forward -> right
         [1.0, 0.0, -0.0]
@@ -216,7 +218,7 @@ def fisheye(image_size: tuple[int, int], *, fov: float = math.radians(190),
     Returns:
         The ``Camera``.
 
-    Example:
+    Examples:
         >>> cam = fisheye((1024, 1024))
         >>> round(float(cam.params[0]), 2)   # 511.5 / radians(95)
         308.49
@@ -288,7 +290,7 @@ def catadioptric(image_size: tuple[int, int], *, xi: float | None = None,
         ``(camera, rotation)``: a ``unified`` ``Camera`` (params fx = fy = gamma, cx, cy, xi,
         0, 0, 0, 0) and its ``(3, 3)`` camera-to-cube rotation.
 
-    Example:
+    Examples:
         >>> cam, R = catadioptric((1024, 1024))
         >>> R.tolist()   # camera +z (its axis) -> cube +y (down)
         [[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]

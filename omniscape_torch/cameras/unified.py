@@ -303,7 +303,8 @@ def unified_from_mirror(mirror: str, *, p: float = 0.0, d: float = 0.0, focal: f
         p: latus rectum / 4, same unit as ``d`` (parabolic, hyperbolic, elliptic).
         d: distance between the foci (hyperbolic, elliptic).
         focal: the camera's focal length in pixels (pixels per unit length for parabolic).
-        cx, cy: principal point in pixels.
+        cx: principal point's u in pixels.
+        cy: principal point's v in pixels.
 
     Returns:
         ``(9,)`` parameters fx, fy, cx, cy, xi, 0, 0, 0, 0 of the ``unified`` model.

@@ -95,7 +95,7 @@ def face_uv_to_grid(face: int | Tensor, uv: Tensor, face_size: int, pad: int) ->
         ``(..., 2)`` grid ``(gx, gy)`` in ``[-1, 1]`` for ``uv`` within the padded face, dtype of
         ``uv``; differentiable with respect to ``uv``.
 
-    Example:
+    Examples:
         >>> cube = torch.rand(1, 6, 1, 4, 4, dtype=torch.float64)
         >>> atlas = cubemap_to_atlas(cube, 1)
         >>> grid = face_uv_to_grid(2, torch.tensor([[3.0, 1.0]], dtype=torch.float64), 4, 1)

@@ -248,7 +248,7 @@ def ray_to_face(rays: Tensor, face_size: int) -> tuple[Tensor, Tensor]:
         pixel coordinates, dtype of ``rays``, differentiable with respect to ``rays`` (piecewise:
         the face is constant between seams).
 
-    Example:
+    Examples:
         >>> face, uv = ray_to_face(torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0]]), 4)
         >>> [FACES[k] for k in face.tolist()], uv.tolist()
         (['front', 'right'], [[1.5, 1.5], [-0.5, 1.5]])

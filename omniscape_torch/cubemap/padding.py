@@ -334,7 +334,7 @@ def pad_faces(
         ``(B, 6, C, F + 2p, F + 2p)``, dtype and device of ``cubemap``; differentiable (linear)
         with respect to ``cubemap``.
 
-    Example:
+    Examples:
         >>> cube = torch.rand(2, 6, 3, 16, 16)
         >>> pad_faces(cube, 2).shape
         torch.Size([2, 6, 3, 20, 20])

@@ -161,8 +161,8 @@ def load_capture(path: str | Path, *, label_set: str = "13",
 
     Raises:
         ValueError: a face missing (names the file), faces not square or of different sizes,
-        an unreadable image, no face image at all, an unknown tag. Every message about one
-        face names its file.
+            an unreadable image, no face image at all, an unknown tag. Every message about one
+            face names its file.
     """
     capture = Path(path)
     if not capture.is_dir():

@@ -214,7 +214,8 @@ def run_on_ray(fn: Callable, args: tuple, items: Sequence, *, address: str | boo
     that every item of its chunk is a failure with the error's message.
 
     Args:
-        fn, args: the task's function and its leading arguments (pickled to the workers).
+        fn: the task's function (pickled to the workers).
+        args: its leading arguments (pickled to the workers).
         items: what to do; cut by :func:`split_chunks` over the cluster's CPUs, unless
             ``chunks`` gives the chunks.
         address: the cluster (:func:`ray_cluster`).

@@ -75,7 +75,8 @@ class PolynomialFit:
     Attributes:
         camera: the ``scaramuzza`` camera, with the source's ``fov`` and ``blind_fov``.
         degree: its polynomial degree.
-        rms_px, max_px: RMS and largest pixel distance on the held-out grid.
+        rms_px: RMS pixel distance on the held-out grid.
+        max_px: largest pixel distance on the held-out grid.
         invpol_max_px: the inverse polynomial's largest error at its samples, pixels.
         within_tolerance: ``max_px <= tolerance_px`` (else the best degree tried).
         fit: the settings, ``{"degrees": [...], "tolerance_px": ..., "grid": ...}``.

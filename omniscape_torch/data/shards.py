@@ -195,9 +195,9 @@ def pack(root: str | Path, frames_per_shard: int | None = None, *,
         unfinished frames, not written]}`` (file names).
 
     Raises:
-        FileNotFoundError: not a dataset folder. ValueError: ``frames_per_shard`` is not the
-        one of the shards there. omniscape_torch.io.atomic.FolderBusyError: a run is writing
-        the folder.
+        FileNotFoundError: not a dataset folder.
+        ValueError: ``frames_per_shard`` is not the one of the shards there.
+        omniscape_torch.io.atomic.FolderBusyError: a run is writing the folder.
     """
     from tqdm import tqdm
 

@@ -414,10 +414,13 @@ class RandomOmniCamera(_RandomCameras):
         fisheye_models: fisheye model names drawn from.
         fov_range: ``(min, max)`` full fisheye field of view, radians (default 160-200 deg).
         kb_distortion: bound of the Kannala-Brandt coefficients.
-        unified_xi_range, eucm_alpha_range, eucm_beta_range, ds_xi_range, ds_alpha_range:
-            ``(min, max)`` of the fisheye lens parameters of those models (defaults: typical
-            fisheye lenses; Usenko et al. 2018 fit EUCM alpha 0.63, beta 1.04 and double
-            sphere xi -0.2, alpha 0.59 to theirs).
+        unified_xi_range: ``(min, max)`` of the unified (Mei) fisheye lens's xi (defaults
+            for this and the next four: typical fisheye lenses; Usenko et al. 2018 fit EUCM
+            alpha 0.63, beta 1.04 and double sphere xi -0.2, alpha 0.59 to theirs).
+        eucm_alpha_range: ``(min, max)`` of the EUCM fisheye lens's alpha.
+        eucm_beta_range: ``(min, max)`` of the EUCM fisheye lens's beta.
+        ds_xi_range: ``(min, max)`` of the double sphere fisheye lens's xi.
+        ds_alpha_range: ``(min, max)`` of the double sphere fisheye lens's alpha.
         cata_fov_range: ``(min, max)`` full catadioptric field of view, radians (default 200-230
             deg; must stay below ``2 acos(-xi)`` for every xi in ``xi_range``).
         xi_range: ``(min, max)`` mirror parameter of the unified model (default 0.7-1.0).
@@ -426,7 +429,9 @@ class RandomOmniCamera(_RandomCameras):
         catadioptric_prob: probability of a catadioptric camera in ``"mixed"`` mode.
         focal_scale_range: ``(min, max)`` focal multiplier.
         center_jitter: maximum centre offset in pixels, on each axis.
-        roll_range, pitch_range, yaw_range: ``(min, max)`` radians.
+        roll_range: ``(min, max)`` radians.
+        pitch_range: ``(min, max)`` radians.
+        yaw_range: ``(min, max)`` radians.
         p: probability of a random attitude per sample.
         same_on_batch: draw one camera and attitude for the whole batch.
         interpolation: RGB interpolation of ``OmniProjection``.
@@ -448,7 +453,7 @@ class RandomOmniCamera(_RandomCameras):
         ``depth (B, 1, H, W)``, ``valid (B, 1, H, W)`` bool. The drawn parameters do not depend
         on the cubemap's dtype or layout: a seed gives the same cameras for all of them.
 
-    Example:
+    Examples:
         >>> aug = RandomOmniCamera((32, 32), 16, seed=0)
         >>> out = aug(torch.rand(2, 6, 3, 16, 16))
         >>> out["rgb"].shape, out["params"]["camera_params"].shape
@@ -620,7 +625,8 @@ class RandomOmniCamera(_RandomCameras):
             cubemap: ``(B, 6, C, F, F)`` (``channels_last``: ``(B, 6, F, F, C)``), floating or
                 ``uint8``, or None.
             params: parameters from ``forward_parameters``.
-            labels, depth: as for ``forward``.
+            labels: as for ``forward``.
+            depth: as for ``forward``.
 
         Returns:
             dict ``valid`` and, for each given input, ``rgb``, ``labels``, ``depth`` (class
@@ -798,10 +804,19 @@ class RandomReproject(_RandomCameras):
         image_size: ``(H, W)`` of the output.
         source_fov: the horizontal field of view of the perspective images (radians), used
             where no ``intrinsics`` are passed; None: they must be passed.
-        fisheye_models, fov_range, kb_distortion, unified_xi_range, eucm_alpha_range,
-            eucm_beta_range, ds_xi_range, ds_alpha_range, focal_scale_range, center_jitter:
-            the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
-        roll_range, pitch_range, yaw_range: ``(min, max)`` radians.
+        fisheye_models: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
+        fov_range: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
+        kb_distortion: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
+        unified_xi_range: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
+        eucm_alpha_range: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
+        eucm_beta_range: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
+        ds_xi_range: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
+        ds_alpha_range: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
+        focal_scale_range: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
+        center_jitter: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
+        roll_range: ``(min, max)`` radians.
+        pitch_range: ``(min, max)`` radians.
+        yaw_range: ``(min, max)`` radians.
         p: probability of a random attitude per sample (else roll = pitch = yaw = 0).
         same_on_batch: one draw for the whole batch.
         interpolation: ``"bilinear"`` (default), ``"nearest"`` or ``"bicubic"`` (exact chain).
@@ -820,7 +835,7 @@ class RandomReproject(_RandomCameras):
         ``depth (B, 1, H, W)``, ``valid (B, 1, H, W)`` bool; ``params`` as
         :meth:`forward_parameters` returns them, with the ``intrinsics (B, 4)`` used.
 
-    Example:
+    Examples:
         >>> aug = RandomReproject((64, 64), source_fov=math.radians(90), seed=0)
         >>> out = aug({"rgb": torch.rand(2, 3, 48, 64), "labels": torch.zeros(2, 48, 64).long()})
         >>> out["rgb"].shape, out["labels"].shape, out["valid"].shape
@@ -1132,7 +1147,8 @@ class RandomReproject(_RandomCameras):
                 ``depth`` and ``intrinsics``; ``tv_tensors.Image`` / ``tv_tensors.Mask``
                 are taken as the tensors they hold, and their outputs come back in their
                 classes.
-            labels: ``(B, H, W)`` integer class ids. depth: planar depth ``(B, H, W)``.
+            labels: ``(B, H, W)`` integer class ids.
+            depth: planar depth ``(B, H, W)``.
             intrinsics: ``(B, 4)`` or ``(4,)`` pinhole ``fx, fy, cx, cy`` of the images (else
                 ``source_fov``).
             params: parameters from ``forward_parameters`` or a previous output, to replay.

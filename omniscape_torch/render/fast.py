@@ -84,7 +84,8 @@ class CubeLUT:
 
     Attributes:
         mode: ``"nearest"`` or ``"bilinear"``.
-        face_size: ``F``. pad: the atlas border ``p`` the grid was made for.
+        face_size: ``F``.
+        pad: the atlas border ``p`` the grid was made for.
         strides: elements between the faces, rows and texels of one channel in the cubes it
             reads (``(C F F, F, 1)`` for a contiguous cube, ``(F F C, F C, C)`` channels-last).
         table: ``(B', P, 3)``, ``P = H W``: per pixel the entry the C++ kernel reads, its
@@ -291,7 +292,8 @@ def build_lut(grid: Tensor, face_size: int, pad: int, mode: str = "bilinear", *,
     Args:
         grid: ``(B', H, W, 2)`` atlas grid (``cubemap.rays_to_grid``, ``align_corners=False``),
             float32 or float64 (the dtype the cube is sampled with: :func:`work_dtype`).
-        face_size: ``F``. pad: the atlas border ``p`` of the grid.
+        face_size: ``F``.
+        pad: the atlas border ``p`` of the grid.
         mode: ``"nearest"`` or ``"bilinear"``.
         channels: ``C`` of the cubes it will sample.
         channels_last: the cubes hold their channels innermost.
@@ -463,7 +465,12 @@ def sample_rays(cubemap: Tensor, rays: Tensor, rotation: Tensor | None = None,
         cubemap: ``(B, 6, C, F, F)`` on the CPU, as for :func:`sample_cube`.
         rays: ``(Br, H, W, 3)`` (``Br`` 1 or ``B``) or ``(H, W, 3)`` camera-frame directions.
         rotation: ``(Bq, 3, 3)`` (``Bq`` 1 or ``B``) or ``(3, 3)`` camera -> cube frame, or None.
-        mode, pad, border, out, fill, out_dtype: as for :func:`sample_cube`.
+        mode: as for :func:`sample_cube`.
+        pad: as for :func:`sample_cube`.
+        border: as for :func:`sample_cube`.
+        out: as for :func:`sample_cube`.
+        fill: as for :func:`sample_cube`.
+        out_dtype: as for :func:`sample_cube`.
         valid: ``(1 or max(Br, Bq), H, W)`` bool: the pixels where it is False read ``fill``.
 
     Returns:
@@ -531,7 +538,9 @@ class CameraGrid:
             :func:`work_dtype` of the cubes it samples).
         valid: ``(B, H, W)`` bool: the pixels within the camera's domain and cones.
         rotation: ``(B, 3, 3)`` camera -> cube frame, in ``dtype``.
-        face_size, pad: the atlas the grid is made for. image_size: ``(H, W)``.
+        face_size: the face size of the atlas the grid is made for.
+        pad: the border of the atlas the grid is made for.
+        image_size: ``(H, W)``.
     """
 
     def __init__(self, affine: Tensor, limits: Tensor, table: Tensor, rotation: Tensor,
@@ -600,7 +609,9 @@ def sample_image(image: Tensor, rays: Tensor, rotation: Tensor | None, intrinsic
             integers), in the rays' dtype.
         mode: ``"nearest"`` or ``"bilinear"``.
         valid: ``(1 or B, h, w)`` bool: the rays to sample (else ``fill``).
-        fill, out, out_dtype: as for :func:`sample_cube`.
+        fill: as for :func:`sample_cube`.
+        out: as for :func:`sample_cube`.
+        out_dtype: as for :func:`sample_cube`.
 
     Returns:
         ``(B, C, h, w)`` in ``out_dtype`` (``out`` when given) and ``valid (B, h, w)``: the rays

@@ -188,7 +188,8 @@ def reproject(image: Tensor, src_camera: Camera, dst_camera: Camera, *,
         image: ``(B, C, H_src, W_src)`` floating or ``uint8`` (an 8-bit image), or integer
             labels ``(B, H_src, W_src)`` / ``(B, C, H_src, W_src)``. A batch of 1 is shared by a
             batch of cameras/rotations.
-        src_camera, dst_camera: any cameras of the registry (one, or a batch of ``B``).
+        src_camera: any camera of the registry (one, or a batch of ``B``).
+        dst_camera: any camera of the registry (one, or a batch of ``B``).
         rotation: optional ``(3, 3)`` or ``(B, 3, 3)`` mapping destination-camera rays into the
             source camera's frame, ``ray_src = R @ ray_dst`` (default: the same orientation).
         interpolation: ``"nearest"``, ``"bilinear"`` or ``"bicubic"``; labels are always nearest.
@@ -207,7 +208,7 @@ def reproject(image: Tensor, src_camera: Camera, dst_camera: Camera, *,
         built in the cameras' dtype and cast to the image's (float32 for ``uint8``, float16 and
         bfloat16 images, which are sampled in float32 and rounded once).
 
-    Example:
+    Examples:
         >>> import omniscape_torch as ot, torch
         >>> pano = torch.rand(1, 3, 64, 128)
         >>> fisheye = ot.Camera("equidistant", [20.0, 20.0, 31.5, 31.5], (64, 64))

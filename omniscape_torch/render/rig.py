@@ -24,7 +24,8 @@ class StereoRig(nn.Module):
     """Two ``OmniProjection`` layers and their extrinsics.
 
     Args:
-        left, right: the two layers (cameras and face sizes may differ).
+        left: the left camera's layer.
+        right: the right camera's layer (its camera and face size may differ from the left's).
         baseline: distance between the cameras in metres, along the rig's x axis; used when
             ``positions`` is not given (left at ``-baseline / 2``, right at ``+baseline / 2``).
         positions: optional ``(2, 3)`` camera centres in the rig frame, metres.
@@ -71,10 +72,11 @@ class StereoRig(nn.Module):
         """Render both cameras.
 
         Args:
-            left_cubemap, right_cubemap: ``(B, 6, C, F, F)`` RGB cubemaps rendered at each
-                camera's position (``channels_last``: ``(B, 6, F, F, C)``), floating or
-                ``uint8`` (sampled as they are; no gradient); pass ``None`` to render only
-                depth/labels through ``render``.
+            left_cubemap: ``(B, 6, C, F, F)`` RGB cubemap rendered at the left camera's
+                position (``channels_last``: ``(B, 6, F, F, C)``), floating or ``uint8``
+                (sampled as it is; no gradient); pass ``None`` to render only depth/labels
+                through ``render``.
+            right_cubemap: the same, rendered at the right camera's position.
             rotation: optional ``(B, 3, 3)`` rig -> cube-frame attitude.
             out_dtype: dtype of both ``rgb`` images (``OmniProjection.render``): None for the
                 cubemap's (``uint8`` rounded to nearest, half up), or a floating dtype (a

@@ -341,7 +341,7 @@ def visible_faces(camera: Camera, rotation: Tensor | None = None, *, pad: int = 
         ``(*S, 6)`` bool, faces in ``FACES`` order; ``S`` the broadcast batch shape of the camera
         and the rotations (``(6,)`` for one camera and one rotation).
 
-    Example:
+    Examples:
         >>> import math, omniscape_torch as ot
         >>> from omniscape_torch.cameras.presets import fisheye
         >>> needed = visible_faces(fisheye((64, 64), fov=math.radians(190)))

@@ -243,8 +243,8 @@ class MeshScene:
         """Closest hits of ``N`` rays ``origins + t directions``, ``0 <= t < tfar``.
 
         Args:
-            origins, directions: ``(N, 3)`` float32 (directions need not be unit: ``t`` is in
-                their units).
+            origins: ``(N, 3)`` float32.
+            directions: ``(N, 3)`` float32 (need not be unit: ``t`` is in their units).
             tfar: the rays' end, a scalar or ``(N,)``.
 
         Returns:

@@ -422,21 +422,25 @@ def simulate(route: Route, fps: float = 10.0, duration: float | None = None, *,
         fps: frames per second.
         duration: seconds to simulate (``frames = floor(duration * fps) + 1``, frame 0 at
             t = 0); or give ``frames``. Default: until the motorcycle stops at the route's end.
-        seed, generator: the noise's random source (``generator`` wins); same seed, same ride,
-            and frame ``k`` is the same whatever ``frames`` or ``duration`` (a longer ride
-            extends a shorter one).
-        max_speed: cruising speed, m/s. acceleration, deceleration: longitudinal limits, m/s^2
-            (positive numbers).
+        seed: the noise's random source; same seed, same ride, and frame ``k`` is the same
+            whatever ``frames`` or ``duration`` (a longer ride extends a shorter one).
+        generator: the noise's random source instead of ``seed`` (it wins over ``seed``).
+        max_speed: cruising speed, m/s.
+        acceleration: longitudinal limit when speeding up, m/s^2 (a positive number).
+        deceleration: longitudinal limit when slowing down, m/s^2 (a positive number).
         max_lateral_acceleration: limit on ``v^2 |kappa|``, m/s^2; also capped at
             ``g tan(max_lean_deg)``.
-        start_speed: speed at the start, m/s (0: from rest). end_speed: speed at the route's
-            end (0: stop there; None: no constraint; past the end it stays there).
+        start_speed: speed at the start, m/s (0: from rest).
+        end_speed: speed at the route's end (0: stop there; None: no constraint; past the end
+            it stays there).
         roll_frequency: natural frequency (Hz) of the critically damped lean lag.
-        pitch_frequency, pitch_damping: the suspension pitch lag (Hz, damping ratio).
+        pitch_frequency: the suspension pitch lag's natural frequency, Hz.
+        pitch_damping: the suspension pitch lag's damping ratio.
         pitch_gain_deg: suspension pitch per m/s^2 of longitudinal acceleration, degrees
             (positive: nose down when braking).
-        roll_noise_deg, pitch_noise_deg: standard deviation of the noise on the lean and
-            pitch targets, degrees; noise_correlation its correlation time, s.
+        roll_noise_deg: standard deviation of the noise on the lean target, degrees.
+        pitch_noise_deg: standard deviation of the noise on the pitch target, degrees.
+        noise_correlation: the noise's correlation time, s.
         substeps: integration steps per frame for the lags (default: steps of at most 1 ms).
         dtype: floating dtype of the returned tensors.
 
@@ -445,13 +449,13 @@ def simulate(route: Route, fps: float = 10.0, duration: float | None = None, *,
 
         * ``frame`` (N,) int64, ``time`` (N,) seconds;
         * ``location`` (N, 3) m, ``velocity`` (N, 3) m/s, ``acceleration`` (N, 3) m/s^2:
-          CARLA axes (x north, y east, z up);
+            CARLA axes (x north, y east, z up);
         * ``rotation`` (N, 3) degrees, ``(roll, pitch, yaw)`` (:data:`ROTATION_ORDER`), yaw in
-          ``[-180, 180)``; ``rotation_rate`` (N, 3) deg/s, their time derivatives;
+            ``[-180, 180)``; ``rotation_rate`` (N, 3) deg/s, their time derivatives;
         * ``angular_velocity`` (N, 3) deg/s, CARLA axes (module docstring);
         * ``distance`` (N,) m along the route, ``speed`` (N,) m/s, ``curvature`` (N,) 1/m,
-          ``longitudinal_acceleration`` (N,) and ``lateral_acceleration`` (N,) m/s^2
-          (horizontal, positive to the right).
+            ``longitudinal_acceleration`` (N,) and ``lateral_acceleration`` (N,) m/s^2
+            (horizontal, positive to the right).
     """
     if not isinstance(route, Route):
         raise TypeError(f"route: expected a Route, got {type(route).__name__}")
