@@ -148,6 +148,7 @@ def test_same_on_batch_and_replay():
     assert torch.equal(again["rgb"], out["rgb"]) and torch.equal(again["labels"], out["labels"])
 
 
+@pytest.mark.slow
 def test_gradients_reach_the_cubemap():
     rgb, _, _ = _batch(b=2)
     rgb.requires_grad_(True)

@@ -96,6 +96,7 @@ def test_seed_and_loader_generator_reproduce_a_forked_run():
         assert not any(torch.equal(a, b) for a in run[0] + run[1] for b in other[0] + other[1])
 
 
+@pytest.mark.slow
 def test_seed_and_loader_generator_reproduce_a_spawned_run():
     # spawned workers unpickle the module (and its generator state): the same rule applies,
     # and the draws do not depend on the start method
@@ -144,7 +145,7 @@ def test_per_sample_draws_of_different_models_collate():
         assert bool((row[n:] == 0).all())
 
 
-@pytest.mark.parametrize("context", ["fork", "spawn"])
+@pytest.mark.parametrize("context", ["fork", pytest.param("spawn", marks=pytest.mark.slow)])
 def test_random_reproject_in_workers(context):
     """RandomReproject shares RandomOmniCamera's randomness: in forked and spawned workers
     every batch of two epochs differs from every other, and the same seeds repeat the run."""

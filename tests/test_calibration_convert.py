@@ -161,6 +161,7 @@ def test_real_files_convert_to_kannala_brandt_within_a_pixel(path):
     assert torch.equal(twin.rotation, torch.eye(3, dtype=D))
 
 
+@pytest.mark.slow
 def test_affine_is_the_skew_and_a_rotation():
     """An equidistant lens behind a known affine map (OCamCalib's c, d, e of the 1920 x 1208
     file) converts to Kannala-Brandt exactly: the skew and the rotation about the axis carry
@@ -220,6 +221,7 @@ def test_real_camera_degree_change():
     assert down.converged and down.max_px > 1.0  # a quadratic cannot follow a quartic lens
 
 
+@pytest.mark.slow
 def test_select_model_recovers_the_degree_of_a_polynomial_camera():
     camera = _camera("scaramuzza", POLY3)
     selection = select_model(camera, 1e-3)
@@ -267,6 +269,7 @@ def test_conversion_bad_input():
         select_model((checkerboard(), [torch.zeros(108, 2, dtype=D)]), 1.0)
 
 
+@pytest.mark.slow
 def test_cli_convert_model(tmp_path, capsys):
     out = tmp_path / "out"
     assert cli.main(["convert-model", "--ocamcalib", str(OCAMCALIB_FILE), "--to",
@@ -287,6 +290,7 @@ def test_cli_convert_model(tmp_path, capsys):
         cli.main(["convert-model", "--ocamcalib", str(tmp_path / "missing.txt"), "--to", "eucm"])
 
 
+@pytest.mark.slow
 def test_cli_select_model(tmp_path, capsys):
     """The fewest parameters within both bounds inside the real camera's image circle: the
     six-parameter models miss 0.3 px worst (about 1 px), Kannala-Brandt (with its skew) does

@@ -101,6 +101,7 @@ def test_defaults_are_the_models_domain_and_identity():
     assert torch.equal(valid, ref_valid) and torch.equal(grid, ref_grid)
 
 
+@pytest.mark.slow
 def test_unified_with_distortion_goes_eager_and_matches():
     params, size = batch_of("unified", torch.float64)
     assert bool(params[:, 5:].ne(0).any())
@@ -221,6 +222,7 @@ def test_kannala_brandt_sweep_is_newtons_inverse():
     assert float((theta - newton)[ok].abs().max()) < 1e-9   # 1.6e-7 px at focal 160
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode, model", [("fisheye", m) for m in ot.augment.FISHEYE_MODELS]
                          + [("catadioptric", "unified")])
 def test_radial_table_grid_is_within_half_a_hundredth_of_a_texel_at_full_size(mode, model):

@@ -59,6 +59,7 @@ def reference(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_generate_on_ray_writes_the_same_bytes_reports_a_failed_frame_and_resumes(
         ray_cluster, reference, tmp_path, capsys):
     """On a real Ray cluster (2 CPUs): frame 1 cannot be written (a folder stands where its
@@ -150,6 +151,7 @@ def test_pack_writes_the_same_shards_and_they_read_as_the_folder(reference, tmp_
         _same_items(a, b)
 
 
+@pytest.mark.slow
 def test_convert_on_ray_reports_a_corrupt_face_by_file_and_a_rerun_finishes(
         ray_cluster, tmp_path, capsys):
     """``convert --ray`` with a truncated face image: that capture is reported by file, the

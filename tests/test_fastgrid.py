@@ -107,6 +107,7 @@ def test_fused_maths_with_random_rotations_matches_to_rounding():
 # Compiled: tiny inputs, few kernels
 # ------------------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_compiled_without_rotation_is_the_reference_bit_for_bit():
     rays = torch.cat([tie_rays(f32), random_rays((105,), f32)]).reshape(1, 3, 150, 3)
     got = fg.rotated_rays_to_grid(rays, None, FACE, PAD)
@@ -119,6 +120,7 @@ def test_compiled_without_rotation_is_the_reference_bit_for_bit():
     assert torch.equal(got, oracle(rays3, None, 16, 2))
 
 
+@pytest.mark.slow
 def test_compiled_rotation_broadcasting_ties_and_rounding():
     rays = tie_rays(f32).reshape(15, 23, 3)  # (H, W, 3), shared by every rotation
     rot = signed_permutations(f32)
@@ -134,6 +136,7 @@ def test_compiled_rotation_broadcasting_ties_and_rounding():
     assert fg.compile_failures() == {}
 
 
+@pytest.mark.slow
 def test_compiled_gradients_float64_match_the_eager_path():
     rays = torch.cat([tie_rays(f64), random_rays((15,), f64)]).reshape(2, 9, 20, 3)
     rot = random_rotations(2, f64, seed=5)

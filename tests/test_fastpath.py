@@ -216,6 +216,7 @@ def test_half_precision_is_sampled_in_float32():
     torch.testing.assert_close(got, expect, atol=torch.finfo(torch.float16).eps, rtol=0)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["nearest", "bilinear"])
 def test_reference_path_without_a_compiler(monkeypatch, mode):
     """Where the C++ extension cannot be built (here: no compiler), the fast sampler is
@@ -377,6 +378,7 @@ def spec_grid(rays: torch.Tensor, rotation, size: int, pad: int, dtype) -> torch
     return fastgrid._fused_rotated(rays, rotation, size, pad, dtype)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["nearest", "bilinear"])
 @pytest.mark.parametrize("dtype", [f32, f64])
 @pytest.mark.parametrize("ray_batch,rot_batch,pad,border", [

@@ -174,6 +174,7 @@ def _run(cmd: list[str]) -> None:
     assert done.returncode == 0, done.stderr
 
 
+@pytest.mark.slow
 def test_killed_run_resumes_to_identical_files(tmp_path):
     """SIGKILL ``generate`` once some but not all frames are finished, rerun it to completion:
     every file equals an uninterrupted run's byte for byte (``dataset.json`` holds no timing
@@ -248,6 +249,7 @@ def dynamics(tmp_path_factory):
             "roll": np.array([r["rotation"]["roll"] for r in recs])}
 
 
+@pytest.mark.slow
 def test_integrated_velocity_matches_location(dynamics):
     """Trapezoid rule over each frame interval: for a velocity with acceleration ``a``, its
     error is ``int K(s) a'(s) ds`` with the Peano kernel ``|K| <= dt^2 / 8``, so it is at most

@@ -71,6 +71,7 @@ def assert_recovered(result, truth: ot.Camera, cube, target, valid):
     assert float(photometric_error(image, target, mask)) == pytest.approx(result.error, abs=0.02)
 
 
+@pytest.mark.slow
 def test_recovers_kannala_brandt_fisheye(scene):
     town, cube = scene
     truth = ot.presets.fisheye((SIZE, SIZE), fov=math.radians(190), model="kannala_brandt",
@@ -83,6 +84,7 @@ def test_recovers_kannala_brandt_fisheye(scene):
     assert result.camera.fov == truth.fov and not result.camera.learnable
 
 
+@pytest.mark.slow
 def test_recovers_catadioptric_and_attitude(scene):
     town, cube = scene
     truth, rotation = ot.presets.catadioptric((SIZE, SIZE))
@@ -97,6 +99,7 @@ def test_recovers_catadioptric_and_attitude(scene):
     assert rotation_error_deg(result.rotation, rotation) < ROTATION_TOL_DEG
 
 
+@pytest.mark.slow
 def test_guess_outside_the_basin_is_reported(scene):
     """The principal point 35 px off (a third of the image): the fit ends in a wrong minimum and
     says so. (Focal errors alone converge from x0.3 to x3 on this scene.)"""

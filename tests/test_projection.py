@@ -536,6 +536,7 @@ def skew(w: torch.Tensor) -> torch.Tensor:
                         torch.stack((-w[1], w[0], zero))))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("interpolation", ["bilinear", "bicubic"])
 def test_gradcheck_intrinsics(interpolation):
     layer = ot.OmniProjection(small_camera(), 16, interpolation=interpolation)
@@ -575,6 +576,7 @@ def test_gradcheck_depth_and_soft_labels_intrinsics():
     assert torch.autograd.gradcheck(fn, (params,), eps=1e-6, atol=1e-6, rtol=1e-4)
 
 
+@pytest.mark.slow
 def test_gradcheck_rotation():
     layer = ot.OmniProjection(small_camera(learnable=False), 16)
     cube = smooth_cube(16, f64, channels=2)
@@ -588,6 +590,7 @@ def test_gradcheck_rotation():
     assert torch.autograd.gradcheck(fn, (w,), eps=1e-6, atol=1e-6, rtol=1e-4)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dtype", [f32, f64])
 def test_gradients_finite_everywhere(dtype):
     """A 190-degree camera whose corners also leave the model's domain (theta >= pi)."""
@@ -649,6 +652,7 @@ def test_grid_cached_for_fixed_camera_and_rebuilt_with_rotation():
     torch.testing.assert_close(after, fresh, atol=0, rtol=0)
 
 
+@pytest.mark.slow
 def test_learnable_camera_has_no_stale_cache():
     cam, _, _ = fisheye(16, 120.0, learnable=True)
     layer = ot.OmniProjection(cam, 8)
@@ -753,6 +757,7 @@ def test_supersampling_reduces_aliasing():
 # ------------------------------------------------------------------------------------------
 # Batches
 # ------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_batch_of_cameras_and_rotations_equals_per_sample_renders():
     size, n, batch = 16, 32, 3
     params = torch.tensor([[9.0, 9.5, 15.5, 15.0], [11.0, 10.0, 16.0, 15.5],
@@ -847,6 +852,7 @@ def test_bad_forward_input(small_layer):
         batched(torch.rand(3, 6, 3, 4, 4))
 
 
+@pytest.mark.slow
 def test_render_through_a_given_grid():
     """``render(grid=...)`` samples through a grid computed elsewhere (per-sample random
     cameras in one kernel): the grid of the camera's rays under a rotation gives the image

@@ -135,6 +135,7 @@ def test_rotations_and_batches():
         face_size_map(batch, tilted[:2])
 
 
+@pytest.mark.slow
 def test_any_rotation_is_twice_the_finest_density_and_bounds_every_attitude():
     """``rotation="any"``: each pixel's ray at a face's centre, where a face is coarsest, so
     ``F = 2 x`` the camera's finest pixels per radian. For an equidistant lens that is the
