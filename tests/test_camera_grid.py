@@ -68,7 +68,7 @@ def batch_of(model: str, dtype):
 
 
 @pytest.mark.parametrize("model", sorted(CASES))
-@pytest.mark.parametrize("compiled", [False, True])
+@pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=pytest.mark.slow)])
 def test_matches_the_camera_chain(model, compiled):
     params, size = batch_of(model, torch.float32)
     if compiled and model not in fg._CLOSED_FORM and model not in fg.RADIAL:

@@ -553,6 +553,7 @@ def test_gradcheck_intrinsics(interpolation):
     assert bool((params.grad != 0).all())
 
 
+@pytest.mark.slow
 def test_gradcheck_depth_and_soft_labels_intrinsics():
     layer = ot.OmniProjection(small_camera(), 16, depth_interpolation="bilinear")
     depth = box_depth_cube(16, dtype=f64)

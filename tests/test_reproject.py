@@ -389,6 +389,7 @@ def test_batches_match_per_camera_loops():
         ot.reproject(image, src, dst_b, rotation=torch.stack([rot_z(0.1)] * 3))
 
 
+@pytest.mark.slow
 def test_gradcheck_image_and_rotation():
     src = ot.Camera("pinhole", torch.tensor([6.0, 6.0, 5.5, 5.5], dtype=F64), (12, 12))
     dst = ot.Camera("pinhole", torch.tensor([4.0, 4.0, 3.5, 3.5], dtype=F64), (8, 8))
