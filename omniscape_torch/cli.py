@@ -213,12 +213,15 @@ def cmd_pack(args: argparse.Namespace) -> int:
 
 def cmd_stats(args: argparse.Namespace) -> int:
     from .data.format import STATS, STATS_PLOT
-    from .data.stats import format_stats, stats
+    from .data.stats import PLOT_INSTALL, format_stats, plot_available, stats
 
-    result = stats(args.dir, plot=not args.no_plot)
+    # the chart needs matplotlib (optional): without it, the tables and stats.json all the same
+    plot = not args.no_plot and plot_available()
+    result = stats(args.dir, plot=plot)
     print(format_stats(result))
-    print(f"\nwrote {args.dir / STATS}" + ("" if args.no_plot else
-                                          f" and {args.dir / STATS_PLOT}"))
+    print(f"\nwrote {args.dir / STATS}" + (f" and {args.dir / STATS_PLOT}" if plot else ""))
+    if not plot and not args.no_plot:
+        print(f"{STATS_PLOT} not drawn (it needs matplotlib): {PLOT_INSTALL}")
     return 0
 
 

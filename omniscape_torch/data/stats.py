@@ -16,14 +16,27 @@ from ..scenes import ride as _ride
 from . import format as fmt
 from .readers import list_cameras, read_dynamics
 
-__all__ = ["format_stats", "stats"]
+__all__ = ["PLOT_INSTALL", "format_stats", "plot_available", "stats"]
+
+#: What installs the chart's library (matplotlib, optional: the ``plot`` extra).
+PLOT_INSTALL = 'pip install "omniscape_torch[plot]"'
+
+
+def plot_available() -> bool:
+    """Whether ``stats.png`` can be drawn: matplotlib is importable (an optional dependency)."""
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        return False
+    return True
 
 
 def stats(root: str | Path, *, plot: bool = True) -> dict:
     """Table I (yaw, pitch, roll over the ride) and the per-class pixel share (valid pixels)
     of the fisheye and catadioptric images of the dataset in ``root``, over its finished
     frames (``.done`` marker and every camera's files; an interrupted run's dataset has fewer
-    than planned); writes ``root/stats.json`` and (``plot``) the bar chart ``root/stats.png``.
+    than planned); writes ``root/stats.json`` and (``plot``) the bar chart ``root/stats.png``
+    (``plot`` needs matplotlib, an optional dependency: :func:`plot_available`).
 
     Returns:
         ``{"table_one": {angle: {mean, std, min, median, max}}, "class_share": {kind:
@@ -33,6 +46,7 @@ def stats(root: str | Path, *, plot: bool = True) -> dict:
     Raises:
         FileNotFoundError: ``root`` holds no dataset.
         ValueError: no frame is finished yet.
+        ImportError: ``plot`` without matplotlib (``stats.json`` is written first).
     """
     root = Path(root)
     if not (root / fmt.MANIFEST).is_file():
@@ -67,7 +81,10 @@ def stats(root: str | Path, *, plot: bool = True) -> dict:
 
 
 def _plot(result: dict, path: Path) -> None:
-    import matplotlib
+    try:
+        import matplotlib
+    except ImportError:
+        raise ImportError(f"{path.name} needs matplotlib: {PLOT_INSTALL}") from None
     matplotlib.use("Agg", force=False)
     from matplotlib.figure import Figure
 
