@@ -336,3 +336,61 @@ def test_fit_writes_all_its_files_or_none(tmp_path, capsys, monkeypatch):
                      "--no-progress"]) == 2
     assert "inverse polynomial" in _line(capsys.readouterr().err)
     assert not out.exists() or list(out.iterdir()) == []
+
+
+# --------------------------------------------------------------------------------------------
+# Exit codes as documented (tests/README.md): 2 for bad input, a missing file included
+# --------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("argv, message", [
+    (["info", "--ocamcalib", "{tmp}/missing.txt"], "no calibration file at {tmp}/missing.txt"),
+    (["info", "--json", "{tmp}/missing.json"], "{tmp}/missing.json: no such file or folder"),
+    (["convert-model", "--ocamcalib", "{tmp}/missing.txt", "--to", "eucm"],
+     "no calibration file at {tmp}/missing.txt"),
+    (["fit", "{tmp}/missing_points.txt", "--model", "equidistant", "--out", "{tmp}/out"],
+     "{tmp}/missing_points.txt: no such correspondence file"),
+    (["stats", "{tmp}/no_dataset"], "no dataset.json"),
+])
+def test_a_missing_input_file_is_one_line_and_exit_2(tmp_path, capsys, argv, message):
+    argv = [a.format(tmp=tmp_path) for a in argv]
+    assert cli.main(argv) == 2
+    line = _line(capsys.readouterr().err)
+    assert line.startswith(f"omniscape-torch {argv[0]}: error: ")
+    assert message.format(tmp=tmp_path) in line
+    assert not (tmp_path / "out").exists()
+
+
+# --------------------------------------------------------------------------------------------
+# Usage errors: one line, not argparse's usage block
+# --------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("argv, line", [
+    (["generate", "--out", "x", "--image-size", "4"],
+     "omniscape-torch generate: error: argument --image-size: expected N or HxW pixels, each "
+     "at least 8, got '4'; see omniscape-torch generate --help"),
+    (["generate"], "omniscape-torch generate: error: the following arguments are required: "
+                   "--out; see omniscape-torch generate --help"),
+    (["fit", "points.txt", "--out", "x", "--model", "nope"], None),
+    (["no-such-command"], None),
+    ([], "omniscape-torch: error: the following arguments are required: command; see "
+         "omniscape-torch --help"),
+])
+def test_a_usage_error_is_one_line_ending_with_see_help_and_exit_2(capsys, argv, line):
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(argv)
+    assert exit_.value.code == 2
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    lines = captured.err.splitlines()
+    assert len(lines) == 1, captured.err
+    prefix = "omniscape-torch" + (f" {argv[0]}" if argv[:1] in (["generate"], ["fit"]) else "")
+    assert lines[0].startswith(f"{prefix}: error: ")
+    assert lines[0].endswith(f"; see {prefix} --help")
+    if line is not None:
+        assert lines[0] == line
+
+
+def test_help_still_prints_the_usage():
+    proc = subprocess.run(_command("generate", "--help"), capture_output=True, text=True,
+                          cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=120)
+    assert proc.returncode == 0 and proc.stdout.startswith("usage: omniscape-torch generate")

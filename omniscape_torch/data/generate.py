@@ -195,6 +195,32 @@ class DatasetConfig:
         return d
 
 
+def _setting(key: str, value) -> str:
+    """A configuration value as the command line writes it."""
+    if value is None:
+        return "the default"
+    if isinstance(value, bool):
+        return "on" if value else "off"
+    if key == "image_size" and isinstance(value, (list, tuple)) and len(value) == 2:
+        return str(value[0]) if value[0] == value[1] else f"{value[0]}x{value[1]}"
+    if isinstance(value, (list, tuple)):
+        return ",".join(map(str, value))
+    return str(value)
+
+
+def config_changes(old: object, new: dict) -> str:
+    """``": --image-size: the folder has 512, this run 256; ..."``: each setting of ``new`` (a
+    :meth:`DatasetConfig.to_dict`) that differs from a folder's ``old`` one, by its option
+    name, with both values; ``""`` when ``old`` is not a configuration (unreadable)."""
+    if not isinstance(old, dict):
+        return ""
+    changes = [f"--{key.replace('_', '-')}: the folder has "
+               f"{_setting(key, old[key]) if key in old else 'none'}, this run "
+               f"{_setting(key, new[key]) if key in new else 'none'}"
+               for key in dict.fromkeys([*new, *old]) if old.get(key) != new.get(key)]
+    return ": " + "; ".join(changes) if changes else ""
+
+
 #: Images of at most this many pixels are anti-aliased by default (:func:`default_antialias`).
 ANTIALIAS_PIXELS = 512 * 512
 
@@ -792,8 +818,10 @@ def _generate(out: Path, config: DatasetConfig, workers: int, progress: bool | N
         if isinstance(old, dict):   # written before antialias existed: one ray a texel
             old.setdefault("antialias", 1)
         if old != config.to_dict():
-            raise ValueError(f"{out} holds a dataset of another configuration ({manifest}); "
-                             f"use another --out folder or remove it")
+            raise ValueError(f"{out} holds a dataset of another configuration ({manifest}"
+                             f"{config_changes(old, config.to_dict())}); rerun with the "
+                             f"folder's settings to complete it, or use another --out folder "
+                             f"or remove it")
     # A run killed mid-write leaves its temporaries (the finished files are whole: written by
     # rename); they carry their process id, and only those of ended processes are removed.
     # Not by a share of a run: the others may run on other machines, whose processes this one
