@@ -20,7 +20,8 @@ Two parts:
   decode to the very pixels encoded; the bytes written are reported too.
 
 A peer that is not installed is skipped (its rows say why). Timing: ``--warmup`` untimed then
-``--repeats`` timed calls, round-robin (``benchmarks/common.py``), median and IQR; one thread
+``--repeats`` timed calls, round-robin over every peer's encode and decode of one image
+(``benchmarks/common.py``: a change of load hits them alike), median and IQR; one thread
 (``cv2.setNumThreads(1)``; PNG coding is single-threaded in both).
 
 Usage::
@@ -171,15 +172,19 @@ def run(args: argparse.Namespace) -> dict:
     record["wheels"] = {} if args.no_download else wheel_sizes(list(WHEELS))
     data = images(args.size)
     rows = []
-    for name, (encode, decode) in coders(peers).items():
-        for kind, image in data.items():
-            blob = encode(image)
-            back = decode(blob)
-            identical = back.dtype == image.dtype and np.array_equal(back, image)
-            enc, dec = measure([lambda e=encode, i=image: e(i), lambda d=decode, b=blob: d(b)],
-                               args.repeats, args.warmup)
+    table = coders(peers)
+    for kind, image in data.items():
+        # every peer's encode and decode of this image round-robin: a change of load hits all
+        blobs = {name: encode(image) for name, (encode, _) in table.items()}
+        fns = [f for name, (encode, decode) in table.items()
+               for f in (lambda e=encode: e(image), lambda d=decode, b=blobs[name]: d(b))]
+        timings = measure(fns, args.repeats, args.warmup)
+        for i, (name, (_, decode)) in enumerate(table.items()):
+            back = decode(blobs[name])
+            enc, dec = timings[2 * i], timings[2 * i + 1]
             rows.append({"peer": name, "image": kind, "shape": list(image.shape),
-                         "dtype": str(image.dtype), "bytes": len(blob), "identical": identical,
+                         "dtype": str(image.dtype), "bytes": len(blobs[name]),
+                         "identical": back.dtype == image.dtype and np.array_equal(back, image),
                          "encode_ms": 1e3 * enc["median_s"], "encode_iqr_ms": 1e3 * enc["iqr_s"],
                          "decode_ms": 1e3 * dec["median_s"], "decode_iqr_ms": 1e3 * dec["iqr_s"]})
     record["rows"] = rows
@@ -190,11 +195,12 @@ def run(args: argparse.Namespace) -> dict:
 def markdown(result: dict) -> str:
     lines = [f"PNG coding at {result['size']} x {result['size']}, median of "
              f"{result['repeats']} (load {result['loadavg_start']} -> {result['loadavg_end']})",
-             "", "| peer | image | encode ms | decode ms | bytes | lossless |",
+             "", "| peer | image | encode ms (IQR) | decode ms (IQR) | bytes | lossless |",
              "|---|---|---:|---:|---:|---|"]
     for r in result["rows"]:
-        lines.append(f"| {r['peer']} | {r['image']} | {r['encode_ms']:.1f} | "
-                     f"{r['decode_ms']:.1f} | {r['bytes']:,} | {'yes' if r['identical'] else 'NO'} |")
+        lines.append(f"| {r['peer']} | {r['image']} | {r['encode_ms']:.1f} "
+                     f"({r['encode_iqr_ms']:.1f}) | {r['decode_ms']:.1f} ({r['decode_iqr_ms']:.1f})"
+                     f" | {r['bytes']:,} | {'yes' if r['identical'] else 'NO'} |")
     for peer, why in result["missing"].items():
         lines.append(f"| {peer} | skipped: {why} | | | | |")
     if result["wheels"]:

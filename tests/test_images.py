@@ -100,3 +100,15 @@ def test_sixteen_bit_colour_png_without_opencv_is_refused(monkeypatch):
     data = encode_image(_images()["rgb16"])
     with pytest.raises(ValueError, match="16-bit colour PNG; reading it needs OpenCV"):
         decode_image(data, "x.png")
+
+
+def test_jpeg_is_written_as_opencv_writes_it():
+    """Quality 95, OpenCV's default (Pillow's is 75): the same pixels decoded."""
+    cv2 = pytest.importorskip("cv2")
+    if not PHOTO.is_file():
+        pytest.skip(f"{PHOTO}: shared data missing")
+    image = read_image(PHOTO).numpy()[:256, :256].copy()
+    ok, theirs = cv2.imencode(".jpg", np.ascontiguousarray(image[..., ::-1]))
+    assert ok
+    np.testing.assert_array_equal(decode_image(encode_image(image, ".jpg")),
+                                  decode_image(theirs.tobytes()))

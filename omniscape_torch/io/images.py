@@ -18,6 +18,8 @@ from .atomic import atomic_write_bytes
 #: library the images were written with before; ``benchmarks/bench_png.py``: the best of
 #: Pillow's settings for speed, the size within a few percent of the default level 6's).
 PNG_COMPRESS_LEVEL, PNG_STRATEGY = 1, 3   # 3: Z_RLE
+#: JPEG quality: OpenCV's default (Pillow's is 75).
+JPEG_QUALITY = 95
 
 
 def require_pillow():
@@ -92,7 +94,7 @@ def read_image(path: str | Path) -> Tensor:
 def encode_image(image: Tensor | np.ndarray, suffix: str = ".png") -> bytes:
     """The bytes of ``(H, W, 3)`` RGB or ``(H, W)`` grey uint8 (or uint16: PNG only) as the
     format of ``suffix`` (``.png``, ``.jpg``...). PNG: lossless, zlib level 1 with the
-    run-length strategy."""
+    run-length strategy; JPEG: quality 95 (both OpenCV's defaults)."""
     Image = require_pillow()
     if isinstance(image, Tensor):
         image = image.detach().cpu().numpy()
@@ -110,8 +112,8 @@ def encode_image(image: Tensor | np.ndarray, suffix: str = ".png") -> bytes:
     if image.dtype == np.uint16 and image.ndim == 3:
         return _encode_png48(image)
     buf = _io.BytesIO()
-    options = ({"compress_level": PNG_COMPRESS_LEVEL, "compress_type": PNG_STRATEGY}
-               if fmt == "PNG" else {})
+    options = {"PNG": {"compress_level": PNG_COMPRESS_LEVEL, "compress_type": PNG_STRATEGY},
+               "JPEG": {"quality": JPEG_QUALITY}}.get(fmt, {})
     Image.fromarray(image).save(buf, format=fmt, **options)
     return buf.getvalue()
 
