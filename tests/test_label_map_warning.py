@@ -83,6 +83,18 @@ def test_labels_passed_as_labels_do_not_warn(images):
             {"rgb": _cube(images[0]), "labels": _cube(images[1])[:, :, 0].long()})
 
 
+def test_a_binary_mask_does_not_warn():
+    """0 / 255 (a valid mask, a checkerboard): an image to blend, not class ids."""
+    mask = torch.zeros(1, 1, 16, 16, dtype=torch.uint8)
+    mask[..., ::2, :] = 255
+    src = ot.equirectangular_camera(16, 16)
+    dst = ot.presets.fisheye((8, 8), fov=math.radians(180))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", LabelMapWarning)
+        ot.reproject(mask, src, dst)
+        ot.reproject(mask.expand(1, 3, 16, 16), src, dst)
+
+
 def test_the_warning_is_shown_once():
     """One message from one place: Python's default filter shows it once."""
     label_map = torch.zeros(1, 1, 16, 16, dtype=torch.uint8)

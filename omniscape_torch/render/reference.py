@@ -122,7 +122,7 @@ def warn_if_label_map(image: Tensor, channel_dim: int) -> None:
     """Warn (:class:`LabelMapWarning`, once: one message from one place) when ``image``, a
     ``uint8`` image whose channels are on ``channel_dim``, looks like a label map: one channel,
     or three channels equal to each other, with 2 to :data:`LABEL_MAP_MAX_VALUES` distinct
-    values. Cheap: a few rows of the first images are read; off the CPU only the first call per
+    values, not only 0 and 255 (a mask). Cheap: a few rows of the first images are read; off the CPU only the first call per
     device type checks (reading them back synchronises)."""
     if image.dtype != torch.uint8 or image.dim() < 3 or image.shape[channel_dim] not in (1, 3):
         return
@@ -138,7 +138,10 @@ def warn_if_label_map(image: Tensor, channel_dim: int) -> None:
     if x.shape[-1] == 3 and not bool(((x[..., 0] == x[..., 1]) & (x[..., 1] == x[..., 2]))
                                      .all()):
         return
-    distinct = int(torch.bincount(x[..., 0].flatten().long(), minlength=256).count_nonzero())
-    if 2 <= distinct <= LABEL_MAP_MAX_VALUES:
+    counts = torch.bincount(x[..., 0].flatten().long(), minlength=256)
+    distinct = int(counts.count_nonzero())
+    # a 0 / 255 mask is an image to blend (a soft mask comes out), not class ids
+    mask = distinct == int(counts[0] > 0) + int(counts[255] > 0)
+    if 2 <= distinct <= LABEL_MAP_MAX_VALUES and not mask:
         import warnings
         warnings.warn(_LABEL_MAP_MESSAGE, LabelMapWarning, stacklevel=2)
