@@ -76,8 +76,8 @@ ROOT = Path(__file__).resolve().parents[1]
 # Benchmark the checkout this script lives in, not whatever copy is installed.
 sys.path.insert(0, str(ROOT))
 
-from common import (HEAP_MODES, begin_run, loadavg, measure, run_main, run_record,  # noqa: E402
-                    set_heap)
+from common import (HEAP_MODES, begin_run, loadavg, measure, results_path, run_main,  # noqa: E402
+                    run_record, set_heap)
 from omniscape_torch.render.augment import RandomOmniCamera  # noqa: E402
 from omniscape_torch.cameras import Camera  # noqa: E402
 from omniscape_torch.cubemap import face_axes  # noqa: E402
@@ -424,7 +424,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                              "faults), or a fresh mapping per output (fresh)")
     parser.add_argument("--out", type=Path, default=None,
                         help="JSON output (default benchmarks/results/augment.json; "
-                             "augment_<heap>.json with --heap warm or fresh)")
+                             "augment_<heap>.json with --heap warm or fresh; under "
+                             "results/quick/ with --quick)")
     args = parser.parse_args(argv)
     defaults = {"batch": (16, 4), "face": (256, 64), "size": (512, 128), "repeats": (15, 3),
                 "warmup": (2, 1)}
@@ -436,7 +437,7 @@ def parse_args(argv=None) -> argparse.Namespace:
             parser.error(f"--{name} must be >= 1")
     if args.out is None:
         suffix = "" if args.heap == "default" else f"_{args.heap}"
-        args.out = ROOT / "benchmarks" / "results" / f"augment{suffix}.json"
+        args.out = results_path(f"augment{suffix}.json", quick=args.quick)   # quick: quick/
     if args.warmup < 0:
         parser.error("--warmup must be >= 0")
     return args

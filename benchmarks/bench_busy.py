@@ -36,7 +36,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_projection import remap_maps  # noqa: E402
-from common import ROOT, begin_run, loadavg, measure, run_main, run_record  # noqa: E402
+from common import (ROOT, begin_run, loadavg, measure, results_path, run_main,  # noqa: E402
+                    run_record)
 
 import omniscape_torch as ot  # noqa: E402
 from omniscape_torch import cubemap as cm  # noqa: E402
@@ -145,8 +146,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--out", type=Path,
-                        default=ROOT / "benchmarks" / "results" / "busy.json")
+                        default=None)
     args = parser.parse_args(argv)
+    if args.out is None:   # a --quick run never overwrites the full run's
+        args.out = results_path("busy.json", quick=args.quick)
     args.faces = args.faces or ([64] if args.quick else [64, 256, 512])
     args.repeats = args.repeats or (5 if args.quick else 30)
     if min(args.faces) < 8 or args.threads < 1 or args.spinners < 0 or args.repeats < 1:

@@ -51,7 +51,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import omniscape_torch as ot  # noqa: E402
-from common import loadavg, measure, run_main, run_record  # noqa: E402
+from common import loadavg, measure, results_path, run_main, run_record  # noqa: E402
 from omniscape_torch.cameras.scaramuzza import scaramuzza_project  # noqa: E402
 
 try:
@@ -382,9 +382,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     parser.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
                         help="device of our functions (OpenCV always runs on the CPU)")
-    parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" /
-                        "cameras.json", help="JSON output (default benchmarks/results/cameras.json)")
+    parser.add_argument("--out", type=Path, default=None, help="JSON output (default benchmarks/results/cameras.json)")
     args = parser.parse_args(argv)
+    if args.out is None:   # a --quick run never overwrites the full run's
+        args.out = results_path("cameras.json", quick=args.quick)
     if args.points is None:
         args.points = 100_000 if args.quick else 1_000_000
     if args.repeats is None:

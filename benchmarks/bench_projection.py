@@ -115,7 +115,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import omniscape_torch as ot  # noqa: E402
-from common import begin_run, loadavg, measure, run_main, run_record  # noqa: E402
+from common import begin_run, loadavg, measure, results_path, run_main, run_record  # noqa: E402
 from omniscape_torch import cubemap as cm  # noqa: E402
 from omniscape_torch.cubemap import grid as fastgrid  # noqa: E402
 from omniscape_torch.render import fast as fastsample  # noqa: E402
@@ -564,10 +564,11 @@ def parse_args(argv=None) -> argparse.Namespace:
                              "--quick; above the last-level cache)")
     parser.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
                         help="device of our layer (OpenCV always runs on the CPU)")
-    parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" /
-                        "projection.json",
+    parser.add_argument("--out", type=Path, default=None,
                         help="JSON output (default benchmarks/results/projection.json)")
     args = parser.parse_args(argv)
+    if args.out is None:   # a --quick run never overwrites the full run's
+        args.out = results_path("projection.json", quick=args.quick)
     if args.face is None:
         args.face = 128 if args.quick else 512
     if args.batches is None:

@@ -55,7 +55,7 @@ ROOT = Path(__file__).resolve().parents[1]
 # Benchmark the checkout this script lives in, not whatever copy is installed.
 sys.path.insert(0, str(ROOT))
 
-from common import begin_run, loadavg, measure, run_main, run_record  # noqa: E402
+from common import begin_run, loadavg, measure, results_path, run_main, run_record  # noqa: E402
 import omniscape_torch as ot  # noqa: E402
 
 try:
@@ -205,9 +205,11 @@ def parse_args(argv=None) -> argparse.Namespace:
                         help="untimed calls before timing (default 2; 1 with --quick)")
     parser.add_argument("--quick", action="store_true", help="a smoke run (seconds)")
     parser.add_argument("--out", type=Path,
-                        default=ROOT / "benchmarks" / "results" / "reproject.json",
+                        default=None,
                         help="JSON output (default benchmarks/results/reproject.json)")
     args = parser.parse_args(argv)
+    if args.out is None:   # a --quick run never overwrites the full run's
+        args.out = results_path("reproject.json", quick=args.quick)
     defaults = {"batch": (8, 2), "width": (1024, 128), "height": (512, 64),
                 "repeats": (10, 2), "warmup": (2, 1)}
     for name, (full, quick) in defaults.items():

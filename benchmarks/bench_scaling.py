@@ -53,7 +53,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import begin_run, loadavg, positive_int, run_main, run_record  # noqa: E402
+from common import (begin_run, loadavg, positive_int, results_path, run_main,  # noqa: E402
+                    run_record)
 from omniscape_torch.data import format as fmt  # noqa: E402
 from omniscape_torch.data.generate import (  # noqa: E402
     DatasetConfig, FrameRenderer, contact_sheet, generate, render_task)
@@ -252,8 +253,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--threads", type=positive_int, default=2,
                    help="torch threads of this process (local_1 renders on them)")
     p.add_argument("--quick", action="store_true", help="4 frames at 32 x 32, 1 round")
-    p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "scaling.json")
+    p.add_argument("--out", type=Path, default=None)
     args = p.parse_args(argv)
+    if args.out is None:   # a --quick run never overwrites the full run's
+        args.out = results_path("scaling.json", quick=args.quick)
     if args.quick:
         args.frames, args.size, args.rounds, args.overhead_repeats = 4, 32, 1, 6
     return args

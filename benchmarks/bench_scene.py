@@ -33,7 +33,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from common import git_commit, machine_info, measure, write_json_atomic  # noqa: E402
+from common import git_commit, machine_info, measure, results_path, write_json_atomic  # noqa: E402
 from omniscape_torch.scenes import Town  # noqa: E402
 
 
@@ -47,8 +47,10 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--weathers", default="clear_noon,night")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--quick", action="store_true", help="3 repeats, 1 warm-up")
-    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "scene.json")
+    ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args(argv)
+    if args.out is None:   # a --quick run never overwrites the full run's
+        args.out = results_path("scene.json", quick=args.quick)
     if args.quick:
         args.repeats, args.warmup = 3, 1
     torch.set_num_threads(args.threads)

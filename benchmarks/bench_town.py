@@ -59,7 +59,8 @@ import torch.nn.functional as nnf
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from common import begin_run, loadavg, measure, run_record, write_json_atomic  # noqa: E402
+from common import (begin_run, loadavg, measure, results_path, run_record,  # noqa: E402
+                    write_json_atomic)
 from omniscape_torch.data.generate import (DatasetConfig, FrameRenderer,  # noqa: E402
                                            _frame_weather, camera_cone, cone_texels)
 from omniscape_torch.render.layer import OmniProjection  # noqa: E402
@@ -330,8 +331,10 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--skip-accuracy", action="store_true")
     ap.add_argument("--quick", action="store_true", help="256 and 512, 2 repeats, 3 faces, "
                     "antialias 1 and 2")
-    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "town.json")
+    ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args(argv)
+    if args.out is None:   # a --quick run never overwrites the full run's
+        args.out = results_path("town.json", quick=args.quick)
     if args.quick:
         args.sizes, args.repeats, args.faces, args.accuracy_frames, args.antialias = \
             [256, 512], 2, [0.5, 1.0, 2.0], 1, [1, 2]

@@ -95,8 +95,8 @@ ROOT = Path(__file__).resolve().parents[1]
 # the checkout this script lives in, not whatever copy is installed
 sys.path.insert(0, str(ROOT))
 
-from common import (begin_run, loadavg, measure, positive_int, run_record,  # noqa: E402
-                    write_json_atomic)
+from common import (begin_run, loadavg, measure, positive_int, results_path,  # noqa: E402
+                    run_record, write_json_atomic)
 import omniscape_torch as ot  # noqa: E402
 from omniscape_torch.cubemap import FACES  # noqa: E402
 from omniscape_torch.data.generate import DatasetConfig, generate  # noqa: E402
@@ -714,7 +714,7 @@ def make_parser() -> argparse.ArgumentParser:
                         help="folder of the cached cubemaps and evaluation dataset "
                              "(default out/bench_training)")
     parser.add_argument("--out", type=Path,
-                        default=ROOT / "benchmarks" / "results" / "training.json",
+                        default=None,
                         help="JSON output; the .md table and .png chart go beside it "
                              "(default benchmarks/results/training.json)")
     parser.add_argument("--no-progress", dest="progress", action="store_false",
@@ -753,6 +753,8 @@ def resolve(args: argparse.Namespace) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     parser = make_parser()
     args = parser.parse_args(argv)
+    if args.out is None:   # a --quick run never overwrites the full run's
+        args.out = results_path("training.json", quick=args.quick)
     try:
         args = resolve(args)
     except ValueError as err:

@@ -54,7 +54,8 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_augment import FOV_RANGE, atlas_maps, peer_atlas, peer_draw, SEED  # noqa: E402
-from common import begin_run, loadavg, positive_int, run_main, run_record  # noqa: E402
+from common import (begin_run, loadavg, positive_int, results_path, run_main,  # noqa: E402
+                    run_record)
 from omniscape_torch.render.augment import FISHEYE_MODELS, RandomOmniCamera  # noqa: E402
 
 try:
@@ -336,8 +337,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--threads", type=positive_int, default=2,
                    help="torch threads of the main process (workers use one each)")
     p.add_argument("--quick", action="store_true", help="6 x 32 -> 64 x 64, 2 rounds")
-    p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "workers.json")
+    p.add_argument("--out", type=Path, default=None)
     args = p.parse_args(argv)
+    if args.out is None:   # a --quick run never overwrites the full run's
+        args.out = results_path("workers.json", quick=args.quick)
     if args.quick:
         args.face, args.size, args.rounds, args.batches = 32, 64, 2, 3
     return args

@@ -83,7 +83,8 @@ from omniscape_torch.calibration import checkerboard, fit, random_views  # noqa:
 from omniscape_torch.calibration.params import transform  # noqa: E402
 from omniscape_torch.io import atomic_write_text  # noqa: E402
 
-from common import ROOT, git_commit, loadavg, machine_info, write_json_atomic  # noqa: E402
+from common import (ROOT, git_commit, loadavg, machine_info, results_path,  # noqa: E402
+                    write_json_atomic)
 
 OCAMCALIB = ROOT.parent / "shared" / "data" / "ocamcalib_real" / "calib_results_0.txt"
 METHODS = ("lm", "lbfgs", "adam", "linear")
@@ -539,8 +540,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--resummarise", action="store_true", help="no run: the tables again "
                         "from the records of --out")
     parser.add_argument("--out", type=Path,
-                        default=ROOT / "benchmarks" / "results" / "calibration_stability.json")
+                        default=None)
     args = parser.parse_args(argv)
+    if args.out is None:   # a --quick run never overwrites the full run's
+        args.out = results_path("calibration_stability.json", quick=args.quick)
     if args.resummarise:
         report = json.loads(args.out.read_text())
     else:

@@ -27,9 +27,21 @@ if str(ROOT) not in sys.path:
 from omniscape_torch.cli import positive_int  # noqa: E402  (re-exported: argparse type)
 from omniscape_torch.io import atomic_write_text  # noqa: E402
 
-__all__ = ["begin_run", "HEAP_MODES", "ROOT", "SETTLE_S", "git_commit", "loadavg",
-           "machine_info", "measure", "positive_int", "run_record", "set_heap",
-           "write_json_atomic"]
+__all__ = ["begin_run", "HEAP_MODES", "QUICK_RESULTS", "RESULTS", "ROOT", "SETTLE_S",
+           "git_commit", "loadavg", "machine_info", "measure", "positive_int", "results_path",
+           "run_record", "set_heap", "write_json_atomic"]
+
+#: The committed results of full runs.
+RESULTS = ROOT / "benchmarks" / "results"
+#: Where ``--quick`` (smoke) runs write: git-ignored, so that a smoke run never overwrites the
+#: committed full-run results beside it.
+QUICK_RESULTS = RESULTS / "quick"
+
+
+def results_path(name: str, *, quick: bool = False) -> Path:
+    """The default output of a benchmark's file ``name``: ``benchmarks/results/<name>``, or
+    for a ``--quick`` run ``benchmarks/results/quick/<name>``."""
+    return (QUICK_RESULTS if quick else RESULTS) / name
 
 #: Untimed pause before every timed call: the worker threads of the previous call (OpenMP's,
 #: OpenCV's, OpenBLAS's) keep spinning for a while after it, and on 2 cores they take the next

@@ -50,7 +50,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import ROOT, begin_run, loadavg, run_record, write_json_atomic  # noqa: E402
+from common import (ROOT, begin_run, loadavg, results_path, run_record,  # noqa: E402
+                    write_json_atomic)
 
 import omniscape_torch as ot  # noqa: E402
 from omniscape_torch.calibration import convert  # noqa: E402
@@ -299,8 +300,10 @@ def main(argv=None) -> int:
                         help="every real file to all four targets (default: the shared file)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     parser.add_argument("--out", type=Path,
-                        default=ROOT / "benchmarks" / "results" / "conversion_table.json")
+                        default=None)
     args = parser.parse_args(argv)
+    if args.out is None:   # a --quick run never overwrites the full run's
+        args.out = results_path("conversion_table.json", quick=args.quick)
     grid = args.grid or (24 if args.quick else 48)
     load_start = begin_run(args.threads)
     start = time.perf_counter()

@@ -79,8 +79,8 @@ from torch import Tensor
 if str(Path(__file__).resolve().parent) not in sys.path:
     sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import (begin_run, git_commit, loadavg, machine_info, measure,  # noqa: E402
-                    positive_int, write_json_atomic)
+from common import (RESULTS, begin_run, git_commit, loadavg, machine_info,  # noqa: E402
+                    measure, positive_int, write_json_atomic)
 import omniscape_torch  # noqa: E402
 from omniscape_torch import cubemap as cm  # noqa: E402
 from omniscape_torch.cameras import Camera  # noqa: E402
@@ -936,10 +936,10 @@ def _devices(names: list[str]) -> list[torch.device]:
     return out
 
 
-def add_arguments(parser: argparse.ArgumentParser,
-                  out_dir: Path = Path("benchmarks") / "results") -> None:
+def add_arguments(parser: argparse.ArgumentParser, out_dir: Path = RESULTS) -> None:
     """The benchmark's flags (``--quick`` fills the ones left unset); ``out_dir`` is the default
-    of ``--out-dir``."""
+    of ``--out-dir``, ``out_dir / "quick"`` with ``--quick`` (git-ignored: a smoke run never
+    overwrites the committed results of a full run)."""
     parser.add_argument("--quick", action="store_true",
                         help="smoke run: 256 x 256 from 6 x 128, batch 2, 5 repeats (~1 min)")
     parser.add_argument("--size", type=positive_int, default=None,
@@ -971,14 +971,19 @@ def add_arguments(parser: argparse.ArgumentParser,
                         help="rebuilt grids without torch.compile (no compilation wait)")
     parser.add_argument("--only", nargs="+", default=None, metavar="TEXT",
                         help="keep the rows whose name contains one of these")
-    parser.add_argument("--out-dir", type=Path, default=out_dir,
-                        help=f"folder of bench.json, bench.png, bench.md (default {out_dir})")
+    parser.add_argument("--out-dir", type=Path, default=None,
+                        help=f"folder of bench.json, bench.png, bench.md (default {out_dir}; "
+                             f"{Path(out_dir) / 'quick'} with --quick)")
+    parser.set_defaults(default_out_dir=Path(out_dir))
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
 def _resolve(args: argparse.Namespace) -> argparse.Namespace:
     """Fill the defaults that depend on ``--quick``, and check the rest."""
     quick = args.quick
+    if args.out_dir is None:
+        base = getattr(args, "default_out_dir", RESULTS)
+        args.out_dir = base / "quick" if quick else base
     defaults = {"size": 256 if quick else 1024, "batch": 2 if quick else 8,
                 "repeats": 5 if quick else 10, "warmup": 1 if quick else 2,
                 "town_pixels": 5000 if quick else 20000}

@@ -9,7 +9,9 @@ Usage::
     python benchmarks/run.py --quick     # 256 x 256 from 6 x 128 (about a minute)
     python benchmarks/run.py --device auto
 
-Outputs: ``benchmarks/results/bench.json``, ``bench.png`` and ``bench.md`` (``--out-dir``).
+Outputs: ``benchmarks/results/bench.json``, ``bench.png`` and ``bench.md`` (``--out-dir``);
+``--quick`` writes them under ``benchmarks/results/quick/`` (git-ignored), never over the
+committed results of a full run.
 """
 
 from __future__ import annotations

@@ -6,11 +6,11 @@ built-in town and the ride), ``calibration``, ``render`` (the layer and what is 
 ``cubemap``, ``cameras``, ``io``.
 """
 
-from . import calibration, cameras, cubemap, data, io, render, scenes
+from . import augment, calibration, cameras, cubemap, data, io, render, scenes
 from .cameras import Camera, presets
 from .data import datasets
 from .data.datasets import CubemapCaptureDataset, OmniDataset
-from .render import augment, sizing
+from .render import sizing
 from .render.layer import OmniProjection
 from .render.reproject import equirect_to_cubemap, equirectangular_camera, reproject
 from .render.rig import StereoRig

@@ -31,9 +31,9 @@ def _load_camera(args: argparse.Namespace):
     if args.json is not None:
         return Camera.load_json(args.json), str(args.json)
     path = args.ocamcalib if args.ocamcalib is not None else DEFAULT_OCAMCALIB
-    if not path.is_file():
-        raise SystemExit(f"omniscape-torch {args.command}: no calibration file at {path} (run "
-                         f"from the project root, or pass --ocamcalib PATH or --json PATH)")
+    if not path.is_file():   # a missing input: exit 2, like any other
+        raise FileNotFoundError(f"no calibration file at {path} (run from the project root, "
+                                f"or pass --ocamcalib PATH or --json PATH)")
     return Camera.from_ocamcalib(path), str(path)
 
 
@@ -47,7 +47,8 @@ def _edge_angle(camera, pixels: torch.Tensor) -> float:
 def cmd_info(args: argparse.Namespace) -> int:
     camera, source = _load_camera(args)
     if camera.batch_shape != ():
-        raise SystemExit("omniscape-torch info: expected one camera, got a batch")
+        raise ValueError(f"{source}: expected one camera, got a batch of "
+                         f"{tuple(camera.batch_shape)}")
     h, w = camera.image_size
     names = camera.param_names
     values = camera.params.detach().double().tolist()
@@ -213,12 +214,15 @@ def cmd_pack(args: argparse.Namespace) -> int:
 
 def cmd_stats(args: argparse.Namespace) -> int:
     from .data.format import STATS, STATS_PLOT
-    from .data.stats import format_stats, stats
+    from .data.stats import PLOT_INSTALL, format_stats, plot_available, stats
 
-    result = stats(args.dir, plot=not args.no_plot)
+    # the chart needs matplotlib (optional): without it, the tables and stats.json all the same
+    plot = not args.no_plot and plot_available()
+    result = stats(args.dir, plot=plot)
     print(format_stats(result))
-    print(f"\nwrote {args.dir / STATS}" + ("" if args.no_plot else
-                                          f" and {args.dir / STATS_PLOT}"))
+    print(f"\nwrote {args.dir / STATS}" + (f" and {args.dir / STATS_PLOT}" if plot else ""))
+    if not plot and not args.no_plot:
+        print(f"{STATS_PLOT} not drawn (it needs matplotlib): {PLOT_INSTALL}")
     return 0
 
 
@@ -549,8 +553,17 @@ def cmd_convert(args: argparse.Namespace) -> int:
     return 0
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser (its sub-commands' too) whose usage errors are one line, like every
+    other error of the command line: the message and where the usage is, exit 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {' '.join(message.split())}; see {self.prog} "
+                     f"--help\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="omniscape-torch", description=__doc__.splitlines()[0])
+    parser = _Parser(prog="omniscape-torch", description=__doc__.splitlines()[0])
     parser.add_argument("--traceback", action="store_true",
                         help="on an error, show the Python traceback instead of one line")
     sub = parser.add_subparsers(dest="command", required=True)

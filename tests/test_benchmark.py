@@ -443,3 +443,63 @@ def test_training_benchmark_parts(monkeypatch):
         with pytest.raises(SystemExit) as exit_:
             bt.main(argv)
         assert exit_.value.code == 2
+
+
+# --------------------------------------------------------------------------------------------
+# --quick never overwrites the committed full-run results (issue 32)
+# --------------------------------------------------------------------------------------------
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+def test_quick_results_go_to_a_git_ignored_folder():
+    import common
+
+    assert common.results_path("x.json") == common.RESULTS / "x.json"
+    assert common.results_path("x.json", quick=True) == common.QUICK_RESULTS / "x.json"
+    assert common.QUICK_RESULTS.parent == common.RESULTS
+    ignored = subprocess.run(["git", "check-ignore", "-q",
+                              str(common.QUICK_RESULTS / "bench.json")],
+                             cwd=common.ROOT, capture_output=True)
+    if ignored.returncode == 128:
+        pytest.skip("not a git checkout")
+    assert ignored.returncode == 0, "benchmarks/results/quick/ is not git-ignored"
+
+
+def test_run_quick_writes_under_quick_and_a_full_run_under_results():
+    import common
+
+    parser = bm.argparse.ArgumentParser()
+    bm.add_arguments(parser, common.RESULTS)
+    assert bm._resolve(parser.parse_args(["--quick"])).out_dir == common.RESULTS / "quick"
+    assert bm._resolve(parser.parse_args([])).out_dir == common.RESULTS
+    assert bm._resolve(parser.parse_args(["--quick", "--out-dir", "elsewhere"])).out_dir == \
+        Path("elsewhere")
+
+
+@pytest.mark.parametrize("script", ["bench_augment", "bench_busy", "bench_cameras", "bench_png",
+                                    "bench_projection", "bench_reproject", "bench_scaling",
+                                    "bench_workers"])
+def test_each_quick_mode_defaults_under_quick(script):
+    import importlib
+
+    import common
+
+    module = importlib.import_module(script)
+    full, quick = module.parse_args([]).out, module.parse_args(["--quick"]).out
+    assert full.parent == common.RESULTS and quick == common.QUICK_RESULTS / full.name
+    assert module.parse_args(["--quick", "--out", "x.json"]).out == Path("x.json")
+
+
+def test_no_script_with_a_quick_mode_hard_codes_its_results_path():
+    """Every benchmark with ``--quick`` takes its default output from common.results_path
+    (the scripts without a parse_args function are checked here by their source)."""
+    scripts = [p for p in sorted(BENCHMARKS.glob("*.py"))
+               if '"--quick"' in p.read_text(encoding="utf-8")]
+    assert len(scripts) >= 12, scripts
+    for path in scripts:
+        text = path.read_text(encoding="utf-8")
+        assert not re.search(r'"results"\s*/\s*(f?"[\w{}.]+\.json"|\n)', text), path.name
+        # harness.py: out_dir / "quick" (run.py passes it the folder)
+        assert "results_path(" in text or '/ "quick"' in text or path.name == "run.py", \
+            path.name

@@ -18,6 +18,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import omniscape_torch as ot
@@ -174,16 +175,65 @@ def test_any_os_error_inside_a_command_becomes_one_line(tmp_path, capsys, monkey
     assert "rgb/000000.png: no space left on the device" in line
 
 
-def test_generate_without_opencv_fails_at_once_naming_the_install(tmp_path, capsys,
+def test_generate_without_pillow_fails_at_once_naming_the_install(tmp_path, capsys,
                                                                  monkeypatch):
-    """OpenCV is optional (it writes the PNGs): a run without it stops before any work, in one
-    line that says what to install, and leaves no folder behind."""
-    monkeypatch.setitem(sys.modules, "cv2", None)      # `import cv2` raises ImportError
+    """Pillow writes the PNGs (a requirement; a broken install may still lack it): a run
+    without it stops before any work, in one line that says what to install, and leaves no
+    folder behind."""
+    monkeypatch.setitem(sys.modules, "PIL", None)      # `from PIL import Image` raises
     out = tmp_path / "never"
     assert cli.main(["generate", "--out", str(out), *SMALL]) == 1
     line = _line(capsys.readouterr().err)
-    assert "needs OpenCV" in line and "pip install opencv-contrib-python-headless" in line
+    assert "needs Pillow" in line and "pip install pillow" in line
     assert not out.exists()
+
+
+#: Runs the command line with OpenCV and matplotlib unimportable (``None`` in ``sys.modules``),
+#: as in ``pip install omniscape_torch`` with no extras: each command line of argv (separated
+#: by ``--next``) in turn, printing ``exit <code>`` after each.
+_WITHOUT_OPTIONAL = """
+import sys
+sys.modules.update(cv2=None, matplotlib=None)
+from omniscape_torch.cli import main
+argv, commands = sys.argv[1:], [[]]
+for a in argv:
+    commands.append([]) if a == "--next" else commands[-1].append(a)
+for c in commands:
+    print(f"exit {main(c)}", flush=True)
+assert "cv2" not in [m for m in sys.modules if sys.modules[m] is not None]
+"""
+
+
+@pytest.mark.slow
+def test_the_main_commands_run_without_opencv_and_matplotlib(tmp_path):
+    """generate, stats, info and convert with neither OpenCV nor matplotlib (the bare install,
+    simulated where CI has both): all exit 0; stats prints its tables, writes stats.json and
+    says in one line which extra draws stats.png."""
+    from omniscape_torch.cubemap import FACES
+    from omniscape_torch.io import write_image
+
+    captures = tmp_path / "cubemaps" / "000001"
+    for face in FACES:
+        write_image(captures / f"{face}_rgb.png", np.full((8, 8, 3), 90, np.uint8))
+        write_image(captures / f"{face}_depth.png", np.full((8, 8, 3), (0, 0, 10), np.uint8))
+        write_image(captures / f"{face}_labels.png", np.full((8, 8, 3), (7, 0, 0), np.uint8))
+    ds = tmp_path / "ds"
+    argv = ["generate", "--out", str(ds), *SMALL, "--next", "stats", str(ds), "--next", "info",
+            "--next", "convert", "--cubemaps", str(tmp_path / "cubemaps"), "--out",
+            str(tmp_path / "conv"), "--size", "16", "16", "--no-progress"]
+    proc = subprocess.run([sys.executable, "-c", _WITHOUT_OPTIONAL, *argv], cwd=ROOT,
+                          capture_output=True, text=True, timeout=600,
+                          env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert [ln for ln in proc.stdout.splitlines() if ln.startswith("exit ")] == ["exit 0"] * 4, \
+        proc.stdout + proc.stderr
+    assert "Table I: vehicle attitude" in proc.stdout
+    assert ('stats.png not drawn (it needs matplotlib): pip install "omniscape_torch[plot]"'
+            in proc.stdout.splitlines())
+    assert (ds / "stats.json").is_file() and not (ds / "stats.png").exists()
+    assert (ds / "contact_sheet.png").is_file()
+    assert (tmp_path / "conv" / "000001" / "fisheye_rgb.png").is_file()
 
 
 def test_an_unexpected_error_is_one_line_or_a_traceback_when_asked(tmp_path, capsys,
@@ -286,3 +336,62 @@ def test_fit_writes_all_its_files_or_none(tmp_path, capsys, monkeypatch):
                      "--no-progress"]) == 2
     assert "inverse polynomial" in _line(capsys.readouterr().err)
     assert not out.exists() or list(out.iterdir()) == []
+
+
+# --------------------------------------------------------------------------------------------
+# Exit codes as documented (tests/README.md): 2 for bad input, a missing file included
+# --------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("argv, message", [
+    (["info", "--ocamcalib", "{tmp}/missing.txt"], "no calibration file at {tmp}/missing.txt"),
+    (["info", "--json", "{tmp}/missing.json"], "{tmp}/missing.json: no such file or folder"),
+    (["convert-model", "--ocamcalib", "{tmp}/missing.txt", "--to", "eucm"],
+     "no calibration file at {tmp}/missing.txt"),
+    (["fit", "{tmp}/missing_points.txt", "--model", "equidistant", "--out", "{tmp}/out"],
+     "{tmp}/missing_points.txt: no such correspondence file"),
+    (["stats", "{tmp}/no_dataset"], "no dataset.json"),
+])
+def test_a_missing_input_file_is_one_line_and_exit_2(tmp_path, capsys, argv, message):
+    argv = [a.format(tmp=tmp_path) for a in argv]
+    assert cli.main(argv) == 2
+    line = _line(capsys.readouterr().err)
+    assert line.startswith(f"omniscape-torch {argv[0]}: error: ")
+    assert message.format(tmp=tmp_path) in line
+    assert not (tmp_path / "out").exists()
+
+
+# --------------------------------------------------------------------------------------------
+# Usage errors: one line, not argparse's usage block
+# --------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("argv, line", [
+    (["generate", "--out", "x", "--image-size", "4"],
+     "omniscape-torch generate: error: argument --image-size: expected N or HxW pixels, each "
+     "at least 8, got '4'; see omniscape-torch generate --help"),
+    (["generate"], "omniscape-torch generate: error: the following arguments are required: "
+                   "--out; see omniscape-torch generate --help"),
+    (["fit", "points.txt", "--out", "x", "--model", "nope"], None),
+    (["no-such-command"], None),
+    ([], "omniscape-torch: error: the following arguments are required: command; see "
+         "omniscape-torch --help"),
+])
+def test_a_usage_error_is_one_line_ending_with_see_help_and_exit_2(capsys, argv, line):
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(argv)
+    assert exit_.value.code == 2
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    lines = captured.err.splitlines()
+    assert len(lines) == 1, captured.err
+    prefix = "omniscape-torch" + (f" {argv[0]}" if argv[:1] in (["generate"], ["fit"]) else "")
+    assert lines[0].startswith(f"{prefix}: error: ")
+    assert lines[0].endswith(f"; see {prefix} --help")
+    if line is not None:
+        assert lines[0] == line
+
+
+def test_help_still_prints_the_usage(capsys):
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["generate", "--help"])
+    assert exit_.value.code == 0
+    assert capsys.readouterr().out.startswith("usage: omniscape-torch generate")

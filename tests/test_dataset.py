@@ -228,10 +228,42 @@ def test_calib_results_are_fitted_once_per_camera_and_kept_on_rerun(dataset, tmp
 
 
 def test_other_config_refused(dataset, tmp_path):
+    """Refused before any work, naming each differing setting by its option with both values
+    (not only "another configuration")."""
     out = tmp_path / "copy"
     shutil.copytree(dataset, out)
-    with pytest.raises(ValueError, match="another configuration"):
-        generate(out, _config(frames=3), progress=False)
+    with pytest.raises(ValueError, match="another configuration") as err:
+        generate(out, _config(frames=3, image_size=(48, 32), save_panorama=True),
+                 progress=False)
+    message = str(err.value)
+    assert f"--frames: the folder has {FRAMES}, this run 3" in message
+    assert "--image-size: the folder has 48, this run 48x32" in message
+    assert "--save-panorama: the folder has off, this run on" in message
+    assert "--seed" not in message and "--weather" not in message    # the same
+
+
+def test_config_changes_names_the_settings_as_the_command_line_writes_them():
+    from omniscape_torch.data.generate import config_changes
+
+    old = _config().to_dict()
+    assert config_changes(old, old) == ""
+    assert config_changes(None, old) == ""           # an unreadable manifest: no details
+    new = _config(cameras=("fisheye_left", "fisheye_right"), face_size=32).to_dict()
+    assert config_changes(old, new) == (
+        f": --face-size: the folder has the default, this run 32; --cameras: the folder has "
+        f"{','.join(CAMERAS)}, this run fisheye_left,fisheye_right")
+    del old["town"]
+    assert "--town: the folder has none, this run 1" in config_changes(old, new)
+
+
+def test_cli_rerun_with_other_settings_is_one_line_naming_them(dataset, tmp_path, capsys):
+    out = tmp_path / "copy"
+    shutil.copytree(dataset, out)
+    argv = ["generate", "--out", str(out), "--frames", str(FRAMES), "--image-size", "32",
+            "--max-face-size", "48", "--weather", "clear_noon,sunset", "--no-progress"]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--image-size: the folder has 48, this run 32" in err[0], err
 
 
 def test_dataset_from_before_antialias_is_antialias_1(tmp_path):
@@ -419,6 +451,9 @@ def test_stats_of_an_interrupted_run_counts_finished_frames_only(dataset, tmp_pa
     assert cli.main(["stats", str(out), "--no-plot"]) == 0
     text = capsys.readouterr().out
     assert f"the 1 finished of {FRAMES} frames" in text
+    # the frame left out is named, with the file it lacks: here its marker (not finished)
+    assert (f"skipped frame 000001: not finished (no .done/000001; missing "
+            f"{CAMERAS[0]}/labels/000001.png and {len(CAMERAS) - 1} more file(s))") in text
     result = json.loads((out / "stats.json").read_text())
     assert result["frames"] == 1 and result["frames_planned"] == FRAMES
     recs = json.loads((out / "dynamics.json").read_text())
@@ -426,9 +461,22 @@ def test_stats_of_an_interrupted_run_counts_finished_frames_only(dataset, tmp_pa
     n_valid = sum(int((read_image(out / cam / "valid" / "000000.png") == 255).sum())
                   for cam in ("fisheye_left", "fisheye_right"))
     assert result["pixels"]["fisheye"] == n_valid
+    assert json.loads((out / "stats.json").read_text())["skipped"]["000001"][0] == \
+        ".done/000001"
     (out / ".done" / "000000").unlink()
     assert cli.main(["stats", str(out)]) == 2
     assert "none of its 2 frames is finished" in capsys.readouterr().err
+
+
+def test_stats_names_a_file_lost_from_a_finished_frame(dataset, tmp_path, capsys):
+    out = tmp_path / "lost"
+    shutil.copytree(dataset, out)
+    (out / CAMERAS[1] / "valid" / "000000.png").unlink()    # the marker stays
+    assert cli.main(["stats", str(out), "--no-plot"]) == 0
+    text = capsys.readouterr().out
+    assert (f"skipped frame 000000: missing {CAMERAS[1]}/valid/000000.png (its marker is "
+            "there: the file was lost; run generate again to render the frame anew)") in text
+    assert f"the 1 finished of {FRAMES} frames" in text
 
 
 def test_a_second_run_into_the_same_folder_stops_with_a_message(tmp_path, capsys):

@@ -67,7 +67,7 @@ from typing import Sequence
 __all__ = ["CAMERA", "CONTACT_SHEET", "CUBE_MODALITIES", "DONE", "DYNAMICS", "DYNAMICS_CSV",
            "FORMAT", "FORMAT_VERSION", "MANIFEST", "MODALITIES", "OCAMCALIB", "STATS",
            "STATS_PLOT", "cubemap_file", "finished_frames", "frame_file", "frame_name", "layout",
-           "marker", "panorama_file", "SHARDS", "SHARD_INDEX", "shard_file"]
+           "marker", "missing_files", "panorama_file", "SHARDS", "SHARD_INDEX", "shard_file"]
 
 FORMAT = "omniscape_torch dataset"
 FORMAT_VERSION = 1
@@ -149,6 +149,18 @@ def finished_frames(root: str | Path, cameras: Sequence[str],
     frames = sorted(int(p.name) for p in done.iterdir() if p.is_file() and p.name.isdigit())
     return [k for k in frames
             if all((root / frame_file(c, m, k)).is_file() for c in cameras for m in modalities)]
+
+
+def missing_files(root: str | Path, cameras: Sequence[str], frame: int | str,
+                  modalities: Sequence[str] = tuple(MODALITIES)) -> list[str]:
+    """The files (relative paths) that keep ``frame`` from being finished: its marker, then
+    the files of ``modalities`` of every camera of ``cameras`` that are missing; ``[]`` for a
+    finished frame."""
+    root = Path(root)
+    for m in modalities:
+        _check_modality(m, MODALITIES)
+    files = [marker(frame)] + [frame_file(c, m, frame) for c in cameras for m in modalities]
+    return [f for f in files if not (root / f).is_file()]
 
 
 def layout(save_cubemaps: bool, save_panorama: bool) -> dict[str, str]:

@@ -82,7 +82,7 @@ from . import distributed, shards
 from . import format as fmt
 from . import ocamcalib
 from ..io.labels import PALETTE
-from ..io.images import require_cv2
+from ..io.images import encode_image, require_pillow
 from ..cameras.presets import catadioptric, fisheye
 from ..cubemap.faces import face_axes
 from ..render.layer import OmniProjection
@@ -193,6 +193,32 @@ class DatasetConfig:
         d["cameras"] = list(self.cameras)
         d["weather"] = list(self.weather)
         return d
+
+
+def _setting(key: str, value) -> str:
+    """A configuration value as the command line writes it."""
+    if value is None:
+        return "the default"
+    if isinstance(value, bool):
+        return "on" if value else "off"
+    if key == "image_size" and isinstance(value, (list, tuple)) and len(value) == 2:
+        return str(value[0]) if value[0] == value[1] else f"{value[0]}x{value[1]}"
+    if isinstance(value, (list, tuple)):
+        return ",".join(map(str, value))
+    return str(value)
+
+
+def config_changes(old: object, new: dict) -> str:
+    """``": --image-size: the folder has 512, this run 256; ..."``: each setting of ``new`` (a
+    :meth:`DatasetConfig.to_dict`) that differs from a folder's ``old`` one, by its option
+    name, with both values; ``""`` when ``old`` is not a configuration (unreadable)."""
+    if not isinstance(old, dict):
+        return ""
+    changes = [f"--{key.replace('_', '-')}: the folder has "
+               f"{_setting(key, old[key]) if key in old else 'none'}, this run "
+               f"{_setting(key, new[key]) if key in new else 'none'}"
+               for key in dict.fromkeys([*new, *old]) if old.get(key) != new.get(key)]
+    return ": " + "; ".join(changes) if changes else ""
 
 
 #: Images of at most this many pixels are anti-aliased by default (:func:`default_antialias`).
@@ -590,11 +616,11 @@ def _versions() -> dict:
         ours = "unknown"
     out = {"omniscape_torch": ours, "torch": torch.__version__, "numpy": np.__version__,
            "python": platform.python_version()}
-    try:
-        import cv2
-        out["opencv"] = cv2.__version__
-    except ImportError:  # pragma: no cover
-        pass
+    for name, module in (("pillow", "PIL"), ("opencv", "cv2")):   # cv2: optional
+        try:
+            out[name] = __import__(module).__version__
+        except ImportError:  # pragma: no cover
+            pass
     return out
 
 
@@ -737,7 +763,7 @@ def generate(out: str | Path, config: DatasetConfig | None = None, *, workers: i
     Raises:
         ValueError: bad configuration or argument, or ``out`` holds a dataset of another
             configuration (or shards of another ``frames_per_shard``).
-        ImportError: ``ray`` without Ray installed, or no OpenCV to write the images with
+        ImportError: ``ray`` without Ray installed, or no Pillow to write the images with
             (at once).
         MemoryError: the run would not fit in memory (:func:`check_memory`; with ``ray``, in
             any node of the cluster; before any work).
@@ -751,7 +777,7 @@ def generate(out: str | Path, config: DatasetConfig | None = None, *, workers: i
     config.validate()
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ValueError(f"workers: expected a positive integer, got {workers!r}")
-    require_cv2()   # the images are PNGs written with OpenCV: say so before any work
+    require_pillow()   # the images are PNGs written with Pillow: say so before any work
     use_ray = ray is not None and ray is not False
     if use_ray:
         distributed.import_ray()
@@ -792,8 +818,10 @@ def _generate(out: Path, config: DatasetConfig, workers: int, progress: bool | N
         if isinstance(old, dict):   # written before antialias existed: one ray a texel
             old.setdefault("antialias", 1)
         if old != config.to_dict():
-            raise ValueError(f"{out} holds a dataset of another configuration ({manifest}); "
-                             f"use another --out folder or remove it")
+            raise ValueError(f"{out} holds a dataset of another configuration ({manifest}"
+                             f"{config_changes(old, config.to_dict())}); rerun with the "
+                             f"folder's settings to complete it, or use another --out folder "
+                             f"or remove it")
     # A run killed mid-write leaves its temporaries (the finished files are whole: written by
     # rename); they carry their process id, and only those of ended processes are removed.
     # Not by a share of a run: the others may run on other machines, whose processes this one
@@ -952,24 +980,70 @@ SHEET_CELL = 200
 SHEET_COLUMNS = ("rgb", "depth", "labels_color", "valid")
 
 
+#: OpenCV's ``COLORMAP_TURBO`` (Google's Turbo), 256 RGB colours as hex: the depth column's
+#: colour map, without OpenCV.
+_TURBO = np.frombuffer(bytes.fromhex(
+    "30123b32154333184a341b51351e5836215f37246638276d392a733a2d793b2f803c32863d358b3e38913f3b"
+    "973f3e9c4040a24143a74146ac4249b1424bb5434eba4451bf4454c34456c74559cb455ccf455ed34661d646"
+    "64da4666dd4669e0466be3476ee64771e94773eb4776ee4778f0477bf2467df44680f64682f84685fa4687fb"
+    "458afc458cfd448ffe4391fe4294ff4196ff4099ff3e9bfe3d9efe3ba0fd3aa3fc38a5fb37a8fa35abf833ad"
+    "f731aff52fb2f42eb4f22cb7f02ab9ee28bceb27bee925c0e723c3e422c5e220c7df1fc9dd1ecbda1ccdd81b"
+    "d0d51ad2d21ad4d019d5cd18d7ca18d9c818dbc518ddc218dec018e0bd19e2bb19e3b91ae4b61ce6b41de7b2"
+    "1fe9af20eaac22ebaa25eca727eea42aefa12cf09e2ff19b32f29835f39438f4913cf58e3ff68a43f78746f8"
+    "844af8804ef97d52fa7a55fa7659fb735dfc6f61fc6c65fd6969fd666dfe6271fe5f75fe5c79fe597dff5680"
+    "ff5384ff5188ff4e8bff4b8fff4992ff4796fe4499fe429cfe409ffd3fa1fd3da4fc3ca7fc3aa9fb39acfb38"
+    "affa37b1f936b4f836b7f735b9f635bcf534bef434c1f334c3f134c6f034c8ef34cbed34cdec34d0ea34d2e9"
+    "35d4e735d7e535d9e436dbe236dde037dfdf37e1dd37e3db38e5d938e7d739e9d539ebd339ecd13aeecf3aef"
+    "cd3af1cb3af2c93af4c73af5c53af6c33af7c13af8be39f9bc39faba39fbb838fbb637fcb336fcb136fdae35"
+    "fdac34fea933fea732fea431fea130fe9e2ffe9b2dfe992cfe962bfe932afe9029fd8d27fd8a26fc8725fc84"
+    "23fb8122fb7e21fa7b1ff9781ef9751df8721cf76f1af66c19f56918f46617f36315f26014f15d13f05b12ef"
+    "5811ed5510ec530feb500eea4e0de84b0ce7490ce5470be4450ae2430ae14109df3f08dd3d08dc3b07da3907"
+    "d83706d63506d43305d23105d02f05ce2d04cc2b04ca2a04c82803c52603c32503c12302be2102bc2002b91e"
+    "02b71d02b41b01b21a01af1801ac1701a91601a71401a41301a112019e10019b0f01980e01950d01920b018e"
+    "0a018b09028808028507028106027e05027a0403"), np.uint8).reshape(256, 3)
+
+
+def _resize_weights(src: int, dst: int) -> np.ndarray:
+    """``(dst, src)`` weights of an area resampling from ``src`` to ``dst < src`` samples: the
+    overlap of each source pixel with each output pixel's footprint (OpenCV's INTER_AREA)."""
+    scale = src / dst
+    lo = np.arange(dst)[:, None] * scale
+    s = np.arange(src)[None, :]
+    return np.clip(np.minimum(lo + scale, s + 1) - np.maximum(lo, s), 0, None) / scale
+
+
+def _resize(image: np.ndarray, height: int, width: int) -> np.ndarray:
+    """``image (H, W, C)`` uint8 resampled to ``height x width``: by area going down, nearest
+    going up (OpenCV's INTER_AREA and INTER_NEAREST, in numpy)."""
+    h, w = image.shape[:2]
+    if height < h or width < w:
+        out = np.tensordot(_resize_weights(h, height), image.astype(np.float64), axes=(1, 0))
+        out = np.tensordot(out, _resize_weights(w, width), axes=(1, 1))   # (height, C, width)
+        return np.clip(np.rint(out), 0, 255).astype(np.uint8).transpose(0, 2, 1)
+    rows = np.minimum(np.floor(np.arange(height) * (1.0 / (height / h))).astype(int), h - 1)
+    cols = np.minimum(np.floor(np.arange(width) * (1.0 / (width / w))).astype(int), w - 1)
+    return image[rows][:, cols]
+
+
 def _sheet_cell(image: np.ndarray, title: str) -> np.ndarray:
     """``image (H, W, 3)`` uint8 RGB fitted into a ``SHEET_CELL`` square (aspect kept, black
-    margins), ``title`` written in its top-left corner."""
-    import cv2
+    margins), ``title`` written in its top-left corner (Pillow's default font)."""
+    from PIL import Image, ImageDraw, ImageFont
 
     h, w = image.shape[:2]
     scale = SHEET_CELL / max(h, w)
     size = (max(1, round(w * scale)), max(1, round(h * scale)))
-    small = cv2.resize(image, size, interpolation=cv2.INTER_AREA if scale < 1
-                       else cv2.INTER_NEAREST)
+    small = _resize(image, size[1], size[0]) if scale != 1 else image
     cell = np.zeros((SHEET_CELL, SHEET_CELL, 3), np.uint8)
     y0, x0 = (SHEET_CELL - size[1]) // 2, (SHEET_CELL - size[0]) // 2
     cell[y0:y0 + size[1], x0:x0 + size[0]] = small
-    (w_text, h_text), base = cv2.getTextSize(title, cv2.FONT_HERSHEY_SIMPLEX, 0.4, 1)
-    cell[:h_text + base + 6, :w_text + 8] //= 3          # a dark band under the title
-    cv2.putText(cell, title, (4, h_text + 3), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1,
-                cv2.LINE_AA)
-    return cell
+    font = ImageFont.load_default()
+    _, _, right, bottom = ImageDraw.Draw(Image.new("L", (1, 1))).textbbox((4, 3), title,
+                                                                          font=font)
+    cell[:bottom + 3, :right + 4] //= 3          # a dark band under the title
+    canvas = Image.fromarray(cell)
+    ImageDraw.Draw(canvas).text((4, 3), title, fill=(255, 255, 255), font=font)
+    return np.asarray(canvas).copy()
 
 
 def contact_sheet(root: str | Path, cameras, frame: int,
@@ -979,8 +1053,6 @@ def contact_sheet(root: str | Path, cameras, frame: int,
     then, when ``weathers`` (weather name -> a finished frame in it) holds more than one, rows
     of the first camera's RGB in each of them (``len(SHEET_COLUMNS)`` a row): the dataset's
     variety at a glance. ``SHEET_CELL`` pixels square per cell, each titled."""
-    import cv2
-
     from ..io import read_exr
 
     root = Path(root)
@@ -996,7 +1068,7 @@ def contact_sheet(root: str | Path, cameras, frame: int,
         lo, hi = (float(log_depth[valid].min()), float(log_depth[valid].max())) \
             if valid.any() else (0.0, 1.0)
         scaled = np.clip((log_depth - lo) / max(hi - lo, 1e-6) * 255, 0, 255).astype(np.uint8)
-        turbo = cv2.cvtColor(cv2.applyColorMap(scaled, cv2.COLORMAP_TURBO), cv2.COLOR_BGR2RGB)
+        turbo = _TURBO[scaled]
         cells = {"rgb": image(name, "rgb", frame),
                  "depth": np.where(valid[..., None], turbo, 0).astype(np.uint8),
                  "labels_color": image(name, "labels_color", frame),
@@ -1010,10 +1082,7 @@ def contact_sheet(root: str | Path, cameras, frame: int,
         per_row = len(SHEET_COLUMNS)
         cells += [np.zeros_like(cells[0])] * (-len(cells) % per_row)
         rows += [np.hstack(cells[i:i + per_row]) for i in range(0, len(cells), per_row)]
-    ok, data = cv2.imencode(".png", cv2.cvtColor(np.vstack(rows), cv2.COLOR_RGB2BGR))
-    if not ok:  # pragma: no cover - OpenCV encodes any uint8 RGB image
-        raise RuntimeError("OpenCV could not encode the contact sheet")
-    return data.tobytes()
+    return encode_image(np.vstack(rows))
 
 
 # --------------------------------------------------------------------------------------------

@@ -263,14 +263,9 @@ def shard_urls(source: str | Path | Sequence[str | Path]) -> list[str]:
 
 
 def _png(data: bytes, name: str) -> Tensor:
-    import cv2
+    from ..io.images import decode_image
 
-    image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise ValueError(f"{name}: not a PNG image OpenCV can read")
-    if image.ndim == 3:
-        image = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
-    return torch.from_numpy(np.ascontiguousarray(image))
+    return torch.from_numpy(decode_image(data, name))
 
 
 def _exr_depth(data: bytes, name: str) -> Tensor:

@@ -16,23 +16,39 @@ from ..scenes import ride as _ride
 from . import format as fmt
 from .readers import list_cameras, read_dynamics
 
-__all__ = ["format_stats", "stats"]
+__all__ = ["PLOT_INSTALL", "format_stats", "plot_available", "stats"]
+
+#: What installs the chart's library (matplotlib, optional: the ``plot`` extra).
+PLOT_INSTALL = 'pip install "omniscape_torch[plot]"'
+
+
+def plot_available() -> bool:
+    """Whether ``stats.png`` can be drawn: matplotlib is importable (an optional dependency)."""
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        return False
+    return True
 
 
 def stats(root: str | Path, *, plot: bool = True) -> dict:
     """Table I (yaw, pitch, roll over the ride) and the per-class pixel share (valid pixels)
     of the fisheye and catadioptric images of the dataset in ``root``, over its finished
     frames (``.done`` marker and every camera's files; an interrupted run's dataset has fewer
-    than planned); writes ``root/stats.json`` and (``plot``) the bar chart ``root/stats.png``.
+    than planned); writes ``root/stats.json`` and (``plot``) the bar chart ``root/stats.png``
+    (``plot`` needs matplotlib, an optional dependency: :func:`plot_available`).
 
     Returns:
         ``{"table_one": {angle: {mean, std, min, median, max}}, "class_share": {kind:
         {class: share}}, "pixels": {kind: valid pixel count}, "frames": finished frames,
-        "frames_planned": N}``.
+        "frames_planned": N, "skipped": {"NNNNNN": [the files it lacks, relative paths]}}``:
+        a frame without its ``.done`` marker is not finished; one with it but without a file
+        lost that file.
 
     Raises:
         FileNotFoundError: ``root`` holds no dataset.
         ValueError: no frame is finished yet.
+        ImportError: ``plot`` without matplotlib (``stats.json`` is written first).
     """
     root = Path(root)
     if not (root / fmt.MANIFEST).is_file():
@@ -40,7 +56,10 @@ def stats(root: str | Path, *, plot: bool = True) -> dict:
                                 f"'omniscape-torch generate')")
     cameras = list_cameras(root)
     recs = read_dynamics(root)
-    finished = [recs[k] for k in fmt.finished_frames(root, cameras) if k in recs]
+    done = set(fmt.finished_frames(root, cameras))
+    finished = [recs[k] for k in sorted(recs) if k in done]
+    # each frame left out, and the file it lacks (the marker: not finished; else a file lost)
+    skipped = {k: fmt.missing_files(root, cameras, k) for k in sorted(recs) if k not in done}
     if not finished:
         raise ValueError(f"{root}: none of its {len(recs)} frames is finished yet; run "
                          f"'omniscape-torch generate' with the same options to finish them")
@@ -59,7 +78,8 @@ def stats(root: str | Path, *, plot: bool = True) -> dict:
     share = {kind: {c: (float(v[i]) / float(v.sum()) if v.sum() else 0.0)
                     for i, c in enumerate(CLASSES)} for kind, v in counts.items()}
     result = {"frames": len(finished), "frames_planned": len(recs), "table_one": table,
-              "class_share": share, "pixels": {kind: int(v.sum()) for kind, v in counts.items()}}
+              "class_share": share, "pixels": {kind: int(v.sum()) for kind, v in counts.items()},
+              "skipped": {fmt.frame_name(k): files for k, files in skipped.items()}}
     atomic_write_text(root / fmt.STATS, json.dumps(result, indent=2) + "\n")
     if plot:
         _plot(result, root / fmt.STATS_PLOT)
@@ -67,7 +87,10 @@ def stats(root: str | Path, *, plot: bool = True) -> dict:
 
 
 def _plot(result: dict, path: Path) -> None:
-    import matplotlib
+    try:
+        import matplotlib
+    except ImportError:
+        raise ImportError(f"{path.name} needs matplotlib: {PLOT_INSTALL}") from None
     matplotlib.use("Agg", force=False)
     from matplotlib.figure import Figure
 
@@ -98,12 +121,36 @@ def _plot(result: dict, path: Path) -> None:
     atomic_write_bytes(path, buf.getvalue())
 
 
+#: Skipped frames named one a line before the tables (the others counted).
+SHOWN_SKIPPED = 5
+
+
+def _lacks(files: list[str]) -> str:
+    """What a skipped frame lacks, in words."""
+    if files and files[0].startswith(fmt.DONE + "/"):
+        return (f"not finished (no {files[0]}"
+                + (f"; missing {files[1]}" + (f" and {len(files) - 2} more file(s)"
+                                              if len(files) > 2 else "") if len(files) > 1
+                   else "") + ")")
+    return (f"missing {files[0]}" + (f" and {len(files) - 1} more file(s)" if len(files) > 1
+                                     else "") + " (its marker is there: the file was lost; "
+            "run generate again to render the frame anew)") if files else "unreadable"
+
+
 def format_stats(result: dict) -> str:
     """The text ``omniscape-torch stats`` prints."""
     done, planned = result["frames"], result.get("frames_planned", result["frames"])
     over = f"{done} frames" if done == planned else (
         f"the {done} finished of {planned} frames; run generate again to finish the others")
-    lines = [f"Table I: vehicle attitude over {over} (degrees)",
+    lines = []
+    skipped = result.get("skipped") or {}
+    for i, (name, files) in enumerate(skipped.items()):
+        if i == SHOWN_SKIPPED:
+            lines.append(f"skipped {len(skipped) - i} more unfinished frame(s) (stats.json "
+                         f"lists them)")
+            break
+        lines.append(f"skipped frame {name}: {_lacks(files)}")
+    lines += [f"Table I: vehicle attitude over {over} (degrees)",
              f"{'':8}{'mean':>10}{'std':>10}{'min':>10}{'median':>10}{'max':>10}"]
     for name in ("yaw", "pitch", "roll"):
         row = result["table_one"][name]

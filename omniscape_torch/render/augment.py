@@ -42,7 +42,7 @@ from .kernels import camera_grid, camera_rays
 from ..cameras.presets import yaw_pitch_roll_to_matrix
 from . import layer as projection
 from .layer import OmniProjection
-from .reference import check_out_dtype
+from .reference import check_out_dtype, warn_if_label_map
 from .reproject import INTERPOLATIONS, sample_camera
 
 __all__ = ["ApplyToKey", "RandomOmniCamera", "RandomReproject", "FISHEYE_MODELS", "MODES"]
@@ -728,7 +728,7 @@ class RandomOmniCamera(_RandomCameras):
             raise ValueError(f"cubemap: expected shape {layout} with F = face_size = {f} "
                              f"(channels_last={self.channels_last}), got "
                              f"{tuple(cubemap.shape)}{hint}")
-        return check_out_dtype(cubemap.dtype, self.out_dtype)
+        return check_out_dtype(cubemap.dtype, self.out_dtype)   # the layer checks for ids
 
     def forward(self, cubemap: Tensor | dict | None, labels: Tensor | None = None,
                 depth: Tensor | None = None, *, params: dict | None = None,
@@ -1095,6 +1095,7 @@ class RandomReproject(_RandomCameras):
                                 f"{image.dtype}")
             if self.channels_last:
                 image = image.permute(0, 3, 1, 2)
+            warn_if_label_map(image, 1)
         if labels is not None:
             labels = _plain(labels)
             if labels.dim() == 4 and labels.shape[1] == 1:

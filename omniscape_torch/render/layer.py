@@ -31,7 +31,8 @@ from .. import cubemap as cm
 from . import fast as fastsample
 from ..cameras import Camera
 from ..cubemap.grid import rotated_rays_to_grid
-from .reference import check_out_dtype, from_float, grid_sample, nearest_gather
+from .reference import (check_out_dtype, from_float, grid_sample, nearest_gather,
+                        warn_if_label_map)
 
 INTERPOLATIONS = ("nearest", "bilinear", "bicubic")
 DEPTH_INTERPOLATIONS = ("nearest", "bilinear", "edge_aware")
@@ -719,6 +720,7 @@ def _check_rgb(rgb: object, out_dtype: object, channels_last: bool
     cm.check_cubemap(rgb, "rgb")
     if not (rgb.is_floating_point() or rgb.dtype == torch.uint8):
         raise TypeError(f"rgb: expected a floating-point or uint8 cubemap, got {rgb.dtype}")
+    warn_if_label_map(rgb, 2)
     return rgb, check_out_dtype(rgb.dtype, out_dtype)
 
 

@@ -94,3 +94,54 @@ def from_float(image: Tensor, dtype: torch.dtype, out_dtype: torch.dtype) -> Ten
         image = image if levels else image * 255
         return torch.floor(image.clamp(0, 255) + 0.5).to(torch.uint8)
     return (image / 255 if levels else image).to(out_dtype)
+
+
+class LabelMapWarning(UserWarning):
+    """A ``uint8`` image given to a rendering as its image looks like a label map: it would be
+    blended (bilinear or bicubic), which mixes class ids into ids of other classes."""
+
+
+#: At most this many distinct values (and at least 2) in a one-channel (or grey) ``uint8``
+#: image make it look like a label map (:func:`warn_if_label_map`).
+LABEL_MAP_MAX_VALUES = 32
+#: Rows of the first images that :func:`warn_if_label_map` reads.
+_SAMPLED_ROWS = 8
+#: Device types already checked: off the CPU, only the first call checks (a check synchronises).
+_CHECKED_DEVICES: set[str] = set()
+
+_LABEL_MAP_MESSAGE = (
+    "a uint8 image with one channel (or three equal ones) and few distinct values was given "
+    "as the image to render: it looks like a label map, and an image is blended across class "
+    "boundaries. Pass class ids as labels: labels=... (OmniProjection.render, "
+    "ot.reproject(..., labels=True)) or the 'labels' key of RandomOmniCamera's and "
+    "RandomReproject's input dict; pass labels=False to ot.reproject to silence this for an "
+    "image")
+
+
+def warn_if_label_map(image: Tensor, channel_dim: int) -> None:
+    """Warn (:class:`LabelMapWarning`, once: one message from one place) when ``image``, a
+    ``uint8`` image whose channels are on ``channel_dim``, looks like a label map: one channel,
+    or three channels equal to each other, with 2 to :data:`LABEL_MAP_MAX_VALUES` distinct
+    values, not only 0 and 255 (a mask). Cheap: a few rows of the first images are read; off the CPU only the first call per
+    device type checks (reading them back synchronises)."""
+    if image.dtype != torch.uint8 or image.dim() < 3 or image.shape[channel_dim] not in (1, 3):
+        return
+    if image.device.type != "cpu":
+        if image.device.type in _CHECKED_DEVICES:
+            return
+        _CHECKED_DEVICES.add(image.device.type)
+    x = image.movedim(channel_dim, -1)
+    x = x.reshape(-1, *x.shape[-3:])[:6]      # the first images (a cube's six faces)
+    rows = torch.linspace(0, x.shape[1] - 1, min(_SAMPLED_ROWS, x.shape[1]),
+                          device=x.device).round().long()
+    x = x[:, rows]
+    if x.shape[-1] == 3 and not bool(((x[..., 0] == x[..., 1]) & (x[..., 1] == x[..., 2]))
+                                     .all()):
+        return
+    counts = torch.bincount(x[..., 0].flatten().long(), minlength=256)
+    distinct = int(counts.count_nonzero())
+    # a 0 / 255 mask is an image to blend (a soft mask comes out), not class ids
+    mask = distinct == int(counts[0] > 0) + int(counts[255] > 0)
+    if 2 <= distinct <= LABEL_MAP_MAX_VALUES and not mask:
+        import warnings
+        warnings.warn(_LABEL_MAP_MESSAGE, LabelMapWarning, stacklevel=2)

@@ -21,7 +21,7 @@ from .. import cubemap as cm
 from ..cameras import Camera
 from ..io.labels import IGNORE_INDEX
 from .reference import (check_out_dtype, from_float, grid_sample, nearest_gather,
-                        pixels_to_grid)
+                        pixels_to_grid, warn_if_label_map)
 
 INTERPOLATIONS = ("nearest", "bilinear", "bicubic")
 
@@ -61,6 +61,7 @@ def _is_labels(image: Tensor, labels: bool | None) -> bool:
                                  "uint8 is read as an 8-bit image, (B, C, H, W); pass "
                                  "labels=True for (B, H, W) class ids, or an image "
                                  "(B, C, H, W)")
+            warn_if_label_map(image, 1)   # an image by default: say so if it looks like ids
             return False
         return not (image.is_floating_point() or image.is_complex())
     if labels and (image.is_floating_point() or image.is_complex()):
