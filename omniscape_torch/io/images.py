@@ -1,4 +1,4 @@
-"""Images on disk: 8-bit PNG/JPEG and 16-bit PNG in and out (written atomically), and float
+"""Images on disk: 8-bit PNG/JPEG and 16-bit grey PNG in and out (written atomically), and float
 conversion. Read and written with Pillow (a requirement: ``benchmarks/bench_png.py`` measured it
 against OpenCV's wheel, 7 against 61 MB); the pixels are those OpenCV read and wrote before."""
 
@@ -42,7 +42,7 @@ def _png_header(data: bytes) -> tuple[int, int] | None:
 
 def decode_image(data: bytes, name: str = "image") -> np.ndarray:
     """The pixels of PNG or JPEG bytes: ``(H, W, 3)`` RGB (an alpha channel dropped, a palette
-    expanded) or ``(H, W)`` grey, uint8, or uint16 for a 16-bit PNG. ``name`` names the bytes
+    expanded) or ``(H, W)`` grey, uint8, or uint16 for a 16-bit PNG (a 16-bit colour PNG: ``(H, W, 3)`` uint16). ``name`` names the bytes
     in errors.
 
     A 16-bit PNG with colour or alpha (which Pillow reads as 8 bits) is read with OpenCV where
@@ -92,7 +92,7 @@ def read_image(path: str | Path) -> Tensor:
 
 
 def encode_image(image: Tensor | np.ndarray, suffix: str = ".png") -> bytes:
-    """The bytes of ``(H, W, 3)`` RGB or ``(H, W)`` grey uint8 (or uint16: PNG only) as the
+    """The bytes of ``(H, W, 3)`` RGB or ``(H, W)`` grey uint8 (or grey uint16: PNG only) as the
     format of ``suffix`` (``.png``, ``.jpg``...). PNG: lossless, zlib level 1 with the
     run-length strategy; JPEG: quality 95 (both OpenCV's defaults)."""
     Image = require_pillow()
@@ -110,7 +110,10 @@ def encode_image(image: Tensor | np.ndarray, suffix: str = ".png") -> bytes:
     if image.dtype == np.uint16 and fmt != "PNG":
         raise ValueError(f"{suffix!r}: 16-bit images are written as PNG only")
     if image.dtype == np.uint16 and image.ndim == 3:
-        return _encode_png48(image)
+        # nothing in the package writes them; Pillow writes 16 bits of grey only
+        raise ValueError("image: 16-bit colour is not written (Pillow writes 16-bit PNG for "
+                         "grey images only): write each channel as a grey PNG, or floats "
+                         "as OpenEXR (ot.io.exr)")
     buf = _io.BytesIO()
     options = {"PNG": {"compress_level": PNG_COMPRESS_LEVEL, "compress_type": PNG_STRATEGY},
                "JPEG": {"quality": JPEG_QUALITY}}.get(fmt, {})
@@ -118,26 +121,8 @@ def encode_image(image: Tensor | np.ndarray, suffix: str = ".png") -> bytes:
     return buf.getvalue()
 
 
-def _encode_png48(image: np.ndarray) -> bytes:
-    """A 16-bit RGB PNG (which Pillow does not write): rows unfiltered, zlib level 1."""
-    import struct
-    import zlib
-
-    h, w, _ = image.shape
-
-    def chunk(kind: bytes, body: bytes) -> bytes:
-        return (struct.pack(">I", len(body)) + kind + body
-                + struct.pack(">I", zlib.crc32(kind + body) & 0xFFFFFFFF))
-
-    rows = np.zeros((h, 1 + 6 * w), np.uint8)   # filter byte 0 (none) per row
-    rows[:, 1:] = image.astype(">u2").view(np.uint8).reshape(h, 6 * w)
-    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 16, 2, 0, 0, 0))
-            + chunk(b"IDAT", zlib.compress(rows.tobytes(), PNG_COMPRESS_LEVEL))
-            + chunk(b"IEND", b""))
-
-
 def write_image(path: str | Path, image: Tensor | np.ndarray) -> Path:
-    """Write ``(H, W, 3)`` RGB or ``(H, W)`` grey uint8 (or uint16 PNG) atomically, in the
+    """Write ``(H, W, 3)`` RGB or ``(H, W)`` grey uint8 (or grey uint16 PNG) atomically, in the
     format of the file's suffix (:func:`encode_image`)."""
     path = Path(path)
     return atomic_write_bytes(path, encode_image(image, path.suffix or ".png"))
