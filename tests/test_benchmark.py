@@ -97,6 +97,7 @@ def test_pareto_front_hand_made():
 # The runner
 # --------------------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_runner_outputs(tmp_path):
     required = ot.required_face_size(ot.presets.fisheye((24, 24)))
     fine = f"bilinear F{2 * required}"  # a cube much finer than the image
@@ -235,6 +236,7 @@ def test_augment_benchmark_uint8_rows(tmp_path):
     assert "throughput rgb_u8 / rgb_f32" in ba.markdown(result)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
 @pytest.mark.parametrize("heap", ["warm", "fresh"])
 def test_set_heap_decides_whether_large_allocations_fault(heap):
@@ -286,6 +288,7 @@ def test_reproject_benchmark_rows(tmp_path, monkeypatch):
         result)
 
 
+@pytest.mark.slow
 def test_workers_benchmark_rows_and_its_peer(tmp_path):
     """Issue 17: RandomOmniCamera in DataLoader workers against the numpy + cv2.remap peer,
     every fisheye model and the mix, float32 and uint8; the peer's Newton inverse of
@@ -338,6 +341,7 @@ def test_workers_benchmark_rows_and_its_peer(tmp_path):
 _TEMPORARY = re.compile(r"^\..+\.\d+\.[a-z0-9_]{8}(\..+)?$")
 
 
+@pytest.mark.slow
 def test_training_benchmark_quick(tmp_path, monkeypatch):
     """Every condition and camera kind in the JSON, mIoUs finite in [0, 1], every run's loss
     down, and every output and cached cube written by rename from a temporary beside it."""

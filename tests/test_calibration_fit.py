@@ -136,6 +136,7 @@ def test_linear_method_is_reported_as_unrefined_and_lm_improves_on_it():
     assert refined.rms < linear.rms
 
 
+@pytest.mark.slow
 def test_lbfgs_reaches_the_lm_minimum():
     _, size, board, pixels, _, _ = _views("equidistant", n_views=3, rows=6, cols=8)
     lm = fit(board, pixels, "equidistant", size)

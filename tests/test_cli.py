@@ -139,6 +139,7 @@ def test_a_read_only_file_system(tmpfs, capsys):
     assert f"{point}: the file system is read-only" in _line(capsys.readouterr().err)
 
 
+@pytest.mark.slow
 def test_a_full_disk_mid_run(tmpfs, tmp_path):
     """The disk fills while frames are written: one line naming the file and the advice,
     exit 1; every file present is whole (written atomically), and on a disk with room the
@@ -254,6 +255,7 @@ def test_an_unexpected_error_is_one_line_or_a_traceback_when_asked(tmp_path, cap
 # Ctrl-C
 # --------------------------------------------------------------------------------------------
 
+@pytest.mark.slow
 @pytest.mark.parametrize("workers", [1, 2])
 def test_ctrl_c_says_the_same_command_resumes_and_it_does(tmp_path, workers):
     out = tmp_path / "ds"

@@ -176,6 +176,7 @@ def test_calib_results_agree_with_the_cameras_in_ocamcalib_c_code(dataset, harne
         assert (poly.fov, poly.blind_fov) == (camera.fov, camera.blind_fov)
 
 
+@pytest.mark.slow
 @pytest.mark.numerics
 def test_calib_results_at_the_default_image_size(tmp_path, harness):
     """The rig's two kinds of camera (module docstring of generate.py: presets.fisheye and
@@ -300,6 +301,7 @@ def test_antialias_option(tmp_path):
         cli.main(["generate", "--out", str(tmp_path / "bad"), "--antialias", "0"])
 
 
+@pytest.mark.slow
 def test_workers_give_identical_files(dataset, tmp_path):
     out = tmp_path / "par"
     result = generate(out, _config(), workers=2, progress=False)
@@ -589,6 +591,7 @@ def test_a_run_that_cannot_fit_in_memory_is_refused_before_any_work(tmp_path, ca
     assert estimate_memory(_config(image_size=(512, 512))) > estimate_memory(_config())
 
 
+@pytest.mark.slow
 def test_the_memory_estimate_bounds_a_measured_run(tmp_path):
     """The estimate is an upper bound of the peak resident memory of a process that renders a
     frame (measured in a fresh process), and not a loose one (within 2.5x; the frame peaks at
