@@ -20,18 +20,20 @@ registered here. A call through ``torch.ops`` releases the GIL while the op runs
 worker threads shade in parallel.
 
 Build: :func:`load` builds both sources with one ``torch.utils.cpp_extension.load`` call (ninja
-and the C++ compiler torch uses, ``$CXX`` else ``c++``; about 40 s once per machine on 2 cores,
+and the C++ compiler torch uses, ``$CXX`` else ``c++``; about 45 s once per machine on 2 cores,
 the two sources compiled side by side, most of it the instantiations of the samplers per
 element, output and grid type; the torch headers take 5 s, against 30 s with
 ``torch/extension.h``) into torch's extension cache (``$TORCH_EXTENSIONS_DIR``, default
 ``~/.cache/torch_extensions/<python>_<device>/``) and loads the library. A build prints one line
 to stderr as it starts (``omniscape_torch: building the C++ kernels ...``) and one when it is
 done, with its time. A process that finds the library built (the ``.so`` of its name in its
-folder, and no build under way there: no ``lock``) loads it directly, without
-``cpp_extension``, ninja or a compiler, and prints nothing (0.1-0.2 s). Concurrent first uses
-(processes, ``DataLoader`` workers) are serialised by ``cpp_extension``'s lock file in the
-build folder: one builds, the others wait and load. (A build killed outright, SIGKILL, leaves
-that file behind, and later loads wait for it forever: delete the folder's ``lock``.)
+folder, and no build under way there: no ``lock``; the name is a hash of the content, so the
+file is what this install would build) loads it directly, with no compiler, ninja or build
+file involved, and prints nothing (0.2-0.3 s on 2 cores, most of it the import of
+``cpp_extension``, whose function names the folder). Concurrent first uses (processes,
+``DataLoader`` workers) are serialised by ``cpp_extension``'s lock file in the build folder: one
+builds, the others wait and load. (A build killed outright, SIGKILL, leaves that file behind,
+and later loads wait for it forever: delete the folder's ``lock``.)
 
 The cache is keyed by content: the extension's name (:func:`name`) holds a hash of the CPU's
 feature flags (``-march=native`` code must not be loaded on another CPU that shares the home
@@ -51,7 +53,8 @@ on the calling thread (the town splits its rays into tasks on threads of its own
 library cannot be built (no compiler, no ninja, a read-only cache), :func:`load` raises and
 :func:`ops` warns once and returns None: the fast sampler (:mod:`.fast`) is then unavailable and
 ``OmniProjection`` samples with ``grid_sample``, and the town shades with torch
-(``Town._shade_reference``), the same images, slower.
+(``Town._shade_reference``: the same labels and depths, colours within float32 roundings,
+several times slower).
 """
 
 from __future__ import annotations
