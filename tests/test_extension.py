@@ -289,13 +289,15 @@ def test_opcheck_town_ops():
 
 def test_town_ops_check_their_arguments():
     """Wrong dtypes, shapes, strides and indices beyond the tables are refused with the op's
-    and the argument's name, before anything is read."""
+    and the argument's name, before they are read (the hits' and texels' indices before the
+    loop; a triangle's corners and a ground triangle's class id as they are met)."""
     hits, shaded = town_inputs()
     n = hits["d"].shape[0]
     bad = [
         (dict(tri=hits["tri"] + 1), "town_shade: tri: expected entries in \\[-1, 4\\)"),
         (dict(tri=hits["tri"] - 1), "town_shade: tri: expected entries in"),
-        (dict(tris=hits["tris"] + 5), "town_shade: tris: expected entries in \\[0, 5\\)"),
+        (dict(tris=hits["tris"] + 5), "town_shade: tris: expected corners in \\[0, 5\\), got "
+                                      "triangle 2 with corners"),
         (dict(tris=hits["tris"].long()), "town_shade: tris: expected shape .* in Int"),
         (dict(d=hits["d"].double()), "town_shade: d: expected shape .* in Float, got .* Double"),
         (dict(d=hits["d"].T.contiguous().T), "town_shade: d: expected a contiguous tensor"),
@@ -314,6 +316,10 @@ def test_town_ops_check_their_arguments():
             ops().town_shade(*args.values())
     with pytest.raises(RuntimeError, match="town_backfaces: out: expected shape"):
         ops().town_backfaces(hits["d"], hits["tri"], hits["attr"], torch.empty(n, 1))
+    with pytest.raises(RuntimeError, match="town_prepare: tris: expected corners in"):
+        ops().town_prepare(*{**hits, "tris": hits["tris"] - 9}.values(), 1e-3, 1e-5,
+                           torch.empty(n, dtype=torch.bool), torch.empty(n, 3),
+                           torch.empty(n, dtype=torch.bool))
     with pytest.raises(RuntimeError, match="town_prepare: origin: expected shape"):
         ops().town_prepare(*hits.values(), 1e-3, 1e-5, torch.empty(n, dtype=torch.bool),
                            torch.empty(n, 2), torch.empty(n, dtype=torch.bool))

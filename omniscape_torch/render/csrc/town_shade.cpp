@@ -16,7 +16,11 @@
 // Layouts (checked by the ops before any read): rays o (n or 1, 3), d (n, 3), hits t, tri (-1:
 // none, else < T), barycentric u, v (n,); the triangles' attributes attr (A_ROWS, T) row-major;
 // triangle corners tris (T, 3) int32 (< V), vertex normals vn (V, 3); weather and constants w
-// (W_COUNT,), see town.py's _native_weather; lamps (L, 3). All contiguous CPU tensors.
+// (W_COUNT,), see town.py's _native_weather; lamps (L, 3). All contiguous CPU tensors. Shapes,
+// dtypes and the hits' and texels' indices are checked before the loop; a triangle's corners
+// and a ground triangle's class id (which index vn and the ground's colours) as they are met,
+// before they are read, the op raising after the loop (its outputs then not to be used): a
+// pass over every triangle would cost each call about as much as shading a few thousand rays.
 
 #include <ATen/core/Tensor.h>
 #include <torch/library.h>
@@ -111,7 +115,10 @@ struct Hits {
     int64_t T;
     const int32_t* tris;
     const float* vn;
+    int64_t V;
     const float* w;
+    // the first triangle met with a corner outside [0, V) (-1: none): its corners are not read
+    int64_t* bad_corner;
 };
 
 struct Surface {
@@ -138,6 +145,10 @@ Surface surface(const Hits& h, int64_t i) {
     s.nx = s.nfx, s.ny = s.nfy, s.nz = s.nfz;
     if (s.hit && attr[A_SMOOTH * T + s.tri] > 0.0f) {
         const int32_t* c = h.tris + 3 * s.tri;
+        if (!(c[0] >= 0 && c[0] < h.V && c[1] >= 0 && c[1] < h.V && c[2] >= 0 && c[2] < h.V)) {
+            if (*h.bad_corner < 0) *h.bad_corner = s.tri;
+            return s;
+        }
         const float* vn = h.vn;
         const float us = h.u[i], vs = h.v[i], w0 = (1.0f - us) - vs;
         float n[3];
@@ -205,7 +216,7 @@ void prepare(const Hits& h, float bias0, float bias_per_m, uint8_t* need, float*
 }
 
 void shade(const Hits& h, const uint8_t* shadow, const float* lamps, int64_t n_lamps, float* rgb,
-           float* range, int64_t* labels, float* normal) {
+           float* range, int64_t* labels, float* normal, int64_t* bad_label) {
     const float* w = h.w;
     const float* attr = h.attr;
     const int64_t T = h.T;
@@ -243,6 +254,10 @@ void shade(const Hits& h, const uint8_t* shadow, const float* lamps, int64_t n_l
             if (paint > 0.0f && (centre || edge || cross)) label = ROADLINE;
             const bool tiles = label == SIDEWALK &&
                                (frac_(px / 0.6f) < 0.06f || frac_(pz / 0.6f) < 0.06f);
+            if (!(label >= 0.0f && label < 13.0f)) {   // not a class id: GROUND_COLOUR not read
+                if (*bad_label < 0) *bad_label = j;
+                label = 0.0f;
+            }
             for (int k = 0; k < 3; k++)
                 col[k] = GROUND_COLOUR[static_cast<int>(label)][k] * (tiles ? 0.75f : 1.0f);
         }
@@ -385,8 +400,9 @@ void check_range(const char* op, const char* name, const at::Tensor& t, int64_t 
                 static_cast<int64_t>(high), "]");
 }
 
-// The tables: attr (A_ROWS, T) float32, tris (T, 3) int32 in [0, V), vn (V, 3) float32; and
-// optionally tri (n,) int64 in [-1, T).
+// The tables: attr (A_ROWS, T) float32, tris (T, 3) int32, vn (V, 3) float32, and the hits tri
+// (n,) int64 in [-1, T). The corners in tris are checked as they are met, before they are read
+// (a pass over all of them would cost each call as much as shading a few thousand rays).
 void check_tables(const char* op, const at::Tensor& attr, const at::Tensor* tris,
                   const at::Tensor* vn, const at::Tensor& tri, int64_t n) {
     check(op, "attr", attr, at::kFloat, {A_ROWS, -1});
@@ -395,7 +411,6 @@ void check_tables(const char* op, const at::Tensor& attr, const at::Tensor* tris
     if (tris != nullptr) {
         check(op, "vn", *vn, at::kFloat, {-1, 3});
         check(op, "tris", *tris, at::kInt, {attr.size(1), 3});
-        check_range<int32_t>(op, "tris", *tris, 0, vn->size(0));
     }
 }
 
@@ -404,7 +419,7 @@ void check_tables(const char* op, const at::Tensor& attr, const at::Tensor* tris
 Hits check_hits(const char* op, const at::Tensor& o, const at::Tensor& d, const at::Tensor& t,
                 const at::Tensor& tri, const at::Tensor& u, const at::Tensor& v,
                 const at::Tensor& attr, const at::Tensor& tris, const at::Tensor& vn,
-                const at::Tensor& w) {
+                const at::Tensor& w, int64_t* bad_corner) {
     check(op, "d", d, at::kFloat, {-1, 3});
     const int64_t n = d.size(0);
     check(op, "o", o, at::kFloat, {-1, 3});
@@ -427,7 +442,17 @@ Hits check_hits(const char* op, const at::Tensor& o, const at::Tensor& d, const 
                 attr.size(1),
                 tris.const_data_ptr<int32_t>(),
                 vn.const_data_ptr<float>(),
-                w.const_data_ptr<float>()};
+                vn.size(0),
+                w.const_data_ptr<float>(),
+                bad_corner};
+}
+
+// After a loop: no triangle met had a corner outside [0, V) (its normal was not interpolated,
+// nor its vertex normals read; the outputs are not to be used).
+void check_corners(const char* op, const Hits& h) {
+    TORCH_CHECK(*h.bad_corner < 0, op, ": tris: expected corners in [0, ", h.V,
+                "), got triangle ", *h.bad_corner, " with corners ", h.tris[3 * *h.bad_corner],
+                ", ", h.tris[3 * *h.bad_corner + 1], ", ", h.tris[3 * *h.bad_corner + 2]);
 }
 
 const uint8_t* bytes(const at::Tensor& t) { return static_cast<const uint8_t*>(t.const_data_ptr()); }
@@ -452,12 +477,14 @@ void town_prepare_op(const at::Tensor& o, const at::Tensor& d, const at::Tensor&
                      const at::Tensor& weather, double bias0, double bias_per_m,
                      const at::Tensor& need, const at::Tensor& origin, const at::Tensor& shadow) {
     const char* op = "omniscape_torch::town_prepare";
-    const Hits h = check_hits(op, o, d, t, tri, u, v, attr, tris, vn, weather);
+    int64_t bad_corner = -1;
+    const Hits h = check_hits(op, o, d, t, tri, u, v, attr, tris, vn, weather, &bad_corner);
     check(op, "need", need, at::kBool, {h.n});
     check(op, "origin", origin, at::kFloat, {h.n, 3});
     check(op, "shadow", shadow, at::kBool, {h.n});
     prepare(h, static_cast<float>(bias0), static_cast<float>(bias_per_m), mutable_bytes(need),
             origin.mutable_data_ptr<float>(), mutable_bytes(shadow));
+    check_corners(op, h);
 }
 
 // town_shade: rgb (n, 3), range (n,) float32, labels (n,) int64, normal (n, 3) float32.
@@ -468,14 +495,9 @@ void town_shade_op(const at::Tensor& o, const at::Tensor& d, const at::Tensor& t
                    const at::Tensor& rgb, const at::Tensor& range, const at::Tensor& labels,
                    const at::Tensor& normal) {
     const char* op = "omniscape_torch::town_shade";
-    const Hits h = check_hits(op, o, d, t, tri, u, v, attr, tris, vn, weather);
+    int64_t bad_corner = -1, bad_label = -1;
+    const Hits h = check_hits(op, o, d, t, tri, u, v, attr, tris, vn, weather, &bad_corner);
     check(op, "shadow", shadow, at::kBool, {h.n});
-    // the class ids, which index GROUND_COLOUR: in [0, 13)
-    const float* ids = h.attr + A_LABEL * h.T;
-    bool ids_ok = true;
-    for (int64_t j = 0; j < h.T; j++) ids_ok &= ids[j] >= 0.0f && ids[j] < 13.0f;
-    TORCH_CHECK(ids_ok, op, ": attr: expected class ids (row ", static_cast<int>(A_LABEL),
-                ") in [0, 13)");
     check(op, "lamps", lamps, at::kFloat, {-1, 3});
     check(op, "rgb", rgb, at::kFloat, {h.n, 3});
     check(op, "range", range, at::kFloat, {h.n});
@@ -483,7 +505,12 @@ void town_shade_op(const at::Tensor& o, const at::Tensor& d, const at::Tensor& t
     check(op, "normal", normal, at::kFloat, {h.n, 3});
     shade(h, bytes(shadow), lamps.const_data_ptr<float>(), lamps.size(0),
           rgb.mutable_data_ptr<float>(), range.mutable_data_ptr<float>(),
-          labels.mutable_data_ptr<int64_t>(), normal.mutable_data_ptr<float>());
+          labels.mutable_data_ptr<int64_t>(), normal.mutable_data_ptr<float>(), &bad_label);
+    check_corners(op, h);
+    // a ground triangle's class id indexes GROUND_COLOUR (checked as met, as the corners)
+    TORCH_CHECK(bad_label < 0, op, ": attr: expected class ids (row ", static_cast<int>(A_LABEL),
+                ") in [0, 13), got ", bad_label < 0 ? 0.0f : h.attr[A_LABEL * h.T + bad_label],
+                " for ground triangle ", bad_label);
 }
 
 // town_store: n rays d (n, 3) with rgb (n, 3), range (n,), labels (n,), hit (n,) into a face's
