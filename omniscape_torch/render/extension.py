@@ -264,7 +264,8 @@ def ops() -> torch._ops._OpNamespace | None:
                               f"({_STATE['error'][:500]}): the fast sampler is unavailable "
                               "(OmniProjection samples with grid_sample on the padded atlas) "
                               "and the town shades with torch (the same labels and depths, "
-                              "colours to float32 rounding, several times slower)", UserWarning, stacklevel=3)
+                              "colours to float32 rounding, several times slower)",
+                              UserWarning, stacklevel=3)
     return _STATE["ops"]
 
 
