@@ -513,7 +513,8 @@ CHILD = textwrap.dedent("""
 """)
 
 #: What a build prints (stderr), as it starts and when it is done.
-BUILDING, BUILT = "omniscape_torch: building the C++ kernels", "omniscape_torch: the C++ kernels built in"
+BUILDING = "omniscape_torch: building the C++ kernels"
+BUILT = "omniscape_torch: the C++ kernels built in"
 
 
 def _mirror_path_without_ninja(folder: Path) -> str:

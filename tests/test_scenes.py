@@ -1,6 +1,6 @@
 """The procedural town (``omniscape_torch.scenes``): determinism, geometry (the meshes against
 the primitives they come from), labels, exactness of the cubemap path against direct ray
-casting, the C++ shading ops against the torch reference (and their argument checks), shadows, weather presets (CARLA's
+casting, the C++ shading ops against the torch reference, shadows, weather presets (CARLA's
 parameters), layouts and their routes, motion."""
 
 from __future__ import annotations

@@ -41,8 +41,8 @@ every pixel's taps (or reads them from the table), blends the interior pixels an
 edge pixels' taps through the ring, straight into the output. ``torch.compile`` traces through
 them (their fake implementations are registered with them). Where they cannot be built (no
 C++ compiler, no ninja) the fast sampler is unavailable (:func:`available`: False after one
-warning that says why, the extension's one) and ``OmniProjection`` takes its reference path, ``grid_sample`` on the
-padded atlas; the functions here then raise.
+warning that says why, the extension's one) and ``OmniProjection`` takes its reference path,
+``grid_sample`` on the padded atlas; the functions here then raise.
 
 CPU only; other devices keep ``grid_sample``. Timings: ``benchmarks/bench_projection.py``.
 """

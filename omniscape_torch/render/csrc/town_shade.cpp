@@ -455,7 +455,10 @@ void check_corners(const char* op, const Hits& h) {
                 ", ", h.tris[3 * *h.bad_corner + 1], ", ", h.tris[3 * *h.bad_corner + 2]);
 }
 
-const uint8_t* bytes(const at::Tensor& t) { return static_cast<const uint8_t*>(t.const_data_ptr()); }
+// bool tensors as bytes (0 or 1)
+const uint8_t* bytes(const at::Tensor& t) {
+    return static_cast<const uint8_t*>(t.const_data_ptr());
+}
 uint8_t* mutable_bytes(const at::Tensor& t) { return static_cast<uint8_t*>(t.mutable_data_ptr()); }
 
 // town_backfaces: out (n,) bool, whether hit tri of ray d meets its face from behind.
