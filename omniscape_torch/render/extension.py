@@ -29,8 +29,8 @@ to stderr as it starts (``omniscape_torch: building the C++ kernels ...``) and o
 done, with its time. A process that finds the library built (the ``.so`` of its name in its
 folder, and no build under way there: no ``lock``; the name is a hash of the content, so the
 file is what this install would build) loads it directly, with no compiler, ninja or build
-file involved, and prints nothing (0.2-0.3 s on 2 cores, most of it the import of
-``cpp_extension``, whose function names the folder). Concurrent first uses (processes,
+file involved, and prints nothing (on 2 cores 0.15 s at rest, 0.25 s at a load of 3; most
+of it the import of ``cpp_extension``, whose function names the folder). Concurrent first uses (processes,
 ``DataLoader`` workers) are serialised by ``cpp_extension``'s lock file in the build folder: one
 builds, the others wait and load. (A build killed outright, SIGKILL, leaves that file behind,
 and later loads wait for it forever: delete the folder's ``lock``.)
