@@ -172,18 +172,14 @@ def main(argv: list[str] | None = None) -> dict:
     import torch
     from omniscape_torch.data import generate as gen
 
-    # one-time builds, once per machine and source, are not a frame's: the fast sampler's C++
-    # extension and the town's C shading are built (or found built) before the clock starts
+    # one-time builds, once per machine and source, are not a frame's: the C++ extension (the
+    # fast sampler's and the town's kernels, one library) is built (or found built) before the
+    # clock starts
     try:
         from omniscape_torch.render import extension
         extension.load()
-    except Exception as err:  # noqa: BLE001 - the layer falls back to its reference path
-        print(f"# the fast sampler is not available ({err})", file=sys.stderr)
-    try:
-        from omniscape_torch.scenes import native
-        native.library()
-    except ImportError:
-        pass
+    except Exception as err:  # noqa: BLE001 - the layer and the town fall back to torch
+        print(f"# the C++ kernels are not available ({err})", file=sys.stderr)
 
     timer = StageTimer()
     undo = install(timer)

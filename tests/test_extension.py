@@ -1,13 +1,17 @@
-"""The fast sampler's C++ extension (``omniscape_torch.render.extension``): custom ops that pass
-``torch.library.opcheck``, check their arguments, trace under ``torch.compile``, and a build that
-is cached where torch caches extensions, keyed on the CPU, safe under concurrent first uses and
-found without ninja on the PATH.
+"""The package's C++ extension (``omniscape_torch.render.extension``: the fast sampler's and the
+town's kernels, one library): custom ops that pass ``torch.library.opcheck``, check their
+arguments, trace under ``torch.compile``, and a build that is cached where torch caches
+extensions, keyed on the CPU and the sources' content (not their path), says when it builds,
+is safe under concurrent first uses, found without ninja on the PATH, and whose failure is one
+warning for the sampler and the town together.
 """
 
 from __future__ import annotations
 
+import ast
 import math
 import os
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -18,6 +22,7 @@ import torch
 
 import omniscape_torch as ot
 from omniscape_torch.render import extension, fast as fastsample, kernels
+from omniscape_torch.scenes import Town
 
 ROOT = Path(__file__).resolve().parents[1]
 f32, f64 = torch.float32, torch.float64
@@ -243,6 +248,123 @@ def test_tables_and_rings_of_any_entries_read_inside_the_cube():
     assert bool(out.isfinite().all())
 
 
+def town_inputs(n=6, T=4, V=5, seed=0):
+    """Rays, hits and tables as ``Town._shade`` passes them to the town's ops (``T`` triangles
+    of ``V`` vertices, some rays hitting none), and their outputs."""
+    gen = torch.Generator().manual_seed(seed)
+    attr = torch.rand(14, T, generator=gen)
+    attr[3] = torch.tensor([7.0, 1.0, 8.0, 6.0])[:T]   # class ids
+    attr[4] = torch.tensor([0.0, 1.0, 0.0, 2.0])[:T]   # part kinds
+    attr[13] = torch.tensor([0.0, 0.0, 1.0, 1.0])[:T]  # smooth normals
+    hits = dict(o=torch.randn(1, 3, generator=gen),
+                d=torch.nn.functional.normalize(torch.randn(n, 3, generator=gen), dim=-1),
+                t=torch.rand(n, generator=gen) * 20, tri=torch.arange(n) % (T + 1) - 1,
+                u=torch.rand(n, generator=gen) / 2, v=torch.rand(n, generator=gen) / 2,
+                attr=attr, tris=torch.randint(0, V, (T, 3), generator=gen, dtype=torch.int32),
+                vn=torch.nn.functional.normalize(torch.randn(V, 3, generator=gen), dim=-1),
+                weather=torch.rand(26, generator=gen))
+    shaded = dict(shadow=torch.rand(n, generator=gen) > 0.5, lamps=torch.randn(2, 3, generator=gen),
+                  rgb=torch.empty(n, 3), range=torch.empty(n),
+                  labels=torch.empty(n, dtype=torch.int64), normal=torch.empty(n, 3))
+    return hits, shaded
+
+
+@pytest.mark.slow   # about 3-7 s: opcheck traces each op (aot_dispatch_dynamic)
+def test_opcheck_town_ops():
+    hits, shaded = town_inputs()
+    n = hits["d"].shape[0]
+    torch.library.opcheck(ops().town_backfaces, (hits["d"], hits["tri"], hits["attr"],
+                                                 torch.empty(n, dtype=torch.bool)))
+    torch.library.opcheck(ops().town_prepare, (*hits.values(), 1e-3, 1e-5,
+                                               torch.empty(n, dtype=torch.bool),
+                                               torch.empty(n, 3), torch.empty(n, dtype=torch.bool)))
+    torch.library.opcheck(ops().town_shade, (*hits.values(), *shaded.values()))
+    P = 10
+    store = (hits["d"], torch.tensor([9, 0, 3, 4, 5, 1]), 0, torch.rand(n, 3), torch.rand(n),
+             torch.arange(n), torch.rand(n) > 0.5, torch.tensor([0.0, 0.0, 1.0]), 1000.0,
+             torch.zeros(3, P), torch.zeros(P), torch.zeros(P), torch.zeros(P, dtype=torch.int64))
+    torch.library.opcheck(ops().town_store, store)
+    torch.library.opcheck(ops().town_store, (store[0], None, 4, *store[3:]))
+
+
+def test_town_ops_check_their_arguments():
+    """Wrong dtypes, shapes, strides and indices beyond the tables are refused with the op's
+    and the argument's name, before they are read (the hits' and texels' indices before the
+    loop; a triangle's corners and a ground triangle's class id as they are met)."""
+    hits, shaded = town_inputs()
+    n = hits["d"].shape[0]
+    bad = [
+        (dict(tri=hits["tri"] + 1), "town_shade: tri: expected entries in \\[-1, 4\\)"),
+        (dict(tri=hits["tri"] - 1), "town_shade: tri: expected entries in"),
+        (dict(tris=hits["tris"] + 5), "town_shade: tris: expected corners in \\[0, 5\\), got "
+                                      "triangle 2 with corners"),
+        (dict(tris=hits["tris"].long()), "town_shade: tris: expected shape .* in Int"),
+        (dict(d=hits["d"].double()), "town_shade: d: expected shape .* in Float, got .* Double"),
+        (dict(d=hits["d"].T.contiguous().T), "town_shade: d: expected a contiguous tensor"),
+        (dict(o=hits["o"].expand(n + 1, 3).contiguous()), "town_shade: o: expected \\(1, 3\\)"),
+        (dict(t=hits["t"][1:]), "town_shade: t: expected shape"),
+        (dict(weather=hits["weather"][1:]), "town_shade: weather: expected shape"),
+        (dict(attr=hits["attr"][:13].contiguous()), "town_shade: attr: expected shape"),
+        (dict(attr=hits["attr"] * torch.tensor([1.0] * 3 + [2.0] + [1.0] * 10)[:, None]),
+         "town_shade: attr: expected class ids"),
+        (dict(shadow=shaded["shadow"].to(torch.uint8)), "town_shade: shadow: expected shape"),
+        (dict(labels=shaded["labels"].float()), "town_shade: labels: expected shape"),
+    ]
+    for change, match in bad:
+        args = {**hits, **shaded, **change}
+        with pytest.raises(RuntimeError, match=match):
+            ops().town_shade(*args.values())
+    with pytest.raises(RuntimeError, match="town_backfaces: out: expected shape"):
+        ops().town_backfaces(hits["d"], hits["tri"], hits["attr"], torch.empty(n, 1))
+    with pytest.raises(RuntimeError, match="town_prepare: tris: expected corners in"):
+        ops().town_prepare(*{**hits, "tris": hits["tris"] - 9}.values(), 1e-3, 1e-5,
+                           torch.empty(n, dtype=torch.bool), torch.empty(n, 3),
+                           torch.empty(n, dtype=torch.bool))
+    with pytest.raises(RuntimeError, match="town_prepare: origin: expected shape"):
+        ops().town_prepare(*hits.values(), 1e-3, 1e-5, torch.empty(n, dtype=torch.bool),
+                           torch.empty(n, 2), torch.empty(n, dtype=torch.bool))
+    P = 10
+    store = [hits["d"], None, 0, torch.rand(n, 3), torch.rand(n), torch.arange(n),
+             torch.rand(n) > 0.5, torch.tensor([0.0, 0.0, 1.0]), 1000.0, torch.zeros(3, P),
+             torch.zeros(P), torch.zeros(P), torch.zeros(P, dtype=torch.int64)]
+    with pytest.raises(RuntimeError, match="town_store: start: expected 0 <= start <= 4"):
+        ops().town_store(*store[:2], 5, *store[3:])
+    with pytest.raises(RuntimeError, match="town_store: index: expected entries in \\[0, 10\\)"):
+        ops().town_store(store[0], torch.arange(n) + 5, *store[2:])
+    with pytest.raises(RuntimeError, match="town_store: labels_out: expected shape"):
+        ops().town_store(*store[:-1], torch.zeros(P + 1, dtype=torch.int64))
+
+
+def test_town_ops_let_go_of_the_gil():
+    """A call through ``torch.ops`` releases the GIL while the op runs, as ctypes did: the
+    town's worker threads shade in parallel, and Python runs meanwhile. One long
+    ``town_shade`` call (many lamps) on a thread: the main thread runs Python many times
+    within it (holding the GIL, the op would let it run at most at its two ends)."""
+    import threading
+    import time
+    n = 40000
+    hits, shaded = town_inputs(n=n)
+    shaded["lamps"] = torch.randn(400, 3)
+    args = [*hits.values(), *shaded.values()]
+    ops().town_shade(*args)   # warm
+    span = []
+
+    def shade():
+        span.append(time.perf_counter())
+        ops().town_shade(*args)
+        span.append(time.perf_counter())
+
+    worker = threading.Thread(target=shade)
+    ticks = []
+    worker.start()
+    while worker.is_alive():
+        ticks.append(time.perf_counter())
+        time.sleep(0)
+    worker.join()
+    inside = sum(span[0] < t < span[1] for t in ticks)
+    assert inside >= 10, (inside, span[1] - span[0])
+
+
 # ------------------------------------------------------------------------------------------
 # torch.compile
 # ------------------------------------------------------------------------------------------
@@ -275,29 +397,36 @@ def test_compiled_layer_gives_the_eager_result():
 # ------------------------------------------------------------------------------------------
 # The build
 # ------------------------------------------------------------------------------------------
-def test_name_holds_a_hash_of_the_cpu_flags_and_the_source(monkeypatch, tmp_path):
+def test_name_holds_a_hash_of_the_cpu_flags_and_the_sources_not_their_path(monkeypatch,
+                                                                           tmp_path):
     name = extension.name()
-    assert name.startswith("omniscape_torch_fastsample_") and name == extension.name()
-    monkeypatch.setattr(extension, "_cpu", lambda: "flags : fpu sse2 avx512f")
-    other_cpu = extension.name()
-    monkeypatch.setattr(extension, "_cpu", lambda: "flags : fpu sse2")
-    names = {name, other_cpu, extension.name()}
-    edited = tmp_path / "fastsample.cpp"
-    edited.write_bytes(extension.SOURCE.read_bytes() + b"\n")
-    monkeypatch.setattr(extension, "SOURCE", edited)
-    names.add(extension.name())
-    # the same source in another checkout: a folder of its own (a shared one names one path in
-    # its build file, and ninja rebuilt the library at every switch between the two)
-    copy = tmp_path / "checkout" / "fastsample.cpp"
-    copy.parent.mkdir()
-    copy.write_bytes(edited.read_bytes())
-    monkeypatch.setattr(extension, "SOURCE", copy)
-    assert len(names | {extension.name()}) == 5
+    assert name.startswith("omniscape_torch_kernels_") and name == extension.name()
+    # the same sources in another checkout: the same name, the same library
+    copies = []
+    for source in extension.SOURCES:
+        copies.append(tmp_path / "checkout" / source.name)
+        copies[-1].parent.mkdir(exist_ok=True)
+        copies[-1].write_bytes(source.read_bytes())
+    monkeypatch.setattr(extension, "SOURCES", tuple(copies))
+    assert extension.name() == name
+    # another CPU, or a changed source (either of them): another name
+    names = {name}
+    for cpu in ("flags : fpu sse2 avx512f", "flags : fpu sse2"):
+        with monkeypatch.context() as scope:
+            scope.setattr(extension, "_cpu", lambda: cpu)
+            names.add(extension.name())
+    for copy in copies:
+        data = copy.read_bytes()
+        copy.write_bytes(data + b"\n")
+        names.add(extension.name())
+        copy.write_bytes(data)
+    assert len(names) == 5 and extension.name() == name
 
 
-def test_built_in_torchs_extension_cache():
+def test_built_in_torchs_extension_cache_from_copies_of_the_sources():
     """The library lives where ``cpp_extension`` keeps extensions ($TORCH_EXTENSIONS_DIR,
-    default ``~/.cache/torch_extensions``), with the speed and exactness flags."""
+    default ``~/.cache/torch_extensions``), with the speed and exactness flags, built from
+    copies of the sources in its own folder (the same paths for every checkout)."""
     from torch.utils import cpp_extension
     ops()
     (path,) = extension._LOADED
@@ -306,12 +435,26 @@ def test_built_in_torchs_extension_cache():
     build = (folder / "build.ninja").read_text()
     for flag in (*extension.CFLAGS, *extension.face_case_flags()):
         assert flag in build
+    for source in extension.SOURCES:
+        assert (folder / source.name).read_bytes() == source.read_bytes()
+        assert str(folder / source.name) in build
+    assert str(extension.SOURCES[0].parent) not in build
 
 
-def test_no_ctypes():
-    for name in ("fast.py", "extension.py"):
-        text = (ROOT / "omniscape_torch" / "render" / name).read_text()
-        assert "ctypes" not in text, name
+def test_no_module_of_the_package_imports_ctypes():
+    """The package's native code is the one torch extension: no ctypes (nor a second build)."""
+    package = ROOT / "omniscape_torch"
+    scanned = 0
+    for path in package.rglob("*.py"):
+        text = path.read_text(encoding="utf-8")
+        scanned += 1
+        if "ctypes" not in text:
+            continue
+        for node in ast.walk(ast.parse(text)):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+                [node.module or ""] if isinstance(node, ast.ImportFrom) else []
+            assert not any(n == "ctypes" or n.startswith("ctypes.") for n in names), path
+    assert scanned > 40
 
 
 def test_ninja_beside_python_goes_first_on_the_path_and_comes_off(monkeypatch, tmp_path):
@@ -365,7 +508,13 @@ CHILD = textwrap.dedent("""
     grid = torch.rand(1, 5, 7, 2, generator=torch.Generator().manual_seed(1)) * 2.2 - 1.1
     image = fast.sample_cube(cube, grid, pad=1)
     print(float(image.double().sum()), os.environ.get("PATH") == path, fast.available())
+    from omniscape_torch.render import extension
+    print(extension._LOADED[0])
 """)
+
+#: What a build prints (stderr), as it starts and when it is done.
+BUILDING = "omniscape_torch: building the C++ kernels"
+BUILT = "omniscape_torch: the C++ kernels built in"
 
 
 def _mirror_path_without_ninja(folder: Path) -> str:
@@ -391,7 +540,7 @@ def test_loads_with_ninja_installed_beside_python_but_not_on_the_path(tmp_path):
     done = subprocess.run([sys.executable, "-c", CHILD], env=env, capture_output=True,
                           text=True, cwd=ROOT, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
-    total, path_kept, available = done.stdout.split()
+    total, path_kept, available, _ = done.stdout.split()
     assert path_kept == "True" and available == "True"
 
 
@@ -406,17 +555,66 @@ def test_concurrent_first_uses_build_once(tmp_path):
     outputs = [child.communicate(timeout=600) for child in children]
     for child, (stdout, stderr) in zip(children, outputs):
         assert child.returncode == 0, stderr[-3000:]
-    assert outputs[0][0] == outputs[1][0] and outputs[0][0].split()[1:] == ["True", "True"]
+        # a first use says so, once, as the build starts, and once more when it is done
+        assert stderr.count(BUILDING) == stderr.count(BUILT) <= 1, stderr[-3000:]
+    assert outputs[0][0] == outputs[1][0] and outputs[0][0].split()[1:3] == ["True", "True"]
+    assert any(BUILT in stderr for _, stderr in outputs)
     (folder,) = (tmp_path / "cache").iterdir()
     assert folder.name == extension.name() and not (folder / "lock").exists()
     (library,) = folder.glob("*.so")
+    assert outputs[0][0].split()[3] == str(library)
     stamp = library.stat().st_mtime_ns
     again = subprocess.run([sys.executable, "-c", CHILD], env=env, cwd=ROOT, text=True,
                            capture_output=True, timeout=600)
     assert again.returncode == 0 and again.stdout == outputs[0][0]
+    assert "omniscape_torch" not in again.stderr, again.stderr   # a load says nothing
     assert library.stat().st_mtime_ns == stamp and list(folder.glob("*.so")) == [library]
     # and the image is this process's
     cube = torch.rand(2, 6, 3, 8, 8, generator=torch.Generator().manual_seed(0))
     grid = torch.rand(1, 5, 7, 2, generator=torch.Generator().manual_seed(1)) * 2.2 - 1.1
     assert float(outputs[0][0].split()[0]) == float(
         fastsample.sample_cube(cube, grid, pad=1).double().sum())
+
+
+@pytest.mark.slow   # a process of its own: about 5 s
+def test_a_checkout_elsewhere_loads_the_same_library_without_a_build(tmp_path):
+    """Another checkout (or install) of the same sources finds the library that this one
+    built and loads it: no build, nothing printed, the same file."""
+    ops()
+    (library,) = extension._LOADED
+    stamp = os.stat(library).st_mtime_ns
+    checkout = tmp_path / "checkout"
+    shutil.copytree(ROOT / "omniscape_torch", checkout / "omniscape_torch",
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    child = CHILD.replace("print(extension._LOADED[0])",
+                          "print(extension._LOADED[0], extension.__file__)")
+    done = subprocess.run([sys.executable, "-c", child], capture_output=True, text=True,
+                          cwd=checkout, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    *_, loaded, module = done.stdout.split()
+    assert Path(module).is_relative_to(checkout)   # the copy's package ran
+    assert loaded == library and os.stat(library).st_mtime_ns == stamp
+    assert "omniscape_torch" not in done.stderr, done.stderr
+
+
+def test_without_a_compiler_one_warning_for_the_sampler_and_the_town(monkeypatch, tmp_path):
+    """Nothing built and no compiler: the one build fails once, with one warning that says what
+    falls back (the fast sampler to grid_sample, the town to its torch shading), and the town
+    renders the same labels and depths (colours within float32 roundings)."""
+    town = Town(0)
+    pose = torch.tensor([0.0, -1.2, 0.0])
+    fast = town.render_cubemap(pose, face_size=16)
+    monkeypatch.setattr(extension, "_STATE", {})
+    monkeypatch.setattr(extension, "_LOADED", [])   # as in a new process: nothing loaded yet
+    monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path / "cache"))   # nothing built
+    monkeypatch.setenv("CXX", "no-such-compiler-here")
+    with pytest.warns(UserWarning, match="C\\+\\+ kernels could not be built") as caught:
+        slow = town.render_cubemap(pose, face_size=16)
+        assert not fastsample.available()
+        slow_again = town.render_cubemap(pose, face_size=16)
+    messages = [str(w.message) for w in caught if "omniscape_torch" in str(w.message)]
+    assert len(messages) == 1 and "no-such-compiler-here" in messages[0], messages
+    assert "fast sampler is unavailable" in messages[0] and "town shades with torch" in messages[0]
+    for key in ("labels", "depth", "range"):
+        assert torch.equal(slow[key], fast[key]) and torch.equal(slow_again[key], fast[key])
+    torch.testing.assert_close(slow["rgb"], fast["rgb"], rtol=0, atol=1e-6)

@@ -218,11 +218,11 @@ def test_half_precision_is_sampled_in_float32():
 
 @pytest.mark.slow
 @pytest.mark.parametrize("mode", ["nearest", "bilinear"])
-def test_reference_path_without_a_compiler(monkeypatch, mode):
-    """Where the C++ extension cannot be built (here: no compiler), the fast sampler is
-    unavailable after one warning that says why, and the layer renders through its reference
-    path (``grid_sample`` on the padded atlas): ``fast=False``'s images, and the fast
-    sampler's to rounding (labels exact)."""
+def test_reference_path_without_a_compiler(monkeypatch, tmp_path, mode):
+    """Where the C++ extension cannot be built (here: no compiler, nothing built), the fast
+    sampler is unavailable after one warning that says why, and the layer renders through its
+    reference path (``grid_sample`` on the padded atlas): ``fast=False``'s images, and the
+    fast sampler's to rounding (labels exact)."""
     cube, depth = make_cube(2, 3, 8), 1 + 9 * make_cube(2, 1, 8, seed=2)
     labels = torch.randint(0, 2 ** 40, (2, 6, 1, 8, 8), generator=torch.Generator().manual_seed(2))
     rotation = rotations(2).float()
@@ -240,12 +240,14 @@ def test_reference_path_without_a_compiler(monkeypatch, mode):
 
     def build_without_a_compiler():
         # $CXX names no compiler while the extension is built, and only then: inductor, which
-        # compiles the layer's grids, would remember a failure of its own for the process
+        # compiles the layer's grids, would remember a failure of its own for the process; and
+        # an empty cache (a library built there loads without a compiler)
         with monkeypatch.context() as scope:
             scope.setenv("CXX", "no-such-compiler-here")
+            scope.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path / "cache"))
             return build()
 
-    monkeypatch.setattr(fastsample, "_STATE", {})
+    monkeypatch.setattr(extension, "_STATE", {})
     monkeypatch.setattr(extension, "_LOADED", [])   # as in a new process: nothing loaded yet
     monkeypatch.setattr(extension, "_build", build_without_a_compiler)
     with pytest.warns(UserWarning, match="fast sampler is unavailable") as caught:

@@ -1,6 +1,6 @@
 """The procedural town (``omniscape_torch.scenes``): determinism, geometry (the meshes against
 the primitives they come from), labels, exactness of the cubemap path against direct ray
-casting, the C shading against the torch reference, shadows, weather presets (CARLA's
+casting, the C++ shading ops against the torch reference, shadows, weather presets (CARLA's
 parameters), layouts and their routes, motion."""
 
 from __future__ import annotations
@@ -14,7 +14,8 @@ import torch
 
 from omniscape_torch.cubemap import FACES
 from omniscape_torch.cubemap.faces import face_pixel_to_ray, face_rays
-from omniscape_torch.scenes import CLASS_IDS, WEATHERS, Town, mesh, native, routes
+from omniscape_torch.scenes import CLASS_IDS, WEATHERS, Town, mesh, routes
+from omniscape_torch.scenes import town as town_module
 from omniscape_torch.scenes.town import CARLA_WEATHERS, LAYOUTS, _get_weather, edge_texels
 
 POSE = torch.tensor([0.0, -1.2, 0.0])  # on the centre line, eye height, looking north
@@ -259,8 +260,8 @@ def test_c_shading_matches_the_torch_reference(town, weather):
     """The C loops and the torch reference give the same labels, ranges and hits, and colours
     and normals within a few float32 roundings (torch's sqrt is not correctly rounded on
     every CPU: one unit in the last place, here and there)."""
-    if native.library() is None:
-        pytest.skip("no C compiler: the town shades with the torch reference")
+    if town_module._ops() is None:
+        pytest.skip("no C++ compiler: the town shades with the torch reference")
     rot = _rotation(0.1, 0.5, -0.05)
     pos = torch.tensor([[2.0, -1.6, -7.5]])
     d = town.cubemap_rays(40, rot).reshape(-1, 3).contiguous()
@@ -430,7 +431,7 @@ def test_layouts_and_their_routes(layout):
 def test_without_a_c_compiler_the_town_renders_the_same_with_torch(town, cube, monkeypatch):
     """Where the C loops cannot be built, the town traces and shades with torch: the same
     labels and depths, colours within float32 roundings."""
-    monkeypatch.setattr(native, "library", lambda: None)
+    monkeypatch.setattr(town_module, "_ops", lambda: None)
     slow = town.render_cubemap(POSE, face_size=48)
     for key in ("labels", "depth", "range"):
         assert torch.equal(slow[key], cube[key]), key
@@ -519,7 +520,7 @@ def test_bad_antialias(town):
 
 def test_texel_subset_without_a_c_compiler(town, cube, monkeypatch):
     """The torch fallback writes a texel subset's colours too (and anti-aliases them)."""
-    monkeypatch.setattr(native, "library", lambda: None)
+    monkeypatch.setattr(town_module, "_ops", lambda: None)
     mask = torch.zeros(6, 48, 48, dtype=torch.bool)
     mask[:, 10:30, 5:25] = True
     part = town.render_cubemap(POSE, face_size=48, texels=mask)

@@ -1,39 +1,60 @@
-"""The fast sampler's per-pixel loops (``csrc/fastsample.cpp``) as PyTorch custom ops, built on
-first use.
+"""The package's C++ kernels as PyTorch custom ops, one library built on first use: the fast
+sampler's per-pixel loops (``csrc/fastsample.cpp``) and the town's shading loops
+(``csrc/town_shade.cpp``).
 
 Why hand-written: a bilinear tap is four loads a texel apart, which a C loop does in a few
 instructions; ``torch.compile`` (inductor) turns each gather into a vector of 64-bit indices
 stored to a buffer and read back one by one. Measured on 2 cores, 6 x 512 -> 1024 x 1024 RGB
 float32 through a lookup table, into a reused buffer: 7.0 -> 5.2 ms at batch 1 and 78 -> 36 ms
-at batch 8 (``cv2.remap`` of the same images: 5.9 and 34-47 ms).
+at batch 8 (``cv2.remap`` of the same images: 5.9 and 34-47 ms). Shading a town hit is about
+150 float operations: as torch kernels over batches of rays each is a pass over memory with its
+own dispatch, about 0.5 microseconds a ray in all (2 cores, batches of 16 to 64 thousand rays),
+more than Embree's tracing (0.25); one C++ loop over the rays does it in registers, about 0.03.
 
-:func:`load` builds the source with ``torch.utils.cpp_extension.load`` (ninja and the C++
-compiler torch uses, ``$CXX`` else ``c++``; about 40 s once per machine on 2 cores, most of it the
-instantiations of the samplers per element, output and grid type; the torch headers take 5 s,
-against 30 s with ``torch/extension.h``) into torch's extension cache
-(``$TORCH_EXTENSIONS_DIR``, default ``~/.cache/torch_extensions/<python>_<device>/``) and
-loads it: the ops ``torch.ops.omniscape_torch.{build_lut, sample_lut, sample_grid,
-sample_rays, camera_grid}`` (schemas in the source), with their fake implementations for
-``torch.compile`` registered here. A later process finds it built (ninja checks the source and
-the flags) and loads it in 0.1-0.2 s, mostly the import of ``cpp_extension``. Concurrent first uses
-(processes, ``DataLoader`` workers) are serialised by ``cpp_extension``'s lock file in the
-build folder: one builds, the others wait and load. (A build killed outright, SIGKILL, leaves
-that file behind, and later loads wait for it forever: delete the folder's ``lock``.)
+The ops, ``torch.ops.omniscape_torch.*`` (:data:`OPS`; schemas in the sources): the samplers
+``build_lut, sample_lut, sample_grid, sample_rays, camera_grid, camera_rays, sample_image`` and
+the town's ``town_backfaces, town_prepare, town_shade, town_store``. Each checks its arguments
+(device, dtype, shape, contiguity, index ranges) before it reads any, raising a RuntimeError
+that names the op and the argument; their fake implementations for ``torch.compile`` are
+registered here. A call through ``torch.ops`` releases the GIL while the op runs, so the town's
+worker threads shade in parallel.
 
-The extension's name holds a hash of the CPU's feature flags (``-march=native`` code must not
-be loaded on another CPU that shares the home directory, e.g. over NFS), of the torch version
-and Python ABI it links against, of the flags, of the source and of its path: each gets its
-own build folder, so that no process loads, or rebuilds under another's feet, a library built
-from another source (two checkouts sharing a home); an edited source leaves its old folder
-behind. The path: two checkouts of the same source would otherwise share a folder whose build
-file names one of them, and ninja rebuilt the library (about 60 s) each time the other was
-used.
+Build: :func:`load` builds both sources with one ``torch.utils.cpp_extension.load`` call (ninja
+and the C++ compiler torch uses, ``$CXX`` else ``c++``; about 45 s once per machine on 2 cores,
+the two sources compiled side by side, most of it the instantiations of the samplers per
+element, output and grid type; the torch headers take 5 s, against 30 s with
+``torch/extension.h``) into torch's extension cache (``$TORCH_EXTENSIONS_DIR``, default
+``~/.cache/torch_extensions/<python>_<device>/``) and loads the library. A build prints one line
+to stderr as it starts (``omniscape_torch: building the C++ kernels ...``) and one when it is
+done, with its time. A process that finds the library built (the ``.so`` of its name in its
+folder, and no build under way there: no ``lock``; the name is a hash of the content, so the
+file is what this install would build) loads it directly, with no compiler, ninja or build
+file involved, and prints nothing (on 2 cores 0.15 s at rest, 0.25 s at a load of 3; most
+of it the import of ``cpp_extension``, whose function names the folder). Concurrent first uses (processes,
+``DataLoader`` workers) are serialised by ``cpp_extension``'s lock file in the build folder: one
+builds, the others wait and load. (A build killed outright, SIGKILL, leaves that file behind,
+and later loads wait for it forever: delete the folder's ``lock``.)
+
+The cache is keyed by content: the extension's name (:func:`name`) holds a hash of the CPU's
+feature flags (``-march=native`` code must not be loaded on another CPU that shares the home
+directory, e.g. over NFS), of the torch version and Python ABI it links against, of the flags
+and of the sources' names and bytes, never of where they lie. The sources are copied into the
+build folder (each written to a temporary and renamed, once) and built from there, so the build
+file names the same paths for every checkout or install of the same source: they all load the
+one library (two checkouts used to rebuild each other's, about 60 s, when the build file named
+the checkout's own path). An edited source is another name, another folder; the old one stays
+behind.
 The face table is generated from ``cubemap/faces.py`` (the only one) and passed as
 ``-DOS_FACE_CASES=...``: a changed table is a new build.
 
 The library is built with OpenMP, the runtime PyTorch has already loaded (``libgomp.so.1``), and
-the loops run on PyTorch's intra-op threads (``at::parallel_for``). Where no compiler or ninja
-is found, :func:`load` raises; :mod:`.fast` turns that into one warning and its reference path.
+the samplers' loops run on PyTorch's intra-op threads (``at::parallel_for``); the town's ops run
+on the calling thread (the town splits its rays into tasks on threads of its own). Where the
+library cannot be built (no compiler, no ninja, a read-only cache), :func:`load` raises and
+:func:`ops` warns once and returns None: the fast sampler (:mod:`.fast`) is then unavailable and
+``OmniProjection`` samples with ``grid_sample``, and the town shades with torch
+(``Town._shade_reference``: the same labels and depths, colours within float32 roundings,
+several times slower).
 """
 
 from __future__ import annotations
@@ -46,16 +67,23 @@ import shutil
 import sys
 import sysconfig
 import threading
+import time
+import warnings
 from pathlib import Path
 
 import torch
 
-__all__ = ["load", "name", "face_case_flags", "CFLAGS", "LDFLAGS", "NAMESPACE", "OPS", "SOURCE"]
+from ..io.atomic import atomic_path
 
-SOURCE = Path(__file__).with_name("csrc") / "fastsample.cpp"
+__all__ = ["load", "ops", "unavailable_reason", "name", "face_case_flags", "CFLAGS", "LDFLAGS",
+           "NAMESPACE", "OPS", "SOURCES"]
+
+#: The sources of the one library: the samplers (which define the namespace) and the town.
+SOURCES = (Path(__file__).with_name("csrc") / "fastsample.cpp",
+           Path(__file__).with_name("csrc") / "town_shade.cpp")
 NAMESPACE = "omniscape_torch"
 OPS = ("build_lut", "sample_lut", "sample_grid", "sample_rays", "camera_grid", "camera_rays",
-       "sample_image")
+       "sample_image", "town_backfaces", "town_prepare", "town_shade", "town_store")
 #: ``-march=native``: the library is built for this machine's CPU (its flags are in the name);
 #: ``-fno-trapping-math``: float comparisons may be evaluated speculatively, so the tap
 #: computation vectorises (no result changes); ``-ffp-contract=off``: no fused multiply-adds
@@ -65,8 +93,11 @@ CFLAGS = ("-O3", "-march=native", "-fno-trapping-math", "-fno-math-errno", "-ffp
           "-fopenmp")
 LDFLAGS = ("-fopenmp",)
 
-_LOCK = threading.Lock()
+_LOCK = threading.RLock()
 _LOADED: list[str] = []   # the path of the library once loaded in this process
+_STATE: dict = {}   # "ops": torch.ops.omniscape_torch, or None once they could not be built;
+#                     "error": why
+_LIB_EXT = ".pyd" if sys.platform == "win32" else ".so"   # cpp_extension's
 
 
 def _cpu() -> str:
@@ -79,15 +110,40 @@ def _cpu() -> str:
         return platform.machine() + platform.processor()
 
 
-def name() -> str:
-    """The extension's name: ``omniscape_torch_fastsample_`` and a hash of what the library is
+def name(sources: dict[str, bytes] | None = None) -> str:
+    """The extension's name: ``omniscape_torch_kernels_`` and a hash of what the library is
     built for and from: this CPU's feature flags, the torch version and Python ABI it links
-    against, the flags (the face table among them), the source and where it lies."""
+    against, the flags (the face table among them), and the sources' file names and bytes
+    (``sources``, default :func:`_sources`), not where they lie."""
     parts = [_cpu().strip(), torch.__version__, sys.implementation.cache_tag or "",
-             getattr(sys, "abiflags", ""), *CFLAGS, *LDFLAGS, *face_case_flags(),
-             str(SOURCE.resolve())]
-    digest = hashlib.sha256("\0".join(parts).encode() + b"\0" + SOURCE.read_bytes())
-    return f"omniscape_torch_fastsample_{digest.hexdigest()[:12]}"
+             getattr(sys, "abiflags", ""), *CFLAGS, *LDFLAGS, *face_case_flags()]
+    digest = hashlib.sha256("\0".join(parts).encode())
+    for file, data in (_sources() if sources is None else sources).items():
+        digest.update(f"\0{file}\0{len(data)}\0".encode() + data)
+    return f"omniscape_torch_kernels_{digest.hexdigest()[:12]}"
+
+
+def _sources() -> dict[str, bytes]:
+    """``{file name: bytes}`` of :data:`SOURCES`, read once for the name and the copies."""
+    return {path.name: path.read_bytes() for path in SOURCES}
+
+
+def _copy_sources(sources: dict[str, bytes], folder: Path) -> list[str]:
+    """The sources' copies in the build folder, written where missing or different (each to a
+    temporary, then renamed: a concurrent build never reads half a file). A copy already there
+    is left alone, its time too, so that ninja finds nothing to rebuild."""
+    paths = []
+    for file, data in sources.items():
+        path = folder / file
+        try:
+            same = path.read_bytes() == data
+        except FileNotFoundError:
+            same = False
+        if not same:
+            with atomic_path(path, suffix=path.suffix) as tmp:
+                tmp.write_bytes(data)
+        paths.append(str(path))
+    return paths
 
 
 def face_case_flags() -> list[str]:
@@ -150,13 +206,29 @@ def _check_compiler() -> None:
 
 
 def _build() -> str:
-    """Build (or find built) and load the library; its path."""
+    """Load the library, built first where its folder holds none; its path."""
     from torch.utils import cpp_extension
+    sources = _sources()
+    ext = name(sources)
+    folder = Path(cpp_extension._get_build_directory(ext, False))
+    library = folder / f"{ext}{_LIB_EXT}"
+    # built: the library is there and no build is under way (the lock is taken before the
+    # build starts and given back once the library is whole: look for the library first)
+    if library.is_file() and not (folder / "lock").exists():
+        torch.ops.load_library(str(library))
+        return str(library)
     _check_compiler()
+    paths = _copy_sources(sources, folder)
     with _ninja_on_path():
-        return cpp_extension.load(name(), [str(SOURCE)],
-                                  extra_cflags=[*CFLAGS, *face_case_flags()],
-                                  extra_ldflags=list(LDFLAGS), is_python_module=False)
+        print("omniscape_torch: building the C++ kernels for this install (about 40 s, once) "
+              f"in {folder} ...", file=sys.stderr, flush=True)
+        start = time.perf_counter()
+        path = cpp_extension.load(ext, paths, extra_cflags=[*CFLAGS, *face_case_flags()],
+                                  extra_ldflags=list(LDFLAGS), build_directory=str(folder),
+                                  is_python_module=False)
+        print(f"omniscape_torch: the C++ kernels built in {time.perf_counter() - start:.1f} s",
+              file=sys.stderr, flush=True)
+    return path
 
 
 def load() -> torch._ops._OpNamespace:
@@ -165,12 +237,41 @@ def load() -> torch._ops._OpNamespace:
 
     Raises:
         RuntimeError: no C++ compiler, no ninja, or the build failed (its output).
+        OSError: the cache folder cannot be written.
     """
     with _LOCK:
         if not _LOADED:
             _LOADED.append(_build())
             _register_fakes()
     return getattr(torch.ops, NAMESPACE)
+
+
+def ops() -> torch._ops._OpNamespace | None:
+    """The ops (:func:`load`), or None where they cannot be built, after one ``UserWarning`` in
+    the process that says why (:func:`unavailable_reason`): the fast sampler and the town both
+    take their torch paths then, and the one build is tried once."""
+    if "ops" in _STATE:
+        return _STATE["ops"]
+    with _LOCK:
+        if "ops" not in _STATE:
+            try:
+                _STATE["ops"] = load()
+            except Exception as exc:  # no compiler, no ninja, a read-only cache, ...
+                hint = ("; set $TORCH_EXTENSIONS_DIR to a writable folder"
+                        if isinstance(exc, OSError) else "")
+                _STATE["ops"], _STATE["error"] = None, f"{type(exc).__name__}: {exc}{hint}"
+                warnings.warn(f"omniscape_torch: the C++ kernels could not be built "
+                              f"({_STATE['error'][:500]}): the fast sampler is unavailable "
+                              "(OmniProjection samples with grid_sample on the padded atlas) "
+                              "and the town shades with torch (the same labels and depths, "
+                              "colours to float32 rounding, several times slower)",
+                              UserWarning, stacklevel=3)
+    return _STATE["ops"]
+
+
+def unavailable_reason() -> str | None:
+    """Why :func:`ops` is None (``"Error: message"``), else None."""
+    return _STATE.get("error")
 
 
 # ------------------------------------------------------------------------------------------
@@ -228,10 +329,47 @@ def _fake_sample_image(image, rays, rotation, intrinsics, valid, bilinear, fill,
            "sample_image: expected image (B, C, H, W), rays (B, h, w, 3), out (B, C, h, w)")
 
 
+def _fake_rays(o, d, t, tri, u, v, what: str) -> None:
+    n = d.shape[0]
+    _check(d.dim() == 2 and d.shape[1] == 3 and o.dim() == 2 and o.shape[1] == 3
+           and o.shape[0] in (1, n) and t.shape == tri.shape == u.shape == v.shape == (n,),
+           f"{what}: expected o (n or 1, 3), d (n, 3), t, tri, u, v (n,)")
+
+
+def _fake_town_backfaces(d, tri, attr, out) -> None:
+    _check(d.dim() == 2 and d.shape[1] == 3 and tri.shape == out.shape == (d.shape[0],),
+           "town_backfaces: expected d (n, 3), tri and out (n,)")
+
+
+def _fake_town_prepare(o, d, t, tri, u, v, attr, tris, vn, weather, bias0, bias_per_m, need,
+                       origin, shadow) -> None:
+    _fake_rays(o, d, t, tri, u, v, "town_prepare")
+    _check(need.shape == shadow.shape == (d.shape[0],) and origin.shape == d.shape,
+           "town_prepare: expected need, shadow (n,) and origin (n, 3)")
+
+
+def _fake_town_shade(o, d, t, tri, u, v, attr, tris, vn, weather, shadow, lamps, rgb, range_,
+                     labels, normal) -> None:
+    _fake_rays(o, d, t, tri, u, v, "town_shade")
+    _check(rgb.shape == normal.shape == d.shape and range_.shape == labels.shape
+           == shadow.shape == (d.shape[0],),
+           "town_shade: expected rgb, normal (n, 3), shadow, range, labels (n,)")
+
+
+def _fake_town_store(d, index, start, rgb, range_, labels, hit, axis, far, rgb_out, depth_out,
+                     range_out, labels_out) -> None:
+    _check(rgb.shape == d.shape and rgb_out.dim() == 2 and rgb_out.shape[0] == 3
+           and depth_out.shape == range_out.shape == labels_out.shape == (rgb_out.shape[1],),
+           "town_store: expected d, rgb (n, 3), rgb_out (3, P), depth_out, range_out and "
+           "labels_out (P,)")
+
+
 _FAKES = {"build_lut": _fake_build_lut, "sample_lut": _fake_sample_lut,
           "sample_grid": _fake_sample_grid, "sample_rays": _fake_sample_rays,
           "camera_grid": _fake_camera_grid, "camera_rays": _fake_camera_rays,
-          "sample_image": _fake_sample_image}
+          "sample_image": _fake_sample_image, "town_backfaces": _fake_town_backfaces,
+          "town_prepare": _fake_town_prepare, "town_shade": _fake_town_shade,
+          "town_store": _fake_town_store}
 
 
 def _register_fakes() -> None:

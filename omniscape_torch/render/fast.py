@@ -35,13 +35,14 @@ the weights are then identical and the blend differs from ``grid_sample`` by flo
 gathers one texel, exact for any dtype (integer labels).
 
 The per-pixel loops are C++ custom ops, ``torch.ops.omniscape_torch.*``
-(``csrc/fastsample.cpp``, built on first use by :mod:`.extension`): one pass per call computes
+(``csrc/fastsample.cpp``, built on first use by :mod:`.extension`, one library with the town's
+shading): one pass per call computes
 every pixel's taps (or reads them from the table), blends the interior pixels and reads the
 edge pixels' taps through the ring, straight into the output. ``torch.compile`` traces through
 them (their fake implementations are registered with them). Where they cannot be built (no
 C++ compiler, no ninja) the fast sampler is unavailable (:func:`available`: False after one
-warning that says why) and ``OmniProjection`` takes its reference path, ``grid_sample`` on the
-padded atlas; the functions here then raise.
+warning that says why, the extension's one) and ``OmniProjection`` takes its reference path,
+``grid_sample`` on the padded atlas; the functions here then raise.
 
 CPU only; other devices keep ``grid_sample``. Timings: ``benchmarks/bench_projection.py``.
 """
@@ -49,8 +50,6 @@ CPU only; other devices keep ``grid_sample``. Timings: ``benchmarks/bench_projec
 from __future__ import annotations
 
 import functools
-import threading
-import warnings
 from dataclasses import dataclass
 
 import torch
@@ -127,29 +126,10 @@ def _table(base: Tensor, fx: Tensor, fy: Tensor) -> Tensor:
 # The C++ ops, or why there are none
 # ------------------------------------------------------------------------------------------
 
-_LOCK = threading.Lock()
-_STATE: dict = {}   # "ops": torch.ops.omniscape_torch, or None once they could not be built;
-#                     "error": why
-
-
 def _ops():
-    """The ops, built and loaded on the first call; None (after one warning) where they cannot
-    be built."""
-    if "ops" in _STATE:
-        return _STATE["ops"]
-    with _LOCK:
-        if "ops" not in _STATE:
-            try:
-                _STATE["ops"] = extension.load()
-            except Exception as exc:  # no compiler, no ninja, a read-only cache, ...
-                hint = ("; set $TORCH_EXTENSIONS_DIR to a writable folder"
-                        if isinstance(exc, OSError) else "")
-                _STATE["ops"], _STATE["error"] = None, f"{type(exc).__name__}: {exc}{hint}"
-                warnings.warn(f"omniscape_torch: the fast sampler is unavailable, its C++ "
-                              f"extension could not be built ({_STATE['error'][:500]}); "
-                              "OmniProjection samples with grid_sample on the padded atlas "
-                              "instead", UserWarning, stacklevel=3)
-    return _STATE["ops"]
+    """The ops, built and loaded on the first call; None (after one warning, shared with the
+    town's shading: :func:`.extension.ops`) where they cannot be built."""
+    return extension.ops()
 
 
 def available() -> bool:
@@ -161,7 +141,7 @@ def available() -> bool:
 
 def unavailable_reason() -> str | None:
     """Why :func:`available` is False (``"Error: message"``), else None."""
-    return _STATE.get("error")
+    return extension.unavailable_reason()
 
 
 def compile_failures() -> dict[tuple, str]:

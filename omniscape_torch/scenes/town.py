@@ -37,10 +37,11 @@ where ``lit`` is 0 when a shadow ray towards the sun (traced by Embree as well) 
 the weather preset (:data:`WEATHERS`) changes light, colour, wetness and fog, never geometry or
 labels.
 
-Shading runs in C (:mod:`.native`, ``csrc/town_shade.c``) where a compiler builds it, else in
-torch (:meth:`Town._shade_reference`, the same operations in the same order: the same labels and
-depths, colours within a few float32 roundings, torch's ``sqrt`` not being correctly rounded on
-every CPU).
+Shading runs in C++ (the ops ``torch.ops.omniscape_torch.town_*``, ``render/csrc/town_shade.cpp``,
+built with the fast sampler into one library by :mod:`omniscape_torch.render.extension`) where a
+compiler builds it, else in torch (:meth:`Town._shade_reference`, the same operations in the
+same order: the same labels and depths, colours within a few float32 roundings, torch's
+``sqrt`` not being correctly rounded on every CPU).
 
 Exactness: every ray is traced and shaded on its own (Embree's closest hit, which does not
 depend on the batch; then ``+ - * /``, ``sqrt``, comparisons and integer hashing, no
@@ -67,8 +68,8 @@ from torch import Tensor
 
 from ..cameras._base import broadcast_shapes
 from ..cubemap.faces import face_axes, face_pixel_to_ray, face_rays
+from ..render import extension as _extension
 from . import mesh as _mesh
-from . import native as _native
 
 __all__ = ["CARLA_PRESETS", "CARLA_WEATHERS", "CLASS_IDS", "LAYOUTS", "Street", "Town", "Weather",
            "WEATHERS", "carla_weather", "edge_texels"]
@@ -405,15 +406,21 @@ def _dot(a: Tensor, b) -> Tensor:
     return a[:, 0] * b[..., 0] + a[:, 1] * b[..., 1] + a[:, 2] * b[..., 2]
 
 
-def _pointer(a: np.ndarray) -> int:
-    """The address of a C-contiguous array's data, for ctypes."""
-    assert a.flags.c_contiguous
-    return a.ctypes.data
+def _ops():
+    """The C++ shading ops (``torch.ops.omniscape_torch``), built on the first call; None where
+    they cannot be built (after the extension's one warning): the town shades with torch."""
+    return _extension.ops()
+
+
+def _t(a: np.ndarray) -> Tensor:
+    """A numpy array as a tensor on its memory (no copy), for the ops."""
+    return torch.from_numpy(a)
 
 
 def _native_weather(w: Weather, far: float) -> np.ndarray:
-    """The weather's numbers as the C loops read them (``W_*`` in ``csrc/town_shade.c``),
-    float32 as torch rounds Python numbers in :meth:`Town._shade_reference`."""
+    """The weather's numbers as the C++ loops read them (``W_*`` in
+    ``render/csrc/town_shade.cpp``), float32 as torch rounds Python numbers in
+    :meth:`Town._shade_reference`."""
     values = [*w.sun_direction(), *w.sun_colour, *w.ambient, *w.sky_zenith, *w.sky_horizon,
               *w.fog_colour, w.fog_density / 256.0, w.lamps * 30.0, w.windows,
               0.75 * w.wetness,
@@ -710,9 +717,9 @@ class Town:
         self._triangles = torch.from_numpy(m.triangles.astype(np.int64))
         self._vertex_normal = torch.from_numpy(m.normals)
         self._vertex_mover = mover[torch.from_numpy(m.vertex_part)]
-        # what the C loops read: attributes (K, T), corners (T, 3) int32, vertex normals, lamps
-        self._tables = (self._tri_attr.numpy(), m.triangles, m.normals,
-                        np.ascontiguousarray(self.lamps.numpy().reshape(-1, 3)))
+        # what the C++ loops read: attributes (K, T), corners (T, 3) int32, vertex normals, lamps
+        self._tables = (self._tri_attr, torch.from_numpy(m.triangles),
+                        torch.from_numpy(m.normals), self.lamps.reshape(-1, 3).contiguous())
 
     @property
     def classes_present(self) -> set[int]:
@@ -793,17 +800,16 @@ class Town:
 
     def _backfaces(self, d: np.ndarray, tri: np.ndarray) -> np.ndarray:
         """``(N,)`` bool: the hits ``tri`` that rays ``d`` meet from behind their face."""
-        lib = _native.library()
-        if lib is None:
+        ops = _ops()
+        if ops is None:
             fn = self.mesh.face_normals[np.maximum(tri, 0)]
             return (tri >= 0) & (fn[:, 0] * d[:, 0] + fn[:, 1] * d[:, 1] + fn[:, 2] * d[:, 2]
                                  > 0)
         d = np.ascontiguousarray(d, np.float32)
         tri = np.ascontiguousarray(tri, np.int64)
-        out = np.empty(d.shape[0], np.uint8)
-        lib.town_backfaces(d.shape[0], _pointer(d), _pointer(tri), _pointer(self._tables[0]),
-                           self._tables[0].shape[1], _pointer(out))
-        return out.view(bool)
+        out = np.empty(d.shape[0], bool)
+        ops.town_backfaces(_t(d), _t(tri), self._tables[0], _t(out))
+        return out
 
     # ---------------------------------------------------------------- shading
     def _shade(self, o: np.ndarray, d: np.ndarray, t: np.ndarray, tri: np.ndarray,
@@ -811,27 +817,24 @@ class Town:
                ) -> dict[str, Tensor]:
         """Labels, range, normal and colour of rays ``o (N, 3) or (1, 3)``, ``d (N, 3)`` (numpy
         float32) from their closest hits (:meth:`_trace`), with shadow rays towards the sun
-        through ``scene``: the C loops (:mod:`.native`) where they are built, else
-        :meth:`_shade_reference` (the same result)."""
-        lib = _native.library()
-        if lib is None:
+        through ``scene``: the C++ ops (``town_prepare``, ``town_shade``) where they are built,
+        else :meth:`_shade_reference` (the same result)."""
+        ops = _ops()
+        if ops is None:
             return self._shade_reference(*(torch.from_numpy(np.ascontiguousarray(x))
                                            for x in (o, d, t, tri, u, v)), w, scene)
         n = d.shape[0]
         o = np.ascontiguousarray(o, np.float32)
         d = np.ascontiguousarray(d, np.float32)
         tri = np.ascontiguousarray(tri, np.int64)
-        wp = _native_weather(w, self.far)
         tables = self._tables
-        ptr = _pointer
-        common = [n, ptr(o), 3 if o.shape[0] > 1 else 0, ptr(d), ptr(t), ptr(tri), ptr(u),
-                  ptr(v), ptr(tables[0]), tables[0].shape[1], ptr(tables[1]), ptr(tables[2]),
-                  ptr(wp)]
-        need = np.empty(n, np.uint8)
+        common = [_t(o), _t(d), _t(t), _t(tri), _t(u), _t(v), *tables[:3],
+                  _t(_native_weather(w, self.far))]
+        need = np.empty(n, bool)
         origin = np.empty((n, 3), np.float32)
-        shadow = np.empty(n, np.uint8)
-        lib.town_prepare(*common, SHADOW_BIAS, SHADOW_BIAS_PER_M, ptr(need), ptr(origin),
-                         ptr(shadow))
+        shadow = np.empty(n, bool)
+        ops.town_prepare(*common, SHADOW_BIAS, SHADOW_BIAS_PER_M, _t(need), _t(origin),
+                         _t(shadow))
         lit = np.flatnonzero(need)
         if lit.size:
             towards = np.broadcast_to(np.array(w.sun_direction(), np.float32), (lit.size, 3))
@@ -841,8 +844,7 @@ class Town:
         labels = np.empty(n, np.int64)
         normal = np.empty((n, 3), np.float32)
         lamps = tables[3] if w.lamps > 0 else tables[3][:0]
-        lib.town_shade(*common, ptr(shadow), ptr(lamps), lamps.shape[0], ptr(rgb), ptr(rng),
-                       ptr(labels), ptr(normal))
+        ops.town_shade(*common, _t(shadow), lamps, _t(rgb), _t(rng), _t(labels), _t(normal))
         return {"rgb": torch.from_numpy(rgb), "range": torch.from_numpy(rng),
                 "labels": torch.from_numpy(labels), "normal": torch.from_numpy(normal),
                 "hit": torch.from_numpy(tri >= 0)}
@@ -1162,7 +1164,7 @@ class Town:
         rays_np, origin_np = rays.numpy(), origin.numpy()
         rgb_np, dep_np, rng_np, lab_np = (x.numpy() for x in (rgb, dep, rng, lab))
         axes_np = axes.numpy()
-        lib = _native.library()
+        ops = _ops()
 
         def job(task) -> None:
             f, q = task
@@ -1170,20 +1172,18 @@ class Town:
             res = {k: v.numpy() for k, v in self._shade(
                 origin_np, d, *self._trace(scene, origin_np, d), w, scene).items()}
             a = axes_np[f]
-            if lib is None:
+            if ops is None:
                 depth = np.where(res["hit"], res["range"] * (d[:, 0] * a[0] + d[:, 1] * a[1]
                                                              + d[:, 2] * a[2]), self.far)
                 rgb_np[0, f][:, q] = res["rgb"].T   # (3, n): not rgb_np[0, f, :, q], (n, 3)
                 dep_np[0, f, q], rng_np[0, f, q], lab_np[0, f, q] = \
                     depth, res["range"], res["labels"]
                 return
-            ptr = _pointer
-            index, start = (None, q.start) if isinstance(q, slice) else (ptr(q), 0)
-            lib.town_store(d.shape[0], index, start, ptr(np.ascontiguousarray(d)),
-                           ptr(res["rgb"]), ptr(res["range"]), ptr(res["labels"]),
-                           ptr(res["hit"]), ptr(np.ascontiguousarray(a)), self.far, F * F,
-                           ptr(rgb_np[0, f]), ptr(dep_np[0, f]), ptr(rng_np[0, f]),
-                           ptr(lab_np[0, f]))
+            index, start = (None, q.start) if isinstance(q, slice) else (_t(q), 0)
+            ops.town_store(_t(np.ascontiguousarray(d)), index, start,
+                           *(_t(res[k]) for k in ("rgb", "range", "labels", "hit")),
+                           _t(np.ascontiguousarray(a)), self.far, rgb[0, f], dep[0, f],
+                           rng[0, f], lab[0, f])
 
         self._run(tasks, job)
         if antialias > 1:
