@@ -368,6 +368,7 @@ def test_town_ops_let_go_of_the_gil():
 # ------------------------------------------------------------------------------------------
 # torch.compile
 # ------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_compiled_layer_gives_the_eager_result():
     """``torch.compile(layer)`` without gradients: the ops are traced through their fake
     implementations into the compiled graphs, and the images are the eager ones."""
@@ -530,6 +531,7 @@ def _mirror_path_without_ninja(folder: Path) -> str:
     return str(folder)
 
 
+@pytest.mark.slow
 def test_loads_with_ninja_installed_beside_python_but_not_on_the_path(tmp_path):
     """``.venv/bin/python -m pytest`` without activating the virtualenv: ninja is in
     ``.venv/bin``, not on the PATH; the extension still builds or loads (a new process), and
@@ -544,6 +546,7 @@ def test_loads_with_ninja_installed_beside_python_but_not_on_the_path(tmp_path):
     assert path_kept == "True" and available == "True"
 
 
+@pytest.mark.slow
 def test_concurrent_first_uses_build_once(tmp_path):
     """Two processes using the sampler for the first time on a machine at once (e.g. two
     training scripts, or DataLoader workers): one builds under cpp_extension's lock, the other
