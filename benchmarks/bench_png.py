@@ -49,7 +49,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 from common import (ROOT, begin_run, loadavg, measure, positive_int, results_path,  # noqa: E402
-                    run_record, write_json_atomic)
+                    run_main, run_record)
 
 DATA = ROOT.parent / "shared" / "data"
 PHOTO = DATA / "ocamcalib_real" / "img0.jpg"
@@ -237,12 +237,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
-    result = run(args)
-    print(markdown(result))
-    write_json_atomic(result, args.out)
-    print(f"\nwrote {args.out}")
-    return 0
+    return run_main(parse_args, run, markdown, argv)
 
 
 if __name__ == "__main__":
