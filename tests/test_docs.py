@@ -50,7 +50,9 @@ def _modules_with_all():
 
 
 def _covered(module_name: str, name: str, blocks) -> bool:
-    """A block of the module shows the name, or a block of a package that re-exports it."""
+    """A block of the module shows the name, or a block of a package that re-exports it, or
+    (for a module that re-exports another's names, as ``omniscape_torch.augment``) a block of
+    a module whose ``__all__`` holds the same object under that name."""
     listed = blocks.get(module_name, False)
     if listed is None or (listed and name in listed):
         return True
@@ -59,6 +61,12 @@ def _covered(module_name: str, name: str, blocks) -> bool:
         package = ".".join(parts[:i])
         pkg = importlib.import_module(package)
         if name in getattr(pkg, "__all__", ()) and blocks.get(package, False) is None:
+            return True
+    value = getattr(importlib.import_module(module_name), name)
+    for path, members in blocks.items():
+        other = importlib.import_module(path)
+        if (path != module_name and name in getattr(other, "__all__", ())
+                and (members is None or name in members) and getattr(other, name) is value):
             return True
     return False
 
