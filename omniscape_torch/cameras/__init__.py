@@ -27,10 +27,11 @@ equirectangular           fx, fy, cx, cy
 from __future__ import annotations
 
 from ._base import CameraModel
-from .camera import Camera
+from .camera import Camera, load_all
 from .export import FORMATS, write_camera
+from .readers import READ_FORMATS
 from .registry import MODELS, get_model
 from .unified import unified_from_mirror
 
-__all__ = ["Camera", "CameraModel", "FORMATS", "MODELS", "get_model", "unified_from_mirror",
-           "write_camera"]
+__all__ = ["Camera", "CameraModel", "FORMATS", "MODELS", "READ_FORMATS", "get_model", "load_all",
+           "unified_from_mirror", "write_camera"]
