@@ -63,6 +63,10 @@ def test_registry_matches_design_table():
         "unified": "fx fy cx cy xi k1 k2 p1 p2", "eucm": "fx fy cx cy alpha beta",
         "double_sphere": "fx fy cx cy xi alpha", "scaramuzza": "cx cy c d e a0",
         "equirectangular": "fx fy cx cy",
+        "fov": "fx fy cx cy omega", "division": "fx fy cx cy k",
+        "opencv": "fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6 s1 s2 s3 s4",
+        "thin_prism_fisheye": "fx fy cx cy k1 k2 p1 p2 k3 k4 sx1 sy1",
+        "fisheye624": "fx fy cx cy k0 k1 k2 k3 k4 k5 p0 p1 s0 s1 s2 s3",
     }
     assert list(ot.cameras.MODELS) == list(design)
     for name, names in design.items():
