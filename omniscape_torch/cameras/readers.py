@@ -187,7 +187,7 @@ def _load_all(cls, source, format, image_size, dtype, kwargs) -> dict:
     if fmt == "ocamcalib":
         build.add("camera", formats.read_ocamcalib(cls, path, dtype=dtype, **kwargs))
         return build.cameras
-    if fmt == "colmap" and text is None:
+    if fmt == "colmap" and (text is None or path.suffix == ".bin"):
         _colmap_binary(build, raw)
         return _nonempty(build, "cameras")
     if text is None:
@@ -228,7 +228,7 @@ def _detect(path: Path, raw: bytes, text: str | None) -> str:
     looked = ("looked for: a COLMAP cameras.bin/cameras.txt, OCamCalib's calib_results.txt, "
               "JSON (this package's, basalt's value0, Aria's CameraCalibrations), YAML (OpenCV "
               "K/camera_matrix, a Kalibr camchain, ORB-SLAM3 Camera.* settings)")
-    if text is None:
+    if text is None or path.suffix == ".bin":
         if path.suffix == ".bin" or _looks_colmap_binary(raw):
             return "colmap"
         raise ValueError(f"{path}: not a text file, nor a COLMAP cameras.bin ({looked})")
@@ -414,7 +414,10 @@ def _yaml_cv2(path: Path):
 
 def _from_node(node):
     if node.isMap():
-        return {k: _from_node(node.getNode(k)) for k in node.keys()}
+        keys = node.keys()
+        if {"rows", "cols", "dt", "data"} <= set(keys):   # an !!opencv-matrix
+            return node.mat()
+        return {k: _from_node(node.getNode(k)) for k in keys}
     if node.isSeq():
         return [_from_node(node.at(i)) for i in range(node.size())]
     if node.isString():
@@ -423,9 +426,7 @@ def _from_node(node):
         return int(node.real())
     if node.isReal():
         return node.real()
-    if node.empty() or node.isNone():
-        return None
-    return node.mat()   # an !!opencv-matrix
+    return None
 
 
 # --------------------------------------------------------------------------------------------
