@@ -186,6 +186,12 @@ def test_no_folding_radius_grows_with_angle(name, params, size):
     ("eucm", [220.0, 220.0, 0.0, 0.0, 0.6, 1.1]),
     ("double_sphere", [160.0, 160.0, 0.0, 0.0, -0.2, 0.6]),
     ("scaramuzza", None),
+    ("division", [400.0, 400.0, 0.0, 0.0, -0.3]),
+    # decentring shifts the 90-degree curve by ~3 px per 1e-3 of p: small p and s here
+    ("thin_prism_fisheye", [200.0, 200.0, 0.0, 0.0, -0.02, 0.004, 1e-4, -2e-4, -0.001, 0.0002,
+                            5e-5, -3e-5]),
+    ("fisheye624", [200.0, 200.0, 0.0, 0.0, -0.02, 0.003, -2e-4, 1e-5, 0.0, 0.0, 4e-4, -3e-4,
+                    2e-4, 1e-5, -3e-4, 2e-5]),
 ])
 def test_beyond_180_degrees(name, params):
     """Models whose domain passes 90 degrees keep points behind the camera (z < 0) valid up to
@@ -231,6 +237,24 @@ def test_limits_match_published_formulas():
     w1 = 0.4 / 0.6
     w2 = (w1 - 0.2) / math.sqrt(2 * w1 * -0.2 + 0.04 + 1)
     assert angle("double_sphere", [1, 1, 0, 0, -0.2, 0.6]) == pytest.approx(math.acos(-w2))
+    # Division: the ray (rd, 1 + k rd^2) turns back at rd^2 = 1 / k (k > 0): atan(1 / (2 sqrt k))
+    assert angle("division", [1, 1, 0, 0, 0.3]) == pytest.approx(math.atan(0.5 / math.sqrt(0.3)))
+    assert angle("division", [1, 1, 0, 0, -0.3]) == pytest.approx(math.pi)
+    assert angle("division", [1, 1, 0, 0, 0.0]) == pytest.approx(math.pi / 2)
+    assert angle("fov", [1, 1, 0, 0, 0.9]) == pytest.approx(math.pi / 2)
+    # OpenCV (k1=-0.35, k2=0.05): d(r (1 + k1 t + k2 t^2)) / dr = 1 - 1.05 t + 0.25 t^2
+    t = (1.05 - math.sqrt(1.05 ** 2 - 1.0)) / 0.5
+    assert angle("opencv", [1, 1, 0, 0, -0.35, 0.05] + [0] * 10) == pytest.approx(
+        math.atan(math.sqrt(t)), rel=1e-12)
+    # ... and with the rational denominator's pole first: 1 + k4 t = 0 at t = 0.5 (k4 = -2)
+    assert angle("opencv", [1, 1, 0, 0, 0, 0, 0, 0, 0, -2.0] + [0] * 6) <= math.atan(
+        math.sqrt(0.5)) + 1e-12
+    # The fisheyes: Kannala-Brandt's fold (k1=-0.12, k2=0.005) in their own coefficient orders
+    t = (0.36 - math.sqrt(0.36 ** 2 - 4 * 0.025)) / (2 * 0.025)
+    assert angle("fisheye624", [1, 1, 0, 0, -0.12, 0.005] + [0] * 10) == pytest.approx(
+        math.sqrt(t), rel=1e-12)
+    assert angle("thin_prism_fisheye", [1, 1, 0, 0, -0.12, 0.005] + [0] * 6) == pytest.approx(
+        math.sqrt(t), rel=1e-12)
 
 
 @pytest.mark.parametrize("name, params, size", [
@@ -410,6 +434,51 @@ def test_reduction_eucm_beta1_is_unified(alpha):
     xi, scale = alpha / (1 - alpha), 1 / (1 - alpha)
     assert _compare("eucm", [200, 210, 320, 300, alpha, 1.0],
                     "unified", [200 * scale, 210 * scale, 320, 300, xi, 0, 0, 0, 0], dirs) > 0
+
+
+@pytest.mark.parametrize("ks", [(-0.02, 0.004, -0.001, 0.0002), (-0.12, 0.005, 0.0, 0.0)])
+def test_reduction_fisheye624_without_tangential_and_prism_is_kannala_brandt(ks):
+    """fisheye624's k0..k3 are Kannala-Brandt's k1..k4 (theta^3 .. theta^9); k4 = k5 = 0 and
+    p = s = 0 leave the rest; the second lens folds (the same fold on both sides)."""
+    dirs = fibonacci_sphere(3000)
+    assert _compare("fisheye624", [200, 210, 320, 300, *ks, 0, 0, 0, 0, 0, 0, 0, 0],
+                    "kannala_brandt", [200, 210, 320, 300, *ks], dirs) > 0
+
+
+@pytest.mark.parametrize("ks", [(-0.02, 0.004, -0.001, 0.0002), (-0.12, 0.005, 0.0, 0.0)])
+def test_reduction_thin_prism_fisheye_without_p_and_s_is_kannala_brandt(ks):
+    """THIN_PRISM_FISHEYE's order is k1, k2, p1, p2, k3, k4, sx1, sy1."""
+    k1, k2, k3, k4 = ks
+    dirs = fibonacci_sphere(3000)
+    assert _compare("thin_prism_fisheye", [200, 210, 320, 300, k1, k2, 0, 0, k3, k4, 0, 0],
+                    "kannala_brandt", [200, 210, 320, 300, *ks], dirs) > 0
+
+
+def test_reduction_opencv_and_division_undistorted_are_pinhole():
+    dirs = fibonacci_sphere(3000)
+    dirs = dirs[dirs[:, 2] > 0.05]   # pinhole pixels beyond ~87 degrees run to 1e4 px and more
+    assert _compare("opencv", [400, 410, 320, 300] + [0] * 12,
+                    "pinhole", [400, 410, 320, 300], dirs) > 0
+    assert _compare("division", [400, 410, 320, 300, 0.0],
+                    "pinhole", [400, 410, 320, 300], dirs) > 0
+
+
+def test_reduction_fov_omega_to_zero_is_pinhole():
+    """omega = 0 is the pinhole exactly; as omega -> 0 the FOV model approaches it as omega^2
+    (its factor is 1 + omega^2 / 12 - omega^2 r^2 / 3 + ...)."""
+    dirs = fibonacci_sphere(3000)
+    dirs = dirs[dirs[:, 2] > 0.5]   # within 60 degrees: r <= sqrt(3)
+    pin, _ = ot.cameras.get_model("pinhole").project(dirs, torch.tensor([400.0, 410, 320, 300],
+                                                                       dtype=F64))
+    assert _compare("fov", [400, 410, 320, 300, 0.0], "pinhole", [400, 410, 320, 300], dirs) > 0
+    ratios = []
+    for omega in (1e-2, 1e-3, 1e-4):
+        px, valid = ot.cameras.get_model("fov").project(
+            dirs, torch.tensor([400.0, 410, 320, 300, omega], dtype=F64))
+        assert bool(valid.all())
+        ratios.append(float((px - pin).abs().max()) / omega ** 2)
+    # the omega^2 coefficient: max over r <= sqrt(3) of f r |1/12 - r^2 / 3| ~ 9e2 px
+    assert max(ratios) < 1e3 and max(ratios) / min(ratios) < 1.01, ratios
 
 
 def test_equidistant_analytic():

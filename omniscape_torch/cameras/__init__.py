@@ -21,6 +21,11 @@ eucm                      fx, fy, cx, cy, alpha, beta
 double_sphere             fx, fy, cx, cy, xi, alpha
 scaramuzza                cx, cy, c, d, e, a0, a1, ..., aN
 equirectangular           fx, fy, cx, cy
+fov                       fx, fy, cx, cy, omega
+division                  fx, fy, cx, cy, k
+opencv                    fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4
+thin_prism_fisheye        fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, sx1, sy1
+fisheye624                fx, fy, cx, cy, k0, k1, k2, k3, k4, k5, p0, p1, s0, s1, s2, s3
 ========================= ==============================================================
 """
 

@@ -28,7 +28,10 @@ opencv    ``xd = mx R + 2 p1 mx my + p2 (r^2 + 2 mx^2) + s1 r^2 + s2 r^4``, z > 
 Unprojection: ``fov`` and ``division`` in closed form; ``opencv`` by 2-D Newton on the
 distortion of the plane with its 2 x 2 Jacobian (``_base.undistort_2d``, as OpenCV's
 ``undistortPoints`` and COLMAP's ``IterativeUndistortion``), at most ``OPENCV_ITERATIONS``
-steps, invalid where it did not converge.
+steps, invalid where it did not converge. Its valid set is the radial one: tangential and
+thin-prism terms can fold the plane a little before the radial fold, or, for a rational lens
+with k5, k6 and a thin prism (the r^4 prism terms outgrowing ``r R``), short of 90 degrees far
+outside the image; there Newton does not converge and the pixels are invalid.
 
 COLMAP's FOV model switches to a series for ``omega^2 < 1e-4``; its projection's series there
 (``1 - omega^2 / 12 + omega^2 r^2 / 3``) is the series of its *unprojection* (the exact factor
