@@ -218,6 +218,35 @@ def test_opencv_yaml_without_pyyaml_reads_with_cv2(monkeypatch):
     assert list(load_all(FILES / "orbslam3" / "TUM-VI-stereo.yaml")) == ["Camera1", "Camera2"]
 
 
+def test_ros_camera_info_yaml(tmp_path):
+    """ROS's camera_calibration writes untagged {rows, cols, data} matrices and names the
+    distortion model (plumb_bob, rational_polynomial, equidistant)."""
+    text = ("image_width: 800\nimage_height: 600\ncamera_name: cam\ncamera_matrix:\n"
+            "  rows: 3\n  cols: 3\n  data: [538.63, 0, 457.698, 0, 539.723, 297.003, 0, 0, 1]\n"
+            "distortion_model: {model}\ndistortion_coefficients:\n  rows: 1\n  cols: {n}\n"
+            "  data: [{coeffs}]\n")
+    path = tmp_path / "ost.yaml"
+    path.write_text(text.format(model="plumb_bob", n=5,
+                                coeffs="-0.30678, 0.0825017, 0.0028784, -0.00015829, 0"))
+    cam = ot.Camera.load(path)
+    assert cam.model.name == "opencv" and cam.image_size == (600, 800)
+    assert cam.params.tolist()[:9] == [538.63, 539.723, 457.698, 297.003, -0.30678, 0.0825017,
+                                       0.0028784, -0.00015829, 0.0]
+    path.write_text(text.format(model="equidistant", n=4, coeffs="0.01, -0.002, 0.0003, 0"))
+    fisheye = ot.Camera.load(path)
+    assert fisheye.model.name == "kannala_brandt"
+    assert fisheye.params.tolist()[4:] == [0.01, -0.002, 0.0003, 0.0]
+
+
+def test_kalibr_without_pyyaml_reads_with_cv2(monkeypatch):
+    pytest.importorskip("cv2")
+    with_yaml = load_all(FILES / "kalibr" / "chain-omni-radtan.yaml")
+    monkeypatch.setitem(sys.modules, "yaml", None)
+    without = load_all(FILES / "kalibr" / "chain-omni-radtan.yaml")
+    assert {k: c.params.tolist() for k, c in without.items()} == \
+        {k: c.params.tolist() for k, c in with_yaml.items()}
+
+
 def _colmap_binary(tmp_path, text_path):
     """cameras.bin of the same cameras, written by pycolmap."""
     pycolmap = pytest.importorskip("pycolmap")
@@ -318,6 +347,8 @@ MALFORMED = [
     ("a.yaml", KALIBR.replace("camera_model: pinhole", "camera_model: omni").replace(
         "equidistant", "fov"), "omni-fov has no registry model"),
     ("a.yaml", KALIBR.replace("  resolution: [640, 480]\n", ""), "cam0.resolution: missing"),
+    ("a.yaml", KALIBR.replace("equidistant", "none").replace("0.0, 0.0, 0.0, 0.0", "0.1"),
+     "cam0.distortion_coeffs: pinhole-none takes 0 coefficients, got 1"),
     ("a.yaml", KALIBR.replace("319.5, 239.5]", "319.5, abc]"),
      "cam0.intrinsics[3]: expected a number, got 'abc'"),
     ("a.yaml", KALIBR.replace("  intrinsics: [", "  intrinsics: [[\n"), "line "),

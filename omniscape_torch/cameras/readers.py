@@ -14,7 +14,9 @@ ocamcalib   ``calib_results.txt``          scaramuzza
 opencv      ``cv2.FileStorage`` YAML       fisheye -> kannala_brandt, omnidir -> unified,
             (``K``/``camera_matrix``,      a pinhole with 4/5/8/12/14 coefficients
             ``D``/``distortion_            (``cv2.calibrateCamera``) -> opencv, or pinhole
-            coefficients``, ``xi``)        when they are all zero
+            coefficients``, ``xi``); ROS   when they are all zero; ROS's
+            ``camera_info`` YAML           ``distortion_model`` equidistant -> fisheye,
+                                           plumb_bob / rational_polynomial -> pinhole
 kalibr      ``camchain.yaml`` (``cam0``,   pinhole-none/radtan -> pinhole (zero coefficients)
             ``cam1``, ...)                 or opencv; pinhole-equidistant -> kannala_brandt;
                                            pinhole-fov -> fov; omni-radtan/none -> unified;
@@ -322,6 +324,8 @@ def _number(build, key: str, value) -> float:
 
 
 def _numbers(build, key: str, values, counts: tuple[int, ...] | None = None) -> list[float]:
+    if isinstance(values, dict) and "data" in values:   # a ROS camera_info matrix, untagged
+        values = values["data"]
     if isinstance(values, np.ndarray):
         values = values.ravel().tolist()
     if not isinstance(values, (list, tuple)):
@@ -362,7 +366,7 @@ def _yaml(path: Path, text: str):
     try:
         import yaml
     except ImportError:
-        return _yaml_cv2(path)
+        return _yaml_cv2(path, text)
     # OpenCV writes '%YAML:1.0', a directive PyYAML refuses: blanked, keeping line numbers.
     lines = text.splitlines()
     if lines and lines[0].startswith("%YAML:"):
@@ -395,16 +399,32 @@ def _yaml(path: Path, text: str):
         raise ValueError(f"{where}: not valid YAML ({problem})") from None
 
 
-def _yaml_cv2(path: Path):
+def _yaml_cv2(path: Path, text: str):
     try:
         import cv2
     except ImportError:
         raise ValueError(f"{path}: reading YAML needs PyYAML (pip install pyyaml) or OpenCV "
                          f"(pip install opencv-python-headless)") from None
+    # cv::FileStorage wants its '%YAML:1.0' header, and refuses a block sequence at its key's
+    # indentation ("key:\n- [1, 2]", as PyYAML and Kalibr write it): indented by two.
+    lines, key_indent = [], None
+    for line in text.splitlines():
+        indent = len(line) - len(line.lstrip(" "))
+        stripped = line.strip()
+        if stripped.startswith("- ") and key_indent is not None and indent <= key_indent:
+            line = " " * (key_indent + 2) + stripped
+        elif stripped.endswith(":") and not stripped.startswith("#"):
+            key_indent = indent
+        elif stripped and not stripped.startswith("#"):
+            key_indent = None if not stripped.startswith("- ") else key_indent
+        lines.append(line)
+    if not lines or not lines[0].startswith("%YAML"):
+        lines.insert(0, "%YAML:1.0")
     try:
-        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except cv2.error as err:
-        message = str(err).strip().splitlines()[-1]
+        fs = cv2.FileStorage("\n".join(lines) + "\n",
+                             cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
+    except Exception as err:   # noqa: BLE001 - cv2.error, or SystemError from its binding
+        message = (str(err).strip().splitlines() or [type(err).__name__])[-1]
         raise ValueError(f"{path}: not valid YAML for cv2.FileStorage ({message})") from None
     try:
         return _from_node(fs.root())
@@ -454,6 +474,9 @@ def _opencv(build, data) -> None:
             _number(build, "image_height", _get(build, data, "image_height")))
     size = _size(build, "image_width/image_height", list(size))
     kind = data.get("camera_model", data.get("model"))
+    if kind is None:   # ROS camera_info names its distortion model instead
+        kind = {"equidistant": "fisheye", "fisheye": "fisheye", "plumb_bob": "pinhole",
+                "rational_polynomial": "pinhole"}.get(data.get("distortion_model"))
     if kind is None:
         kind = "omnidir" if "xi" in data else "pinhole"
     fx, s, cx, fy, cy = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
@@ -519,6 +542,8 @@ def _kalibr(build, data) -> None:
         if kind == "pinhole":
             fx, fy, cx, cy = _numbers(build, key + "intrinsics", intr, (4,))
             focal = [fx, fy, cx, cy]
+            if dist == "none":
+                need(0)
             if dist in ("none", "radtan") and not any(coeffs):
                 if dist == "radtan":
                     need(4)
