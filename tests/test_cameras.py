@@ -770,3 +770,22 @@ def test_smallest_positive_root_against_numpy_roots():
         assert value == pytest.approx(want, rel=1e-9)
     constant = torch.tensor([[2.0, 0.0, 0.0], [1.0, 0.0, 0.0]], dtype=F64)
     assert torch.equal(smallest_positive_root(constant), torch.full((2,), math.inf, dtype=F64))
+
+
+@pytest.mark.parametrize("name", ["opencv", "thin_prism_fisheye", "fisheye624"])
+def test_written_out_distortion_jacobians_are_the_complex_step(name):
+    """The 2 x 2 Jacobians the 2-D Newton inverses use, written out per model, against the
+    complex step of the distortion itself (``cameras._base._complex_step``, exact to rounding)."""
+    from omniscape_torch.cameras import _base, fisheye, perspective
+    distort, jacobian = {
+        "opencv": (perspective._opencv_distort, perspective._opencv_jacobian),
+        "thin_prism_fisheye": (fisheye._tpf_distort, fisheye._tpf_jacobian),
+        "fisheye624": (fisheye._f624_distort, fisheye._f624_jacobian)}[name]
+    gen = torch.Generator().manual_seed(0)
+    c = 0.05 * torch.randn(len(ot.cameras.get_model(name).param_names) - 4, generator=gen,
+                           dtype=F64)
+    mx, my = (torch.rand(200, generator=gen, dtype=F64) * 2 - 1 for _ in range(2))
+    want = _base._complex_step(distort, mx, my, c)
+    got = jacobian(mx, my, c)
+    for g, w in zip(got, want):
+        torch.testing.assert_close(g, w, rtol=1e-13, atol=1e-13)
