@@ -262,6 +262,10 @@ def test_limits_match_published_formulas():
     pytest.param("scaramuzza", CASES["scaramuzza"][1][0], None, id="scaramuzza"),
     pytest.param("unified", [300.0, 300.0, 0.0, 0.0, 0.9, -0.4, 0.05, 0.0, 0.0], None,
                  id="unified-distortion"),
+    pytest.param("opencv", CASES["opencv"][2][0], None, id="opencv"),
+    pytest.param("fisheye624", CASES["fisheye624"][1][0], None, id="fisheye624"),
+    pytest.param("thin_prism_fisheye", CASES["thin_prism_fisheye"][1][0], None,
+                 id="thin_prism_fisheye"),
 ])
 def test_fold_iterative_inverse_converges_up_to_the_fold(name, params, size):
     """The iterative inverses reach the float64 tolerance up to 1e-6 rad before the fold; past
@@ -297,6 +301,23 @@ def test_iteration_count_is_fixed_and_non_convergence_is_invalid():
     assert bool(torch.isfinite(few).all())
     # lanes flagged converged after three steps are indeed converged
     assert float(angle_between(few[valid_few], full[valid_few]).max()) < RAD64
+
+
+@pytest.mark.parametrize("name", ["opencv", "thin_prism_fisheye", "fisheye624"])
+def test_2d_newton_iteration_count_is_fixed_and_non_convergence_is_invalid(name):
+    """The 2-D Newton undistortion (tangential and thin-prism terms): one step does not converge
+    everywhere, the lanes it flags converged are, and every lane is finite."""
+    model, p = model_and_params(name, CASES[name][0][0])
+    dirs = directions_at(torch.tensor([0.05, 0.4, 0.8, 1.2], dtype=F64), 8)
+    pixels, valid = model.project(dirs, p)
+    pixels = pixels[valid]
+    full, valid_full = model.unproject(pixels, p)
+    assert bool(valid_full.all())
+    few, valid_few = model.unproject(pixels, p, iterations=1)
+    assert not bool(valid_few.all()), "one Newton step cannot converge everywhere"
+    assert bool(torch.isfinite(few).all())
+    if bool(valid_few.any()):
+        assert float(angle_between(few[valid_few], full[valid_few]).max()) < RAD64
 
 
 # --------------------------------------------------------------------------------------------
@@ -749,3 +770,22 @@ def test_smallest_positive_root_against_numpy_roots():
         assert value == pytest.approx(want, rel=1e-9)
     constant = torch.tensor([[2.0, 0.0, 0.0], [1.0, 0.0, 0.0]], dtype=F64)
     assert torch.equal(smallest_positive_root(constant), torch.full((2,), math.inf, dtype=F64))
+
+
+@pytest.mark.parametrize("name", ["opencv", "thin_prism_fisheye", "fisheye624"])
+def test_written_out_distortion_jacobians_are_the_complex_step(name):
+    """The 2 x 2 Jacobians the 2-D Newton inverses use, written out per model, against the
+    complex step of the distortion itself (``cameras._base._complex_step``, exact to rounding)."""
+    from omniscape_torch.cameras import _base, fisheye, perspective
+    distort, jacobian = {
+        "opencv": (perspective._opencv_distort, perspective._opencv_jacobian),
+        "thin_prism_fisheye": (fisheye._tpf_distort, fisheye._tpf_jacobian),
+        "fisheye624": (fisheye._f624_distort, fisheye._f624_jacobian)}[name]
+    gen = torch.Generator().manual_seed(0)
+    c = 0.05 * torch.randn(len(ot.cameras.get_model(name).param_names) - 4, generator=gen,
+                           dtype=F64)
+    mx, my = (torch.rand(200, generator=gen, dtype=F64) * 2 - 1 for _ in range(2))
+    want = _base._complex_step(distort, mx, my, c)
+    got = jacobian(mx, my, c)
+    for g, w in zip(got, want):
+        torch.testing.assert_close(g, w, rtol=1e-13, atol=1e-13)

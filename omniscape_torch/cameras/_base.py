@@ -373,10 +373,13 @@ def _complex_step(distort: Callable, mx: Tensor, my: Tensor, coeffs: Tensor):
 
 
 def undistort_2d(xd: Tensor, yd: Tensor, coeffs: Tensor, distort: Callable, radial: Callable,
-                 t_limit: Tensor, iterations: int) -> tuple[Tensor, Tensor, Tensor]:
+                 t_limit: Tensor, iterations: int, jacobian: Callable | None = None
+                 ) -> tuple[Tensor, Tensor, Tensor]:
     """Invert a distortion of the plane, ``distort(mx, my, coeffs) = (xd, yd)``, as OpenCV's
     ``undistortPoints`` and COLMAP's ``IterativeUndistortion`` do, by 2-D Newton with the 2 x 2
-    Jacobian (by the complex step).
+    Jacobian: ``jacobian(mx, my, coeffs) -> (x, y, dx/dmx, dx/dmy, dy/dmx, dy/dmy)`` written
+    out (the models' own; tests/test_cameras.py checks them against the complex step), else the
+    complex step (exact to rounding, 3-4 times slower: complex arithmetic).
 
     The start is the inverse of the radial part alone (``radial(r, coeffs) -> (g(r), g'(r))``,
     increasing on ``[0, sqrt(t_limit))``) at ``|(xd, yd)|``, by the safeguarded 1-D Newton of
@@ -393,6 +396,9 @@ def undistort_2d(xd: Tensor, yd: Tensor, coeffs: Tensor, distort: Callable, radi
         ``mx, my`` and ``converged`` (non-converged lanes hold 0, finite gradients).
     """
     tol = 8 * torch.finfo(xd.dtype).eps
+    if jacobian is None:
+        def jacobian(mx, my, c):
+            return _complex_step(distort, mx, my, c)
     with torch.no_grad():
         c = coeffs.detach()
         tx, ty = xd.detach(), yd.detach()
@@ -414,7 +420,7 @@ def undistort_2d(xd: Tensor, yd: Tensor, coeffs: Tensor, distort: Callable, radi
         mx, my = tx * scale, ty * scale
         extra = 0
         for _ in range(iterations):
-            fx, fy, a, b, cc, e = _complex_step(distort, mx, my, c)
+            fx, fy, a, b, cc, e = jacobian(mx, my, c)
             rx, ry = fx - tx, fy - ty
             res = rx.abs() + ry.abs()
             if bool((res <= bound).all()):
@@ -434,12 +440,12 @@ def undistort_2d(xd: Tensor, yd: Tensor, coeffs: Tensor, distort: Callable, radi
                                                                   torch.ones_like(r2_new)),
                 torch.ones_like(r2_new)))
             mx, my = nx * shrink, ny * shrink
-        fx, fy, a, b, cc, e = _complex_step(distort, mx, my, c)
+        fx, fy, a, b, cc, e = jacobian(mx, my, c)
         converged = ((fx - tx).abs() + (fy - ty).abs()) <= loose
         converged = converged & torch.isfinite(mx) & torch.isfinite(my)
         mx = torch.where(converged, mx, torch.zeros_like(mx))
         my = torch.where(converged, my, torch.zeros_like(my))
-        _, _, a, b, cc, e = _complex_step(distort, mx, my, c)
+        _, _, a, b, cc, e = jacobian(mx, my, c)
         det = a * e - b * cc
         ok = det.abs() > torch.finfo(det.dtype).tiny
     fx, fy = distort(mx, my, coeffs)

@@ -85,6 +85,49 @@ def _f624_distort(a: Tensor, b: Tensor, c: Tensor) -> tuple[Tensor, Tensor]:
             y + 2 * p0 * xy + p1 * (r2 + 2 * y * y) + r2 * (s2 + s3 * r2))
 
 
+def _tpf_jacobian(a: Tensor, b: Tensor, c: Tensor):
+    """:func:`_tpf_distort` and its Jacobian ``d(xd, yd) / d(a, b)``, written out."""
+    k1, k2, p1, p2, k3, k4, sx1, sy1 = c.unbind(-1)
+    t = a * a + b * b
+    radial = 1 + t * (k1 + t * (k2 + t * (k3 + t * k4)))
+    radial_t = k1 + t * (2 * k2 + t * (3 * k3 + 4 * t * k4))
+    ab = a * b
+    cross = 2 * ab * radial_t
+    return (a * radial + 2 * p1 * ab + p2 * (t + 2 * a * a) + sx1 * t,
+            b * radial + 2 * p2 * ab + p1 * (t + 2 * b * b) + sy1 * t,
+            radial + 2 * a * a * radial_t + 2 * p1 * b + 6 * p2 * a + 2 * sx1 * a,
+            cross + 2 * p1 * a + 2 * p2 * b + 2 * sx1 * b,
+            cross + 2 * p2 * b + 2 * p1 * a + 2 * sy1 * a,
+            radial + 2 * b * b * radial_t + 2 * p2 * a + 6 * p1 * b + 2 * sy1 * b)
+
+
+def _f624_jacobian(a: Tensor, b: Tensor, c: Tensor):
+    """:func:`_f624_distort` and its Jacobian ``d(xd, yd) / d(a, b)``: the tangential and
+    thin-prism map's Jacobian times the radial map's."""
+    k0, k1, k2, k3, k4, k5, p0, p1, s0, s1, s2, s3 = c.unbind(-1)
+    t = a * a + b * b
+    radial = 1 + t * (k0 + t * (k1 + t * (k2 + t * (k3 + t * (k4 + t * k5)))))
+    radial_t = k0 + t * (2 * k1 + t * (3 * k2 + t * (4 * k3 + t * (5 * k4 + 6 * t * k5))))
+    x, y = a * radial, b * radial
+    # d(x, y) / d(a, b)
+    r11, r12, r22 = radial + 2 * a * a * radial_t, 2 * a * b * radial_t, radial + 2 * b * b * radial_t
+    r2 = x * x + y * y
+    xy = x * y
+    gx, gy = s0 + 2 * s1 * r2, s2 + 2 * s3 * r2
+    # d(xd, yd) / d(x, y)
+    t11 = 1 + 2 * p1 * y + 6 * p0 * x + 2 * gx * x
+    t12 = 2 * p1 * x + 2 * p0 * y + 2 * gx * y
+    t21 = 2 * p0 * y + 2 * p1 * x + 2 * gy * x
+    t22 = 1 + 2 * p0 * x + 6 * p1 * y + 2 * gy * y
+    return (x + 2 * p1 * xy + p0 * (r2 + 2 * x * x) + r2 * (s0 + s1 * r2),
+            y + 2 * p0 * xy + p1 * (r2 + 2 * y * y) + r2 * (s2 + s3 * r2),
+            t11 * r11 + t12 * r12, t11 * r12 + t12 * r22,
+            t21 * r11 + t22 * r12, t21 * r12 + t22 * r22)
+
+
+_JACOBIANS = {"thin_prism_fisheye": _tpf_jacobian, "fisheye624": _f624_jacobian}
+
+
 def _radial_fn(model: str):
     def radial(theta: Tensor, c: Tensor) -> tuple[Tensor, Tensor]:
         coeffs = _radial_coeffs(model, c)
@@ -122,7 +165,7 @@ def _unproject(model: str, distort, pixels: Tensor, params: Tensor, iterations: 
     yd = (pixels[..., 1] - params[..., 3]) / params[..., 1]
     limit = _max_angle(model, params)
     a, b, valid = undistort_2d(xd, yd, params[..., 4:], distort, _radial_fn(model),
-                               limit * limit, iterations)
+                               limit * limit, iterations, _JACOBIANS[model])
     t = a * a + b * b
     valid = valid & (t < limit * limit)
     small = near_zero_radius(t, 1.0)

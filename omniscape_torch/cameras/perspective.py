@@ -281,6 +281,26 @@ def _opencv_distort(mx: Tensor, my: Tensor, c: Tensor) -> tuple[Tensor, Tensor]:
     return xd, yd
 
 
+def _opencv_jacobian(mx: Tensor, my: Tensor, c: Tensor):
+    """:func:`_opencv_distort` and its Jacobian ``d(xd, yd) / d(mx, my)``, written out."""
+    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = c.unbind(-1)
+    t = mx * mx + my * my
+    n = 1 + t * (k1 + t * (k2 + t * k3))
+    d = 1 + t * (k4 + t * (k5 + t * k6))
+    radial = n / d
+    radial_t = ((k1 + t * (2 * k2 + 3 * t * k3)) - radial * (k4 + t * (2 * k5 + 3 * t * k6))) / d
+    xy = mx * my
+    gx, gy = s1 + 2 * s2 * t, s3 + 2 * s4 * t
+    xd = mx * radial + 2 * p1 * xy + p2 * (t + 2 * mx * mx) + t * (s1 + s2 * t)
+    yd = my * radial + p1 * (t + 2 * my * my) + 2 * p2 * xy + t * (s3 + s4 * t)
+    cross = 2 * xy * radial_t
+    return (xd, yd,
+            radial + 2 * mx * mx * radial_t + 2 * p1 * my + 6 * p2 * mx + 2 * gx * mx,
+            cross + 2 * p1 * mx + 2 * p2 * my + 2 * gx * my,
+            cross + 2 * p1 * mx + 2 * p2 * my + 2 * gy * mx,
+            radial + 2 * my * my * radial_t + 6 * p1 * my + 2 * p2 * mx + 2 * gy * my)
+
+
 def _opencv_radial(r: Tensor, c: Tensor) -> tuple[Tensor, Tensor]:
     """``g(r) = r N(r^2) / D(r^2)`` and ``g'(r)``."""
     k1, k2, k3, k4, k5, k6 = (c[..., i] for i in (0, 1, 4, 5, 6, 7))
@@ -357,7 +377,7 @@ def opencv_unproject(pixels: Tensor, params: Tensor, *,
     xd, yd = _normalised(pixels, params)
     t_limit = opencv_radial_limit(params)
     mx, my, valid = undistort_2d(xd, yd, params[..., 4:16], _opencv_distort, _opencv_radial,
-                                 t_limit, iterations)
+                                 t_limit, iterations, _opencv_jacobian)
     valid = valid & (mx * mx + my * my < t_limit)
     return _normalise(mx, my, torch.ones_like(mx), valid)
 
