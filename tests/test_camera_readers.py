@@ -322,6 +322,22 @@ def test_aria_sizes_labels_and_fisheye624_params(tmp_path):
     assert ot.Camera.load(path, name="camera-new").image_size == (1408, 1408)
 
 
+def test_aria_mps_online_calibration_jsonl(tmp_path):
+    """MPS writes one JSON record per line, with ImageSizes beside CameraCalibrations."""
+    record = ('{"tracking_timestamp_us": 1, "ImageSizes": [[640, 480], [1408, 1408]], '
+              '"CameraCalibrations": [{"Label": "camera-slam-left", "Projection": {"Name": '
+              '"FisheyeRadTanThinPrism", "Params": [240, 320, 240, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, '
+              '0, 0]}}, {"Label": "camera-rgb", "Projection": {"Name": "FisheyeRadTanThinPrism", '
+              '"Params": [600, 704, 704, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0]}}]}')
+    path = tmp_path / "online_calibration.jsonl"
+    path.write_text(record + "\n" + record.replace('"tracking_timestamp_us": 1', '"tracking_'
+                                                      'timestamp_us": 2') + "\n")
+    cams = load_all(path)
+    assert detect_format(path) == "aria"
+    assert cams["camera-rgb"].image_size == (1408, 1408)   # ImageSizes, not the 2880 default
+    assert cams["camera-slam-left"].image_size == (480, 640)
+
+
 @pytest.mark.parametrize("path,fmt", [
     ("kalibr/camchain-camera.yaml", "kalibr"), ("basalt/euroc_ds_calib.json", "basalt"),
     ("orbslam3/EuRoC-mono.yaml", "orbslam3"), ("opencv/left_intrinsics.yml", "opencv"),

@@ -35,8 +35,10 @@ colmap      ``cameras.txt``, ``cameras     SIMPLE_PINHOLE, PINHOLE -> pinhole; S
                                            thin_prism_fisheye; RAD_TAN_THIN_PRISM_FISHEYE ->
                                            fisheye624; EUCM -> eucm
 aria        Project Aria device            FisheyeRadTanThinPrism (15 values, one focal),
-            calibration JSON (names: the   Fisheye624 (16), Fisheye62 (11) -> fisheye624;
-            labels, ``camera-rgb``...)     KannalaBrandtK3 -> kannala_brandt
+            calibration JSON, or an MPS    Fisheye624 (16), Fisheye62 (11) -> fisheye624;
+            ``online_calibration.jsonl``   KannalaBrandtK3 -> kannala_brandt. Size: the
+            (its first record); names:     camera's ``ImageSize``, the record's ``ImageSizes``,
+            the labels (``camera-rgb``...) else the label's (projectaria_tools)
 =========== ============================== =====================================================
 
 Conventions, converted here and nowhere else (as ``export.py`` does for writing):
@@ -359,6 +361,9 @@ def _json(path: Path, text: str):
     try:
         return json.loads(text)
     except json.JSONDecodeError as err:
+        if err.msg == "Extra data" and err.lineno > 1:
+            # JSON lines (Aria MPS online_calibration.jsonl): the first record
+            return _json(path, text.splitlines()[0])
         raise ValueError(f"{path}, line {err.lineno}: not valid JSON ({err.msg})") from None
 
 
@@ -786,6 +791,8 @@ def _aria(build, data) -> None:
     cameras = _get(build, data, "CameraCalibrations")
     if not isinstance(cameras, list):
         raise ValueError(f"{build.where}: CameraCalibrations: expected a list of cameras")
+    # MPS online calibrations list the sizes beside the cameras, [W, H] each
+    sizes = data.get("ImageSizes") if isinstance(data.get("ImageSizes"), list) else []
     for i, entry in enumerate(cameras):
         key = f"CameraCalibrations[{i}]"
         label = str(_get(build, entry, "Label", key + "."))
@@ -814,7 +821,10 @@ def _aria(build, data) -> None:
             raise ValueError(f"{build.where}: {key}.Projection.Name: {kind!r} has no registry "
                              f"model (read: FisheyeRadTanThinPrism, Fisheye624, Fisheye62, "
                              f"KannalaBrandtK3)")
-        size = entry.get("ImageSize")
-        size = _size(build, key + ".ImageSize", size) if size is not None else \
-            _ARIA_SIZES.get(label)
+        if entry.get("ImageSize") is not None:
+            size = _size(build, key + ".ImageSize", entry["ImageSize"])
+        elif i < len(sizes):
+            size = _size(build, f"ImageSizes[{i}]", sizes[i])
+        else:
+            size = _ARIA_SIZES.get(label)
         build.make(label, pkey, model, values, size)
