@@ -222,16 +222,16 @@ def test_ros_camera_info_yaml(tmp_path):
     """ROS's camera_calibration writes untagged {rows, cols, data} matrices and names the
     distortion model (plumb_bob, rational_polynomial, equidistant)."""
     text = ("image_width: 800\nimage_height: 600\ncamera_name: cam\ncamera_matrix:\n"
-            "  rows: 3\n  cols: 3\n  data: [538.63, 0, 457.698, 0, 539.723, 297.003, 0, 0, 1]\n"
+            "  rows: 3\n  cols: 3\n  data: [540.5, 0, 401.25, 0, 541.5, 299.75, 0, 0, 1]\n"
             "distortion_model: {model}\ndistortion_coefficients:\n  rows: 1\n  cols: {n}\n"
             "  data: [{coeffs}]\n")
     path = tmp_path / "ost.yaml"
     path.write_text(text.format(model="plumb_bob", n=5,
-                                coeffs="-0.30678, 0.0825017, 0.0028784, -0.00015829, 0"))
+                                coeffs="-0.3125, 0.0825, 0.0025, -0.00015, 0"))
     cam = ot.Camera.load(path)
     assert cam.model.name == "opencv" and cam.image_size == (600, 800)
-    assert cam.params.tolist()[:9] == [538.63, 539.723, 457.698, 297.003, -0.30678, 0.0825017,
-                                       0.0028784, -0.00015829, 0.0]
+    assert cam.params.tolist()[:9] == [540.5, 541.5, 401.25, 299.75, -0.3125, 0.0825,
+                                       0.0025, -0.00015, 0.0]
     path.write_text(text.format(model="equidistant", n=4, coeffs="0.01, -0.002, 0.0003, 0"))
     fisheye = ot.Camera.load(path)
     assert fisheye.model.name == "kannala_brandt"
