@@ -466,3 +466,13 @@ def test_cli_a_malformed_camera_file_is_one_line_exit_2(tmp_path, capsys):
     assert err == (f"omniscape-torch info: error: {path}: cam0.resolution: expected 2 "
                    f"numbers, got 1")
     assert cli.main(["info", "--name", "cam0"]) == 2
+
+
+def test_cli_convert_model_reads_a_camera_file(tmp_path, capsys):
+    small = ot.Camera("kannala_brandt", [30.0, 30.0, 31.5, 23.5, 0.01, 0, 0, 0], (48, 64))
+    path = small.save(tmp_path / "camchain.yaml", "kalibr")
+    code = cli.main(["convert-model", "--camera", str(path), "--camera-format", "kalibr",
+                     "--name", "cam0", "--to", "double_sphere", "--grid", "8"])
+    out = capsys.readouterr().out
+    assert code == 0
+    assert f"source {path} (cam0) (kannala_brandt)" in out and "double_sphere" in out
