@@ -619,6 +619,12 @@ def test_bad_input_messages():
     ("double_sphere", [1.0, 1.0, 0.0, 0.0, 0.1, 1.2], "alpha of the double_sphere model"),
     ("scaramuzza", [0.0, 0.0, 1.0, 0.0, 0.0, 100.0, 0.0], "a0 of the scaramuzza model"),
     ("pinhole", [1.0, 1.0, 0.0], "takes 4 parameters"),
+    ("fov", [1.0, 1.0, 0.0, 0.0, -0.1], "omega of the fov model must lie in"),
+    ("fov", [1.0, 1.0, 0.0, 0.0, 4.0], "omega of the fov model must lie in"),
+    ("division", [0.0, 1.0, 0.0, 0.0, 0.1], "fx of the division model must be > 0"),
+    ("opencv", [1.0, -1.0, 0.0, 0.0] + [0.0] * 12, "fy of the opencv model must be > 0"),
+    ("fisheye624", [1.0, 1.0, 0.0, 0.0] + [0.0] * 11, "takes 16 parameters"),
+    ("thin_prism_fisheye", [1.0, 1.0, 0.0, 0.0] + [math.nan] + [0.0] * 7, "k1 .* must be finite"),
 ])
 def test_camera_rejects_bad_params(name, params, match):
     with pytest.raises(ValueError, match=match):

@@ -414,11 +414,14 @@ def undistort_2d(xd: Tensor, yd: Tensor, coeffs: Tensor, distort: Callable, radi
             if not bool(short.any()):
                 break
             hi = torch.where(short, 2 * hi, hi)
-        r0, _ = invert_monotone(lambda r: radial(r, c), rd, hi, iterations, tol)
+        # a radius beyond the radial part's range starts at the fold (and will not converge)
+        target = torch.minimum(rd, radial(hi, c)[0])
+        r0, _ = invert_monotone(lambda r: radial(r, c), target, hi, iterations, tol)
         scale = torch.where(rd > 0, r0 / torch.where(rd > 0, rd, torch.ones_like(rd)),
                             torch.ones_like(rd))
         mx, my = tx * scale, ty * scale
-        extra = 0
+        extra = stalled = 0
+        previous = torch.full_like(tx, math.inf)
         for _ in range(iterations):
             fx, fy, a, b, cc, e = jacobian(mx, my, c)
             rx, ry = fx - tx, fy - ty
@@ -429,6 +432,14 @@ def undistort_2d(xd: Tensor, yd: Tensor, coeffs: Tensor, distort: Callable, radi
                 extra += 1
                 if extra > 2:
                     break
+            # lanes pinned at the fold (pixels outside the domain) never converge: stop once
+            # no unconverged lane has gained 10% for three steps (Newton next to a fold still
+            # about halves its error per step)
+            progress = ((res > loose) & (res < 0.9 * previous)).any()
+            stalled = 0 if bool(progress) else stalled + 1
+            if stalled >= 3:
+                break
+            previous = res
             det = a * e - b * cc
             ok = det.abs() > torch.finfo(det.dtype).tiny
             nx = mx - safe_div(e * rx - b * ry, det, ok)
