@@ -343,7 +343,8 @@ def load_all(path, format: str | None = None, *, image_size: tuple[int, int] | N
             ``pycolmap.Reconstruction``.
         format: one of ``ot.cameras.READ_FORMATS``; recognised from the content when ``None``.
         image_size: ``(H, W)`` for every camera, overriding the file's (needed where it has
-            none: ORB-SLAM2-style settings, an Aria camera of an unknown label).
+            none: ORB-SLAM2-style settings, an Aria camera of an unknown label; json and
+            ocamcalib files always have one and keep it).
         dtype: dtype of the parameters.
         **kwargs: passed to ``Camera`` (``fov``, ``learnable``, ``blind_fov``).
 
