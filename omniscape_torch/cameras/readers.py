@@ -43,9 +43,9 @@ aria        Project Aria device            FisheyeRadTanThinPrism (15 values, on
 
 Conventions, converted here and nowhere else (as ``export.py`` does for writing):
 
-* Pixels: COLMAP's ``cx, cy`` are ours + 0.5; every other format is taken as it is (OpenCV,
-  Kalibr, basalt, ORB-SLAM3 put the top-left pixel's centre at (0, 0); Project Aria's values are
-  taken as they are too).
+* Pixels: COLMAP's ``cx, cy`` are ours + 0.5; every other format is taken as it is: OpenCV,
+  Kalibr, basalt, ORB-SLAM3 and Project Aria put the top-left pixel's centre at (0, 0) (Aria's
+  "2D image coordinate system conventions" page: pixel (u, v) spans u - 0.5 to u + 0.5).
 * Image size: width first in every file; ``(H, W)`` here. ORB-SLAM2-style settings without
   ``Camera.width``/``Camera.height``, or an Aria label of unknown size, need ``image_size=``.
 * basalt's ``ucm`` is the unified model in its alpha form: ``xi = alpha / (1 - alpha)``, focal
