@@ -2,9 +2,9 @@
 
 ``Camera.load(path)`` reads one camera, ``ot.cameras.load_all(path)`` every camera of a file
 (a dict, name -> ``Camera``, in the file's order); both call the functions here with the camera
-class to build (this module imports no ``camera.py``, which imports it). The format is recognised from the content
-(``format=`` names it instead); ``name=`` picks one camera of a multi-camera file, else the
-first is taken.
+class to build (this module imports no ``camera.py``, which imports it). The format is
+recognised from the content (``format=`` names it instead); ``name=`` picks one camera of a
+multi-camera file, else the first is taken.
 
 =========== ============================== =====================================================
 format      file                           models (the tool's name -> the registry's)
