@@ -373,6 +373,8 @@ MALFORMED = [
      "line 2: expected CAMERA_ID MODEL WIDTH HEIGHT"),
     ("c.txt", "1 PINHOLE 640 480 400 401 320 240\n1 NOPE 640 480 1\n",
      "line 2: unknown COLMAP model 'NOPE'"),
+    ("c.txt", "# c\n3 EQUIRECTANGULAR 400 200\n",
+     "line 2: COLMAP's EQUIRECTANGULAR has no registry model (read: SIMPLE_PINHOLE"),
     ("b.json", '{"value0": {"intrinsics": [{"camera_type": "bal", "intrinsics": {}}], '
                '"resolution": [[640, 480]]}}', "value0.intrinsics[0].camera_type: 'bal'"),
     ("b.json", '{"value0": {"intrinsics": [{"camera_type": "ds", "intrinsics": {"fx": 1}}], '
@@ -428,6 +430,9 @@ def test_a_truncated_cameras_bin(tmp_path):
     (tmp_path / "model.bin").write_bytes(struct.pack("<QIiQQ", 1, 7, 99, 10, 10))
     with pytest.raises(ValueError, match="unknown COLMAP model id 99"):
         ot.Camera.load(tmp_path / "model.bin")
+    (tmp_path / "equi.bin").write_bytes(struct.pack("<QIiQQ", 1, 7, 17, 10, 10))
+    with pytest.raises(ValueError, match="camera 7: COLMAP's EQUIRECTANGULAR has no registry"):
+        ot.Camera.load(tmp_path / "equi.bin")
 
 
 def test_unknown_name_format_and_missing_file(tmp_path):

@@ -108,6 +108,8 @@ _COLMAP_MODELS = {
     16: ("EUCM", ("fx", "fy", "cx", "cy", "alpha", "beta")),
 }
 _COLMAP_BY_NAME = {name: (i, names) for i, (name, names) in _COLMAP_MODELS.items()}
+#: COLMAP's models with no registry model here (its equirectangular camera holds no parameters).
+_COLMAP_UNREAD = {17: "EQUIRECTANGULAR"}
 
 #: Project Aria's image sizes (W, H) by label, as projectaria_tools' parseCameraCalibrationFromJson
 #: sets them (core/calibration/loader/SensorCalibrationJson.cpp: full-resolution sensors).
@@ -251,7 +253,8 @@ def _detect(path: Path, raw: bytes, text: str | None) -> str:
         raise ValueError(f"{path}: a JSON file of no camera format known here ({looked})")
     lines = [ln.split() for ln in text.splitlines() if ln.strip() and
              not ln.lstrip().startswith("#")]
-    if lines and len(lines[0]) >= 4 and lines[0][1] in _COLMAP_BY_NAME:
+    if lines and len(lines[0]) >= 4 and (lines[0][1] in _COLMAP_BY_NAME
+                                         or lines[0][1] in _COLMAP_UNREAD.values()):
         return "colmap"
     if path.suffix == ".bin" and _looks_colmap_binary(raw):
         return "colmap"
@@ -681,6 +684,9 @@ def _orbslam3(build, data) -> None:
 
 def _colmap_camera(build, name: str, key: str, model_name: str, width: int, height: int,
                    values: list[float]) -> None:
+    if model_name in _COLMAP_UNREAD.values():
+        raise ValueError(f"{build.where}: {key}: COLMAP's {model_name} has no registry model "
+                         f"(read: {', '.join(_COLMAP_BY_NAME)})")
     if model_name not in _COLMAP_BY_NAME:
         raise ValueError(f"{build.where}: {key}: unknown COLMAP model {model_name!r} (expected "
                          f"one of {', '.join(_COLMAP_BY_NAME)})")
@@ -760,6 +766,8 @@ def _colmap_binary(build, raw: bytes) -> None:
             raise truncated(f"camera {i + 1} of {count}")
         cid, model_id, width, height = struct.unpack_from("<IiQQ", raw, offset)
         offset += 24
+        if model_id in _COLMAP_UNREAD:
+            _colmap_camera(build, str(cid), f"camera {cid}", _COLMAP_UNREAD[model_id], 1, 1, [])
         if model_id not in _COLMAP_MODELS:
             raise ValueError(f"{build.where}: camera {cid} (byte {offset - 20}): unknown COLMAP "
                              f"model id {model_id} (expected 0..{max(_COLMAP_MODELS)})")
