@@ -263,8 +263,7 @@ def _colmap_binary(tmp_path, text_path):
     return pycolmap, folder
 
 
-@pytest.mark.parametrize("name", ["fisheye-cameras.txt", "statue-cameras.txt",
-                                  "format-example-cameras.txt"])
+@pytest.mark.parametrize("name", ["fisheye-cameras.txt", "format-example-cameras.txt"])
 def test_colmap_real_files_text_binary_and_pycolmap_agree(tmp_path, name):
     text = load_all(FILES / "colmap" / name)
     pycolmap, folder = _colmap_binary(tmp_path, FILES / "colmap" / name)
@@ -301,9 +300,6 @@ def test_colmap_real_file_values():
     cam = ot.Camera.load(FILES / "colmap" / "fisheye-cameras.txt", name="2")
     assert cam.model.name == "kannala_brandt" and cam.image_size == (3264, 3264)
     assert cam.params.tolist()[:4] == [991.0, 991.0, 1611.5, 1616.5]   # cx, cy - 0.5
-    statue = ot.Camera.load(FILES / "colmap" / "statue-cameras.txt")
-    assert statue.model.name == "opencv" and statue.image_size == (1200, 800)
-    assert statue.params.tolist()[:5] == [2468.36, 2468.36, 399.5, 599.5, -0.556541]
 
 
 def test_aria_fixture_projects_as_aria_data_tools():
