@@ -795,3 +795,25 @@ def test_written_out_distortion_jacobians_are_the_complex_step(name):
     got = jacobian(mx, my, c)
     for g, w in zip(got, want):
         torch.testing.assert_close(g, w, rtol=1e-13, atol=1e-13)
+
+
+@pytest.mark.parametrize("name", ["fov", "division", "opencv", "thin_prism_fisheye",
+                                  "fisheye624"])
+def test_ray_grid_and_field_of_view_of_the_new_models(name):
+    """``Camera.ray_grid`` and ``field_of_view`` from the models' ``max_angle``: every pixel
+    of the first case valid, its rays within the limit, and the fisheyes seeing past 180
+    degrees through ``atan2``."""
+    params, size = CASES[name][0]
+    p = torch.tensor(params, dtype=F64)
+    # the same lens on a sensor 8 times coarser (pixel centres at integers: c' = (c + 0.5) / 8
+    # - 0.5): the iterative inverses take ~3 s for a 1280 x 960 grid on a loaded machine
+    p[:2], p[2:4] = p[:2] / 8, (p[2:4] + 0.5) / 8 - 0.5
+    cam = ot.Camera(name, p, (size[0] // 8, size[1] // 8))
+    rays, valid = cam.ray_grid()
+    assert bool(valid.all())
+    limit = float(cam.model.max_angle(cam.params))
+    assert float(theta_of(rays).max()) < limit
+    fov = float(cam.field_of_view())
+    assert 0 < fov <= 2 * limit
+    if name in ("thin_prism_fisheye", "fisheye624"):
+        assert fov > math.pi

@@ -350,7 +350,8 @@ def series_or(x: Tensor, small: Tensor, exact: Callable[[Tensor], Tensor],
 
 
 def polymul(a: Tensor, b: Tensor) -> Tensor:
-    """Ascending coefficients ``(..., n + m - 1)`` of the product of ``a (..., n)``, ``b (..., m)``."""
+    """Ascending coefficients ``(..., n + m - 1)`` of the product of ``a (..., n)`` and
+    ``b (..., m)``."""
     n, m = a.shape[-1], b.shape[-1]
     shape = broadcast_shapes(a.shape[:-1], b.shape[:-1])
     out = [torch.zeros(shape, dtype=a.dtype, device=a.device) for _ in range(n + m - 1)]

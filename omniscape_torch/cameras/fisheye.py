@@ -110,7 +110,8 @@ def _f624_jacobian(a: Tensor, b: Tensor, c: Tensor):
     radial_t = k0 + t * (2 * k1 + t * (3 * k2 + t * (4 * k3 + t * (5 * k4 + 6 * t * k5))))
     x, y = a * radial, b * radial
     # d(x, y) / d(a, b)
-    r11, r12, r22 = radial + 2 * a * a * radial_t, 2 * a * b * radial_t, radial + 2 * b * b * radial_t
+    r11, r12 = radial + 2 * a * a * radial_t, 2 * a * b * radial_t
+    r22 = radial + 2 * b * b * radial_t
     r2 = x * x + y * y
     xy = x * y
     gx, gy = s0 + 2 * s1 * r2, s2 + 2 * s3 * r2
