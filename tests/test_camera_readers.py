@@ -270,6 +270,7 @@ def test_colmap_real_files_text_binary_and_pycolmap_agree(tmp_path, name):
     binary = load_all(folder / "cameras.bin")
     assert detect_format(folder / "cameras.bin") == "colmap"
     from_folder = load_all(folder)
+    assert detect_format(folder) == "colmap"
     rec = pycolmap.Reconstruction(str(folder))
     from_rec = load_all(rec)
     from_cam = {k: ot.Camera.load(c) for k, c in ((str(i), c) for i, c in rec.cameras.items())}

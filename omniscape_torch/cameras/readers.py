@@ -151,6 +151,10 @@ def detect_format(path: str | Path) -> str:
         ValueError: naming the file and the formats looked for.
     """
     path = Path(path)
+    if path.is_dir():
+        if any((path / n).is_file() for n in ("cameras.bin", "cameras.txt")):
+            return "colmap"
+        raise ValueError(f"{path}: a folder without cameras.bin or cameras.txt")
     return _detect(path, *_contents(path))
 
 
