@@ -792,3 +792,23 @@ def test_fisheye624_unproject_matches_project_aria(case):
            rad=err.max())
     assert err.max() <= NEW_RAY_TOL
     assert compared > 0
+
+
+@pytest.mark.parametrize("case", CV_OPENCV_SETS, ids=[c[0] for c in CV_OPENCV_SETS])
+def test_opencv_project_matches_kornia_distort_points(case):
+    """kornia's Brown-Conrady (``kornia.geometry.calibration.distort_points``, 12 coefficients
+    in OpenCV's order) on the pinhole pixels of the same points."""
+    calibration = pytest.importorskip("kornia.geometry.calibration")
+    _, params, size = case
+    p = torch.tensor(params, dtype=f64)
+    K = torch.from_numpy(k_matrix(*params[:4]))
+    points = torch.from_numpy(sphere_grid(70.0))
+    pinhole = points[:, :2] / points[:, 2:] * p[:2] + p[2:4]
+    kornia_px = calibration.distort_points(pinhole, K, p[4:16]).numpy()
+    px, valid = ours_project("opencv", points.numpy(), params)
+    both = valid & in_image(kornia_px, size)
+    err = np.abs(px - kornia_px).max(-1)[both]
+    compared = int(both.sum())
+    report(f"opencv/{case[0]} vs kornia distort_points", compared, px=err.max())
+    assert err.max() <= PIXEL_TOL
+    assert compared > 0
