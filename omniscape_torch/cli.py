@@ -28,12 +28,17 @@ DEFAULT_OCAMCALIB = Path("../shared/data/ocamcalib_real/calib_results_0.txt")
 
 def _load_camera(args: argparse.Namespace):
     from .cameras import Camera
+    if args.camera is not None:
+        camera = Camera.load(args.camera, args.camera_format, name=args.name)
+        return camera, str(args.camera) + ("" if args.name is None else f" ({args.name})")
+    if args.camera_format is not None or args.name is not None:
+        raise ValueError("--camera-format and --name apply to --camera FILE; give --camera")
     if args.json is not None:
         return Camera.load_json(args.json), str(args.json)
     path = args.ocamcalib if args.ocamcalib is not None else DEFAULT_OCAMCALIB
     if not path.is_file():   # a missing input: exit 2, like any other
         raise FileNotFoundError(f"no calibration file at {path} (run from the project root, "
-                                f"or pass --ocamcalib PATH or --json PATH)")
+                                f"or pass --camera PATH, --ocamcalib PATH or --json PATH)")
     return Camera.from_ocamcalib(path), str(path)
 
 
@@ -553,6 +558,22 @@ def cmd_convert(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_camera_source(group, parser) -> None:
+    """``--camera FILE [--camera-format F] [--name N]``: any file ``Camera.load`` reads."""
+    from .cameras import READ_FORMATS
+
+    group.add_argument("--camera", type=Path, default=None, metavar="FILE",
+                       help="a camera file of another tool, recognised from its content: "
+                            "OpenCV / Kalibr / ORB-SLAM3 YAML, basalt or Project Aria JSON, "
+                            "COLMAP cameras.txt / cameras.bin / sparse folder, OCamCalib, "
+                            "this package's JSON")
+    parser.add_argument("--camera-format", choices=READ_FORMATS, default=None,
+                        help="the format of --camera (default: recognised from the content)")
+    parser.add_argument("--name", default=None, help="the camera of a multi-camera --camera "
+                        "file (Kalibr cam1, ORB-SLAM3 Camera2, a COLMAP camera id, an Aria "
+                        "label; default: the first)")
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse's parser (its sub-commands' too) whose usage errors are one line, like every
     other error of the command line: the message and where the usage is, exit 2."""
@@ -572,6 +593,7 @@ def build_parser() -> argparse.ArgumentParser:
     source.add_argument("--ocamcalib", type=Path, default=None,
                         help=f"OCamCalib calib_results.txt (default: {DEFAULT_OCAMCALIB})")
     source.add_argument("--json", type=Path, default=None, help="camera JSON (Camera.save_json)")
+    _add_camera_source(source, info)
     info.set_defaults(func=cmd_info)
 
     from .data.generate import CAMERAS
@@ -701,6 +723,7 @@ def build_parser() -> argparse.ArgumentParser:
     source.add_argument("--ocamcalib", type=Path, default=None,
                         help=f"OCamCalib calib_results.txt (default: {DEFAULT_OCAMCALIB})")
     source.add_argument("--json", type=Path, default=None, help="camera JSON (Camera.save_json)")
+    _add_camera_source(source, conv)
     conv.add_argument("--to", type=_names(lenses, "model"), required=True,
                       metavar="MODEL[,MODEL]", help=f"target models ({', '.join(lenses)})")
     conv.add_argument("--degree", type=positive_int, default=4,
@@ -735,6 +758,7 @@ def build_parser() -> argparse.ArgumentParser:
     source.add_argument("--ocamcalib", type=Path, default=None,
                         help=f"OCamCalib calib_results.txt (default: {DEFAULT_OCAMCALIB})")
     source.add_argument("--json", type=Path, default=None, help="camera JSON (Camera.save_json)")
+    _add_camera_source(source, sel)
     sel.add_argument("--models", type=_names(lenses, "model"), default=None,
                      metavar="MODEL[,MODEL]", help="candidates (default: all lens models; "
                      "scaramuzza of degrees 2-6)")

@@ -76,6 +76,43 @@ CASES = {
         ([320.0, 310.0, 1.0, 0.0, 0.0, -200.0, 0.0, 1.5e-3, -3e-6], (640, 640)),
     ],
     "equirectangular": [([256 / (2 * math.pi), 128 / math.pi, 127.5, 63.5], (128, 256))],
+    "fov": [
+        ([500.0, 505.0, 319.5, 239.5, 0.9], (480, 640)),
+        # omega^2 < 1e-4: where COLMAP's FOV model switches to its series
+        ([400.0, 401.0, 320.2, 239.7, 0.005], (480, 640)),
+    ],
+    "division": [
+        # k < 0 (barrel): valid past 90 degrees, up to 180
+        ([400.0, 402.0, 320.0, 240.0, -0.3], (480, 640)),
+        # k > 0: folds at atan(1 / (2 sqrt(k))) = 42.4 degrees, outside the image
+        ([420.0, 420.0, 319.5, 239.5, 0.3], (480, 640)),
+    ],
+    "opencv": [
+        # COLMAP OPENCV's 8 parameters (k3..s4 = 0): a typical wide-angle lens, no fold
+        ([500.0, 502.0, 320.3, 239.7, -0.28, 0.07, 1e-3, -5e-4, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+          0.0, 0.0], (480, 640)),
+        # the rational model (k4) and the thin prism: with k5, k6 the denominator's growth
+        # lets the r^4 thin-prism terms fold the plane short of 90 degrees (beyond 20000 px,
+        # unseen by the radial valid set), so this lens keeps them 0
+        ([600.0, 601.0, 640.0, 360.0, 0.6, -0.05, 1e-3, -5e-4, 0.01, 0.9, 0.0, 0.0, 1e-3,
+          -2e-4, 5e-4, 1e-4], (720, 1280)),
+        # strong barrel distortion whose radius folds at 51 degrees (inside the image corners)
+        ([350.0, 352.0, 320.0, 240.0, -0.35, 0.05, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+          0.0], (480, 640)),
+    ],
+    "thin_prism_fisheye": [
+        ([285.72, 286.11, 640.31, 481.17, -0.0134, 0.0513, 1e-3, -2e-3, -0.0437, 0.0089, 5e-4,
+          -3e-4], (960, 1280)),
+        # the Kannala-Brandt lens that folds at 111 degrees (p = s = 0)
+        ([200.0, 200.0, 319.5, 319.5, -0.12, 0.005, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], (640, 640)),
+    ],
+    "fisheye624": [
+        ([240.0, 241.0, 320.2, 239.6, -0.02, 0.003, -2e-4, 1e-5, 0.0, 0.0, 4e-4, -3e-4, 2e-4,
+          1e-5, -3e-4, 2e-5], (480, 640)),
+        # the Kannala-Brandt lens that folds at 111 degrees (p = s = 0, k4 = k5 = 0)
+        ([200.0, 200.0, 319.5, 319.5, -0.12, 0.005, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+          0.0], (640, 640)),
+    ],
 }
 
 

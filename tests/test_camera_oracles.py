@@ -512,3 +512,303 @@ def test_opencv_fisheye_export_refuses_what_it_folds():
     assert wide.to_opencv_fisheye(accept_fov=True)[0][0, 0] == 200.0
     narrow = ot.Camera("kannala_brandt", params, (960, 1280), fov=math.radians(170))
     assert narrow.to_opencv_fisheye()[0][0, 0] == 200.0
+
+
+# --------------------------------------------------------------------------------------------
+# 5. fov, division, opencv, thin_prism_fisheye, fisheye624 (issue 34)
+# --------------------------------------------------------------------------------------------
+
+#: Tolerance of the closed-form and Newton inverses of the new models against pycolmap and
+#: OpenCV (rad): the issue's 1e-6 rad. Measured below 1e-9 rad (COLMAP's iterative undistortion
+#: stops at steps of 1e-5, COLMAP_RAY_TOL above).
+NEW_RAY_TOL = 1e-6
+
+#: (id, COLMAP model, COLMAP params, our model, our params, image size (H, W), grid max angle).
+#: The COLMAP parameter orders are ``pycolmap.Camera(...).params_info``; COLMAP's perspective
+#: and fisheye models divide by z, so these grids stop at 89 degrees (the division model past 90
+#: degrees and fisheye624 against Project Aria are compared below).
+NEW_COLMAP_CASES = [
+    # FOV with omega^2 >= 1e-4 (COLMAP's exact branch; its series below is the next test)
+    ("fov", "FOV", [500.0, 505.0, _c(319.5), _c(239.5), 0.9],
+     "fov", [500.0, 505.0, 319.5, 239.5, 0.9], (480, 640), 89.0),
+    ("fov_wide", "FOV", [300.0, 300.0, _c(640.2), _c(479.9), 1.6],
+     "fov", [300.0, 300.0, 640.2, 479.9, 1.6], (960, 1280), 89.0),
+    ("division_barrel", "DIVISION", [400.0, 402.0, _c(320.0), _c(240.0), -0.3],
+     "division", [400.0, 402.0, 320.0, 240.0, -0.3], (480, 640), 89.0),
+    ("division_pincushion", "DIVISION", [420.0, 420.0, _c(319.5), _c(239.5), 0.3],
+     "division", [420.0, 420.0, 319.5, 239.5, 0.3], (480, 640), 89.0),
+    # OPENCV: the first 8 of our 16
+    ("opencv/OPENCV", "OPENCV", [400.0, 402.0, _c(640.5), _c(479.8), -0.28, 0.07, 1e-3, -5e-4],
+     "opencv", [400.0, 402.0, 640.5, 479.8, -0.28, 0.07, 1e-3, -5e-4] + [0.0] * 8,
+     (960, 1280), 60.0),
+    # FULL_OPENCV: the first 12 (k1 k2 p1 p2 k3 k4 k5 k6, the rational model)
+    ("opencv/FULL_OPENCV", "FULL_OPENCV",
+     [600.0, 601.0, _c(640.0), _c(360.0), 0.6, -0.05, 1e-3, -5e-4, 0.01, 0.9, 0.02, 0.003],
+     "opencv", [600.0, 601.0, 640.0, 360.0, 0.6, -0.05, 1e-3, -5e-4, 0.01, 0.9, 0.02, 0.003]
+     + [0.0] * 4, (720, 1280), 60.0),
+    ("thin_prism_fisheye", "THIN_PRISM_FISHEYE",
+     [285.72, 286.11, _c(640.31), _c(481.17), -0.0134, 0.0513, 1e-3, -2e-3, -0.0437, 0.0089,
+      5e-4, -3e-4],
+     "thin_prism_fisheye", [285.72, 286.11, 640.31, 481.17, -0.0134, 0.0513, 1e-3, -2e-3,
+                            -0.0437, 0.0089, 5e-4, -3e-4], (960, 1280), 89.0),
+    ("fisheye624", "RAD_TAN_THIN_PRISM_FISHEYE",
+     [240.0, 241.0, _c(320.2), _c(239.6), -0.02, 0.003, -2e-4, 1e-5, 1e-6, -1e-7, 4e-4, -3e-4,
+      2e-4, 1e-5, -3e-4, 2e-5],
+     "fisheye624", [240.0, 241.0, 320.2, 239.6, -0.02, 0.003, -2e-4, 1e-5, 1e-6, -1e-7, 4e-4,
+                    -3e-4, 2e-4, 1e-5, -3e-4, 2e-5], (480, 640), 89.0),
+    # an Aria-like lens whose radius folds near 119 degrees, strongly distorted
+    ("fisheye624_strong", "RAD_TAN_THIN_PRISM_FISHEYE",
+     [240.0, 241.0, _c(320.0), _c(240.0), 0.38, -0.42, 0.34, -0.18, 0.05, -0.005, 1e-3, -5e-4,
+      2e-4, 1e-5, -3e-4, 2e-5],
+     "fisheye624", [240.0, 241.0, 320.0, 240.0, 0.38, -0.42, 0.34, -0.18, 0.05, -0.005, 1e-3,
+                    -5e-4, 2e-4, 1e-5, -3e-4, 2e-5], (480, 640), 89.0),
+]
+
+
+@pytest.mark.parametrize("case", NEW_COLMAP_CASES, ids=[c[0] for c in NEW_COLMAP_CASES])
+def test_new_models_project_match_pycolmap(case):
+    name, cmodel, cparams, model, params, size, max_deg = case
+    if not hasattr(pycolmap.CameraModelId, cmodel):
+        pytest.skip(f"this pycolmap has no {cmodel}")
+    test_project_matches_pycolmap(case)
+
+
+@pytest.mark.parametrize("case", NEW_COLMAP_CASES, ids=[c[0] for c in NEW_COLMAP_CASES])
+def test_new_models_unproject_match_pycolmap(case):
+    name, cmodel, cparams, model, params, size, max_deg = case
+    if not hasattr(pycolmap.CameraModelId, cmodel):
+        pytest.skip(f"this pycolmap has no {cmodel}")
+    cam = _colmap_camera(cmodel, cparams, size)
+    points = sphere_grid(max_deg)
+    _, valid = ours_project(model, points, params)
+    colmap_px = cam.img_from_cam(points)
+    keep = valid & np.isfinite(colmap_px).all(-1) & in_image(colmap_px - 0.5, size)
+    colmap_px = colmap_px[keep]
+    colmap_rays = cam.cam_ray_from_img(colmap_px)
+    rays, ok = ours_unproject(model, colmap_px - 0.5, params)
+    both = ok & np.isfinite(colmap_rays).all(-1)
+    err = angle_between(rays[both], colmap_rays[both])
+    truth = angle_between(rays[both], unit(points[keep][both]))
+    compared = int(both.sum())
+    report(f"{model}/{name} vs pycolmap {cmodel}.cam_ray_from_img (ours vs truth "
+           f"{truth.max():.1e})", compared, rad=err.max())
+    assert err.max() <= NEW_RAY_TOL
+    assert truth.max() <= 1e-9
+    assert compared > 0
+
+
+def test_division_past_90_degrees_matches_pycolmap():
+    """COLMAP's DIVISION projection has no cheirality test of its own: with k < 0 its ray
+    ``(xd, yd, 1 + k rd^2)`` points behind the camera beyond ``rd^2 = -1 / k``, and both sides
+    project the whole sphere up to 180 degrees (pixels within a few image sizes compared)."""
+    size = (480, 640)
+    cam = _colmap_camera("DIVISION", [400.0, 402.0, _c(320.0), _c(240.0), -0.3], size)
+    params = [400.0, 402.0, 320.0, 240.0, -0.3]
+    points = sphere_grid(179.0)
+    colmap_px = cam.img_from_cam(points, check_cheirality=False) - 0.5
+    px, valid = ours_project("division", points, params)
+    near = np.isfinite(colmap_px).all(-1) & (np.abs(colmap_px - [320, 240]).max(-1) < 4 * 640)
+    both = valid & near
+    err = np.abs(px - colmap_px).max(-1)[both]
+    compared = int(both.sum())
+    report("division past 90 deg vs pycolmap DIVISION.img_from_cam (to "
+           f"{math.degrees(off_axis_angle(points[both]).max()):.1f} deg)", compared, px=err.max())
+    assert err.max() <= PIXEL_TOL
+    assert (off_axis_angle(points[both]) > math.radians(120)).any()
+    assert compared > 0
+
+
+def test_fov_small_omega_colmap_series_is_its_inverse_s():
+    """Below omega^2 = 1e-4 COLMAP's FOV projection uses ``1 - omega^2 / 12 + omega^2 r^2 / 3``,
+    the series of its *unprojection*'s factor; the projection's own is ``1 + omega^2 / 12 -
+    omega^2 r^2 / 3``. So there COLMAP's projection is not the inverse of its unprojection,
+    ours is, and ours matches COLMAP's unprojection (whose series is right) and COLMAP's exact
+    projection formula written out here."""
+    omega, size = 0.005, (480, 640)
+    cparams = [400.0, 401.0, _c(320.2), _c(239.7), omega]
+    params = [400.0, 401.0, 320.2, 239.7, omega]
+    cam = _colmap_camera("FOV", cparams, size)
+    points = sphere_grid(60.0)
+    px, valid = ours_project("fov", points, params)
+    xy = points[:, :2] / points[:, 2:]
+    r = np.linalg.norm(xy, axis=-1, keepdims=True)
+    safe = np.where(r > 0, r, 1.0)
+    factor = np.where(r > 0, np.arctan(2 * safe * math.tan(omega / 2)) / (safe * omega), 1.0)
+    exact = xy * factor * [400.0, 401.0] + [320.2, 239.7]
+    assert np.abs(px - exact)[valid].max() <= PIXEL_TOL
+    # COLMAP's projection is off by the sign of its series: omega^2 (r^2 / 3 - 1/12) r f / 2
+    colmap_px = cam.img_from_cam(points) - 0.5
+    assert np.abs(colmap_px - px)[valid].max() > 1e-3
+    # COLMAP's unprojection of our pixels gives the points back, ours too
+    colmap_rays = cam.cam_ray_from_img(px[valid] + 0.5)
+    rays, ok = ours_unproject("fov", px[valid], params)
+    err = angle_between(rays[ok], colmap_rays[ok])
+    truth = angle_between(colmap_rays, unit(points[valid]))
+    report("fov omega=0.005 vs pycolmap FOV.cam_ray_from_img", int(ok.sum()), rad=err.max())
+    assert err.max() <= NEW_RAY_TOL and truth.max() <= NEW_RAY_TOL
+    assert int(ok.sum()) > 0
+
+
+#: (id, params (16), image size): OpenCV's 12 coefficients k1 k2 p1 p2 k3 k4 k5 k6 s1 s2 s3 s4.
+CV_OPENCV_SETS = [
+    ("brown", [500.0, 502.0, 320.3, 239.7, -0.28, 0.07, 1e-3, -5e-4] + [0.0] * 8, (480, 640)),
+    ("rational_thin_prism", [600.0, 601.0, 640.0, 360.0, 0.6, -0.05, 1e-3, -5e-4, 0.01, 0.9,
+                             0.02, 0.003, 1e-3, -2e-4, 5e-4, 1e-4], (720, 1280)),
+    ("folding", [350.0, 352.0, 320.0, 240.0, -0.35, 0.05] + [0.0] * 10, (480, 640)),
+]
+
+
+def _cv_opencv(params):
+    K = k_matrix(*params[:4])
+    return K, np.array(params[4:16], dtype=np.float64)
+
+
+@pytest.mark.parametrize("case", CV_OPENCV_SETS, ids=[c[0] for c in CV_OPENCV_SETS])
+def test_opencv_project_matches_cv2_project_points(case):
+    _, params, size = case
+    K, D = _cv_opencv(params)
+    points = sphere_grid(70.0)
+    cv_px, _ = cv2.projectPoints(points.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, D)
+    cv_px = cv_px.reshape(-1, 2)
+    px, valid = ours_project("opencv", points, params)
+    both = valid & in_image(cv_px, size)
+    err = np.abs(px - cv_px).max(-1)[both]
+    compared = int(both.sum())
+    report(f"opencv/{case[0]} vs cv2.projectPoints (12 coefficients)", compared, px=err.max())
+    assert err.max() <= PIXEL_TOL
+    assert compared > 0
+
+
+@pytest.mark.parametrize("case", CV_OPENCV_SETS, ids=[c[0] for c in CV_OPENCV_SETS])
+def test_opencv_unproject_matches_cv2_undistort_points_iter(case):
+    _, params, size = case
+    K, D = _cv_opencv(params)
+    points = sphere_grid(70.0)
+    _, valid = ours_project("opencv", points, params)
+    cv_px, _ = cv2.projectPoints(points.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, D)
+    cv_px = cv_px.reshape(-1, 2)
+    keep = valid & in_image(cv_px, size)
+    pixels = cv_px[keep]
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-15)
+    # OpenCV 4's undistortPointsIter is OpenCV 5's undistortPoints with criteria
+    undistort = getattr(cv2, "undistortPointsIter", cv2.undistortPoints)
+    cv_xy = undistort(pixels.reshape(-1, 1, 2), K, D, R=np.eye(3), P=np.eye(3),
+                      criteria=criteria).reshape(-1, 2)
+    # OpenCV's fixed-point iteration does not flag non-convergence: its own forward model checks
+    back, _ = cv2.projectPoints(plane_rays(cv_xy).reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
+                                K, D)
+    converged = np.abs(back.reshape(-1, 2) - pixels).max(-1) <= CV_CONVERGED_PX
+    rays, ok = ours_unproject("opencv", pixels, params)
+    both = converged & ok
+    err = angle_between(rays[both], plane_rays(cv_xy[both]))
+    compared = int(both.sum())
+    report(f"opencv/{case[0]} vs cv2.undistortPointsIter ({int((~converged).sum())} not "
+           "converged by OpenCV)", compared, rad=err.max())
+    assert err.max() <= NEW_RAY_TOL
+    assert angle_between(rays, unit(points[keep])).max() <= 1e-9
+    assert compared > 0
+
+
+def _aria():
+    calibration = pytest.importorskip("projectaria_tools.core.calibration")
+    return calibration
+
+
+#: Project Aria's FISHEYE624 has one focal length: params f, cx, cy, k0..k5, p0, p1, s0..s3.
+ARIA_SETS = [
+    ("mild", [240.0, 320.2, 239.6, -0.02, 0.003, -2e-4, 1e-5, 1e-6, -1e-7, 4e-4, -3e-4, 2e-4,
+              1e-5, -3e-4, 2e-5], (480, 640)),
+    ("strong", [240.0, 320.0, 240.0, 0.38, -0.42, 0.34, -0.18, 0.05, -0.005, 1e-3, -5e-4, 2e-4,
+                1e-5, -3e-4, 2e-5], (480, 640)),
+]
+
+
+def _ours_624(aria_params):
+    return [aria_params[0], *aria_params]
+
+
+@pytest.mark.parametrize("case", ARIA_SETS, ids=[c[0] for c in ARIA_SETS])
+def test_fisheye624_project_matches_project_aria(case):
+    """Project Aria's FisheyeRadTanThinPrism, in front of the camera: behind it (z < 0) Aria's
+    ``project`` folds the point onto the front half (91 degrees lands opposite 89), where ours
+    goes on past 90 degrees (``atan2``; checked by the round trips of tests/test_cameras.py)."""
+    calibration = _aria()
+    _, aparams, size = case
+    proj = calibration.CameraProjection(calibration.CameraModelType.FISHEYE624,
+                                        np.array(aparams, dtype=np.float64))
+    params = _ours_624(aparams)
+    points = sphere_grid(89.0, step_deg=1.0)
+    px, valid = ours_project("fisheye624", points, params)
+    aria = np.array([np.asarray(proj.project(p)).ravel() for p in points[valid]])
+    near = np.isfinite(aria).all(-1)
+    err = np.abs(px[valid][near] - aria[near]).max(-1)
+    compared = int(near.sum())
+    report(f"fisheye624/{case[0]} vs projectaria_tools FISHEYE624.project (to "
+           f"{math.degrees(off_axis_angle(points[valid][near]).max()):.1f} deg)", compared,
+           px=err.max())
+    assert err.max() <= PIXEL_TOL
+    assert compared > 0
+
+
+def test_project_aria_folds_behind_the_camera_where_fisheye624_does_not():
+    """The reason the comparison above stops at 90 degrees, pinned: Aria maps a point at 91
+    degrees next to the image of its mirror image at 89 degrees' opposite azimuth, ours maps
+    it beyond the 90-degree circle."""
+    calibration = _aria()
+    aparams = ARIA_SETS[0][1]
+    proj = calibration.CameraProjection(calibration.CameraModelType.FISHEYE624,
+                                        np.array(aparams, dtype=np.float64))
+    params = _ours_624(aparams)
+    t89, t91 = math.radians(89.0), math.radians(91.0)
+    p89 = np.array([math.sin(t89) * 0.6, math.sin(t89) * 0.8, math.cos(t89)])
+    p91 = np.array([math.sin(t91) * 0.6, math.sin(t91) * 0.8, math.cos(t91)])
+    centre = np.array(params[2:4])
+    aria89, aria91 = (np.asarray(proj.project(p)).ravel() - centre for p in (p89, p91))
+    assert float(np.dot(aria89, aria91)) < 0            # Aria: the opposite side
+    ours = ours_project("fisheye624", np.stack((p89, p91)), params)[0] - centre
+    assert float(np.dot(ours[0], ours[1])) > 0          # ours: the same side, farther out
+    assert np.linalg.norm(ours[1]) > np.linalg.norm(ours[0])
+
+
+@pytest.mark.parametrize("case", ARIA_SETS, ids=[c[0] for c in ARIA_SETS])
+def test_fisheye624_unproject_matches_project_aria(case):
+    """Aria's unprojection returns ``(x / z, y / z, 1)``: compared in front of the camera."""
+    calibration = _aria()
+    _, aparams, size = case
+    proj = calibration.CameraProjection(calibration.CameraModelType.FISHEYE624,
+                                        np.array(aparams, dtype=np.float64))
+    params = _ours_624(aparams)
+    points = sphere_grid(85.0, step_deg=1.0)
+    px, valid = ours_project("fisheye624", points, params)
+    keep = valid & in_image(px, size)
+    pixels = px[keep]
+    aria = plane_rays(np.array([np.asarray(proj.unproject(p)).ravel()[:2] for p in pixels]))
+    rays, ok = ours_unproject("fisheye624", pixels, params)
+    finite = np.isfinite(aria).all(-1)
+    both = ok & finite
+    err = angle_between(rays[both], aria[both])
+    compared = int(both.sum())
+    report(f"fisheye624/{case[0]} vs projectaria_tools FISHEYE624.unproject", compared,
+           rad=err.max())
+    assert err.max() <= NEW_RAY_TOL
+    assert compared > 0
+
+
+@pytest.mark.parametrize("case", CV_OPENCV_SETS, ids=[c[0] for c in CV_OPENCV_SETS])
+def test_opencv_project_matches_kornia_distort_points(case):
+    """kornia's Brown-Conrady (``kornia.geometry.calibration.distort_points``, 12 coefficients
+    in OpenCV's order) on the pinhole pixels of the same points."""
+    calibration = pytest.importorskip("kornia.geometry.calibration")
+    _, params, size = case
+    p = torch.tensor(params, dtype=f64)
+    K = torch.from_numpy(k_matrix(*params[:4]))
+    points = torch.from_numpy(sphere_grid(70.0))
+    pinhole = points[:, :2] / points[:, 2:] * p[:2] + p[2:4]
+    kornia_px = calibration.distort_points(pinhole, K, p[4:16]).numpy()
+    px, valid = ours_project("opencv", points.numpy(), params)
+    both = valid & in_image(kornia_px, size)
+    err = np.abs(px - kornia_px).max(-1)[both]
+    compared = int(both.sum())
+    report(f"opencv/{case[0]} vs kornia distort_points", compared, px=err.max())
+    assert err.max() <= PIXEL_TOL
+    assert compared > 0

@@ -63,6 +63,10 @@ def test_registry_matches_design_table():
         "unified": "fx fy cx cy xi k1 k2 p1 p2", "eucm": "fx fy cx cy alpha beta",
         "double_sphere": "fx fy cx cy xi alpha", "scaramuzza": "cx cy c d e a0",
         "equirectangular": "fx fy cx cy",
+        "fov": "fx fy cx cy omega", "division": "fx fy cx cy k",
+        "opencv": "fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6 s1 s2 s3 s4",
+        "thin_prism_fisheye": "fx fy cx cy k1 k2 p1 p2 k3 k4 sx1 sy1",
+        "fisheye624": "fx fy cx cy k0 k1 k2 k3 k4 k5 p0 p1 s0 s1 s2 s3",
     }
     assert list(ot.cameras.MODELS) == list(design)
     for name, names in design.items():
@@ -182,6 +186,12 @@ def test_no_folding_radius_grows_with_angle(name, params, size):
     ("eucm", [220.0, 220.0, 0.0, 0.0, 0.6, 1.1]),
     ("double_sphere", [160.0, 160.0, 0.0, 0.0, -0.2, 0.6]),
     ("scaramuzza", None),
+    ("division", [400.0, 400.0, 0.0, 0.0, -0.3]),
+    # decentring shifts the 90-degree curve by ~3 px per 1e-3 of p: small p and s here
+    ("thin_prism_fisheye", [200.0, 200.0, 0.0, 0.0, -0.02, 0.004, 1e-4, -2e-4, -0.001, 0.0002,
+                            5e-5, -3e-5]),
+    ("fisheye624", [200.0, 200.0, 0.0, 0.0, -0.02, 0.003, -2e-4, 1e-5, 0.0, 0.0, 4e-4, -3e-4,
+                    2e-4, 1e-5, -3e-4, 2e-5]),
 ])
 def test_beyond_180_degrees(name, params):
     """Models whose domain passes 90 degrees keep points behind the camera (z < 0) valid up to
@@ -227,6 +237,24 @@ def test_limits_match_published_formulas():
     w1 = 0.4 / 0.6
     w2 = (w1 - 0.2) / math.sqrt(2 * w1 * -0.2 + 0.04 + 1)
     assert angle("double_sphere", [1, 1, 0, 0, -0.2, 0.6]) == pytest.approx(math.acos(-w2))
+    # Division: the ray (rd, 1 + k rd^2) turns back at rd^2 = 1 / k (k > 0): atan(1 / (2 sqrt k))
+    assert angle("division", [1, 1, 0, 0, 0.3]) == pytest.approx(math.atan(0.5 / math.sqrt(0.3)))
+    assert angle("division", [1, 1, 0, 0, -0.3]) == pytest.approx(math.pi)
+    assert angle("division", [1, 1, 0, 0, 0.0]) == pytest.approx(math.pi / 2)
+    assert angle("fov", [1, 1, 0, 0, 0.9]) == pytest.approx(math.pi / 2)
+    # OpenCV (k1=-0.35, k2=0.05): d(r (1 + k1 t + k2 t^2)) / dr = 1 - 1.05 t + 0.25 t^2
+    t = (1.05 - math.sqrt(1.05 ** 2 - 1.0)) / 0.5
+    assert angle("opencv", [1, 1, 0, 0, -0.35, 0.05] + [0] * 10) == pytest.approx(
+        math.atan(math.sqrt(t)), rel=1e-12)
+    # ... and with the rational denominator's pole first: 1 + k4 t = 0 at t = 0.5 (k4 = -2)
+    assert angle("opencv", [1, 1, 0, 0, 0, 0, 0, 0, 0, -2.0] + [0] * 6) <= math.atan(
+        math.sqrt(0.5)) + 1e-12
+    # The fisheyes: Kannala-Brandt's fold (k1=-0.12, k2=0.005) in their own coefficient orders
+    t = (0.36 - math.sqrt(0.36 ** 2 - 4 * 0.025)) / (2 * 0.025)
+    assert angle("fisheye624", [1, 1, 0, 0, -0.12, 0.005] + [0] * 10) == pytest.approx(
+        math.sqrt(t), rel=1e-12)
+    assert angle("thin_prism_fisheye", [1, 1, 0, 0, -0.12, 0.005] + [0] * 6) == pytest.approx(
+        math.sqrt(t), rel=1e-12)
 
 
 @pytest.mark.parametrize("name, params, size", [
@@ -234,6 +262,10 @@ def test_limits_match_published_formulas():
     pytest.param("scaramuzza", CASES["scaramuzza"][1][0], None, id="scaramuzza"),
     pytest.param("unified", [300.0, 300.0, 0.0, 0.0, 0.9, -0.4, 0.05, 0.0, 0.0], None,
                  id="unified-distortion"),
+    pytest.param("opencv", CASES["opencv"][2][0], None, id="opencv"),
+    pytest.param("fisheye624", CASES["fisheye624"][1][0], None, id="fisheye624"),
+    pytest.param("thin_prism_fisheye", CASES["thin_prism_fisheye"][1][0], None,
+                 id="thin_prism_fisheye"),
 ])
 def test_fold_iterative_inverse_converges_up_to_the_fold(name, params, size):
     """The iterative inverses reach the float64 tolerance up to 1e-6 rad before the fold; past
@@ -269,6 +301,23 @@ def test_iteration_count_is_fixed_and_non_convergence_is_invalid():
     assert bool(torch.isfinite(few).all())
     # lanes flagged converged after three steps are indeed converged
     assert float(angle_between(few[valid_few], full[valid_few]).max()) < RAD64
+
+
+@pytest.mark.parametrize("name", ["opencv", "thin_prism_fisheye", "fisheye624"])
+def test_2d_newton_iteration_count_is_fixed_and_non_convergence_is_invalid(name):
+    """The 2-D Newton undistortion (tangential and thin-prism terms): one step does not converge
+    everywhere, the lanes it flags converged are, and every lane is finite."""
+    model, p = model_and_params(name, CASES[name][0][0])
+    dirs = directions_at(torch.tensor([0.05, 0.4, 0.8, 1.2], dtype=F64), 8)
+    pixels, valid = model.project(dirs, p)
+    pixels = pixels[valid]
+    full, valid_full = model.unproject(pixels, p)
+    assert bool(valid_full.all())
+    few, valid_few = model.unproject(pixels, p, iterations=1)
+    assert not bool(valid_few.all()), "one Newton step cannot converge everywhere"
+    assert bool(torch.isfinite(few).all())
+    if bool(valid_few.any()):
+        assert float(angle_between(few[valid_few], full[valid_few]).max()) < RAD64
 
 
 # --------------------------------------------------------------------------------------------
@@ -408,6 +457,51 @@ def test_reduction_eucm_beta1_is_unified(alpha):
                     "unified", [200 * scale, 210 * scale, 320, 300, xi, 0, 0, 0, 0], dirs) > 0
 
 
+@pytest.mark.parametrize("ks", [(-0.02, 0.004, -0.001, 0.0002), (-0.12, 0.005, 0.0, 0.0)])
+def test_reduction_fisheye624_without_tangential_and_prism_is_kannala_brandt(ks):
+    """fisheye624's k0..k3 are Kannala-Brandt's k1..k4 (theta^3 .. theta^9); k4 = k5 = 0 and
+    p = s = 0 leave the rest; the second lens folds (the same fold on both sides)."""
+    dirs = fibonacci_sphere(3000)
+    assert _compare("fisheye624", [200, 210, 320, 300, *ks, 0, 0, 0, 0, 0, 0, 0, 0],
+                    "kannala_brandt", [200, 210, 320, 300, *ks], dirs) > 0
+
+
+@pytest.mark.parametrize("ks", [(-0.02, 0.004, -0.001, 0.0002), (-0.12, 0.005, 0.0, 0.0)])
+def test_reduction_thin_prism_fisheye_without_p_and_s_is_kannala_brandt(ks):
+    """THIN_PRISM_FISHEYE's order is k1, k2, p1, p2, k3, k4, sx1, sy1."""
+    k1, k2, k3, k4 = ks
+    dirs = fibonacci_sphere(3000)
+    assert _compare("thin_prism_fisheye", [200, 210, 320, 300, k1, k2, 0, 0, k3, k4, 0, 0],
+                    "kannala_brandt", [200, 210, 320, 300, *ks], dirs) > 0
+
+
+def test_reduction_opencv_and_division_undistorted_are_pinhole():
+    dirs = fibonacci_sphere(3000)
+    dirs = dirs[dirs[:, 2] > 0.05]   # pinhole pixels beyond ~87 degrees run to 1e4 px and more
+    assert _compare("opencv", [400, 410, 320, 300] + [0] * 12,
+                    "pinhole", [400, 410, 320, 300], dirs) > 0
+    assert _compare("division", [400, 410, 320, 300, 0.0],
+                    "pinhole", [400, 410, 320, 300], dirs) > 0
+
+
+def test_reduction_fov_omega_to_zero_is_pinhole():
+    """omega = 0 is the pinhole exactly; as omega -> 0 the FOV model approaches it as omega^2
+    (its factor is 1 + omega^2 / 12 - omega^2 r^2 / 3 + ...)."""
+    dirs = fibonacci_sphere(3000)
+    dirs = dirs[dirs[:, 2] > 0.5]   # within 60 degrees: r <= sqrt(3)
+    pin, _ = ot.cameras.get_model("pinhole").project(dirs, torch.tensor([400.0, 410, 320, 300],
+                                                                       dtype=F64))
+    assert _compare("fov", [400, 410, 320, 300, 0.0], "pinhole", [400, 410, 320, 300], dirs) > 0
+    ratios = []
+    for omega in (1e-2, 1e-3, 1e-4):
+        px, valid = ot.cameras.get_model("fov").project(
+            dirs, torch.tensor([400.0, 410, 320, 300, omega], dtype=F64))
+        assert bool(valid.all())
+        ratios.append(float((px - pin).abs().max()) / omega ** 2)
+    # the omega^2 coefficient: max over r <= sqrt(3) of f r |1/12 - r^2 / 3| ~ 9e2 px
+    assert max(ratios) < 1e3 and max(ratios) / min(ratios) < 1.01, ratios
+
+
 def test_equidistant_analytic():
     """r = f theta, written out: 90 degrees lands f pi / 2 pixels from the centre."""
     model, p = model_and_params("equidistant", [200.0, 150.0, 10.0, 20.0])
@@ -525,6 +619,12 @@ def test_bad_input_messages():
     ("double_sphere", [1.0, 1.0, 0.0, 0.0, 0.1, 1.2], "alpha of the double_sphere model"),
     ("scaramuzza", [0.0, 0.0, 1.0, 0.0, 0.0, 100.0, 0.0], "a0 of the scaramuzza model"),
     ("pinhole", [1.0, 1.0, 0.0], "takes 4 parameters"),
+    ("fov", [1.0, 1.0, 0.0, 0.0, -0.1], "omega of the fov model must lie in"),
+    ("fov", [1.0, 1.0, 0.0, 0.0, 4.0], "omega of the fov model must lie in"),
+    ("division", [0.0, 1.0, 0.0, 0.0, 0.1], "fx of the division model must be > 0"),
+    ("opencv", [1.0, -1.0, 0.0, 0.0] + [0.0] * 12, "fy of the opencv model must be > 0"),
+    ("fisheye624", [1.0, 1.0, 0.0, 0.0] + [0.0] * 11, "takes 16 parameters"),
+    ("thin_prism_fisheye", [1.0, 1.0, 0.0, 0.0] + [math.nan] + [0.0] * 7, "k1 .* must be finite"),
 ])
 def test_camera_rejects_bad_params(name, params, match):
     with pytest.raises(ValueError, match=match):
@@ -676,3 +776,44 @@ def test_smallest_positive_root_against_numpy_roots():
         assert value == pytest.approx(want, rel=1e-9)
     constant = torch.tensor([[2.0, 0.0, 0.0], [1.0, 0.0, 0.0]], dtype=F64)
     assert torch.equal(smallest_positive_root(constant), torch.full((2,), math.inf, dtype=F64))
+
+
+@pytest.mark.parametrize("name", ["opencv", "thin_prism_fisheye", "fisheye624"])
+def test_written_out_distortion_jacobians_are_the_complex_step(name):
+    """The 2 x 2 Jacobians the 2-D Newton inverses use, written out per model, against the
+    complex step of the distortion itself (``cameras._base._complex_step``, exact to rounding)."""
+    from omniscape_torch.cameras import _base, fisheye, perspective
+    distort, jacobian = {
+        "opencv": (perspective._opencv_distort, perspective._opencv_jacobian),
+        "thin_prism_fisheye": (fisheye._tpf_distort, fisheye._tpf_jacobian),
+        "fisheye624": (fisheye._f624_distort, fisheye._f624_jacobian)}[name]
+    gen = torch.Generator().manual_seed(0)
+    c = 0.05 * torch.randn(len(ot.cameras.get_model(name).param_names) - 4, generator=gen,
+                           dtype=F64)
+    mx, my = (torch.rand(200, generator=gen, dtype=F64) * 2 - 1 for _ in range(2))
+    want = _base._complex_step(distort, mx, my, c)
+    got = jacobian(mx, my, c)
+    for g, w in zip(got, want):
+        torch.testing.assert_close(g, w, rtol=1e-13, atol=1e-13)
+
+
+@pytest.mark.parametrize("name", ["fov", "division", "opencv", "thin_prism_fisheye",
+                                  "fisheye624"])
+def test_ray_grid_and_field_of_view_of_the_new_models(name):
+    """``Camera.ray_grid`` and ``field_of_view`` from the models' ``max_angle``: every pixel
+    of the first case valid, its rays within the limit, and the fisheyes seeing past 180
+    degrees through ``atan2``."""
+    params, size = CASES[name][0]
+    p = torch.tensor(params, dtype=F64)
+    # the same lens on a sensor 8 times coarser (pixel centres at integers: c' = (c + 0.5) / 8
+    # - 0.5): the iterative inverses take ~3 s for a 1280 x 960 grid on a loaded machine
+    p[:2], p[2:4] = p[:2] / 8, (p[2:4] + 0.5) / 8 - 0.5
+    cam = ot.Camera(name, p, (size[0] // 8, size[1] // 8))
+    rays, valid = cam.ray_grid()
+    assert bool(valid.all())
+    limit = float(cam.model.max_angle(cam.params))
+    assert float(theta_of(rays).max()) < limit
+    fov = float(cam.field_of_view())
+    assert 0 < fov <= 2 * limit
+    if name in ("thin_prism_fisheye", "fisheye624"):
+        assert fov > math.pi

@@ -83,20 +83,28 @@ from .params import IntrinsicsMap, frozen_indices, transform
 #: Optimisation methods of :func:`fit`.
 METHODS = ("lm", "lbfgs", "adam", "linear")
 
-#: Parameters held by default: OCamCalib's ``a1 = 0`` (``f'(0) = 0``).
-DEFAULT_FREEZE = {"scaramuzza": ("a1", "e")}
+#: Parameters held by default: OCamCalib's ``a1 = 0`` (``f'(0) = 0``); for ``opencv``, as
+#: ``cv2.calibrateCamera`` without ``CALIB_RATIONAL_MODEL`` and ``CALIB_THIN_PRISM_MODEL``, the
+#: rational denominator and the thin prism (with small coefficients k1..k3 and k4..k6 are
+#: nearly redundant: a board's views leave J^T J singular to 1e13).
+DEFAULT_FREEZE = {"scaramuzza": ("a1", "e"),
+                  "opencv": ("k4", "k5", "k6", "s1", "s2", "s3", "s4")}
 
 #: Undistorted starting values of the models' non-focal parameters (unified xi = 1 and its
 #: equivalents: a parabolic mirror, the middle of the fisheye range).
 DEFAULT_DISTORTION = {"kannala_brandt": (0.0, 0.0, 0.0, 0.0), "unified": (1.0, 0.0, 0.0, 0.0, 0.0),
-                      "eucm": (0.5, 1.0), "double_sphere": (0.0, 0.5)}
+                      "eucm": (0.5, 1.0), "double_sphere": (0.0, 0.5),
+                      # fov: COLMAP's start (omega = 0 is a pinhole, where d/d omega vanishes)
+                      "fov": (1e-2,), "division": (0.0,), "opencv": (0.0,) * 12,
+                      "thin_prism_fisheye": (0.0,) * 8, "fisheye624": (0.0,) * 12}
 
 #: Cost per observation (pixels squared) below which residuals are at rounding level: relative
 #: convergence tests are then skipped (exact data, as in a conversion between nested models).
 COST_FLOOR = 0.5e-18
 
 #: Default full field of view of :func:`default_intrinsics`, radians.
-DEFAULT_FOV = {"pinhole": math.radians(90)}
+DEFAULT_FOV = {"pinhole": math.radians(90), "fov": math.radians(90),
+               "division": math.radians(90), "opencv": math.radians(90)}
 
 #: Full fields of view (radians) of the default starts of :func:`fit`, besides the model's
 #: ``DEFAULT_FOV`` (else pi) and the caller's ``fov``; those the model cannot see are skipped.
@@ -541,7 +549,8 @@ def fit(object_points, image_points, model: str | CameraModel, image_size: tuple
         fov: full field of view in radians: one more start for non-polynomial models (the
             only one for L-BFGS and Adam).
         freeze: parameter groups (``focal``, ``center``, ``distortion``, ``affine``) or names
-            held at their start (default ``DEFAULT_FREEZE``: a1 of ``scaramuzza``).
+            held at their start (default ``DEFAULT_FREEZE``: a1 and e of ``scaramuzza``,
+            k4..k6 and s1..s4 of ``opencv``).
         loss: ``"linear"``, ``"huber"`` or ``"cauchy"`` (``omniscape_torch.calibration.lm``);
             with ``reject_outliers``, the loss of the first fit (``"linear"`` means Cauchy
             there), the refits being plain least squares.

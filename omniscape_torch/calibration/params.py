@@ -10,7 +10,7 @@ parameter                           natural value from z             keeps
 fx, fy                              f0 exp(z)                        f > 0
 cx, cy                              c0 + s z (s: half the larger     --
                                     image side)
-xi (unified)                        softplus(z)                      xi >= 0
+xi (unified), omega (fov)           softplus(z)                      xi >= 0, omega >= 0
 alpha (eucm, double_sphere)         sigmoid(z)                       0 < alpha < 1
 beta (eucm)                         beta0 exp(z)                     beta > 0
 xi (double_sphere)                  tanh(z)                          -1 < xi < 1
@@ -46,7 +46,7 @@ GROUPS = ("focal", "center", "distortion", "affine")
 #: Transform kinds by model and parameter name (anything not listed is ``"shift"``).
 _KINDS = {
     "fx": "log", "fy": "log", "cx": "center", "cy": "center",
-    ("unified", "xi"): "softplus", ("double_sphere", "xi"): "tanh",
+    ("unified", "xi"): "softplus", ("fov", "omega"): "softplus", ("double_sphere", "xi"): "tanh",
     ("eucm", "alpha"): "sigmoid", ("double_sphere", "alpha"): "sigmoid", ("eucm", "beta"): "log",
 }
 

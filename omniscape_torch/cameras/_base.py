@@ -335,3 +335,135 @@ def implicit_step(x_star: Tensor, residual: Tensor, slope: Tensor) -> Tensor:
     """
     ok = slope.detach().abs() > 0
     return x_star - safe_div(residual, slope.detach(), ok)
+
+
+# --------------------------------------------------------------------------------------------
+# Shared by the models with a distortion of the plane (tangential, thin prism): their inverse.
+# --------------------------------------------------------------------------------------------
+
+def series_or(x: Tensor, small: Tensor, exact: Callable[[Tensor], Tensor],
+              series: Callable[[Tensor], Tensor]) -> Tensor:
+    """``exact(x)`` where not ``small``, ``series(x)`` where ``small``: for removable
+    singularities (``sin(x) / x`` at 0), NaN-free in value and gradient on both branches."""
+    return torch.where(small, series(torch.where(small, x, torch.zeros_like(x))),
+                       exact(torch.where(small, torch.ones_like(x), x)))
+
+
+def polymul(a: Tensor, b: Tensor) -> Tensor:
+    """Ascending coefficients ``(..., n + m - 1)`` of the product of ``a (..., n)`` and
+    ``b (..., m)``."""
+    n, m = a.shape[-1], b.shape[-1]
+    shape = broadcast_shapes(a.shape[:-1], b.shape[:-1])
+    out = [torch.zeros(shape, dtype=a.dtype, device=a.device) for _ in range(n + m - 1)]
+    for i in range(n):
+        for j in range(m):
+            out[i + j] = out[i + j] + a[..., i] * b[..., j]
+    return torch.stack(out, -1)
+
+
+def _complex_step(distort: Callable, mx: Tensor, my: Tensor, coeffs: Tensor):
+    """The map ``distort(mx, my, coeffs) -> (x, y)`` and its 2 x 2 Jacobian by the complex step
+    ``df/dx = Im f(x + i h) / h``: exact to rounding for the analytic maps here (polynomials and
+    ratios of them), with no subtraction and so no step size to tune (Squire and Trapp 1998)."""
+    h = torch.finfo(mx.dtype).eps ** 2
+    c = coeffs.to(torch.complex128 if mx.dtype == torch.float64 else torch.complex64)
+    zero = torch.zeros_like(mx)
+    x1, y1 = distort(torch.complex(mx, zero + h), torch.complex(my, zero), c)
+    x2, y2 = distort(torch.complex(mx, zero), torch.complex(my, zero + h), c)
+    return x1.real, y1.real, x1.imag / h, x2.imag / h, y1.imag / h, y2.imag / h
+
+
+def undistort_2d(xd: Tensor, yd: Tensor, coeffs: Tensor, distort: Callable, radial: Callable,
+                 t_limit: Tensor, iterations: int, jacobian: Callable | None = None
+                 ) -> tuple[Tensor, Tensor, Tensor]:
+    """Invert a distortion of the plane, ``distort(mx, my, coeffs) = (xd, yd)``, as OpenCV's
+    ``undistortPoints`` and COLMAP's ``IterativeUndistortion`` do, by 2-D Newton with the 2 x 2
+    Jacobian: ``jacobian(mx, my, coeffs) -> (x, y, dx/dmx, dx/dmy, dy/dmx, dy/dmy)`` written
+    out (the models' own; tests/test_cameras.py checks them against the complex step), else the
+    complex step (exact to rounding, 3-4 times slower: complex arithmetic).
+
+    The start is the inverse of the radial part alone (``radial(r, coeffs) -> (g(r), g'(r))``,
+    increasing on ``[0, sqrt(t_limit))``) at ``|(xd, yd)|``, by the safeguarded 1-D Newton of
+    :func:`invert_monotone`, so that strong radial distortion does not lead Newton astray; a
+    2-D step that would cross the fold (``mx^2 + my^2 >= t_limit``) is shortened to land halfway
+    to it. At most ``iterations`` steps, ending early once every lane has converged to
+    ``8 eps (1 + |xd| + |yd|)``, or two steps after every lane is within ``64 eps (1 + |xd| +
+    |yd|)`` (the rounding of a strongly distorting polynomial, whose terms cancel, can stay
+    above the first bound at the root); a lane counts as converged within the second. The root
+    is found without gradient; one Newton step with gradient then carries the
+    implicit-function-theorem derivative to the pixels and ``coeffs``.
+
+    Returns:
+        ``mx, my`` and ``converged`` (non-converged lanes hold 0, finite gradients).
+    """
+    tol = 8 * torch.finfo(xd.dtype).eps
+    if jacobian is None:
+        def jacobian(mx, my, c):
+            return _complex_step(distort, mx, my, c)
+    with torch.no_grad():
+        c = coeffs.detach()
+        tx, ty = xd.detach(), yd.detach()
+        bound = tol * (1 + tx.abs() + ty.abs())
+        loose = 8 * bound
+        rd = torch.sqrt(tx * tx + ty * ty)
+        r_lim = torch.sqrt(t_limit.detach())
+        finite = torch.isfinite(r_lim)
+        hi = torch.where(finite, r_lim, torch.ones_like(r_lim)) * torch.ones_like(rd)
+        hi = torch.where(finite, hi, torch.maximum(hi, rd))
+        for _ in range(64):   # a bracket where there is no fold: g grows without bound
+            short = ~finite & (radial(hi, c)[0] < rd)
+            if not bool(short.any()):
+                break
+            hi = torch.where(short, 2 * hi, hi)
+        # a radius beyond the radial part's range starts at the fold (and will not converge)
+        target = torch.minimum(rd, radial(hi, c)[0])
+        r0, _ = invert_monotone(lambda r: radial(r, c), target, hi, iterations, tol)
+        scale = torch.where(rd > 0, r0 / torch.where(rd > 0, rd, torch.ones_like(rd)),
+                            torch.ones_like(rd))
+        mx, my = tx * scale, ty * scale
+        extra = stalled = 0
+        previous = torch.full_like(tx, math.inf)
+        for _ in range(iterations):
+            fx, fy, a, b, cc, e = jacobian(mx, my, c)
+            rx, ry = fx - tx, fy - ty
+            res = rx.abs() + ry.abs()
+            if bool((res <= bound).all()):
+                break
+            if bool((res <= loose).all()):
+                extra += 1
+                if extra > 2:
+                    break
+            # lanes pinned at the fold (pixels outside the domain) never converge: stop once
+            # no unconverged lane has gained 10% for three steps (Newton next to a fold still
+            # about halves its error per step)
+            progress = ((res > loose) & (res < 0.9 * previous)).any()
+            stalled = 0 if bool(progress) else stalled + 1
+            if stalled >= 3:
+                break
+            previous = res
+            det = a * e - b * cc
+            ok = det.abs() > torch.finfo(det.dtype).tiny
+            nx = mx - safe_div(e * rx - b * ry, det, ok)
+            ny = my - safe_div(a * ry - cc * rx, det, ok)
+            r2_old, r2_new = mx * mx + my * my, nx * nx + ny * ny
+            crossed = r2_new >= t_limit
+            shrink = torch.sqrt(torch.where(
+                crossed, 0.5 * (r2_old + t_limit) / torch.where(crossed, r2_new,
+                                                                  torch.ones_like(r2_new)),
+                torch.ones_like(r2_new)))
+            mx, my = nx * shrink, ny * shrink
+        fx, fy, a, b, cc, e = jacobian(mx, my, c)
+        converged = ((fx - tx).abs() + (fy - ty).abs()) <= loose
+        converged = converged & torch.isfinite(mx) & torch.isfinite(my)
+        mx = torch.where(converged, mx, torch.zeros_like(mx))
+        my = torch.where(converged, my, torch.zeros_like(my))
+        _, _, a, b, cc, e = jacobian(mx, my, c)
+        det = a * e - b * cc
+        ok = det.abs() > torch.finfo(det.dtype).tiny
+    fx, fy = distort(mx, my, coeffs)
+    rx, ry = fx - xd, fy - yd
+    rx = torch.where(converged, rx, torch.zeros_like(rx))
+    ry = torch.where(converged, ry, torch.zeros_like(ry))
+    mx = mx - safe_div(e * rx - b * ry, det, ok)
+    my = my - safe_div(a * ry - cc * rx, det, ok)
+    return mx, my, converged & ok

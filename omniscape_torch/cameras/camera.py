@@ -9,7 +9,7 @@ from typing import Sequence
 import torch
 from torch import Tensor, nn
 
-from . import export, formats
+from . import export, formats, readers
 from ._base import CameraModel
 from .registry import get_model
 
@@ -300,6 +300,30 @@ class Camera(nn.Module):
     def load_json(cls, path: str | Path, **kwargs) -> "Camera":
         return formats.load_json(cls, path, **kwargs)
 
+    @classmethod
+    def load(cls, path, format: str | None = None, *, name: str | int | None = None,
+             image_size: tuple[int, int] | None = None, dtype: torch.dtype = torch.float64,
+             **kwargs) -> "Camera":
+        """Read a camera from another tool's file (``cameras/readers.py``).
+
+        Args:
+            path: the file (``ot.cameras.READ_FORMATS``: json, ocamcalib, opencv, kalibr,
+                basalt, orbslam3, colmap, aria), a COLMAP sparse folder, or a
+                ``pycolmap.Camera`` / ``pycolmap.Reconstruction``.
+            format: one of ``READ_FORMATS``; recognised from the content when ``None``.
+            name: the camera of a multi-camera file (Kalibr ``cam1``, ORB-SLAM3 ``Camera2``,
+                a COLMAP camera id, an Aria label); the first when ``None``
+                (``ot.cameras.load_all`` returns them all).
+            image_size: ``(H, W)``, overriding the file's (needed where it has none).
+            dtype: dtype of the parameters.
+            **kwargs: passed to ``Camera`` (``fov``, ``learnable``, ``blind_fov``).
+
+        Raises:
+            ValueError: one line naming the file, the line or key, and what was expected.
+        """
+        return readers.load(cls, path, format, name=name, image_size=image_size, dtype=dtype,
+                            **kwargs)
+
     def save(self, path: str | Path, format: str = "json", *, accept_fov: bool = False,
              accept_skew: bool = False) -> Path:
         """Write the file another tool reads: ``format`` is one of ``ot.cameras.FORMATS``
@@ -307,6 +331,42 @@ class Camera(nn.Module):
         cannot hold is refused unless accepted (``cameras/export.py``). Returns the path."""
         return export.write_camera(self, path, format, accept_fov=accept_fov,
                                    accept_skew=accept_skew)
+
+
+def load_all(path, format: str | None = None, *, image_size: tuple[int, int] | None = None,
+             dtype: torch.dtype = torch.float64, **kwargs) -> dict[str, Camera]:
+    """Every camera of a file another tool wrote, in the file's order (``Camera.load`` reads
+    one; ``cameras/readers.py`` lists the formats and their models).
+
+    Args:
+        path: the file, a COLMAP sparse folder, or a ``pycolmap.Camera`` /
+            ``pycolmap.Reconstruction``.
+        format: one of ``ot.cameras.READ_FORMATS``; recognised from the content when ``None``.
+        image_size: ``(H, W)`` for every camera, overriding the file's (needed where it has
+            none: ORB-SLAM2-style settings, an Aria camera of an unknown label; json and
+            ocamcalib files always have one and keep it).
+        dtype: dtype of the parameters.
+        **kwargs: passed to ``Camera`` (``fov``, ``learnable``, ``blind_fov``).
+
+    Returns:
+        ``{name: Camera}``: Kalibr's and basalt's ``cam0``, ``cam1``...; ORB-SLAM3's
+        ``Camera1``, ``Camera2`` (``Camera`` in the older format); COLMAP's camera ids as
+        strings; Aria's labels (``camera-rgb``...); ``camera`` for the single-camera formats
+        (json, ocamcalib, opencv).
+
+    Raises:
+        ValueError: one line naming the file, the line or key, and what was expected.
+        FileNotFoundError: no such file.
+
+    Examples:
+        >>> import tempfile, pathlib, omniscape_torch as ot
+        >>> cam = ot.Camera("pinhole", [400.0, 401.0, 319.5, 239.5], (480, 640))
+        >>> with tempfile.TemporaryDirectory() as tmp:
+        ...     cams = ot.cameras.load_all(cam.save(pathlib.Path(tmp) / "cameras.txt", "colmap"))
+        >>> list(cams), cams["1"].params.tolist()
+        (['1'], [400.0, 401.0, 319.5, 239.5])
+    """
+    return readers.read_all(Camera, path, format, image_size=image_size, dtype=dtype, **kwargs)
 
 
 def _check_image_size(image_size) -> tuple[int, int]:

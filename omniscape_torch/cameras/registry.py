@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from ._base import CameraModel
 from .equirectangular import EQUIRECTANGULAR
+from .fisheye import FISHEYE624, THIN_PRISM_FISHEYE
+from .perspective import DIVISION, FOV, OPENCV
 from .pinhole import PINHOLE
 from .radial import EQUIDISTANT, EQUISOLID, KANNALA_BRANDT, ORTHOGRAPHIC, STEREOGRAPHIC
 from .scaramuzza import SCARAMUZZA
@@ -12,7 +14,8 @@ from .unified import DOUBLE_SPHERE, EUCM, UNIFIED
 #: The registry: model name -> ``CameraModel``, in DESIGN.md's order.
 MODELS: dict[str, CameraModel] = {m.name: m for m in (
     PINHOLE, EQUIDISTANT, EQUISOLID, STEREOGRAPHIC, ORTHOGRAPHIC, KANNALA_BRANDT, UNIFIED, EUCM,
-    DOUBLE_SPHERE, SCARAMUZZA, EQUIRECTANGULAR)}
+    DOUBLE_SPHERE, SCARAMUZZA, EQUIRECTANGULAR, FOV, DIVISION, OPENCV, THIN_PRISM_FISHEYE,
+    FISHEYE624)}
 
 
 def get_model(name: str | CameraModel) -> CameraModel:
