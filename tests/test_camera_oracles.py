@@ -702,7 +702,7 @@ def test_opencv_unproject_matches_cv2_undistort_points_iter(case):
     both = converged & ok
     err = angle_between(rays[both], plane_rays(cv_xy[both]))
     compared = int(both.sum())
-    report(f"opencv/{case[0]} vs cv2.undistortPointsIter ({int((~converged).sum())} not "
+    report(f"opencv/{case[0]} vs cv2.{undistort.__name__} ({int((~converged).sum())} not "
            "converged by OpenCV)", compared, rad=err.max())
     assert err.max() <= NEW_RAY_TOL
     assert angle_between(rays, unit(points[keep])).max() <= 1e-9

@@ -423,8 +423,8 @@ def undistort_2d(xd: Tensor, yd: Tensor, coeffs: Tensor, distort: Callable, radi
         mx, my = tx * scale, ty * scale
         extra = stalled = 0
         previous = torch.full_like(tx, math.inf)
+        fx, fy, a, b, cc, e = jacobian(mx, my, c)
         for _ in range(iterations):
-            fx, fy, a, b, cc, e = jacobian(mx, my, c)
             rx, ry = fx - tx, fy - ty
             res = rx.abs() + ry.abs()
             if bool((res <= bound).all()):
@@ -452,12 +452,14 @@ def undistort_2d(xd: Tensor, yd: Tensor, coeffs: Tensor, distort: Callable, radi
                                                                   torch.ones_like(r2_new)),
                 torch.ones_like(r2_new)))
             mx, my = nx * shrink, ny * shrink
-        fx, fy, a, b, cc, e = jacobian(mx, my, c)
+            fx, fy, a, b, cc, e = jacobian(mx, my, c)
         converged = ((fx - tx).abs() + (fy - ty).abs()) <= loose
         converged = converged & torch.isfinite(mx) & torch.isfinite(my)
-        mx = torch.where(converged, mx, torch.zeros_like(mx))
-        my = torch.where(converged, my, torch.zeros_like(my))
-        _, _, a, b, cc, e = jacobian(mx, my, c)
+        # non-converged lanes: at 0 with the identity as Jacobian (finite, no gradient step)
+        zero, one = torch.zeros_like(mx), torch.ones_like(mx)
+        mx, my = torch.where(converged, mx, zero), torch.where(converged, my, zero)
+        a, e = torch.where(converged, a, one), torch.where(converged, e, one)
+        b, cc = torch.where(converged, b, zero), torch.where(converged, cc, zero)
         det = a * e - b * cc
         ok = det.abs() > torch.finfo(det.dtype).tiny
     fx, fy = distort(mx, my, coeffs)
