@@ -36,7 +36,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_projection import remap_maps  # noqa: E402
-from common import (ROOT, begin_run, loadavg, measure, results_path, run_main,  # noqa: E402
+from common import (begin_run, loadavg, measure, results_path, run_main,  # noqa: E402
                     run_record)
 
 import omniscape_torch as ot  # noqa: E402

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import math
 import struct
-import sys
 
 import numpy as np
 import pytest
@@ -209,15 +208,6 @@ def test_opencv_real_files_project_as_cv2(name):
     np.testing.assert_allclose(ours[valid].numpy(), ref[:, 0][valid.numpy()], atol=1e-6)
 
 
-def test_opencv_yaml_without_pyyaml_reads_with_cv2(monkeypatch):
-    pytest.importorskip("cv2")
-    with_yaml = ot.Camera.load(FILES / "opencv" / "left_intrinsics.yml")
-    monkeypatch.setitem(sys.modules, "yaml", None)   # import yaml now raises ImportError
-    cam = ot.Camera.load(FILES / "opencv" / "left_intrinsics.yml")
-    assert cam.params.tolist() == with_yaml.params.tolist()
-    assert list(load_all(FILES / "orbslam3" / "TUM-VI-stereo.yaml")) == ["Camera1", "Camera2"]
-
-
 def test_ros_camera_info_yaml(tmp_path):
     """ROS's camera_calibration writes untagged {rows, cols, data} matrices and names the
     distortion model (plumb_bob, rational_polynomial, equidistant)."""
@@ -236,15 +226,6 @@ def test_ros_camera_info_yaml(tmp_path):
     fisheye = ot.Camera.load(path)
     assert fisheye.model.name == "kannala_brandt"
     assert fisheye.params.tolist()[4:] == [0.01, -0.002, 0.0003, 0.0]
-
-
-def test_kalibr_without_pyyaml_reads_with_cv2(monkeypatch):
-    pytest.importorskip("cv2")
-    with_yaml = load_all(FILES / "kalibr" / "chain-omni-radtan.yaml")
-    monkeypatch.setitem(sys.modules, "yaml", None)
-    without = load_all(FILES / "kalibr" / "chain-omni-radtan.yaml")
-    assert {k: c.params.tolist() for k, c in without.items()} == \
-        {k: c.params.tolist() for k, c in with_yaml.items()}
 
 
 def _colmap_binary(tmp_path, text_path):

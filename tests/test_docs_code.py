@@ -8,7 +8,6 @@ or ``text`` fences. A page listed in ``SLOW`` is marked ``slow``.
 
 from __future__ import annotations
 
-import os
 import re
 import textwrap
 from pathlib import Path

@@ -53,9 +53,8 @@ Conventions, converted here and nowhere else (as ``export.py`` does for writing)
 * A camera the writer recorded as valid below 90 degrees only (``valid_angle_deg``) is read with
   ``fov`` twice that angle.
 
-YAML is read with PyYAML where installed (OpenCV's ``%YAML:1.0`` header and ``!!opencv-matrix``
-tags understood), else with ``cv2.FileStorage``; neither is required by the package, and a YAML
-file without either is refused naming both. A malformed file, a model the registry lacks, or a
+YAML is read with PyYAML (a requirement; OpenCV's ``%YAML:1.0`` header and ``!!opencv-matrix``
+tags understood), so no file needs OpenCV to be read. A malformed file, a model the registry lacks, or a
 format/model pair with no registry model is a ``ValueError`` of one line naming the file, the
 line or key, and what was expected.
 
@@ -361,7 +360,7 @@ def _get(build, data: dict, key: str, where: str = ""):
 
 
 # --------------------------------------------------------------------------------------------
-# Parsers: JSON, YAML (PyYAML or cv2.FileStorage)
+# Parsers: JSON, YAML (PyYAML)
 # --------------------------------------------------------------------------------------------
 
 def _json(path: Path, text: str):
@@ -375,10 +374,7 @@ def _json(path: Path, text: str):
 
 
 def _yaml(path: Path, text: str):
-    try:
-        import yaml
-    except ImportError:
-        return _yaml_cv2(path, text)
+    import yaml   # PyYAML: a requirement
     # OpenCV writes '%YAML:1.0', a directive PyYAML refuses: blanked, keeping line numbers.
     lines = text.splitlines()
     if lines and lines[0].startswith("%YAML:"):
@@ -409,56 +405,6 @@ def _yaml(path: Path, text: str):
         where = f"{path}, line {mark.line + 1}" if mark is not None else str(path)
         problem = getattr(err, "problem", None) or str(err).splitlines()[0]
         raise ValueError(f"{where}: not valid YAML ({problem})") from None
-
-
-def _yaml_cv2(path: Path, text: str):
-    try:
-        import cv2
-    except ImportError:
-        raise ValueError(f"{path}: reading YAML needs PyYAML (pip install pyyaml) or OpenCV "
-                         f"(pip install opencv-python-headless)") from None
-    # cv::FileStorage wants its '%YAML:1.0' header, and refuses a block sequence at its key's
-    # indentation ("key:\n- [1, 2]", as PyYAML and Kalibr write it): indented by two.
-    lines, key_indent = [], None
-    for line in text.splitlines():
-        indent = len(line) - len(line.lstrip(" "))
-        stripped = line.strip()
-        if stripped.startswith("- ") and key_indent is not None and indent <= key_indent:
-            line = " " * (key_indent + 2) + stripped
-        elif stripped.endswith(":") and not stripped.startswith("#"):
-            key_indent = indent
-        elif stripped and not stripped.startswith("#"):
-            key_indent = None if not stripped.startswith("- ") else key_indent
-        lines.append(line)
-    if not lines or not lines[0].startswith("%YAML"):
-        lines.insert(0, "%YAML:1.0")
-    try:
-        fs = cv2.FileStorage("\n".join(lines) + "\n",
-                             cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
-    except Exception as err:   # noqa: BLE001 - cv2.error, or SystemError from its binding
-        message = (str(err).strip().splitlines() or [type(err).__name__])[-1]
-        raise ValueError(f"{path}: not valid YAML for cv2.FileStorage ({message})") from None
-    try:
-        return _from_node(fs.root())
-    finally:
-        fs.release()
-
-
-def _from_node(node):
-    if node.isMap():
-        keys = node.keys()
-        if {"rows", "cols", "dt", "data"} <= set(keys):   # an !!opencv-matrix
-            return node.mat()
-        return {k: _from_node(node.getNode(k)) for k in keys}
-    if node.isSeq():
-        return [_from_node(node.at(i)) for i in range(node.size())]
-    if node.isString():
-        return node.string()
-    if node.isInt():
-        return int(node.real())
-    if node.isReal():
-        return node.real()
-    return None
 
 
 # --------------------------------------------------------------------------------------------
