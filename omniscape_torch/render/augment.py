@@ -1009,8 +1009,9 @@ class RandomReproject(_RandomCameras):
                      self.interpolation in fast.MODES and not (
                          torch.is_grad_enabled() and any(
                              t is not None and t.requires_grad for t in (image, depth, k))))
-        if source is not None:   # projected in its own dtype, on the images' device
-            source = Camera(source.model, source.params.to(device), source.image_size,
+        given = source
+        if source is not None:   # projected in the drawn cameras' dtype, as a pinhole's rays
+            source = Camera(source.model, source.params.to(device, dtype), source.image_size,
                             fov=source.fov, blind_fov=source.blind_fov)
         # on the CPU a few samples at a time (projection.CHUNK_PIXELS): the rays of a chunk
         chunk = batch if device.type != "cpu" else max(1, projection.CHUNK_PIXELS // (h * w))
@@ -1030,7 +1031,7 @@ class RandomReproject(_RandomCameras):
             result["params"] = dict(params, intrinsics=k.to("cpu", torch.float64))
             result["params"].pop("source_camera", None)
         else:
-            result["params"] = dict(params, source_camera=source.to("cpu", torch.float64))
+            result["params"] = dict(params, source_camera=given.to(torch.float64))
             result["params"].pop("intrinsics", None)
         return result
 
