@@ -299,3 +299,19 @@ def test_bad_source(call, error, match, aria):
     aug = augment.RandomReproject((16, 16), seed=0)
     with pytest.raises(error, match=match):
         call(aug, scaled(aria, 1 / 8))
+
+
+def test_a_module_with_a_source_camera_pickles(aria):
+    """DataLoader workers get the module pickled: its source camera travels with it; a module
+    pickled before ``source_camera`` existed loads with None."""
+    import pickle
+    cam = scaled(aria, 1 / 8)
+    aug = augment.RandomReproject((16, 16), source_camera=cam, seed=0)
+    copy = pickle.loads(pickle.dumps(aug))
+    image = torch.rand(1, 3, *cam.image_size)
+    assert torch.equal(copy(image)["rgb"], aug(image)["rgb"])
+    state = augment.RandomReproject((16, 16), source_fov=1.5, seed=0).__getstate__()
+    state.pop("source_camera")
+    old = augment.RandomReproject.__new__(augment.RandomReproject)
+    old.__setstate__(state)
+    assert old.source_camera is None and old(torch.rand(1, 3, 8, 8))["valid"].any()

@@ -909,6 +909,11 @@ class RandomReproject(_RandomCameras):
         self.source_camera = source_camera
         self._check_fisheye_ranges()
 
+    def __setstate__(self, state: dict) -> None:
+        super().__setstate__(state)
+        if "source_camera" not in self._modules:   # pickled before it existed
+            self.source_camera = None
+
     def extra_repr(self) -> str:
         source = ("" if self.source_camera is None else
                   f"source_camera={self.source_camera.model.name} "
