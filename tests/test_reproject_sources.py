@@ -111,9 +111,11 @@ def test_valid_mask_is_the_source_model_projection(which, aria, opencv):
     assert bool((out["labels"][~out["valid"][:, 0]] == 255).all())
     # the exact chain (a gradient asked for) agrees with the fast one
     with torch.enable_grad():
-        exact = aug.render(image.clone().requires_grad_(), out["params"],
-                           labels=torch.randint(0, 13, (3, *cam.image_size)), source_camera=cam)
-    assert torch.equal(exact["valid"], out["valid"])
+        leaf = image.clone().requires_grad_()
+        exact = aug.render(leaf, out["params"], labels=torch.randint(0, 13, (3, *cam.image_size)),
+                           source_camera=cam)
+        exact["rgb"].sum().backward()
+    assert torch.equal(exact["valid"], out["valid"]) and leaf.grad.abs().sum() > 0
     torch.testing.assert_close(exact["rgb"].detach(), out["rgb"], rtol=0, atol=1e-4)
 
 
@@ -190,7 +192,8 @@ def test_source_camera_at_construction_per_call_batched_and_replayed(aria):
     batch = ot.Camera(cam.model, cam.params.expand(2, -1), cam.image_size)
     c = plain.render(image, a["params"], source_camera=batch)
     d = plain(image, params=a["params"])
-    for out in (b, c, d):
+    e = plain({"rgb": image, "source_camera": cam}, params=a["params"])
+    for out in (b, c, d, e):
         assert torch.equal(out["rgb"], a["rgb"]) and torch.equal(out["valid"], a["valid"])
     assert a["params"]["source_camera"].batch_shape == (2,)
     # different rows: sample 1 as if rendered alone with its camera
