@@ -318,3 +318,35 @@ def test_a_module_with_a_source_camera_pickles(aria):
     old = augment.RandomReproject.__new__(augment.RandomReproject)
     old.__setstate__(state)
     assert old.source_camera is None and old(torch.rand(1, 3, 8, 8))["valid"].any()
+
+
+def test_reproject_refuses_a_source_batch_of_another_size(aria):
+    cam = scaled(aria, 1 / 8)
+    three = ot.Camera(cam.model, cam.params.expand(3, -1), cam.image_size)
+    dst = ot.Camera("equidistant", torch.tensor([[8.0, 8.0, 7.5, 7.5]] * 2), (16, 16))
+    with pytest.raises(ValueError, match="src_camera: a batch of 3 cameras for a batch of 2"):
+        ot.reproject(torch.rand(2, 3, *cam.image_size), three, dst)
+    with pytest.raises(ValueError, match="src_camera: a batch of 3 cameras, dst_camera a batch "
+                                         "of 2"):
+        ot.reproject(torch.rand(1, 3, *cam.image_size), three, dst)
+    out, valid = ot.reproject(torch.rand(1, 3, *cam.image_size), three, 
+                              ot.Camera("equidistant", [8.0, 8.0, 7.5, 7.5], (16, 16)))
+    assert out.shape == (3, 3, 16, 16) and valid.any()
+
+
+def test_a_source_fov_limits_valid(aria):
+    """A source camera's ``fov`` is part of its validity: the output is valid only where the
+    ray lies within it."""
+    cam = scaled(aria, 1 / 8)
+    narrow = ot.Camera(cam.model, cam.params, cam.image_size, fov=math.radians(90))
+    aug = augment.RandomReproject((32, 32), seed=2)
+    image = torch.rand(2, 3, *cam.image_size)
+    params = aug.forward_parameters(2)
+    wide = aug.render(image, params, source_camera=cam)["valid"]
+    out = aug.render(image, params, source_camera=narrow)["valid"]
+    assert bool((out <= wide).all()) and int(out.sum()) < int(wide.sum())
+    for i in range(2):
+        rays, _ = _target(aug, params, i).ray_grid()
+        src = rays @ params["rotation"][i].T
+        assert bool((torch.atan2(src[..., :2].norm(dim=-1), src[..., 2])[out[i, 0]]
+                     <= math.radians(45) + 1e-6).all())

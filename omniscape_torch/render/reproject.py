@@ -266,6 +266,14 @@ def reproject(image: Tensor, src_camera: Camera | Tensor, dst_camera: Camera, *,
     elif not isinstance(src_camera, Camera):
         raise TypeError(f"src_camera: expected an ot.Camera or a camera matrix K (3, 3) / "
                         f"(B, 3, 3), got {type(src_camera).__name__}")
+    if len(src_camera.batch_shape) == 1:
+        n = src_camera.batch_shape[0]
+        if image.shape[0] not in (1, n):
+            raise ValueError(f"src_camera: a batch of {n} cameras for a batch of "
+                             f"{image.shape[0]} images")
+        if len(dst_camera.batch_shape) == 1 and dst_camera.batch_shape[0] != n:
+            raise ValueError(f"src_camera: a batch of {n} cameras, dst_camera a batch of "
+                             f"{dst_camera.batch_shape[0]}")
     rays, valid_dst = dst_camera.ray_grid()  # [(B,) h, w, 3]
     if rotation is not None:
         cm.check_rotation(rotation)
