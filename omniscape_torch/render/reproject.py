@@ -269,10 +269,9 @@ def reproject(image: Tensor, src_camera: Camera | Tensor, dst_camera: Camera, *,
     if len(src_camera.batch_shape) == 1:
         n = src_camera.batch_shape[0]
         if image.shape[0] not in (1, n):
-            raise ValueError(f"src_camera: a batch of {n} cameras for a batch of "
-                             f"{image.shape[0]} images")
+            raise ValueError(f"batch sizes disagree: src_camera {n}, image {image.shape[0]}")
         if len(dst_camera.batch_shape) == 1 and dst_camera.batch_shape[0] != n:
-            raise ValueError(f"src_camera: a batch of {n} cameras, dst_camera a batch of "
+            raise ValueError(f"batch sizes disagree: src_camera {n}, dst_camera "
                              f"{dst_camera.batch_shape[0]}")
     rays, valid_dst = dst_camera.ray_grid()  # [(B,) h, w, 3]
     if rotation is not None:
