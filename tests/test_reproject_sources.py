@@ -103,12 +103,15 @@ def test_valid_mask_is_the_source_model_projection(which, aria, opencv):
     cam = scaled(aria if which == "aria" else opencv, 1 / 8)
     aug = augment.RandomReproject((48, 48), source_camera=cam, seed=3)
     image = torch.rand(3, 3, *cam.image_size)
-    out = aug({"rgb": image, "labels": torch.randint(0, 13, (3, *cam.image_size))})
+    labels = torch.randint(0, 2, (3, *cam.image_size)) * 100    # blended ids would lie between
+    out = aug({"rgb": image, "labels": labels})
     expected = _independent_valid(aug, out["params"], cam)
     assert expected.any() and (~expected).any()
     assert torch.equal(out["valid"], expected)
     assert bool((out["rgb"] * ~out["valid"] == 0).all())
     assert bool((out["labels"][~out["valid"][:, 0]] == 255).all())
+    inside = out["labels"][out["valid"][:, 0]]
+    assert set(inside.unique().tolist()) == {0, 100}
     # the exact chain (a gradient asked for) agrees with the fast one
     with torch.enable_grad():
         leaf = image.clone().requires_grad_()
