@@ -795,9 +795,9 @@ class RandomReproject(_RandomCameras):
     does not see. A source other than a pinhole projects the rays in torch (in the drawn
     cameras' dtype), then the same samplers read the image at those pixels: the C++ op as the
     rays ``(u, v, 1)`` of the unit pinhole (exact), or ``grid_sample``; that projection costs
-    about 25 to 30 ms per 512 x 512 output on one CPU thread (``opencv``, ``fisheye624``), 4 to
-    6 times a pinhole source's call. Its planar depth is 0 where a source ray lies at or beyond
-    90 degrees from its axis.
+    about 20 to 45 ms more per 512 x 512 output on one CPU thread (``opencv``, ``fisheye624``),
+    3 to 8 times a pinhole source's call. Its planar depth is 0 where a source ray lies at or
+    beyond 90 degrees from its axis.
 
     Attitude defaults: roll +-25 deg (the OmniScape paper's Table I), pitch and yaw +-10 deg
     (a perspective image holds a narrow cone: a larger turn leaves the fisheye mostly empty).
