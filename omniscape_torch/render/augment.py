@@ -43,7 +43,7 @@ from ..cameras.presets import yaw_pitch_roll_to_matrix
 from . import layer as projection
 from .layer import OmniProjection
 from .reference import check_out_dtype, warn_if_label_map
-from .reproject import INTERPOLATIONS, sample_camera
+from .reproject import INTERPOLATIONS, intrinsics_from_matrix, sample_camera
 
 __all__ = ["ApplyToKey", "RandomOmniCamera", "RandomReproject", "FISHEYE_MODELS", "MODES"]
 
@@ -769,7 +769,8 @@ class RandomOmniCamera(_RandomCameras):
 
 
 class RandomReproject(_RandomCameras):
-    """Per sample, a perspective image seen through a random fisheye lens and attitude.
+    """Per sample, a perspective (or any camera's) image seen through a random fisheye lens and
+    attitude.
 
     For the segmentation datasets of perspective images (Cityscapes, BDD100K, Mapillary, the
     built-in town's pinhole views): each image, with its pinhole intrinsics, is reprojected
@@ -782,10 +783,21 @@ class RandomReproject(_RandomCameras):
     fisheye sees more than the perspective image: the pixels whose ray misses the source image
     (or lies behind it) are invalid (``valid``, 0 in ``rgb``, ``ignore_index`` in ``labels``).
 
-    The source camera: ``intrinsics (B, 4)`` (``fx, fy, cx, cy`` in pixels, pixel centres at
-    integers) passed with the images, or else a horizontal field of view ``source_fov`` given
-    at construction (``fx = fy = (W / 2) / tan(source_fov / 2)``, the principal point at the
-    image centre).
+    The source camera, passed with the images: ``intrinsics (B, 4)`` (``fx, fy, cx, cy`` in
+    pixels, pixel centres at integers) or a camera matrix ``K (B, 3, 3)`` / ``(3, 3)`` (zero
+    skew, last row ``[0, 0, 1]``: the same pinhole, bit for bit), or ``source_camera``, any
+    camera of the registry (a distorted ``opencv`` camera, an Aria ``fisheye624`` read by
+    ``Camera.load``...): one shared by the batch, or a batch ``(B,)`` of one model (samples of
+    different source models: one call per model). Else the module's: ``source_camera`` or a
+    horizontal field of view ``source_fov`` given at construction (``fx = fy = (W / 2) /
+    tan(source_fov / 2)``, the principal point at the image centre). The source camera's
+    validity (its model's domain, its image bounds, its ``fov``) makes ``valid`` False where it
+    does not see. A source other than a pinhole projects the rays in torch (in the drawn
+    cameras' dtype), then the same samplers read the image at those pixels: the C++ op as the
+    rays ``(u, v, 1)`` of the unit pinhole (exact), or ``grid_sample``; that projection costs
+    about 20 to 45 ms more per 512 x 512 output on one CPU thread (``opencv``, ``fisheye624``),
+    3 to 8 times a pinhole source's call. Its planar depth is 0 where a source ray lies at or
+    beyond 90 degrees from its axis.
 
     Attitude defaults: roll +-25 deg (the OmniScape paper's Table I), pitch and yaw +-10 deg
     (a perspective image holds a narrow cone: a larger turn leaves the fisheye mostly empty).
@@ -804,6 +816,9 @@ class RandomReproject(_RandomCameras):
         image_size: ``(H, W)`` of the output.
         source_fov: the horizontal field of view of the perspective images (radians), used
             where no ``intrinsics`` are passed; None: they must be passed.
+        source_camera: one :class:`~omniscape_torch.Camera` (any model, ``image_size`` the
+            images') used where neither ``intrinsics`` nor ``source_camera`` are passed; not
+            with ``source_fov``.
         fisheye_models: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
         fov_range: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
         kb_distortion: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
@@ -833,7 +848,8 @@ class RandomReproject(_RandomCameras):
         ``labels (B, Hs, Ws)`` integer, ``depth (B, Hs, Ws)`` or ``(B, 1, Hs, Ws)`` planar ->
         ``rgb (B, C, H, W)`` (``(B, H, W, C)``), ``labels (B, H, W)`` int64,
         ``depth (B, 1, H, W)``, ``valid (B, 1, H, W)`` bool; ``params`` as
-        :meth:`forward_parameters` returns them, with the ``intrinsics (B, 4)`` used.
+        :meth:`forward_parameters` returns them, with the ``intrinsics (B, 4)`` of a pinhole
+        source, or the ``source_camera`` batch ``(B,)`` used (float64, CPU).
 
     Examples:
         >>> aug = RandomReproject((64, 64), source_fov=math.radians(90), seed=0)
@@ -843,6 +859,7 @@ class RandomReproject(_RandomCameras):
     """
 
     def __init__(self, image_size: tuple[int, int], *, source_fov: float | None = None,
+                 source_camera: Camera | None = None,
                  fisheye_models: Sequence[str] = ("equidistant",),
                  fov_range: tuple[float, float] = (160 * _DEG, 200 * _DEG),
                  kb_distortion: float = 0.02,
@@ -880,11 +897,28 @@ class RandomReproject(_RandomCameras):
                              f"{interpolation!r}")
         if depth_output not in ("range", "z"):
             raise ValueError(f"depth_output: expected 'range' or 'z', got {depth_output!r}")
+        if source_camera is not None:
+            _check_source_camera(source_camera)
+            if len(source_camera.batch_shape) != 0:
+                raise ValueError(f"source_camera: at construction one camera shared by every "
+                                 f"sample, got a batch {tuple(source_camera.batch_shape)}; pass "
+                                 f"a batch per call (forward(..., source_camera=))")
+            if source_fov is not None:
+                raise ValueError("source_camera: pass source_fov or source_camera, not both")
         self.source_fov = None if source_fov is None else float(source_fov)
+        self.source_camera = source_camera
         self._check_fisheye_ranges()
 
+    def __setstate__(self, state: dict) -> None:
+        super().__setstate__(state)
+        if "source_camera" not in self._modules:   # pickled before it existed
+            self.source_camera = None
+
     def extra_repr(self) -> str:
-        return (f"image_size={self.image_size}, source_fov={self.source_fov}, "
+        source = ("" if self.source_camera is None else
+                  f"source_camera={self.source_camera.model.name} "
+                  f"{self.source_camera.image_size}, ")
+        return (f"image_size={self.image_size}, source_fov={self.source_fov}, {source}"
                 f"fisheye_models={self.fisheye_models}, p={self.p}, "
                 f"same_on_batch={self.same_on_batch}, seed={self.seed}, "
                 f"channels_last={self.channels_last}, out_dtype={self.out_dtype}")
@@ -948,7 +982,8 @@ class RandomReproject(_RandomCameras):
             batch, 4).clone()
 
     def render(self, image: Tensor | None, params: dict, *, labels: Tensor | None = None,
-               depth: Tensor | None = None, intrinsics: Tensor | None = None) -> dict:
+               depth: Tensor | None = None, intrinsics: Tensor | None = None,
+               source_camera: Camera | None = None) -> dict:
         """Reproject the modalities through the cameras and rotations of ``params``.
 
         Args:
@@ -957,12 +992,16 @@ class RandomReproject(_RandomCameras):
             params: parameters from ``forward_parameters``.
             labels: ``(B, Hs, Ws)`` integer class ids. depth: ``(B, Hs, Ws)`` or
                 ``(B, 1, Hs, Ws)`` planar depth (metres along the source camera's axis).
-            intrinsics: ``(B, 4)`` or ``(4,)`` the source pinhole ``fx, fy, cx, cy``; None:
-                from ``source_fov``.
+            intrinsics: the source pinhole: ``(B, 4)`` or ``(4,)`` ``fx, fy, cx, cy``, or a
+                camera matrix ``K (B, 3, 3)`` or ``(3, 3)`` (zero skew); None: ``source_camera``,
+                else the module's ``source_camera`` or ``source_fov``.
+            source_camera: the source, any camera of the registry: one shared, or a batch
+                ``(B,)`` of one model (class docstring).
 
         Returns:
             dict ``valid`` and, for each given input, ``rgb``, ``labels``, ``depth`` (class
-            docstring), plus ``params`` (with ``intrinsics``).
+            docstring), plus ``params`` (with ``intrinsics (B, 4)`` of a pinhole source, else
+            ``source_camera``, the batch ``(B,)`` used, float64 on the CPU).
         """
         image, labels, depth, size = self._check_inputs(image, labels, depth)
         batch = next(t for t in (image, labels, depth) if t is not None).shape[0]
@@ -970,7 +1009,7 @@ class RandomReproject(_RandomCameras):
             raise ValueError(f"params: drawn for {len(params['model'])} samples, the batch has "
                              f"{batch}")
         check_rotation(params["rotation"], 'params["rotation"]')
-        k = self._intrinsics(intrinsics, size, batch)
+        k, source = self._source(intrinsics, source_camera, size, batch)
         ref = next(t for t in (image, labels, depth) if t is not None)
         device = ref.device
         dtype = torch.float64 if ref.dtype == torch.float64 else torch.float32
@@ -991,6 +1030,10 @@ class RandomReproject(_RandomCameras):
                      self.interpolation in fast.MODES and not (
                          torch.is_grad_enabled() and any(
                              t is not None and t.requires_grad for t in (image, depth, k))))
+        given = source
+        if source is not None:   # projected in the drawn cameras' dtype, as a pinhole's rays
+            source = Camera(source.model, source.params.to(device, dtype), source.image_size,
+                            fov=source.fov, blind_fov=source.blind_fov)
         # on the CPU a few samples at a time (projection.CHUNK_PIXELS): the rays of a chunk
         chunk = batch if device.type != "cpu" else max(1, projection.CHUNK_PIXELS // (h * w))
         for name, (idx, camera) in self.cameras(params, dtype, device).items():
@@ -999,12 +1042,18 @@ class RandomReproject(_RandomCameras):
                 part = _Part(camera.params[start:start + chunk], sel,
                              params["rotation"][sel].to(dtype=dtype, device=device),
                              params["fov"][sel].to(dtype=dtype, device=device),
-                             k[sel].to(device), size)
+                             None if k is None else k[sel].to(device), size,
+                             None if source is None else _rows(source, sel.to(device)))
                 render = self._render_fast if fast_path else self._render_exact
                 render(name, part, image, labels, depth, result)
         if image is not None and self.channels_last:
             result["rgb"] = result["rgb"].permute(0, 2, 3, 1)
-        result["params"] = dict(params, intrinsics=k.to("cpu", torch.float64))
+        if k is not None:
+            result["params"] = dict(params, intrinsics=k.to("cpu", torch.float64))
+            result["params"].pop("source_camera", None)
+        else:
+            result["params"] = dict(params, source_camera=given.to(torch.float64))
+            result["params"].pop("intrinsics", None)
         return result
 
     def _render_fast(self, name: str, part: "_Part", image: Tensor | None,
@@ -1013,20 +1062,36 @@ class RandomReproject(_RandomCameras):
         (or ``Camera.ray_grid`` where a model has none), then ``fast.sample_image``."""
         rays, valid = camera_rays(name, part.params, self.image_size, fov=part.fov,
                                   dtype=part.params.dtype)
-        k = part.intrinsics.to(rays.dtype)
+        target, rotation = rays, part.rotation
+        if part.source is None:
+            k = part.intrinsics.to(rays.dtype)
+        else:
+            # any other source model: the rays projected by it in torch, in its dtype; the C++
+            # op then reads the pixels as the rays (u, v, 1) of the unit pinhole (fx = fy = 1,
+            # cx = cy = 0), so u = 1 * (u / 1) + 0 exactly, and checks the image bounds
+            src = torch.einsum("bij,bhwj->bhwi", rotation.to(part.source.params.dtype),
+                               rays.to(part.source.params.dtype))
+            pixels, seen_src = part.source.project(src)                      # (n, h, w, 2)
+            valid = valid & seen_src
+            pixels = torch.where(valid.unsqueeze(-1), pixels, torch.full_like(pixels, -2.0))
+            rays = torch.cat((pixels, torch.ones_like(pixels[..., :1])), dim=-1)
+            rotation = None
+            k = torch.tensor([[1.0, 1.0, 0.0, 0.0]], dtype=rays.dtype)
         for at, (a, b) in _slices(part.index):   # runs of consecutive samples: views
             rows = slice(a, b)
+            rot = None if rotation is None else rotation[rows]
+            kr = k if part.source is not None else k[rows]
             seen = result["valid"][at, 0]
             if image is not None:
                 _, seen_rgb = fast.sample_image(
-                    image[at], rays[rows], part.rotation[rows], k[rows], self.interpolation,
+                    image[at], rays[rows], rot, kr, self.interpolation,
                     valid=valid[rows], out=result["rgb"][at], out_dtype=result["rgb"].dtype)
                 seen.copy_(seen_rgb)
             if labels is not None:
                 wide = labels.dtype in (torch.uint8, torch.int64)   # int64 ids in the pass
                 out = result["labels"][at].unsqueeze(1)
                 ids, seen_ids = fast.sample_image(
-                    labels[at].unsqueeze(1), rays[rows], part.rotation[rows], k[rows],
+                    labels[at].unsqueeze(1), rays[rows], rot, kr,
                     "nearest", valid=valid[rows], fill=self.ignore_index if wide else 0,
                     out=out if wide else None, out_dtype=torch.int64 if wide else None)
                 if not wide:
@@ -1034,9 +1099,9 @@ class RandomReproject(_RandomCameras):
                                           torch.full_like(out, self.ignore_index)))
                 seen.copy_(seen_ids)
             if depth is not None:
-                z, seen_z = fast.sample_image(depth[at], rays[rows], part.rotation[rows],
-                                              k[rows], "nearest", valid=valid[rows])
-                result["depth"][at] = self._range(z, rays[rows], part.rotation[rows],
+                z, seen_z = fast.sample_image(depth[at], rays[rows], rot, kr, "nearest",
+                                              valid=valid[rows])
+                result["depth"][at] = self._range(z, target[rows], part.rotation[rows],
                                                   seen_z.unsqueeze(1))
                 seen.copy_(seen_z)
 
@@ -1048,7 +1113,8 @@ class RandomReproject(_RandomCameras):
         rays, valid = camera.ray_grid()                                     # (n, h, w, 3)
         valid = valid & (rays[..., 2] >= torch.cos(0.5 * part.fov)[:, None, None])
         src = torch.einsum("bij,bhwj->bhwi", part.rotation, rays)
-        source = Camera("pinhole", part.intrinsics.to(rays.dtype), part.source_size)
+        source = (Camera("pinhole", part.intrinsics.to(rays.dtype), part.source_size)
+                  if part.source is None else part.source)
         mask = valid.unsqueeze(1)
         sel = part.index.to(result["valid"].device)
         seen = None
@@ -1073,6 +1139,8 @@ class RandomReproject(_RandomCameras):
         3)`` -> their range (``|p| = z / cos`` of the ray to the source axis), or its ``z`` along
         the fisheye's axis (``depth_output``); 0 where not ``seen``."""
         axis = torch.einsum("bj,bhwj->bhw", rotation[:, 2].to(rays.dtype), rays)   # src z
+        # a wide source (a fisheye) sees rays at or past 90 degrees: no planar depth there (0)
+        seen = seen & (axis > 0).unsqueeze(1)
         cos = torch.where(seen[:, 0], axis, torch.ones_like(axis)).unsqueeze(1)
         out = z.to(rays.dtype) / cos
         if self.depth_output == "z":
@@ -1123,35 +1191,79 @@ class RandomReproject(_RandomCameras):
                                  f"image size)")
         return image, labels, depth, tuple(ref.shape[-2:])
 
+    def _source(self, intrinsics: Tensor | None, source_camera: Camera | None,
+                size: tuple[int, int], batch: int) -> tuple[Tensor | None, Camera | None]:
+        """The source camera of ``batch`` images of ``size``: ``(intrinsics (batch, 4) float64,
+        None)`` for a pinhole (the C++ op's own projection), else ``(None, camera (batch,))``
+        (its params detached, on the CPU, in their dtype)."""
+        if intrinsics is not None and source_camera is not None:
+            raise ValueError("source_camera: pass intrinsics or source_camera, not both")
+        if intrinsics is None and source_camera is None:
+            source_camera = self.source_camera
+        if source_camera is None:
+            return self._intrinsics(intrinsics, size, batch), None
+        _check_source_camera(source_camera)
+        if source_camera.image_size != tuple(size):
+            raise ValueError(f"source_camera: image_size {source_camera.image_size} does not "
+                             f"match the images' {tuple(size)} (scale the camera with the "
+                             f"images: fx, fy times s, cx + 0.5 and cy + 0.5 times s)")
+        shape = tuple(source_camera.batch_shape)
+        if shape not in ((), (batch,)):
+            raise ValueError(f"source_camera: expected one camera or a batch of {batch} (the "
+                             f"images' batch), got a batch {shape}")
+        params = source_camera.params.detach().cpu()
+        params = params.expand(batch, params.shape[-1])
+        if source_camera.model.name == "pinhole" and source_camera.fov is None and \
+                source_camera.blind_fov is None:   # the fast op's own pinhole
+            return self._intrinsics(params, size, batch), None
+        return None, Camera(source_camera.model, params, size, fov=source_camera.fov,
+                            blind_fov=source_camera.blind_fov)
+
     def _intrinsics(self, intrinsics: Tensor | None, size: tuple[int, int], batch: int
                     ) -> Tensor:
-        """``(batch, 4)`` float64 source intrinsics, checked (or from ``source_fov``)."""
+        """``(batch, 4)`` float64 source intrinsics, checked (or from ``source_fov``); a camera
+        matrix ``K (batch, 3, 3)`` or ``(3, 3)`` is read as its ``fx, fy, cx, cy``."""
         if intrinsics is None:
             return self.source_intrinsics(size, batch)
+        if isinstance(intrinsics, Camera):
+            raise TypeError("intrinsics: got an ot.Camera; pass it as source_camera")
         k = torch.as_tensor(intrinsics, dtype=torch.float64).cpu()
+        if k.dim() in (2, 3) and k.shape[-2:] == (3, 3):
+            if k.dim() == 3 and k.shape[0] != batch:
+                raise ValueError(f"intrinsics: a batch of {k.shape[0]} camera matrices K for "
+                                 f"{batch} images")
+            k = intrinsics_from_matrix(k, "intrinsics")
         if k.dim() == 1:
             k = k.expand(batch, -1)
         if k.shape != (batch, 4) or not bool(torch.isfinite(k).all()) or \
                 bool((k[:, :2] <= 0).any()):
             raise ValueError(f"intrinsics: expected finite (B={batch}, 4) or (4,) fx, fy, cx, "
-                             f"cy with fx, fy > 0, got {tuple(k.shape)}")
+                             f"cy with fx, fy > 0, or K (B={batch}, 3, 3) or (3, 3), got "
+                             f"{tuple(k.shape)}")
         return k
 
     def forward(self, image: Tensor | dict | None, labels: Tensor | None = None,
                 depth: Tensor | None = None, *, intrinsics: Tensor | None = None,
-                params: dict | None = None, generator: torch.Generator | None = None) -> dict:
+                source_camera: Camera | None = None, params: dict | None = None,
+                generator: torch.Generator | None = None) -> dict:
         """Draw (or reuse ``params``) and reproject.
 
         Args:
             image: ``(B, C, H, W)`` (``channels_last``: ``(B, H, W, C)``) floating or ``uint8``
                 perspective images, or a dict with the keys ``rgb`` and optionally ``labels``,
-                ``depth`` and ``intrinsics``; ``tv_tensors.Image`` / ``tv_tensors.Mask``
+                ``depth``, ``intrinsics`` and ``source_camera``; ``tv_tensors.Image`` /
+                ``tv_tensors.Mask``
                 are taken as the tensors they hold, and their outputs come back in their
                 classes.
             labels: ``(B, H, W)`` integer class ids.
             depth: planar depth ``(B, H, W)``.
-            intrinsics: ``(B, 4)`` or ``(4,)`` pinhole ``fx, fy, cx, cy`` of the images (else
-                ``source_fov``).
+            intrinsics: ``(B, 4)`` or ``(4,)`` pinhole ``fx, fy, cx, cy`` of the images, or a
+                camera matrix ``K (B, 3, 3)`` or ``(3, 3)`` (zero skew; else ``source_camera``,
+                the module's ``source_camera`` or ``source_fov``).
+            source_camera: the images' camera, any model of the registry: one
+                :class:`~omniscape_torch.Camera` shared by the batch, or a batch ``(B,)`` of one
+                model (e.g. ``Camera.load`` of an Aria calibration, or an ``opencv`` camera
+                with its distortion).
             params: parameters from ``forward_parameters`` or a previous output, to replay.
             generator: the generator of this call (else the module's).
 
@@ -1159,12 +1271,13 @@ class RandomReproject(_RandomCameras):
             dict ``rgb``, ``labels``, ``depth`` (those given), ``valid`` and ``params``.
         """
         if isinstance(image, dict):
-            unknown = set(image) - {"rgb", "labels", "depth", "intrinsics"}
+            unknown = set(image) - {"rgb", "labels", "depth", "intrinsics", "source_camera"}
             if unknown:
                 raise ValueError(f"image: unknown keys {sorted(unknown)}")
             labels = image.get("labels", labels)
             depth = image.get("depth", depth)
             intrinsics = image.get("intrinsics", intrinsics)
+            source_camera = image.get("source_camera", source_camera)
             image = image.get("rgb")
         given = {"rgb": image, "labels": labels, "depth": depth}
         ref = next((t for t in given.values() if t is not None), None)
@@ -1172,24 +1285,46 @@ class RandomReproject(_RandomCameras):
             raise ValueError("forward: pass at least one of image, labels, depth")
         if params is None:
             params = self.forward_parameters(ref.shape[0], generator=generator)
-        elif intrinsics is None:   # a replay: the intrinsics it was rendered with
+        elif intrinsics is None and source_camera is None:   # a replay: its source camera
             intrinsics = params.get("intrinsics")
+            source_camera = params.get("source_camera")
         out = self.render(_plain(image), params, labels=_plain(labels), depth=_plain(depth),
-                          intrinsics=intrinsics)
+                          intrinsics=intrinsics, source_camera=source_camera)
         return _like_inputs(out, given)
+
+
+def _check_source_camera(camera: object) -> None:
+    """Refuse what is not one :class:`Camera` (a batch of one model) naming ``source_camera``."""
+    if isinstance(camera, (list, tuple)):
+        raise TypeError("source_camera: expected one ot.Camera (shared, or a batch (B,) of one "
+                        "model), got a sequence; samples of different source models: one call "
+                        "per model (split the batch)")
+    if not isinstance(camera, Camera):
+        raise TypeError(f"source_camera: expected an ot.Camera, got {type(camera).__name__}")
+    if len(camera.batch_shape) > 1:
+        raise ValueError(f"source_camera: expected one camera or a batch (B,), got a batch "
+                         f"{tuple(camera.batch_shape)}")
+
+
+def _rows(camera: Camera, index: Tensor) -> Camera:
+    """The cameras ``index`` of a batch ``(B,)``."""
+    return Camera(camera.model, camera.params[index], camera.image_size, fov=camera.fov,
+                  blind_fov=camera.blind_fov)
 
 
 class _Part(NamedTuple):
     """A chunk of the samples of one model: ``params (n, P)``, their sample indices
     ``index (n,)``, ``rotation (n, 3, 3)``, ``fov (n,)``, and the source images' pinhole
-    ``intrinsics (n, 4)`` and ``(H, W)``."""
+    ``intrinsics (n, 4)`` and ``(H, W)``, or their ``source`` camera ``(n,)`` of another model
+    (then ``intrinsics`` is None)."""
 
     params: Tensor
     index: Tensor
     rotation: Tensor
     fov: Tensor
-    intrinsics: Tensor
+    intrinsics: Tensor | None
     source_size: tuple[int, int]
+    source: Camera | None = None
 
 
 def _grid_rows(grid: CameraGrid | tuple[Tensor, Tensor], start: int, stop: int

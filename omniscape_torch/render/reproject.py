@@ -51,6 +51,39 @@ def wraps_in_longitude(camera: Camera) -> bool:
     return bool(((2 * math.pi * fx - width).abs() <= _FULL_CIRCLE_RTOL * width).all())
 
 
+def intrinsics_from_matrix(matrix: Tensor, name: str = "intrinsics") -> Tensor:
+    """Pinhole ``fx, fy, cx, cy`` ``(..., 4)`` of a camera matrix ``K (..., 3, 3)`` (kornia's and
+    torchvision's form, OpenCV's ``cameraMatrix``): ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``,
+    pixel centres at integers.
+
+    Raises:
+        ValueError: naming ``name``: not ``(3, 3)`` / ``(B, 3, 3)``, not finite, a non-zero skew
+            ``K[0, 1]`` (the pinhole model has none) or ``K[1, 0]``, or a last row other than
+            ``[0, 0, 1]``.
+    """
+    k = torch.as_tensor(matrix)
+    if k.dim() not in (2, 3) or k.shape[-2:] != (3, 3):
+        raise ValueError(f"{name}: expected a camera matrix K (3, 3) or (B, 3, 3), got "
+                         f"{tuple(k.shape)}")
+    if not k.is_floating_point():
+        k = k.double()
+    if not bool(torch.isfinite(k).all()):
+        raise ValueError(f"{name}: K holds non-finite values")
+    skew = k[..., 0, 1]
+    if bool((skew != 0).any()):
+        raise ValueError(f"{name}: K has skew K[0, 1] = {skew.flatten()[skew.flatten() != 0][0]:g}"
+                         f"; the pinhole source has zero skew (undistort or resample the "
+                         f"images, or pass a camera of the registry)")
+    if bool((k[..., 1, 0] != 0).any()):
+        raise ValueError(f"{name}: K[1, 0] must be 0 in a camera matrix, got "
+                         f"{k[..., 1, 0].flatten().tolist()}")
+    last = torch.tensor([0.0, 0.0, 1.0], dtype=k.dtype, device=k.device)
+    if bool((k[..., 2, :] != last).any()):
+        raise ValueError(f"{name}: the last row of K must be [0, 0, 1], got "
+                         f"{k[..., 2, :].reshape(-1, 3)[0].tolist()}")
+    return torch.stack((k[..., 0, 0], k[..., 1, 1], k[..., 0, 2], k[..., 1, 2]), dim=-1)
+
+
 def _is_labels(image: Tensor, labels: bool | None) -> bool:
     """Whether ``image`` is sampled as class ids: ``labels``, or by default its dtype (integer
     dtypes other than ``uint8``; a ``uint8`` tensor is an 8-bit image unless ``labels=True``)."""
@@ -177,7 +210,7 @@ def sample_camera(image: Tensor, camera: Camera, rays: Tensor, *,
     return from_float(out, image.dtype, out_dtype), valid
 
 
-def reproject(image: Tensor, src_camera: Camera, dst_camera: Camera, *,
+def reproject(image: Tensor, src_camera: Camera | Tensor, dst_camera: Camera, *,
               rotation: Tensor | None = None, interpolation: str = "bilinear",
               labels: bool | None = None, ignore_index: int = IGNORE_INDEX,
               out_dtype: torch.dtype | None = None) -> tuple[Tensor, Tensor]:
@@ -189,8 +222,15 @@ def reproject(image: Tensor, src_camera: Camera, dst_camera: Camera, *,
         image: ``(B, C, H_src, W_src)`` floating or ``uint8`` (an 8-bit image), or integer
             labels ``(B, H_src, W_src)`` / ``(B, C, H_src, W_src)``. A batch of 1 is shared by a
             batch of cameras/rotations.
-        src_camera: any camera of the registry (one, or a batch of ``B``).
-        dst_camera: any camera of the registry (one, or a batch of ``B``).
+        src_camera: any camera of the registry (one, or a batch of ``B`` of one model; e.g. a
+            distorted ``opencv`` camera or an Aria ``fisheye624`` read by ``Camera.load``), or a
+            pinhole camera matrix ``K (3, 3)`` / ``(B, 3, 3)`` (zero skew, last row
+            ``[0, 0, 1]``) of images of ``image``'s size. Its validity (model domain, image
+            bounds, ``fov``) is part of ``valid``. Samples of different source models: one call
+            per model.
+        dst_camera: any camera of the registry (one, or a batch of ``B``), the five models of
+            other tools (``fov``, ``division``, ``opencv``, ``thin_prism_fisheye``,
+            ``fisheye624``) included.
         rotation: optional ``(3, 3)`` or ``(B, 3, 3)`` mapping destination-camera rays into the
             source camera's frame, ``ray_src = R @ ray_dst`` (default: the same orientation).
         interpolation: ``"nearest"``, ``"bilinear"`` or ``"bicubic"``; labels are always nearest.
@@ -220,6 +260,19 @@ def reproject(image: Tensor, src_camera: Camera, dst_camera: Camera, *,
     if not isinstance(image, Tensor):
         raise TypeError(f"image: expected a tensor, got {type(image).__name__}")
     labels = _is_labels(image, labels)
+    if isinstance(src_camera, Tensor):   # a camera matrix K: the pinhole of the image's size
+        src_camera = Camera("pinhole", intrinsics_from_matrix(src_camera, "src_camera"),
+                            tuple(image.shape[-2:]))
+    elif not isinstance(src_camera, Camera):
+        raise TypeError(f"src_camera: expected an ot.Camera or a camera matrix K (3, 3) / "
+                        f"(B, 3, 3), got {type(src_camera).__name__}")
+    if len(src_camera.batch_shape) == 1:
+        n = src_camera.batch_shape[0]
+        if image.shape[0] not in (1, n):
+            raise ValueError(f"batch sizes disagree: src_camera {n}, image {image.shape[0]}")
+        if len(dst_camera.batch_shape) == 1 and dst_camera.batch_shape[0] != n:
+            raise ValueError(f"batch sizes disagree: src_camera {n}, dst_camera "
+                             f"{dst_camera.batch_shape[0]}")
     rays, valid_dst = dst_camera.ray_grid()  # [(B,) h, w, 3]
     if rotation is not None:
         cm.check_rotation(rotation)
