@@ -60,8 +60,11 @@ STAGED = {"unified": ("k1", "k2", "p1", "p2")}
 MINIMAX_ITERATIONS = 25
 
 #: Parameters held by default in a conversion (OCamCalib's ``a1 = 0``; without poses the sensor
-#: roll ``e`` is determined, unlike in a calibration).
-CONVERT_FREEZE = {"scaramuzza": ("a1",)}
+#: roll ``e`` is determined, unlike in a calibration). ``opencv``: the rational denominator and
+#: the thin prism, as ``cv2.calibrateCamera``'s default flags (k1, k2, p1, p2, k3): with them the
+#: numerator and denominator trade off and J^T J is singular (condition number above 1e12 for a
+#: radial-tangential source, which k1, k2, p1, p2 already hold exactly); ``freeze=()`` frees them.
+CONVERT_FREEZE = {"scaramuzza": ("a1",), "opencv": ("k4", "k5", "k6", "s1", "s2", "s3", "s4")}
 
 
 @dataclass
