@@ -29,7 +29,13 @@ that cannot follow the lens exactly spreads its error instead of piling it at th
 
 Samples that the target cannot represent at the solution (outside its domain) are dropped and
 the fit is run once more without them; their share of the held-out samples is reported as
-``unrepresentable`` (the fraction of the source's area the target cannot cover).
+``unrepresentable`` (the fraction of the source's area the target cannot cover): the models that
+divide by z (``pinhole``, ``fov``, ``opencv``) stop short of 90 degrees, ``division`` with
+k > 0 at ``atan(1 / (2 sqrt k))``, so from a wide lens they report the rim they miss.
+
+Held by default: ``CONVERT_FREEZE``, and the target's tangential and thin-prism terms
+(``ASYMMETRIC``) where the source lens has none (it is radially symmetric, apart from an
+affine term, which the rotation and the skew hold): a symmetric lens needs none of them.
 
 Starting values: the target's centre is the source's (``cx, cy``); a ``scaramuzza`` target gets
 its polynomial from a linear least-squares fit of ``g(rho) = rho z / |(x, y)|`` to the rays;
