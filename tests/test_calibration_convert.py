@@ -415,3 +415,32 @@ def test_cli_select_model(tmp_path, capsys):
     assert cli.main(["select-model", "--ocamcalib", str(OCAMCALIB_FILE), "--models", models,
                      "--rms", "1e-3", "--fov", "190", "--grid", "16"]) == 1
     assert "no model is within" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("model, params, target", [
+    # Aria's fisheye624 with tangential and thin-prism terms: the thin-prism fisheye frees its
+    # own (the source is not symmetric), fisheye624 to itself is exact
+    ("fisheye624", [300.0, 300.0, 319.5, 239.5, 0.02, -0.01, 0.002, 0.0, 0.0, 0.0, 0.0005,
+                    -0.0005, 0.0002, 0.0, -0.0002, 0.0], "fisheye624"),
+    ("thin_prism_fisheye", [300.0, 301.0, 319.5, 239.5, 0.02, -0.01, 0.0005, -0.0005, 0.002,
+                            0.0, 0.0002, -0.0002], "thin_prism_fisheye"),
+    ("fov", [300.0, 301.0, 319.5, 239.5, 0.9], "fov"),
+    ("division", [300.0, 301.0, 319.5, 239.5, -0.1], "division"),
+    ("opencv", [500.0, 502.0, 319.5, 239.5, -0.25, 0.08, 0.0005, -0.0003, 0.01] + [0.0] * 7,
+     "opencv"),
+])
+def test_cli_convert_model_from_an_issue_34_camera_file(tmp_path, capsys, model, params, target):
+    """Issue 34's models as sources through ``--camera`` (COLMAP's cameras.txt): converted to
+    themselves, exactly, the asymmetric terms freed where the source has them."""
+    camera = ot.Camera(model, torch.tensor(params, dtype=D), (480, 640))
+    path = camera.save(tmp_path / "cameras.txt", "colmap")
+    out = tmp_path / "out"
+    code = cli.main(["convert-model", "--camera", str(path), "--to", target, "--grid", "16",
+                     "--out", str(out)])
+    printed = capsys.readouterr().out
+    assert code == 0, printed
+    assert f"({model})" in printed
+    report = json.loads((out / f"{target}.json").read_text())["conversion"]
+    assert report["converged"] and report["max_px"] < 1e-4, report
+    back = ot.Camera.load_json(out / f"{target}.json")
+    torch.testing.assert_close(back.params.double(), camera.params, rtol=1e-6, atol=1e-7)
