@@ -57,7 +57,8 @@ NESTED = [
                  [400.0, 401.0, 319.5, 319.5], id="unified(xi=0)->pinhole"),
     # issue 34: Kannala-Brandt is the thin-prism fisheye and fisheye624 without p, s (k4 = k5 = 0)
     pytest.param(("kannala_brandt", KB), "thin_prism_fisheye",
-                 KB[:6] + [0.0, 0.0] + KB[6:] + [0.0, 0.0], id="kannala_brandt->thin_prism_fisheye"),
+                 KB[:6] + [0.0, 0.0] + KB[6:] + [0.0, 0.0],
+                 id="kannala_brandt->thin_prism_fisheye"),
     pytest.param(("kannala_brandt", KB), "fisheye624", KB + [0.0] * 8,
                  id="kannala_brandt->fisheye624"),
     # the pinhole is the division model with k = 0, OpenCV's radial-tangential model is opencv's

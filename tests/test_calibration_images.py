@@ -249,6 +249,37 @@ def test_fit_images_recovers_the_truth(rendered, fitted):
     assert rms < RAY_RMS, rms
 
 
+@pytest.mark.slow
+@pytest.mark.numerics
+@pytest.mark.parametrize("model", ["thin_prism_fisheye", "fisheye624"])
+def test_fit_images_with_the_issue_34_fisheyes(rendered, tmp_path, model):
+    """``fit --images --model`` with issue 34's fisheyes (both hold the true Kannala-Brandt
+    lens): converged, and within RAY_RMS of the truth over the angle the corners reach."""
+    folder, _, camera, board = rendered
+    out = tmp_path / "out"
+    code = cli.main(["fit", "--images", str(folder), "--board", BOARD, "--model", model,
+                     "--fov", "180", "--out", str(out), "--no-progress"])
+    assert code in (0, 3)   # 3: coverage warnings only; the files are written
+    report = json.loads((out / "report.json").read_text())
+    assert report["fit"]["converged"], report["fit"]["reason"]
+    fitted_camera = ot.Camera.load_json(out / "camera.json")
+    assert fitted_camera.model.name == model
+    h, w = camera.image_size
+    v, u = torch.meshgrid(torch.arange(0, h, 4, dtype=D), torch.arange(0, w, 4, dtype=D),
+                          indexing="ij")
+    grid = torch.stack((u, v), -1).reshape(-1, 2)
+    rays, valid = camera.unproject(grid)
+    angle = torch.atan2(rays[:, :2].norm(dim=-1), rays[:, 2])
+    corners = ot.calibration.read_correspondences(out / "correspondences.txt").image_points
+    corner_rays, _ = camera.unproject(torch.cat(corners))
+    reach = float(torch.atan2(corner_rays[:, :2].norm(dim=-1), corner_rays[:, 2]).max())
+    keep = valid & (angle <= reach)
+    pixels, ok = fitted_camera.project(rays[keep])
+    assert bool(ok.all()) and int(keep.sum()) > 5000
+    rms = float((pixels - grid[keep]).norm(dim=-1).pow(2).mean().sqrt())
+    assert rms < RAY_RMS, rms
+
+
 def test_fit_images_report_is_consistent(fitted):
     """report.json's per-view RMS and largest error are those of the fitted camera and poses
     (camera.json) on the corners written beside them, and both files hold the same

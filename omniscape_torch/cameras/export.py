@@ -58,11 +58,12 @@ caller accepts it (the file then records it and a ``UserWarning`` says what was 
   ``RAD_TAN_THIN_PRISM_FISHEYE`` divide by z), Kalibr (``pinhole-equi`` is a pinhole
   projection, valid for z > 0) and ORB-SLAM3 (``KannalaBrandt8::unproject`` returns
   ``(x, y, 1)``). The pinhole-based models (fov, opencv, division with k >= 0) never see 90
-  degrees, and COLMAP's ``DIVISION`` projects points behind the camera as ours (k < 0). The camera's angle is its ``fov`` or its image's farthest valid pixel's.
+  degrees, and COLMAP's ``DIVISION`` projects points behind the camera as ours (k < 0). The
+  camera's angle is its ``fov`` or its image's farthest valid pixel's.
   ``accept_fov=True`` writes the file with ``valid_angle_deg: 90`` (a comment for COLMAP).
-* Coefficients the target lacks: Kalibr's ``pinhole-radtan`` holds k1, k2, p1, p2 of the
-  ``opencv`` model, COLMAP's ``FULL_OPENCV`` no thin prism s1..s4 (convert, or write ``opencv``
-  or ``colmap``/``opencv``).
+* Coefficients the target lacks, named with their values: Kalibr's ``pinhole-radtan`` holds
+  k1, k2, p1, p2 of the ``opencv`` model only, COLMAP's ``FULL_OPENCV`` no thin prism s1..s4
+  (write the ``opencv`` format, which holds all twelve, or convert first).
 * A non-zero skew in a format without one. ``accept_skew=True`` drops it; the warning and a
   comment in the file give the pixel error: ``|s| |v - cy| / fy`` at the image's top or bottom.
 
