@@ -251,17 +251,23 @@ def test_fit_images_recovers_the_truth(rendered, fitted):
 
 @pytest.mark.slow
 @pytest.mark.numerics
-@pytest.mark.parametrize("model", ["thin_prism_fisheye", "fisheye624"])
-def test_fit_images_with_the_issue_34_fisheyes(rendered, tmp_path, model):
+@pytest.mark.parametrize("model, freeze", [("thin_prism_fisheye", "p1,p2,sx1,sy1"),
+                                           ("fisheye624", "p0,p1,s0,s1,s2,s3")])
+def test_fit_images_with_the_issue_34_fisheyes(rendered, tmp_path, model, freeze):
     """``fit --images --model`` with issue 34's fisheyes (both hold the true Kannala-Brandt
-    lens): converged, and within RAY_RMS of the truth over the angle the corners reach."""
+    lens): converged, and within RAY_RMS of the truth over the angle the corners reach.
+
+    Their tangential and thin-prism terms are held (``--freeze``): the lens is symmetric, and
+    freed they trade off against the principal point and the poses' rotations (measured on
+    these renders: the same 0.075 px residual with the centre 3.3 px off and the truth's
+    pixels 1.7 px (fisheye624) to 2.8 px (thin prism) RMS away in the camera's frame)."""
     folder, _, camera, board = rendered
     out = tmp_path / "out"
     code = cli.main(["fit", "--images", str(folder), "--board", BOARD, "--model", model,
-                     "--fov", "180", "--out", str(out), "--no-progress"])
+                     "--freeze", freeze, "--fov", "180", "--out", str(out), "--no-progress"])
     assert code in (0, 3)   # 3: coverage warnings only; the files are written
-    report = json.loads((out / "report.json").read_text())
-    assert report["fit"]["converged"], report["fit"]["reason"]
+    fit_report = json.loads((out / "camera.json").read_text())["fit"]
+    assert fit_report["converged"], fit_report["reason"]
     fitted_camera = ot.Camera.load_json(out / "camera.json")
     assert fitted_camera.model.name == model
     h, w = camera.image_size
