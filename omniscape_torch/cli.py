@@ -386,20 +386,20 @@ def cmd_convert_model(args: argparse.Namespace) -> int:
         twin = without_affine(camera)
     print(f"source {source} ({camera.model.name}); errors on held-out pixels"
           + (f" within {math.degrees(area['fov']) / 2:.1f} deg of the axis" if area else ""))
-    print(f"{'model':16s} {'params':>6s} {'max px':>9s} {'rms px':>9s} {'max deg':>9s} "
+    print(f"{'model':18s} {'params':>6s} {'max px':>9s} {'rms px':>9s} {'max deg':>9s} "
           f"{'rms deg':>9s} {'outside':>8s}  converged")
     failed = 0
     for model in args.to:
         result = convert(camera, model, degree=args.degree, grid=args.grid, **area)
-        print(f"{model:16s} {result.num_params:6d} {result.max_px:9.4f} {result.rms_px:9.4f} "
+        print(f"{model:18s} {result.num_params:6d} {result.max_px:9.4f} {result.rms_px:9.4f} "
               f"{math.degrees(result.max_angle):9.5f} {math.degrees(result.rms_angle):9.5f} "
               f"{100 * result.unrepresentable:7.2f}%  "
               f"{'yes' if result.converged else 'NO: ' + result.fit.reason}")
         if not torch.equal(result.rotation, torch.eye(3, dtype=result.rotation.dtype)):
-            print(f"{'':16s} rotation source -> target frame: {_rotation_line(result.rotation)}")
+            print(f"{'':18s} rotation source -> target frame: {_rotation_line(result.rotation)}")
         if twin is not None:
             model_part = convert(twin, model, degree=args.degree, grid=args.grid, **area)
-            print(f"{'':16s} max px: {model_part.max_px:.4f} the model's (c = 1, d = e = 0), "
+            print(f"{'':18s} max px: {model_part.max_px:.4f} the model's (c = 1, d = e = 0), "
                   f"{result.max_px - model_part.max_px:+.4f} the affine term's")
         failed += not result.converged
         if args.format is not None and result.converged:
@@ -427,11 +427,13 @@ def cmd_select_model(args: argparse.Namespace) -> int:
                              progress=None if not args.no_progress else False, **area)
     bound = f"RMS <= {args.rms:g} px" + ("" if args.max is None else f", max <= {args.max:g} px")
     print(f"source {source} ({camera.model.name}); held-out pixel distances; {bound}")
-    print(f"{'model':16s} {'params':>6s} {'rms px':>9s} {'max px':>9s}  within")
+    print(f"{'model':18s} {'params':>6s} {'rms px':>9s} {'max px':>9s} {'outside':>8s}  within")
     for row in selection.table:
         name = row.model + (f"({row.degree})" if row.degree is not None else "")
-        print(f"{name:16s} {row.num_params:6d} {row.heldout_rms:9.4f} {row.heldout_max:9.4f}  "
-              f"{'yes' if row.within else 'no' if row.converged else 'not converged'}")
+        verdict = ("yes" if row.within else "not converged" if not row.converged else
+                   "no: the area reaches past the model" if row.outside > 0 else "no")
+        print(f"{name:18s} {row.num_params:6d} {row.heldout_rms:9.4f} {row.heldout_max:9.4f} "
+              f"{100 * row.outside:7.2f}%  {verdict}")
     if selection.best is None:
         print("no model is within the tolerances")
         return 1

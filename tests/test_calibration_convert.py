@@ -29,6 +29,12 @@ pytestmark = [pytest.mark.numerics, pytest.mark.usefixtures("one_thread")]
 POLY3 = [320.0, 310.0, 1.0, 0.0, 0.0, -200.0, 0.0, 1.5e-3, -3e-6]
 
 
+#: Issue 34's sources: a Kannala-Brandt fisheye (130 deg across the 640 x 640 image) and
+#: OpenCV's radial-tangential webcam lens (k1..p2 of cv2.calibrateCamera).
+KB = [300.0, 301.0, 319.5, 318.5, 0.02, -0.01, 0.002, -0.0003]
+RADTAN = [500.0, 502.0, 319.5, 318.5, -0.25, 0.08, 0.0005, -0.0003] + [0.0] * 8
+
+
 def _camera(model, params, size=(640, 640)):
     return ot.Camera(model, torch.tensor(params, dtype=D), size)
 
@@ -49,6 +55,16 @@ NESTED = [
     # unified with xi = 0 is the pinhole camera
     pytest.param(("unified", [400.0, 401.0, 319.5, 319.5, 0, 0, 0, 0, 0]), "pinhole",
                  [400.0, 401.0, 319.5, 319.5], id="unified(xi=0)->pinhole"),
+    # issue 34: Kannala-Brandt is the thin-prism fisheye and fisheye624 without p, s (k4 = k5 = 0)
+    pytest.param(("kannala_brandt", KB), "thin_prism_fisheye",
+                 KB[:6] + [0.0, 0.0] + KB[6:] + [0.0, 0.0],
+                 id="kannala_brandt->thin_prism_fisheye"),
+    pytest.param(("kannala_brandt", KB), "fisheye624", KB + [0.0] * 8,
+                 id="kannala_brandt->fisheye624"),
+    # the pinhole is the division model with k = 0, OpenCV's radial-tangential model is opencv's
+    pytest.param(("pinhole", [400.0, 401.0, 319.5, 318.5]), "division",
+                 [400.0, 401.0, 319.5, 318.5, 0.0], id="pinhole->division"),
+    pytest.param(("opencv", RADTAN), "opencv", RADTAN, id="opencv(radtan)->opencv"),
     # a degree-3 polynomial is a degree-5 one with a4 = a5 = 0
     pytest.param(("scaramuzza", POLY3), "scaramuzza", POLY3 + [0.0, 0.0],
                  id="scaramuzza(3)->scaramuzza(5)"),
@@ -80,6 +96,57 @@ def test_conversion_reports_what_the_target_cannot_represent():
     assert result.fit.num_invalid == 0  # the dropped samples are not fitted
 
 
+@pytest.mark.parametrize("model", ["fov", "opencv"])
+def test_the_pinhole_based_models_report_what_they_cannot_reach(model):
+    """Issue 34: fov and opencv divide by z, like the pinhole: from the 200-degree equidistant
+    lens at least everything past 90 degrees is outside them, and reported as such."""
+    camera = _camera("equidistant", [100.0, 100.0, 319.5, 319.5])
+    result = convert(camera, model, grid=24, minimax=0)
+    steps = (torch.arange(24, dtype=D) + 0.75) / 24 * 640 - 0.5 - 319.5
+    radius = torch.hypot(steps[:, None], steps[None, :])
+    seen = radius < 100.0 * math.pi
+    behind = float((radius[seen] >= 100.0 * math.pi / 2).double().mean())
+    assert result.unrepresentable >= behind - 1e-9 and result.unrepresentable > 0.5
+    assert result.fit.num_invalid == 0
+
+
+def test_division_with_positive_k_reports_its_reach():
+    """k > 0 folds at atan(1 / (2 sqrt k)) off the axis: a start inside a 200-degree lens with
+    k = 0.5 (35.3 deg) held there reports the samples beyond it."""
+    camera = _camera("equidistant", [100.0, 100.0, 319.5, 319.5])
+    result = convert(camera, "division", grid=16, minimax=0, init=[100.0, 100.0, 319.5, 319.5,
+                                                                    0.5], freeze=("k",))
+    fold = math.atan(1 / (2 * math.sqrt(0.5)))
+    assert result.max_field > fold and result.unrepresentable > 0.5
+
+
+#: Issue 34: a pinhole-ish lens (a radial-tangential webcam, 640 x 480, 65 deg across) and a
+#: Kannala-Brandt lens of 100 deg across to the pinhole-based models, held-out max / RMS pixel
+#: distance (grid 32, defaults). Bounds: the measured figures plus about 20 percent.
+PINHOLE_ISH = {
+    "opencv": [500.0, 502.0, 319.5, 239.5, -0.25, 0.08, 0.0005, -0.0003] + [0.0] * 8,
+    "kannala_brandt": [380.0, 380.0, 319.5, 239.5, 0.02, -0.01, 0.002, 0.0],
+}
+PINHOLE_ISH_BOUNDS = {
+    ("opencv", "division"): (0.95, 0.48),          # measured 0.785 px, 0.392 px
+    ("opencv", "fov"): (1.06, 0.52),               # measured 0.881 px, 0.430 px
+    ("kannala_brandt", "opencv"): (0.60, 0.37),    # measured 0.498 px, 0.303 px
+    ("kannala_brandt", "division"): (1.0, 0.57),   # measured 0.836 px, 0.474 px
+    ("kannala_brandt", "fov"): (0.17, 0.10),       # measured 0.140 px, 0.080 px
+}
+
+
+@pytest.mark.parametrize("source, model", list(PINHOLE_ISH_BOUNDS),
+                         ids=[f"{a}->{b}" for a, b in PINHOLE_ISH_BOUNDS])
+def test_pinhole_ish_lenses_to_the_pinhole_based_models(source, model):
+    camera = _camera(source, PINHOLE_ISH[source], size=(480, 640))
+    result = convert(camera, model, grid=32)
+    assert result.converged, result.fit.reason
+    max_px, rms_px = PINHOLE_ISH_BOUNDS[source, model]
+    assert result.max_px <= max_px and result.rms_px <= rms_px, (result.max_px, result.rms_px)
+    assert result.unrepresentable == 0
+
+
 #: The real OCamCalib camera (1600 x 1600) to four models over its image circle (190 deg, found
 #: by ``image_circle`` in the camera's own photograph), with the defaults (rotation and skew
 #: fitted, minimax rounds). Measured (held-out grid of 48 x 48): max / RMS pixel distance and
@@ -89,6 +156,10 @@ REAL_BOUNDS = {
     "unified": (1.55, 0.46, 0.19),           # measured 1.290 px, 0.382 px, 0.153 deg
     "double_sphere": (1.27, 0.74, 0.15),     # measured 1.055 px, 0.611 px, 0.123 deg
     "eucm": (1.25, 0.73, 0.15),              # measured 1.041 px, 0.605 px, 0.122 deg
+    # issue 34: no skew, so OCamCalib's affine term stays (kannala_brandt with skew=False:
+    # 0.506 px, 0.361 px); test_real_camera_without_affine_to_the_issue_34_fisheyes
+    "thin_prism_fisheye": (0.61, 0.44, 0.067),  # measured 0.506 px, 0.361 px, 0.0556 deg
+    "fisheye624": (0.60, 0.42, 0.066),       # measured 0.494 px, 0.346 px, 0.0550 deg
 }
 
 
@@ -112,7 +183,9 @@ def test_image_circle_of_the_real_photograph(real_circle):
     assert image_circle(torch.full((1600, 1600), 100.0), real) == 2 * math.pi
 
 
-@pytest.mark.parametrize("model", list(REAL_BOUNDS))
+@pytest.mark.parametrize("model", [
+    pytest.param(m, marks=pytest.mark.slow) if m in ("thin_prism_fisheye", "fisheye624") else m
+    for m in REAL_BOUNDS])
 def test_real_ocamcalib_camera_to_other_models(model, real_circle):
     real, fov = real_circle
     result = convert(real, model, fov=fov)
@@ -125,6 +198,23 @@ def test_real_ocamcalib_camera_to_other_models(model, real_circle):
     # the fitted centre stays near OCamCalib's (column, row) = (798.18, 794.31): the rotation
     # fitted with it is a few hundredths of a degree
     assert torch.allclose(result.fit.params[2:4], real.params[:2].double(), atol=1.0)
+
+
+@pytest.mark.slow
+def test_real_camera_without_affine_to_the_issue_34_fisheyes(real_circle):
+    """The real camera's lens alone (c = 1, d = e = 0) inside its image circle: the thin-prism
+    fisheye is Kannala-Brandt there (measured 0.136 px worst), fisheye624's two more radial
+    terms follow it to 0.023 px; what the full conversion adds is the affine term, which a
+    model without a skew cannot hold (REAL_BOUNDS)."""
+    real, fov = real_circle
+    lens = without_affine(real)
+    worst = {}
+    for model in ("kannala_brandt", "thin_prism_fisheye", "fisheye624"):
+        result = convert(lens, model, fov=fov)
+        assert result.converged and result.unrepresentable == 0, result.fit.reason
+        worst[model] = result.max_px
+    assert worst["thin_prism_fisheye"] <= worst["kannala_brandt"] + 0.01, worst
+    assert worst["fisheye624"] <= 0.03, worst
 
 
 def _real_files():
@@ -248,6 +338,18 @@ def test_select_model_from_noisy_correspondences_uses_held_out_points():
     assert 0.21 < by_degree[3].heldout_rms < 0.35 and by_degree[2].heldout_rms > 0.7
 
 
+def test_select_model_never_takes_a_model_of_lesser_reach():
+    """Issue 34: a 200-degree lens; fov (5 parameters) fits the part it sees, but leaves the
+    rest outside, so Kannala-Brandt (8) is selected even under a loose bound."""
+    camera = _camera("equidistant", [100.0, 100.0, 319.5, 319.5])
+    selection = select_model(camera, 1e4, candidates=[("fov", None), ("kannala_brandt", None)],
+                             grid=24, minimax=0)
+    fov_row, kb_row = selection.table
+    assert fov_row.outside > 0.5 and not fov_row.within
+    assert kb_row.outside == 0 and kb_row.within
+    assert selection.best.model == "kannala_brandt"
+
+
 def test_conversion_bad_input():
     camera = _camera("equidistant", [200.0, 205.0, 319.5, 299.5])
     batch = ot.Camera("equidistant", torch.tensor([[200.0, 205.0, 319.5, 299.5]] * 2), (640, 640))
@@ -314,3 +416,32 @@ def test_cli_select_model(tmp_path, capsys):
     assert cli.main(["select-model", "--ocamcalib", str(OCAMCALIB_FILE), "--models", models,
                      "--rms", "1e-3", "--fov", "190", "--grid", "16"]) == 1
     assert "no model is within" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("model, params, target", [
+    # Aria's fisheye624 with tangential and thin-prism terms: the thin-prism fisheye frees its
+    # own (the source is not symmetric), fisheye624 to itself is exact
+    ("fisheye624", [300.0, 300.0, 319.5, 239.5, 0.02, -0.01, 0.002, 0.0, 0.0, 0.0, 0.0005,
+                    -0.0005, 0.0002, 0.0, -0.0002, 0.0], "fisheye624"),
+    ("thin_prism_fisheye", [300.0, 301.0, 319.5, 239.5, 0.02, -0.01, 0.0005, -0.0005, 0.002,
+                            0.0, 0.0002, -0.0002], "thin_prism_fisheye"),
+    ("fov", [300.0, 301.0, 319.5, 239.5, 0.9], "fov"),
+    ("division", [300.0, 301.0, 319.5, 239.5, -0.1], "division"),
+    ("opencv", [500.0, 502.0, 319.5, 239.5, -0.25, 0.08, 0.0005, -0.0003, 0.01] + [0.0] * 7,
+     "opencv"),
+])
+def test_cli_convert_model_from_an_issue_34_camera_file(tmp_path, capsys, model, params, target):
+    """Issue 34's models as sources through ``--camera`` (COLMAP's cameras.txt): converted to
+    themselves, exactly, the asymmetric terms freed where the source has them."""
+    camera = ot.Camera(model, torch.tensor(params, dtype=D), (480, 640))
+    path = camera.save(tmp_path / "cameras.txt", "colmap")
+    out = tmp_path / "out"
+    code = cli.main(["convert-model", "--camera", str(path), "--to", target, "--grid", "16",
+                     "--out", str(out)])
+    printed = capsys.readouterr().out
+    assert code == 0, printed
+    assert f"({model})" in printed
+    report = json.loads((out / f"{target}.json").read_text())["conversion"]
+    assert report["converged"] and report["max_px"] < 1e-4, report
+    back = ot.Camera.load_json(out / f"{target}.json")
+    torch.testing.assert_close(back.params.double(), camera.params, rtol=1e-6, atol=1e-7)

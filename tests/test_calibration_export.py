@@ -41,6 +41,16 @@ UCM = [280.0, 285.0, 319.5, 239.5, 0.9, 0.0, 0.0, 0.0, 0.0]
 DS = [160.0, 161.0, 319.5, 239.5, -0.2, 0.6]
 EUCM = [220.0, 221.0, 320.5, 238.5, 0.6, 1.1]
 PINHOLE = [400.0, 401.0, 319.5, 239.5]
+FOV = [300.0, 301.0, 319.5, 239.5, 0.9]
+DIVISION = [300.0, 301.0, 319.5, 239.5, -0.05]
+RADTAN = [400.0, 401.0, 319.5, 239.5, -0.1, 0.01, 0.001, -0.002] + [0.0] * 8
+OPENCV5 = RADTAN[:8] + [0.001] + [0.0] * 7
+RATIONAL = RADTAN[:8] + [0.001, 0.02, -0.003, 0.0004] + [0.0] * 4
+PRISM = RATIONAL[:12] + [0.0005, -0.0001, 0.0002, 0.0001]
+TPF = [300.0, 301.0, 319.5, 239.5, 0.01, -0.005, 0.001, -0.001, 0.0002, -0.0001, 0.0005,
+       -0.0005]
+F624 = [300.0, 301.0, 319.5, 239.5, 0.01, -0.005, 0.001, 0.0002, -0.0001, 0.00002, 0.0005,
+        -0.0005, 0.0001, 0.00002, -0.0001, 0.00001]
 
 
 def _safe_load(text: str):
@@ -132,6 +142,11 @@ def kalibr_project(cam: dict, X: np.ndarray) -> np.ndarray:
         mx, my = mx * scale, my * scale
     elif dist == "radtan":
         mx, my = _radtan(mx, my, *coeffs)
+    elif dist == "fov":                  # aslam_cv FovDistortion::distort
+        (w,), r = coeffs, np.hypot(mx, my)
+        factor = np.arctan(2 * np.tan(w / 2) * r) / (w * np.where(r > 1e-8, r, 1.0))
+        factor = np.where(r > 1e-8, factor, 2 * np.tan(w / 2) / w)
+        mx, my = mx * factor, my * factor
     else:
         assert dist == "none" and coeffs == []
     return np.stack((fu * mx + pu, fv * my + pv), -1)
@@ -152,6 +167,11 @@ def basalt_project(calib: dict, X: np.ndarray) -> np.ndarray:
     elif kind == "ucm":
         den = q["alpha"] * d + (1 - q["alpha"]) * z
         mx, my = x / den, y / den
+    elif kind == "fov":                  # fov_camera.hpp: rd = atan2(2 r tan(w / 2), z) / (r w)
+        r = np.hypot(x, y)
+        rd = np.arctan2(2 * r * np.tan(q["w"] / 2), z) / (np.where(r > 1e-8, r, 1.0) * q["w"])
+        rd = np.where(r > 1e-8, rd, 2 * np.tan(q["w"] / 2) / q["w"] / z)
+        mx, my = x * rd, y * rd
     elif kind == "ds":
         k = q["xi"] * d + z
         den = q["alpha"] * np.sqrt(x * x + y * y + k * k) + (1 - q["alpha"]) * k
@@ -172,9 +192,15 @@ def opencv_project(path, X: np.ndarray) -> np.ndarray:
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     assert fs.isOpened()
     kind = fs.getNode("camera_model").string()
-    K, Dist = fs.getNode("K").mat(), fs.getNode("D").mat()
     assert fs.getNode("image_width").isInt() and fs.getNode("image_height").isInt()
     pts = X.reshape(-1, 1, 3)
+    if kind == "pinhole":   # cv2.calibrateCamera's names, as OpenCV's calibration sample
+        K, Dist = fs.getNode("camera_matrix").mat(), fs.getNode("distortion_coefficients").mat()
+        assert Dist.shape[0] == 1 and Dist.shape[1] in (4, 5, 8, 12, 14)
+        out = cv2.projectPoints(pts, *_zeros3(), K, Dist)[0]
+        fs.release()
+        return out.reshape(-1, 2)
+    K, Dist = fs.getNode("K").mat(), fs.getNode("D").mat()
     if kind == "fisheye":
         out = cv2.fisheye.projectPoints(pts, *_zeros3(), K, Dist, alpha=K[0, 1] / K[0, 0])[0]
     else:
@@ -224,13 +250,27 @@ def colmap_project(path, X: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 
 @pytest.mark.numerics
-@pytest.mark.parametrize("model, params", [("kannala_brandt", KB), ("unified", UNIFIED)])
+@pytest.mark.parametrize("model, params", [("kannala_brandt", KB), ("unified", UNIFIED),
+                                           ("opencv", RADTAN), ("opencv", OPENCV5),
+                                           ("opencv", RATIONAL), ("opencv", PRISM)])
 def test_opencv_file_reproduces_the_camera(tmp_path, model, params):
     camera = _camera(model, params)
     path = write_camera(camera, tmp_path / "camera.yaml", "opencv")
     assert path.read_text().startswith("%YAML:1.0\n")
     rays = _rays(camera)
     _compare(camera, rays, opencv_project(path, rays))
+
+
+@pytest.mark.parametrize("params, n", [(RADTAN, 4), (OPENCV5, 5), (RATIONAL, 8), (PRISM, 12),
+                                       (PINHOLE + [0.0] * 12, 4)])
+def test_opencv_distortion_is_the_shortest_vector_holding_the_terms(tmp_path, params, n):
+    path = write_camera(_camera("opencv", params), tmp_path / "camera.yaml", "opencv")
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    D = fs.getNode("distortion_coefficients").mat()
+    assert fs.getNode("camera_model").string() == "pinhole"
+    assert D.shape == (1, n) and D.ravel().tolist() == params[4:4 + n]
+    assert fs.getNode("camera_matrix").mat().tolist() == [
+        [params[0], 0, params[2]], [0, params[1], params[3]], [0, 0, 1]]
 
 
 @needs_skew
@@ -249,7 +289,7 @@ def test_opencv_file_keeps_the_skew(tmp_path, model, params):
 @pytest.mark.numerics
 @pytest.mark.parametrize("model, params", [
     ("pinhole", PINHOLE), ("kannala_brandt", KB), ("unified", UNIFIED), ("double_sphere", DS),
-    ("eucm", EUCM)])
+    ("eucm", EUCM), ("fov", FOV), ("opencv", RADTAN)])
 def test_kalibr_file_reproduces_the_camera(tmp_path, model, params):
     camera = _camera(model, params)
     path = write_camera(camera, tmp_path / "camchain.yaml", "kalibr")
@@ -259,7 +299,8 @@ def test_kalibr_file_reproduces_the_camera(tmp_path, model, params):
     assert cam["resolution"] == [640, 480] and isinstance(cam["rostopic"], str)
     expected = {"pinhole": ("pinhole", "radtan"), "kannala_brandt": ("pinhole", "equidistant"),
                 "unified": ("omni", "radtan"), "double_sphere": ("ds", "none"),
-                "eucm": ("eucm", "none")}[model]
+                "eucm": ("eucm", "none"), "fov": ("pinhole", "fov"),
+                "opencv": ("pinhole", "radtan")}[model]
     assert (cam["camera_model"], cam["distortion_model"]) == expected
     rays = _rays(camera)
     _compare(camera, rays, kalibr_project(cam, rays))
@@ -268,7 +309,7 @@ def test_kalibr_file_reproduces_the_camera(tmp_path, model, params):
 @pytest.mark.numerics
 @pytest.mark.parametrize("model, params, kind", [
     ("pinhole", PINHOLE, "pinhole"), ("kannala_brandt", KB, "kb4"), ("unified", UCM, "ucm"),
-    ("double_sphere", DS, "ds"), ("eucm", EUCM, "eucm")])
+    ("double_sphere", DS, "ds"), ("eucm", EUCM, "eucm"), ("fov", FOV, "fov")])
 def test_basalt_file_reproduces_the_camera(tmp_path, model, params, kind):
     camera = _camera(model, params)
     path = write_camera(camera, tmp_path / "calibration.json", "basalt")
@@ -306,8 +347,13 @@ def test_orbslam3_file_reproduces_the_camera(tmp_path, model, params):
 
 
 @pytest.mark.numerics
-@pytest.mark.parametrize("model, params, name", [("kannala_brandt", KB, "OPENCV_FISHEYE"),
-                                                 ("pinhole", PINHOLE, "PINHOLE")])
+@pytest.mark.parametrize("model, params, name", [
+    ("kannala_brandt", KB, "OPENCV_FISHEYE"), ("pinhole", PINHOLE, "PINHOLE"),
+    ("fov", FOV, "FOV"), ("division", DIVISION, "DIVISION"),
+    ("division", DIVISION[:4] + [0.05], "DIVISION"), ("opencv", RADTAN, "OPENCV"),
+    ("opencv", OPENCV5, "FULL_OPENCV"), ("opencv", RATIONAL, "FULL_OPENCV"),
+    ("thin_prism_fisheye", TPF, "THIN_PRISM_FISHEYE"),
+    ("fisheye624", F624, "RAD_TAN_THIN_PRISM_FISHEYE")])
 def test_colmap_file_reproduces_the_camera(tmp_path, model, params, name):
     camera = _camera(model, params)
     path = write_camera(camera, tmp_path / "cameras.txt", "colmap")
@@ -346,6 +392,43 @@ def test_a_camera_past_90_degrees_is_refused_where_the_format_folds(tmp_path, fm
     # a camera inside 90 deg, and the formats whose model goes past 90 deg, write it
     write_camera(_camera("kannala_brandt", KB), tmp_path / "y", fmt)
     write_camera(_wide(), tmp_path / "z.json", "basalt")
+
+
+@pytest.mark.parametrize("model", ["thin_prism_fisheye", "fisheye624"])
+def test_colmap_refuses_the_new_fisheyes_past_90_degrees(tmp_path, model):
+    wide = _camera(model, [150.0, 150.0, 319.5, 239.5] + [0.0] * (len(get_model(model)
+                                                                      .param_names) - 4),
+                   fov=math.radians(190))
+    with pytest.raises(ValueError, match=r"95\.00 deg.*divides by z.*accept_fov"):
+        write_camera(wide, tmp_path / "cameras.txt", "colmap")
+    with pytest.warns(UserWarning, match=r"95\.00 deg"):
+        path = write_camera(wide, tmp_path / "cameras.txt", "colmap", accept_fov=True)
+    assert "# valid_angle_deg: 90.0" in path.read_text()
+    assert ot.Camera.load(path).params.tolist() == wide.params.tolist()
+
+
+@pytest.mark.numerics
+def test_colmap_division_projects_behind_the_camera_as_ours(tmp_path):
+    # k < 0 reaches past 90 deg in both (COLMAP solves the same quadratic for any z)
+    camera = _camera("division", DIVISION[:4] + [-0.3])
+    path = write_camera(camera, tmp_path / "cameras.txt", "colmap")
+    angles = np.radians(np.linspace(5.0, 150.0, 30))
+    rays = np.stack((np.sin(angles) * 0.6, np.sin(angles) * 0.8, np.cos(angles)), -1)
+    assert (rays[:, 2] < 0).sum() > 10
+    ours, valid = camera.model.project(torch.from_numpy(rays), camera.params)   # past the image
+    assert bool(valid.all())
+    assert np.abs(colmap_project(path, rays) - ours.numpy()).max() < PIXEL_TOL
+
+
+@pytest.mark.parametrize("fmt, params, message", [
+    ("kalibr", OPENCV5, r"pinhole-radtan holds k1, k2, p1, p2 of the opencv model, not k3 = "),
+    ("kalibr", PRISM, r"not k3 = 0\.001, k4 = 0\.02, k5 = -0\.003, k6 = 0\.0004, s1 = "),
+    ("colmap", PRISM, r"FULL_OPENCV has no thin prism: s1 = 0\.0005, s2 = -0\.0001"),
+])
+def test_opencv_coefficients_a_format_lacks_are_refused_by_name(tmp_path, fmt, params, message):
+    with pytest.raises(ValueError, match=message):
+        write_camera(_camera("opencv", params), tmp_path / "x", fmt)
+    assert not (tmp_path / "x").exists()
 
 
 def test_the_fov_limit_uses_the_farthest_valid_pixel(tmp_path):

@@ -49,6 +49,15 @@ PARAMS = {
 }
 #: basalt holds the unified model without distortion only.
 UCM = [280.0, 285.0, 319.5, 239.5, 0.9, 0.0, 0.0, 0.0, 0.0]
+#: Kalibr's pinhole-radtan holds k1, k2, p1, p2 of the opencv model only.
+RADTAN = [400.0, 401.0, 319.5, 239.5, -0.1, 0.01, 0.001, -0.002] + [0.0] * 8
+#: The longer coefficient vectors: COLMAP's FULL_OPENCV (k1..k6), OpenCV's 8 and 12.
+OPENCV_LONG = {
+    "colmap": [400.0, 401.0, 319.5, 239.5, -0.1, 0.01, 0.001, -0.002, 0.001, 0.02, -0.003,
+               0.0004] + [0.0] * 4,
+    "opencv": [400.0, 401.0, 319.5, 239.5, -0.1, 0.01, 0.001, -0.002, 0.001, 0.02, -0.003,
+               0.0004, 0.0005, -0.0001, 0.0002, 0.0001],
+}
 
 
 def _scaramuzza() -> ot.Camera:
@@ -58,7 +67,11 @@ def _scaramuzza() -> ot.Camera:
 def _camera(fmt: str, model: str) -> ot.Camera:
     if model == "scaramuzza":
         return _scaramuzza()
-    params = UCM if (fmt, model) == ("basalt", "unified") else PARAMS[model]
+    if model == "opencv-long":
+        model, params = "opencv", OPENCV_LONG[fmt]
+    else:
+        params = {("basalt", "unified"): UCM, ("kalibr", "opencv"): RADTAN}.get((fmt, model),
+                                                                               PARAMS[model])
     return ot.Camera(model, torch.tensor(params, dtype=D), SIZE)
 
 
@@ -69,6 +82,7 @@ def _round_trip_cases():
         if fmt == "json":   # every model: one per family is enough for the JSON itself
             models = ("pinhole", "kannala_brandt", "unified", "scaramuzza")
         cases += [pytest.param(fmt, m, id=f"{fmt}-{m}") for m in models]
+    cases += [pytest.param(fmt, "opencv-long", id=f"{fmt}-opencv-long") for fmt in OPENCV_LONG]
     return cases
 
 
@@ -84,7 +98,7 @@ def test_save_then_load_gives_the_same_camera(tmp_path, fmt, model):
     path = camera.save(tmp_path / name, fmt)
     assert detect_format(path) == fmt
     back = ot.Camera.load(path)
-    assert back.model.name == model
+    assert back.model.name == camera.model.name
     assert back.image_size == camera.image_size
     assert back.params.dtype == D
     if (fmt, model) == ("basalt", "unified"):

@@ -14,7 +14,10 @@ Errors are pixel distances: their RMS (the root of the mean squared distance, as
 Gaussian noise of ``sigma`` per coordinate it tends to ``sigma sqrt 2``, so a tolerance must sit
 above that) and their maximum. The selected candidate is the converged one with the fewest free
 parameters whose held-out RMS is within ``tolerance`` and, if ``max_tolerance`` is given,
-whose held-out maximum is within it, ties broken by the RMS.
+whose held-out maximum is within it, ties broken by the RMS. From a camera, a candidate must
+also represent the whole area (``outside``, the share of held-out samples outside its domain,
+is 0): a model of lesser reach (``pinhole``, ``fov``, ``opencv``, ``division`` with k > 0,
+``orthographic``) fitted to a wider lens is judged on the part it sees, and is never selected.
 """
 
 from __future__ import annotations
@@ -42,7 +45,8 @@ DEFAULT_CANDIDATES = (
 @dataclass
 class Candidate:
     """One row of the selection table: ``fit_rms``, ``heldout_rms`` and ``heldout_max`` are RMS
-    and largest pixel distances (module docstring)."""
+    and largest pixel distances (module docstring); ``outside`` the share of the held-out
+    samples the model cannot represent (0 for correspondences)."""
 
     model: str
     degree: int | None
@@ -53,6 +57,7 @@ class Candidate:
     converged: bool
     reason: str
     within: bool
+    outside: float = 0.0
 
 
 @dataclass
@@ -141,14 +146,16 @@ def select_model(source, tolerance: float, *, max_tolerance: float | None = None
         if from_camera:
             conv = convert(source, model, degree=degree or 4, **fit_kwargs)
             result, held, worst = conv.fit, conv.rms_px, conv.max_px
+            outside = conv.unrepresentable
         else:
             result, held, worst = _heldout_fit(object_points, image_points, image_size, model,
                                                degree, holdout, fit_kwargs)
-        ok = result.converged and math.isfinite(held) and held <= tolerance
+            outside = 0.0
+        ok = result.converged and math.isfinite(held) and held <= tolerance and outside == 0
         ok = ok and (max_tolerance is None or worst <= max_tolerance)
         table.append(Candidate(model, degree if model == "scaramuzza" else None,
                                len(result.free_names), result.rms, held, worst,
-                               result.converged, result.reason, ok))
+                               result.converged, result.reason, ok, outside))
         cameras.append(result.camera)
     eligible = [i for i, c in enumerate(table) if c.within]
     if not eligible:

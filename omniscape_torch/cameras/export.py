@@ -9,15 +9,25 @@ format      file                      models (the tool's name)
 =========== ========================= ============================================================
 json        camera JSON               every model (``Camera.load_json`` reads it)
 ocamcalib   ``calib_results.txt``     scaramuzza
-opencv      ``cv2.FileStorage`` YAML  kannala_brandt (``fisheye``), unified (``omnidir``)
+opencv      ``cv2.FileStorage`` YAML  kannala_brandt (``fisheye``), unified (``omnidir``), opencv
+                                      (``pinhole``: ``camera_matrix``, ``distortion_coefficients``
+                                      1 x N, N the shortest of 4, 5, 8, 12 that holds the
+                                      non-zero coefficients, as ``cv2.calibrateCamera`` returns)
 kalibr      ``camchain.yaml``         pinhole (``pinhole-radtan``, zero coefficients),
                                       kannala_brandt (``pinhole-equi``), unified (``omni-radtan``),
-                                      double_sphere (``ds-none``), eucm (``eucm-none``)
+                                      double_sphere (``ds-none``), eucm (``eucm-none``),
+                                      fov (``pinhole-fov``), opencv with k1, k2, p1, p2 only
+                                      (``pinhole-radtan``)
 basalt      calibration JSON          pinhole (``pinhole``), kannala_brandt (``kb4``), unified
                                       without distortion (``ucm``), double_sphere (``ds``),
-                                      eucm (``eucm``)
+                                      eucm (``eucm``), fov (``fov``, ``w`` = omega)
 orbslam3    settings YAML (v1.0)      pinhole (``PinHole``), kannala_brandt (``KannalaBrandt8``)
-colmap      ``cameras.txt``           pinhole (``PINHOLE``), kannala_brandt (``OPENCV_FISHEYE``)
+colmap      ``cameras.txt``           pinhole (``PINHOLE``), kannala_brandt (``OPENCV_FISHEYE``),
+                                      fov (``FOV``), division (``DIVISION``), opencv (``OPENCV``
+                                      when k3..k6 and s1..s4 are 0, else ``FULL_OPENCV``, which
+                                      needs s1..s4 = 0), thin_prism_fisheye
+                                      (``THIN_PRISM_FISHEYE``), fisheye624
+                                      (``RAD_TAN_THIN_PRISM_FISHEYE``)
 =========== ========================= ============================================================
 
 The conventions of these files are converted here and nowhere else:
@@ -44,10 +54,16 @@ caller accepts it (the file then records it and a ``UserWarning`` says what was 
   (``ot.calibration.convert``, ``omniscape-torch convert-model``).
 * Rays at or past 90 degrees off the optical axis, for the Kannala-Brandt targets of OpenCV
   (``cv2.fisheye`` divides by z and takes ``atan``: a ray 91 degrees off the axis lands on the
-  wrong side of the image), COLMAP (``OPENCV_FISHEYE`` divides by z), Kalibr (``pinhole-equi`` is
-  a pinhole projection, valid for z > 0) and ORB-SLAM3 (``KannalaBrandt8::unproject`` returns
-  ``(x, y, 1)``). The camera's angle is its ``fov`` or its image's farthest valid pixel's.
+  wrong side of the image), COLMAP (``OPENCV_FISHEYE``, ``THIN_PRISM_FISHEYE`` and
+  ``RAD_TAN_THIN_PRISM_FISHEYE`` divide by z), Kalibr (``pinhole-equi`` is a pinhole
+  projection, valid for z > 0) and ORB-SLAM3 (``KannalaBrandt8::unproject`` returns
+  ``(x, y, 1)``). The pinhole-based models (fov, opencv, division with k >= 0) never see 90
+  degrees, and COLMAP's ``DIVISION`` projects points behind the camera as ours (k < 0). The
+  camera's angle is its ``fov`` or its image's farthest valid pixel's.
   ``accept_fov=True`` writes the file with ``valid_angle_deg: 90`` (a comment for COLMAP).
+* Coefficients the target lacks, named with their values: Kalibr's ``pinhole-radtan`` holds
+  k1, k2, p1, p2 of the ``opencv`` model only, COLMAP's ``FULL_OPENCV`` no thin prism s1..s4
+  (write the ``opencv`` format, which holds all twelve, or convert first).
 * A non-zero skew in a format without one. ``accept_skew=True`` drops it; the warning and a
   comment in the file give the pixel error: ``|s| |v - cy| / fy`` at the image's top or bottom.
 
@@ -82,6 +98,10 @@ _FOLDS_AT_90 = (
                                  "rays at or past 90 deg onto the wrong side of the image"),
     ("colmap", "kannala_brandt", "COLMAP's OPENCV_FISHEYE divides by z and cannot project rays "
                                  "at or past 90 deg"),
+    ("colmap", "thin_prism_fisheye", "COLMAP's THIN_PRISM_FISHEYE divides by z and cannot "
+                                     "project rays at or past 90 deg"),
+    ("colmap", "fisheye624", "COLMAP's RAD_TAN_THIN_PRISM_FISHEYE divides by z and cannot "
+                             "project rays at or past 90 deg"),
     ("kalibr", "kannala_brandt", "Kalibr's pinhole-equi is a pinhole projection, valid for z > 0 "
                                  "only (rays below 90 deg)"),
     ("orbslam3", "kannala_brandt", "ORB-SLAM3's KannalaBrandt8 unprojects pixels to rays "
@@ -108,11 +128,13 @@ def supported_models(format: str) -> tuple[str, ...]:
         return tuple(MODELS)
     return {
         "ocamcalib": ("scaramuzza",),
-        "opencv": ("kannala_brandt", "unified"),
-        "kalibr": ("pinhole", "kannala_brandt", "unified", "double_sphere", "eucm"),
-        "basalt": ("pinhole", "kannala_brandt", "unified", "double_sphere", "eucm"),
+        "opencv": ("kannala_brandt", "unified", "opencv"),
+        "kalibr": ("pinhole", "kannala_brandt", "unified", "double_sphere", "eucm", "fov",
+                   "opencv"),
+        "basalt": ("pinhole", "kannala_brandt", "unified", "double_sphere", "eucm", "fov"),
         "orbslam3": ("pinhole", "kannala_brandt"),
-        "colmap": ("pinhole", "kannala_brandt"),
+        "colmap": ("pinhole", "kannala_brandt", "fov", "division", "opencv", "thin_prism_fisheye",
+                   "fisheye624"),
     }[fmt]
 
 
@@ -124,7 +146,7 @@ def write_camera(camera, path: str | Path, format: str, *, accept_fov: bool = Fa
         camera: an ``ot.Camera``; one camera, except for ``json`` (batches too).
         path: the file to write (for ``colmap``, ``cameras.txt`` of a sparse model folder).
         format: one of ``FORMATS``.
-        accept_fov: write a Kannala-Brandt camera that sees at or past 90 degrees off its axis
+        accept_fov: write a fisheye camera that sees at or past 90 degrees off its axis
             into a format that folds there; the file records ``valid_angle_deg: 90``.
         accept_skew: write a camera with a non-zero skew ``s`` into a format without one; the
             skew is dropped and the file states the pixel error.
@@ -221,6 +243,23 @@ def _comments(camera, tool: str, notes: list[str], extra: tuple[str, ...] = ()) 
     return lines
 
 
+#: The ``opencv`` model's coefficients, in OpenCV's order (``cv2.projectPoints``).
+_OPENCV_COEFFS = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4")
+
+
+def _opencv_coeffs(p: dict, lengths: tuple[int, ...]) -> list[float] | None:
+    """The ``opencv`` model's coefficients cut to the shortest of ``lengths`` that holds every
+    non-zero one (None if none does)."""
+    values = [p[n] for n in _OPENCV_COEFFS]
+    last = max((i + 1 for i, v in enumerate(values) if v != 0), default=0)
+    n = next((n for n in lengths if n >= last), None)
+    return None if n is None else (values + [0.0] * max(n - len(values), 0))[:n]
+
+
+def _nonzero(p: dict, names) -> str:
+    return ", ".join(f"{n} = {p[n]:.6g}" for n in names if p[n] != 0)
+
+
 def _opencv_matrix(name: str, rows: int, cols: int, values) -> list[str]:
     return [f"{name}: !!opencv-matrix", f"   rows: {rows}", f"   cols: {cols}", "   dt: d",
             "   data: [ " + ", ".join(_num(v) for v in values) + " ]"]
@@ -231,24 +270,34 @@ def _opencv_matrix(name: str, rows: int, cols: int, values) -> list[str]:
 # --------------------------------------------------------------------------------------------
 
 def _opencv(camera, p: dict, s: float, notes: list[str], valid_angle) -> str:
-    """``cv2.FileStorage`` YAML: ``camera_model`` ("fisheye" or "omnidir"), ``image_width``,
-    ``image_height``, ``K`` (3 x 3, ``K[0, 1] = s``), ``D`` (fisheye: k1..k4 as 4 x 1, as
-    ``cv2.fisheye.calibrate`` returns it; omnidir: k1, k2, p1, p2 as 1 x 4) and ``xi``."""
+    """``cv2.FileStorage`` YAML: ``camera_model`` ("fisheye", "omnidir" or "pinhole"),
+    ``image_width``, ``image_height``, then ``K`` (3 x 3, ``K[0, 1] = s``) and ``D`` (fisheye:
+    k1..k4 as 4 x 1, as ``cv2.fisheye.calibrate`` returns it; omnidir: k1, k2, p1, p2 as 1 x 4)
+    and ``xi``; or, for the ``opencv`` model, ``camera_matrix`` and ``distortion_coefficients``
+    (1 x N, N = 4, 5, 8 or 12, as ``cv2.calibrateCamera`` returns them and OpenCV's
+    calibration sample writes them)."""
     h, w = camera.image_size
     K = (p["fx"], s, p["cx"], 0.0, p["fy"], p["cy"], 0.0, 0.0, 1.0)
+    k_name = "K"
     if camera.model.name == "kannala_brandt":
         usage = ("cv2.fisheye.projectPoints(points, rvec, tvec, K, D, "
                  "alpha=K[0, 1] / K[0, 0]) (it ignores K[0, 1]).",)
         kind, D = "fisheye", _opencv_matrix("D", 4, 1, [p[f"k{i}"] for i in range(1, 5)])
-    else:
+    elif camera.model.name == "unified":
         usage = ("cv2.omnidir.projectPoints(points, rvec, tvec, K, xi, D) (K[0, 1] is the skew).",)
         kind, D = "omnidir", _opencv_matrix("D", 1, 4, [p["k1"], p["k2"], p["p1"], p["p2"]])
         D += [f"xi: {_num(p['xi'])}"]
+    else:
+        coeffs = _opencv_coeffs(p, (4, 5, 8, 12))
+        usage = ("cv2.projectPoints(points, rvec, tvec, camera_matrix, "
+                 "distortion_coefficients).",)
+        kind, k_name = "pinhole", "camera_matrix"
+        D = _opencv_matrix("distortion_coefficients", 1, len(coeffs), coeffs)
     lines = ["%YAML:1.0", "---"]
     lines += _comments(camera, f"OpenCV's {kind} model, pixel centres at integers",
                        notes, usage)
     lines += [f'camera_model: "{kind}"', f"image_width: {w}", f"image_height: {h}"]
-    lines += _opencv_matrix("K", 3, 3, K) + D
+    lines += _opencv_matrix(k_name, 3, 3, K) + D
     if valid_angle is not None:
         lines.append(f"valid_angle_deg: {_num(valid_angle)}")
     return "\n".join(lines) + "\n"
@@ -263,6 +312,15 @@ def _kalibr(camera, p: dict, s: float, notes: list[str], valid_angle) -> str:
                          f"{p['cx']:.6g}, cy = {p['cy']:.6g}")
     if model == "pinhole":
         kind, intr, dist, coeffs = "pinhole", focal, "radtan", [0.0] * 4
+    elif model == "fov":
+        kind, intr, dist, coeffs = "pinhole", focal, "fov", [p["omega"]]
+    elif model == "opencv":
+        coeffs = _opencv_coeffs(p, (4,))
+        if coeffs is None:
+            raise ValueError(f"camera: Kalibr's pinhole-radtan holds k1, k2, p1, p2 of the opencv "
+                             f"model, not {_nonzero(p, _OPENCV_COEFFS[4:])} (write the opencv or "
+                             f"colmap format, or convert to another model)")
+        kind, intr, dist = "pinhole", focal, "radtan"
     elif model == "kannala_brandt":
         kind, intr, dist = "pinhole", focal, "equidistant"
         coeffs = [p[f"k{i}"] for i in range(1, 5)]
@@ -308,6 +366,8 @@ def _basalt(camera, p: dict, s: float, notes: list[str], valid_angle) -> str:
                       "cy": p["cy"], "alpha": p["xi"] / scale}
     elif model == "double_sphere":
         kind, intrinsics = "ds", {**focal, "xi": p["xi"], "alpha": p["alpha"]}
+    elif model == "fov":   # basalt's fov_camera.hpp: [fx, fy, cx, cy, w], w our omega
+        kind, intrinsics = "fov", {**focal, "w": p["omega"]}
     else:
         kind, intrinsics = "eucm", {**focal, "alpha": p["alpha"], "beta": p["beta"]}
     h, w = camera.image_size
@@ -351,11 +411,24 @@ def _colmap(camera, p: dict, s: float, notes: list[str], valid_angle) -> str:
     the top-left pixel's centre at (0.5, 0.5))."""
     h, w = camera.image_size
     params = [p["fx"], p["fy"], p["cx"] + 0.5, p["cy"] + 0.5]
-    if camera.model.name == "kannala_brandt":
-        kind = "OPENCV_FISHEYE"
-        params += [p[f"k{i}"] for i in range(1, 5)]
+    model = camera.model.name
+    # COLMAP's extra parameters are ours in our order (models.h), by name
+    extra_names = {"pinhole": (), "kannala_brandt": ("k1", "k2", "k3", "k4"), "fov": ("omega",),
+                   "division": ("k",), "thin_prism_fisheye": camera.param_names[4:12],
+                   "fisheye624": camera.param_names[4:16]}
+    if model == "opencv":
+        coeffs = _opencv_coeffs(p, (4, 8))
+        if coeffs is None:
+            raise ValueError(f"camera: COLMAP's FULL_OPENCV has no thin prism: "
+                             f"{_nonzero(p, _OPENCV_COEFFS[8:])} (write the opencv format, or "
+                             f"convert to another model)")
+        kind = "OPENCV" if len(coeffs) == 4 else "FULL_OPENCV"
+        params += coeffs
     else:
-        kind = "PINHOLE"
+        kind = {"pinhole": "PINHOLE", "kannala_brandt": "OPENCV_FISHEYE", "fov": "FOV",
+                "division": "DIVISION", "thin_prism_fisheye": "THIN_PRISM_FISHEYE",
+                "fisheye624": "RAD_TAN_THIN_PRISM_FISHEYE"}[model]
+        params += [p[n] for n in extra_names[model]]
     extra = ("cx, cy are omniscape_torch's + 0.5 (COLMAP's top-left pixel centre is (0.5, 0.5)).",)
     if valid_angle is not None:
         extra += (f"valid_angle_deg: {_num(valid_angle)}",)
