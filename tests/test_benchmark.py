@@ -481,9 +481,9 @@ def test_run_quick_writes_under_quick_and_a_full_run_under_results():
         Path("elsewhere")
 
 
-@pytest.mark.parametrize("script", ["bench_augment", "bench_busy", "bench_cameras", "bench_png",
-                                    "bench_projection", "bench_reproject", "bench_scaling",
-                                    "bench_workers"])
+@pytest.mark.parametrize("script", ["bench_augment", "bench_busy", "bench_cameras",
+                                    "bench_models_layer", "bench_png", "bench_projection",
+                                    "bench_reproject", "bench_scaling", "bench_workers"])
 def test_each_quick_mode_defaults_under_quick(script):
     import importlib
 
@@ -507,3 +507,24 @@ def test_no_script_with_a_quick_mode_hard_codes_its_results_path():
         # harness.py: out_dir / "quick" (run.py passes it the folder)
         assert "results_path(" in text or '/ "quick"' in text or path.name == "run.py", \
             path.name
+
+
+@pytest.mark.slow
+def test_models_layer_benchmark_rows(tmp_path):
+    """Issue 34: every model of CAMERAS has each row at each batch, its ratio to
+    Kannala-Brandt's row in the same run, and a lens that sees (valid share > 0.3)."""
+    import bench_models_layer as bml
+
+    out = tmp_path / "m.json"
+    assert bml.main(["--face", "16", "--batches", "1", "2", "--repeats", "1", "--warmup", "0",
+                     "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    got = {(r["model"], r["row"], r["batch"]) for r in result["rows"]}
+    want = {(m, row, b) for m in bml.CAMERAS for row, b in
+            (("cached", 1), ("cached", 2), ("rebuilt", 1), ("rebuilt", 2), ("new_camera", 1))}
+    assert got == want
+    for r in result["rows"]:
+        assert r["median_s"] > 0 and math.isfinite(r["ratio"])
+        if r["model"] == bml.REFERENCE:
+            assert r["ratio"] == 1.0
+    assert all(share > 0.3 for share in result["valid_share"].values()), result["valid_share"]
