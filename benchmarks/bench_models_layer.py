@@ -4,8 +4,8 @@ Issue 34's speed target: each of ``fov``, ``division``, ``opencv``, ``thin_prism
 ``fisheye624`` renders a ``6 x F x F`` float32 RGB cube into a ``2F x 2F`` image through
 ``OmniProjection`` (the CPU fast path) within 1.3x ``kannala_brandt``'s time, with the grid
 cached and rebuilt, at batch 1 and 8. The cameras (``CAMERAS``) are realistic lenses of each
-model at 1024 x 1024 (scaled to ``2F`` for other sizes): the three fisheyes about 190 degrees,
-the perspective models as wide as they reach.
+model at 1024 x 1024 (scaled to ``2F`` for other sizes), every pixel seen: the three fisheyes
+full-frame (196 degrees across the width), the perspective models 68-89 degrees across.
 
 Rows per model and batch, timed round-robin with the other models' (``common.measure``):
 
@@ -112,7 +112,7 @@ def run(args: argparse.Namespace) -> dict:
 def markdown(result: dict) -> str:
     lines = [f"# models through the layer, {result['image_size'][0]} x "
              f"{result['image_size'][1]} from 6 x {result['face']}, "
-             f"{result['machine'].get('threads', '?')} threads, load "
+             f"{result['threads']} threads, load "
              f"{result['load_start']} -> {result['load_end']}",
              "", "| model | row | batch | ms | x kannala_brandt | x (fastest calls) | "
                  "valid share |",
