@@ -198,7 +198,8 @@ def test_source_camera_at_construction_per_call_batched_and_replayed(aria):
     e = plain({"rgb": image, "source_camera": cam}, params=a["params"])
     for out in (b, c, d, e):
         assert torch.equal(out["rgb"], a["rgb"]) and torch.equal(out["valid"], a["valid"])
-    assert a["params"]["source_camera"].batch_shape == (2,)
+    assert a["params"]["source_camera"]["model"] == "fisheye624"
+    assert a["params"]["source_camera"]["params"].shape == (2, 16)
     # different rows: sample 1 as if rendered alone with its camera
     other = cam.params.clone()
     other[2] += 3.0
@@ -352,3 +353,26 @@ def test_a_source_fov_limits_valid(aria):
         src = rays @ params["rotation"][i].T
         assert bool((torch.atan2(src[..., :2].norm(dim=-1), src[..., 2])[out[i, 0]]
                      <= math.radians(45) + 1e-6).all())
+
+
+def test_per_sample_outputs_with_a_camera_source_collate_and_replay(aria):
+    """As a Dataset's __getitem__ applies the module: per-sample outputs (params included)
+    go through DataLoader's default_collate, and the collated params replay the batch."""
+    from torch.utils.data import default_collate
+
+    cam = scaled(aria, 1 / 8)
+    aug = augment.RandomReproject((24, 24), source_camera=cam, seed=1)
+    images = torch.rand(3, 3, *cam.image_size)
+    outs = [aug(images[i:i + 1]) for i in range(3)]
+    params = default_collate([o["params"] for o in outs])
+    record = params["source_camera"]
+    assert record["model"] == ["fisheye624"] * 3 and record["params"].shape == (3, 1, 16)
+    flat = {k: (v.flatten(0, 1) if isinstance(v, torch.Tensor) else
+                tuple(m for row in zip(*v) for m in row) if k == "model" else v)
+            for k, v in params.items() if k != "source_camera"}
+    again = augment.RandomReproject((24, 24), seed=9).render(images, flat,
+                                                             source_camera=record)
+    assert torch.equal(again["rgb"], torch.cat([o["rgb"] for o in outs]))
+    mixed = dict(record, model=["fisheye624", "opencv", "fisheye624"])
+    with pytest.raises(ValueError, match="the samples differ"):
+        augment.RandomReproject((24, 24), seed=9).render(images, flat, source_camera=mixed)

@@ -849,7 +849,8 @@ class RandomReproject(_RandomCameras):
         ``rgb (B, C, H, W)`` (``(B, H, W, C)``), ``labels (B, H, W)`` int64,
         ``depth (B, 1, H, W)``, ``valid (B, 1, H, W)`` bool; ``params`` as
         :meth:`forward_parameters` returns them, with the ``intrinsics (B, 4)`` of a pinhole
-        source, or the ``source_camera`` batch ``(B,)`` used (float64, CPU).
+        source, or the record of the ``source_camera`` used (``model``, ``params (B, P)``
+        float64 on the CPU: plain values that ``default_collate`` stacks).
 
     Examples:
         >>> aug = RandomReproject((64, 64), source_fov=math.radians(90), seed=0)
@@ -1001,7 +1002,9 @@ class RandomReproject(_RandomCameras):
         Returns:
             dict ``valid`` and, for each given input, ``rgb``, ``labels``, ``depth`` (class
             docstring), plus ``params`` (with ``intrinsics (B, 4)`` of a pinhole source, else
-            ``source_camera``, the batch ``(B,)`` used, float64 on the CPU).
+            ``source_camera``: the source used, as ``{"model", "params" (B, P) float64 on
+            the CPU[, "fov", "blind_fov"]}``, which ``default_collate`` stacks and a replay
+            reads back).
         """
         image, labels, depth, size = self._check_inputs(image, labels, depth)
         batch = next(t for t in (image, labels, depth) if t is not None).shape[0]
@@ -1052,7 +1055,7 @@ class RandomReproject(_RandomCameras):
             result["params"] = dict(params, intrinsics=k.to("cpu", torch.float64))
             result["params"].pop("source_camera", None)
         else:
-            result["params"] = dict(params, source_camera=given.to(torch.float64))
+            result["params"] = dict(params, source_camera=_camera_record(given))
             result["params"].pop("intrinsics", None)
         return result
 
@@ -1202,6 +1205,8 @@ class RandomReproject(_RandomCameras):
             source_camera = self.source_camera
         if source_camera is None:
             return self._intrinsics(intrinsics, size, batch), None
+        if isinstance(source_camera, dict):   # a replay: the record of a render's params
+            source_camera = _recorded_camera(source_camera, size)
         _check_source_camera(source_camera)
         if source_camera.image_size != tuple(size):
             raise ValueError(f"source_camera: image_size {source_camera.image_size} does not "
@@ -1291,6 +1296,40 @@ class RandomReproject(_RandomCameras):
         out = self.render(_plain(image), params, labels=_plain(labels), depth=_plain(depth),
                           intrinsics=intrinsics, source_camera=source_camera)
         return _like_inputs(out, given)
+
+
+def _camera_record(camera: Camera) -> dict:
+    """A source camera ``(B,)`` as ``params["source_camera"]`` records it: plain values that a
+    ``DataLoader``'s ``default_collate`` stacks (``model``, ``params (B, P)`` float64 on the
+    CPU, and ``fov`` / ``blind_fov`` in radians where the camera has them)."""
+    record = {"model": camera.model.name,
+              "params": camera.params.detach().to("cpu", torch.float64)}
+    for name in ("fov", "blind_fov"):
+        if getattr(camera, name) is not None:
+            record[name] = float(getattr(camera, name))
+    return record
+
+
+def _recorded_camera(record: dict, size: tuple[int, int]) -> Camera:
+    """The camera of :func:`_camera_record`'s ``record`` for images of ``size``, also after
+    ``default_collate`` of per-sample records (the names listed, the rows stacked)."""
+    def one(name: str):
+        value = record.get(name)
+        if isinstance(value, (list, tuple, Tensor)) and len(value) > 0:
+            values = value.tolist() if isinstance(value, Tensor) else list(value)
+            if any(v != values[0] for v in values):
+                raise ValueError(f'params["source_camera"]["{name}"]: the samples differ '
+                                 f"({values}); one call per source model")
+            return values[0]
+        return value
+    try:
+        params = torch.as_tensor(record["params"], dtype=torch.float64)
+        model = one("model")
+    except KeyError as err:
+        raise ValueError(f'params["source_camera"]: expected a record with "model" and '
+                         f'"params", got the keys {sorted(record)}') from None
+    return Camera(model, params.reshape(-1, params.shape[-1]), size, fov=one("fov"),
+                  blind_fov=one("blind_fov"))
 
 
 def _check_source_camera(camera: object) -> None:
