@@ -218,6 +218,25 @@ def fitted(rendered, tmp_path_factory):
     return code, out
 
 
+def _rms_to_the_truth(camera, fitted_camera, out) -> float:
+    """RMS pixel distance between the true and the fitted camera's projections of the true
+    camera's pixel rays (every 4th pixel), over the angle the detected corners reach
+    (``out/correspondences.txt``)."""
+    h, w = camera.image_size
+    v, u = torch.meshgrid(torch.arange(0, h, 4, dtype=D), torch.arange(0, w, 4, dtype=D),
+                          indexing="ij")
+    grid = torch.stack((u, v), -1).reshape(-1, 2)
+    rays, valid = camera.unproject(grid)
+    angle = torch.atan2(rays[:, :2].norm(dim=-1), rays[:, 2])
+    corners = ot.calibration.read_correspondences(out / "correspondences.txt").image_points
+    corner_rays, _ = camera.unproject(torch.cat(corners))
+    reach = float(torch.atan2(corner_rays[:, :2].norm(dim=-1), corner_rays[:, 2]).max())
+    keep = valid & (angle <= reach)
+    pixels, ok = fitted_camera.project(rays[keep])
+    assert bool(ok.all()) and int(keep.sum()) > 5000
+    return float((pixels - grid[keep]).norm(dim=-1).pow(2).mean().sqrt())
+
+
 @pytest.mark.numerics
 def test_fit_images_recovers_the_truth(rendered, fitted):
     """``fit --images``: converged, well covered (exit 0), and within RAY_RMS of the truth: the
@@ -233,19 +252,7 @@ def test_fit_images_recovers_the_truth(rendered, fitted):
     report = json.loads((out / "report.json").read_text())
     assert report["board"] == BOARD and report["coverage"]["ok"]
     assert report["coverage"]["fov_deg"] == 180
-    h, w = camera.image_size
-    v, u = torch.meshgrid(torch.arange(0, h, 4, dtype=D), torch.arange(0, w, 4, dtype=D),
-                          indexing="ij")
-    grid = torch.stack((u, v), -1).reshape(-1, 2)
-    rays, valid = camera.unproject(grid)
-    angle = torch.atan2(rays[:, :2].norm(dim=-1), rays[:, 2])
-    corners = ot.calibration.read_correspondences(out / "correspondences.txt").image_points
-    corner_rays, _ = camera.unproject(torch.cat(corners))
-    reach = float(torch.atan2(corner_rays[:, :2].norm(dim=-1), corner_rays[:, 2]).max())
-    keep = valid & (angle <= reach)
-    pixels, ok = fitted_camera.project(rays[keep])
-    assert bool(ok.all()) and int(keep.sum()) > 5000
-    rms = float((pixels - grid[keep]).norm(dim=-1).pow(2).mean().sqrt())
+    rms = _rms_to_the_truth(camera, fitted_camera, out)
     assert rms < RAY_RMS, rms
 
 
@@ -270,19 +277,7 @@ def test_fit_images_with_the_issue_34_fisheyes(rendered, tmp_path, model, freeze
     assert fit_report["converged"], fit_report["reason"]
     fitted_camera = ot.Camera.load_json(out / "camera.json")
     assert fitted_camera.model.name == model
-    h, w = camera.image_size
-    v, u = torch.meshgrid(torch.arange(0, h, 4, dtype=D), torch.arange(0, w, 4, dtype=D),
-                          indexing="ij")
-    grid = torch.stack((u, v), -1).reshape(-1, 2)
-    rays, valid = camera.unproject(grid)
-    angle = torch.atan2(rays[:, :2].norm(dim=-1), rays[:, 2])
-    corners = ot.calibration.read_correspondences(out / "correspondences.txt").image_points
-    corner_rays, _ = camera.unproject(torch.cat(corners))
-    reach = float(torch.atan2(corner_rays[:, :2].norm(dim=-1), corner_rays[:, 2]).max())
-    keep = valid & (angle <= reach)
-    pixels, ok = fitted_camera.project(rays[keep])
-    assert bool(ok.all()) and int(keep.sum()) > 5000
-    rms = float((pixels - grid[keep]).norm(dim=-1).pow(2).mean().sqrt())
+    rms = _rms_to_the_truth(camera, fitted_camera, out)
     assert rms < RAY_RMS, rms
 
 
