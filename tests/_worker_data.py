@@ -89,3 +89,29 @@ class AugmentedImages(torch.utils.data.Dataset):
         out = self.aug({"rgb": self.images[i:i + 1], "labels": self.labels[i:i + 1]})
         assert out["rgb"].dtype == torch.uint8 and out["labels"].dtype == torch.int64
         return torch.cat((params_rows(out["params"])[0], out["valid"].sum().reshape(1)))
+
+
+def distorted_source() -> "ot.Camera":
+    """A distorted OpenCV camera (the ``opencv`` model) of the 12 x 16 images."""
+    import omniscape_torch as ot
+    return ot.Camera("opencv", torch.tensor([14.0, 14.0, 7.5, 5.5, -0.2, 0.05, 1e-3, -5e-4]
+                                            + [0.0] * 8, dtype=torch.float64), (12, 16))
+
+
+class AugmentedSamples(torch.utils.data.Dataset):
+    """Perspective images of a distorted source camera augmented one at a time, returned whole
+    (``rgb``, ``labels``, ``valid``, ``params``) for ``default_collate``."""
+
+    def __init__(self, aug: RandomReproject) -> None:
+        self.aug = aug
+        gen = torch.Generator().manual_seed(2)
+        self.images = torch.randint(0, 256, (ITEMS, 3, 12, 16), generator=gen, dtype=torch.uint8)
+        self.labels = torch.randint(0, 13, (ITEMS, 12, 16), generator=gen, dtype=torch.uint8)
+
+    def __len__(self) -> int:
+        return ITEMS
+
+    def __getitem__(self, i: int) -> dict:
+        out = self.aug({"rgb": self.images[i:i + 1], "labels": self.labels[i:i + 1]})
+        out["params"]["model"] = out["params"]["model"][0]   # one name: collates to a list
+        return {k: (v[0] if isinstance(v, torch.Tensor) else v) for k, v in out.items()}

@@ -10,8 +10,9 @@ from torch.utils.data import DataLoader, default_collate
 
 import omniscape_torch as ot
 
-from _worker_data import (FACE, AugmentCollate, AugmentedCubes, AugmentedImages, PlainCubes,
-                          make_aug, make_reproject, params_rows, reseed_worker)
+from _worker_data import (FACE, AugmentCollate, AugmentedCubes, AugmentedImages,
+                          AugmentedSamples, PlainCubes, distorted_source, make_aug,
+                          make_reproject, params_rows, reseed_worker)
 
 EPOCHS = 2
 
@@ -159,3 +160,27 @@ def test_random_reproject_in_workers(context):
     assert not _repeats(first[0] + first[1])
     assert all(bool((batch[:, -1] > 0).all()) for epoch in first for batch in epoch)
     assert _same_run(first, run())
+
+
+@pytest.mark.parametrize("context", ["fork", pytest.param("spawn", marks=pytest.mark.slow)])
+def test_a_distorted_source_in_workers_collates_and_replays(context):
+    """RandomReproject from a distorted OpenCV camera, per sample in a Dataset that returns the
+    whole output: DataLoader's default_collate stacks it (the source camera's record too), the
+    two epochs differ, and the collated params of a batch replay its images."""
+    aug = ot.augment.RandomReproject((16, 16), source_camera=distorted_source(), seed=3)
+    data = AugmentedSamples(aug)
+    loader = DataLoader(data, batch_size=4, num_workers=2, multiprocessing_context=context,
+                        generator=torch.Generator().manual_seed(4))
+    epochs = [list(loader) for _ in range(EPOCHS)]
+    assert [len(e) for e in epochs] == [2] * EPOCHS
+    batch = epochs[0][0]
+    assert batch["rgb"].shape == (4, 3, 16, 16) and batch["rgb"].dtype == torch.uint8
+    assert batch["params"]["source_camera"]["params"].shape == (4, 1, 16)   # stacked rows
+    assert not torch.equal(epochs[0][0]["params"]["rotation"], epochs[1][0]["params"]["rotation"])
+    params = {k: v.flatten(0, 1) if isinstance(v, torch.Tensor) else v   # (4, 1, ...) rows
+              for k, v in batch["params"].items()}
+    params["model"] = tuple(params["model"])
+    again = aug.render(data.images[:4], params, labels=data.labels[:4],   # no shuffle
+                       source_camera=batch["params"]["source_camera"])
+    assert torch.equal(again["rgb"], batch["rgb"]) and torch.equal(again["valid"],
+                                                                    batch["valid"])
