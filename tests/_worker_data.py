@@ -91,7 +91,7 @@ class AugmentedImages(torch.utils.data.Dataset):
         return torch.cat((params_rows(out["params"])[0], out["valid"].sum().reshape(1)))
 
 
-def distorted_source() -> "ot.Camera":
+def distorted_source():
     """A distorted OpenCV camera (the ``opencv`` model) of the 12 x 16 images."""
     import omniscape_torch as ot
     return ot.Camera("opencv", torch.tensor([14.0, 14.0, 7.5, 5.5, -0.2, 0.05, 1e-3, -5e-4]
