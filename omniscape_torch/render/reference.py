@@ -106,8 +106,6 @@ class LabelMapWarning(UserWarning):
 LABEL_MAP_MAX_VALUES = 32
 #: Rows of the first images that :func:`warn_if_label_map` reads.
 _SAMPLED_ROWS = 8
-#: Device types already checked: off the CPU, only the first call checks (a check synchronises).
-_CHECKED_DEVICES: set[str] = set()
 
 _LABEL_MAP_MESSAGE = (
     "a uint8 image with one channel (or three equal ones) and few distinct values was given "
@@ -122,14 +120,11 @@ def warn_if_label_map(image: Tensor, channel_dim: int) -> None:
     """Warn (:class:`LabelMapWarning`, once: one message from one place) when ``image``, a
     ``uint8`` image whose channels are on ``channel_dim``, looks like a label map: one channel,
     or three channels equal to each other, with 2 to :data:`LABEL_MAP_MAX_VALUES` distinct
-    values, not only 0 and 255 (a mask). Cheap: a few rows of the first images are read; off the CPU only the first call per
-    device type checks (reading them back synchronises)."""
-    if image.dtype != torch.uint8 or image.dim() < 3 or image.shape[channel_dim] not in (1, 3):
+    values, not only 0 and 255 (a mask). Cheap: a few rows of the first images are read. CPU
+    images only: off the CPU, reading them back would wait for the device on every call."""
+    if image.dtype != torch.uint8 or image.dim() < 3 or image.shape[channel_dim] not in (1, 3) \
+            or image.device.type != "cpu":
         return
-    if image.device.type != "cpu":
-        if image.device.type in _CHECKED_DEVICES:
-            return
-        _CHECKED_DEVICES.add(image.device.type)
     x = image.movedim(channel_dim, -1)
     x = x.reshape(-1, *x.shape[-3:])[:6]      # the first images (a cube's six faces)
     rows = torch.linspace(0, x.shape[1] - 1, min(_SAMPLED_ROWS, x.shape[1]),
