@@ -332,6 +332,7 @@ def test_real_fisheye_images(tmp_path, capsys):
     assert all(v["max_px"] < 2.0 for v in report["views"])
     assert ot.Camera.from_ocamcalib(out / "calib_results.txt").image_size == (480, 748)
     assert 160 < report["coverage"]["fov_deg"] < 200 and report["coverage"]["ok"]
+    assert report["fov_source"] == "image circle" and report["fov_note"] is None
 
 
 # --------------------------------------------------------------------------------------------
@@ -399,10 +400,14 @@ def _broken(*args, **kwargs):
 
 @pytest.mark.numerics
 @pytest.mark.parametrize("kind, source, patch", [
-    ("full frame", "whole sensor", None),
-    ("dark centre", "corners' reach", None),
-    ("rendered", "corners' reach", _broken),
+    # the renders themselves (2 to 3 s each: the slow tier) ...
+    pytest.param("full frame", "whole sensor", None, marks=pytest.mark.slow),
+    pytest.param("dark centre", "corners' reach", None, marks=pytest.mark.slow),
+    # ... and image_circle's answers on them, or a failure, on the plain renders (under 1 s)
+    ("rendered", "whole sensor", lambda *a, **k: 2 * math.pi),
+    ("rendered", "corners' reach", lambda *a, **k: 0.0),
     ("rendered", "corners' reach", lambda *a, **k: math.nan),
+    ("rendered", "corners' reach", _broken),
 ])
 def test_fit_images_never_loses_a_fit(rendered, unmeasurable, tmp_path, capsys, monkeypatch,
                                       kind, source, patch):

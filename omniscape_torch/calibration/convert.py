@@ -162,7 +162,8 @@ def image_circle(image, camera: Camera) -> float:
     5 x 5 box blur). Ring by ring (1 degree wide) about the optical axis, the circle ends at the
     first ring where fewer than half of ``camera``'s valid pixels are lit; ``2 pi`` where none is
     or where the corners are lit (their level above a quarter of the way from the image's 1st to
-    its 99th percentile: a full-frame lens, whose circle lies beyond the sensor). ``0`` where
+    its 99th percentile: a full-frame lens, whose circle lies beyond the sensor; or a uniform
+    image). ``0`` where
     the circle cannot be measured: the disc about the axis no brighter than the corners, or the
     innermost ring unlit (a catadioptric image's dark centre); callers fall back (``fit
     --images``: the corners' reach) or ask for ``--fov``.
@@ -191,8 +192,8 @@ def image_circle(image, camera: Camera) -> float:
     dark, bright = corners.median(), blurred[near].median()
     lo, hi = torch.quantile(blurred.flatten()[::max(h * w // 200_000, 1)],
                             torch.tensor([0.01, 0.99], dtype=torch.float64)).tolist()
-    if hi > lo and float(dark) > lo + 0.25 * (hi - lo):
-        return 2 * math.pi   # lit to the sensor's corners: the circle lies beyond the sensor
+    if hi <= lo or float(dark) > lo + 0.25 * (hi - lo):
+        return 2 * math.pi   # lit to the sensor's corners (or uniform): no circle within it
     if bright <= dark:
         return 0.0
     lit = blurred > dark + 0.25 * (bright - dark)
