@@ -450,3 +450,15 @@ def test_fit_images_names_the_image_circle_and_fov(fitted):
     report = json.loads((out / "report.json").read_text())
     assert report["fov_source"] == "--fov" and report["fov_note"] is None
     assert "from: --fov" in (out / "report.md").read_text()
+
+
+def test_convert_image_with_a_dark_centre_asks_for_fov(rendered, unmeasurable, tmp_path, capsys):
+    """``convert-model --image PHOTO`` whose image circle cannot be measured (a dark centre)
+    stops before any fit with one line naming ``--fov DEG`` (before: an error on fov 0.0)."""
+    _, _, camera, _ = rendered
+    camera.save_json(tmp_path / "camera.json")
+    photo = sorted(unmeasurable["dark centre"].iterdir())[0]
+    code = cli.main(["convert-model", "--to", "unified", "--json", str(tmp_path / "camera.json"),
+                     "--image", str(photo), "--out", str(tmp_path / "out.json")])
+    err = capsys.readouterr().err
+    assert code == 2 and "could not be measured" in err and "--fov DEG" in err, err
