@@ -263,23 +263,47 @@ def _fit_data(args: argparse.Namespace):
     return data, str(args.images), str(board), data.skipped
 
 
-def _fit_area(args: argparse.Namespace, camera) -> float | None:
-    """The full field of view (radians) over which coverage is judged: ``--fov``, else the
-    image circle of the images, else None (the whole valid image)."""
+def _fit_area(args: argparse.Namespace, camera, data) -> tuple[float | None, str, str | None]:
+    """The full field of view (radians) over which coverage is judged, where it came from, and
+    why the image circle was not used: ``--fov``; else the image circle of the images; else
+    (not measurable: 0, NaN or an error) the corners' reach (twice the largest angle off axis
+    of the detected corners' rays through the fitted camera), or the whole sensor where the
+    images are lit to its edges (None: the whole valid image). Measuring the area never turns
+    a finished fit into an error (issue 33)."""
     if args.fov is not None:
-        return math.radians(args.fov)
+        return math.radians(args.fov), "--fov", None
     if args.images is None:
-        return None
-    import numpy as np
-    from .calibration.convert import image_circle
-    from .calibration.detect import image_files
-    from .io.images import read_image
+        return None, "whole sensor", None
+    try:
+        import numpy as np
+        from .calibration.convert import image_circle
+        from .calibration.detect import image_files
+        from .io.images import read_image
 
-    files = image_files(args.images)[:8]
-    mean = np.mean([read_image(f).double().numpy().reshape(camera.image_size + (-1,)).mean(-1)
-                    for f in files], axis=0)
-    fov = image_circle(mean, camera)
-    return None if fov >= 2 * math.pi else fov
+        files = image_files(args.images)[:8]
+        mean = np.mean([read_image(f).double().numpy().reshape(camera.image_size + (-1,))
+                        .mean(-1) for f in files], axis=0)
+        fov = float(image_circle(mean, camera))
+        why = f"it measured {fov:g} rad"
+    except Exception as err:   # noqa: BLE001 (any failure of the measurement: fall back)
+        fov, why = math.nan, f"{type(err).__name__}: {err}"
+    if math.isfinite(fov) and fov >= 2 * math.pi:
+        return None, "whole sensor", ("the images are lit to the sensor's edges (the image "
+                                      "circle lies beyond the sensor)")
+    if math.isfinite(fov) and fov > 0:
+        return fov, "image circle", None
+    import torch
+
+    with torch.no_grad():
+        rays, valid = camera.unproject(torch.cat(list(data.image_points)).to(
+            camera.params.dtype))
+        angle = torch.atan2(rays[..., :2].norm(dim=-1), rays[..., 2])[valid]
+    reach = float(angle.max()) if angle.numel() else math.nan
+    if not math.isfinite(reach) or reach <= 0:
+        return None, "whole sensor", f"the image circle could not be measured ({why}), nor " \
+            "the corners' reach"
+    return min(2 * reach, 2 * math.pi), "corners' reach", \
+        f"the image circle could not be measured ({why}: a dark centre or border?)"
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
@@ -311,7 +335,12 @@ def cmd_fit(args: argparse.Namespace) -> int:
         print(f"omniscape-torch fit: did not converge ({result.reason}); nothing written",
               file=sys.stderr)
         return 1
-    fov = _fit_area(args, result.camera)
+    fov, fov_source, fov_note = _fit_area(args, result.camera, data)
+    if fov_note is not None:
+        area = "the whole sensor" if fov is None else \
+            f"the corners' reach, {math.degrees(fov):.1f} deg"
+        print(f"omniscape-torch fit: field of view for coverage: {area}, as {fov_note}; set it "
+              f"with --fov DEG", file=sys.stderr)
     coverage = assess_coverage(result.camera, result.covariance, data.image_points, fov=fov)
     area = "the whole image" if fov is None else f"a {math.degrees(fov):.1f} deg field of view"
     print(f"coverage over {area}: corners in {100 * coverage.cells:.0f}% of the cells, up to "
@@ -324,7 +353,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
     try:
         files, report = write_fit_files(staging, result, data, coverage=coverage,
                                         source=source, board=board, skipped=skipped,
-                                        write_points=args.images is not None)
+                                        write_points=args.images is not None,
+                                        fov_source=fov_source, fov_note=fov_note)
         written = publish(files, args.out)
     except OSError as err:
         print(f"omniscape-torch fit: error: {describe_os_error(err)}; the fitted camera is "
@@ -354,6 +384,9 @@ def _conversion_area(args: argparse.Namespace, camera) -> dict:
         raise ValueError("--fov and --image both set the converted area; give one")
     if args.image is not None:
         fov = image_circle(read_image(args.image), camera)
+        if not 0 < fov <= 2 * math.pi:
+            raise ValueError(f"--image: the image circle of {args.image} could not be measured "
+                             "(a dark centre or border?); give the field of view with --fov DEG")
         print(f"image circle of {args.image}: {math.degrees(fov):.1f} deg")
         return {"fov": fov}
     return {} if args.fov is None else {"fov": math.radians(args.fov)}

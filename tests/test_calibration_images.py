@@ -332,3 +332,133 @@ def test_real_fisheye_images(tmp_path, capsys):
     assert all(v["max_px"] < 2.0 for v in report["views"])
     assert ot.Camera.from_ocamcalib(out / "calib_results.txt").image_size == (480, 748)
     assert 160 < report["coverage"]["fov_deg"] < 200 and report["coverage"]["ok"]
+    assert report["fov_source"] == "image circle" and report["fov_note"] is None
+
+
+# --------------------------------------------------------------------------------------------
+# an image circle that cannot be measured (issue 33): the fit is never lost
+# --------------------------------------------------------------------------------------------
+
+#: Radius (pixels) of the black disc about the principal point of the ``dark centre`` renders
+#: (a catadioptric camera's blind spot): inside the 60 px disc where ``image_circle`` reads the
+#: lit level, so that level is lit while the innermost ring is not.
+BLIND_RADIUS = 30
+
+
+@pytest.fixture(scope="module")
+def unmeasurable(rendered, tmp_path_factory):
+    """The renders made unmeasurable two ways, each in a folder: ``full frame`` (the pixels
+    past the 180 degree circle lit with the background's grey: a lens whose circle lies beyond
+    the sensor) and ``dark centre`` (a black disc about the principal point)."""
+    from omniscape_torch.io.images import read_image
+
+    folder, _, camera, board = rendered
+    circle = image_circle_mask(camera)
+    h, w = camera.image_size
+    v, u = torch.meshgrid(torch.arange(h, dtype=D), torch.arange(w, dtype=D), indexing="ij")
+    blind = torch.hypot(u - camera.params[2], v - camera.params[3]) < BLIND_RADIUS
+    folders = {}
+    for kind in ("full frame", "dark centre"):
+        out = tmp_path_factory.mktemp(kind.replace(" ", "_"))
+        for path in sorted(folder.iterdir()):
+            image = read_image(path).reshape(h, w).clone()
+            if kind == "full frame":
+                image[~circle] = round(0.45 * 255)   # render_board's background
+            else:
+                image[blind] = 0
+            write_image(out / path.name, image)
+        folders[kind] = out
+    return folders
+
+
+def _mean_image(folder: Path, size) -> torch.Tensor:
+    from omniscape_torch.io.images import read_image
+
+    return torch.stack([read_image(p).double().reshape(size) for p in sorted(folder.iterdir())]
+                       ).mean(0)
+
+
+def test_image_circle_of_a_full_frame_and_a_dark_centre(rendered, unmeasurable):
+    """``image_circle`` on the mean image (as ``fit --images`` measures it): 180 degrees on the
+    renders; ``2 pi`` (the circle beyond the sensor) when lit to the corners (before issue 33:
+    106 degrees, a circle that is not there); ``0`` (not measurable) with a dark centre (the
+    innermost ring unlit: what made ``fit`` fail after the fit, "fov: ... got 0.0")."""
+    from omniscape_torch.calibration.convert import image_circle
+
+    folder, _, camera, _ = rendered
+    assert math.degrees(image_circle(_mean_image(folder, camera.image_size), camera)) == \
+        pytest.approx(180, abs=2)
+    full = _mean_image(unmeasurable["full frame"], camera.image_size)
+    assert image_circle(full, camera) == 2 * math.pi
+    dark = _mean_image(unmeasurable["dark centre"], camera.image_size)
+    assert image_circle(dark, camera) == 0.0
+
+
+def _broken(*args, **kwargs):
+    raise RuntimeError("measurement failed")
+
+
+@pytest.mark.numerics
+@pytest.mark.parametrize("kind, source, patch", [
+    # the renders themselves (2 to 3 s each: the slow tier) ...
+    pytest.param("full frame", "whole sensor", None, marks=pytest.mark.slow),
+    pytest.param("dark centre", "corners' reach", None, marks=pytest.mark.slow),
+    # ... and image_circle's answers on them, or a failure, on the plain renders (under 1 s)
+    ("rendered", "whole sensor", lambda *a, **k: 2 * math.pi),
+    ("rendered", "corners' reach", lambda *a, **k: 0.0),
+    ("rendered", "corners' reach", lambda *a, **k: math.nan),
+    ("rendered", "corners' reach", _broken),
+])
+def test_fit_images_never_loses_a_fit(rendered, unmeasurable, tmp_path, capsys, monkeypatch,
+                                      kind, source, patch):
+    """Where the image circle cannot be measured (0, NaN, an error) or lies beyond the sensor,
+    ``fit --images`` (no ``--fov``) still writes its files (exit 0 or 3), says so in one line
+    on stderr naming ``--fov DEG``, and the reports name the fallback (``fov_source``): the
+    corners' reach (twice their largest angle off axis through the fitted camera), or the whole
+    sensor."""
+    if patch is not None:   # the module, not calibration.convert (a function of that name)
+        monkeypatch.setattr(sys.modules["omniscape_torch.calibration.convert"], "image_circle",
+                            patch)
+    folder = rendered[0] if kind == "rendered" else unmeasurable[kind]
+    out = tmp_path / "out"
+    code = cli.main(["fit", "--images", str(folder), "--board", BOARD, "--model",
+                     "kannala_brandt", "--out", str(out), "--no-progress"])
+    err = capsys.readouterr().err
+    assert code in (0, 3), err
+    assert {"camera.json", "report.json", "report.md", "correspondences.txt"} <= \
+        {p.name for p in out.iterdir()}
+    lines = [line for line in err.splitlines() if "field of view for coverage" in line]
+    assert len(lines) == 1 and "--fov DEG" in lines[0], err
+    assert ("the whole sensor" if source == "whole sensor" else "the corners' reach") in lines[0]
+    report = json.loads((out / "report.json").read_text())
+    assert report["fov_source"] == source and report["fov_note"]
+    assert f"from: {source}" in (out / "report.md").read_text()
+    if source == "whole sensor":
+        assert report["coverage"]["fov_deg"] is None or report["coverage"]["fov_deg"] > 180
+    else:
+        fitted_camera = ot.Camera.load_json(out / "camera.json")
+        corners = ot.calibration.read_correspondences(out / "correspondences.txt").image_points
+        rays, _ = fitted_camera.unproject(torch.cat(corners))
+        reach = float(torch.atan2(rays[:, :2].norm(dim=-1), rays[:, 2]).max())
+        assert report["coverage"]["fov_deg"] == pytest.approx(2 * math.degrees(reach),
+                                                              rel=1e-6)
+
+
+def test_fit_images_names_the_image_circle_and_fov(fitted):
+    """The measured or given field of view is named in the reports too (``--fov`` here)."""
+    _, out = fitted
+    report = json.loads((out / "report.json").read_text())
+    assert report["fov_source"] == "--fov" and report["fov_note"] is None
+    assert "from: --fov" in (out / "report.md").read_text()
+
+
+def test_convert_image_with_a_dark_centre_asks_for_fov(rendered, unmeasurable, tmp_path, capsys):
+    """``convert-model --image PHOTO`` whose image circle cannot be measured (a dark centre)
+    stops before any fit with one line naming ``--fov DEG`` (before: an error on fov 0.0)."""
+    _, _, camera, _ = rendered
+    camera.save_json(tmp_path / "camera.json")
+    photo = sorted(unmeasurable["dark centre"].iterdir())[0]
+    code = cli.main(["convert-model", "--to", "unified", "--json", str(tmp_path / "camera.json"),
+                     "--image", str(photo), "--out", str(tmp_path / "out.json")])
+    err = capsys.readouterr().err
+    assert code == 2 and "could not be measured" in err and "--fov DEG" in err, err

@@ -161,7 +161,12 @@ def image_circle(image, camera: Camera) -> float:
     side); a pixel is lit above a quarter of the way from the first to the second (after a
     5 x 5 box blur). Ring by ring (1 degree wide) about the optical axis, the circle ends at the
     first ring where fewer than half of ``camera``'s valid pixels are lit; ``2 pi`` where none is
-    (the image is lit to its edge, or has no unlit border).
+    or where the corners are lit (their level above a quarter of the way from the image's 1st to
+    its 99th percentile: a full-frame lens, whose circle lies beyond the sensor; or a uniform
+    image). ``0`` where
+    the circle cannot be measured: the disc about the axis no brighter than the corners, or the
+    innermost ring unlit (a catadioptric image's dark centre); callers fall back (``fit
+    --images``: the corners' reach) or ask for ``--fov``.
 
     Args:
         image: ``(H, W)``, ``(H, W, C)`` or ``(C, H, W)`` array or tensor, any dtype.
@@ -185,13 +190,18 @@ def image_circle(image, camera: Camera) -> float:
     near = torch.hypot(torch.arange(h, dtype=torch.float64)[:, None] - row,
                        torch.arange(w, dtype=torch.float64) - col) < min(h, w) / 8
     dark, bright = corners.median(), blurred[near].median()
+    lo, hi = torch.quantile(blurred.flatten()[::max(h * w // 200_000, 1)],
+                            torch.tensor([0.01, 0.99], dtype=torch.float64)).tolist()
+    if hi <= lo or float(dark) > lo + 0.25 * (hi - lo):
+        return 2 * math.pi   # lit to the sensor's corners (or uniform): no circle within it
+    if bright <= dark:
+        return 0.0
     lit = blurred > dark + 0.25 * (bright - dark)
     ring = angle[valid].floor().long()
     count = torch.bincount(ring, minlength=181)
     share = torch.bincount(ring, lit[valid].double(), minlength=181) / count.clamp_min(1)
     unlit = ((share < 0.5) & (count > 0)).nonzero()
-    return 2 * math.pi if len(unlit) == 0 or bright <= dark else \
-        2 * math.radians(float(unlit[0, 0]))
+    return 2 * math.pi if len(unlit) == 0 else 2 * math.radians(float(unlit[0, 0]))
 
 
 def without_affine(camera: Camera) -> Camera:

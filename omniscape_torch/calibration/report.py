@@ -72,7 +72,8 @@ def view_errors(result, sizes: Sequence[int]) -> list[dict]:
 def fit_report(result, names: Sequence[str], image_size: tuple[int, int], *,
                coverage: Coverage | None = None, model: str | None = None,
                source: str | None = None, board: str | None = None,
-               skipped: dict[str, str] | None = None, invpol: dict | None = None) -> dict:
+               skipped: dict[str, str] | None = None, invpol: dict | None = None,
+               fov_source: str | None = None, fov_note: str | None = None) -> dict:
     """The JSON-ready report of a fit (module docstring).
 
     Args:
@@ -85,6 +86,9 @@ def fit_report(result, names: Sequence[str], image_size: tuple[int, int], *,
         board: the board (``--board`` text) when detected in images.
         skipped: images where the board was not found, and why.
         invpol: ``calib_results.txt``'s inverse polynomial: ``{"max_error_px", "target_px"}``.
+        fov_source: where the field of view the coverage is judged over came from:
+            ``"image circle"``, ``"corners' reach"``, ``"whole sensor"`` or ``"--fov"``.
+        fov_note: why the image circle was not used, when it could not be measured.
     """
     sizes = [len(r) for r in result.residuals]
     views = [{"name": n, **row} for n, row in zip(names, view_errors(result, sizes))]
@@ -103,6 +107,7 @@ def fit_report(result, names: Sequence[str], image_size: tuple[int, int], *,
         "condition": _number(result.condition), "params": params, "views": views,
         "skipped_images": dict(skipped or {}),
         "coverage": None if coverage is None else coverage.to_dict(),
+        "fov_source": fov_source, "fov_note": fov_note,
     }
     if invpol is not None:
         report["ocamcalib_inverse_polynomial"] = invpol
@@ -140,6 +145,10 @@ def report_markdown(report: dict) -> str:
                   f"px), median " + _px(cov["median_pixel_std"]) + "; over the whole field "
                   "of view up to " + _px(cov["max_pixel_std_fov"]) + "; map in "
                   "`uncertainty.png`"]
+        if report.get("fov_source"):
+            lines.append(f"- field of view ({cov['half_fov_deg'] * 2:.1f} deg) from: "
+                         f"{report['fov_source']}" + (f" ({report['fov_note']})"
+                                                      if report.get("fov_note") else ""))
         lines += [f"- warning: {line}" for line in cov["warnings"]]
     lines += ["", "## Parameters", "", "| name | value | std | |", "|---|---|---|---|"]
     for name, p in report["params"].items():
@@ -316,7 +325,9 @@ def plot_uncertainty(coverage: Coverage, image_points: Sequence[Tensor],
 def write_fit_files(folder: str | Path, result, data: Correspondences, *,
                     coverage: Coverage | None = None, source: str | None = None,
                     board: str | None = None, skipped: dict[str, str] | None = None,
-                    write_points: bool = False, plots: bool = True) -> tuple[list[Path], dict]:
+                    write_points: bool = False, plots: bool = True,
+                    fov_source: str | None = None,
+                    fov_note: str | None = None) -> tuple[list[Path], dict]:
     """Write every file of a fit into ``folder`` (module docstring).
 
     Args:
@@ -329,6 +340,8 @@ def write_fit_files(folder: str | Path, result, data: Correspondences, *,
         skipped: for the report (:func:`fit_report`).
         write_points: also write ``correspondences.txt`` (corners detected in images).
         plots: draw ``residuals.png`` and ``uncertainty.png`` (skipped without matplotlib).
+        fov_source: for the report (:func:`fit_report`).
+        fov_note: for the report (:func:`fit_report`).
 
     Returns:
         The paths written, and the report (with ``"plots"`` and ``"warnings"``: lines to show).
@@ -344,7 +357,7 @@ def write_fit_files(folder: str | Path, result, data: Correspondences, *,
             notes.append(invpol["warning"])
     report = fit_report(result, data.names, data.image_size, coverage=coverage,
                         model=camera.model.name, source=source, board=board, skipped=skipped,
-                        invpol=invpol)
+                        invpol=invpol, fov_source=fov_source, fov_note=fov_note)
     summary = result.to_dict()
     extra = {} if coverage is None else {"coverage": coverage.to_dict()}
     files.insert(0, save_result(camera, {**summary, **extra}, "fit", folder / "camera.json"))
