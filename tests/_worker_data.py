@@ -98,18 +98,9 @@ def distorted_source():
                                             + [0.0] * 8, dtype=torch.float64), (12, 16))
 
 
-class AugmentedSamples(torch.utils.data.Dataset):
-    """Perspective images of a distorted source camera augmented one at a time, returned whole
-    (``rgb``, ``labels``, ``valid``, ``params``) for ``default_collate``."""
-
-    def __init__(self, aug: RandomReproject) -> None:
-        self.aug = aug
-        gen = torch.Generator().manual_seed(2)
-        self.images = torch.randint(0, 256, (ITEMS, 3, 12, 16), generator=gen, dtype=torch.uint8)
-        self.labels = torch.randint(0, 13, (ITEMS, 12, 16), generator=gen, dtype=torch.uint8)
-
-    def __len__(self) -> int:
-        return ITEMS
+class AugmentedSamples(AugmentedImages):
+    """The same images, of a distorted source camera, augmented one at a time and returned
+    whole (``rgb``, ``labels``, ``valid``, ``params``) for ``default_collate``."""
 
     def __getitem__(self, i: int) -> dict:
         out = self.aug({"rgb": self.images[i:i + 1], "labels": self.labels[i:i + 1]})
