@@ -29,6 +29,17 @@ Layout of ``DIR``
         labels/NNNNNN.png          8-bit class ids 0..12 (CARLA's 13 classes), 255 not valid
         labels_color/NNNNNN.png    labels in CARLA's palette (white: not valid)
         valid/NNNNNN.png           8-bit mask: 255 valid, 0 not (valid == labels != 255)
+        instances/NNNNNN.png       16-bit grey instance ids, 0 = none (and outside the valid
+                                   area): every vehicle, pedestrian, pole and traffic sign
+                                   is an object, its id the same in every frame and camera
+                                   (``scenes.town.Town``: ``instance_label`` its class)
+        objects/NNNNNN.json        the objects seen, one per instance id in the image,
+                                   sorted by id: ``[{"instance_id", "label" (class id),
+                                   "class" (its name), "box": [x0, y0, x1, y1], "pixels"}]``;
+                                   the box is the tight box of the instance's pixels in
+                                   torchvision's XYXY corner convention (pixel columns u0..u1
+                                   and rows v0..v1 give x0 = u0, x1 = u1 + 1, y0 = v0,
+                                   y1 = v1 + 1), ``pixels`` their count (:mod:`.objects`)
         cubemap/                   only with --save-cubemaps, only the faces rendered (to
                                    inspect a frame; not a training source: full cubemaps
                                    come from Town.render_cubemap):
@@ -57,6 +68,10 @@ Layout of ``DIR``
 
 NNNNNN is the frame number (zero-padded to 6 digits). Every file is written atomically
 (temporary file + rename). A frame is finished when its marker and all its files exist.
+A dataset written before ``generate`` wrote instances has no ``instances`` or ``objects``
+(:data:`OPTIONAL_MODALITIES`): the readers read it all the same, its frames finished without
+them (:data:`CORE_MODALITIES`), and a rerun of ``generate`` renders its frames anew to add
+them.
 """
 
 from __future__ import annotations
@@ -64,8 +79,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Sequence
 
-__all__ = ["CAMERA", "CONTACT_SHEET", "CUBE_MODALITIES", "DONE", "DYNAMICS", "DYNAMICS_CSV",
-           "FORMAT", "FORMAT_VERSION", "MANIFEST", "MODALITIES", "OCAMCALIB", "STATS",
+__all__ = ["CAMERA", "CONTACT_SHEET", "CORE_MODALITIES", "CUBE_MODALITIES", "DONE", "DYNAMICS",
+           "DYNAMICS_CSV", "FORMAT", "FORMAT_VERSION", "INSTANCE_CLASSES", "MANIFEST",
+           "MODALITIES", "OCAMCALIB", "OPTIONAL_MODALITIES", "STATS",
            "STATS_PLOT", "cubemap_file", "finished_frames", "frame_file", "frame_name", "layout",
            "marker", "missing_files", "panorama_file", "SHARDS", "SHARD_INDEX", "shard_file"]
 
@@ -86,7 +102,14 @@ CAMERA, OCAMCALIB = "camera.json", "calib_results.txt"
 
 #: Per-frame files of each camera: folder -> extension.
 MODALITIES = {"rgb": "png", "depth": "exr", "labels": "png", "labels_color": "png",
-              "valid": "png"}
+              "valid": "png", "instances": "png", "objects": "json"}
+#: The per-frame files that a dataset written before them lacks (instance ids and objects):
+#: read where a dataset has them.
+OPTIONAL_MODALITIES = ("instances", "objects")
+#: The per-frame files every dataset has: a frame is finished, for the readers, with these.
+CORE_MODALITIES = tuple(m for m in MODALITIES if m not in OPTIONAL_MODALITIES)
+#: The classes whose objects are instances (``instances``, ``objects``), of the 13 classes.
+INSTANCE_CLASSES = ("Pedestrian", "Pole", "Vehicle", "TrafficSign")
 #: The modalities of the saved cube faces and of the panorama: folder -> extension.
 CUBE_MODALITIES = {"rgb": "png", "depth": "exr", "labels": "png"}
 
@@ -137,9 +160,9 @@ def marker(frame: int | str) -> str:
 
 
 def finished_frames(root: str | Path, cameras: Sequence[str],
-                    modalities: Sequence[str] = tuple(MODALITIES)) -> list[int]:
+                    modalities: Sequence[str] = CORE_MODALITIES) -> list[int]:
     """The finished frames of the dataset in ``root`` (sorted): a marker, and the files of
-    ``modalities`` of every camera of ``cameras``."""
+    ``modalities`` (default: those every dataset has) of every camera of ``cameras``."""
     root = Path(root)
     done = root / DONE
     if not done.is_dir():
@@ -152,7 +175,7 @@ def finished_frames(root: str | Path, cameras: Sequence[str],
 
 
 def missing_files(root: str | Path, cameras: Sequence[str], frame: int | str,
-                  modalities: Sequence[str] = tuple(MODALITIES)) -> list[str]:
+                  modalities: Sequence[str] = CORE_MODALITIES) -> list[str]:
     """The files (relative paths) that keep ``frame`` from being finished: its marker, then
     the files of ``modalities`` of every camera of ``cameras`` that are missing; ``[]`` for a
     finished frame."""
@@ -180,6 +203,11 @@ def layout(save_cubemaps: bool, save_panorama: bool) -> dict[str, str]:
            "<camera>/labels/NNNNNN.png": "class ids 0..12, 255 not valid",
            "<camera>/labels_color/NNNNNN.png": "labels in CARLA's palette",
            "<camera>/valid/NNNNNN.png": "255 valid, 0 not",
+           "<camera>/instances/NNNNNN.png": "16-bit instance ids (vehicles, pedestrians, "
+                                            "poles, traffic signs), 0 none and not valid",
+           "<camera>/objects/NNNNNN.json": "per instance: instance_id, label, class, box "
+                                           "[x0, y0, x1, y1] (tight, XYXY corners: columns "
+                                           "u0..u1 -> x0 = u0, x1 = u1 + 1), pixels",
            f"{DONE}/NNNNNN": "frame finished marker, written last",
            CONTACT_SHEET: "middle finished frame: a row per camera, columns rgb, depth, "
                           "labels_color, valid; then the first camera's rgb in each "

@@ -81,6 +81,7 @@ from ..io.atomic import folder_lock, remove_stale_temporaries
 from . import distributed, shards
 from . import format as fmt
 from . import ocamcalib
+from .objects import encode_objects, instance_objects
 from ..io.labels import PALETTE
 from ..io.images import encode_image, require_pillow
 from ..cameras.presets import catadioptric, fisheye
@@ -115,15 +116,22 @@ PANORAMA_POSITION = (0.0, -0.9, 0.0)
 MIN_FACE_SIZE = MIN_IMAGE_SIZE = 8
 
 #: Peak memory of one process rendering a frame, per texel of the largest cube one camera
-#: renders, bytes: the cube's outputs (RGB, planar depth, range, labels: 28 bytes, in buffers
-#: kept from camera to camera), its rays (12, kept per face size), the layer's padded atlases,
+#: renders, bytes: the cube's outputs (RGB, planar depth, range, labels, instance ids: 32
+#: bytes, in buffers kept from camera to camera, and the labels with the instance ids packed
+#: into one int64 map: 8), its rays (12, kept per face size), the layer's padded atlases,
 #: and the Embree scene and ray batches (a few MB, not per texel). Measured peaks
 #: (``VmHWM`` of a fresh process, ``render_frame``; 2 cores, the Embree town) above the
 #: process's own 295-327 MB: 197 bytes per texel at 6 x 320^2 (one camera, 160^2 image),
 #: 230 at the default (256^2 images), 181 at 512^2 and 116 at 1024^2 once the pixels' share
 #: (``MEMORY_PER_PIXEL``) is taken off; with ``sizing.PROCESS_MEMORY`` (700 MB) the estimate
-#: lies 1.6-2x above these peaks (tests/test_dataset.py checks a run against it).
-MEMORY_PER_TEXEL = 220
+#: lies 1.6-2x above these peaks (tests/test_dataset.py checks a run against it); 12 bytes
+#: added since for the instance ids (measured before them).
+MEMORY_PER_TEXEL = 232
+
+#: The layer samples a camera's labels and instance ids in one nearest pass, as one integer
+#: map ``labels + INSTANCE_SHIFT * instances`` (labels below 256): never blended, the ignore
+#: index (255) outside the valid area, which unpacks to label 255 and instance 0.
+INSTANCE_SHIFT = 256
 
 
 @dataclass
@@ -392,7 +400,9 @@ class FrameRenderer:
             self._cubes[F] = {"rgb": torch.empty(1, 6, 3, F, F),
                               "depth": torch.empty(1, 6, F, F),
                               "labels": torch.empty(1, 6, F, F, dtype=torch.int64),
-                              "range": torch.empty(1, 6, F, F)}
+                              "range": torch.empty(1, 6, F, F),
+                              "instances": torch.empty(1, 6, F, F, dtype=torch.int32),
+                              "packed": torch.empty(1, 6, F, F, dtype=torch.int64)}
         return self._cubes[face_size]
 
     def texels(self, name: str, k: int) -> torch.Tensor | None:
@@ -435,8 +445,11 @@ class FrameRenderer:
                         F = c["face_size"]
                         faces = plan.faces(name, k)
                         cube = self.cubemap(name, k)
+                        # labels and instance ids in one nearest pass (INSTANCE_SHIFT)
+                        packed = torch.add(cube["labels"], cube["instances"],
+                                           alpha=INSTANCE_SHIFT, out=self._cubes[F]["packed"])
                         res = self._layer(name, c["camera"], F).render(
-                            rgb=cube["rgb"], depth=cube["depth"], labels=cube["labels"],
+                            rgb=cube["rgb"], depth=cube["depth"], labels=packed,
                             rotation=plan.rotation(name, k).float())
                         # res is this camera's own: its writers may run while the next renders
                         pending.append(pool.submit(_write_camera, out, name, k, res))
@@ -533,8 +546,9 @@ def _panorama_path(out: Path, k: int, modality: str) -> Path:
 
 
 def _write_camera(out: Path, name: str, k: int, res: dict[str, torch.Tensor]) -> None:
-    """Write one camera's images of frame ``k`` (``res``: the layer's outputs)."""
-    labels = res["labels"][0]
+    """Write one camera's images of frame ``k`` (``res``: the layer's outputs, its labels
+    packed with the instance ids: :data:`INSTANCE_SHIFT`)."""
+    labels, instances = res["labels"][0] % INSTANCE_SHIFT, res["labels"][0] // INSTANCE_SHIFT
     valid = res["valid"][0, 0]
 
     def path(modality: str) -> Path:
@@ -546,6 +560,8 @@ def _write_camera(out: Path, name: str, k: int, res: dict[str, torch.Tensor]) ->
     write_image(path("labels"), ids)
     write_image(path("labels_color"), colorize(ids))
     write_image(path("valid"), (valid.to(torch.uint8) * 255).numpy())
+    write_image(path("instances"), instances.to(torch.int32).numpy().astype(np.uint16))
+    atomic_write_text(path("objects"), encode_objects(instance_objects(instances, labels)))
 
 
 def _write_modalities(path: Callable[[str], Path], rgb: torch.Tensor, depth: torch.Tensor,

@@ -478,9 +478,17 @@ class Town:
     Attributes hold the primitives as float32 tensors: ``boxes_lo/boxes_hi (Nb, 3)``,
     ``cyl (Nc, 5)`` = (cx, cz, r, ytop, ybot), ``sph (Ns, 4)`` = (cx, cy, cz, r), each with
     ``*_label`` (int64 class ids), ``*_colour (N, 3)`` albedo and ``*_mover`` (index into the
-    movers, -1 for static). ``movers`` is ``(M, 3)`` = (z0, speed m/s, kind 0 vehicle / 1
-    pedestrian). ``streets`` the layout's :class:`Street` list; ``mesh`` the triangles at
-    ``t = 0`` (:class:`.mesh.Mesh`).
+    movers, -1 for static) and ``*_instance`` (int64 instance id, 0 for none).
+    ``movers`` is ``(M, 3)`` = (z0, speed m/s, kind 0 vehicle / 1 pedestrian). ``streets``
+    the layout's :class:`Street` list; ``mesh`` the triangles at ``t = 0``
+    (:class:`.mesh.Mesh`).
+
+    Instances: every vehicle (body and cabin), pedestrian (body and head), pole (a street
+    lamp's, a traffic sign's) and traffic sign plate is an object with its own instance id,
+    ``1..I`` in the order the town places them (the same ids at every time and from every
+    viewpoint, so stable across a ride's frames); the ground, buildings, walls, fences, trees
+    and bins have none (0). ``instance_label (I + 1,)`` int64 is the class of each id (0 for
+    id 0).
     """
 
     def __init__(self, seed: int = 0, *, layout: int = 1, length: float = 160.0,
@@ -524,27 +532,33 @@ class Town:
             return a + (b - a) * float(torch.rand((), generator=g, dtype=torch.float64))
 
         boxes, cyls, sphs, movers, lamps = [], [], [], [], []
+        instances = [0]   # the objects so far: the last instance id given (0: none)
 
-        def place_box(st, a0, a1, y0, y1, l0, l1, label, colour, mover=-1):
+        def new_instance() -> int:
+            instances[0] += 1
+            return instances[0]
+
+        def place_box(st, a0, a1, y0, y1, l0, l1, label, colour, mover=-1, instance=0):
             (x0, z0), (x1, z1) = st.world(a0, l0), st.world(a1, l1)
             xa, xb = sorted((x0, x1))
             za, zb = sorted((z0, z1))
-            boxes.append(((xa, y0, za), (xb, y1, zb), label, colour, mover))
+            boxes.append(((xa, y0, za), (xb, y1, zb), label, colour, mover, instance))
 
-        def place_cyl(st, a, l, r, ytop, label, colour, mover=-1):
+        def place_cyl(st, a, l, r, ytop, label, colour, mover=-1, instance=0):
             x, z = st.world(a, l)
-            cyls.append((x, z, r, ytop, 0.0, label, colour, mover))
+            cyls.append((x, z, r, ytop, 0.0, label, colour, mover, instance))
 
-        def place_sph(st, a, y, l, r, label, colour, mover=-1):
+        def place_sph(st, a, y, l, r, label, colour, mover=-1, instance=0):
             x, z = st.world(a, l)
-            sphs.append((x, y, z, r, label, colour, mover))
+            sphs.append((x, y, z, r, label, colour, mover, instance))
 
         def vehicle(st, ac, lc, colour, mover=-1, flip=1.0):
+            instance = new_instance()   # body and cabin: one object
             place_box(st, ac - 0.85, ac + 0.85, -1.05, -0.32, lc - 2.15, lc + 2.15,
-                      _C["Vehicle"], colour, mover)
+                      _C["Vehicle"], colour, mover, instance)
             l0, l1 = sorted((lc - 1.2 * flip, lc + 0.9 * flip))
             place_box(st, ac - 0.75, ac + 0.75, -1.5, -1.05, l0, l1, _C["Vehicle"],
-                      (0.10, 0.12, 0.15), mover)
+                      (0.10, 0.12, 0.15), mover, instance)
 
         for si, st in enumerate(self.streets):
             bands = _bands(st, self.streets)
@@ -582,7 +596,8 @@ class Town:
                 zl = lo_f + 5 + (5 if s > 0 else 0)
                 while zl < hi_f:
                     if not _in_bands(zl, bands):
-                        place_cyl(st, s * 7.9, zl, 0.11, -6.5, _C["Pole"], (0.45, 0.46, 0.48))
+                        place_cyl(st, s * 7.9, zl, 0.11, -6.5, _C["Pole"], (0.45, 0.46, 0.48),
+                                  instance=new_instance())
                         x, z = st.world(s * 7.9, zl)
                         lamps.append((x, -6.6, z))
                     zl += 20
@@ -623,11 +638,14 @@ class Town:
                 if lo - 1 < zs < hi + 1:
                     zs = hi + 2 if zs > (lo + hi) / 2 else lo - 2
             x = s * 5.6
-            place_cyl(main, x, zs, 0.05, -2.9, _C["Pole"], (0.55, 0.55, 0.57))
+            # the pole is a Pole instance and the plate a TrafficSign one (an instance has
+            # one class)
+            place_cyl(main, x, zs, 0.05, -2.9, _C["Pole"], (0.55, 0.55, 0.57),
+                      instance=new_instance())
             col = [(0.1, 0.25, 0.7), (0.75, 0.1, 0.1), (0.9, 0.75, 0.1)][i % 3]
             zf = zs - 0.06 if s > 0 else zs + 0.02
             place_box(main, x - 0.35, x + 0.35, -2.95, -2.25, zf, zf + 0.04,
-                      _C["TrafficSign"], col)
+                      _C["TrafficSign"], col, instance=new_instance())
         # movers on every north-south street: vehicles northbound in the east lane,
         # southbound in the west lane; pedestrians on the sidewalks (the first near the origin)
         L2 = self.length / 2
@@ -647,10 +665,11 @@ class Town:
                 speed = U(-1.6, 1.6)
                 movers.append((z0, speed, 1.0))
                 a = s * U(6.9, 7.5)
+                instance = new_instance()   # body and head: one object
                 place_cyl(st, a, z0, 0.22, -1.45, _C["Pedestrian"],
-                          (U(0.1, 0.8), U(0.1, 0.8), U(0.1, 0.8)), len(movers) - 1)
+                          (U(0.1, 0.8), U(0.1, 0.8), U(0.1, 0.8)), len(movers) - 1, instance)
                 place_sph(st, a, -1.6, z0, 0.14, _C["Pedestrian"], (0.8, 0.6, 0.48),
-                          len(movers) - 1)
+                          len(movers) - 1, instance)
 
         f32 = torch.float32
         self.boxes_lo = torch.tensor([b[0] for b in boxes], dtype=f32)
@@ -658,15 +677,24 @@ class Town:
         self.boxes_label = torch.tensor([b[2] for b in boxes], dtype=torch.int64)
         self.boxes_colour = torch.tensor([b[3] for b in boxes], dtype=f32)
         self.boxes_mover = torch.tensor([b[4] for b in boxes], dtype=torch.int64)
+        self.boxes_instance = torch.tensor([b[5] for b in boxes], dtype=torch.int64)
         self.cyl = torch.tensor([c[:5] for c in cyls], dtype=f32)
         self.cyl_label = torch.tensor([c[5] for c in cyls], dtype=torch.int64)
         self.cyl_colour = torch.tensor([c[6] for c in cyls], dtype=f32)
         self.cyl_mover = torch.tensor([c[7] for c in cyls], dtype=torch.int64)
+        self.cyl_instance = torch.tensor([c[8] for c in cyls], dtype=torch.int64)
         self.sph = torch.tensor([c[:4] for c in sphs], dtype=f32)
         self.sph_label = torch.tensor([c[4] for c in sphs], dtype=torch.int64)
         self.sph_colour = torch.tensor([c[5] for c in sphs], dtype=f32)
         self.sph_mover = torch.tensor([c[6] for c in sphs], dtype=torch.int64)
+        self.sph_instance = torch.tensor([c[7] for c in sphs], dtype=torch.int64)
         self.movers = torch.tensor(movers, dtype=torch.float64).reshape(-1, 3)
+        # the class of each instance id (0: none, Unlabeled)
+        self.instance_label = torch.zeros(instances[0] + 1, dtype=torch.int64)
+        for table, label in ((self.boxes_instance, self.boxes_label),
+                             (self.cyl_instance, self.cyl_label),
+                             (self.sph_instance, self.sph_label)):
+            self.instance_label[table[table > 0]] = label[table > 0]
         self.lamps = torch.tensor(lamps, dtype=f32)
         self.ground = _ground_cells(self.streets, self.far + self.length)
 
@@ -717,6 +745,10 @@ class Town:
         self._triangles = torch.from_numpy(m.triangles.astype(np.int64))
         self._vertex_normal = torch.from_numpy(m.normals)
         self._vertex_mover = mover[torch.from_numpy(m.vertex_part)]
+        # a hit's instance id, one gather by triangle; a miss (triangle -1) reads the last, 0
+        instance = torch.cat([torch.zeros(ng, dtype=i64), self.boxes_instance, self.cyl_instance,
+                              self.sph_instance])
+        self._tri_instance = np.append(instance[part].numpy(), 0).astype(np.int32)
         # what the C++ loops read: attributes (K, T), corners (T, 3) int32, vertex normals, lamps
         self._tables = (self._tri_attr, torch.from_numpy(m.triangles),
                         torch.from_numpy(m.normals), self.lamps.reshape(-1, 3).contiguous())
@@ -992,9 +1024,13 @@ class Town:
 
     def _trace_shade(self, o: Tensor, d: Tensor, scene: _mesh.MeshScene, w: Weather
                      ) -> dict[str, Tensor]:
-        """:meth:`_trace` then :meth:`_shade` of one batch (``o (N, 3) or (1, 3)``)."""
+        """:meth:`_trace` then :meth:`_shade` of one batch (``o (N, 3) or (1, 3)``), and the
+        hits' instance ids."""
         o, d = o.numpy(), d.numpy()
-        return self._shade(o, d, *self._trace(scene, o, d), w, scene)
+        hits = self._trace(scene, o, d)
+        out = self._shade(o, d, *hits, w, scene)
+        out["instances"] = torch.from_numpy(self._tri_instance[hits[1]].astype(np.int64))
+        return out
 
     def _run(self, tasks: list, job) -> None:
         """``job(task)`` for every task, on ``threads`` worker threads (Embree's queries release
@@ -1023,7 +1059,9 @@ class Town:
         Returns:
             dict with ``rgb (..., 3)`` float32 in [0, 1], ``range (...)`` metres along the ray
             (``self.far`` for the sky), ``labels (...)`` int64 in 0..12, ``normal (..., 3)``
-            (world frame, facing the ray; ``-direction`` for the sky), ``hit (...)`` bool.
+            (world frame, facing the ray; ``-direction`` for the sky), ``hit (...)`` bool,
+            ``instances (...)`` int64: the instance id of the object hit (0: none; the
+            class of id ``i`` is ``instance_label[i]``).
         """
         w = _get_weather(weather)
         if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
@@ -1048,7 +1086,8 @@ class Town:
         scene = self.scene(t)
         out = {"rgb": torch.empty(n, 3), "range": torch.empty(n),
                "labels": torch.empty(n, dtype=torch.int64), "normal": torch.empty(n, 3),
-               "hit": torch.empty(n, dtype=torch.bool)}
+               "hit": torch.empty(n, dtype=torch.bool),
+               "instances": torch.empty(n, dtype=torch.int64)}
 
         def job(s: int) -> None:
             e = min(s + chunk, n)
@@ -1094,7 +1133,7 @@ class Town:
                 north along the road, down is gravity).
             face_size: ``F``.
             faces: optional ``(6,)`` bool mask of the faces to render; the others are left at
-                rgb 0, depth 0 and label 255 (``IGNORE_INDEX``).
+                rgb 0, depth 0, label 255 (``IGNORE_INDEX``) and instance 0.
             texels: optional ``(6, F, F)`` bool mask of the texels to render (within
                 ``faces``), the others left as the faces not rendered.
             t: time (s) for the moving objects.
@@ -1115,7 +1154,8 @@ class Town:
         Returns:
             dict with ``rgb (1, 6, 3, F, F)`` float32, ``depth (1, 6, F, F)`` planar depth in
             metres (along each face's axis; ``self.far`` for the sky), ``labels (1, 6, F, F)``
-            int64, and ``range (1, 6, F, F)`` (``self.far`` for the sky).
+            int64, ``range (1, 6, F, F)`` (``self.far`` for the sky) and
+            ``instances (1, 6, F, F)`` int32, the centre ray's instance id (0: none).
         """
         w = _get_weather(weather)
         if isinstance(face_size, bool) or not isinstance(face_size, int) or face_size < 1:
@@ -1141,7 +1181,8 @@ class Town:
         for key, shape, dtype, fill in (("rgb", (1, 6, 3, F, F), torch.float32, 0),
                                         ("depth", (1, 6, F, F), torch.float32, 0),
                                         ("labels", (1, 6, F, F), torch.int64, 255),
-                                        ("range", (1, 6, F, F), torch.float32, 0)):
+                                        ("range", (1, 6, F, F), torch.float32, 0),
+                                        ("instances", (1, 6, F, F), torch.int32, 0)):
             buf = out.get(key)
             if buf is None:
                 buffers[key] = torch.full(shape, fill, dtype=dtype)
@@ -1163,14 +1204,16 @@ class Town:
         scene = self.scene(t)
         rays_np, origin_np = rays.numpy(), origin.numpy()
         rgb_np, dep_np, rng_np, lab_np = (x.numpy() for x in (rgb, dep, rng, lab))
+        inst_np = buffers["instances"].view(6, F * F).numpy()
         axes_np = axes.numpy()
         ops = _ops()
 
         def job(task) -> None:
             f, q = task
             d = rays_np[f, q]
-            res = {k: v.numpy() for k, v in self._shade(
-                origin_np, d, *self._trace(scene, origin_np, d), w, scene).items()}
+            hits = self._trace(scene, origin_np, d)
+            inst_np[f, q] = self._tri_instance[hits[1]]
+            res = {k: v.numpy() for k, v in self._shade(origin_np, d, *hits, w, scene).items()}
             a = axes_np[f]
             if ops is None:
                 depth = np.where(res["hit"], res["range"] * (d[:, 0] * a[0] + d[:, 1] * a[1]

@@ -1,0 +1,114 @@
+"""The objects of an instance map: their tight boxes, classes and pixel counts, as
+``generate`` and ``convert`` write them (``objects/NNNNNN.json``, ``<camera>_objects.json``)
+and the readers return them.
+
+An object is one instance id of the map (0 is none). Its box is the tight box of its pixels,
+in torchvision's XYXY corner convention (``DESIGN.md``): the pixel columns ``u0..u1`` and rows
+``v0..v1`` it covers give ``[x0, y0, x1, y1] = [u0, v0, u1 + 1, v1 + 1]``. Computed from the
+map itself, the boxes are exact by construction; its class is the label most of its pixels
+have (an instance of the built-in town has one class on all of them).
+
+The file is a JSON list, one object a line, sorted by instance id::
+
+    [{"instance_id": 3, "label": 10, "class": "Vehicle", "box": [12, 30, 41, 52], "pixels": 517},
+     ...]
+
+Read back (:func:`decode_objects`) as tensors: ``boxes (N, 4)`` float32, ``box_labels (N,)``
+int64 and ``box_instance_ids (N,)`` int64, the keys the augmentation takes.
+"""
+
+from __future__ import annotations
+
+import json
+
+import torch
+from torch import Tensor
+
+from ..io.labels import CLASSES
+
+__all__ = ["decode_objects", "encode_objects", "instance_objects"]
+
+#: Label values counted per instance (class ids 0..12 and the ignore index 255).
+_LABEL_RANGE = 256
+
+
+def instance_objects(instances: Tensor, labels: Tensor) -> list[dict]:
+    """The objects of an instance map.
+
+    Args:
+        instances: ``(H, W)`` integer instance ids, 0 for none.
+        labels: ``(H, W)`` integer class ids (0..12; values outside 0..255 count as 255).
+
+    Returns:
+        A list sorted by instance id of ``{"instance_id", "label", "class", "box": [x0, y0,
+        x1, y1], "pixels"}``: each id's most frequent label (the smallest on a tie) and its
+        name (``"unknown"`` past the 13 classes), the tight box of its pixels (XYXY corners,
+        module docstring) and their count.
+
+    Raises:
+        TypeError: not integer maps. ValueError: shapes that are not one ``(H, W)``, or
+            negative ids.
+    """
+    for name, t in (("instances", instances), ("labels", labels)):
+        if not isinstance(t, Tensor) or t.is_floating_point() or t.is_complex() or \
+                t.dtype == torch.bool:
+            raise TypeError(f"{name}: expected an integer tensor, got "
+                            f"{getattr(t, 'dtype', type(t).__name__)}")
+    if instances.dim() != 2 or labels.shape != instances.shape:
+        raise ValueError(f"instances, labels: expected two (H, W) maps, got "
+                         f"{tuple(instances.shape)} and {tuple(labels.shape)}")
+    width = instances.shape[1]
+    ids = instances.reshape(-1).long()
+    if bool((ids < 0).any()):
+        raise ValueError("instances: ids must be >= 0 (0: none)")
+    where = torch.nonzero(ids > 0).flatten()
+    if where.numel() == 0:
+        return []
+    unique, index = torch.unique(ids[where], return_inverse=True)
+    n = unique.numel()
+    rows, cols = where // width, where % width
+
+    def reduce(values: Tensor, how: str) -> Tensor:
+        return torch.zeros(n, dtype=torch.int64).scatter_reduce_(0, index, values, how,
+                                                                  include_self=False)
+
+    lab = labels.reshape(-1)[where].long()
+    lab = torch.where((lab >= 0) & (lab < _LABEL_RANGE), lab, _LABEL_RANGE - 1)
+    counts = torch.bincount(index * _LABEL_RANGE + lab, minlength=n * _LABEL_RANGE)
+    label = counts.reshape(n, _LABEL_RANGE).argmax(1)   # the first of equal counts
+    boxes = torch.stack([reduce(cols, "amin"), reduce(rows, "amin"),
+                         reduce(cols, "amax") + 1, reduce(rows, "amax") + 1], 1)
+    pixels = torch.bincount(index, minlength=n)
+    return [{"instance_id": int(i), "label": int(c),
+             "class": CLASSES[c] if c < len(CLASSES) else "unknown",
+             "box": [int(x) for x in box], "pixels": int(p)}
+            for i, c, box, p in zip(unique.tolist(), label.tolist(), boxes.tolist(),
+                                    pixels.tolist())]
+
+
+def encode_objects(objects: list[dict]) -> str:
+    """The text of an objects file: a JSON list, one object a line."""
+    return "[" + ",\n ".join(json.dumps(o) for o in objects) + "]\n"
+
+
+def decode_objects(text: str | bytes, name: str = "objects") -> dict[str, Tensor]:
+    """An objects file's text (or bytes) as tensors: ``boxes (N, 4)`` float32 (XYXY corners),
+    ``box_labels (N,)`` int64 class ids and ``box_instance_ids (N,)`` int64.
+
+    Raises:
+        ValueError: not such a list (``name``, the file, in the message).
+    """
+    try:
+        objects = json.loads(text)
+        if not isinstance(objects, list):
+            raise ValueError("expected a JSON list of objects")
+        boxes = [[float(x) for x in o["box"]] for o in objects]
+        labels = [int(o["label"]) for o in objects]
+        ids = [int(o["instance_id"]) for o in objects]
+        if any(len(b) != 4 for b in boxes):
+            raise ValueError("a box is not [x0, y0, x1, y1]")
+    except (ValueError, KeyError, TypeError) as err:
+        raise ValueError(f"{name}: not an objects file ({err})") from None
+    return {"boxes": torch.tensor(boxes, dtype=torch.float32).reshape(-1, 4),
+            "box_labels": torch.tensor(labels, dtype=torch.int64),
+            "box_instance_ids": torch.tensor(ids, dtype=torch.int64)}
