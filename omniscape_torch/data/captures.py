@@ -19,6 +19,13 @@ right yaw +90, up pitch +90, down pitch -90). Per face and modality:
 * ``<face>_labels.png``: CARLA's semantic camera saved with the ``Raw`` converter: the tag in
   the red channel (a one-channel PNG is read as the tags themselves), mapped to the 13 classes
   of the paper from ``label_set`` (:func:`omniscape_torch.io.carla.to_13`).
+* ``<face>_instances.png`` (optional): CARLA's instance-segmentation camera
+  (``sensor.camera.instance_segmentation``) saved as it comes: the tag in red, the object's
+  id in green and blue, ``G + 256 B`` (:func:`omniscape_torch.io.carla.decode_instances`). An
+  object's id is kept where its tag maps to a class of
+  :data:`omniscape_torch.data.format.INSTANCE_CLASSES` (vehicles, pedestrians, poles, traffic
+  signs; CARLA numbers every mesh, roads and buildings too), 0 elsewhere; a capture without
+  label faces takes its labels from the instance faces' red channel (the same tags).
 
 A modality may be absent (no face file of it), but a modality with some faces and not others,
 faces of different sizes, an unreadable (corrupt) image or an unknown tag is an error that
@@ -37,6 +44,11 @@ Written per capture and camera (``fisheye``, ``catadioptric``)::
     OUT/<capture_id>/<camera>_labels.png       8-bit class ids, 255 outside the valid area
     OUT/<capture_id>/<camera>_labels_color.png the ids in CARLA's palette
     OUT/<capture_id>/<camera>_valid.png        255 where the pixel sees the scene
+    OUT/<capture_id>/<camera>_instances.png    with instance faces: 16-bit object ids, 0 none
+                                               and outside the valid area
+    OUT/<capture_id>/<camera>_objects.json     with instance faces: the objects' classes,
+                                               tight boxes (XYXY corners) and pixel counts
+                                               (:mod:`.objects`)
     OUT/cameras.json                           the cameras (Camera JSON), their rotations
                                                and, under "ocamcalib", the record of their
                                                OCamCalib file (degree, errors, fov_deg,
@@ -68,18 +80,21 @@ from torch import Tensor
 from ..cubemap.faces import FACES
 from ..io.atomic import (atomic_write_text, folder_lock, remove_stale_temporaries,
                         temporary_prefix)
-from ..io.carla import LABEL_SETS, decode_depth, decode_labels, to_13
+from ..io.carla import LABEL_SETS, decode_depth, decode_instances, decode_labels, to_13
 from ..io.exr import read_exr, write_exr
 from ..io.images import read_image, write_image
-from ..io.labels import colorize
+from ..io.labels import CLASSES, colorize
 from ..render.sizing import MEMORY_PER_PIXEL, PROCESS_MEMORY, available_memory
 from . import distributed, ocamcalib
+from .format import INSTANCE_CLASSES
+from .objects import (encode_objects, instance_image, instance_objects, pack_instances,
+                      unpack_instances)
 
 __all__ = ["MODALITIES", "CAMERAS", "ConvertError", "build_cameras", "calib_file",
            "check_pixels", "convert_captures", "convert_chunk", "find_captures", "load_capture",
            "render_capture"]
 
-MODALITIES = ("rgb", "depth", "labels")
+MODALITIES = ("rgb", "depth", "labels", "instances")
 CAMERAS = ("fisheye", "catadioptric")
 
 
@@ -157,7 +172,8 @@ def load_capture(path: str | Path, *, label_set: str = "13",
         dict with ``face_size`` and, for each modality found: ``rgb (1, 6, 3, F, F)`` float32 in
         [0, 1] (``rgb_uint8``: ``uint8``, a view of a contiguous ``(1, 6, F, F, 3)`` tensor),
         ``depth (1, 6, F, F)`` float32 planar metres, ``labels (1, 6, F, F)`` int64 class ids
-        0..12.
+        0..12, ``instances (1, 6, F, F)`` int64 object ids (0: none; also ``labels``, from
+        the instance faces, where there are no label faces).
 
     Raises:
         ValueError: a face missing (names the file), faces not square or of different sizes,
@@ -189,7 +205,7 @@ def load_capture(path: str | Path, *, label_set: str = "13",
             missing = [f for f, ok in zip(files, present) if not ok]
             raise ValueError(f"{capture}: missing face image {missing[0]}"
                              + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""))
-        faces = []
+        faces, tags = [], []
         for file in files:
             try:
                 if file.suffix == ".exr":
@@ -214,9 +230,15 @@ def load_capture(path: str | Path, *, label_set: str = "13",
                                  f"{size[0]} x {size[0]}")
             if file.suffix == ".exr":
                 faces.append(face_image)
+            elif modality == "instances":
+                classes, ids = _decode_instances(image, file, label_set, unknown_label)
+                faces.append(ids)
+                tags.append(classes)
             else:
                 faces.append(_decode(image, modality, file, label_set, unknown_label,
                                      rgb_uint8))
+        if tags and "labels" not in out:
+            out["labels"] = torch.stack(tags).unsqueeze(0)
         stacked = torch.stack(faces).unsqueeze(0)
         if modality == "rgb" and rgb_uint8:   # (1, 6, F, F, 3) seen as (1, 6, 3, F, F)
             stacked = stacked.permute(0, 1, 4, 2, 3)
@@ -226,6 +248,27 @@ def load_capture(path: str | Path, *, label_set: str = "13",
                          f"{_face_file(capture, FACES[0], 'rgb').name})")
     out["face_size"] = size[0]
     return out
+
+
+#: The class ids whose objects keep their instance ids.
+_INSTANCE_IDS = torch.tensor([CLASSES.index(name) for name in INSTANCE_CLASSES])
+
+
+def _decode_instances(image: np.ndarray, file: Path, label_set: str,
+                      unknown_label: int | None) -> tuple[Tensor, Tensor]:
+    """An instance face as ``(classes, ids)``, two ``(F, F)`` int64 tensors: the red
+    channel's tags as classes, and the object ids of the pixels of an instance class (0
+    elsewhere)."""
+    if image.dtype != np.uint8 or image.ndim != 3:
+        raise ValueError(f"{file}: expected an 8-bit colour image (CARLA's instance camera: "
+                         f"tag in red, id in green and blue), got {image.dtype} of shape "
+                         f"{image.shape}")
+    tags, ids = decode_instances(image, "RGB")
+    try:
+        classes = to_13(tags, label_set, unknown=unknown_label)
+    except ValueError as err:
+        raise ValueError(f"{file}: {err}") from None
+    return classes, torch.where(torch.isin(classes, _INSTANCE_IDS), ids, 0)
 
 
 def _decode(image: np.ndarray, modality: str, file: Path, label_set: str,
@@ -326,7 +369,11 @@ def _render_into(cube: dict, cameras: dict[str, tuple], out_dir: Path, *, depth_
                                    fused_grid=False)
             if _layers is not None:
                 _layers[key] = layer
-        kwargs = {m: cube[m].to(device) for m in MODALITIES if m in cube}
+        kwargs = {m: cube[m].to(device) for m in ("rgb", "depth", "labels") if m in cube}
+        if "instances" in cube:   # labels and instance ids in one nearest pass
+            if "labels" not in kwargs:
+                raise ValueError("cube: 'instances' without 'labels' (the objects' classes)")
+            kwargs["labels"] = pack_instances(kwargs["labels"], cube["instances"].to(device))
         # 8-bit faces are sampled as they are, into an 8-bit image with the channels innermost,
         # as the PNG holds them (no float copy of the cube or the image)
         levels = "rgb" in kwargs and kwargs["rgb"].dtype == torch.uint8
@@ -351,6 +398,13 @@ def _render_into(cube: dict, cameras: dict[str, tuple], out_dir: Path, *, depth_
                                      result["depth"][0, 0].float().cpu().contiguous()))
         if "labels" in result:
             labels = result["labels"][0].cpu()
+            if "instances" in cube:
+                labels, instances = unpack_instances(labels)
+                written.append(write_image(out_dir / f"{name}_instances.png",
+                                           instance_image(instances)))
+                path = out_dir / f"{name}_objects.json"
+                atomic_write_text(path, encode_objects(instance_objects(instances, labels)))
+                written.append(path)
             written.append(write_image(out_dir / f"{name}_labels.png",
                                        labels.clamp(0, 255).to(torch.uint8)))
             written.append(write_image(out_dir / f"{name}_labels_color.png", colorize(labels)))

@@ -21,8 +21,8 @@ import torch
 from torch.utils.data import Dataset, IterableDataset, get_worker_info
 
 from ..cameras import Camera
-from .format import MODALITIES
-from .readers import (list_cameras, list_frames, read_camera_dict, read_dynamics,
+from .format import MODALITIES, OPTIONAL_MODALITIES
+from .readers import (has_modality, list_cameras, list_frames, read_camera_dict, read_dynamics,
                       read_extrinsics, read_frame, read_manifest)
 
 __all__ = ["CubemapCaptureDataset", "OmniDataset", "OmniShardDataset", "collate"]
@@ -45,6 +45,12 @@ def collate(batch: list[dict]) -> dict:
     return out
 
 
+def _check_modalities(modalities: tuple) -> None:
+    for m in modalities:
+        if m not in MODALITIES:
+            raise ValueError(f"modalities: expected some of {tuple(MODALITIES)}, got {m!r}")
+
+
 class OmniDataset(Dataset):
     """The finished frames of a generated dataset, one item per (frame, camera).
 
@@ -53,8 +59,12 @@ class OmniDataset(Dataset):
 
         frame          int
         camera         str
-        rgb, depth, labels, labels_color, valid   as in :func:`omniscape_torch.io.read_frame`
-                       (those of ``modalities``)
+        rgb, depth, labels, labels_color, valid, instances
+                       as in :func:`omniscape_torch.io.read_frame` (those of ``modalities``)
+        boxes, box_labels, box_instance_ids
+                       with ``"objects"`` in ``modalities``: the objects' tight boxes
+                       ``(N, 4)`` float32 (XYXY corners), class ids and instance ids
+                       ``(N,)`` int64 (:mod:`omniscape_torch.data.objects`)
         model          str, the camera model's name
         intrinsics     (P,) float64, the model's parameters (``camera.json``'s params)
         image_size     (2,) int64, (H, W)
@@ -65,12 +75,15 @@ class OmniDataset(Dataset):
 
     :meth:`camera` gives the :class:`omniscape_torch.Camera` of a camera name. Batches of
     cameras of different models (or sizes) need ``collate_fn=``:func:`collate`: their
-    ``intrinsics`` differ in length.
+    ``intrinsics`` differ in length; so do batches with ``objects``: each item has its own
+    number of boxes (:func:`collate` keeps them as lists).
 
     Args:
         root: the dataset folder.
         cameras: the cameras to serve (default: all, in the writer's order).
-        modalities: the images to read, some of ``rgb, depth, labels, labels_color, valid``.
+        modalities: the images to read, some of ``rgb, depth, labels, labels_color, valid,
+            instances, objects`` (the last two where the dataset has them:
+            :func:`~omniscape_torch.data.readers.has_modality`).
         frames: the frames to serve (default: all the finished ones, listed once here).
         rgb_uint8: rgb as ``(3, H, W)`` uint8 rather than float in [0, 1].
     """
@@ -86,9 +99,12 @@ class OmniDataset(Dataset):
                 raise ValueError(f"cameras: {name!r} is not in {self.root} (has "
                                  f"{', '.join(available)})")
         self.modalities = tuple(modalities)
+        _check_modalities(self.modalities)
         for m in self.modalities:
-            if m not in MODALITIES:
-                raise ValueError(f"modalities: expected some of {tuple(MODALITIES)}, got {m!r}")
+            if m in OPTIONAL_MODALITIES and not has_modality(self.root, m, self.cameras):
+                raise ValueError(f"modalities: {self.root} has no {m!r} (a dataset written "
+                                 f"before generate wrote them; a rerun of generate with its "
+                                 f"options adds them)")
         finished = list_frames(self.root, self.cameras, modalities=self.modalities)
         if frames is None:
             self.frames = finished
@@ -152,7 +168,9 @@ class OmniShardDataset(IterableDataset):
             URLs, or one WebDataset URL (``".../shard-{000000..000063}.tar"``, ``"pipe:curl -s
             URL"``, ...): :func:`omniscape_torch.data.shards.shard_urls`.
         cameras: the cameras to serve (default: all).
-        modalities: the images to read, some of ``rgb, depth, labels, labels_color, valid``.
+        modalities: the images to read, some of ``rgb, depth, labels, labels_color, valid,
+            instances, objects`` (the last two where the shards hold them: a sample without
+            them raises ValueError).
         rgb_uint8: rgb as ``(3, H, W)`` uint8 rather than float in [0, 1].
         shuffle: 0 (default) reads shards and samples in order; ``n > 0`` shuffles the shards,
             and the samples in a buffer of ``n``, from ``seed`` and the epoch
@@ -168,9 +186,7 @@ class OmniShardDataset(IterableDataset):
         self.urls = shard_urls(source)
         self.cameras = None if cameras is None else list(cameras)
         self.modalities = tuple(modalities)
-        for m in self.modalities:
-            if m not in MODALITIES:
-                raise ValueError(f"modalities: expected some of {tuple(MODALITIES)}, got {m!r}")
+        _check_modalities(self.modalities)
         if isinstance(shuffle, bool) or not isinstance(shuffle, int) or shuffle < 0:
             raise ValueError(f"shuffle: expected a buffer size >= 0, got {shuffle!r}")
         if isinstance(seed, bool) or not isinstance(seed, int):
@@ -210,7 +226,8 @@ class CubemapCaptureDataset(Dataset):
 
     Each item is :func:`omniscape_torch.data.captures.load_capture`'s dict without its batch
     dimension (``rgb (6, 3, F, F)`` float32 in [0, 1], ``depth (6, F, F)`` float32 planar
-    metres, ``labels (6, F, F)`` int64, those present), plus ``face_size`` (int) and
+    metres, ``labels (6, F, F)`` int64, ``instances (6, F, F)`` int64 object ids, those
+    present), plus ``face_size`` (int) and
     ``capture`` (the folder's name). Faces in ``cubemap.FACES`` order.
 
     Args:

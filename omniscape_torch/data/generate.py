@@ -81,7 +81,8 @@ from ..io.atomic import folder_lock, remove_stale_temporaries
 from . import distributed, shards
 from . import format as fmt
 from . import ocamcalib
-from .objects import encode_objects, instance_objects
+from .objects import (encode_objects, instance_image, instance_objects, pack_instances,
+                      unpack_instances)
 from ..io.labels import PALETTE
 from ..io.images import encode_image, require_pillow
 from ..cameras.presets import catadioptric, fisheye
@@ -127,11 +128,6 @@ MIN_FACE_SIZE = MIN_IMAGE_SIZE = 8
 #: lies 1.6-2x above these peaks (tests/test_dataset.py checks a run against it); 12 bytes
 #: added since for the instance ids (measured before them).
 MEMORY_PER_TEXEL = 232
-
-#: The layer samples a camera's labels and instance ids in one nearest pass, as one integer
-#: map ``labels + INSTANCE_SHIFT * instances`` (labels below 256): never blended, the ignore
-#: index (255) outside the valid area, which unpacks to label 255 and instance 0.
-INSTANCE_SHIFT = 256
 
 
 @dataclass
@@ -445,9 +441,9 @@ class FrameRenderer:
                         F = c["face_size"]
                         faces = plan.faces(name, k)
                         cube = self.cubemap(name, k)
-                        # labels and instance ids in one nearest pass (INSTANCE_SHIFT)
-                        packed = torch.add(cube["labels"], cube["instances"],
-                                           alpha=INSTANCE_SHIFT, out=self._cubes[F]["packed"])
+                        # labels and instance ids in one nearest pass
+                        packed = pack_instances(cube["labels"], cube["instances"],
+                                                self._cubes[F]["packed"])
                         res = self._layer(name, c["camera"], F).render(
                             rgb=cube["rgb"], depth=cube["depth"], labels=packed,
                             rotation=plan.rotation(name, k).float())
@@ -547,8 +543,8 @@ def _panorama_path(out: Path, k: int, modality: str) -> Path:
 
 def _write_camera(out: Path, name: str, k: int, res: dict[str, torch.Tensor]) -> None:
     """Write one camera's images of frame ``k`` (``res``: the layer's outputs, its labels
-    packed with the instance ids: :data:`INSTANCE_SHIFT`)."""
-    labels, instances = res["labels"][0] % INSTANCE_SHIFT, res["labels"][0] // INSTANCE_SHIFT
+    packed with the instance ids: ``objects.pack_instances``)."""
+    labels, instances = unpack_instances(res["labels"][0])
     valid = res["valid"][0, 0]
 
     def path(modality: str) -> Path:
@@ -560,7 +556,7 @@ def _write_camera(out: Path, name: str, k: int, res: dict[str, torch.Tensor]) ->
     write_image(path("labels"), ids)
     write_image(path("labels_color"), colorize(ids))
     write_image(path("valid"), (valid.to(torch.uint8) * 255).numpy())
-    write_image(path("instances"), instances.to(torch.int32).numpy().astype(np.uint16))
+    write_image(path("instances"), instance_image(instances))
     atomic_write_text(path("objects"), encode_objects(instance_objects(instances, labels)))
 
 

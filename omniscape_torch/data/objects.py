@@ -21,12 +21,19 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import torch
 from torch import Tensor
 
 from ..io.labels import CLASSES
 
-__all__ = ["decode_objects", "encode_objects", "instance_objects"]
+__all__ = ["INSTANCE_SHIFT", "decode_objects", "encode_objects", "instance_image",
+           "instance_objects", "pack_instances", "unpack_instances"]
+
+#: The writers sample labels and instance ids in one nearest pass of the layer, as one integer
+#: map ``labels + INSTANCE_SHIFT * instances`` (labels 0..255): never blended, and the ignore
+#: index (255) outside the valid area unpacks to label 255 and instance 0.
+INSTANCE_SHIFT = 256
 
 #: Label values counted per instance (class ids 0..12 and the ignore index 255).
 _LABEL_RANGE = 256
@@ -84,6 +91,32 @@ def instance_objects(instances: Tensor, labels: Tensor) -> list[dict]:
              "box": [int(x) for x in box], "pixels": int(p)}
             for i, c, box, p in zip(unique.tolist(), label.tolist(), boxes.tolist(),
                                     pixels.tolist())]
+
+
+def pack_instances(labels: Tensor, instances: Tensor, out: Tensor | None = None) -> Tensor:
+    """``labels + INSTANCE_SHIFT * instances`` as int64 (into ``out`` when given): one label
+    map to sample both through ``OmniProjection.render(labels=...)``."""
+    if out is None:
+        out = torch.empty(torch.broadcast_shapes(labels.shape, instances.shape),
+                          dtype=torch.int64, device=labels.device)
+    return torch.add(labels, instances, alpha=INSTANCE_SHIFT, out=out)
+
+
+def unpack_instances(packed: Tensor) -> tuple[Tensor, Tensor]:
+    """``(labels, instances)`` of a map of :func:`pack_instances` (as sampled)."""
+    return packed % INSTANCE_SHIFT, packed // INSTANCE_SHIFT
+
+
+def instance_image(instances: Tensor) -> np.ndarray:
+    """``(H, W)`` instance ids as the ``uint16`` array of a 16-bit grey PNG.
+
+    Raises:
+        ValueError: an id outside 0..65535.
+    """
+    if instances.numel() and (int(instances.min()) < 0 or int(instances.max()) > 65535):
+        raise ValueError(f"instances: ids must lie in 0..65535 for a 16-bit PNG, got "
+                         f"{int(instances.min())}..{int(instances.max())}")
+    return instances.to(torch.int32).cpu().numpy().astype(np.uint16)
 
 
 def encode_objects(objects: list[dict]) -> str:

@@ -11,6 +11,14 @@ Returned types::
     labels        (H, W) int64 class ids 0..12, 255 (IGNORE_INDEX) where not valid
     labels_color  (3, H, W) uint8, the labels in CARLA's palette
     valid         (H, W) bool
+    instances     (H, W) int64 instance ids, 0 for none and where not valid
+    objects       three keys (:func:`omniscape_torch.data.objects.decode_objects`):
+                  boxes (N, 4) float32, the objects' tight boxes (XYXY corners),
+                  box_labels (N,) int64 class ids, box_instance_ids (N,) int64
+
+``instances`` and ``objects`` are only in datasets written since ``generate`` writes them
+(:data:`~omniscape_torch.data.format.OPTIONAL_MODALITIES`): ask for them where a dataset has
+them (:func:`has_modality`).
 """
 
 from __future__ import annotations
@@ -25,11 +33,13 @@ from torch import Tensor
 from ..cameras import Camera
 from ..io.exr import read_exr
 from ..io.images import read_image
-from .format import CAMERA, DYNAMICS, MANIFEST, MODALITIES, OCAMCALIB, finished_frames, frame_file
+from .format import (CAMERA, CORE_MODALITIES, DYNAMICS, MANIFEST, MODALITIES, OCAMCALIB,
+                     finished_frames, frame_file)
+from .objects import decode_objects
 from .ocamcalib import polynomial_camera
 
-__all__ = ["list_cameras", "list_frames", "read_camera", "read_camera_dict", "read_dynamics",
-           "read_extrinsics", "read_frame", "read_manifest", "read_ocamcalib"]
+__all__ = ["has_modality", "list_cameras", "list_frames", "read_camera", "read_camera_dict",
+           "read_dynamics", "read_extrinsics", "read_frame", "read_manifest", "read_ocamcalib"]
 
 _DEFAULT = ("rgb", "depth", "labels", "valid")
 
@@ -66,10 +76,11 @@ def list_cameras(root: str | Path) -> list[str]:
 
 
 def list_frames(root: str | Path, cameras: Sequence[str] | None = None, *,
-                modalities: Sequence[str] = tuple(MODALITIES),
+                modalities: Sequence[str] = CORE_MODALITIES,
                 check_files: bool = True) -> list[int]:
     """The finished frames (sorted): a ``.done`` marker and (``check_files``) the files of
-    ``modalities`` for every camera of ``cameras`` (default: all)."""
+    ``modalities`` (default: those every dataset has) for every camera of ``cameras``
+    (default: all)."""
     root = _root(root)
     cameras = list_cameras(root) if cameras is None else list(cameras)
     return finished_frames(root, cameras if check_files else (), modalities)
@@ -90,17 +101,34 @@ def read_frame(root: str | Path, camera: str, frame: int | str,
         if m == "depth":
             out[m] = read_exr(path)
             continue
+        if m == "objects":
+            if not path.is_file():
+                raise FileNotFoundError(f"{path}: no such file")
+            out.update(decode_objects(path.read_bytes(), str(path)))
+            continue
         image = read_image(path)
         if m in ("rgb", "labels_color"):
             if image.dim() == 2:
                 image = image.unsqueeze(-1).expand(-1, -1, 3)
             image = image.permute(2, 0, 1).contiguous()
             out[m] = image.float() / 255.0 if (m == "rgb" and not rgb_uint8) else image
-        elif m == "labels":
+        elif m in ("labels", "instances"):
             out[m] = _grey(image, path).long()
         else:  # valid
             out[m] = _grey(image, path) > 0
     return out
+
+
+def has_modality(root: str | Path, modality: str, cameras: Sequence[str] | None = None
+                 ) -> bool:
+    """Whether the dataset in ``root`` has files of ``modality`` for every camera of
+    ``cameras`` (default: all): its folder ``<camera>/<modality>/``. False for the optional
+    modalities (``instances``, ``objects``) of a dataset written before them."""
+    if modality not in MODALITIES:
+        raise ValueError(f"modality: expected one of {tuple(MODALITIES)}, got {modality!r}")
+    root = _root(root)
+    cameras = list_cameras(root) if cameras is None else list(cameras)
+    return bool(cameras) and all((root / c / modality).is_dir() for c in cameras)
 
 
 def _grey(image: Tensor, path: Path) -> Tensor:

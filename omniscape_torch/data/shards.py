@@ -15,6 +15,8 @@ sample ``KEY = NNNNNN_<camera>`` (frame number and camera name) is the files::
                          "T_rig_camera": 4 x 4, "T_world_camera": 4 x 4 at this frame}
     KEY.dynamics.json   the frame's record of dynamics.json (CARLA names and units)
     KEY.rgb.png  KEY.depth.exr  KEY.labels.png  KEY.valid.png   the folder's files, byte for byte
+    KEY.instances.png  KEY.objects.json      the same, where the dataset has them (written
+                                             since generate writes instances)
 
 A shard is written to a temporary name and renamed (a retried or resumed task never leaves a
 partial shard), with fixed tar headers (time 0, owner 0, mode 0644): its bytes depend on the
@@ -40,12 +42,13 @@ from torch import Tensor
 from ..io.atomic import atomic_path, atomic_write_text, folder_lock
 from ..io.labels import colorize
 from . import format as fmt
-from .readers import (list_frames, read_camera_dict, read_dynamics, read_extrinsics,
-                      read_manifest)
+from .objects import decode_objects
+from .readers import (has_modality, list_frames, read_camera_dict, read_dynamics,
+                      read_extrinsics, read_manifest)
 
-__all__ = ["FRAMES_PER_SHARD", "SAMPLE_MODALITIES", "check_frames_per_shard", "decode_sample",
-           "pack", "resolve_frames_per_shard", "shard_groups", "shard_urls", "write_index",
-           "write_shard"]
+__all__ = ["FRAMES_PER_SHARD", "OPTIONAL_SAMPLE_MODALITIES", "SAMPLE_MODALITIES",
+           "check_frames_per_shard", "decode_sample", "pack", "resolve_frames_per_shard",
+           "shard_groups", "shard_urls", "write_index", "write_shard"]
 
 #: Frames per shard by default: 64 samples with the rig's four cameras (about 40 MB at
 #: 512 x 512), within WebDataset's advice of shards from tens of MB up.
@@ -54,6 +57,11 @@ FRAMES_PER_SHARD = 16
 #: The images a sample holds, from the folder's files (``labels_color`` is left out: it is
 #: the labels in the palette, :func:`decode_sample` draws it when asked).
 SAMPLE_MODALITIES = ("rgb", "depth", "labels", "valid")
+#: The images a sample holds besides, where the dataset has them (``has_modality``): not in
+#: a dataset written before ``generate`` wrote instances (``index.json`` lists
+#: :data:`SAMPLE_MODALITIES` only, so that the index of such a dataset's shards stays as it
+#: was).
+OPTIONAL_SAMPLE_MODALITIES = fmt.OPTIONAL_MODALITIES
 
 INDEX_FORMAT = "omniscape_torch webdataset shards"
 
@@ -159,6 +167,8 @@ def write_shard(root: str | Path, index: int, frames: Sequence[int],
     dynamics = read_dynamics(root)
     intrinsics = {c: read_camera_dict(root, c) for c in cameras}
     extrinsics = {c: read_extrinsics(root, c) for c in cameras}
+    modalities = SAMPLE_MODALITIES + tuple(m for m in OPTIONAL_SAMPLE_MODALITIES
+                                           if has_modality(root, m, cameras))
     path = root / fmt.shard_file(index)
     with atomic_path(path, suffix=".tar") as tmp:
         with tarfile.open(tmp, "w", format=tarfile.USTAR_FORMAT) as tar:
@@ -173,7 +183,7 @@ def write_shard(root: str | Path, index: int, frames: Sequence[int],
                             "T_world_camera": extrinsics[c]["T_world_camera"][k].tolist()}
                     _tar_member(tar, f"{key}.camera.json", _dumps(meta))
                     _tar_member(tar, f"{key}.dynamics.json", _dumps(dynamics[k]))
-                    for m in SAMPLE_MODALITIES:
+                    for m in modalities:
                         file = root / fmt.frame_file(c, m, k)
                         if not file.is_file():
                             raise FileNotFoundError(f"{file}: missing (frame {k} is not "
@@ -292,7 +302,12 @@ def decode_sample(sample: dict, modalities: Sequence[str] = SAMPLE_MODALITIES, *
                   rgb_uint8: bool = False) -> dict:
     """One WebDataset sample (``{"__key__": ..., "camera.json": bytes, ...}``) as the item
     :class:`~omniscape_torch.data.datasets.OmniDataset` gives for that frame and camera: the
-    same keys, types and values (``labels_color`` drawn from the labels)."""
+    same keys, types and values (``labels_color`` drawn from the labels).
+
+    Raises:
+        ValueError: an unknown modality, or one the sample lacks (``instances``, ``objects``
+            of shards of a dataset written before them; names the sample).
+    """
     key = sample.get("__key__", "?")
     meta = json.loads(sample["camera.json"])
     item: dict = {"frame": int(meta["frame"]), "camera": meta["camera"]}
@@ -306,14 +321,21 @@ def decode_sample(sample: dict, modalities: Sequence[str] = SAMPLE_MODALITIES, *
                 labels = _png(sample[f"labels.{fmt.MODALITIES['labels']}"], name).long()
             item[m] = torch.from_numpy(colorize(labels)).permute(2, 0, 1).contiguous()
             continue
-        data = sample[f"{m}.{fmt.MODALITIES[m]}"]
-        if m == "depth":
+        data = sample.get(f"{m}.{fmt.MODALITIES[m]}")
+        if data is None:
+            raise ValueError(f"{name}: not in the sample (shards of a dataset written before "
+                             f"generate wrote {m}?)")
+        if m == "objects":
+            item.update(decode_objects(data, name))
+        elif m == "depth":
             item[m] = _exr_depth(data, name)
         elif m == "rgb":
             rgb = _png(data, name).permute(2, 0, 1).contiguous()
             item[m] = rgb if rgb_uint8 else rgb.float() / 255.0
         elif m == "labels":
             labels = item[m] = _png(data, name).long()
+        elif m == "instances":
+            item[m] = _png(data, name).long()
         else:   # valid
             item[m] = _png(data, name) > 0
     intr = meta["intrinsics"]

@@ -13,6 +13,10 @@ What CARLA's cameras give (CARLA "Sensors reference", ``ref_sensors.md``):
   at 1000 m, which is what the sky (no hit) decodes to.
 * **Semantic segmentation camera** (``sensor.camera.semantic_segmentation``) with the ``Raw``
   converter: the class tag in the red channel (G = B = 0).
+* **Instance segmentation camera** (``sensor.camera.instance_segmentation``, CARLA 0.9.14 and
+  later): the class tag in the red channel, as the semantic camera's, and the object's id in
+  green (low byte) and blue (high byte): ``id = G + 256 B``
+  (:func:`decode_instances`).
 
 The server hands images over as ``BGRA`` bytes (``np.frombuffer(image.raw_data, np.uint8)
 .reshape(H, W, 4)``); ``image.save_to_disk`` writes a PNG whose channels are in their proper
@@ -53,6 +57,7 @@ __all__ = [
     "NEW_CLASSES",
     "NEW_TO_13",
     "decode_depth",
+    "decode_instances",
     "decode_labels",
     "encode_depth",
     "map_labels",
@@ -209,6 +214,26 @@ def decode_labels(image: Tensor | np.ndarray, channel_order: str = "BGRA") -> Te
     ri = _rgb_index(channel_order)[0]
     image = _as_uint8_image(image, "image")
     return torch.from_numpy(image[..., ri].astype(np.int64))
+
+
+def decode_instances(image: Tensor | np.ndarray, channel_order: str = "BGRA"
+                     ) -> tuple[Tensor, Tensor]:
+    """CARLA class tags and object ids of an instance-segmentation image.
+
+    Args:
+        image: ``(H, W, 3 | 4)`` uint8, as CARLA sends it (``"BGRA"``) or a saved PNG as
+            read (``"RGB"``).
+        channel_order: ``"BGRA"``, ``"BGR"``, ``"RGB"`` or ``"RGBA"``.
+
+    Returns:
+        ``(tags, ids)``, two ``(H, W)`` int64 tensors: the red channel (the tag, as
+        :func:`decode_labels`) and ``G + 256 B`` (the object's id, 0..65535).
+    """
+    ri, gi, bi = _rgb_index(channel_order)
+    image = _as_uint8_image(image, "image")
+    tags = torch.from_numpy(image[..., ri].astype(np.int64))
+    ids = torch.from_numpy(image[..., gi].astype(np.int64) + 256 * image[..., bi].astype(np.int64))
+    return tags, ids
 
 
 def mapping_table(mapping: Mapping[int, int], *, unknown: int | None = None) -> Tensor:
