@@ -13,8 +13,9 @@ import torch
 import omniscape_torch as ot
 from omniscape_torch import cli
 from omniscape_torch.data import ocamcalib
-from omniscape_torch.data.captures import (ConvertError, calib_file, convert_captures,
-                                           find_captures, load_capture)
+from omniscape_torch.data.captures import (ConvertError, build_cameras, calib_file,
+                                           convert_captures, find_captures, load_capture,
+                                           render_capture)
 from omniscape_torch.cubemap import FACES, face_rays
 from omniscape_torch.io.atomic import LOCK_NAME
 from omniscape_torch.io.carla import (EXT23_TO_13, NEW_CLASSES, NEW_TO_13, decode_depth,
@@ -291,6 +292,68 @@ def test_mismatched_face_size(capture_root):
     ot.io.write_image(root / "000042" / "left_rgb.png", np.zeros((16, 12, 3), np.uint8))
     with pytest.raises(ValueError, match="square"):
         load_capture(root / "000042", label_set="new")
+
+
+def test_decode_instances_tag_in_red_id_in_green_and_blue():
+    image = np.zeros((1, 2, 4), np.uint8)
+    image[0, 0, :3] = (14, 44, 1)     # RGB: Car, id 44 + 256 * 1
+    image[0, 1, :3] = (3, 255, 255)   # Buildings, id 65535
+    from omniscape_torch.io.carla import decode_instances
+    tags, ids = decode_instances(image, "RGBA")
+    assert tags.tolist() == [[14, 3]] and ids.tolist() == [[300, 65535]]
+    tags, ids = decode_instances(image[..., [2, 1, 0, 3]], "BGRA")
+    assert tags.tolist() == [[14, 3]] and ids.tolist() == [[300, 65535]]
+
+
+def test_convert_writes_instances_and_objects_from_carla_instance_faces(tmp_path):
+    """A capture of rgb, depth and CARLA instance faces (tag in R, id = G + 256 B; no label
+    faces): the fisheye's instance ids (16-bit PNG, read with Pillow) are the face texels'
+    ids that its pixel rays hit (nearest texel, computed here from the face table), kept for
+    cars and pedestrians, not for a building; the labels come from the tags; each object's
+    box is the tight box of its pixels."""
+    from PIL import Image
+
+    rgb, depth, _ = _scene()
+    folder = tmp_path / "cubemaps" / "000001"
+    folder.mkdir(parents=True)
+    inst = np.zeros((6, F, F, 3), np.uint8)
+    inst[..., 0] = 11                                      # Sky, id 0
+    front, left = FACES.index("front"), FACES.index("left")
+    inst[front, 5:11, 3:9] = (14, 44, 1)                   # a car, id 300
+    inst[front, 0:3, :] = (3, 5, 0)                        # a building, id 5: not an instance
+    inst[left, 6:12, 6:9] = (12, 7, 0)                     # a pedestrian, id 7
+    for k, face in enumerate(FACES):
+        ot.io.write_image(folder / f"{face}_rgb.png", rgb[k])
+        ot.io.write_image(folder / f"{face}_depth.png", _encode(depth[k]))
+        ot.io.write_image(folder / f"{face}_instances.png", inst[k])
+    # what convert does with each capture (convert_chunk), without its OCamCalib fit
+    cameras = build_cameras(("fisheye",), image_size=(40, 40))
+    cap = tmp_path / "out" / "000001"
+    render_capture(load_capture(folder, label_set="new", rgb_uint8=True), cameras, cap)
+    with Image.open(cap / "fisheye_instances.png") as im:
+        ids = np.asarray(im).astype(np.int64)
+    labels = ot.io.read_image(cap / "fisheye_labels.png").numpy()
+    assert set(np.unique(ids).tolist()) == {0, 7, 300}
+    assert np.array_equal(ids == 300, labels == 10) and np.array_equal(ids == 7, labels == 4)
+    # the front face's texel of each pixel ray, nearest (face table: a = +z, b = +y, r = +x)
+    rays, valid = cameras["fisheye"][0].ray_grid()
+    x, y, z = rays.double().unbind(-1)
+    on_front = valid & (z > x.abs()) & (z > y.abs())
+    u = torch.round(F / 2 * x / z + (F - 1) / 2)
+    v = torch.round(F / 2 * y / z + (F - 1) / 2)
+    car = on_front & (u >= 3) & (u <= 8) & (v >= 5) & (v <= 10)
+    away = 0.02 * F   # rays within a texel's rounding of a texel edge may go either way
+    clear = ((F / 2 * x / z + (F - 1) / 2 - u).abs() < 0.5 - away) & \
+        ((F / 2 * y / z + (F - 1) / 2 - v).abs() < 0.5 - away)
+    assert car.sum() > 20
+    assert np.array_equal((ids == 300)[(on_front & clear).numpy()], car[on_front & clear].numpy())
+    objects = json.loads((cap / "fisheye_objects.json").read_text())
+    assert [(o["instance_id"], o["class"], o["label"]) for o in objects] == \
+        [(7, "Pedestrian", 4), (300, "Vehicle", 10)]
+    for o in objects:
+        rows, cols = np.nonzero(ids == o["instance_id"])
+        assert o["box"] == [cols.min(), rows.min(), cols.max() + 1, rows.max() + 1]
+        assert o["pixels"] == rows.size
 
 
 def test_unknown_tag_names_the_file(capture_root):

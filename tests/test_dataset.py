@@ -124,13 +124,20 @@ def test_depth_is_the_rendered_range(dataset):
         assert torch.equal(depth, res["depth"][0, 0])
         labels = read_image(dataset / cam / "labels" / f"{k:06d}.png")
         assert torch.equal(labels.long(), res["labels"][0])
+        # the instance ids: the cube's, carried like the labels (nearest texel, 0 outside)
+        ids = layer.render(labels=cube["instances"].long(), rotation=rot)["labels"][0]
+        instances = read_image(dataset / cam / "instances" / f"{k:06d}.png").long()
+        assert torch.equal(instances, torch.where(res["valid"][0, 0], ids, 0))
         # against the exact ray cast of the pixel rays (nearest-texel depth: a few pixels on
         # object edges differ, the bulk agrees closely)
         rays, valid = camera.ray_grid()
-        truth = town.render_rays(centre, rays.float() @ rot.T, t=recs[k]["timestamp"])["range"]
-        v = valid & (truth < 900)
-        rel = ((depth[v] - truth[v]).abs() / truth[v])
+        truth = town.render_rays(centre, rays.float() @ rot.T, t=recs[k]["timestamp"])
+        v = valid & (truth["range"] < 900)
+        rel = ((depth[v] - truth["range"][v]).abs() / truth["range"][v])
         assert float(rel.median()) < 0.02
+        # the pixels' instance ids are those of the pixel rays' own hits, but on edges
+        seen = valid & ((truth["instances"] > 0) | (instances > 0))
+        assert float((truth["instances"][seen] == instances[seen]).float().mean()) > 0.7
 
 
 def test_rerun_is_noop_and_resume_completes(dataset, tmp_path):
@@ -154,6 +161,58 @@ def test_rerun_is_noop_and_resume_completes(dataset, tmp_path):
     # a marker without its files is not a finished frame either
     (out / "fisheye_right" / "rgb" / "000000.png").unlink()
     assert generate(out, _config(), workers=1, progress=False)["rendered"] == [0]
+
+
+def test_instances_and_objects(dataset):
+    """Each camera's instance ids (16-bit PNG, read back with Pillow) are the town's objects:
+    an id on exactly the pixels of an instance class, of its object's class, 0 outside the
+    valid area; the same object keeps its id from frame to frame. Each objects file lists
+    every id of the image once, with its class and the tight box of its pixels (XYXY corners,
+    computed here with numpy) and their count."""
+    from PIL import Image
+
+    town = Town(0)
+    things = [ot.io.CLASSES.index(c) for c in ("Pedestrian", "Pole", "Vehicle", "TrafficSign")]
+    seen = {}
+    for cam in CAMERAS:
+        for k in range(FRAMES):
+            n = f"{k:06d}"
+            with Image.open(dataset / cam / "instances" / f"{n}.png") as im:
+                assert im.mode.startswith("I;16") or im.mode == "I"
+                ids = np.asarray(im).astype(np.int64)
+            labels = read_image(dataset / cam / "labels" / f"{n}.png").numpy()
+            valid = read_image(dataset / cam / "valid" / f"{n}.png").numpy() > 0
+            assert ids.shape == SIZE and (ids[~valid] == 0).all()
+            assert np.array_equal(ids > 0, np.isin(labels, things))
+            assert np.array_equal(town.instance_label.numpy()[ids[ids > 0]], labels[ids > 0])
+            objects = json.loads((dataset / cam / "objects" / f"{n}.json").read_text())
+            assert [o["instance_id"] for o in objects] == sorted(set(ids[ids > 0].tolist()))
+            for o in objects:
+                rows, cols = np.nonzero(ids == o["instance_id"])
+                assert o["box"] == [cols.min(), rows.min(), cols.max() + 1, rows.max() + 1]
+                assert o["pixels"] == rows.size
+                assert o["label"] == labels[rows[0], cols[0]]
+                assert o["class"] == ot.io.CLASSES[o["label"]]
+                seen.setdefault(o["instance_id"], set()).add(o["label"])
+    assert len(seen) >= 3 and all(len(c) == 1 for c in seen.values())
+
+
+def test_town_instances_are_objects():
+    """Every vehicle, pedestrian, pole and traffic sign of the town is one instance; the
+    cube's instance ids are those of ``render_rays`` of its texel rays."""
+    town = Town(0)
+    counts = torch.bincount(town.instance_label[1:], minlength=13)
+    C = {c: ot.io.CLASSES.index(c) for c in ot.io.CLASSES}
+    # 2 boxes a vehicle, a cylinder and a sphere a pedestrian, one primitive for the others
+    assert counts[C["Vehicle"]] == int((town.boxes_label == C["Vehicle"]).sum()) // 2
+    assert counts[C["Pedestrian"]] == int((town.sph_label == C["Pedestrian"]).sum())
+    assert counts[C["Pole"]] == int((town.cyl_label == C["Pole"]).sum())
+    assert counts[C["TrafficSign"]] == int((town.boxes_label == C["TrafficSign"]).sum())
+    assert int(counts.sum()) == len(town.instance_label) - 1
+    cube = town.render_cubemap((1.75, -1.2, 0.0), face_size=24)
+    rays = town.render_rays(torch.tensor([1.75, -1.2, 0.0]), town.cubemap_rays(24))
+    assert torch.equal(rays["instances"], cube["instances"][0].long())
+    assert int(cube["instances"].max()) > 0
 
 
 @pytest.mark.numerics

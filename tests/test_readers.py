@@ -88,6 +88,62 @@ def test_read_frame_matches_files_decoded_directly(root):
                                torch.from_numpy(ot.io.colorize(item["labels"])))
 
 
+def _tar_sample(path, key):
+    """The members of sample ``key`` of a shard, as webdataset hands them over (no
+    webdataset: the tar read with the standard library)."""
+    import tarfile
+    with tarfile.open(path) as tar:
+        return {"__key__": key, **{m.name[len(key) + 1:]: tar.extractfile(m).read()
+                                   for m in tar.getmembers() if m.name.startswith(key + ".")}}
+
+
+def test_instances_and_objects_read_back(root, tmp_path):
+    """``instances`` and ``objects`` from the folder (read_frame, OmniDataset, through
+    ``collate``) and from a shard's sample: the 16-bit PNG's ids (read with OpenCV) and the
+    JSON's boxes, classes and ids, in the augmentation's keys; a dataset written before them
+    still reads, and asking it for them is a ValueError naming the modality."""
+    import shutil
+
+    from omniscape_torch.data.shards import decode_sample, write_shard
+
+    ds = OmniDataset(root, modalities=("labels", "instances", "objects"))
+    for item in ds:
+        n = f"{item['frame']:06d}"
+        ids = cv2.imread(str(root / item["camera"] / "instances" / f"{n}.png"),
+                         cv2.IMREAD_UNCHANGED)
+        assert ids.dtype == np.uint16 and item["instances"].dtype == torch.int64
+        assert np.array_equal(item["instances"].numpy(), ids.astype(np.int64))
+        objects = json.loads((root / item["camera"] / "objects" / f"{n}.json").read_text())
+        assert item["boxes"].dtype == torch.float32 and item["boxes"].shape == (len(objects), 4)
+        assert item["boxes"].tolist() == [o["box"] for o in objects]
+        assert item["box_labels"].tolist() == [o["label"] for o in objects]
+        assert item["box_instance_ids"].tolist() == [o["instance_id"] for o in objects]
+    batch = collate([ds[0], ds[1]])
+    assert batch["instances"].shape == (2,) + SIZE
+    assert len(batch["boxes"]) == 2 or batch["boxes"].shape[0] == 2
+    # a WebDataset sample holds them too, and decodes into the same item
+    copy = tmp_path / "copy"
+    shutil.copytree(root, copy)
+    shard = write_shard(copy, 0, [1], CAMERAS)
+    item = decode_sample(_tar_sample(shard, f"000001_{CAMERAS[1]}"),
+                         ("labels", "instances", "objects"))
+    assert _same({k: item[k] for k in ("instances", "boxes", "box_labels", "box_instance_ids")},
+                 {k: ds[3][k] for k in ("instances", "boxes", "box_labels", "box_instance_ids")})
+    # a dataset written before instances: the same frames and items, without them
+    for cam in CAMERAS:
+        shutil.rmtree(copy / cam / "instances")
+        shutil.rmtree(copy / cam / "objects")
+    assert list_frames(copy) == list(range(FRAMES))
+    assert _same(OmniDataset(copy)[1], OmniDataset(root)[1])
+    with pytest.raises(ValueError, match="'instances'"):
+        OmniDataset(copy, modalities=("rgb", "instances"))
+    old = write_shard(copy, 0, [1], CAMERAS)
+    sample = _tar_sample(old, f"000001_{CAMERAS[0]}")
+    assert "instances.png" not in sample and "labels.png" in sample
+    with pytest.raises(ValueError, match="instances"):
+        decode_sample(sample, ("instances",))
+
+
 def test_read_frame_errors(root):
     with pytest.raises(ValueError, match="modalities"):
         read_frame(root, CAMERAS[0], 0, ("normals",))
