@@ -127,9 +127,10 @@ def test_pack_writes_the_same_shards_and_they_read_as_the_folder(reference, tmp_
     assert _hashes(root) == _hashes(reference)
     with tarfile.open(root / "shards" / "shard-000001.tar") as tar:
         assert tar.getnames() == [f"000002_{c}.{f}" for c in CAMERAS for f in (
-            "camera.json", "dynamics.json", "rgb.png", "depth.exr", "labels.png", "valid.png")]
+            "camera.json", "dynamics.json", "rgb.png", "depth.exr", "labels.png", "valid.png",
+            "instances.png", "objects.json")]
 
-    modalities = ("rgb", "depth", "labels", "labels_color", "valid")
+    modalities = ("rgb", "depth", "labels", "labels_color", "valid", "instances", "objects")
     folder = OmniDataset(root, modalities=modalities)
     assert len(folder) == 6
     expected = {(item["frame"], item["camera"]): item for item in folder}
