@@ -334,3 +334,41 @@ def test_contact_sheet(root):
         cell = row[:, i * SHEET_CELL:(i + 1) * SHEET_CELL]
         assert np.abs(cell[20:].astype(int) - want[20:].astype(int)).max() <= 1, k
     assert row[:, 2 * SHEET_CELL:].max() == 0
+
+
+# ---------------------------------------------------------------------------- objects
+
+def test_objects_of_an_instance_map_and_bad_input():
+    """Boxes against a hand-made map (XYXY corners: columns u0..u1 -> x0 = u0, x1 = u1 + 1),
+    the class the most pixels have (the smaller on a tie), and the errors."""
+    from omniscape_torch.data.objects import (decode_objects, encode_objects, instance_image,
+                                              instance_objects)
+
+    ids = torch.zeros(6, 7, dtype=torch.int64)
+    ids[1:3, 2:6] = 9            # rows 1..2, columns 2..5
+    ids[5, 0] = 70000            # one pixel in the corner, an id past 16 bits
+    labels = torch.full((6, 7), 10)
+    labels[1, 2:4] = 4           # 2 of instance 9's 8 pixels are Pedestrian
+    labels[5, 0] = 5
+    objects = instance_objects(ids, labels)
+    assert objects == [
+        {"instance_id": 9, "label": 10, "class": "Vehicle", "box": [2, 1, 6, 3], "pixels": 8},
+        {"instance_id": 70000, "label": 5, "class": "Pole", "box": [0, 5, 1, 6], "pixels": 1}]
+    labels[2, 2:6] = 4           # now 4 and 4: the smaller label
+    assert instance_objects(ids, labels)[0]["label"] == 4
+    assert instance_objects(torch.zeros(3, 3, dtype=torch.int32), labels[:3, :3]) == []
+    back = decode_objects(encode_objects(objects))
+    assert back["boxes"].tolist() == [[2, 1, 6, 3], [0, 5, 1, 6]]
+    assert back["box_labels"].tolist() == [10, 5]
+    assert back["box_instance_ids"].tolist() == [9, 70000]
+    assert decode_objects("[]\n")["boxes"].shape == (0, 4)
+    with pytest.raises(ValueError, match="0..65535"):
+        instance_image(ids)
+    with pytest.raises(TypeError, match="instances"):
+        instance_objects(ids.float(), labels)
+    with pytest.raises(ValueError, match=r"\(H, W\)"):
+        instance_objects(ids, labels[:2])
+    with pytest.raises(ValueError, match=">= 0"):
+        instance_objects(-ids, labels)
+    with pytest.raises(ValueError, match="x.json: not an objects file"):
+        decode_objects('[{"box": [1, 2]}]', "x.json")
