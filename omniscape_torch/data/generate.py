@@ -1,8 +1,9 @@
 """Write an OmniScape-like dataset: a motorcycle ride through the built-in town, seen by a rig of
 stereo fisheye and stereo catadioptric cameras, with range depth, labels, intrinsics (also as
 OCamCalib's ``calib_results.txt``, as the OmniScape dataset ships them: :mod:`.ocamcalib`, fitted
-once per run), extrinsics and vehicle dynamics (``omniscape-torch generate``; the files:
-:mod:`.format`).
+once per run), extrinsics, vehicle dynamics, and the instance ids and 2D boxes of the town's
+vehicles, pedestrians, poles and traffic signs (:mod:`.objects`; ``omniscape-torch
+generate``; the files: :mod:`.format`).
 
 The rig
 -------
@@ -729,7 +730,11 @@ def _write_run_files(plan: _Plan, out: Path,
                 "conventions": {"depth": "range (Euclidean, along the ray), metres",
                                 "angles": "degrees in dynamics.json (CARLA)",
                                 "pixels": "(u, v) = (column, row), (0, 0) the centre of the "
-                                          "top-left pixel"}}
+                                          "top-left pixel",
+                                "boxes": "objects/*.json: XYXY corners, pixel columns u0..u1 "
+                                         "and rows v0..v1 -> [u0, v0, u1 + 1, v1 + 1]",
+                                "instances": "16-bit ids, 0 none; the same object keeps its "
+                                             "id in every frame and camera"}}
     _write_if_changed(out / fmt.MANIFEST, _dumps(manifest))
 
 
