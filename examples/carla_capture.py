@@ -3,18 +3,21 @@
 
 Needs a CARLA server and its Python API (``import carla``, the wheel or egg matching the
 server's version); not run by the tests. Spawns a vehicle on autopilot and, attached to it at
-one point, six 90-degree cameras of each kind (RGB, depth, semantic segmentation) at the rig
-rotations of ``DESIGN.md`` (``carla.Rotation(pitch, yaw, roll)``, degrees):
+one point, six 90-degree cameras of each kind (RGB, depth, semantic segmentation, and instance
+segmentation where the server has it: CARLA 0.9.14 and later) at the rig rotations of
+``DESIGN.md`` (``carla.Rotation(pitch, yaw, roll)``, degrees):
 
     front (0, 0, 0)   back yaw 180   left yaw -90   right yaw +90   up pitch +90   down pitch -90
 
-The world runs in synchronous mode (fixed time step), so the 18 images of a tick are of one
-instant. Every ``--every`` ticks it writes::
+The world runs in synchronous mode (fixed time step), so the 18 (or 24) images of a tick are
+of one instant. Every ``--every`` ticks it writes::
 
-    OUT/<frame:08d>/{front,back,left,right,up,down}_{rgb,depth,labels}.png
+    OUT/<frame:08d>/{front,back,left,right,up,down}_{rgb,depth,labels,instances}.png
     OUT/<frame:08d>/vehicle.json    pose (CARLA's frame, metres, degrees), velocity, time
 
-depth and labels saved with CARLA's ``Raw`` converter (24-bit depth in R, G, B; tag in R).
+depth, labels and instances saved with CARLA's ``Raw`` converter (24-bit depth in R, G, B; tag
+in R; the instance camera's object id in G and B, ``convert`` writes instance ids and boxes
+from it).
 Then::
 
     omniscape-torch convert --cubemaps OUT --out OMNI --label-set new   # CARLA >= 0.9.14
@@ -54,6 +57,7 @@ SENSORS = {
     "rgb": "sensor.camera.rgb",
     "depth": "sensor.camera.depth",
     "labels": "sensor.camera.semantic_segmentation",
+    "instances": "sensor.camera.instance_segmentation",   # CARLA >= 0.9.14: skipped before
 }
 
 
@@ -92,10 +96,13 @@ def _save(image, path: Path, converter) -> None:
 
 
 def spawn_rig(world, vehicle, face_size: int, height: float, x: float) -> dict:
-    """Spawn the 18 cameras; returns ``{(face, modality): (sensor, queue)}``."""
+    """Spawn the 18 cameras (24 with instance segmentation); returns ``{(face, modality):
+    (sensor, queue)}``."""
     library = world.get_blueprint_library()
     rig = {}
     for modality, name in SENSORS.items():
+        if not library.filter(name):   # a server without this sensor (instances before 0.9.14)
+            continue
         bp = library.find(name)
         bp.set_attribute("image_size_x", str(face_size))
         bp.set_attribute("image_size_y", str(face_size))

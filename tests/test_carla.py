@@ -396,6 +396,8 @@ def test_capture_script_compiles_and_rig_matches_faces():
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     assert module.FACES == FACES
+    from omniscape_torch.data.captures import MODALITIES
+    assert tuple(module.SENSORS) == MODALITIES   # it records what convert reads
     rotations = face_rotations(torch.float64)
     for k, face in enumerate(FACES):
         pitch, yaw, roll = module.RIG[face]
