@@ -467,6 +467,16 @@ def test_stats(dataset, tmp_path, capsys):
     n_valid = sum(int((read_image(p) == 255).sum()) for cam in ("fisheye_left", "fisheye_right")
                   for p in (out / cam / "valid").glob("*.png"))
     assert result["pixels"]["fisheye"] == n_valid
+    # the objects of the objects files, per kind of camera; a dataset without them has none
+    listed = [o["class"] for cam in ("catadioptric_left", "catadioptric_right")
+              for p in (out / cam / "objects").glob("*.json") for o in json.loads(p.read_text())]
+    cata = result["objects"]["catadioptric"]
+    assert cata["images"] == 2 * FRAMES and cata["per_image"] == len(listed) / (2 * FRAMES)
+    assert cata["classes"] == {c: listed.count(c) for c in set(listed)}
+    assert "objects (instances) per image" in text
+    for cam in CAMERAS:
+        shutil.rmtree(out / cam / "objects")
+    assert "objects" not in ot.data.stats.stats(out, plot=False)
 
 
 @pytest.mark.parametrize("argv, message", [

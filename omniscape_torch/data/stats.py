@@ -14,7 +14,7 @@ import torch
 from ..io import CLASSES, atomic_write_bytes, atomic_write_text, read_image
 from ..scenes import ride as _ride
 from . import format as fmt
-from .readers import list_cameras, read_dynamics
+from .readers import has_modality, list_cameras, read_dynamics
 
 __all__ = ["PLOT_INSTALL", "format_stats", "plot_available", "stats"]
 
@@ -43,7 +43,9 @@ def stats(root: str | Path, *, plot: bool = True) -> dict:
         {class: share}}, "pixels": {kind: valid pixel count}, "frames": finished frames,
         "frames_planned": N, "skipped": {"NNNNNN": [the files it lacks, relative paths]}}``:
         a frame without its ``.done`` marker is not finished; one with it but without a file
-        lost that file.
+        lost that file. Where the dataset has ``objects`` (written since ``generate`` writes
+        them), also ``"objects": {kind: {"images": N, "per_image": mean number of objects
+        in an image, "classes": {class: objects}}}`` over the same frames.
 
     Raises:
         FileNotFoundError: ``root`` holds no dataset.
@@ -80,10 +82,29 @@ def stats(root: str | Path, *, plot: bool = True) -> dict:
     result = {"frames": len(finished), "frames_planned": len(recs), "table_one": table,
               "class_share": share, "pixels": {kind: int(v.sum()) for kind, v in counts.items()},
               "skipped": {fmt.frame_name(k): files for k, files in skipped.items()}}
+    if has_modality(root, "objects", cameras):
+        result["objects"] = _objects(root, cameras, [r["frame"] for r in finished])
     atomic_write_text(root / fmt.STATS, json.dumps(result, indent=2) + "\n")
     if plot:
         _plot(result, root / fmt.STATS_PLOT)
     return result
+
+
+def _objects(root: Path, cameras: list[str], frames: list[int]) -> dict:
+    """Per kind of camera: the mean number of objects an image holds, and the objects of
+    each class (the classes with any), over ``frames``."""
+    out: dict[str, dict] = {}
+    for name in cameras:
+        entry = out.setdefault(name.split("_")[0], {"images": 0, "classes": {}})
+        for k in frames:
+            objects = json.loads((root / fmt.frame_file(name, "objects", k)).read_text(
+                encoding="utf-8"))
+            entry["images"] += 1
+            for o in objects:
+                entry["classes"][o["class"]] = entry["classes"].get(o["class"], 0) + 1
+    return {kind: {"images": e["images"],
+                   "per_image": sum(e["classes"].values()) / max(1, e["images"]),
+                   "classes": dict(sorted(e["classes"].items()))} for kind, e in out.items()}
 
 
 def _plot(result: dict, path: Path) -> None:
@@ -164,4 +185,14 @@ def format_stats(result: dict) -> str:
         lines.append(f"{c:14}" + "".join(f"{100 * result['class_share'][k][c]:14.2f}"
                                          for k in kinds))
     lines.append(f"{'valid pixels':14}" + "".join(f"{result['pixels'][k]:14d}" for k in kinds))
+    objects = result.get("objects")
+    if objects:
+        kinds = list(objects)
+        lines += ["", "objects (instances) per image",
+                  f"{'class':14}" + "".join(f"{k:>14}" for k in kinds)]
+        for c in sorted({c for k in kinds for c in objects[k]["classes"]}):
+            lines.append(f"{c:14}" + "".join(
+                f"{objects[k]['classes'].get(c, 0) / max(1, objects[k]['images']):14.2f}"
+                for k in kinds))
+        lines.append(f"{'all':14}" + "".join(f"{objects[k]['per_image']:14.2f}" for k in kinds))
     return "\n".join(lines)
