@@ -372,3 +372,8 @@ def test_objects_of_an_instance_map_and_bad_input():
         instance_objects(-ids, labels)
     with pytest.raises(ValueError, match="x.json: not an objects file"):
         decode_objects('[{"box": [1, 2]}]', "x.json")
+    from omniscape_torch.data.objects import pack_instances, unpack_instances
+    packed = pack_instances(torch.tensor([[3, 255]]), torch.tensor([[70000, 0]]))
+    assert [t.tolist() for t in unpack_instances(packed)] == [[[3, 255]], [[70000, 0]]]
+    with pytest.raises(ValueError, match="labels"):
+        pack_instances(torch.tensor([256]), torch.tensor([1]))
