@@ -101,7 +101,8 @@ def pack_instances(labels: Tensor, instances: Tensor, out: Tensor | None = None)
         ValueError: labels outside 0..255 or negative instance ids (they would not unpack).
     """
     if out is None:
-        out = torch.empty(torch.broadcast_shapes(labels.shape, instances.shape),
+        # numpy's broadcast_shapes: torch's imports its symbolic shapes, 1.4 s the first time
+        out = torch.empty(np.broadcast_shapes(tuple(labels.shape), tuple(instances.shape)),
                           dtype=torch.int64, device=labels.device)
     # on the CPU in numpy, on one thread: torch would split these small loops over its threads,
     # which a busy machine makes many times slower (measured 35 ms a camera at a load of 8)
