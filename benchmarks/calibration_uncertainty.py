@@ -9,7 +9,7 @@ lenses on a 1280 x 1024 sensor, each image circle inscribed in the sensor's heig
 * ``unified 230``: a Mei camera of 230 degrees (unified model, xi 0.9 of the catadioptric
   preset, k1 -0.05, k2 0.01, p1 2e-4, p2 -1e-4, as ``calibration_stability``'s).
 
-3, 8 and 21 views, ``--seeds`` seeds (default 20) each, seed ``s`` with Gaussian corner noise
+3, 8 and 21 views, ``--seeds`` seeds (default 40; issue 33 asks for at least 20) each, seed ``s`` with Gaussian corner noise
 of 0.1, 0.3 or 0.5 px per coordinate (``NOISES[s % 3]``; the ratio below does not depend on the
 noise's scale, as long as the fit is linear over it); ``fit`` with its defaults. Two figures per fit, the same statistic
 over the same pixels, the grid of ``coverage.covered_rays`` (48 samples along the longer side,
@@ -39,13 +39,16 @@ the noise on one set of 3 poses 20 times: mean squares within 4-8%, medians of t
 1.43-1.48): with few views one direction of the intrinsics dominates the error, whose RMS is
 then nearly ``|N(0, 1)|`` times its root mean square, median 0.67 of it. The median of the
 distribution is the figure that matches a single fit's error; the verdict used the largest
-per-pixel std, a further 1.2-1.6 times above.
+per-pixel std, a further 1.2-1.6 times above. With that median, 30 noise draws on each of three
+3-view pose sets give medians of the ratio of 0.98-1.15; over seeds (one draw each, new poses)
+the median's standard error is about 0.12 at 20 seeds (a 20-seed run gave 1.41 on 3 views of
+the Kannala-Brandt lens, its mean squares 1.39), hence 40 seeds by default.
 
 The real set (``tests/data/ocamcalib_fisheye2``: 8 photographs of a ~180-degree fisheye, an
 8 x 6 board; Kannala-Brandt, the area bounded by the image circle of the images) is reported
 with both figures, the predicted and the leave-one-view-out.
 
-    python benchmarks/calibration_uncertainty.py            # 20 seeds (~10 min on one core)
+    python benchmarks/calibration_uncertainty.py            # 40 seeds (~4 min of one core)
     python benchmarks/calibration_uncertainty.py --quick    # 3 seeds, into results/quick/
 """
 
@@ -230,12 +233,12 @@ def markdown(record: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="3 seeds, into results/quick/")
-    parser.add_argument("--seeds", type=int, default=None, help="seeds per case (default 20)")
+    parser.add_argument("--seeds", type=int, default=None, help="seeds per case (default 40)")
     parser.add_argument("--jackknife", type=int, default=None,
                         help="seeds of the 8- and 21-view cases with leave_one_out (default 4, "
                              "quick 1)")
     args = parser.parse_args(argv)
-    seeds = args.seeds or (3 if args.quick else 20)
+    seeds = args.seeds or (3 if args.quick else 40)
     jack = args.jackknife if args.jackknife is not None else (1 if args.quick else 4)
     load = begin_run(1)
     start = time.perf_counter()

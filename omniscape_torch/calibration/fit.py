@@ -1081,9 +1081,7 @@ def _solve(problem: Problem, method: str, *, loss: str, loss_scale: float,
                     f"{names[k]} (+- {float(covariance[i, i]) ** 0.5:.3g})"
                     for k, i in ((k, problem.intrinsics.free[k]) for k in loose))
                 + f" not determined by these views (standard deviation above max_std "
-                f"{max_std:g} in free units); " + ", ".join(
-                    f"{n} and {p} correlated at {c:.3f}" for n, p, c in near_degenerate
-                    if p is not None))
+                f"{max_std:g} in free units); " + correlated_pairs(near_degenerate))
     method_ok = ok
     ok, reason = (True, reason) if not failures else (False, "; ".join(failures.values()))
     return FitResult(
@@ -1099,6 +1097,19 @@ def _solve(problem: Problem, method: str, *, loss: str, loss_scale: float,
         outliers=[torch.zeros(0, dtype=torch.long) for _ in sizes]
         if problem.num_views else [], failed_checks=tuple(c for c in CHECKS if c in failures),
         near_degenerate=near_degenerate), method_ok
+
+
+def correlated_pairs(near_degenerate: list[tuple[str, str | None, float]]) -> str:
+    """``FitResult.near_degenerate`` in words, each pair once: ``"xi and k2 correlated at
+    0.998"`` (``"xi undetermined"`` where no other intrinsic is free)."""
+    seen, words = set(), []
+    for name, partner, corr in near_degenerate:
+        if partner is None:
+            words.append(f"{name} undetermined")
+        elif frozenset((name, partner)) not in seen:
+            seen.add(frozenset((name, partner)))
+            words.append(f"{name} and {partner} correlated at {corr:.3f}")
+    return "; ".join(words)
 
 
 def _partner(covariance: Tensor, free: list[int], names: tuple[str, ...], k: int
