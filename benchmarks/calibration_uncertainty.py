@@ -72,7 +72,7 @@ from omniscape_torch.calibration.coverage import (THRESHOLDS, covered_rays,  # n
                                                   leave_one_out)
 from omniscape_torch.io import atomic_write_text  # noqa: E402
 
-from calibration_stability import BOARD_WIDE, KB_DISTORTION  # noqa: E402
+from calibration_stability import BOARD_WIDE, wide_camera  # noqa: E402
 from common import (ROOT, begin_run, git_commit, loadavg, machine_info,  # noqa: E402
                     results_path, write_json_atomic)
 
@@ -86,14 +86,7 @@ REAL = ROOT / "tests" / "data" / "ocamcalib_fisheye2"
 
 def lens(name: str) -> ot.Camera:
     """The truth of a lens (module docstring)."""
-    if name == "unified 230":
-        cam, _ = ot.cameras.presets.catadioptric(SIZE, fov=math.radians(230), blind_fov=None,
-                                                 dtype=torch.float64)
-        params = cam.params.clone()
-        params[5:9] = torch.tensor([-0.05, 0.01, 2e-4, -1e-4], dtype=torch.float64)
-        return ot.Camera("unified", params, SIZE, fov=math.radians(230))
-    return ot.cameras.presets.fisheye(SIZE, fov=math.radians(190), model="kannala_brandt",
-                                      distortion=KB_DISTORTION, dtype=torch.float64)
+    return wide_camera({"unified 230": "mei230", "kannala-brandt 190": "kb190"}[name], SIZE)
 
 
 def true_error(camera: ot.Camera, truth: ot.Camera, pixels: list[torch.Tensor]) -> float:

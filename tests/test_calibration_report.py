@@ -464,3 +464,32 @@ def test_cli_writes_a_near_degenerate_fit_with_exit_3_unless_strict(tmp_path, ca
     assert cli.main(["fit", str(path), "--model", "scaramuzza", "--out", str(strict),
                      "--no-progress", "--strict"]) == 1
     assert "nothing written" in capsys.readouterr().err and not strict.exists()
+
+
+@pytest.mark.slow
+@pytest.mark.numerics
+def test_cli_leave_one_out_reports_the_resampled_error(tmp_path, monkeypatch):
+    """``--leave-one-out``: the jackknife of refits without each view, beside the prediction;
+    on exact data every refit is the truth (0 px), on noisy data it is of the predicted
+    size."""
+    _quick_plots(monkeypatch)
+    truth = ot.Camera("equidistant", torch.tensor([60.0, 60.0, 63.5, 47.5], dtype=D),
+                      (96, 128))
+    board = checkerboard(5, 6, 0.05)
+    _, _, clean = random_views(truth, board, 5, generator=torch.Generator().manual_seed(2))
+    noisy = clean + 0.3 * torch.randn(clean.shape, generator=torch.Generator().manual_seed(5),
+                                      dtype=D)
+    figures = []
+    for name, pixels in (("exact", clean), ("noisy", noisy)):
+        path = tmp_path / f"{name}.txt"
+        write_correspondences(path, Correspondences([board] * 5, list(pixels.unbind(0)),
+                                                    truth.image_size, list("abcde")))
+        out = tmp_path / name
+        assert cli.main(["fit", str(path), "--model", "equidistant", "--out", str(out),
+                         "--no-progress", "--leave-one-out", "--accept-coverage"]) == 0
+        report = json.loads((out / "report.json").read_text())
+        assert len(report["resampling"]["moves"]) == 5
+        assert "leave-one-view-out" in (out / "report.md").read_text()
+        figures.append((report["resampling"]["pixel_error"], report["coverage"]["pixel_rms"]))
+    assert figures[0][0] < 1e-6
+    assert 1 / 3 < figures[1][0] / figures[1][1] < 3, figures

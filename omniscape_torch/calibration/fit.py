@@ -26,7 +26,8 @@ Levenberg-Marquardt run (``START_ITERATIONS``, on at most ``START_POINTS`` point
 from every start ranks them by cost (fewest observations outside the model's domain first);
 the fit goes on from the best one (``FitResult.start`` names it). Where Levenberg-Marquardt
 stops on its own test at a point the checks below reject, the next starts are finished in turn
-(at most ``RETRY_STARTS``) and the first that passes is kept. L-BFGS and Adam start from the
+(at most ``RETRY_STARTS``) and the first that passes is kept (where none does, one that fails
+the near-degenerate check only, then the lowest cost). L-BFGS and Adam start from the
 single default start (no least-squares run chooses it for them).
 
 Iterations: by default Levenberg-Marquardt runs in rounds of ``LM_ROUND`` iterations and starts
@@ -60,7 +61,11 @@ model's domain, a Gauss-Newton step would lower the cost by less than ``optimali
 per observation, residuals at rounding level), the parameters are determined by
 the data (scaled condition number of ``J^T J`` below ``max_condition``, and no free intrinsic
 with a standard deviation above ``max_std`` in free units) and the parameters are inside the
-model's range.
+model's range. ``FitResult.failed_checks`` names the checks that failed (``CHECKS``); where the
+standard deviations are the only one (``FitResult.only_near_degenerate``), the result is a
+least-squares minimum that the views leave a direction of, and ``FitResult.near_degenerate``
+names each loose intrinsic with the one most correlated with it (``omniscape-torch fit``
+writes such a fit with exit 3 and that line, or refuses it with ``--strict``).
 """
 
 from __future__ import annotations
