@@ -154,13 +154,19 @@ def _kb190(views: int, seed: int, noise: float = 0.3):
 
 
 @pytest.mark.numerics
-@pytest.mark.parametrize("views, ok", [(21, True), (3, False)])
-def test_verdict_passes_21_spread_views_and_flags_3(views, ok):
+@pytest.mark.parametrize("views, code", [(21, 0), (3, cli.EXIT_POORLY_CONSTRAINED)])
+def test_fit_passes_21_spread_views_and_flags_3(views, code, tmp_path, monkeypatch):
+    """The issue's control: 21 views spread over the image circle exit 0, 3 views exit 3."""
+    _quick_plots(monkeypatch)
     truth, board, pixels = _kb190(views, 0)
-    result = fit(board, pixels, "kannala_brandt", truth.image_size)
-    assert result.converged, result.reason
-    coverage = assess_coverage(result.camera, result.covariance, pixels, fov=truth.fov)
-    assert coverage.ok == ok, coverage.warnings
+    path = tmp_path / "corr.txt"
+    write_correspondences(path, Correspondences([board] * views, pixels, truth.image_size,
+                                                [f"v{i}" for i in range(views)]))
+    out = tmp_path / "out"
+    assert cli.main(["fit", str(path), "--model", "kannala_brandt", "--fov", "190", "--out",
+                     str(out), "--no-progress"]) == code
+    report = json.loads((out / "report.json").read_text())
+    assert report["converged"] and report["coverage"]["ok"] == (code == 0)
 
 
 @pytest.mark.slow

@@ -165,7 +165,8 @@ class FitResult:
         reason: why the run stopped or which check failed.
         iterations: iterations of the method.
         method: the method.
-        covariance: ``(P, P)`` covariance of ``params``, ``sigma^2 (J^T J)^-1`` with
+        covariance: ``(P, P)`` covariance of ``params``, the intrinsics' block of
+            ``sigma^2 (J^T J)^-1`` over all ``n`` free variables (the poses marginalised) with
             ``sigma^2 = sum r^2 / (2 M - n)``, mapped to the natural parameters by the Jacobian
             of the reparametrisation (delta method); zero rows for frozen parameters.
         std: ``(P,)`` square root of its diagonal.
