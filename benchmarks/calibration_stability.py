@@ -280,9 +280,8 @@ CASES = (
 BOARD_WIDE = (6, 9, 0.08)
 
 
-def wide_camera(name: str) -> ot.Camera:
-    """The truth of a wide case (module docstring)."""
-    size = (800, 800)
+def wide_camera(name: str, size: tuple[int, int] = (800, 800)) -> ot.Camera:
+    """The truth of a wide case (module docstring), on a sensor of ``size`` ``(H, W)``."""
     if name == "mei230":
         cam, _ = ot.cameras.presets.catadioptric(size, fov=math.radians(230), blind_fov=None,
                                                  dtype=torch.float64)

@@ -6,8 +6,10 @@ Every error ends the command with one line on stderr and an exit code (``--trace
 the Python traceback instead): 2 for bad input (options, files that are missing or malformed),
 1 for a run that could not be done (an output that cannot be written, memory, another run in
 the same folder, a failed fit), 3 for a fit whose views leave the camera poorly constrained
-(``fit``: its files are written; ``--accept-coverage`` makes it 0), 130 for Ctrl-C, whose line
-says what was kept and whether the same command resumes.
+(``fit``: its files are written; ``--accept-coverage`` makes it 0 for poor coverage) or
+near-degenerate (``fit``: written, with a line naming the correlated parameters; ``--strict``
+refuses it instead: exit 1, nothing written), 130 for Ctrl-C, whose line says what was kept
+and whether the same command resumes.
 """
 
 from __future__ import annotations
@@ -331,7 +333,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
     for name, value, std in zip(result.param_names, result.params.tolist(),
                                 result.std.tolist()):
         print(f"  {name:6s} {value:16.9g} +- {std:.3g}")
-    if not result.converged:
+    near_degenerate = not result.converged and result.only_near_degenerate
+    if not result.converged and (args.strict or not near_degenerate):
         print(f"omniscape-torch fit: did not converge ({result.reason}); nothing written",
               file=sys.stderr)
         return 1
@@ -345,8 +348,15 @@ def cmd_fit(args: argparse.Namespace) -> int:
     area = "the whole image" if fov is None else f"a {math.degrees(fov):.1f} deg field of view"
     print(f"coverage over {area}: corners in {100 * coverage.cells:.0f}% of the cells, up to "
           f"{math.degrees(coverage.angle):.1f} of {math.degrees(coverage.half_fov):.1f} deg off "
-          f"axis; predicted pixel error up to {coverage.max_pixel_std:.3g} px (median "
-          f"{coverage.median_pixel_std:.3g})")
+          f"axis; predicted pixel error {coverage.pixel_error:.3g} px (RMS where the corners "
+          f"reach, median of its distribution; root mean square {coverage.pixel_rms:.3g}, "
+          f"largest per pixel {coverage.max_pixel_std:.3g})")
+    resampling = None
+    if args.leave_one_out:
+        from .calibration.coverage import leave_one_out
+        resampling = leave_one_out(result, data.object_points, data.image_points, fov=fov)
+        print(f"leave-one-view-out: {resampling.pixel_error:.3g} px (jackknife RMS where the "
+              f"corners reach; predicted {coverage.pixel_rms:.3g})")
     # every file into a temporary folder first: a failed writer leaves nothing half-written,
     # and an output that cannot be written (disk full, removed) does not lose the fit
     staging = Path(tempfile.mkdtemp(prefix="omniscape-fit-"))
@@ -354,7 +364,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
         files, report = write_fit_files(staging, result, data, coverage=coverage,
                                         source=source, board=board, skipped=skipped,
                                         write_points=args.images is not None,
-                                        fov_source=fov_source, fov_note=fov_note)
+                                        fov_source=fov_source, fov_note=fov_note,
+                                        resampling=resampling)
         written = publish(files, args.out)
     except OSError as err:
         print(f"omniscape-torch fit: error: {describe_os_error(err)}; the fitted camera is "
@@ -367,6 +378,15 @@ def cmd_fit(args: argparse.Namespace) -> int:
     print("wrote " + ", ".join(map(str, written)))
     for line in report["warnings"]:
         print(f"omniscape-torch fit: warning: {line}", file=sys.stderr)
+    if near_degenerate:
+        from .calibration.fit import correlated_pairs
+
+        print(f"omniscape-torch fit: near-degenerate: "
+              f"{correlated_pairs(result.near_degenerate)}: these views leave a "
+              f"combination of them undetermined (see {Path(args.out) / 'report.md'}); add "
+              f"views, freeze one (--freeze), or pass --strict to refuse such a fit",
+              file=sys.stderr)
+        return EXIT_POORLY_CONSTRAINED
     if not coverage.ok and not args.accept_coverage:
         print(f"omniscape-torch fit: poorly constrained: the views do not pin the camera down "
               f"over the image (see {Path(args.out) / 'report.md'} and uncertainty.png); add "
@@ -717,7 +737,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "scaramuzza, correspondences.txt for --images) into --out, all or none. "
                     f"Exits {EXIT_POORLY_CONSTRAINED} (files written) when the views leave the "
                     "camera poorly constrained (omniscape_torch/calibration/coverage.py), "
-                    "unless --accept-coverage.")
+                    "unless --accept-coverage, or near-degenerate (parameters that trade "
+                    "off, named with their correlation), unless --strict (exit 1, nothing "
+                    "written); 1 (nothing written) when the fit failed.")
     fit.add_argument("correspondences", type=Path, nargs="?", default=None,
                      help="correspondence file (or give --images)")
     fit.add_argument("--images", type=Path, default=None, metavar="DIR",
@@ -748,6 +770,13 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--accept-coverage", action="store_true",
                      help=f"exit 0, not {EXIT_POORLY_CONSTRAINED}, when the views leave the "
                           f"camera poorly constrained (the warnings are still printed)")
+    fit.add_argument("--leave-one-out", action="store_true",
+                     help="also refit without each view in turn and report how far the "
+                          "projections move (report.json \"resampling\"): a check of the "
+                          "predicted error on real photographs (one more fit per view)")
+    fit.add_argument("--strict", action="store_true",
+                     help="refuse a near-degenerate fit (exit 1, nothing written) instead of "
+                          f"writing it with exit {EXIT_POORLY_CONSTRAINED}")
     fit.add_argument("--max-iterations", type=positive_int, default=None)
     fit.add_argument("--out", type=Path, required=True, help="output folder")
     fit.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -14,6 +14,7 @@
 * :func:`detect_corners`: a board's corners in images (OpenCV, optional), :class:`Board` the
   boards of ``fit --board``, :func:`render_board` images of a board through a known camera.
 * :func:`assess_coverage`: where the corners lie and the predicted error over the image;
+  :func:`leave_one_out` the same error by refitting without each view;
   :func:`write_fit_files`: everything ``omniscape-torch fit`` writes (report, plots).
 
 Examples:
@@ -37,13 +38,14 @@ from .select import Candidate, Selection, select_model
 from .synthetic import checkerboard, random_views
 
 from .photometric import PHOTOMETRIC_LOSSES, PhotometricResult, fit_photometric, photometric_error
-from .coverage import Coverage, assess_coverage
+from .coverage import Coverage, Resampling, assess_coverage, covered_rays, leave_one_out
 from .detect import Detection, detect_corners
 from .report import fit_report, write_fit_files
 from .targets import Board, render_board
 
 __all__ = ["Board", "Candidate", "ConversionResult", "Correspondences", "Coverage", "Detection",
-           "FitResult", "LOSSES", "METHODS", "assess_coverage", "detect_corners", "fit_report",
+           "FitResult", "LOSSES", "METHODS", "Resampling", "assess_coverage", "covered_rays",
+           "leave_one_out", "detect_corners", "fit_report",
            "render_board", "write_fit_files",
            "PHOTOMETRIC_LOSSES", "PhotometricResult", "Selection", "fit_photometric",
            "photometric_error", "checkerboard", "convert", "default_intrinsics", "fit", "image_circle",

@@ -26,7 +26,8 @@ Levenberg-Marquardt run (``START_ITERATIONS``, on at most ``START_POINTS`` point
 from every start ranks them by cost (fewest observations outside the model's domain first);
 the fit goes on from the best one (``FitResult.start`` names it). Where Levenberg-Marquardt
 stops on its own test at a point the checks below reject, the next starts are finished in turn
-(at most ``RETRY_STARTS``) and the first that passes is kept. L-BFGS and Adam start from the
+(at most ``RETRY_STARTS``) and the first that passes is kept (where none does, one that fails
+the near-degenerate check only, then the lowest cost). L-BFGS and Adam start from the
 single default start (no least-squares run chooses it for them).
 
 Iterations: by default Levenberg-Marquardt runs in rounds of ``LM_ROUND`` iterations and starts
@@ -60,7 +61,11 @@ model's domain, a Gauss-Newton step would lower the cost by less than ``optimali
 per observation, residuals at rounding level), the parameters are determined by
 the data (scaled condition number of ``J^T J`` below ``max_condition``, and no free intrinsic
 with a standard deviation above ``max_std`` in free units) and the parameters are inside the
-model's range.
+model's range. ``FitResult.failed_checks`` names the checks that failed (``CHECKS``); where the
+standard deviations are the only one (``FitResult.only_near_degenerate``), the result is a
+least-squares minimum that the views leave a direction of, and ``FitResult.near_degenerate``
+names each loose intrinsic with the one most correlated with it (``omniscape-torch fit``
+writes such a fit with exit 3 and that line, or refuses it with ``--strict``).
 """
 
 from __future__ import annotations
@@ -128,6 +133,11 @@ LM_ROUND = 100
 LM_PROGRESS = 1e-6
 LM_MAX_ITERATIONS = 1000
 
+#: The checks of every fit (module docstring), as named in ``FitResult.failed_checks``: the
+#: method's own test, the parameters inside the model's range, every observation inside the
+#: model's domain, at a minimum, the condition number, the standard deviations.
+CHECKS = ("method", "range", "domain", "minimum", "degenerate", "near_degenerate")
+
 #: Rounds of outlier rejection at most (each drops points, so few are ever needed).
 MAX_REJECTION_ROUNDS = 10
 
@@ -155,7 +165,8 @@ class FitResult:
         reason: why the run stopped or which check failed.
         iterations: iterations of the method.
         method: the method.
-        covariance: ``(P, P)`` covariance of ``params``, ``sigma^2 (J^T J)^-1`` with
+        covariance: ``(P, P)`` covariance of ``params``, the intrinsics' block of
+            ``sigma^2 (J^T J)^-1`` over all ``n`` free variables (the poses marginalised) with
             ``sigma^2 = sum r^2 / (2 M - n)``, mapped to the natural parameters by the Jacobian
             of the reparametrisation (delta method); zero rows for frozen parameters.
         std: ``(P,)`` square root of its diagonal.
@@ -174,6 +185,14 @@ class FitResult:
             (or without rejection), ``[]`` for a conversion. Dropped observations count in no
             other field but ``residuals``.
         start: which start the fit went on from (``"init"``, ``"linear"``, ``"fov 180"``...).
+        failed_checks: the names of the checks that failed (empty when ``converged``), of
+            ``CHECKS``.
+        near_degenerate: where the near-degenerate check failed, per free intrinsic whose
+            standard deviation exceeds ``max_std``: ``(name, partner, correlation)``, the
+            intrinsic most correlated with it and their correlation (from ``covariance``;
+            ``partner`` None when no other intrinsic is free). A fit whose only failed check
+            is this one is a least-squares minimum that these views leave a direction of
+            (``omniscape-torch fit`` writes it and exits 3, as for poor coverage).
 
     With outliers dropped, ``residuals`` still holds every input observation (the dropped ones'
     residuals at the final parameters, to show them); ``rms``, ``cost``, ``num_observations`` and
@@ -202,6 +221,13 @@ class FitResult:
     history: list[dict] = field(default_factory=list, repr=False)
     outliers: list[Tensor] = field(default_factory=list)
     start: str = "init"
+    failed_checks: tuple[str, ...] = ()
+    near_degenerate: list[tuple[str, str | None, float]] = field(default_factory=list)
+
+    @property
+    def only_near_degenerate(self) -> bool:
+        """The near-degenerate check is the only one that failed (see ``near_degenerate``)."""
+        return self.failed_checks == ("near_degenerate",)
 
     def to_dict(self) -> dict:
         """A JSON-ready report (no residuals or history)."""
@@ -215,6 +241,9 @@ class FitResult:
             "std": dict(zip(self.param_names, self.std.tolist())),
             "free": list(self.free_names), "poses": self.poses.tolist(),
             "start": self.start, "outliers": [o.tolist() for o in self.outliers],
+            "failed_checks": list(self.failed_checks),
+            "near_degenerate": [{"name": n, "partner": p, "correlation": c}
+                                for n, p, c in self.near_degenerate],
         }
 
 
@@ -660,8 +689,7 @@ def fit(object_points, image_points, model: str | CameraModel, image_size: tuple
                                                loss_scale=loss_scale,
                                                sizes=[len(p) for p in points], **settings)
         candidate.start = label
-        if result is None or (candidate.converged, -candidate.cost) > (result.converged,
-                                                                       -result.cost):
+        if result is None or _rank(candidate) > _rank(result):
             result = candidate
         # another start only after a stop at a point the checks reject; where LM ran out of
         # budget or of determined parameters, other starts fare no better
@@ -671,6 +699,13 @@ def fit(object_points, image_points, model: str | CameraModel, image_size: tuple
         result = _reject_outliers(result, model, frozen, points, pixels, outlier_threshold,
                                   method, loss_scale, settings)
     return result
+
+
+def _rank(result: FitResult) -> tuple[bool, bool, float]:
+    """Which of two fits of the same data :func:`fit` keeps: a converged one, else one whose
+    only failed check is the near-degenerate one (a minimum, written by ``omniscape-torch
+    fit`` with exit 3), else the lower cost."""
+    return result.converged, result.only_near_degenerate, -result.cost
 
 
 def _default_fov(model: CameraModel) -> float:
@@ -1025,29 +1060,36 @@ def _solve(problem: Problem, method: str, *, loss: str, loss_scale: float,
     sigma2 = _weighted_square(residuals, loss, loss_scale) / (2 * m - n)
     covariance, std_free = _covariance(a, sigma2, problem, z, condition, max_condition)
 
-    camera, failures = None, [] if ok else [reason]
+    camera, failures = None, {} if ok else {"method": reason}
     try:
         camera = Camera(problem.model, params, image_size)
     except ValueError as err:
-        failures.append(f"the parameters left the model's range: {err}")
+        failures["range"] = f"the parameters left the model's range: {err}"
     if num_invalid:
-        failures.append(f"{num_invalid} of {m} observations project outside the model's domain")
+        failures["domain"] = f"{num_invalid} of {m} observations project outside the model's " \
+            "domain"
     if method != "linear" and not at_minimum:
-        failures.append(f"not at a minimum: a Gauss-Newton step would lower the cost by "
-                        f"{gain:.2e} (relative), above optimality_tol {optimality_tol:g}")
+        failures["minimum"] = (f"not at a minimum: a Gauss-Newton step would lower the cost by "
+                               f"{gain:.2e} (relative), above optimality_tol {optimality_tol:g}")
+    near_degenerate = []
     if not condition <= max_condition:
-        failures.append(f"degenerate data: the scaled condition number of J^T J is "
-                        f"{condition:.3g}, above max_condition {max_condition:g}; some "
-                        f"parameters are not determined by these views")
+        failures["degenerate"] = (f"degenerate data: the scaled condition number of J^T J is "
+                                  f"{condition:.3g}, above max_condition {max_condition:g}; "
+                                  f"some parameters are not determined by these views")
     else:
-        loose = [f"{name} (+- {float(covariance[i, i]) ** 0.5:.3g})" for name, i, sd in zip(
-            problem.intrinsics.free_names, problem.intrinsics.free, std_free) if sd > max_std]
+        names = problem.intrinsics.free_names
+        loose = [k for k, sd in enumerate(std_free) if sd > max_std]
+        near_degenerate = [_partner(covariance, problem.intrinsics.free, names, k)
+                           for k in loose]
         if loose:
-            failures.append(f"near-degenerate data: {', '.join(loose)} not determined by these "
-                            f"views (standard deviation above max_std {max_std:g} in free "
-                            f"units)")
+            failures["near_degenerate"] = (
+                f"near-degenerate data: " + ", ".join(
+                    f"{names[k]} (+- {float(covariance[i, i]) ** 0.5:.3g})"
+                    for k, i in ((k, problem.intrinsics.free[k]) for k in loose))
+                + f" not determined by these views (standard deviation above max_std "
+                f"{max_std:g} in free units); " + correlated_pairs(near_degenerate))
     method_ok = ok
-    ok, reason = (True, reason) if not failures else (False, "; ".join(failures))
+    ok, reason = (True, reason) if not failures else (False, "; ".join(failures.values()))
     return FitResult(
         camera=camera, params=params, param_names=problem.intrinsics.names,
         free_names=problem.intrinsics.free_names, poses=poses,
@@ -1059,7 +1101,37 @@ def _solve(problem: Problem, method: str, *, loss: str, loss_scale: float,
         num_invalid=num_invalid, gauss_newton_gain=gain, condition=condition,
         num_observations=m, num_free=n, cost=cost, history=history,
         outliers=[torch.zeros(0, dtype=torch.long) for _ in sizes]
-        if problem.num_views else []), method_ok
+        if problem.num_views else [], failed_checks=tuple(c for c in CHECKS if c in failures),
+        near_degenerate=near_degenerate), method_ok
+
+
+def correlated_pairs(near_degenerate: list[tuple[str, str | None, float]]) -> str:
+    """``FitResult.near_degenerate`` in words, each pair once: ``"xi and k2 correlated at
+    0.998"`` (``"xi undetermined"`` where no other intrinsic is free)."""
+    seen, words = set(), []
+    for name, partner, corr in near_degenerate:
+        if partner is None:
+            words.append(f"{name} undetermined")
+        elif frozenset((name, partner)) not in seen:
+            seen.add(frozenset((name, partner)))
+            words.append(f"{name} and {partner} correlated at {corr:.3f}")
+    return "; ".join(words)
+
+
+def _partner(covariance: Tensor, free: list[int], names: tuple[str, ...], k: int
+             ) -> tuple[str, str | None, float]:
+    """``(name, partner, correlation)`` of the ``k``-th free intrinsic: the other free
+    intrinsic most correlated with it in ``covariance`` (natural parameters)."""
+    idx = torch.tensor(free, dtype=torch.long)
+    cov = covariance[idx][:, idx]
+    sd = torch.diagonal(cov).clamp(min=1e-300).sqrt()
+    corr = cov / sd[:, None] / sd[None]
+    row = corr[k].clone()
+    row[k] = 0.0
+    if row.numel() < 2 or not bool(torch.isfinite(row).all()):
+        return names[k], None, math.nan
+    j = int(row.abs().argmax())
+    return names[k], names[j], float(row[j])
 
 
 def _weighted_square(residuals: Tensor, loss: str, scale: float) -> float:

@@ -73,7 +73,8 @@ def fit_report(result, names: Sequence[str], image_size: tuple[int, int], *,
                coverage: Coverage | None = None, model: str | None = None,
                source: str | None = None, board: str | None = None,
                skipped: dict[str, str] | None = None, invpol: dict | None = None,
-               fov_source: str | None = None, fov_note: str | None = None) -> dict:
+               fov_source: str | None = None, fov_note: str | None = None,
+               resampling=None) -> dict:
     """The JSON-ready report of a fit (module docstring).
 
     Args:
@@ -89,6 +90,7 @@ def fit_report(result, names: Sequence[str], image_size: tuple[int, int], *,
         fov_source: where the field of view the coverage is judged over came from:
             ``"image circle"``, ``"corners' reach"``, ``"whole sensor"`` or ``"--fov"``.
         fov_note: why the image circle was not used, when it could not be measured.
+        resampling: :func:`~omniscape_torch.calibration.coverage.leave_one_out`'s result.
     """
     sizes = [len(r) for r in result.residuals]
     views = [{"name": n, **row} for n, row in zip(names, view_errors(result, sizes))]
@@ -108,6 +110,9 @@ def fit_report(result, names: Sequence[str], image_size: tuple[int, int], *,
         "skipped_images": dict(skipped or {}),
         "coverage": None if coverage is None else coverage.to_dict(),
         "fov_source": fov_source, "fov_note": fov_note,
+        "near_degenerate": [{"name": n, "partner": p, "correlation": _number(c)}
+                            for n, p, c in getattr(result, "near_degenerate", [])],
+        "resampling": None if resampling is None else resampling.to_dict(),
     }
     if invpol is not None:
         report["ocamcalib_inverse_polynomial"] = invpol
@@ -140,11 +145,16 @@ def report_markdown(report: dict) -> str:
                   f"- corners up to {cov['angle_deg']:.1f} deg off axis of "
                   f"{cov['half_fov_deg']:.1f} deg ({100 * cov['angle_share']:.0f}%, limit "
                   f"{100 * cov['thresholds']['min_angle']:.0f}%)",
-                  f"- predicted pixel error (1 sigma, RMS distance) where the corners reach: "
-                  f"largest " + _px(std) + f" (limit {cov['thresholds']['max_pixel_std']:g} "
-                  f"px), median " + _px(cov["median_pixel_std"]) + "; over the whole field "
-                  "of view up to " + _px(cov["max_pixel_std_fov"]) + "; map in "
-                  "`uncertainty.png`"]
+                  f"- predicted pixel error (RMS distance from the truth where the corners "
+                  f"reach, median of its distribution): " + _px(cov["pixel_error"])
+                  + f" (limit {cov['thresholds']['max_pixel_error']:g} px; root mean square "
+                  + _px(cov["pixel_rms"]) + "); per pixel (1 sigma) largest " + _px(std)
+                  + ", over the whole field of view up to " + _px(cov["max_pixel_std_fov"])
+                  + "; map in `uncertainty.png`"]
+        if report.get("resampling"):
+            lines.append("- leave-one-view-out (jackknife RMS where the corners reach): "
+                         + _px(report["resampling"]["pixel_error"]) + ", against "
+                         + _px(cov["pixel_rms"]) + " predicted")
         if report.get("fov_source"):
             lines.append(f"- field of view ({cov['half_fov_deg'] * 2:.1f} deg) from: "
                          f"{report['fov_source']}" + (f" ({report['fov_note']})"
@@ -291,7 +301,7 @@ def plot_uncertainty(coverage: Coverage, image_points: Sequence[Tensor],
 
     std = coverage.std_map.clone()
     finite = std[torch.isfinite(std)]
-    limit = coverage.thresholds["max_pixel_std"]
+    limit = coverage.thresholds["max_pixel_error"]
     top = max(float(finite.max()) if finite.numel() else 1.0, limit * 1.2)
     std = torch.where(torch.isinf(std), torch.full_like(std, top), std)
     gh, gw = std.shape
@@ -310,8 +320,8 @@ def plot_uncertainty(coverage: Coverage, image_points: Sequence[Tensor],
     ax.set_ylim(h - 0.5, -0.5)
     ax.set_aspect("equal")
     verdict = "well constrained" if coverage.ok else "POORLY CONSTRAINED"
-    ax.set_title(f"{verdict}: max {coverage.max_pixel_std:.3g} px (limit "
-                 f"{coverage.thresholds['max_pixel_std']:g}), cells "
+    ax.set_title(f"{verdict}: {coverage.pixel_error:.3g} px (limit "
+                 f"{limit:g}), largest {coverage.max_pixel_std:.3g} px, cells "
                  f"{100 * coverage.cells:.0f}%, angle {math.degrees(coverage.angle):.0f}/"
                  f"{math.degrees(coverage.half_fov):.0f} deg", fontsize=9)
     fig.tight_layout()
@@ -327,7 +337,8 @@ def write_fit_files(folder: str | Path, result, data: Correspondences, *,
                     board: str | None = None, skipped: dict[str, str] | None = None,
                     write_points: bool = False, plots: bool = True,
                     fov_source: str | None = None,
-                    fov_note: str | None = None) -> tuple[list[Path], dict]:
+                    fov_note: str | None = None, resampling=None
+                    ) -> tuple[list[Path], dict]:
     """Write every file of a fit into ``folder`` (module docstring).
 
     Args:
@@ -342,6 +353,7 @@ def write_fit_files(folder: str | Path, result, data: Correspondences, *,
         plots: draw ``residuals.png`` and ``uncertainty.png`` (skipped without matplotlib).
         fov_source: for the report (:func:`fit_report`).
         fov_note: for the report (:func:`fit_report`).
+        resampling: for the report (:func:`fit_report`).
 
     Returns:
         The paths written, and the report (with ``"plots"`` and ``"warnings"``: lines to show).
@@ -357,7 +369,8 @@ def write_fit_files(folder: str | Path, result, data: Correspondences, *,
             notes.append(invpol["warning"])
     report = fit_report(result, data.names, data.image_size, coverage=coverage,
                         model=camera.model.name, source=source, board=board, skipped=skipped,
-                        invpol=invpol, fov_source=fov_source, fov_note=fov_note)
+                        invpol=invpol, fov_source=fov_source, fov_note=fov_note,
+                        resampling=resampling)
     summary = result.to_dict()
     extra = {} if coverage is None else {"coverage": coverage.to_dict()}
     files.insert(0, save_result(camera, {**summary, **extra}, "fit", folder / "camera.json"))
