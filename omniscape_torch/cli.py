@@ -292,18 +292,22 @@ def _fit_area(args: argparse.Namespace, camera, data) -> tuple[float | None, str
                                       "circle lies beyond the sensor)")
     if math.isfinite(fov) and fov > 0:
         return fov, "image circle", None
-    import torch
-
-    with torch.no_grad():
-        rays, valid = camera.unproject(torch.cat(list(data.image_points)).to(
-            camera.params.dtype))
-        angle = torch.atan2(rays[..., :2].norm(dim=-1), rays[..., 2])[valid]
-    reach = float(angle.max()) if angle.numel() else math.nan
+    reach = _corners_reach(camera, data) / 2
     if not math.isfinite(reach) or reach <= 0:
         return None, "whole sensor", f"the image circle could not be measured ({why}), nor " \
             "the corners' reach"
     return min(2 * reach, 2 * math.pi), "corners' reach", \
         f"the image circle could not be measured ({why}: a dark centre or border?)"
+
+
+def _corners_reach(camera, data) -> float:
+    """Twice the largest angle off axis of the corners' rays through ``camera`` (radians; NaN
+    where none is valid)."""
+    with torch.no_grad():
+        rays, valid = camera.unproject(torch.cat(list(data.image_points)).to(
+            camera.params.dtype))
+        angle = torch.atan2(rays[..., :2].norm(dim=-1), rays[..., 2])[valid]
+    return 2 * float(angle.max()) if angle.numel() else math.nan
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
@@ -342,6 +346,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
         print(f"omniscape-torch fit: field of view for coverage: {area}, as {fov_note}; set it "
               f"with --fov DEG", file=sys.stderr)
     coverage = assess_coverage(result.camera, result.covariance, data.image_points, fov=fov)
+    if fov is not None:   # camera.json keeps the area judged, for later conversions and exports
+        result.camera.fov = max(fov, min(_corners_reach(result.camera, data), 2 * math.pi))
     area = "the whole image" if fov is None else f"a {math.degrees(fov):.1f} deg field of view"
     print(f"coverage over {area}: corners in {100 * coverage.cells:.0f}% of the cells, up to "
           f"{math.degrees(coverage.angle):.1f} of {math.degrees(coverage.half_fov):.1f} deg off "

@@ -333,6 +333,8 @@ def test_real_fisheye_images(tmp_path, capsys):
     assert ot.Camera.from_ocamcalib(out / "calib_results.txt").image_size == (480, 748)
     assert 160 < report["coverage"]["fov_deg"] < 200 and report["coverage"]["ok"]
     assert report["fov_source"] == "image circle" and report["fov_note"] is None
+    saved = json.loads((out / "camera.json").read_text())   # the measured circle is kept
+    assert saved["fov_deg"] == pytest.approx(report["coverage"]["fov_deg"])
 
 
 # --------------------------------------------------------------------------------------------
@@ -445,11 +447,15 @@ def test_fit_images_never_loses_a_fit(rendered, unmeasurable, tmp_path, capsys, 
 
 
 def test_fit_images_names_the_image_circle_and_fov(fitted):
-    """The measured or given field of view is named in the reports too (``--fov`` here)."""
+    """The measured or given field of view is named in the reports too (``--fov`` here), and
+    camera.json keeps it (issue 33), so that later conversions and exports judge that area."""
     _, out = fitted
     report = json.loads((out / "report.json").read_text())
     assert report["fov_source"] == "--fov" and report["fov_note"] is None
     assert "from: --fov" in (out / "report.md").read_text()
+    saved = json.loads((out / "camera.json").read_text())
+    assert saved["fov_deg"] == pytest.approx(180) and saved["fit"]["fov_source"] == "--fov"
+    assert ot.Camera.load_json(out / "camera.json").fov == pytest.approx(math.pi)
 
 
 def test_convert_image_with_a_dark_centre_asks_for_fov(rendered, unmeasurable, tmp_path, capsys):

@@ -360,6 +360,8 @@ def write_fit_files(folder: str | Path, result, data: Correspondences, *,
                         invpol=invpol, fov_source=fov_source, fov_note=fov_note)
     summary = result.to_dict()
     extra = {} if coverage is None else {"coverage": coverage.to_dict()}
+    if fov_source is not None:   # the camera's fov_deg: where it came from
+        extra["fov_source"] = fov_source
     files.insert(0, save_result(camera, {**summary, **extra}, "fit", folder / "camera.json"))
     drawn = False
     if plots:
