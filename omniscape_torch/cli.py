@@ -248,7 +248,7 @@ def _fit_data(args: argparse.Namespace):
             raise ValueError("--board: only with --images (a correspondence file holds its "
                              "target points)")
         return read_correspondences(args.correspondences), str(args.correspondences), None, {}
-    from .calibration.detect import detect_corners, image_files
+    from .calibration.detect import detect_corners, image_files, summarize_skipped
     from .calibration.targets import Board
 
     if args.board is None:
@@ -258,8 +258,8 @@ def _fit_data(args: argparse.Namespace):
     files = image_files(args.images)
     data = detect_corners(files, board)
     print(f"{board}: found in {len(data.names)} of {len(files)} images of {args.images}")
-    for name, why in data.skipped.items():
-        print(f"  skipped {name}: {why}")
+    for line in summarize_skipped(data.skipped):   # one line per reason
+        print(f"  skipped {line}")
     return data, str(args.images), str(board), data.skipped
 
 
@@ -280,7 +280,9 @@ def _fit_area(args: argparse.Namespace, camera, data) -> tuple[float | None, str
         from .calibration.detect import image_files
         from .io.images import read_image
 
-        files = image_files(args.images)[:8]
+        # the images where the board was found (not a corrupt file the detection skipped)
+        files = [f for f in image_files(args.images)
+                 if "_".join(f.stem.split()) in set(data.names)][:8]
         mean = np.mean([read_image(f).double().numpy().reshape(camera.image_size + (-1,))
                         .mean(-1) for f in files], axis=0)
         fov = float(image_circle(mean, camera))

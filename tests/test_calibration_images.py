@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import sys
 from pathlib import Path
 
@@ -165,11 +166,70 @@ def test_images_without_the_board_are_skipped_and_listed(rendered):
     assert data.names == ["a", "b", "c"]
     assert list(data.skipped) == ["empty_wall"] and "no 9x6 checkerboard" in \
         data.skipped["empty_wall"]
-    with pytest.raises(ValueError, match=r"found in 2 of 3 images, fewer than the 3 needed "
-                                         r"\(empty_wall: no 9x6"):
+    with pytest.raises(ValueError, match=r"found in 2 of 3 images, fewer than the 3 needed; "
+                                         r"no checkerboard:9x6:0.03 in 1 of them, nor a board "
+                                         r"of a nearby size \(10x6, 8x6, 9x7, 9x5, 8x5, 10x7\)"):
         detect_corners([*images[:2], blank], board, names=["a", "b", "empty wall"])
     with pytest.raises(ValueError, match="all images must have one size"):
         detect_corners([images[0], torch.zeros(100, 100, dtype=torch.uint8)], board)
+
+
+def _bad_files(folder: Path, view: Path) -> dict[str, bytes]:
+    """Three unusable files beside the views: a JPEG of ``view`` cut at 90% (OpenCV decodes
+    its top part without an error), random bytes, and an empty file."""
+    ok, jpeg = cv2.imencode(".jpg", cv2.imread(str(view), cv2.IMREAD_GRAYSCALE))
+    files = {"cut.jpg": jpeg.tobytes()[:int(0.9 * len(jpeg))],
+             "noise.png": torch.randint(0, 256, (5000,), dtype=torch.uint8,
+                                        generator=torch.Generator().manual_seed(0))
+             .numpy().tobytes(),
+             "empty.jpg": b""}
+    for name, data in files.items():
+        (folder / name).write_bytes(data)
+    assert cv2.imread(str(folder / "cut.jpg")) is not None   # OpenCV alone would use it
+    assert cv2.imread(str(folder / "noise.png")) is None
+    return files
+
+
+@pytest.mark.numerics
+def test_corrupt_images_are_skipped_one_line_each(rendered, tmp_path, capsys):
+    """``fit --images`` with a truncated JPEG, random bytes and an empty file among the views:
+    each is skipped with one line naming it, and the fit is written from the others."""
+    folder, _, _, board = rendered
+    views = tmp_path / "views"
+    views.mkdir()
+    for path in sorted(folder.iterdir())[:4]:
+        (views / path.name).write_bytes(path.read_bytes())
+    bad = _bad_files(views, sorted(folder.iterdir())[0])
+    out = tmp_path / "out"
+    code = cli.main(["fit", "--images", str(views), "--board", BOARD, "--model",
+                     "kannala_brandt", "--fov", "180", "--out", str(out), "--no-progress"])
+    captured = capsys.readouterr()
+    assert code in (0, 3), captured.err
+    assert (out / "camera.json").exists()
+    report = json.loads((out / "report.json").read_text())
+    assert report["num_views"] == 4 and set(report["skipped_images"]) == {
+        Path(name).stem for name in bad}
+    for name in bad:
+        lines = [line for line in captured.out.splitlines() if Path(name).stem in line]
+        assert len(lines) == 1 and "skipped" in lines[0], captured.out
+    assert "corrupt or truncated" in next(line for line in captured.out.splitlines()
+                                          if "cut" in line)
+
+
+@pytest.mark.slow   # 3 to 5 s: the sector-based detector's exhaustive search fails slowly
+def test_a_wrong_board_size_is_one_summary_line(rendered):
+    """A 9x6 board given as 8x6 (a corner fewer): one short message saying which size is
+    seen where the given one is not (OpenCV may find the 8x6 part of the board in a view),
+    not a reason per image."""
+    folder, _, _, board = rendered
+    images = sorted(folder.iterdir())[:3]
+    with pytest.raises(ValueError) as err:
+        detect_corners(images, "checkerboard:8x6:0.03")
+    message = str(err.value)
+    assert re.search(r"found in [01] of 3 images, fewer than the 3 needed; no "
+                     r"checkerboard:8x6:0.03 in ([23]) of them; a 9x6 board is seen in \1 of "
+                     r"them \(--board checkerboard:9x6:0.03\)$", message), message
+    assert "\n" not in message and len(message) < 250
 
 
 def _aruco_or_skip():
