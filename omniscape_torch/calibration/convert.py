@@ -37,6 +37,11 @@ Held by default: ``CONVERT_FREEZE``, and the target's tangential and thin-prism 
 (``ASYMMETRIC``) where the source lens has none (it is radially symmetric, apart from an
 affine term, which the rotation and the skew hold): a symmetric lens needs none of them.
 
+The source's own model (of the same polynomial degree, for ``scaramuzza``), without ``init``,
+``freeze`` or a fitted rotation: nothing is fitted; the target is the source's parameters,
+exactly, valid over the converted area (``fov``, else the source's), and the errors are measured
+on the held-out grid as for any target (zero, to rounding).
+
 Starting values: the target's centre is the source's (``cx, cy``); a ``scaramuzza`` target gets
 its polynomial from a linear least-squares fit of ``g(rho) = rho z / |(x, y)|`` to the rays;
 the other models their undistorted defaults with the focal length that matches the source's
@@ -329,6 +334,11 @@ def convert(camera: Camera, to_model: str | CameraModel, *, degree: int = 4, gri
     field = None if fov is None or fov >= 2 * math.pi else fov / 2
     pixels, rays = sample_pixels(camera, grid, 0.25, max_field=field, mask=mask)
     held_pixels, held_rays = sample_pixels(camera, grid, 0.75, max_field=field, mask=mask)
+    if init is None and freeze is None and not rotation and _same_model(camera, target, degree):
+        out = Camera(target, camera.params.detach().double().clone(), camera.image_size,
+                     fov=fov, blind_fov=camera.blind_fov)
+        return _held_out(out, _unchanged(out), held_pixels, held_rays, len(pixels),
+                         torch.eye(3, dtype=torch.float64))
     affine = _has_affine(camera) and target.name != "scaramuzza"
     rotate = affine if rotation is None else bool(rotation)
     skewed = (affine if skew is None else bool(skew)) and bool(target.optional)
@@ -378,17 +388,42 @@ def convert(camera: Camera, to_model: str | CameraModel, *, degree: int = 4, gri
 
     turn = (axis_angle_to_matrix(result.poses[0, :3]) if rotate
             else torch.eye(3, dtype=torch.float64))
-    nan = math.nan
-    max_field = float(torch.acos(held_rays[:, 2].clamp(-1, 1)).max()) if len(held_rays) else nan
     out = result.camera
     if out is not None:   # valid where it was fitted: the area's fov, else the samples' reach
         reach = float(torch.acos(torch.cat((rays, held_rays))[:, 2].clamp(-1, 1)).max())
         out = Camera(target, result.params, camera.image_size,
                      fov=fov if fov is not None else min(2 * reach, 2 * math.pi),
                      blind_fov=camera.blind_fov)
+    return _held_out(out, result, held_pixels, held_rays, int(keep.sum()), turn)
+
+
+def _same_model(camera: Camera, target: CameraModel, degree: int) -> bool:
+    """Whether ``target`` is the source's own model (of polynomial degree ``degree``, for
+    ``scaramuzza``: its coefficients ``a0..a_degree`` after ``cx, cy, c, d, e``)."""
+    if target.name != camera.model.name:
+        return False
+    return target.name != "scaramuzza" or camera.params.shape[-1] == 6 + degree
+
+
+def _unchanged(camera: Camera) -> FitResult:
+    """The :class:`FitResult` of a conversion to the source's own model: nothing fitted."""
+    p = camera.params.shape[-1]
+    zeros = torch.zeros(p, p, dtype=torch.float64)
+    return FitResult(camera, camera.params, camera.param_names, (), torch.zeros(0, 6,
+                     dtype=torch.float64), 0.0, True, "the source's own model: its parameters, "
+                     "exactly (nothing fitted)", 0, "none", zeros, zeros[0], [], 0, 0.0,
+                     math.nan, 0, 0, 0.0)
+
+
+def _held_out(out: Camera | None, result: FitResult, held_pixels: Tensor, held_rays: Tensor,
+              num_samples: int, turn: Tensor) -> ConversionResult:
+    """The :class:`ConversionResult` of ``out``: its errors on the held-out grid."""
+    nan = math.nan
+    max_field = float(torch.acos(held_rays[:, 2].clamp(-1, 1)).max()) if len(held_rays) else nan
     if out is None:
         return ConversionResult(None, result, nan, nan, nan, nan, nan,
-                                len(result.free_names), int(keep.sum()), turn, max_field)
+                                len(result.free_names), num_samples, turn, max_field)
+    target = out.model
     turned = held_rays @ turn.T
     projected, ok_p = target.project(turned, result.params)
     back, ok_u = target.unproject(held_pixels, result.params)
@@ -398,12 +433,12 @@ def convert(camera: Camera, to_model: str | CameraModel, *, degree: int = 4, gri
     angle = torch.atan2(cross, (back * turned).sum(-1))[ok]
     if not bool(ok.any()):
         return ConversionResult(out, result, nan, nan, nan, nan, 1.0, len(result.free_names),
-                                int(keep.sum()), turn, max_field)
+                                num_samples, turn, max_field)
     return ConversionResult(
         out, result, max_px=float(px.max()), rms_px=float(torch.sqrt((px * px).mean())),
         max_angle=float(angle.max()), rms_angle=float(torch.sqrt((angle * angle).mean())),
         unrepresentable=float(1 - ok.double().mean()), num_params=len(result.free_names),
-        num_samples=int(keep.sum()), rotation=turn, max_field=max_field)
+        num_samples=num_samples, rotation=turn, max_field=max_field)
 
 
 def _turn(rays: Tensor, poses: Tensor) -> Tensor:
