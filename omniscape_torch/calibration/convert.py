@@ -189,19 +189,24 @@ def image_circle(image, camera: Camera) -> float:
     ch, cw = max(h // 32, 1), max(w // 32, 1)
     corners = torch.cat([blurred[:ch, :cw], blurred[:ch, -cw:], blurred[-ch:, :cw],
                          blurred[-ch:, -cw:]], 0)
-    rays, valid = Camera(camera.model, camera.params.detach().double(), (h, w)).ray_grid()
+    # the rings on every step-th pixel (about 200k: a fisheye's ray grid is its cost)
+    step = max(math.ceil(math.sqrt(h * w / 200_000)), 1)
+    source = Camera(camera.model, camera.params.detach().double(), (h, w))
+    with torch.no_grad():
+        rays, valid = source.unproject(source.pixel_grid()[::step, ::step])
+    sub = blurred[::step, ::step]
     angle = torch.rad2deg(torch.acos(rays[..., 2].double().clamp(-1, 1)))
     row, col = torch.nonzero(valid & (angle == angle[valid].min()))[0].tolist()
-    near = torch.hypot(torch.arange(h, dtype=torch.float64)[:, None] - row,
-                       torch.arange(w, dtype=torch.float64) - col) < min(h, w) / 8
-    dark, bright = corners.median(), blurred[near].median()
+    near = torch.hypot(torch.arange(0, h, step, dtype=torch.float64)[:, None] - row * step,
+                       torch.arange(0, w, step, dtype=torch.float64) - col * step) < min(h, w) / 8
+    dark, bright = corners.median(), sub[near].median()
     lo, hi = torch.quantile(blurred.flatten()[::max(h * w // 200_000, 1)],
                             torch.tensor([0.01, 0.99], dtype=torch.float64)).tolist()
     if hi <= lo or float(dark) > lo + 0.25 * (hi - lo):
         return 2 * math.pi   # lit to the sensor's corners (or uniform): no circle within it
     if bright <= dark:
         return 0.0
-    lit = blurred > dark + 0.25 * (bright - dark)
+    lit = sub > dark + 0.25 * (bright - dark)
     ring = angle[valid].floor().long()
     count = torch.bincount(ring, minlength=181)
     share = torch.bincount(ring, lit[valid].double(), minlength=181) / count.clamp_min(1)
