@@ -224,6 +224,23 @@ def _bad_files(folder: Path, view: Path) -> dict[str, bytes]:
     return files
 
 
+def test_corrupt_images_are_skipped_with_their_reason(rendered, tmp_path):
+    """``detect_corners`` on a folder with a truncated JPEG, random bytes and an empty file
+    among the views: each is skipped with why, the views are kept."""
+    folder, _, _, board = rendered
+    views = sorted(folder.iterdir())[:2]
+    for path in views:
+        (tmp_path / path.name).write_bytes(path.read_bytes())
+    bad = _bad_files(tmp_path, views[0])
+    data = detect_corners(tmp_path, board, min_views=2)
+    assert data.names == [p.stem for p in views]
+    assert data.skipped == {"cut": "not an image OpenCV can decode (corrupt or truncated?)",
+                            "noise": "not an image OpenCV can decode (corrupt or truncated?)",
+                            "empty": "an empty file (0 bytes)"}, data.skipped
+    assert set(data.skipped) == {Path(name).stem for name in bad}
+
+
+@pytest.mark.slow   # a fit and its plots: 3 to 5 s
 @pytest.mark.numerics
 def test_corrupt_images_are_skipped_one_line_each(rendered, tmp_path, capsys):
     """``fit --images`` with a truncated JPEG, random bytes and an empty file among the views:
@@ -488,6 +505,28 @@ def test_image_circle_of_a_full_frame_and_a_dark_centre(rendered, unmeasurable):
     assert image_circle(full, camera) == 2 * math.pi
     dark = _mean_image(unmeasurable["dark centre"], camera.image_size)
     assert image_circle(dark, camera) == 0.0
+
+
+def _max_image(folder: Path, size) -> torch.Tensor:
+    from omniscape_torch.io.images import read_image
+
+    return torch.stack([read_image(p).double().reshape(size) for p in sorted(folder.iterdir())]
+                       ).amax(0)
+
+
+def test_blind_cone_of_a_dark_centre(rendered, unmeasurable):
+    """``blind_cone`` on the per-pixel maximum of the views (as ``fit --images`` measures it):
+    the black disc of the ``dark centre`` renders is the angle its radius (BLIND_RADIUS px)
+    makes through the true camera, within the 1 degree rings and the blur; none on the plain
+    renders (their centre lit in some view)."""
+    from omniscape_torch.calibration.convert import blind_cone
+
+    folder, _, camera, _ = rendered
+    edge, _ = camera.unproject(camera.params[2:4] + torch.tensor([BLIND_RADIUS, 0.0], dtype=D))
+    truth = 2 * math.degrees(math.atan2(float(edge[:2].norm()), float(edge[2])))
+    dark = _max_image(unmeasurable["dark centre"], camera.image_size)
+    assert math.degrees(blind_cone(dark, camera)) == pytest.approx(truth, abs=3)
+    assert blind_cone(_max_image(folder, camera.image_size), camera) == 0.0
 
 
 def _broken(*args, **kwargs):

@@ -64,6 +64,15 @@ def test_fit_images_writes_a_calibration_of_each_real_set(folder, tmp_path, caps
     assert report["rms_px"] < 1.5, report["rms_px"]
     camera = ot.Camera.load_json(out / "camera.json")
     assert camera.model.name == model and report["fov_source"]
+    # the catadioptric camera's blind cone (its reflection) is measured and kept, nearer the
+    # axis than every corner; the fisheyes have none
+    corners = ot.calibration.read_correspondences(out / "correspondences.txt").image_points
+    rays, _ = camera.model.unproject(torch.cat(corners), camera.params)
+    nearest = math.degrees(float(torch.atan2(rays[:, :2].norm(dim=-1), rays[:, 2]).min()))
+    if folder == "ocamcalib_catadioptric":
+        assert 40 < math.degrees(camera.blind_fov) <= 2 * nearest, (camera.blind_fov, nearest)
+    else:
+        assert camera.blind_fov is None
 
 
 @pytest.mark.numerics

@@ -214,6 +214,50 @@ def image_circle(image, camera: Camera) -> float:
     return 2 * math.pi if len(unlit) == 0 else 2 * math.radians(float(unlit[0, 0]))
 
 
+def blind_cone(image, camera: Camera) -> float:
+    """The blind cone (full angle, radians) of a catadioptric photograph: the dark disc about
+    the optical axis where the camera sees its own reflection in the mirror.
+
+    Over rings of 1 degree about the axis (``camera``'s valid pixels, every step-th as in
+    :func:`image_circle`, after a 5 x 5 box blur), the cone ends at the first ring whose median
+    is above halfway from the innermost ring's median to the lit level (the 90th percentile of
+    the rings' medians). ``0`` where the innermost ring is itself lit (a fisheye) or no ring is.
+    Give it the mean of several views (``fit --images`` does), so that a dark square of the
+    board is not taken for the camera; ``fit`` also keeps the cone below the corners' nearest
+    angle to the axis.
+
+    Args:
+        image: ``(H, W)``, ``(H, W, C)`` or ``(C, H, W)`` array or tensor, any dtype.
+        camera: the camera that took it (its ``image_size`` is the image's).
+    """
+    img = torch.as_tensor(image).double()
+    h, w = camera.image_size
+    if img.dim() == 3:
+        img = img.mean(0) if img.shape[1:] == (h, w) else img.mean(-1)
+    if tuple(img.shape) != (h, w):
+        raise ValueError(f"image: expected an image of the camera's size {(h, w)}, got shape "
+                         f"{tuple(torch.as_tensor(image).shape)}")
+    step = max(math.ceil(math.sqrt(h * w / 200_000)), 1)
+    blurred = torch.nn.functional.avg_pool2d(img[None, None], 5, 1, 2,
+                                             count_include_pad=False)[0, 0][::step, ::step]
+    source = Camera(camera.model, camera.params.detach().double(), (h, w))
+    with torch.no_grad():
+        rays, valid = source.unproject(source.pixel_grid()[::step, ::step])
+    if not bool(valid.any()):
+        return 0.0
+    ring = torch.rad2deg(torch.acos(rays[..., 2].clamp(-1, 1)))[valid].floor().long()
+    levels = blurred[valid]
+    rings = torch.unique(ring)
+    medians = torch.stack([levels[ring == r].median() for r in rings])
+    inner, lit = float(medians[0]), float(torch.quantile(medians, 0.9))
+    if lit <= inner or rings[0] > 2:
+        return 0.0
+    bright = (medians > inner + 0.5 * (lit - inner)).nonzero()
+    if len(bright) == 0 or int(bright[0, 0]) == 0:
+        return 0.0
+    return 2 * math.radians(float(rings[int(bright[0, 0])]))
+
+
 def without_affine(camera: Camera) -> Camera:
     """A ``scaramuzza`` camera with its affine term removed (``c = 1, d = e = 0``): the part of
     a conversion's error that the lens model, not the affine term, causes (module docstring)."""
