@@ -330,22 +330,24 @@ def _fit_blind_cone(camera, data, views) -> float | None:
         blind = blind_cone(views.max(0), camera)
     except Exception:   # noqa: BLE001 (a measurement that fails leaves the cone out)
         return None
+    angle = _corner_angles(camera, data)
+    if angle.numel():
+        blind = min(blind, 2 * float(angle.min()))
+    return blind if blind > 0 and blind < (camera.fov or 2 * math.pi) else None
+
+
+def _corner_angles(camera, data) -> torch.Tensor:
+    """The angles off axis (radians) of the corners' valid rays through ``camera``."""
     with torch.no_grad():
         rays, valid = camera.unproject(torch.cat(list(data.image_points)).to(
             camera.params.dtype))
-    if bool(valid.any()):
-        nearest = float(torch.atan2(rays[..., :2].norm(dim=-1), rays[..., 2])[valid].min())
-        blind = min(blind, 2 * nearest)
-    return blind if blind > 0 and blind < (camera.fov or 2 * math.pi) else None
+        return torch.atan2(rays[..., :2].norm(dim=-1), rays[..., 2])[valid]
 
 
 def _corners_reach(camera, data) -> float:
     """Twice the largest angle off axis of the corners' rays through ``camera`` (radians; NaN
     where none is valid)."""
-    with torch.no_grad():
-        rays, valid = camera.unproject(torch.cat(list(data.image_points)).to(
-            camera.params.dtype))
-        angle = torch.atan2(rays[..., :2].norm(dim=-1), rays[..., 2])[valid]
+    angle = _corner_angles(camera, data)
     return 2 * float(angle.max()) if angle.numel() else math.nan
 
 

@@ -12,7 +12,7 @@ pixels; the images where it was not are listed with the reason.
   corner that follows the corners' spacing about it (:func:`refine_windows`: up to 11 x 11, as
   OpenCV's calibration samples use, stopping short of the next grid lines). On
   boards rendered through a fisheye (``tests/test_calibration_images.py``) the refined corners
-  lie 0.08 px RMS from the truth (0.27 px at worst); the sector-based detector's own corners,
+  lie 0.064 px RMS from the truth (0.26 px at worst); the sector-based detector's own corners,
   even in its accuracy mode, are up to three times farther on some views.
 * charuco: ``cv2.aruco.CharucoDetector`` (OpenCV >= 4.7); only views with at least
   ``min_corners`` corners are kept; corners are refined likewise.
