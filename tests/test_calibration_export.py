@@ -437,6 +437,25 @@ def test_a_fisheye_refusal_names_the_angle_of_its_image_circle(tmp_path):
     assert f"{corner:.2f}" not in str(err.value)
 
 
+def test_cli_convert_model_judges_a_fit_by_its_fov(tmp_path, capsys):
+    """``convert-model --json camera.json --to kannala_brandt --format opencv`` of a camera
+    whose camera.json keeps its 196 degree field of view (as ``fit`` writes it): refused in
+    one line naming 98 deg, the lens's, not the sensor corners' angle; written with
+    ``--accept-fov`` and its area kept in the file."""
+    lens = [150.0, 150.0, 319.5, 239.5, 0.0, 0.0, 0.0, 0.0]
+    _camera("kannala_brandt", lens, fov=math.radians(196)).save_json(tmp_path / "camera.json")
+    argv = ["convert-model", "--json", str(tmp_path / "camera.json"), "--to", "kannala_brandt",
+            "--format", "opencv", "--out", str(tmp_path / "x.yaml")]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert "sees up to 98.00 deg" in err and len(err.strip().splitlines()) == 1, err
+    assert cli.main(argv + ["--accept-fov"]) == 0
+    assert "98.00 deg" in capsys.readouterr().err   # the warning of what was accepted
+    fs = cv2.FileStorage(str(tmp_path / "x.yaml"), cv2.FILE_STORAGE_READ)
+    assert fs.getNode("fov_deg").real() == pytest.approx(196)
+    assert ot.Camera.load(tmp_path / "x.yaml").fov == pytest.approx(math.pi)   # valid to 90
+
+
 # --------------------------------------------------------------------------------------------
 # Refusals and accepted limits
 # --------------------------------------------------------------------------------------------
