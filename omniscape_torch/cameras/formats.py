@@ -127,8 +127,8 @@ def read_ocamcalib(cls, path: str | Path, *, dtype: torch.dtype = torch.float64,
         raise ValueError(f"{path}, line {l_s}: image size: expected positive integers, got {size}")
     row, col = centre
     params = torch.tensor([col, row, *affine, *pol], dtype=dtype)
-    if len(sections) > 5 and "fov" not in kwargs and "blind_fov" not in kwargs:
-        kwargs.update(_ocam_area(path, *sections[5]))
+    if len(sections) > 5 and _OCAM_AREA in path.read_text():   # ours, not another tool's
+        kwargs = {**_ocam_area(path, *sections[5]), **kwargs}
     try:
         camera = cls("scaramuzza", params, (int(size[0]), int(size[1])), **kwargs)
     except ValueError as err:
