@@ -250,7 +250,7 @@ def _fit_data(args: argparse.Namespace):
             raise ValueError("--board: only with --images (a correspondence file holds its "
                              "target points)")
         return read_correspondences(args.correspondences), str(args.correspondences), None, {}
-    from .calibration.detect import detect_corners, image_files
+    from .calibration.detect import detect_corners, image_files, summarize_skipped
     from .calibration.targets import Board
 
     if args.board is None:
@@ -260,32 +260,30 @@ def _fit_data(args: argparse.Namespace):
     files = image_files(args.images)
     data = detect_corners(files, board)
     print(f"{board}: found in {len(data.names)} of {len(files)} images of {args.images}")
-    for name, why in data.skipped.items():
-        print(f"  skipped {name}: {why}")
+    for line in summarize_skipped(data.skipped):   # one line per reason
+        print(f"  skipped {line}")
     return data, str(args.images), str(board), data.skipped
 
 
-def _fit_area(args: argparse.Namespace, camera, data) -> tuple[float | None, str, str | None]:
+def _fit_area(args: argparse.Namespace, camera, data, views
+              ) -> tuple[float | None, str, str | None]:
     """The full field of view (radians) over which coverage is judged, where it came from, and
     why the image circle was not used: ``--fov``; else the image circle of the images; else
     (not measurable: 0, NaN or an error) the corners' reach (twice the largest angle off axis
     of the detected corners' rays through the fitted camera), or the whole sensor where the
-    images are lit to its edges (None: the whole valid image). Measuring the area never turns
-    a finished fit into an error (issue 33)."""
+    images are lit to its edges (None: the whole valid image), from ``views``
+    (:func:`_view_images`). Measuring the area never turns a finished fit into an error
+    (issue 33)."""
     if args.fov is not None:
         return math.radians(args.fov), "--fov", None
     if args.images is None:
         return None, "whole sensor", None
     try:
-        import numpy as np
         from .calibration.convert import image_circle
-        from .calibration.detect import image_files
-        from .io.images import read_image
 
-        files = image_files(args.images)[:8]
-        mean = np.mean([read_image(f).double().numpy().reshape(camera.image_size + (-1,))
-                        .mean(-1) for f in files], axis=0)
-        fov = float(image_circle(mean, camera))
+        if isinstance(views, Exception):
+            raise views
+        fov = float(image_circle(views.mean(0), camera))
         why = f"it measured {fov:g} rad"
     except Exception as err:   # noqa: BLE001 (any failure of the measurement: fall back)
         fov, why = math.nan, f"{type(err).__name__}: {err}"
@@ -294,18 +292,65 @@ def _fit_area(args: argparse.Namespace, camera, data) -> tuple[float | None, str
                                       "circle lies beyond the sensor)")
     if math.isfinite(fov) and fov > 0:
         return fov, "image circle", None
-    import torch
-
-    with torch.no_grad():
-        rays, valid = camera.unproject(torch.cat(list(data.image_points)).to(
-            camera.params.dtype))
-        angle = torch.atan2(rays[..., :2].norm(dim=-1), rays[..., 2])[valid]
-    reach = float(angle.max()) if angle.numel() else math.nan
+    reach = _corners_reach(camera, data) / 2
     if not math.isfinite(reach) or reach <= 0:
         return None, "whole sensor", f"the image circle could not be measured ({why}), nor " \
             "the corners' reach"
     return min(2 * reach, 2 * math.pi), "corners' reach", \
         f"the image circle could not be measured ({why}: a dark centre or border?)"
+
+
+def _view_images(args: argparse.Namespace, data, camera):
+    """``(V, H, W)`` grey levels of up to 8 of the images where the board was found (not a
+    corrupt file the detection skipped); None without ``--images``, the error where they
+    cannot be read (the measurements that need them fall back)."""
+    if args.images is None:
+        return None
+    try:
+        import numpy as np
+
+        from .calibration.detect import image_files
+        from .io.images import read_image
+
+        files = [f for f in image_files(args.images)
+                 if "_".join(f.stem.split()) in set(data.names)][:8]
+        return np.stack([read_image(f).double().numpy().reshape(camera.image_size + (-1,))
+                         .mean(-1) for f in files])
+    except Exception as err:   # noqa: BLE001 (never lose the fit for a measurement)
+        return err
+
+
+def _fit_blind_cone(camera, data, views) -> float | None:
+    """The blind cone (full angle, radians) of the images: the disc about the axis dark in
+    every view (``calibration.convert.blind_cone`` of their per-pixel maximum), kept below the
+    corners' nearest angle to the axis; None where there is none or it cannot be measured."""
+    if views is None or isinstance(views, Exception):
+        return None
+    try:
+        from .calibration.convert import blind_cone
+
+        blind = blind_cone(views.max(0), camera)
+    except Exception:   # noqa: BLE001 (a measurement that fails leaves the cone out)
+        return None
+    angle = _corner_angles(camera, data)
+    if angle.numel():
+        blind = min(blind, 2 * float(angle.min()))
+    return blind if blind > 0 and blind < (camera.fov or 2 * math.pi) else None
+
+
+def _corner_angles(camera, data) -> torch.Tensor:
+    """The angles off axis (radians) of the corners' valid rays through ``camera``."""
+    with torch.no_grad():
+        rays, valid = camera.unproject(torch.cat(list(data.image_points)).to(
+            camera.params.dtype))
+        return torch.atan2(rays[..., :2].norm(dim=-1), rays[..., 2])[valid]
+
+
+def _corners_reach(camera, data) -> float:
+    """Twice the largest angle off axis of the corners' rays through ``camera`` (radians; NaN
+    where none is valid)."""
+    angle = _corner_angles(camera, data)
+    return 2 * float(angle.max()) if angle.numel() else math.nan
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
@@ -338,13 +383,21 @@ def cmd_fit(args: argparse.Namespace) -> int:
         print(f"omniscape-torch fit: did not converge ({result.reason}); nothing written",
               file=sys.stderr)
         return 1
-    fov, fov_source, fov_note = _fit_area(args, result.camera, data)
+    views = _view_images(args, data, result.camera)
+    fov, fov_source, fov_note = _fit_area(args, result.camera, data, views)
     if fov_note is not None:
         area = "the whole sensor" if fov is None else \
             f"the corners' reach, {math.degrees(fov):.1f} deg"
         print(f"omniscape-torch fit: field of view for coverage: {area}, as {fov_note}; set it "
               f"with --fov DEG", file=sys.stderr)
     coverage = assess_coverage(result.camera, result.covariance, data.image_points, fov=fov)
+    if fov is not None:   # camera.json keeps the area judged, for later conversions and exports
+        result.camera.fov = max(fov, min(_corners_reach(result.camera, data), 2 * math.pi))
+    blind = _fit_blind_cone(result.camera, data, views)
+    if blind is not None:
+        result.camera.blind_fov = blind
+        print(f"blind cone: {math.degrees(blind):.1f} deg about the optical axis, dark in every "
+              f"image (a catadioptric camera's own reflection); camera.json keeps it")
     area = "the whole image" if fov is None else f"a {math.degrees(fov):.1f} deg field of view"
     print(f"coverage over {area}: corners in {100 * coverage.cells:.0f}% of the cells, up to "
           f"{math.degrees(coverage.angle):.1f} of {math.degrees(coverage.half_fov):.1f} deg off "

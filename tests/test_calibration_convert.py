@@ -32,6 +32,7 @@ POLY3 = [320.0, 310.0, 1.0, 0.0, 0.0, -200.0, 0.0, 1.5e-3, -3e-6]
 #: Issue 34's sources: a Kannala-Brandt fisheye (130 deg across the 640 x 640 image) and
 #: OpenCV's radial-tangential webcam lens (k1..p2 of cv2.calibrateCamera).
 KB = [300.0, 301.0, 319.5, 318.5, 0.02, -0.01, 0.002, -0.0003]
+UNIFIED_SKEWED = [280.0, 285.0, 319.5, 318.5, 0.9, -0.05, 0.01, 0.001, -0.002, 1.5]
 RADTAN = [500.0, 502.0, 319.5, 318.5, -0.25, 0.08, 0.0005, -0.0003] + [0.0] * 8
 
 
@@ -301,6 +302,35 @@ def test_lm_at_a_minimum_it_cannot_improve_stops_converged():
             nudged = best.clone()
             nudged[i] += step * max(1.0, abs(float(best[i])))
             assert cost(nudged) >= base
+
+
+@pytest.mark.parametrize("source", [
+    pytest.param(lambda: _camera("kannala_brandt", KB), id="kannala_brandt"),
+    pytest.param(lambda: ot.Camera("unified", torch.tensor(UNIFIED_SKEWED, dtype=D), (640, 640),
+                                   fov=math.radians(220), blind_fov=math.radians(30)),
+                 id="unified with a skew and an area"),
+    pytest.param(lambda: ot.Camera.from_ocamcalib(OCAMCALIB_FILE), id="scaramuzza"),
+])
+def test_conversion_to_the_sources_own_model_is_the_source(source):
+    """No refit (issue 33): the parameters exactly, its area kept, zero held-out error."""
+    camera = source()
+    degree = camera.params.shape[-1] - 6 if camera.model.name == "scaramuzza" else 4
+    result = convert(camera, camera.model.name, degree=degree)
+    assert result.converged and result.fit.iterations == 0
+    assert torch.equal(result.camera.params, camera.params.double())
+    assert (result.camera.fov, result.camera.blind_fov) == (camera.fov, camera.blind_fov)
+    assert result.max_px < 1e-9 and result.unrepresentable == 0
+
+
+def test_cli_convert_model_to_the_same_model_writes_the_source(tmp_path, capsys):
+    camera = ot.Camera("kannala_brandt", torch.tensor(KB, dtype=D), (640, 640),
+                       fov=math.radians(196))
+    camera.save_json(tmp_path / "camera.json")
+    code = cli.main(["convert-model", "--json", str(tmp_path / "camera.json"), "--to",
+                     "kannala_brandt", "--out", str(tmp_path / "out")])
+    assert code == 0, capsys.readouterr().err
+    saved = json.loads((tmp_path / "out" / "kannala_brandt.json").read_text())
+    assert list(saved["params"].values()) == KB and saved["fov_deg"] == pytest.approx(196)
 
 
 def test_real_camera_degree_change():

@@ -375,6 +375,88 @@ def test_json_and_ocamcalib_complete_the_list(tmp_path):
 
 
 # --------------------------------------------------------------------------------------------
+# The imaged area (issue 33): every format keeps fov and blind_fov, its tool still reads it
+# --------------------------------------------------------------------------------------------
+
+#: (format, model, params, fov deg, blind fov deg, the tool's own reader projecting the rays)
+AREAS = [
+    ("opencv", "unified", UNIFIED, 200.0, 40.0, opencv_project),
+    ("kalibr", "unified", UNIFIED, 200.0, 40.0,
+     lambda path, rays: kalibr_project(_safe_load(path.read_text())["cam0"], rays)),
+    ("basalt", "unified", UCM, 200.0, 40.0,
+     lambda path, rays: basalt_project(json.loads(path.read_text()), rays)),
+    ("orbslam3", "kannala_brandt", KB, 150.0, None, orbslam3_project),
+    ("colmap", "kannala_brandt", KB, 150.0, 20.0, colmap_project),
+    ("ocamcalib", "scaramuzza", None, 170.0, 30.5, None),
+    ("json", "eucm", EUCM, 200.0, 40.0, None),
+]
+
+
+@pytest.mark.numerics
+@pytest.mark.parametrize("fmt, model, params, fov, blind, project", AREAS,
+                         ids=[a[0] for a in AREAS])
+def test_every_format_keeps_the_imaged_area(tmp_path, fmt, model, params, fov, blind,
+                                            project):
+    """``fov`` and ``blind_fov`` are read back by ``ot.Camera.load``, and the tool's own reader
+    (cv2.FileStorage, PyYAML, json, pycolmap) still reads the file and projects as the camera
+    does; OCamCalib's file: its five sections are the same as without the area."""
+    kwargs = dict(fov=math.radians(fov), blind_fov=None if blind is None else math.radians(blind))
+    if params is None:
+        poly = ot.Camera.from_ocamcalib(OCAMCALIB_FILE)
+        camera = ot.Camera(poly.model, poly.params, poly.image_size, **kwargs)
+    else:
+        camera = _camera(model, params, **kwargs)
+    name = "cameras.txt" if fmt == "colmap" else f"camera.{fmt}"   # pycolmap reads a folder
+    path = write_camera(camera, tmp_path / name, fmt)
+    back = ot.Camera.load(path, fmt)
+    assert back.fov == pytest.approx(camera.fov, rel=1e-12)
+    assert (back.blind_fov is None) == (blind is None)
+    if blind is not None:
+        assert back.blind_fov == pytest.approx(camera.blind_fov, rel=1e-12)
+    if project is not None:
+        rays = _rays(camera)
+        _compare(camera, rays, project(path, rays))
+    if fmt == "ocamcalib":
+        plain = write_camera(poly, tmp_path / "plain.txt", fmt).read_text()
+        assert path.read_text().startswith(plain) and f"{fov:.17g} 30.5" in path.read_text()
+    # a caller's fov / blind_fov override the file's
+    assert ot.Camera.load(path, fmt, fov=math.radians(100)).fov == math.radians(100)
+
+
+def test_a_fisheye_refusal_names_the_angle_of_its_image_circle(tmp_path):
+    """A 196-degree lens on a sensor whose corners lie farther off axis: with its ``fov``
+    (as camera.json keeps it) the refusal names 98 deg, not the sensor corners' angle."""
+    lens = [150.0, 150.0, 319.5, 239.5, 0.0, 0.0, 0.0, 0.0]
+    corner = math.degrees(math.hypot(319.5, 239.5) / 150.0)
+    with pytest.raises(ValueError, match=f"{corner:.2f} deg"):
+        write_camera(_camera("kannala_brandt", lens), tmp_path / "x.yaml", "opencv")
+    camera = _camera("kannala_brandt", lens, fov=math.radians(196))
+    back = ot.Camera.load_json(write_camera(camera, tmp_path / "camera.json", "json"))
+    with pytest.raises(ValueError, match=r"sees up to 98\.00 deg") as err:
+        write_camera(back, tmp_path / "x.yaml", "opencv")
+    assert f"{corner:.2f}" not in str(err.value)
+
+
+def test_cli_convert_model_judges_a_fit_by_its_fov(tmp_path, capsys):
+    """``convert-model --json camera.json --to kannala_brandt --format opencv`` of a camera
+    whose camera.json keeps its 196 degree field of view (as ``fit`` writes it): refused in
+    one line naming 98 deg, the lens's, not the sensor corners' angle; written with
+    ``--accept-fov`` and its area kept in the file."""
+    lens = [150.0, 150.0, 319.5, 239.5, 0.0, 0.0, 0.0, 0.0]
+    _camera("kannala_brandt", lens, fov=math.radians(196)).save_json(tmp_path / "camera.json")
+    argv = ["convert-model", "--json", str(tmp_path / "camera.json"), "--to", "kannala_brandt",
+            "--format", "opencv", "--out", str(tmp_path / "x.yaml")]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert "sees up to 98.00 deg" in err and len(err.strip().splitlines()) == 1, err
+    assert cli.main(argv + ["--accept-fov"]) == 0
+    assert "98.00 deg" in capsys.readouterr().err   # the warning of what was accepted
+    fs = cv2.FileStorage(str(tmp_path / "x.yaml"), cv2.FILE_STORAGE_READ)
+    assert fs.getNode("fov_deg").real() == pytest.approx(196)
+    assert ot.Camera.load(tmp_path / "x.yaml").fov == pytest.approx(math.pi)   # valid to 90
+
+
+# --------------------------------------------------------------------------------------------
 # Refusals and accepted limits
 # --------------------------------------------------------------------------------------------
 

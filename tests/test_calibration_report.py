@@ -499,3 +499,29 @@ def test_cli_leave_one_out_reports_the_resampled_error(tmp_path, monkeypatch):
         figures.append((report["resampling"]["pixel_error"], report["coverage"]["pixel_rms"]))
     assert figures[0][0] < 1e-6
     assert 1 / 3 < figures[1][0] / figures[1][1] < 3, figures
+
+
+# --------------------------------------------------------------------------------------------
+# uncertainty.png (issue 33)
+# --------------------------------------------------------------------------------------------
+
+def test_uncertainty_map_scales_to_the_corners_and_masks_what_no_one_sees(few_views_fit):
+    """The colour scale's top is the largest predicted error where the corners reach, not the
+    extrapolated rim's (3 views: the rim is worse); the map is blank (NaN) outside the
+    fov and inside the blind cone, and equal to the coverage's std elsewhere."""
+    from omniscape_torch.calibration.report import uncertainty_map
+
+    path, result = few_views_fit
+    data = ot.calibration.read_correspondences(path)
+    coverage = assess_coverage(result.camera, result.covariance, data.image_points)
+    rim = float(coverage.std_map[torch.isfinite(coverage.std_map)].max())
+    assert rim > 1.5 * coverage.max_pixel_std   # the rim set the scale before issue 33
+    camera = ot.Camera(result.camera.model, result.camera.params, result.camera.image_size,
+                       fov=math.radians(160), blind_fov=math.radians(40))
+    std, top = uncertainty_map(coverage, camera)
+    assert top == max(coverage.max_pixel_std, 1.2 * THRESHOLDS["max_pixel_error"])
+    rays, _ = camera.model.unproject(coverage.grid, camera.params)
+    theta = torch.rad2deg(torch.atan2(rays[..., :2].norm(dim=-1), rays[..., 2]))
+    assert bool(std[theta <= 20].isnan().all()) and bool(std[theta > 80].isnan().all())
+    seen = (theta > 20) & (theta <= 79)
+    assert int(seen.sum()) > 100 and torch.equal(std[seen], coverage.std_map[seen])

@@ -37,6 +37,11 @@ Held by default: ``CONVERT_FREEZE``, and the target's tangential and thin-prism 
 (``ASYMMETRIC``) where the source lens has none (it is radially symmetric, apart from an
 affine term, which the rotation and the skew hold): a symmetric lens needs none of them.
 
+The source's own model (of the same polynomial degree, for ``scaramuzza``), without ``init``,
+``freeze`` or a fitted rotation: nothing is fitted; the target is the source's parameters,
+exactly, valid over the converted area (``fov``, else the source's), and the errors are measured
+on the held-out grid as for any target (zero, to rounding).
+
 Starting values: the target's centre is the source's (``cx, cy``); a ``scaramuzza`` target gets
 its polynomial from a linear least-squares fit of ``g(rho) = rho z / |(x, y)|`` to the rays;
 the other models their undistorted defaults with the focal length that matches the source's
@@ -184,24 +189,73 @@ def image_circle(image, camera: Camera) -> float:
     ch, cw = max(h // 32, 1), max(w // 32, 1)
     corners = torch.cat([blurred[:ch, :cw], blurred[:ch, -cw:], blurred[-ch:, :cw],
                          blurred[-ch:, -cw:]], 0)
-    rays, valid = Camera(camera.model, camera.params.detach().double(), (h, w)).ray_grid()
+    # the rings on every step-th pixel (about 200k: a fisheye's ray grid is its cost)
+    step = max(math.ceil(math.sqrt(h * w / 200_000)), 1)
+    source = Camera(camera.model, camera.params.detach().double(), (h, w))
+    with torch.no_grad():
+        rays, valid = source.unproject(source.pixel_grid()[::step, ::step])
+    sub = blurred[::step, ::step]
     angle = torch.rad2deg(torch.acos(rays[..., 2].double().clamp(-1, 1)))
     row, col = torch.nonzero(valid & (angle == angle[valid].min()))[0].tolist()
-    near = torch.hypot(torch.arange(h, dtype=torch.float64)[:, None] - row,
-                       torch.arange(w, dtype=torch.float64) - col) < min(h, w) / 8
-    dark, bright = corners.median(), blurred[near].median()
+    near = torch.hypot(torch.arange(0, h, step, dtype=torch.float64)[:, None] - row * step,
+                       torch.arange(0, w, step, dtype=torch.float64) - col * step) < min(h, w) / 8
+    dark, bright = corners.median(), sub[near].median()
     lo, hi = torch.quantile(blurred.flatten()[::max(h * w // 200_000, 1)],
                             torch.tensor([0.01, 0.99], dtype=torch.float64)).tolist()
     if hi <= lo or float(dark) > lo + 0.25 * (hi - lo):
         return 2 * math.pi   # lit to the sensor's corners (or uniform): no circle within it
     if bright <= dark:
         return 0.0
-    lit = blurred > dark + 0.25 * (bright - dark)
+    lit = sub > dark + 0.25 * (bright - dark)
     ring = angle[valid].floor().long()
     count = torch.bincount(ring, minlength=181)
     share = torch.bincount(ring, lit[valid].double(), minlength=181) / count.clamp_min(1)
     unlit = ((share < 0.5) & (count > 0)).nonzero()
     return 2 * math.pi if len(unlit) == 0 else 2 * math.radians(float(unlit[0, 0]))
+
+
+def blind_cone(image, camera: Camera) -> float:
+    """The blind cone (full angle, radians) of a catadioptric photograph: the dark disc about
+    the optical axis where the camera sees its own reflection in the mirror.
+
+    Over rings of 1 degree about the axis (``camera``'s valid pixels, every step-th as in
+    :func:`image_circle`, after a 5 x 5 box blur), the cone ends at the first ring whose median
+    is above halfway from the innermost ring's median to the lit level (the 90th percentile of
+    the rings' medians). ``0`` where the innermost ring is itself lit (a fisheye) or no ring is.
+    Give it the mean of several views (``fit --images`` does), so that a dark square of the
+    board is not taken for the camera; ``fit`` also keeps the cone below the corners' nearest
+    angle to the axis.
+
+    Args:
+        image: ``(H, W)``, ``(H, W, C)`` or ``(C, H, W)`` array or tensor, any dtype.
+        camera: the camera that took it (its ``image_size`` is the image's).
+    """
+    img = torch.as_tensor(image).double()
+    h, w = camera.image_size
+    if img.dim() == 3:
+        img = img.mean(0) if img.shape[1:] == (h, w) else img.mean(-1)
+    if tuple(img.shape) != (h, w):
+        raise ValueError(f"image: expected an image of the camera's size {(h, w)}, got shape "
+                         f"{tuple(torch.as_tensor(image).shape)}")
+    step = max(math.ceil(math.sqrt(h * w / 200_000)), 1)
+    blurred = torch.nn.functional.avg_pool2d(img[None, None], 5, 1, 2,
+                                             count_include_pad=False)[0, 0][::step, ::step]
+    source = Camera(camera.model, camera.params.detach().double(), (h, w))
+    with torch.no_grad():
+        rays, valid = source.unproject(source.pixel_grid()[::step, ::step])
+    if not bool(valid.any()):
+        return 0.0
+    ring = torch.rad2deg(torch.acos(rays[..., 2].clamp(-1, 1)))[valid].floor().long()
+    levels = blurred[valid]
+    rings = torch.unique(ring)
+    medians = torch.stack([levels[ring == r].median() for r in rings])
+    inner, lit = float(medians[0]), float(torch.quantile(medians, 0.9))
+    if lit <= inner or rings[0] > 2:
+        return 0.0
+    bright = (medians > inner + 0.5 * (lit - inner)).nonzero()
+    if len(bright) == 0 or int(bright[0, 0]) == 0:
+        return 0.0
+    return 2 * math.radians(float(rings[int(bright[0, 0])]))
 
 
 def without_affine(camera: Camera) -> Camera:
@@ -329,6 +383,11 @@ def convert(camera: Camera, to_model: str | CameraModel, *, degree: int = 4, gri
     field = None if fov is None or fov >= 2 * math.pi else fov / 2
     pixels, rays = sample_pixels(camera, grid, 0.25, max_field=field, mask=mask)
     held_pixels, held_rays = sample_pixels(camera, grid, 0.75, max_field=field, mask=mask)
+    if init is None and freeze is None and not rotation and _same_model(camera, target, degree):
+        out = Camera(target, camera.params.detach().double().clone(), camera.image_size,
+                     fov=fov, blind_fov=camera.blind_fov)
+        return _held_out(out, _unchanged(out), held_pixels, held_rays, len(pixels),
+                         torch.eye(3, dtype=torch.float64))
     affine = _has_affine(camera) and target.name != "scaramuzza"
     rotate = affine if rotation is None else bool(rotation)
     skewed = (affine if skew is None else bool(skew)) and bool(target.optional)
@@ -378,17 +437,42 @@ def convert(camera: Camera, to_model: str | CameraModel, *, degree: int = 4, gri
 
     turn = (axis_angle_to_matrix(result.poses[0, :3]) if rotate
             else torch.eye(3, dtype=torch.float64))
-    nan = math.nan
-    max_field = float(torch.acos(held_rays[:, 2].clamp(-1, 1)).max()) if len(held_rays) else nan
     out = result.camera
     if out is not None:   # valid where it was fitted: the area's fov, else the samples' reach
         reach = float(torch.acos(torch.cat((rays, held_rays))[:, 2].clamp(-1, 1)).max())
         out = Camera(target, result.params, camera.image_size,
                      fov=fov if fov is not None else min(2 * reach, 2 * math.pi),
                      blind_fov=camera.blind_fov)
+    return _held_out(out, result, held_pixels, held_rays, int(keep.sum()), turn)
+
+
+def _same_model(camera: Camera, target: CameraModel, degree: int) -> bool:
+    """Whether ``target`` is the source's own model (of polynomial degree ``degree``, for
+    ``scaramuzza``: its coefficients ``a0..a_degree`` after ``cx, cy, c, d, e``)."""
+    if target.name != camera.model.name:
+        return False
+    return target.name != "scaramuzza" or camera.params.shape[-1] == 6 + degree
+
+
+def _unchanged(camera: Camera) -> FitResult:
+    """The :class:`FitResult` of a conversion to the source's own model: nothing fitted."""
+    p = camera.params.shape[-1]
+    zeros = torch.zeros(p, p, dtype=torch.float64)
+    return FitResult(camera, camera.params, camera.param_names, (), torch.zeros(0, 6,
+                     dtype=torch.float64), 0.0, True, "the source's own model: its parameters, "
+                     "exactly (nothing fitted)", 0, "none", zeros, zeros[0], [], 0, 0.0,
+                     math.nan, 0, 0, 0.0)
+
+
+def _held_out(out: Camera | None, result: FitResult, held_pixels: Tensor, held_rays: Tensor,
+              num_samples: int, turn: Tensor) -> ConversionResult:
+    """The :class:`ConversionResult` of ``out``: its errors on the held-out grid."""
+    nan = math.nan
+    max_field = float(torch.acos(held_rays[:, 2].clamp(-1, 1)).max()) if len(held_rays) else nan
     if out is None:
         return ConversionResult(None, result, nan, nan, nan, nan, nan,
-                                len(result.free_names), int(keep.sum()), turn, max_field)
+                                len(result.free_names), num_samples, turn, max_field)
+    target = out.model
     turned = held_rays @ turn.T
     projected, ok_p = target.project(turned, result.params)
     back, ok_u = target.unproject(held_pixels, result.params)
@@ -398,12 +482,12 @@ def convert(camera: Camera, to_model: str | CameraModel, *, degree: int = 4, gri
     angle = torch.atan2(cross, (back * turned).sum(-1))[ok]
     if not bool(ok.any()):
         return ConversionResult(out, result, nan, nan, nan, nan, 1.0, len(result.free_names),
-                                int(keep.sum()), turn, max_field)
+                                num_samples, turn, max_field)
     return ConversionResult(
         out, result, max_px=float(px.max()), rms_px=float(torch.sqrt((px * px).mean())),
         max_angle=float(angle.max()), rms_angle=float(torch.sqrt((angle * angle).mean())),
         unrepresentable=float(1 - ok.double().mean()), num_params=len(result.free_names),
-        num_samples=int(keep.sum()), rotation=turn, max_field=max_field)
+        num_samples=num_samples, rotation=turn, max_field=max_field)
 
 
 def _turn(rays: Tensor, poses: Tensor) -> Tensor:

@@ -290,24 +290,47 @@ def _colormap(name: str):
     return matplotlib.colormaps[name]
 
 
+def uncertainty_map(coverage: Coverage, camera=None) -> tuple[Tensor, float]:
+    """What ``uncertainty.png`` draws: the predicted pixel error at ``coverage.grid`` with NaN
+    where no camera sees (outside the calibrated area: the image circle or ``fov``; inside
+    ``camera.blind_fov``, a catadioptric camera's blind spot), and the top of its colour
+    scale: the largest error over the area the corners reach (``coverage.max_pixel_std``),
+    at least 1.2 times the limit, so that the extrapolated rim does not turn the covered area
+    black (errors above it are drawn in the top colour)."""
+    std = coverage.std_map.clone()
+    if camera is not None and (camera.fov, camera.blind_fov) != (None, None):
+        with torch.no_grad():
+            rays, _ = camera.model.unproject(coverage.grid.to(camera.params.dtype),
+                                             camera.params.detach())
+        std[~camera.within_fov(rays)] = math.nan
+    limit = coverage.thresholds["max_pixel_error"]
+    finite = std[torch.isfinite(std)]
+    reach = coverage.max_pixel_std if math.isfinite(coverage.max_pixel_std) else (
+        float(finite.max()) if finite.numel() else 1.0)
+    return std, max(reach, 1.2 * limit)
+
+
 def plot_uncertainty(coverage: Coverage, image_points: Sequence[Tensor],
-                     image_size: tuple[int, int], path: str | Path) -> Path:
-    """``uncertainty.png``: the predicted pixel error over the calibrated area (colour, with
-    the limit's contour), the corners (dots) and the coverage figures in the title."""
+                     image_size: tuple[int, int], path: str | Path, *, camera=None) -> Path:
+    """``uncertainty.png``: the predicted pixel error over the calibrated area (colour, scaled
+    to the area the corners reach, :func:`uncertainty_map`; grey where the camera sees
+    nothing: outside its image circle, inside ``camera.blind_fov``), the limit's contour,
+    the corners (dots) and the coverage figures in the title."""
     h, w = image_size
     fig = _figure(8, 8 * h / w + 1)
     ax = fig.add_subplot(1, 1, 1)
     import numpy as np
 
-    std = coverage.std_map.clone()
+    std, top = uncertainty_map(coverage, camera)
     finite = std[torch.isfinite(std)]
     limit = coverage.thresholds["max_pixel_error"]
-    top = max(float(finite.max()) if finite.numel() else 1.0, limit * 1.2)
     std = torch.where(torch.isinf(std), torch.full_like(std, top), std)
     gh, gw = std.shape
-    image = ax.imshow(std.numpy(), extent=(-0.5, w - 0.5, h - 0.5, -0.5), cmap="magma",
+    cmap = _colormap("magma").with_extremes(bad="0.6")
+    image = ax.imshow(std.numpy(), extent=(-0.5, w - 0.5, h - 0.5, -0.5), cmap=cmap,
                       vmin=0, vmax=top, interpolation="nearest")
-    fig.colorbar(image, ax=ax, label="predicted pixel error, 1 sigma (px)", shrink=0.8)
+    fig.colorbar(image, ax=ax, label="predicted pixel error, 1 sigma (px)", shrink=0.8,
+                 extend="max" if finite.numel() and float(finite.max()) > top else "neither")
     grid = coverage.grid
     if gh > 1 and gw > 1 and finite.numel() and float(finite.min()) < limit < top:
         # the limit's contour, outside the area masked (no line along its edge)
@@ -373,6 +396,8 @@ def write_fit_files(folder: str | Path, result, data: Correspondences, *,
                         resampling=resampling)
     summary = result.to_dict()
     extra = {} if coverage is None else {"coverage": coverage.to_dict()}
+    if fov_source is not None:   # the camera's fov_deg: where it came from
+        extra["fov_source"] = fov_source
     files.insert(0, save_result(camera, {**summary, **extra}, "fit", folder / "camera.json"))
     drawn = False
     if plots:
@@ -388,7 +413,8 @@ def write_fit_files(folder: str | Path, result, data: Correspondences, *,
                                             folder / "residuals.png", data.names))
                 if coverage is not None:
                     files.append(plot_uncertainty(coverage, data.image_points,
-                                                  data.image_size, folder / "uncertainty.png"))
+                                                  data.image_size, folder / "uncertainty.png",
+                                                  camera=camera))
             drawn = True
     report["plots"] = drawn
     report["warnings"] = ([] if coverage is None else list(coverage.warnings)) + notes

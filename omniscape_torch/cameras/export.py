@@ -43,6 +43,14 @@ The conventions of these files are converted here and nowhere else:
 * basalt's ``ucm`` is the unified model in the alpha form of its ``unified_camera.hpp``,
   ``u = fx x / (alpha |X| + (1 - alpha) z) + cx``: ``alpha = xi / (1 + xi)`` and focal lengths
   divided by ``1 + xi``.
+* The imaged area: a camera's ``fov`` and ``blind_fov`` (the image circle and a catadioptric
+  camera's blind cone, full angles) have no field in any of these tools' files; every writer
+  keeps them where the tool's own reader passes over them, and ``ot.Camera.load`` reads them
+  back, so that a later conversion or export judges the area the camera images, not the whole
+  sensor: ``fov_deg`` / ``blind_fov_deg`` keys (OpenCV, ORB-SLAM3 top level, Kalibr under
+  ``cam0``), an ``"omniscape_torch"`` object beside basalt's ``value0``, ``# fov_deg: ...``
+  comments in COLMAP's ``cameras.txt`` and a sixth ``#field of view`` section after OCamCalib's
+  five (``formats.write_ocamcalib``).
 * Skew ``s`` (``u = fx x + s y + cx``): OpenCV ``omnidir``'s ``K[0, 1]``; for OpenCV ``fisheye``,
   ``K[0, 1] = s`` as ``cv::fisheye::calibrate`` writes it, and ``cv2.fisheye.projectPoints``
   (which ignores ``K[0, 1]``) takes ``alpha = K[0, 1] / K[0, 0]``. The other formats have none.
@@ -235,6 +243,17 @@ def _list(values) -> str:
     return "[" + ", ".join(_num(v) for v in values) + "]"
 
 
+def area_fields(camera) -> list[tuple[str, float]]:
+    """``[("fov_deg", ...), ("blind_fov_deg", ...)]``: the camera's ``fov`` and ``blind_fov``
+    (full angles, degrees) where set (module docstring: how each format keeps them)."""
+    return [(key, math.degrees(value)) for key, value in
+            (("fov_deg", camera.fov), ("blind_fov_deg", camera.blind_fov)) if value is not None]
+
+
+def _area_keys(camera, indent: str = "") -> list[str]:
+    return [f"{indent}{key}: {_num(value)}" for key, value in area_fields(camera)]
+
+
 def _comments(camera, tool: str, notes: list[str], extra: tuple[str, ...] = ()) -> list[str]:
     h, w = camera.image_size
     lines = [f"# omniscape_torch: a {camera.model.name} camera of {w} x {h} pixels as {tool}."]
@@ -297,7 +316,7 @@ def _opencv(camera, p: dict, s: float, notes: list[str], valid_angle) -> str:
     lines += _comments(camera, f"OpenCV's {kind} model, pixel centres at integers",
                        notes, usage)
     lines += [f'camera_model: "{kind}"', f"image_width: {w}", f"image_height: {h}"]
-    lines += _opencv_matrix(k_name, 3, 3, K) + D
+    lines += _opencv_matrix(k_name, 3, 3, K) + D + _area_keys(camera)
     if valid_angle is not None:
         lines.append(f"valid_angle_deg: {_num(valid_angle)}")
     return "\n".join(lines) + "\n"
@@ -340,6 +359,7 @@ def _kalibr(camera, p: dict, s: float, notes: list[str], valid_angle) -> str:
     lines += ["cam0:", f"  camera_model: {kind}", f"  intrinsics: {_list(intr)}",
               f"  distortion_model: {dist}", f"  distortion_coeffs: {_list(coeffs)}",
               f"  resolution: [{w}, {h}]", "  cam_overlaps: []", "  rostopic: /cam0/image_raw"]
+    lines += _area_keys(camera, "  ")
     if valid_angle is not None:
         lines.append(f"  valid_angle_deg: {_num(valid_angle)}")
     return "\n".join(lines) + "\n"
@@ -381,6 +401,8 @@ def _basalt(camera, p: dict, s: float, notes: list[str], valid_angle) -> str:
         "accel_noise_std": zeros, "gyro_noise_std": zeros, "accel_bias_std": zeros,
         "gyro_bias_std": zeros, "cam_time_offset_ns": 0, "vignette": [],
     }}
+    if area_fields(camera):   # beside value0, which basalt reads (cereal ignores the rest)
+        data["omniscape_torch"] = dict(area_fields(camera))
     return json.dumps(data, indent=4) + "\n"
 
 
@@ -398,7 +420,7 @@ def _orbslam3(camera, p: dict, s: float, notes: list[str], valid_angle) -> str:
                         "Examples/Monocular/TUM-VI.yaml: set them for your sequence."))
     lines += ['File.version: "1.0"', "", f'Camera.type: "{kind}"', ""]
     lines += [f"Camera1.{n}: {_num(p[n])}" for n in names]
-    lines += ["", f"Camera.width: {w}", f"Camera.height: {h}"]
+    lines += ["", f"Camera.width: {w}", f"Camera.height: {h}"] + _area_keys(camera)
     if valid_angle is not None:
         lines.append(f"valid_angle_deg: {_num(valid_angle)}")
     lines.append("")
@@ -430,6 +452,7 @@ def _colmap(camera, p: dict, s: float, notes: list[str], valid_angle) -> str:
                 "fisheye624": "RAD_TAN_THIN_PRISM_FISHEYE"}[model]
         params += [p[n] for n in extra_names[model]]
     extra = ("cx, cy are omniscape_torch's + 0.5 (COLMAP's top-left pixel centre is (0.5, 0.5)).",)
+    extra += tuple(_area_keys(camera))
     if valid_angle is not None:
         extra += (f"valid_angle_deg: {_num(valid_angle)}",)
     lines = ["# Camera list with one line of data per camera:",

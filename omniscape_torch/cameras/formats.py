@@ -37,6 +37,12 @@ _OCAM_SECTIONS = (
     '#image size: "height" and "width"',
 )
 
+#: A sixth section after OCamCalib's five, which its readers (``get_ocam_model``, the MATLAB
+#: toolbox) never reach: the camera's ``fov`` and ``blind_fov``, full angles in degrees, ``-``
+#: where unset (``export.py``: every format keeps the imaged area).
+_OCAM_AREA = ('#field of view and blind cone: full angles in degrees, "-" for none '
+              '(omniscape_torch; OCamCalib reads only the sections above)')
+
 
 def _ocam_sections(path: Path) -> list[tuple[int, list[str]]]:
     """Group the data lines of a calib_results.txt under its five comment headers."""
@@ -121,6 +127,8 @@ def read_ocamcalib(cls, path: str | Path, *, dtype: torch.dtype = torch.float64,
         raise ValueError(f"{path}, line {l_s}: image size: expected positive integers, got {size}")
     row, col = centre
     params = torch.tensor([col, row, *affine, *pol], dtype=dtype)
+    if len(sections) > 5 and _OCAM_AREA in path.read_text():   # ours, not another tool's
+        kwargs = {**_ocam_area(path, *sections[5]), **kwargs}
     try:
         camera = cls("scaramuzza", params, (int(size[0]), int(size[1])), **kwargs)
     except ValueError as err:
@@ -130,6 +138,17 @@ def read_ocamcalib(cls, path: str | Path, *, dtype: torch.dtype = torch.float64,
         raise ValueError(f"{where}: {err}") from None
     camera.invpol = torch.tensor(invpol, dtype=dtype)
     return camera
+
+
+def _ocam_area(path: Path, line: int, tokens: list[str]) -> dict:
+    """``fov`` and ``blind_fov`` (radians) of the ``_OCAM_AREA`` section."""
+    if len(tokens) != 2:
+        raise ValueError(f"{path}, line {line}: field of view and blind cone: expected 2 "
+                         f"values (degrees or -), got {len(tokens)}")
+    values = [None if t == "-" else _numbers(path, line, [t], "field of view")[0]
+              for t in tokens]
+    return {name: None if v is None else math.radians(v)
+            for name, v in zip(("fov", "blind_fov"), values)}
 
 
 def fit_invpol(camera, *, max_error: float = 0.01, max_degree: int = 20,
@@ -173,7 +192,8 @@ def write_ocamcalib(camera, path: str | Path, *, max_error: float = 0.01) -> Pat
 
     The layout is the one OCamCalib's ``export_data`` writes and its C ``get_ocam_model`` reads;
     the inverse polynomial is refitted (``fit_invpol``, within ``max_error`` px); numbers are
-    written with 17 significant digits. Written atomically.
+    written with 17 significant digits; the camera's ``fov`` / ``blind_fov``, where set, in a
+    sixth section that OCamCalib's readers never reach. Written atomically.
     """
     if camera.model.name != "scaramuzza" or camera.batch_shape != ():
         raise ValueError(f"camera: OCamCalib files hold one scaramuzza camera, got "
@@ -190,6 +210,10 @@ def write_ocamcalib(camera, path: str | Path, *, max_error: float = 0.01) -> Pat
         _OCAM_SECTIONS[3], "", f"{g(c)} {g(d)} {g(e)}", "",
         _OCAM_SECTIONS[4], "", f"{h} {w}", "",
     ]
+    if camera.fov is not None or camera.blind_fov is not None:
+        angles = [("-" if a is None else g(math.degrees(a))) for a in (camera.fov,
+                                                                       camera.blind_fov)]
+        lines += [_OCAM_AREA, "", " ".join(angles), ""]
     return atomic_write_text(path, "\n".join(lines))
 
 
@@ -330,7 +354,8 @@ def camera_to_dict(camera) -> dict:
 
 
 def camera_from_dict(cls, data: dict, *, dtype: torch.dtype = torch.float64, **kwargs):
-    """Inverse of ``camera_to_dict``."""
+    """Inverse of ``camera_to_dict``; ``fov`` / ``blind_fov`` in ``kwargs`` override the
+    file's."""
     if not isinstance(data, dict):
         raise TypeError(f"data: expected a dict, got {type(data).__name__}")
     missing = {"model", "image_size", "params"} - set(data)
@@ -353,9 +378,9 @@ def camera_from_dict(cls, data: dict, *, dtype: torch.dtype = torch.float64, **k
     elif "batch_shape" in data:
         params = params.reshape(*data["batch_shape"], params.shape[-1])
     fov, blind = data.get("fov_deg"), data.get("blind_fov_deg")
-    camera = cls(model, params, tuple(data["image_size"]),
-                    fov=None if fov is None else math.radians(fov),
-                    blind_fov=None if blind is None else math.radians(blind), **kwargs)
+    area = {"fov": None if fov is None else math.radians(fov),
+            "blind_fov": None if blind is None else math.radians(blind)}
+    camera = cls(model, params, tuple(data["image_size"]), **{**area, **kwargs})
     if data.get("invpol") is not None:
         camera.invpol = torch.tensor(data["invpol"], dtype=dtype)
     return camera

@@ -50,8 +50,12 @@ Conventions, converted here and nowhere else (as ``export.py`` does for writing)
   ``Camera.width``/``Camera.height``, or an Aria label of unknown size, need ``image_size=``.
 * basalt's ``ucm`` is the unified model in its alpha form: ``xi = alpha / (1 - alpha)``, focal
   lengths divided by ``1 - alpha`` (the inverse of the writer's; equal to the last bit or two).
-* A camera the writer recorded as valid below 90 degrees only (``valid_angle_deg``) is read with
-  ``fov`` twice that angle.
+* The imaged area the writer kept (``export.py``): ``fov_deg`` and ``blind_fov_deg`` keys (full
+  angles; under ``cam0`` for Kalibr, in an ``"omniscape_torch"`` object beside basalt's
+  ``value0``, ``# fov_deg: ...`` comments in COLMAP's ``cameras.txt``) are read as the camera's
+  ``fov`` and ``blind_fov``; a camera recorded as valid below 90 degrees only
+  (``valid_angle_deg``) is read with ``fov`` twice that angle at most. ``fov=`` / ``blind_fov=``
+  passed by the caller take precedence.
 
 YAML is read with PyYAML (a requirement; OpenCV's ``%YAML:1.0`` header and ``!!opencv-matrix``
 tags understood), so no file needs OpenCV to be read. A malformed file, a model the registry lacks, or a
@@ -299,8 +303,23 @@ class _Builder:
                              f"omniscape_torch lacks (its models: {', '.join(MODELS)})")
         return model
 
-    def make(self, name: str, key: str, model: str, params, size_wh, *, fov_deg=None) -> None:
-        """``size_wh``: (W, H) from the file, or None."""
+    def area(self, data, prefix: str = "") -> dict:
+        """``fov`` / ``blind_fov`` (radians) of the ``fov_deg``, ``blind_fov_deg`` and
+        ``valid_angle_deg`` keys of ``data`` (a mapping; module docstring)."""
+        if not isinstance(data, dict):
+            return {}
+        deg = {k: None if data.get(k) is None else _number(self, prefix + k, data[k])
+               for k in ("fov_deg", "blind_fov_deg", "valid_angle_deg")}
+        fovs = [v for v in (deg["fov_deg"], None if deg["valid_angle_deg"] is None
+                            else 2 * deg["valid_angle_deg"]) if v is not None]
+        out = {} if not fovs else {"fov": math.radians(min(fovs))}
+        if deg["blind_fov_deg"] is not None:
+            out["blind_fov"] = math.radians(deg["blind_fov_deg"])
+        return out
+
+    def make(self, name: str, key: str, model: str, params, size_wh, *, area=None) -> None:
+        """``size_wh``: (W, H) from the file, or None; ``area``: ``fov`` / ``blind_fov`` from
+        the file (:meth:`area`), below the caller's."""
         if self.image_size is not None:
             size = tuple(self.image_size)
         elif size_wh is None:
@@ -309,8 +328,8 @@ class _Builder:
         else:
             size = (size_wh[1], size_wh[0])
         kwargs = dict(self.kwargs)
-        if fov_deg is not None and "fov" not in kwargs:
-            kwargs["fov"] = math.radians(2 * fov_deg)
+        for k, v in (area or {}).items():
+            kwargs.setdefault(k, v)
         try:
             camera = self.cls(model, torch.tensor(params, dtype=self.dtype), size, **kwargs)
         except (ValueError, TypeError) as err:
@@ -439,21 +458,20 @@ def _opencv(build, data) -> None:
         kind = "omnidir" if "xi" in data else "pinhole"
     fx, s, cx, fy, cy = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
     skew = [s] if s != 0 else []
-    angle = data.get("valid_angle_deg")
-    angle = None if angle is None else _number(build, "valid_angle_deg", angle)
+    angle = build.area(data)
     if kind == "fisheye":
         if len(D) != 4:
             raise ValueError(f"{build.where}: {d_key or 'D'}: the fisheye model takes 4 "
                              f"coefficients (k1..k4), got {len(D)}")
         build.make("camera", k_key, "kannala_brandt", [fx, fy, cx, cy, *D, *skew], size,
-                   fov_deg=angle)
+                   area=angle)
     elif kind == "omnidir":
         if len(D) != 4:
             raise ValueError(f"{build.where}: {d_key or 'D'}: the omnidir model takes 4 "
                              f"coefficients (k1, k2, p1, p2), got {len(D)}")
         xi = _number(build, "xi", np.asarray(_get(build, data, "xi")).ravel()[0])
         build.make("camera", k_key, "unified", [fx, fy, cx, cy, xi, *D, *skew], size,
-                   fov_deg=angle)
+                   area=angle)
     elif kind == "pinhole":
         if skew:
             raise ValueError(f"{build.where}: {k_key}: a pinhole camera with a skew "
@@ -462,11 +480,11 @@ def _opencv(build, data) -> None:
             raise ValueError(f"{build.where}: {d_key}: the tilted-sensor terms tauX, tauY "
                              f"(coefficients 13, 14) have no registry model (expected 0)")
         if not any(D):
-            build.make("camera", k_key, "pinhole", [fx, fy, cx, cy], size, fov_deg=angle)
+            build.make("camera", k_key, "pinhole", [fx, fy, cx, cy], size, area=angle)
             return
         model = build.model("opencv", d_key, "OpenCV's pinhole with distortion")
         coeffs = (D + [0.0] * 12)[:12]
-        build.make("camera", d_key, model, [fx, fy, cx, cy, *coeffs], size, fov_deg=angle)
+        build.make("camera", d_key, model, [fx, fy, cx, cy, *coeffs], size, area=angle)
     else:
         raise ValueError(f"{build.where}: camera_model: expected fisheye, omnidir or pinhole "
                          f"(cv2.fisheye, cv2.omnidir, cv2.calibrateCamera), got {kind!r}")
@@ -488,8 +506,7 @@ def _kalibr(build, data) -> None:
         intr = cam.get("intrinsics")
         coeffs = _numbers(build, key + "distortion_coeffs", cam.get("distortion_coeffs") or [])
         size = _size(build, key + "resolution", _get(build, cam, "resolution", key))
-        angle = cam.get("valid_angle_deg")
-        angle = None if angle is None else _number(build, key + "valid_angle_deg", angle)
+        angle = build.area(cam, key)
         pair = f"{kind}-{dist}"
 
         def need(n_coeffs: int) -> None:
@@ -534,7 +551,7 @@ def _kalibr(build, data) -> None:
             raise ValueError(f"{build.where}: {key}camera_model/distortion_model: {pair} has no "
                              f"registry model (read: pinhole-none/radtan/equidistant/fov, "
                              f"omni-none/radtan, ds-none, eucm-none)")
-        build.make(str(name), key + "intrinsics", model, params, size, fov_deg=angle)
+        build.make(str(name), key + "intrinsics", model, params, size, area=angle)
     if not build.cameras:
         raise ValueError(f"{build.where}: no camera (expected cam0: with camera_model, "
                          f"intrinsics, distortion_model, distortion_coeffs, resolution)")
@@ -583,7 +600,8 @@ def _basalt(build, data) -> None:
             raise ValueError(f"{build.where}: value0.resolution[{i}]: missing (one [width, "
                              f"height] per camera)")
         size = _size(build, f"value0.resolution[{i}]", sizes[i])
-        build.make(f"cam{i}", key, model, params, size)
+        build.make(f"cam{i}", key, model, params, size,
+                   area=build.area(data.get("omniscape_torch"), "omniscape_torch."))
 
 
 # --------------------------------------------------------------------------------------------
@@ -600,8 +618,7 @@ def _orbslam3(build, data) -> None:
                          f"Rectified, got {kind!r}")
     w, h = data.get("Camera.width"), data.get("Camera.height")
     size = None if w is None or h is None else _size(build, "Camera.width/Camera.height", [w, h])
-    angle = data.get("valid_angle_deg")
-    angle = None if angle is None else _number(build, "valid_angle_deg", angle)
+    angle = build.area(data)
     prefixes = [p for p in ("Camera1", "Camera2") if f"{p}.fx" in data] or ["Camera"]
     if prefixes == ["Camera2"]:
         prefixes = ["Camera", "Camera2"]   # the older stereo format: Camera.fx and Camera2.fx
@@ -625,7 +642,7 @@ def _orbslam3(build, data) -> None:
             else:
                 model = build.model("opencv", f"{prefix}.k1", "PinHole with distortion")
                 params = focal + coeffs + [0.0] * 7
-        build.make(prefix, f"{prefix}.fx", model, params, size, fov_deg=angle)
+        build.make(prefix, f"{prefix}.fx", model, params, size, area=angle)
 
 
 # --------------------------------------------------------------------------------------------
@@ -633,7 +650,7 @@ def _orbslam3(build, data) -> None:
 # --------------------------------------------------------------------------------------------
 
 def _colmap_camera(build, name: str, key: str, model_name: str, width: int, height: int,
-                   values: list[float]) -> None:
+                   values: list[float], area: dict | None = None) -> None:
     if model_name in _COLMAP_UNREAD.values():
         raise ValueError(f"{build.where}: {key}: COLMAP's {model_name} has no registry model "
                          f"(read: {', '.join(_COLMAP_BY_NAME)})")
@@ -676,10 +693,15 @@ def _colmap_camera(build, name: str, key: str, model_name: str, width: int, heig
         params = focal + k("k0", "k1", "k2", "k3", "k4", "k5", "p0", "p1", "s0", "s1", "s2", "s3")
     else:   # EUCM
         model, params = "eucm", focal + k("alpha", "beta")
-    build.make(name, key, model, params, (width, height))
+    build.make(name, key, model, params, (width, height), area=area)
 
 
 def _colmap_text(build, text: str) -> None:
+    # the area the writer kept in comments (export.py): "# fov_deg: 196.0"
+    notes = dict(line.lstrip("#").split(":", 1) for line in text.splitlines()
+                 if line.startswith("#") and line.lstrip("# ").split(":")[0] in
+                 ("fov_deg", "blind_fov_deg", "valid_angle_deg"))
+    area = build.area({k.strip(): v.strip() for k, v in notes.items()})
     for number, line in enumerate(text.splitlines(), start=1):
         tokens = line.split()
         if not tokens or tokens[0].startswith("#"):
@@ -697,7 +719,7 @@ def _colmap_text(build, text: str) -> None:
         if width <= 0 or height <= 0 or not all(math.isfinite(v) for v in values):
             raise ValueError(f"{build.where}, {key}: expected a positive size and finite "
                              f"parameters, got {line.strip()!r}")
-        _colmap_camera(build, str(cid), key, tokens[1], width, height, values)
+        _colmap_camera(build, str(cid), key, tokens[1], width, height, values, area)
 
 
 def _colmap_binary(build, raw: bytes) -> None:
