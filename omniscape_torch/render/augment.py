@@ -575,6 +575,9 @@ class RandomOmniCamera(_RandomCameras):
             image, blended in float32 and rounded to nearest, half up), or a floating dtype (a
             ``uint8`` cube is then scaled to [0, 1] in the same pass). ``torch.uint8`` is
             accepted for ``uint8`` cubes only.
+        label_keys: ``{key: ignore value}``: more label-like keys the dicts may hold (e.g.
+            ``{"parts": 255}``), each carried as ``labels`` are (nearest, int64 ids of any
+            range) with its own value outside the valid area (``docs/detection.md``).
 
     Shapes:
         cubemap ``(B, 6, C, F, F)`` (``channels_last``: ``(B, 6, F, F, C)``) floating or
@@ -920,7 +923,10 @@ class RandomOmniCamera(_RandomCameras):
         Args:
             cubemap: ``(B, 6, C, F, F)`` (``channels_last``: ``(B, 6, F, F, C)``) floating or
                 ``uint8``, or a dict with keys ``rgb`` and optionally ``labels`` and ``depth``
-                (so the module can start an ``nn.Sequential``). Tensor subclasses
+                (so the module can start an ``nn.Sequential``), and the detection keys
+                ``instances`` ``(B, 6, F, F)`` (ids, 0: none), ``box_instance_ids`` (per sample
+                the ids to box) and ``keypoints`` ``(B, K, 3)`` rows ``(face, x, y)``, and the
+                keys of ``label_keys`` (``docs/detection.md``). Tensor subclasses
                 (torchvision's ``tv_tensors.Image``, ``Mask``) are read as the tensors they
                 hold, and their outputs come back in their classes.
             labels: ``(B, 6, F, F)`` integer class ids.
@@ -929,7 +935,12 @@ class RandomOmniCamera(_RandomCameras):
             generator: the generator of this call (else the module's).
 
         Returns:
-            dict ``rgb``, ``labels``, ``depth`` (those given), ``valid`` and ``params``.
+            dict ``rgb``, ``labels``, ``depth``, ``instances`` and the declared label keys
+            (those given), ``valid`` and ``params``; with ``box_instance_ids``: ``boxes`` (per
+            sample ``(M_i, 4)`` XYXY corner coordinates, the tight box of the id's output
+            pixels) and ``box_index`` (per sample ``(M_i,)``: positions in
+            ``box_instance_ids``); with ``keypoints``: ``keypoints (B, K, 2)`` corner
+            coordinates (NaN where invalid) and ``keypoints_valid (B, K)``.
         """
         targets = _targets(cubemap, self.label_keys, cube=True)
         if isinstance(cubemap, dict):
@@ -1027,6 +1038,8 @@ class RandomReproject(_RandomCameras):
         channels_last: the images are ``(B, H, W, C)`` and ``rgb`` comes back so.
         out_dtype: dtype of ``rgb``: None for the image's, or a floating dtype (``uint8``
             scaled to [0, 1]).
+        label_keys: ``{key: ignore value}``: more label-like keys the dicts may hold, as for
+            :class:`RandomOmniCamera`.
 
     Shapes:
         ``rgb (B, C, Hs, Ws)`` (``channels_last``: ``(B, Hs, Ws, C)``) floating or ``uint8``,
@@ -1509,7 +1522,11 @@ class RandomReproject(_RandomCameras):
         Args:
             image: ``(B, C, H, W)`` (``channels_last``: ``(B, H, W, C)``) floating or ``uint8``
                 perspective images, or a dict with the keys ``rgb`` and optionally ``labels``,
-                ``depth``, ``intrinsics`` and ``source_camera``; ``tv_tensors.Image`` /
+                ``depth``, ``intrinsics`` and ``source_camera``, the detection keys
+                ``instances`` ``(B, H, W)``, ``boxes`` (per sample ``(N_i, 4)`` XYXY corner
+                coordinates), ``box_instance_ids`` (per sample ``(N_i,)``: the exact mode) and
+                ``keypoints`` ``(B, K, 2)``, and the keys of ``label_keys``
+                (``docs/detection.md``); ``tv_tensors.Image`` /
                 ``tv_tensors.Mask``
                 are taken as the tensors they hold, and their outputs come back in their
                 classes.
@@ -1526,7 +1543,12 @@ class RandomReproject(_RandomCameras):
             generator: the generator of this call (else the module's).
 
         Returns:
-            dict ``rgb``, ``labels``, ``depth`` (those given), ``valid`` and ``params``.
+            dict ``rgb``, ``labels``, ``depth``, ``instances`` and the declared label keys
+            (those given), ``valid`` and ``params``; with ``boxes``: ``boxes`` (the same
+            structure, each the tight box of its object in the output, clipped to the valid
+            area) and ``box_index`` (per sample ``(M_i,)`` int64: the input box of each);
+            with ``keypoints``: ``keypoints (B, K, 2)`` (NaN where invalid) and
+            ``keypoints_valid (B, K)``.
         """
         targets = _targets(image, self.label_keys, cube=False)
         if isinstance(image, dict):

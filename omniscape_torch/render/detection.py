@@ -15,15 +15,16 @@ plus 0.5, converted here and only here).
   and its tight box in the output is taken, clipped to the output's valid area. The outline is
   sampled with points at most :data:`OUTLINE_STEP` output pixels apart (the spacing estimated
   per box from a coarse pass), so a straight edge's curved image is missed by at most its
-  sagitta, ``OUTLINE_STEP**2 / (8 rho)`` for a curvature radius ``rho`` (under 0.02 px for
-  ``rho`` above 25 px). Where the outline leaves the valid area, the box of the valid part is
+  sagitta, ``OUTLINE_STEP**2 / (8 rho)`` for a curvature radius ``rho`` (0.1 px for ``rho``
+  of 20 px). Where the outline leaves the valid area, the box of the valid part is
   bounded by the outline's valid samples and by the valid area's own boundary (the ``fov`` and
   blind cones' images and the output image's edges, sampled every :data:`BOUNDARY_STEP`
-  pixels) where it lies inside the region (checked by mapping it back into the source), so a
-  region whose interior reaches the boundary keeps its valid part's box to within
-  ``BOUNDARY_STEP`` pixels. The tight box of the object's *pixels* (pixel centres inside the
+  pixels) where it lies inside the region (checked by mapping it back into the source); the
+  output pixels within that bound are then tested one by one (mapped back into the source
+  box), so a box cut by the valid area is the tight box of its valid pixels. The tight box of the object's *pixels* (pixel centres inside the
   mapped region) differs from that continuous box by up to half a pixel per side, a little
-  more at a sharp corner; tests hold both within 1 px.
+  more at a sharp corner or for an object thinner than a pixel; tests hold boxes within 1 px
+  of their objects' pixels.
 * A box from an instance map (:func:`instance_boxes`): the tight box of the output pixels of
   its instance id, exact.
 """
@@ -44,7 +45,7 @@ __all__ = ["instance_boxes", "reproject_boxes", "reproject_keypoints", "OUTLINE_
            "BOUNDARY_STEP"]
 
 #: Largest spacing, in output pixels, of the samples of a box's outline.
-OUTLINE_STEP = 1.0
+OUTLINE_STEP = 4.0
 #: Spacing, in output pixels, of the samples of the valid area's boundary.
 BOUNDARY_STEP = 0.5
 #: Segments per edge of the coarse pass that estimates how much a box's edges stretch.
@@ -124,14 +125,14 @@ class Change(NamedTuple):
         """Source pixel centres ``(T, 2)`` (cube: ``(T, 3)``) -> output pixel centres ``(T, 2)``
         and where both cameras see them."""
         rays, ok = self.source.unproject(points, sample)
-        rays = torch.einsum("tji,tj->ti", self.rotation[sample], rays)
+        rays = (self.rotation[sample] * rays[:, :, None]).sum(1)       # R^T @ ray
         pixels, seen = self.output.project(rays, sample)
         return pixels, ok & seen
 
     def backward(self, pixels: Tensor, sample: Tensor) -> tuple[Tensor, Tensor]:
         """Output pixel centres ``(T, 2)`` -> source pixel centres and where both see them."""
         rays, ok = self.output.unproject(pixels, sample)
-        rays = torch.einsum("tij,tj->ti", self.rotation[sample], rays)
+        rays = (self.rotation[sample] * rays[:, None, :]).sum(2)       # R @ ray
         points, seen = self.source.project(rays, sample)
         return points, ok & seen
 
@@ -285,7 +286,7 @@ def _outline(rects: Tensor, counts: Tensor) -> tuple[Tensor, Tensor]:
     t = ((torch.arange(len(edge)) - first[edge]).to(rects.dtype)
          / per_edge[edge].to(rects.dtype))[:, None]
     start, end = start.reshape(-1, 2)[edge], end.reshape(-1, 2)[edge]
-    return start + t * (end - start), edge // 4
+    return start + t * (end - start), torch.arange(len(rects)).repeat_interleave(4 * counts)
 
 
 def _extent(points: Tensor, ok: Tensor, owner: Tensor, count: int) -> Tensor:
@@ -389,7 +390,7 @@ def map_boxes(change: Change, boxes: list[Tensor], index: Tensor,
     nxt = torch.cat((pix[:, 1:], pix[:, :1]), 1)   # edges run into each other: a closed loop
     both = ok & ok.roll(-1, 1)
     src_len = torch.stack(((rects[:, 2] - rects[:, 0]), (rects[:, 3] - rects[:, 1])), -1)
-    src_seg = src_len.repeat_interleave(2, -1).repeat_interleave(_COARSE, -1) / _COARSE
+    src_seg = src_len[:, [0, 1, 0, 1]].repeat_interleave(_COARSE, -1) / _COARSE   # per edge
     stretch = torch.where(both, (nxt - pix).norm(dim=-1) / src_seg.clamp(min=1e-9),
                           torch.zeros_like(src_seg)).amax(-1).clamp(min=1.0)
     needed = (stretch * src_len.amax(-1) / OUTLINE_STEP).ceil()
