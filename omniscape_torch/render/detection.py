@@ -45,11 +45,11 @@ __all__ = ["instance_boxes", "reproject_boxes", "reproject_keypoints", "OUTLINE_
            "BOUNDARY_STEP"]
 
 #: Largest spacing, in output pixels, of the samples of a box's outline.
-OUTLINE_STEP = 4.0
+OUTLINE_STEP = 8.0
 #: Spacing, in output pixels, of the samples of the valid area's boundary.
 BOUNDARY_STEP = 0.5
 #: Segments per edge of the coarse pass that estimates how much a box's edges stretch.
-_COARSE = 8
+_COARSE = 4
 #: Most samples per edge (a box stretched past this is sampled coarser).
 _MAX_PER_EDGE = 4096
 #: Boundary samples are taken this far (radians, pixels) inside the cones and the image edges.
@@ -162,7 +162,7 @@ def check_boxes(boxes: object, batch: int, name: str = "boxes") -> list[Tensor]:
     """``boxes``: a list of ``batch`` ``(N_i, 4)`` XYXY tensors (a tensor ``(B, N, 4)`` is read
     as that list) -> the list as float64 on the CPU; raises naming the sample."""
     if isinstance(boxes, Tensor) and boxes.dim() == 3:
-        boxes = list(boxes)
+        boxes = list(boxes.detach().to("cpu", torch.float64))
     if not isinstance(boxes, (list, tuple)):
         raise TypeError(f"{name}: expected a list of B (N_i, 4) XYXY tensors, got "
                         f"{type(boxes).__name__}")
@@ -176,13 +176,16 @@ def check_boxes(boxes: object, batch: int, name: str = "boxes") -> list[Tensor]:
         if b.dim() != 2 or b.shape[-1] != 4 or b.is_complex():
             raise ValueError(f"{name}[{i}]: expected (N, 4) x0, y0, x1, y1, got "
                              f"{tuple(b.shape)}")
-        b = b.to("cpu", torch.float64)
-        if not bool(torch.isfinite(b).all()):
-            raise ValueError(f"{name}[{i}]: boxes must be finite (sample {i} has NaN or inf)")
-        if bool((b[:, 2:] < b[:, :2]).any()):
-            raise ValueError(f"{name}[{i}]: expected x0 <= x1 and y0 <= y1 (XYXY corner "
-                             f"coordinates), got {b[(b[:, 2:] < b[:, :2]).any(-1)][0].tolist()}")
-        out.append(b)
+        out.append(b.to("cpu", torch.float64))
+    flat = torch.cat(out)
+    owner = torch.arange(batch).repeat_interleave(torch.tensor([len(b) for b in out]))
+    for bad, what in ((~torch.isfinite(flat).all(-1), "boxes must be finite: NaN or inf"),
+                      ((flat[:, 2:] < flat[:, :2]).any(-1),
+                       "expected x0 <= x1 and y0 <= y1 (XYXY corner coordinates)")):
+        if bool(bad.any()):
+            first = int(bad.nonzero()[0, 0])
+            raise ValueError(f"{name}[{int(owner[first])}]: {what} (sample "
+                             f"{int(owner[first])}: {flat[first].tolist()})")
     return out
 
 
@@ -239,7 +242,8 @@ def check_ids_present(instances: Tensor, ids: list[Tensor], key: str = "box_inst
     for i, t in enumerate(ids):
         if len(t) == 0:
             continue
-        present = torch.isin(t.to(instances.device), instances[i].reshape(-1))
+        present = torch.zeros(len(t), dtype=torch.bool)
+        present[_hits(instances[i], t)[1]] = True
         if not bool(present.all()):
             raise ValueError(f"{key}[{i}]: instance id {int(t[~present.cpu()][0])} has no pixel "
                              f"in {where}[{i}]")
@@ -370,15 +374,14 @@ def map_boxes(change: Change, boxes: list[Tensor], index: Tensor,
     Boxes are clipped to the source image ``source_size`` first; none left: dropped."""
     n = len(boxes)
     h, w = source_size
-    limits = torch.tensor([0.0, 0.0, w, h, ], dtype=torch.float64)
-    rects, owner, number = [], [], []
-    for i, b in enumerate(boxes):
-        clipped = torch.cat((b[:, :2].clamp(min=0), torch.minimum(b[:, 2:], limits[2:])), -1)
-        keep = ((clipped[:, 2:] > clipped[:, :2]).all(-1)).nonzero()[:, 0]
-        rects.append(clipped[keep] - 0.5)        # pixel-centre coordinates
-        owner.append(torch.full((len(keep),), i, dtype=torch.long))
-        number.append(keep)
-    rects, owner, number = torch.cat(rects), torch.cat(owner), torch.cat(number)
+    counts = torch.tensor([len(b) for b in boxes])
+    flat = torch.cat(boxes)
+    owner = torch.arange(n).repeat_interleave(counts)
+    number = torch.arange(len(flat)) - (torch.cumsum(counts, 0) - counts).repeat_interleave(counts)
+    clipped = torch.cat((flat[:, :2].clamp(min=0), torch.minimum(
+        flat[:, 2:], torch.tensor([w, h], dtype=flat.dtype))), -1)
+    keep = (clipped[:, 2:] > clipped[:, :2]).all(-1)
+    rects, owner, number = clipped[keep] - 0.5, owner[keep], number[keep]   # pixel centres
     r = len(rects)
     if r == 0:
         return ([torch.zeros(0, 4, dtype=torch.float64) for _ in range(n)],
@@ -425,36 +428,35 @@ def map_boxes(change: Change, boxes: list[Tensor], index: Tensor,
     hi = torch.where(box[:, 2:] >= limit - 1e-6, limit + 1, box[:, 2:] + 0.5)
     box = torch.cat((lo, hi), -1)
     kept = torch.isfinite(box).all(-1) & (box[:, 2:] > box[:, :2]).all(-1)
-    out_boxes, out_index = [], []
-    for i in range(n):
-        mine = kept & (owner == i)
-        out_boxes.append(box[mine])
-        out_index.append(number[mine])
-    return out_boxes, out_index
+    sizes = torch.bincount(owner[kept], minlength=n).tolist()   # owner is sorted
+    return list(box[kept].split(sizes)), list(number[kept].split(sizes))
 
 
 # -------------------------------------------------------------------------------------------
 # Boxes from instance maps
 # -------------------------------------------------------------------------------------------
-def _instance_extent(instances: Tensor, ids: Tensor) -> Tensor:
-    """``(M, 4)`` tight XYXY corner box of the pixels of each id of ``ids (M,)`` in one map
-    ``instances (H, W)`` (inf where an id has no pixel)."""
-    h, w = instances.shape
-    if len(ids) == 0:
-        return torch.zeros(0, 4, dtype=torch.float64)
+def _hits(instances: Tensor, ids: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The pixels of one map ``instances (H, W)`` holding one of ``ids (M,)``: their flat
+    indices ``(T,)``, the position in ``ids`` of each ``(T,)``, and the order sorting ``ids``."""
     order = torch.argsort(ids)
     ordered = ids[order].to(instances.device)
     flat = instances.reshape(-1).long()
-    pos = torch.searchsorted(ordered, flat).clamp(max=len(ids) - 1)
-    hit = ordered[pos] == flat
-    cols = torch.arange(w, device=flat.device).repeat(h)
-    rows = torch.arange(h, device=flat.device).repeat_interleave(w)
-    points = torch.stack((cols, rows), -1).to(torch.float64)
-    extent = _extent(points.cpu(), hit.cpu(), pos.cpu(), len(ids))
+    pos = torch.searchsorted(ordered, flat).clamp_(max=len(ids) - 1)
+    where = (ordered[pos] == flat).nonzero()[:, 0]
+    return where.cpu(), order[pos[where].cpu()], order
+
+
+def _instance_extent(instances: Tensor, ids: Tensor) -> Tensor:
+    """``(M, 4)`` tight XYXY corner box of the pixels of each id of ``ids (M,)`` in one map
+    ``instances (H, W)`` (inf where an id has no pixel)."""
+    if len(ids) == 0:
+        return torch.zeros(0, 4, dtype=torch.float64)
+    w = instances.shape[1]
+    where, which, _ = _hits(instances, ids)
+    points = torch.stack((where % w, where // w), -1).to(torch.float64)
+    extent = _extent(points, torch.ones(len(where), dtype=torch.bool), which, len(ids))
     extent[:, 2:] += 1                       # the last pixel's far edge
-    out = torch.empty_like(extent)
-    out[order] = extent
-    return out
+    return extent
 
 
 def instance_boxes(instances: Tensor, ids: Sequence[Tensor]) -> tuple[list[Tensor], list[Tensor]]:
