@@ -252,26 +252,43 @@ def check_ids_present(instances: Tensor, ids: list[Tensor], key: str = "box_inst
 # -------------------------------------------------------------------------------------------
 # Keypoints
 # -------------------------------------------------------------------------------------------
-def map_keypoints(change: Change, keypoints: Tensor, index: Tensor,
-                  source_size: tuple[int, int] | None) -> tuple[Tensor, Tensor]:
+def _keypoint_points(keypoints: Tensor, source_size: tuple[int, int] | None
+                     ) -> tuple[Tensor, Tensor, Tensor]:
+    """Keypoints ``(n, K, 2)`` (cube: ``(n, K, 3)`` from :func:`cube_points`), corner
+    coordinates -> the source points to map ``(n K, 2 or 3)`` (pixel centres), their samples
+    ``(n K,)`` and where they are given and in the source image ``[0, W] x [0, H]``
+    (``source_size``; None for a cube)."""
+    n, k, _ = keypoints.shape
+    flat = keypoints.reshape(n * k, -1)
+    sample = torch.arange(n).repeat_interleave(k)
+    given = torch.isfinite(flat).all(-1)
+    points = torch.where(given[:, None], flat, torch.zeros_like(flat))
+    if source_size is not None:
+        h, w = source_size
+        x, y = points[:, 0], points[:, 1]
+        given = given & (x >= 0) & (x <= w) & (y >= 0) & (y <= h)
+        points = points - 0.5
+    return points, sample, given
+
+
+def _keypoint_result(pixels: Tensor, ok: Tensor, given: Tensor, shape: tuple[int, int]
+                     ) -> tuple[Tensor, Tensor]:
+    """Mapped keypoints (pixel centres) -> ``(n, K, 2)`` corner coordinates, NaN where invalid,
+    and ``valid (n, K)``."""
+    ok = ok & given
+    out = torch.where(ok[:, None], pixels + 0.5, torch.full_like(pixels, math.nan))
+    return out.reshape(*shape, 2), ok.reshape(shape)
+
+
+def map_keypoints(change: Change, keypoints: Tensor, source_size: tuple[int, int] | None
+                  ) -> tuple[Tensor, Tensor]:
     """Keypoints ``(n, K, 2)`` (cube: ``(n, K, 3)`` from :func:`cube_points`) of the ``n``
     samples of ``change``, corner coordinates -> ``(n, K, 2)`` corner coordinates (NaN where
     invalid) and ``valid (n, K)``. ``source_size``: the source image's ``(H, W)`` (corner
     coordinates in ``[0, W] x [0, H]``), None for a cube."""
-    n, k, _ = keypoints.shape
-    flat = keypoints.reshape(n * k, -1)
-    sample = torch.arange(n).repeat_interleave(k)
-    finite = torch.isfinite(flat).all(-1)
-    points = torch.where(finite[:, None], flat, torch.zeros_like(flat))
-    if source_size is not None:
-        h, w = source_size
-        x, y = points[:, 0], points[:, 1]
-        finite = finite & (x >= 0) & (x <= w) & (y >= 0) & (y <= h)
-        points = points - 0.5
+    points, sample, given = _keypoint_points(keypoints, source_size)
     pixels, ok = change.forward(points, sample)
-    ok = ok & finite
-    out = torch.where(ok[:, None], pixels + 0.5, torch.full_like(pixels, math.nan))
-    return out.reshape(n, k, 2), ok.reshape(n, k)
+    return _keypoint_result(pixels, ok, given, keypoints.shape[:2])
 
 
 # -------------------------------------------------------------------------------------------
@@ -367,11 +384,15 @@ def _pixel_box(change: Change, sample: int, extent: Tensor, rect: Tensor) -> Ten
     return centres + torch.tensor([-0.5, -0.5, 0.5, 0.5], dtype=centres.dtype)   # pixel edges
 
 
-def map_boxes(change: Change, boxes: list[Tensor], index: Tensor,
-              source_size: tuple[int, int]) -> tuple[list[Tensor], list[Tensor]]:
+def map_boxes(change: Change, boxes: list[Tensor], source_size: tuple[int, int], *,
+              dtype: torch.dtype = torch.float64,
+              extra: tuple[Tensor, Tensor] | None = None
+              ) -> tuple[list[Tensor], list[Tensor], tuple[Tensor, Tensor] | None]:
     """Boxes (per sample ``(N_i, 4)`` XYXY corner coordinates, of the ``n`` samples of
-    ``change``) -> per sample the output boxes and ``box_index (M_i,)`` (module docstring).
-    Boxes are clipped to the source image ``source_size`` first; none left: dropped."""
+    ``change``) -> per sample the output boxes in ``dtype`` and ``box_index (M_i,)`` (module
+    docstring), and ``change.forward`` of the points and samples ``extra`` (mapped in the same
+    call as the boxes' coarse pass; None without). Boxes are clipped to the source image
+    ``source_size`` first; none left: dropped."""
     n = len(boxes)
     h, w = source_size
     counts = torch.tensor([len(b) for b in boxes])
@@ -383,12 +404,19 @@ def map_boxes(change: Change, boxes: list[Tensor], index: Tensor,
     keep = (clipped[:, 2:] > clipped[:, :2]).all(-1)
     rects, owner, number = clipped[keep] - 0.5, owner[keep], number[keep]   # pixel centres
     r = len(rects)
-    if r == 0:
-        return ([torch.zeros(0, 4, dtype=torch.float64) for _ in range(n)],
-                [torch.zeros(0, dtype=torch.long) for _ in range(n)])
     # coarse pass: how far apart do the edges' points land (per box, the most any edge needs)
     coarse, which = _outline(rects, torch.full((r,), _COARSE, dtype=torch.long))
-    pix, ok = change.forward(coarse, owner[which])
+    e = 0 if extra is None else len(extra[0])
+    if extra is not None:
+        coarse, samples = torch.cat((extra[0], coarse)), torch.cat((extra[1], owner[which]))
+    else:
+        samples = owner[which]
+    pix, ok = change.forward(coarse, samples) if len(coarse) else (coarse, samples > 0)
+    mapped = None if extra is None else (pix[:e], ok[:e])
+    pix, ok = pix[e:], ok[e:]
+    if r == 0:
+        return ([torch.zeros(0, 4, dtype=dtype) for _ in range(n)],
+                [torch.zeros(0, dtype=torch.long) for _ in range(n)], mapped)
     pix, ok = pix.reshape(r, 4 * _COARSE, 2), ok.reshape(r, 4 * _COARSE)
     nxt = torch.cat((pix[:, 1:], pix[:, :1]), 1)   # edges run into each other: a closed loop
     both = ok & ok.roll(-1, 1)
@@ -429,7 +457,7 @@ def map_boxes(change: Change, boxes: list[Tensor], index: Tensor,
     box = torch.cat((lo, hi), -1)
     kept = torch.isfinite(box).all(-1) & (box[:, 2:] > box[:, :2]).all(-1)
     sizes = torch.bincount(owner[kept], minlength=n).tolist()   # owner is sorted
-    return list(box[kept].split(sizes)), list(number[kept].split(sizes))
+    return list(box[kept].to(dtype).split(sizes)), list(number[kept].split(sizes)), mapped
 
 
 # -------------------------------------------------------------------------------------------
@@ -508,14 +536,19 @@ def map_targets(changes: Sequence[tuple[Tensor, Change]], batch: int, *,
     if boxes is not None:
         out["boxes"], out["box_index"] = [None] * batch, [None] * batch
     for index, change in changes:
+        points = mapped = None
         if keypoints is not None:
-            kp, ok = map_keypoints(change, keypoints[index], index, source_size)
-            out["keypoints"][index], out["keypoints_valid"][index] = kp.to(dtype), ok
-        if boxes is not None:
-            got, which = map_boxes(change, [boxes[i] for i in index.tolist()], index,
-                                   source_size)
+            points, sample, given = _keypoint_points(keypoints[index], source_size)
+        if boxes is not None:   # the keypoints mapped with the boxes' coarse pass
+            got, which, mapped = map_boxes(
+                change, [boxes[i] for i in index.tolist()], source_size, dtype=box_dtype,
+                extra=None if points is None else (points, sample))
             for i, b, w in zip(index.tolist(), got, which):
-                out["boxes"][i], out["box_index"][i] = b.to(box_dtype), w
+                out["boxes"][i], out["box_index"][i] = b, w
+        if points is not None:
+            pixels, ok = mapped if mapped is not None else change.forward(points, sample)
+            kp, ok = _keypoint_result(pixels, ok, given, (len(index), keypoints.shape[1]))
+            out["keypoints"][index], out["keypoints_valid"][index] = kp.to(dtype), ok
     return out
 
 
@@ -589,7 +622,7 @@ def reproject_keypoints(keypoints: Tensor, src_camera: Camera | Tensor, dst_came
          if isinstance(c, Camera) and len(c.batch_shape) == 1] + [1])
     kp = check_keypoints(kp, batch)
     change, size = _change(src_camera, dst_camera, rotation, batch, source_size)
-    return map_keypoints(change, kp, torch.arange(batch), size)
+    return map_keypoints(change, kp, size)
 
 
 def reproject_boxes(boxes: Sequence[Tensor] | Tensor, src_camera: Camera | Tensor,
@@ -618,9 +651,9 @@ def reproject_boxes(boxes: Sequence[Tensor] | Tensor, src_camera: Camera | Tenso
         >>> fish = Camera("equidistant", [20.0, 20.0, 31.5, 31.5], (64, 64))
         >>> out, index = reproject_boxes([torch.tensor([[24.0, 24.0, 40.0, 40.0]])], src, fish)
         >>> [round(v, 1) for v in out[0][0].tolist()], index[0].tolist()
-        ([26.7, 26.7, 37.3, 37.3], [0])
+        ([27.1, 27.1, 36.9, 36.9], [0])
     """
     batch = len(boxes)
     boxes = check_boxes(boxes, batch)
     change, size = _change(src_camera, dst_camera, rotation, batch, source_size)
-    return map_boxes(change, boxes, torch.arange(batch), size)
+    return map_boxes(change, boxes, size)[:2]
