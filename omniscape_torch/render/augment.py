@@ -442,7 +442,8 @@ def _label_maps(label_keys: Mapping[str, int], instances: Tensor | None,
 
 
 def _check_batches(params: dict, **given: object) -> int:
-    """The batch of the drawn ``params``; raises naming the first given input of another."""
+    """The batch of the drawn ``params``; raises naming the first given detection input of
+    another (``rgb``, ``labels`` and ``depth`` are checked where they are rendered)."""
     batch = len(params["model"])
     for key, value in given.items():
         if value is None:
@@ -777,7 +778,7 @@ class RandomOmniCamera(_RandomCameras):
             the dict of ``forward``.
         """
         maps = _label_maps(self.label_keys, instances, label_maps, cube=True)
-        _check_batches(params, rgb=cubemap, labels=labels, depth=depth, **dict(
+        _check_batches(params, **dict(
             (key, t) for key, (t, _) in maps.items()), box_instance_ids=box_instance_ids,
             keypoints=keypoints)
         if keypoints is not None:
@@ -804,19 +805,8 @@ class RandomOmniCamera(_RandomCameras):
 
     def _render_maps(self, cubemap: Tensor | None, params: dict, *,
                      labels: Tensor | None = None, depth: Tensor | None = None) -> dict:
-        """Render the modalities through the cameras and rotations of ``params``.
-
-        Args:
-            cubemap: ``(B, 6, C, F, F)`` (``channels_last``: ``(B, 6, F, F, C)``), floating or
-                ``uint8``, or None.
-            params: parameters from ``forward_parameters``.
-            labels: as for ``forward``.
-            depth: as for ``forward``.
-
-        Returns:
-            dict ``valid`` and, for each given input, ``rgb``, ``labels``, ``depth`` (class
-            docstring), plus ``params``.
-        """
+        """:meth:`render` of the modalities alone (``valid``, ``rgb``, ``labels``, ``depth``,
+        ``params``)."""
         rgb_dtype = self._check_cubemap(cubemap)
         ref = next((t for t in (cubemap, depth, labels) if t is not None), None)
         if ref is None:
@@ -1207,10 +1197,13 @@ class RandomReproject(_RandomCameras):
             label_maps: the declared label keys' maps (``label_keys``), by key.
 
         Returns:
-            the dict of ``forward``.
+            the dict of ``forward``: ``params`` with the ``intrinsics (B, 4)`` of a pinhole
+            source, else ``source_camera``, the source used, as ``{"model", "params" (B, P)
+            float64 on the CPU[, "fov", "blind_fov"]}``, which ``default_collate`` stacks and a
+            replay reads back.
         """
         maps = _label_maps(self.label_keys, instances, label_maps, cube=False)
-        batch = _check_batches(params, rgb=image, labels=labels, depth=depth, **dict(
+        batch = _check_batches(params, **dict(
             (key, t) for key, (t, _) in maps.items()), box_instance_ids=box_instance_ids,
             keypoints=keypoints, boxes=boxes)
         kp_dtype = torch.float32
@@ -1251,27 +1244,8 @@ class RandomReproject(_RandomCameras):
     def _render_maps(self, image: Tensor | None, params: dict, *, labels: Tensor | None = None,
                      depth: Tensor | None = None, intrinsics: Tensor | None = None,
                      source_camera: Camera | None = None) -> dict:
-        """Reproject the modalities through the cameras and rotations of ``params``.
-
-        Args:
-            image: ``(B, C, Hs, Ws)`` (``channels_last``: ``(B, Hs, Ws, C)``), floating or
-                ``uint8``, or None.
-            params: parameters from ``forward_parameters``.
-            labels: ``(B, Hs, Ws)`` integer class ids. depth: ``(B, Hs, Ws)`` or
-                ``(B, 1, Hs, Ws)`` planar depth (metres along the source camera's axis).
-            intrinsics: the source pinhole: ``(B, 4)`` or ``(4,)`` ``fx, fy, cx, cy``, or a
-                camera matrix ``K (B, 3, 3)`` or ``(3, 3)`` (zero skew); None: ``source_camera``,
-                else the module's ``source_camera`` or ``source_fov``.
-            source_camera: the source, any camera of the registry: one shared, or a batch
-                ``(B,)`` of one model (class docstring).
-
-        Returns:
-            dict ``valid`` and, for each given input, ``rgb``, ``labels``, ``depth`` (class
-            docstring), plus ``params`` (with ``intrinsics (B, 4)`` of a pinhole source, else
-            ``source_camera``: the source used, as ``{"model", "params" (B, P) float64 on
-            the CPU[, "fov", "blind_fov"]}``, which ``default_collate`` stacks and a replay
-            reads back).
-        """
+        """:meth:`render` of the modalities alone (``valid``, ``rgb``, ``labels``, ``depth``,
+        ``params`` with the source camera's record)."""
         image, labels, depth, size = self._check_inputs(image, labels, depth)
         batch = next(t for t in (image, labels, depth) if t is not None).shape[0]
         if len(params["model"]) != batch:
