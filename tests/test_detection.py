@@ -279,8 +279,8 @@ def test_bad_detection_inputs_name_the_key_and_sample():
     with pytest.raises(ValueError, match="label_keys"):
         ot.augment.RandomReproject((32, 32), source_fov=1.0, label_keys={"boxes": 0})
     # a box outside the source image, or of no area: dropped, box_index says which stayed
-    out = aug({"rgb": rgb, "boxes": [torch.tensor([[40.0, 2, 50, 10], [3, 3, 3, 9], [4, 4, 12, 12]]),
-                                     box]})
+    boxes = torch.tensor([[40.0, 2, 50, 10], [3, 3, 3, 9], [4, 4, 12, 12]])
+    out = aug({"rgb": rgb, "boxes": [boxes, box]})
     assert out["box_index"][0].tolist() == [2] and len(out["boxes"][0]) == 1
 
 

@@ -789,13 +789,13 @@ class RandomOmniCamera(_RandomCameras):
                 raise ValueError("box_instance_ids: needs instances (a cube has no 2D boxes: "
                                  "boxes come from its instance ids)")
             ids = detection.check_box_ids(box_instance_ids, None, len(params["model"]))
-            detection.check_ids_present(_plain(instances), ids)
         result = {}
         if any(t is not None for t in (cubemap, labels, depth)):
             result = self._render_maps(cubemap, params, labels=labels, depth=depth)
         _render_label_maps(result, maps, lambda ids: self._render_maps(None, params, labels=ids))
         if ids is not None:
-            result.update(detection.boxes_of_instances(result["instances"], ids))
+            result.update(detection.boxes_of_instances(result["instances"], ids,
+                                                       _plain(instances)))
         if keypoints is not None:
             cube = detection.Side(None, None, None)
             result.update(detection.map_targets(
@@ -1220,7 +1220,6 @@ class RandomReproject(_RandomCameras):
                 raise ValueError("box_instance_ids: needs instances (the exact mode boxes the "
                                  "output pixels of each box's instance id)")
             ids = detection.check_box_ids(box_instance_ids, boxes, batch)
-            detection.check_ids_present(_plain(instances), ids)
         sources = dict(intrinsics=intrinsics, source_camera=source_camera)
         result = {}
         if any(t is not None for t in (image, labels, depth)):
@@ -1228,7 +1227,8 @@ class RandomReproject(_RandomCameras):
         _render_label_maps(result, maps, lambda ids: self._render_maps(
             None, params, labels=ids, **sources))
         if ids is not None:
-            result.update(detection.boxes_of_instances(result["instances"], ids, box_dtype))
+            result.update(detection.boxes_of_instances(result["instances"], ids,
+                                                       _plain(instances), box_dtype))
         if keypoints is not None or (boxes is not None and ids is None):
             size = _source_size(image, labels, depth, maps, self.channels_last)
             record = result["params"]

@@ -21,10 +21,10 @@ plus 0.5, converted here and only here).
   blind cones' images and the output image's edges, sampled every :data:`BOUNDARY_STEP`
   pixels) where it lies inside the region (checked by mapping it back into the source); the
   output pixels within that bound are then tested one by one (mapped back into the source
-  box), so a box cut by the valid area is the tight box of its valid pixels. The tight box of the object's *pixels* (pixel centres inside the
-  mapped region) differs from that continuous box by up to half a pixel per side, a little
-  more at a sharp corner or for an object thinner than a pixel; tests hold boxes within 1 px
-  of their objects' pixels.
+  box), so a box cut by the valid area is the tight box of its valid pixels. Elsewhere the
+  tight box of the object's *pixels* (pixel centres inside the mapped region) differs from
+  the continuous box by up to half a pixel per side, a little more at a sharp corner or for
+  an object thinner than a pixel; tests hold boxes within 1 px of their objects' pixels.
 * A box from an instance map (:func:`instance_boxes`): the tight box of the output pixels of
   its instance id, exact.
 """
@@ -70,8 +70,8 @@ class Side(NamedTuple):
     @staticmethod
     def of(camera: Camera, n: int) -> "Side":
         """A :class:`~omniscape_torch.Camera` (one, or a batch ``(n,)``) for ``n`` samples."""
-        params = camera.params.detach().to("cpu", torch.float64).reshape(-1, camera.params.shape[-1])
-        params = params.expand(n, -1)
+        params = camera.params.detach().to("cpu", torch.float64)
+        params = params.reshape(-1, params.shape[-1]).expand(n, -1)
         cone = (lambda a: None if a is None else torch.full((n,), float(a), dtype=torch.float64))
         return Side(camera.model.name, params, tuple(camera.image_size), cone(camera.fov),
                     cone(camera.blind_fov))
@@ -223,7 +223,8 @@ def check_box_ids(ids: object, boxes: list[Tensor] | None, batch: int,
         ids = list(ids)
     if not isinstance(ids, (list, tuple)) or len(ids) != batch:
         raise ValueError(f"{name}: expected a list of {batch} (N_i,) integer tensors, got "
-                         f"{type(ids).__name__} of length {len(ids) if hasattr(ids, '__len__') else '?'}")
+                         f"{type(ids).__name__}"
+                         f"{f' of length {len(ids)}' if hasattr(ids, '__len__') else ''}")
     out = []
     for i, t in enumerate(ids):
         t = torch.as_tensor(t).detach().reshape(-1).cpu()
@@ -238,15 +239,13 @@ def check_box_ids(ids: object, boxes: list[Tensor] | None, batch: int,
 def check_ids_present(instances: Tensor, ids: list[Tensor], key: str = "box_instance_ids",
                       where: str = "instances") -> None:
     """Raise where a sample's id has no pixel in its ``instances`` map (any layout whose first
-    dimension is the batch)."""
+    dimension is the batch); one pass over the map per id (called for the few ids that the
+    output lacks: an id the output shows is in the source)."""
     for i, t in enumerate(ids):
-        if len(t) == 0:
-            continue
-        present = torch.zeros(len(t), dtype=torch.bool)
-        present[_hits(instances[i], t)[1]] = True
-        if not bool(present.all()):
-            raise ValueError(f"{key}[{i}]: instance id {int(t[~present.cpu()][0])} has no pixel "
-                             f"in {where}[{i}]")
+        for value in t.tolist():
+            if not bool((instances[i] == value).any()):
+                raise ValueError(f"{key}[{i}]: instance id {value} has no pixel in "
+                                 f"{where}[{i}]")
 
 
 # -------------------------------------------------------------------------------------------
@@ -327,7 +326,7 @@ def _on_centres(pixels: Tensor, w: int, h: int) -> Tensor:
     return (u >= -1e-9) & (u <= w - 1 + 1e-9) & (v >= -1e-9) & (v <= h - 1 + 1e-9)
 
 
-def _boundary(change: Change, sample: int) -> tuple[Tensor, Tensor]:
+def _boundary(change: Change, sample: int) -> tuple[Tensor, Tensor, Tensor]:
     """Points on the boundary of sample ``sample``'s output valid area (the images of its cones
     and the output image's edges), at most :data:`BOUNDARY_STEP` apart, ``(T, 2)``, and the
     source pixel centres they map back to with where that holds ``(T, 2), (T,)``."""
@@ -367,9 +366,9 @@ def _boundary(change: Change, sample: int) -> tuple[Tensor, Tensor]:
 
 def _pixel_box(change: Change, sample: int, extent: Tensor, rect: Tensor) -> Tensor:
     """The extent, pixel edges in pixel-centre coordinates, of the output pixels within
-    ``extent`` (pixel-centre x0, y0, x1, y1; inf: none) whose rays meet the source rectangle ``rect`` and are valid: the pixels
-    an object cut by the valid area's boundary keeps (a sliver's pixels are sparse, so its
-    continuous extent would overstate their box)."""
+    ``extent`` (pixel-centre x0, y0, x1, y1; inf: none) whose rays meet the source rectangle
+    ``rect`` and are valid: the pixels an object cut by the valid area's boundary keeps (a
+    sliver's pixels are sparse, so its continuous extent would overstate their box)."""
     if not bool(torch.isfinite(extent).all()):
         return extent
     lo, hi = extent[:2].ceil() - 1, extent[2:].floor() + 1     # a pixel of margin
@@ -552,11 +551,18 @@ def map_targets(changes: Sequence[tuple[Tensor, Change]], batch: int, *,
     return out
 
 
-def boxes_of_instances(instances: Tensor, ids: list[Tensor], dtype: torch.dtype = torch.float32
-                       ) -> dict:
+def boxes_of_instances(instances: Tensor, ids: list[Tensor], source: Tensor,
+                       dtype: torch.dtype = torch.float32) -> dict:
     """``boxes`` and ``box_index`` (per sample lists) of the ids ``ids`` in the output instance
-    map ``instances (B, H, W)`` (:func:`instance_boxes`), boxes in ``dtype``."""
+    map ``instances (B, H, W)`` (:func:`instance_boxes`), boxes in ``dtype``; raises where an
+    id the output lacks has no pixel in the ``source`` instance map either."""
     boxes, index = instance_boxes(instances, ids)
+    missing = []
+    for t, kept in zip(ids, index):
+        lost = torch.ones(len(t), dtype=torch.bool)
+        lost[kept] = False
+        missing.append(t[lost])
+    check_ids_present(source, missing)
     return {"boxes": [b.to(dtype) for b in boxes], "box_index": index}
 
 
