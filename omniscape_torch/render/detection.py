@@ -15,9 +15,9 @@ plus 0.5, converted here and only here).
   and its tight box in the output is taken, clipped to the output's valid area. The outline is
   sampled with points at most :data:`OUTLINE_STEP` output pixels apart (the spacing estimated
   per box from a coarse pass), so a straight edge's curved image is missed by at most its
-  sagitta, ``OUTLINE_STEP**2 / (8 rho)`` for a curvature radius ``rho`` (0.1 px for ``rho``
-  of 20 px). Where the outline leaves the valid area, the box of the valid part is
-  bounded by the outline's valid samples and by the valid area's own boundary (the ``fov`` and
+  sagitta, ``OUTLINE_STEP**2 / (8 rho)`` for a curvature radius ``rho`` (against a sampling
+  64 times finer: at most 0.012 px over 1280 boxes at 512 x 512). Where the outline leaves
+  the valid area, the box of the valid part is bounded by the outline's valid samples and by the valid area's own boundary (the ``fov`` and
   blind cones' images and the output image's edges, sampled every :data:`BOUNDARY_STEP`
   pixels) where it lies inside the region (checked by mapping it back into the source); the
   output pixels within that bound are then tested one by one (mapped back into the source
