@@ -19,9 +19,9 @@ plus 0.5, converted here and only here).
   64 times finer: at most 0.012 px over 1280 boxes at 512 x 512). Where the outline leaves
   the valid area, the box of the valid part is bounded by the outline's valid samples and by
   the valid area's own boundary (the ``fov`` and blind cones' images and the output image's
-  edges, sampled every :data:`BOUNDARY_STEP` pixels) where it lies inside the region (checked by mapping it back into the source); the
-  output pixels within that bound are then tested one by one (mapped back into the source
-  box), so a box cut by the valid area is the tight box of its valid pixels. Elsewhere the
+  edges, sampled every :data:`BOUNDARY_STEP` pixels) where it lies inside the region
+  (checked by mapping it back into the source); the output pixels within that bound are then
+  tested one by one (mapped back into the source box), so a box cut by the valid area is the tight box of its valid pixels. Elsewhere the
   tight box of the object's *pixels* (pixel centres inside the mapped region) differs from
   the continuous box by up to half a pixel per side, a little more at a sharp corner or for
   an object thinner than a pixel; tests hold boxes within 1 px of their objects' pixels.
