@@ -302,7 +302,7 @@ def test_outline_boxes_sweep():
                                          fisheye_models=models, interpolation="nearest",
                                          pitch_range=(-0.5, 0.5), yaw_range=(-0.5, 0.5),
                                          **options)
-        for _ in range(8):
+        for _ in range(5):
             compared += check_boxes_against_pixels(
                 aug, {"rgb": torch.zeros(1, 1, *size)}, random_boxes(12, size, gen), size)
-    assert compared >= 250
+    assert compared >= 150

@@ -15,16 +15,17 @@ plus 0.5, converted here and only here).
   and its tight box in the output is taken, clipped to the output's valid area. The outline is
   sampled with points at most :data:`OUTLINE_STEP` output pixels apart (the spacing estimated
   per box from a coarse pass), so a straight edge's curved image is missed by at most its
-  sagitta, ``OUTLINE_STEP**2 / (8 rho)`` for a curvature radius ``rho`` (against a sampling
-  64 times finer: at most 0.012 px over 1280 boxes at 512 x 512). Where the outline leaves
-  the valid area, the box of the valid part is bounded by the outline's valid samples and by
-  the valid area's own boundary (the ``fov`` and blind cones' images and the output image's
-  edges, sampled every :data:`BOUNDARY_STEP` pixels) where it lies inside the region
-  (checked by mapping it back into the source); the output pixels within that bound are then
-  tested one by one (mapped back into the source box), so a box cut by the valid area is the tight box of its valid pixels. Elsewhere the
-  tight box of the object's *pixels* (pixel centres inside the mapped region) differs from
-  the continuous box by up to half a pixel per side, a little more at a sharp corner or for
-  an object thinner than a pixel; tests hold boxes within 1 px of their objects' pixels.
+  sagitta, ``OUTLINE_STEP**2 / (8 rho)`` for a curvature radius ``rho`` (against a sampling 64
+  times finer: at most 0.012 px over 1280 boxes at 512 x 512). Where the outline leaves the
+  valid area, the box of the valid part is bounded by the outline's valid samples and by the
+  valid area's own boundary (the ``fov`` and blind cones' images and the output image's edges,
+  sampled every :data:`BOUNDARY_STEP` pixels) where it lies inside the region (checked by
+  mapping it back into the source); the output pixels within that bound are then tested one by
+  one (mapped back into the source box), so a box cut by the valid area is the tight box of its
+  valid pixels. Elsewhere the tight box of the object's *pixels* (pixel centres inside the
+  mapped region) differs from the continuous box by up to half a pixel per side, a little more
+  at a sharp corner or for an object thinner than a pixel; tests hold boxes within 1 px of
+  their objects' pixels.
 * A box from an instance map (:func:`instance_boxes`): the tight box of the output pixels of
   its instance id, exact.
 """
