@@ -87,10 +87,10 @@ class Side(NamedTuple):
         """``(T,)`` True where unit ``rays (T, 3)`` of samples ``sample (T,)`` lie in the cones."""
         ok = torch.ones(rays.shape[:-1], dtype=torch.bool)
         if self.fov is not None:
-            ok = ok & (rays[:, 2] >= torch.cos(0.5 * self.fov[sample]))
-        if self.blind_fov is not None:
-            blind = self.blind_fov[sample]
-            ok = ok & ((blind <= 0) | (rays[:, 2] < torch.cos(0.5 * blind)))
+            ok = ok & (rays[:, 2] >= torch.cos(0.5 * self.fov)[sample])
+        if self.blind_fov is not None and bool((self.blind_fov > 0).any()):
+            blind = torch.where(self.blind_fov > 0, torch.cos(0.5 * self.blind_fov), 2.0)
+            ok = ok & (rays[:, 2] < blind[sample])
         return ok
 
     def in_image(self, pixels: Tensor) -> Tensor:
