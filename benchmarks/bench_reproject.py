@@ -18,6 +18,12 @@ valid mask returned. Times, round-robin in one run (``common.measure``), on ``--
 * ``kornia``: ``kornia.augmentation.RandomFisheye`` (centre +-0.3, gamma 0.9-1.0: its
   docstring's example) on the batch as float32 in [0, 1], RGB only (kornia 0.9 refuses masks
   for it; ``bench_training.py`` adds them);
+* ``ours_batch_detection``: ``ours_batch`` with detection targets (issue 35): 20 boxes per
+  image (outline mode: mapped through the drawn camera, ``box_index``) and 17 keypoints per
+  image; the headline ``detection overhead`` is its median over ``ours_batch``'s (target
+  <= 1.10, ``DETECTION_TARGET``);
+* ``ours_batch_instances``: ``ours_batch`` with an ``int64`` instance map and the exact box
+  mode (the 20 boxes from their instances' output pixels): one more labels pass, timed apart;
 * ``exact``: ``RandomReproject`` on the exact chain (``ot.reproject``: ``Camera.ray_grid``,
   ``grid_sample``), what a call with gradients or off the CPU runs, on float32 images.
 
@@ -70,6 +76,9 @@ except ImportError:   # not a dependency (module docstring): its row is skipped
 SEED = 20261125
 #: ours / albumentations images per second, at least (issue 17).
 TARGET = 1.5
+#: ours_batch_detection / ours_batch median time, at most (issue 35).
+DETECTION_TARGET = 1.10
+BOXES, KEYPOINTS = 20, 17
 SOURCE_FOV = math.radians(90)
 
 
@@ -92,12 +101,31 @@ def run(args: argparse.Namespace) -> dict:
         return [aug({"rgb": batch[i:i + 1], "labels": labels[i:i + 1]}) for i in range(b)]
 
     floats = images.float() / 255
+    # detection targets: boxes of 10-160 px in the image, keypoints anywhere in it
+    centre = torch.rand(b, BOXES, 2, generator=gen) * torch.tensor([w, h])
+    half = (torch.rand(b, BOXES, 2, generator=gen) * 150 + 10) / 2
+    boxes = torch.cat((centre - half, centre + half), -1).round()
+    boxes = torch.cat((boxes[..., :2].clamp(min=0),
+                       torch.minimum(boxes[..., 2:], torch.tensor([w, h]))), -1)
+    keypoints = torch.rand(b, KEYPOINTS, 2, generator=gen) * torch.tensor([w, h])
+    instances = torch.zeros(b, h, w, dtype=torch.int64)
+    for i in range(b):   # box j painted with id 1000 + j (later boxes over earlier ones)
+        for j, (x0, y0, x1, y1) in enumerate(boxes[i].long().tolist()):
+            instances[i, y0:y1, x0:x1] = 1000 + j
+    ids = [torch.tensor([int(t) for t in instances[i].unique() if t > 0]) for i in range(b)]
+    detecting, instancing = module(), module()
 
     def exact_chain():
         with torch.enable_grad():   # a gradient asked for: the exact chain
             return exact({"rgb": floats.requires_grad_(), "labels": labels.long()})
 
     cases = [("ours_batch", "ours", lambda: batched({"rgb": images, "labels": labels})),
+             ("ours_batch_detection", "ours", lambda: detecting(
+                 {"rgb": images, "labels": labels, "boxes": list(boxes),
+                  "keypoints": keypoints})),
+             ("ours_batch_instances", "ours", lambda: instancing(
+                 {"rgb": images, "labels": labels, "instances": instances,
+                  "box_instance_ids": ids})),
              ("ours_sample", "ours", lambda: per_image(single, images)),
              ("ours_sample_hwc", "ours", lambda: per_image(single_hwc, images_hwc)),
              ("exact", "ours", exact_chain)]
@@ -151,6 +179,12 @@ def run(args: argparse.Namespace) -> dict:
             headline.append({"ours": name, "peer": "albumentations", "throughput_ratio": ratio,
                              "min_ratio": peer["min_s"] / by_name[name]["min_s"],
                              "target": TARGET, "meets_target": ratio >= TARGET})
+    base = by_name["ours_batch"]["median_s"]
+    detection = {name: by_name[name]["median_s"] / base
+                 for name in ("ours_batch_detection", "ours_batch_instances")}
+    detection.update(target=DETECTION_TARGET,
+                     meets_target=detection["ours_batch_detection"] <= DETECTION_TARGET,
+                     boxes_per_image=BOXES, keypoints_per_image=KEYPOINTS)
     return {
         **run_record("reproject", torch.device("cpu"), args.threads, cv2),
         "versions_peers": {"albumentations": getattr(albumentations, "__version__", None)},
@@ -160,6 +194,7 @@ def run(args: argparse.Namespace) -> dict:
         "rows": rows,
         "skipped": skipped,
         "headline": headline,
+        "detection_overhead": detection,
         "agreement": agreement,
         "loadavg_start": load_start,
         "loadavg_end": loadavg(),
@@ -185,6 +220,12 @@ def markdown(result: dict) -> str:
         lines.append(f"throughput {h['ours']} / {h['peer']}: {h['throughput_ratio']:.2f}x "
                      f"(fastest calls {h['min_ratio']:.2f}x; target >= {h['target']:.1f}x: "
                      f"{'ok' if h['meets_target'] else 'MISSED'})")
+    d = result["detection_overhead"]
+    lines.append(f"detection overhead ({d['boxes_per_image']} boxes, outline mode, and "
+                 f"{d['keypoints_per_image']} keypoints per image): "
+                 f"{d['ours_batch_detection']:.3f}x ours_batch (target <= {d['target']:.2f}: "
+                 f"{'ok' if d['meets_target'] else 'MISSED'}); exact instance mode "
+                 f"{d['ours_batch_instances']:.3f}x")
     lines.append("agreement with the exact chain (same draws): " + ", ".join(
         f"{k} {v:.4g}" for k, v in result["agreement"].items()))
     return "\n".join(lines)

@@ -271,7 +271,10 @@ def test_reproject_benchmark_rows(tmp_path, monkeypatch):
     assert br.main(["--quick", "--repeats", "1", "--warmup", "0", "--out", str(out)]) == 0
     result = json.loads(out.read_text())
     rows = {r["name"]: r for r in result["rows"]}
-    assert {"ours_batch", "ours_sample", "ours_sample_hwc", "exact"} <= set(rows)
+    assert {"ours_batch", "ours_sample", "ours_sample_hwc", "exact", "ours_batch_detection",
+            "ours_batch_instances"} <= set(rows)
+    overhead = result["detection_overhead"]   # issue 35: the ratio to ours_batch, its target
+    assert overhead["ours_batch_detection"] > 0 and overhead["target"] == br.DETECTION_TARGET
     assert all(r["images_per_s"] > 0 for r in rows.values())
     agreement = result["agreement"]
     assert agreement["valid_mismatch_fraction"] < 0.01

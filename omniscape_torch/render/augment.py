@@ -26,7 +26,7 @@ from __future__ import annotations
 import math
 import os
 from types import MappingProxyType
-from typing import NamedTuple, Sequence
+from typing import Mapping, NamedTuple, Sequence
 
 import numpy as np
 import torch
@@ -36,7 +36,7 @@ from ..cameras import Camera
 from ..cameras.registry import get_model
 from ..cubemap.faces import FACES, face_rotations
 from ..cubemap.rotation import check_rotation
-from . import fast
+from . import detection, fast
 from .fast import CameraGrid
 from .kernels import camera_grid, camera_rays
 from ..cameras.presets import yaw_pitch_roll_to_matrix
@@ -270,7 +270,8 @@ class _RandomCameras(nn.Module):
             state["_generator"].set_state(torch.frombuffer(bytearray(saved), dtype=torch.uint8))
         # pickled before these existed: their defaults
         for key, default in (("_generator_key", None), ("channels_last", False),
-                             ("out_dtype", None), *_LENS_DEFAULTS.items()):
+                             ("out_dtype", None), ("label_keys", {}),
+                             *_LENS_DEFAULTS.items()):
             state.setdefault(key, default)
         super().__setstate__(state)
 
@@ -345,6 +346,136 @@ class _RandomCameras(nn.Module):
             out[name] = (idx, Camera(name, cam_params, self.image_size))
         return out
 
+    def _changes(self, params: dict, source: "detection.Side"
+                 ) -> list[tuple[Tensor, "detection.Change"]]:
+        """The camera changes of the drawn ``params`` from ``source``, one per model:
+        ``(sample indices, detection.Change)``."""
+        changes = []
+        f64 = dict(device="cpu", dtype=torch.float64)
+        for name, (idx, camera) in self.cameras(params, torch.float64, "cpu").items():
+            output = detection.Side(name, camera.params, self.image_size,
+                                    params["fov"][idx].to(**f64),
+                                    params["blind_fov"][idx].to(**f64))
+            changes.append((idx, detection.Change(source.rows(idx), output,
+                                                  params["rotation"][idx].to(**f64))))
+        return changes
+
+
+#: The detection keys of the modules' dicts (beside rgb, labels, depth and the declared label
+#: keys); a cubemap takes no boxes (its boxes come from its instance ids).
+_TARGET_KEYS = ("instances", "boxes", "box_instance_ids", "keypoints")
+_BUILT_IN_KEYS = ("rgb", "labels", "depth", "valid", "params", "intrinsics", "source_camera",
+                  "keypoints_valid", "box_index", *_TARGET_KEYS)
+
+
+def _check_label_keys(label_keys: object) -> dict[str, int]:
+    """``label_keys``: ``{key: ignore value}`` of the label-like keys a user declares."""
+    if label_keys is None:
+        return {}
+    if not isinstance(label_keys, Mapping):
+        raise TypeError(f"label_keys: expected a mapping {{key: ignore value}}, got "
+                        f"{type(label_keys).__name__}")
+    out = {}
+    for key, ignore in label_keys.items():
+        if not isinstance(key, str) or key in _BUILT_IN_KEYS:
+            raise ValueError(f"label_keys: {key!r} is not a free key name (built in: "
+                             f"{', '.join(_BUILT_IN_KEYS)})")
+        if isinstance(ignore, bool) or not isinstance(ignore, int):
+            raise TypeError(f"label_keys[{key!r}]: expected an int ignore value, got "
+                            f"{ignore!r}")
+        out[key] = int(ignore)
+    return out
+
+
+def _target_keys(label_keys: Mapping[str, int]) -> set[str]:
+    return set(_TARGET_KEYS) | set(label_keys)
+
+
+def _targets(inputs: object, label_keys: Mapping[str, int], cube: bool) -> dict:
+    """The detection keys and declared label keys of a forward's dict, as ``render``'s
+    arguments (``label_maps``: the declared keys' maps)."""
+    if not isinstance(inputs, dict):
+        return {}
+    if cube and "boxes" in inputs:
+        raise ValueError("boxes: a cubemap has no 2D boxes; pass instances (B, 6, F, F) and "
+                         "box_instance_ids: the boxes come from the output's instance ids")
+    out = {key: inputs[key] for key in _TARGET_KEYS if key in inputs}
+    maps = {key: inputs[key] for key in label_keys if key in inputs}
+    if maps:
+        out["label_maps"] = maps
+    return out
+
+
+def _label_maps(label_keys: Mapping[str, int], instances: Tensor | None,
+                label_maps: Mapping[str, Tensor] | None, cube: bool
+                ) -> dict[str, tuple[Tensor, int]]:
+    """``{key: (ids, ignore value)}`` of ``instances`` (ignore 0) and the declared label keys'
+    maps, checked: integer ids ``(B, H, W)`` (a cube ``(B, 6, F, F)``), a channel of 1
+    dropped, ``bool`` masks as ``uint8``."""
+    given = {} if label_maps is None else dict(label_maps)
+    unknown = set(given) - set(label_keys)
+    if unknown:
+        raise ValueError(f"label_maps: keys {sorted(unknown)} are not declared (label_keys="
+                         f"{dict(label_keys)})")
+    maps = {}
+    items = [("instances", instances, 0)] + [(k, given[k], label_keys[k]) for k in given]
+    layout = "(B, 6, F, F)" if cube else "(B, H, W)"
+    for key, ids, ignore in items:
+        if ids is None:
+            continue
+        if not isinstance(ids, Tensor):
+            raise TypeError(f"{key}: expected an integer tensor {layout}, got "
+                            f"{type(ids).__name__}")
+        ids = _plain(ids)
+        if ids.dim() == len(layout.split(",")) + 1 and ids.shape[-3] == 1:
+            ids = ids.squeeze(-3)
+        if ids.is_floating_point() or ids.is_complex():
+            raise ValueError(f"{key}: expected integer ids {layout}, got {ids.dtype}")
+        if ids.dim() != len(layout.split(",")):
+            stacked = " (B, N, 6, F, F)" if cube else " (B, N, H, W)"
+            raise ValueError(f"{key}: expected integer ids {layout}, got {tuple(ids.shape)}; "
+                             f"stacked masks{stacked} are not taken: merge them into one id "
+                             f"map, e.g. (masks * torch.arange(1, N + 1).view(N, 1, 1)).amax(-3)"
+                             f" (where masks overlap the larger id wins)")
+        maps[key] = (ids.to(torch.uint8) if ids.dtype == torch.bool else ids, ignore)
+    return maps
+
+
+def _check_batches(params: dict, **given: object) -> int:
+    """The batch of the drawn ``params``; raises naming the first given detection input of
+    another (``rgb``, ``labels`` and ``depth`` are checked where they are rendered)."""
+    batch = len(params["model"])
+    for key, value in given.items():
+        if value is None:
+            continue
+        n = len(value) if not isinstance(value, Tensor) or value.dim() > 0 else 0
+        if n != batch:
+            raise ValueError(f"{key}: {n} samples, the batch (params) has {batch}")
+    return batch
+
+
+def _render_label_maps(result: dict, maps: dict[str, tuple[Tensor, int]], render_one) -> None:
+    """Each label map through ``render_one(ids) -> dict`` (one labels pass: nearest, exact ids
+    of any range) into ``result[key]``, its own ignore value outside the valid area; ``valid``
+    and ``params`` from the first pass where ``result`` has none."""
+    for key, (ids, ignore) in maps.items():
+        out = render_one(ids)
+        result[key] = out["labels"].masked_fill_(~out["valid"][:, 0], ignore)
+        result.setdefault("valid", out["valid"])
+        result.setdefault("params", out["params"])
+
+
+def _source_size(image: Tensor | None, labels: Tensor | None, depth: Tensor | None,
+                 maps: dict, channels_last: bool) -> tuple[int, int]:
+    """``(Hs, Ws)`` of a perspective batch."""
+    for t in (labels, depth, *(ids for ids, _ in maps.values())):
+        if t is not None:
+            return tuple(t.shape[-2:])
+    return tuple(image.shape[1:3] if channels_last else image.shape[-2:])
+
+
+def _float(dtype: torch.dtype) -> torch.dtype:
+    return dtype if dtype.is_floating_point else torch.float32
 
 
 class RandomOmniCamera(_RandomCameras):
@@ -445,6 +576,9 @@ class RandomOmniCamera(_RandomCameras):
             image, blended in float32 and rounded to nearest, half up), or a floating dtype (a
             ``uint8`` cube is then scaled to [0, 1] in the same pass). ``torch.uint8`` is
             accepted for ``uint8`` cubes only.
+        label_keys: ``{key: ignore value}``: more label-like keys the dicts may hold (e.g.
+            ``{"parts": 255}``), each carried as ``labels`` are (nearest, int64 ids of any
+            range) with its own value outside the valid area (``docs/detection.md``).
 
     Shapes:
         cubemap ``(B, 6, C, F, F)`` (``channels_last``: ``(B, 6, F, F, C)``) floating or
@@ -481,7 +615,8 @@ class RandomOmniCamera(_RandomCameras):
                  p: float = 1.0, same_on_batch: bool = False,
                  interpolation: str = "bilinear", depth_output: str = "range",
                  ignore_index: int = 255, seed: int | None = None,
-                 channels_last: bool = False, out_dtype: torch.dtype | None = None) -> None:
+                 channels_last: bool = False, out_dtype: torch.dtype | None = None,
+                 label_keys: Mapping[str, int] | None = None) -> None:
         super().__init__(
             image_size, fisheye_models=fisheye_models, fov_range=fov_range,
             kb_distortion=kb_distortion, unified_xi_range=unified_xi_range,
@@ -509,6 +644,7 @@ class RandomOmniCamera(_RandomCameras):
         self.blind_fov = None if blind_fov is None else float(blind_fov)
         self.looking = looking
         self.catadioptric_prob = float(catadioptric_prob)
+        self.label_keys = _check_label_keys(label_keys)
         self._check_ranges()
 
     def _check_ranges(self) -> None:
@@ -618,8 +754,12 @@ class RandomOmniCamera(_RandomCameras):
     # Rendering
     # ---------------------------------------------------------------------------------------
     def render(self, cubemap: Tensor | None, params: dict, *, labels: Tensor | None = None,
-               depth: Tensor | None = None) -> dict:
-        """Render the modalities through the cameras and rotations of ``params``.
+               depth: Tensor | None = None, instances: Tensor | None = None,
+               box_instance_ids: Sequence[Tensor] | None = None,
+               keypoints: Tensor | None = None, label_maps: Mapping[str, Tensor] | None = None
+               ) -> dict:
+        """Render the modalities and the detection targets through the cameras and rotations
+        of ``params``.
 
         Args:
             cubemap: ``(B, 6, C, F, F)`` (``channels_last``: ``(B, 6, F, F, C)``), floating or
@@ -627,11 +767,46 @@ class RandomOmniCamera(_RandomCameras):
             params: parameters from ``forward_parameters``.
             labels: as for ``forward``.
             depth: as for ``forward``.
+            instances: ``(B, 6, F, F)`` integer instance ids (0: none), any range.
+            box_instance_ids: per sample the ``(N_i,)`` instance ids to box (needs
+                ``instances``).
+            keypoints: ``(B, K, 3)`` rows ``(face, x, y)``: a face index (``FACES`` order) and
+                corner coordinates on it.
+            label_maps: the declared label keys' cubemaps (``label_keys``), by key.
 
         Returns:
-            dict ``valid`` and, for each given input, ``rgb``, ``labels``, ``depth`` (class
-            docstring), plus ``params``.
+            the dict of ``forward``.
         """
+        maps = _label_maps(self.label_keys, instances, label_maps, cube=True)
+        _check_batches(params, **dict(
+            (key, t) for key, (t, _) in maps.items()), box_instance_ids=box_instance_ids,
+            keypoints=keypoints)
+        if keypoints is not None:
+            keypoints = detection.check_keypoints(keypoints, len(params["model"]), 3)
+        ids = None
+        if box_instance_ids is not None:
+            if instances is None:
+                raise ValueError("box_instance_ids: needs instances (a cube has no 2D boxes: "
+                                 "boxes come from its instance ids)")
+            ids = detection.check_box_ids(box_instance_ids, None, len(params["model"]))
+        result = {}
+        if any(t is not None for t in (cubemap, labels, depth)):
+            result = self._render_maps(cubemap, params, labels=labels, depth=depth)
+        _render_label_maps(result, maps, lambda ids: self._render_maps(None, params, labels=ids))
+        if ids is not None:
+            result.update(detection.boxes_of_instances(result["instances"], ids,
+                                                       _plain(instances)))
+        if keypoints is not None:
+            cube = detection.Side(None, None, None)
+            result.update(detection.map_targets(
+                self._changes(result["params"], cube), len(params["model"]),
+                keypoints=detection.cube_points(keypoints, self.face_size)))
+        return result
+
+    def _render_maps(self, cubemap: Tensor | None, params: dict, *,
+                     labels: Tensor | None = None, depth: Tensor | None = None) -> dict:
+        """:meth:`render` of the modalities alone (``valid``, ``rgb``, ``labels``, ``depth``,
+        ``params``)."""
         rgb_dtype = self._check_cubemap(cubemap)
         ref = next((t for t in (cubemap, depth, labels) if t is not None), None)
         if ref is None:
@@ -738,7 +913,10 @@ class RandomOmniCamera(_RandomCameras):
         Args:
             cubemap: ``(B, 6, C, F, F)`` (``channels_last``: ``(B, 6, F, F, C)``) floating or
                 ``uint8``, or a dict with keys ``rgb`` and optionally ``labels`` and ``depth``
-                (so the module can start an ``nn.Sequential``). Tensor subclasses
+                (so the module can start an ``nn.Sequential``), and the detection keys
+                ``instances`` ``(B, 6, F, F)`` (ids, 0: none), ``box_instance_ids`` (per sample
+                the ids to box) and ``keypoints`` ``(B, K, 3)`` rows ``(face, x, y)``, and the
+                keys of ``label_keys`` (``docs/detection.md``). Tensor subclasses
                 (torchvision's ``tv_tensors.Image``, ``Mask``) are read as the tensors they
                 hold, and their outputs come back in their classes.
             labels: ``(B, 6, F, F)`` integer class ids.
@@ -747,22 +925,30 @@ class RandomOmniCamera(_RandomCameras):
             generator: the generator of this call (else the module's).
 
         Returns:
-            dict ``rgb``, ``labels``, ``depth`` (those given), ``valid`` and ``params``.
+            dict ``rgb``, ``labels``, ``depth``, ``instances`` and the declared label keys
+            (those given), ``valid`` and ``params``; with ``box_instance_ids``: ``boxes`` (per
+            sample ``(M_i, 4)`` XYXY corner coordinates, the tight box of the id's output
+            pixels) and ``box_index`` (per sample ``(M_i,)``: positions in
+            ``box_instance_ids``); with ``keypoints``: ``keypoints (B, K, 2)`` corner
+            coordinates (NaN where invalid) and ``keypoints_valid (B, K)``.
         """
+        targets = _targets(cubemap, self.label_keys, cube=True)
         if isinstance(cubemap, dict):
-            unknown = set(cubemap) - {"rgb", "labels", "depth"}
+            unknown = set(cubemap) - {"rgb", "labels", "depth"} - _target_keys(self.label_keys)
             if unknown:
                 raise ValueError(f"cubemap: unknown keys {sorted(unknown)}")
             labels = cubemap.get("labels", labels)
             depth = cubemap.get("depth", depth)
             cubemap = cubemap.get("rgb")
         given = {"rgb": cubemap, "labels": labels, "depth": depth}
-        ref = next((t for t in given.values() if t is not None), None)
+        ref = next((t for t in (*given.values(), *targets.get("label_maps", {}).values(),
+                                targets.get("instances")) if t is not None), None)
         if ref is None:
-            raise ValueError("forward: pass at least one of cubemap, labels, depth")
+            raise ValueError("forward: pass at least one of cubemap, labels, depth, instances")
         if params is None:
             params = self.forward_parameters(ref.shape[0], generator=generator)
-        out = self.render(_plain(cubemap), params, labels=_plain(labels), depth=_plain(depth))
+        out = self.render(_plain(cubemap), params, labels=_plain(labels), depth=_plain(depth),
+                          **targets)
         return _like_inputs(out, given)
 
 
@@ -842,6 +1028,8 @@ class RandomReproject(_RandomCameras):
         channels_last: the images are ``(B, H, W, C)`` and ``rgb`` comes back so.
         out_dtype: dtype of ``rgb``: None for the image's, or a floating dtype (``uint8``
             scaled to [0, 1]).
+        label_keys: ``{key: ignore value}``: more label-like keys the dicts may hold, as for
+            :class:`RandomOmniCamera`.
 
     Shapes:
         ``rgb (B, C, Hs, Ws)`` (``channels_last``: ``(B, Hs, Ws, C)``) floating or ``uint8``,
@@ -877,7 +1065,8 @@ class RandomReproject(_RandomCameras):
                  p: float = 1.0, same_on_batch: bool = False,
                  interpolation: str = "bilinear", depth_output: str = "range",
                  ignore_index: int = 255, seed: int | None = None,
-                 channels_last: bool = False, out_dtype: torch.dtype | None = None) -> None:
+                 channels_last: bool = False, out_dtype: torch.dtype | None = None,
+                 label_keys: Mapping[str, int] | None = None) -> None:
         super().__init__(
             image_size, fisheye_models=fisheye_models, fov_range=fov_range,
             kb_distortion=kb_distortion, unified_xi_range=unified_xi_range,
@@ -908,6 +1097,7 @@ class RandomReproject(_RandomCameras):
                 raise ValueError("source_camera: pass source_fov or source_camera, not both")
         self.source_fov = None if source_fov is None else float(source_fov)
         self.source_camera = source_camera
+        self.label_keys = _check_label_keys(label_keys)
         self._check_fisheye_ranges()
 
     def __setstate__(self, state: dict) -> None:
@@ -984,28 +1174,78 @@ class RandomReproject(_RandomCameras):
 
     def render(self, image: Tensor | None, params: dict, *, labels: Tensor | None = None,
                depth: Tensor | None = None, intrinsics: Tensor | None = None,
-               source_camera: Camera | None = None) -> dict:
-        """Reproject the modalities through the cameras and rotations of ``params``.
+               source_camera: Camera | None = None, instances: Tensor | None = None,
+               boxes: Sequence[Tensor] | None = None,
+               box_instance_ids: Sequence[Tensor] | None = None,
+               keypoints: Tensor | None = None, label_maps: Mapping[str, Tensor] | None = None
+               ) -> dict:
+        """Reproject the modalities and the detection targets through the cameras and
+        rotations of ``params``.
 
         Args:
-            image: ``(B, C, Hs, Ws)`` (``channels_last``: ``(B, Hs, Ws, C)``), floating or
-                ``uint8``, or None.
+            image: ``(B, C, Hs, Ws)`` (``channels_last``: ``(B, Hs, Ws, C)``), or None.
             params: parameters from ``forward_parameters``.
-            labels: ``(B, Hs, Ws)`` integer class ids. depth: ``(B, Hs, Ws)`` or
-                ``(B, 1, Hs, Ws)`` planar depth (metres along the source camera's axis).
-            intrinsics: the source pinhole: ``(B, 4)`` or ``(4,)`` ``fx, fy, cx, cy``, or a
-                camera matrix ``K (B, 3, 3)`` or ``(3, 3)`` (zero skew); None: ``source_camera``,
-                else the module's ``source_camera`` or ``source_fov``.
-            source_camera: the source, any camera of the registry: one shared, or a batch
-                ``(B,)`` of one model (class docstring).
+            labels: as for ``forward``.
+            depth: as for ``forward``.
+            intrinsics: as for ``forward``.
+            source_camera: as for ``forward``.
+            instances: ``(B, Hs, Ws)`` integer instance ids (0: none), any range.
+            boxes: per sample ``(N_i, 4)`` XYXY corner coordinates.
+            box_instance_ids: per sample ``(N_i,)`` the instance id of each box (with
+                ``instances``: the exact mode).
+            keypoints: ``(B, K, 2)`` corner coordinates (NaN: missing).
+            label_maps: the declared label keys' maps (``label_keys``), by key.
 
         Returns:
-            dict ``valid`` and, for each given input, ``rgb``, ``labels``, ``depth`` (class
-            docstring), plus ``params`` (with ``intrinsics (B, 4)`` of a pinhole source, else
-            ``source_camera``: the source used, as ``{"model", "params" (B, P) float64 on
-            the CPU[, "fov", "blind_fov"]}``, which ``default_collate`` stacks and a replay
-            reads back).
+            the dict of ``forward``: ``params`` with the ``intrinsics (B, 4)`` of a pinhole
+            source, else ``source_camera``, the source used, as ``{"model", "params" (B, P)
+            float64 on the CPU[, "fov", "blind_fov"]}``, which ``default_collate`` stacks and a
+            replay reads back.
         """
+        maps = _label_maps(self.label_keys, instances, label_maps, cube=False)
+        batch = _check_batches(params, **dict(
+            (key, t) for key, (t, _) in maps.items()), box_instance_ids=box_instance_ids,
+            keypoints=keypoints, boxes=boxes)
+        kp_dtype = torch.float32
+        if keypoints is not None:
+            kp_dtype = _float(torch.as_tensor(keypoints).dtype)
+            keypoints = detection.check_keypoints(keypoints, batch)
+        box_dtype = torch.float32
+        if boxes is not None:
+            box_dtype = next((_float(torch.as_tensor(b).dtype) for b in boxes), box_dtype)
+            boxes = detection.check_boxes(boxes, batch)
+        ids = None
+        if box_instance_ids is not None:
+            if instances is None:
+                raise ValueError("box_instance_ids: needs instances (the exact mode boxes the "
+                                 "output pixels of each box's instance id)")
+            ids = detection.check_box_ids(box_instance_ids, boxes, batch)
+        sources = dict(intrinsics=intrinsics, source_camera=source_camera)
+        result = {}
+        if any(t is not None for t in (image, labels, depth)):
+            result = self._render_maps(image, params, labels=labels, depth=depth, **sources)
+        _render_label_maps(result, maps, lambda ids: self._render_maps(
+            None, params, labels=ids, **sources))
+        if ids is not None:
+            result.update(detection.boxes_of_instances(result["instances"], ids,
+                                                       _plain(instances), box_dtype))
+        if keypoints is not None or (boxes is not None and ids is None):
+            size = _source_size(image, labels, depth, maps, self.channels_last)
+            record = result["params"]
+            source = (detection.Side("pinhole", record["intrinsics"], size)
+                      if "intrinsics" in record else detection.Side.of(
+                          _recorded_camera(record["source_camera"], size), batch))
+            result.update(detection.map_targets(
+                self._changes(record, source), batch, keypoints=keypoints,
+                boxes=None if ids is not None else boxes, source_size=size,
+                dtype=kp_dtype, box_dtype=box_dtype))
+        return result
+
+    def _render_maps(self, image: Tensor | None, params: dict, *, labels: Tensor | None = None,
+                     depth: Tensor | None = None, intrinsics: Tensor | None = None,
+                     source_camera: Camera | None = None) -> dict:
+        """:meth:`render` of the modalities alone (``valid``, ``rgb``, ``labels``, ``depth``,
+        ``params`` with the source camera's record)."""
         image, labels, depth, size = self._check_inputs(image, labels, depth)
         batch = next(t for t in (image, labels, depth) if t is not None).shape[0]
         if len(params["model"]) != batch:
@@ -1256,7 +1496,11 @@ class RandomReproject(_RandomCameras):
         Args:
             image: ``(B, C, H, W)`` (``channels_last``: ``(B, H, W, C)``) floating or ``uint8``
                 perspective images, or a dict with the keys ``rgb`` and optionally ``labels``,
-                ``depth``, ``intrinsics`` and ``source_camera``; ``tv_tensors.Image`` /
+                ``depth``, ``intrinsics`` and ``source_camera``, the detection keys
+                ``instances`` ``(B, H, W)``, ``boxes`` (per sample ``(N_i, 4)`` XYXY corner
+                coordinates), ``box_instance_ids`` (per sample ``(N_i,)``: the exact mode) and
+                ``keypoints`` ``(B, K, 2)``, and the keys of ``label_keys``
+                (``docs/detection.md``); ``tv_tensors.Image`` /
                 ``tv_tensors.Mask``
                 are taken as the tensors they hold, and their outputs come back in their
                 classes.
@@ -1273,10 +1517,17 @@ class RandomReproject(_RandomCameras):
             generator: the generator of this call (else the module's).
 
         Returns:
-            dict ``rgb``, ``labels``, ``depth`` (those given), ``valid`` and ``params``.
+            dict ``rgb``, ``labels``, ``depth``, ``instances`` and the declared label keys
+            (those given), ``valid`` and ``params``; with ``boxes``: ``boxes`` (the same
+            structure, each the tight box of its object in the output, clipped to the valid
+            area) and ``box_index`` (per sample ``(M_i,)`` int64: the input box of each);
+            with ``keypoints``: ``keypoints (B, K, 2)`` (NaN where invalid) and
+            ``keypoints_valid (B, K)``.
         """
+        targets = _targets(image, self.label_keys, cube=False)
         if isinstance(image, dict):
-            unknown = set(image) - {"rgb", "labels", "depth", "intrinsics", "source_camera"}
+            unknown = set(image) - {"rgb", "labels", "depth", "intrinsics", "source_camera"} - \
+                _target_keys(self.label_keys)
             if unknown:
                 raise ValueError(f"image: unknown keys {sorted(unknown)}")
             labels = image.get("labels", labels)
@@ -1285,16 +1536,17 @@ class RandomReproject(_RandomCameras):
             source_camera = image.get("source_camera", source_camera)
             image = image.get("rgb")
         given = {"rgb": image, "labels": labels, "depth": depth}
-        ref = next((t for t in given.values() if t is not None), None)
+        ref = next((t for t in (*given.values(), *targets.get("label_maps", {}).values(),
+                                targets.get("instances")) if t is not None), None)
         if ref is None:
-            raise ValueError("forward: pass at least one of image, labels, depth")
+            raise ValueError("forward: pass at least one of image, labels, depth, instances")
         if params is None:
             params = self.forward_parameters(ref.shape[0], generator=generator)
         elif intrinsics is None and source_camera is None:   # a replay: its source camera
             intrinsics = params.get("intrinsics")
             source_camera = params.get("source_camera")
         out = self.render(_plain(image), params, labels=_plain(labels), depth=_plain(depth),
-                          intrinsics=intrinsics, source_camera=source_camera)
+                          intrinsics=intrinsics, source_camera=source_camera, **targets)
         return _like_inputs(out, given)
 
 

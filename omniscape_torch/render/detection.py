@@ -1,0 +1,666 @@
+"""Detection targets through a camera change: keypoints, boxes, and boxes of instance maps.
+
+The geometry that :class:`~omniscape_torch.augment.RandomReproject`,
+:class:`~omniscape_torch.augment.RandomOmniCamera` and :func:`reproject_boxes` /
+:func:`reproject_keypoints` (next to :func:`~omniscape_torch.reproject`) share. Coordinates
+follow torchvision's XYXY convention for boxes and keypoints: corner coordinates, the pixel of
+centre ``(u, v)`` spans ``[u, u + 1] x [v, v + 1]`` (the package's pixel-centre coordinates
+plus 0.5, converted here and only here).
+
+* Keypoints map exactly: a keypoint's ray from the source camera, rotated, projected by the
+  output camera. It is valid where the source sees it (in the source image, its model's domain
+  and cones) and the output sees it (in the output image, its model's domain, its ``fov``
+  and outside its blind cone), else its coordinates are NaN.
+* A box from its outline (``reproject_boxes``): the box region is mapped through the cameras
+  and its tight box in the output is taken, clipped to the output's valid area. The outline is
+  sampled with points at most :data:`OUTLINE_STEP` output pixels apart (the spacing estimated
+  per box from a coarse pass), so a straight edge's curved image is missed by at most its
+  sagitta, ``OUTLINE_STEP**2 / (8 rho)`` for a curvature radius ``rho`` (against a sampling 64
+  times finer: at most 0.012 px over 1280 boxes at 512 x 512). Where the outline leaves the
+  valid area, the box of the valid part is bounded by the outline's valid samples and by the
+  valid area's own boundary (the ``fov`` and blind cones' images and the output image's edges,
+  sampled every :data:`BOUNDARY_STEP` pixels) where it lies inside the region (checked by
+  mapping it back into the source); the output pixels within that bound are then tested one by
+  one (mapped back into the source box), so a box cut by the valid area is the tight box of its
+  valid pixels. Elsewhere the tight box of the object's *pixels* (pixel centres inside the
+  mapped region) differs from the continuous box by up to half a pixel per side, a little more
+  at a sharp corner or for an object thinner than a pixel; tests hold boxes within 1 px of
+  their objects' pixels.
+* A box from an instance map (:func:`instance_boxes`): the tight box of the output pixels of
+  its instance id, exact.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple, Sequence
+
+import torch
+from torch import Tensor
+
+from ..cameras import Camera
+from ..cameras.registry import get_model
+from ..cubemap.faces import face_rotations
+
+__all__ = ["instance_boxes", "reproject_boxes", "reproject_keypoints", "OUTLINE_STEP",
+           "BOUNDARY_STEP"]
+
+#: Largest spacing, in output pixels, of the samples of a box's outline.
+OUTLINE_STEP = 8.0
+#: Spacing, in output pixels, of the samples of the valid area's boundary.
+BOUNDARY_STEP = 0.5
+#: Segments per edge of the coarse pass that estimates how much a box's edges stretch.
+_COARSE = 4
+#: Most samples per edge (a box stretched past this is sampled coarser).
+_MAX_PER_EDGE = 4096
+#: Boundary samples are taken this far (radians, pixels) inside the cones and the image edges.
+_INSET = 1e-7
+
+
+class Side(NamedTuple):
+    """One side of a camera change, per sample: ``model`` (registry name), ``params (n, P)``
+    float64, ``image_size (H, W)``, and the cones ``fov``, ``blind_fov`` (``(n,)`` radians, or
+    None). ``params`` None: a cubemap (rays given by (face, x, y) points)."""
+
+    model: str | None
+    params: Tensor | None
+    image_size: tuple[int, int] | None
+    fov: Tensor | None = None
+    blind_fov: Tensor | None = None
+
+    @staticmethod
+    def of(camera: Camera, n: int) -> "Side":
+        """A :class:`~omniscape_torch.Camera` (one, or a batch ``(n,)``) for ``n`` samples."""
+        params = camera.params.detach().to("cpu", torch.float64)
+        params = params.reshape(-1, params.shape[-1]).expand(n, -1)
+        cone = (lambda a: None if a is None else torch.full((n,), float(a), dtype=torch.float64))
+        return Side(camera.model.name, params, tuple(camera.image_size), cone(camera.fov),
+                    cone(camera.blind_fov))
+
+    def rows(self, index: Tensor) -> "Side":
+        """The samples ``index`` of this side."""
+        pick = (lambda t: None if t is None else t[index])
+        return Side(self.model, pick(self.params), self.image_size, pick(self.fov),
+                    pick(self.blind_fov))
+
+    def cones(self, rays: Tensor, sample: Tensor) -> Tensor:
+        """``(T,)`` True where unit ``rays (T, 3)`` of samples ``sample (T,)`` lie in the cones."""
+        ok = torch.ones(rays.shape[:-1], dtype=torch.bool)
+        if self.fov is not None:
+            ok = ok & (rays[:, 2] >= torch.cos(0.5 * self.fov)[sample])
+        if self.blind_fov is not None and bool((self.blind_fov > 0).any()):
+            blind = torch.where(self.blind_fov > 0, torch.cos(0.5 * self.blind_fov), 2.0)
+            ok = ok & (rays[:, 2] < blind[sample])
+        return ok
+
+    def in_image(self, pixels: Tensor) -> Tensor:
+        h, w = self.image_size
+        u, v = pixels[..., 0], pixels[..., 1]
+        return (u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5)
+
+    def unproject(self, points: Tensor, sample: Tensor) -> tuple[Tensor, Tensor]:
+        """Pixel centres ``(T, 2)`` (a cube: ``(T, 3)`` face, u, v) of samples ``sample`` ->
+        unit rays ``(T, 3)`` and where they are seen."""
+        if self.params is None:
+            return _cube_rays(points)
+        rays, ok = get_model(self.model).unproject(points, self.params[sample])
+        rays = torch.nn.functional.normalize(rays, dim=-1)
+        return rays, ok & self.in_image(points) & self.cones(rays, sample)
+
+    def project(self, rays: Tensor, sample: Tensor) -> tuple[Tensor, Tensor]:
+        """Unit ``rays (T, 3)`` of samples ``sample`` -> pixel centres ``(T, 2)`` and where
+        they are seen."""
+        pixels, ok = get_model(self.model).project(rays, self.params[sample])
+        ok = ok & torch.isfinite(pixels).all(-1)
+        return pixels, ok & self.in_image(pixels) & self.cones(rays, sample)
+
+
+class Change(NamedTuple):
+    """A camera change for ``n`` samples: ``ray_source = rotation @ ray_output``."""
+
+    source: Side
+    output: Side
+    rotation: Tensor          # (n, 3, 3) float64
+
+    def forward(self, points: Tensor, sample: Tensor) -> tuple[Tensor, Tensor]:
+        """Source pixel centres ``(T, 2)`` (cube: ``(T, 3)``) -> output pixel centres ``(T, 2)``
+        and where both cameras see them."""
+        rays, ok = self.source.unproject(points, sample)
+        rays = (self.rotation[sample] * rays[:, :, None]).sum(1)       # R^T @ ray
+        pixels, seen = self.output.project(rays, sample)
+        return pixels, ok & seen
+
+    def backward(self, pixels: Tensor, sample: Tensor) -> tuple[Tensor, Tensor]:
+        """Output pixel centres ``(T, 2)`` -> source pixel centres and where both see them."""
+        rays, ok = self.output.unproject(pixels, sample)
+        rays = (self.rotation[sample] * rays[:, None, :]).sum(2)       # R @ ray
+        points, seen = self.source.project(rays, sample)
+        return points, ok & seen
+
+
+def _cube_rays(points: Tensor) -> tuple[Tensor, Tensor]:
+    """``(T, 3)`` rows ``(face, x, y)`` of :func:`cube_points` (``x = (u - c) / f``) -> unit
+    rays in the cube frame, and where the point lies on its face."""
+    face = points[:, 0].long()
+    local = torch.cat((points[:, 1:], torch.ones_like(points[:, :1])), -1)
+    rays = torch.einsum("tij,tj->ti", face_rotations(torch.float64)[face], local)
+    on_face = (points[:, 1:].abs() <= 1 + 1e-9).all(-1)
+    return torch.nn.functional.normalize(rays, dim=-1), on_face
+
+
+def cube_points(keypoints: Tensor, face_size: int) -> Tensor:
+    """Cube keypoints ``(..., 3)`` rows ``(face, x, y)`` in corner coordinates of a face of
+    ``face_size`` -> rows ``(face, (u - c) / f, (v - c) / f)`` that :class:`Side` reads (NaN
+    rows and faces outside 0..5 are left to the caller's checks)."""
+    f, c = face_size / 2, (face_size - 1) / 2
+    return torch.cat((keypoints[..., :1], (keypoints[..., 1:] - 0.5 - c) / f), -1)
+
+
+# -------------------------------------------------------------------------------------------
+# Input checks
+# -------------------------------------------------------------------------------------------
+def check_boxes(boxes: object, batch: int, name: str = "boxes") -> list[Tensor]:
+    """``boxes``: a list of ``batch`` ``(N_i, 4)`` XYXY tensors (a tensor ``(B, N, 4)`` is read
+    as that list) -> the list as float64 on the CPU; raises naming the sample."""
+    if isinstance(boxes, Tensor) and boxes.dim() == 3:
+        boxes = list(boxes.detach().to("cpu", torch.float64))
+    if not isinstance(boxes, (list, tuple)):
+        raise TypeError(f"{name}: expected a list of B (N_i, 4) XYXY tensors, got "
+                        f"{type(boxes).__name__}")
+    if len(boxes) != batch:
+        raise ValueError(f"{name}: {len(boxes)} samples, the batch has {batch}")
+    out = []
+    for i, b in enumerate(boxes):
+        b = torch.as_tensor(b).detach()
+        if b.numel() == 0:
+            b = b.reshape(0, 4)
+        if b.dim() != 2 or b.shape[-1] != 4 or b.is_complex():
+            raise ValueError(f"{name}[{i}]: expected (N, 4) x0, y0, x1, y1, got "
+                             f"{tuple(b.shape)}")
+        out.append(b.to("cpu", torch.float64))
+    flat = torch.cat(out)
+    owner = torch.arange(batch).repeat_interleave(torch.tensor([len(b) for b in out]))
+    for bad, what in ((~torch.isfinite(flat).all(-1), "boxes must be finite: NaN or inf"),
+                      ((flat[:, 2:] < flat[:, :2]).any(-1),
+                       "expected x0 <= x1 and y0 <= y1 (XYXY corner coordinates)")):
+        if bool(bad.any()):
+            first = int(bad.nonzero()[0, 0])
+            raise ValueError(f"{name}[{int(owner[first])}]: {what} (sample "
+                             f"{int(owner[first])}: {flat[first].tolist()})")
+    return out
+
+
+def check_keypoints(keypoints: object, batch: int, columns: int = 2,
+                    name: str = "keypoints") -> Tensor:
+    """``(B, K, columns)`` keypoints (``(K, columns)`` shared by the batch) as float64 on the
+    CPU; NaN rows are missing keypoints (they come back invalid)."""
+    kp = torch.as_tensor(keypoints).detach()
+    if kp.dim() == 2:
+        kp = kp.expand(batch, *kp.shape)
+    layout = "(x, y)" if columns == 2 else "(face, x, y)"
+    if kp.dim() != 3 or kp.shape[-1] != columns or kp.is_complex():
+        raise ValueError(f"{name}: expected (B, K, {columns}) rows {layout}, got "
+                         f"{tuple(kp.shape)}")
+    if kp.shape[0] != batch:
+        raise ValueError(f"{name}: {kp.shape[0]} samples, the batch has {batch}")
+    kp = kp.to("cpu", torch.float64)
+    if bool(torch.isinf(kp).any()):
+        raise ValueError(f"{name}: infinite coordinates (sample "
+                         f"{int(torch.isinf(kp).any(-1).any(-1).nonzero()[0])}); mark a missing "
+                         f"keypoint with NaN")
+    if columns == 3:
+        face = kp[..., 0]
+        bad = torch.isfinite(face) & ((face != face.round()) | (face < 0) | (face > 5))
+        if bool(bad.any()):
+            raise ValueError(f"{name}: face index must be an integer 0..5 (sample "
+                             f"{int(bad.any(-1).nonzero()[0])})")
+    return kp
+
+
+def check_box_ids(ids: object, boxes: list[Tensor] | None, batch: int,
+                  name: str = "box_instance_ids") -> list[Tensor]:
+    """Per sample ``(N_i,)`` integer instance ids (one per box where ``boxes`` are given)."""
+    if isinstance(ids, Tensor) and ids.dim() == 2:
+        ids = list(ids)
+    if not isinstance(ids, (list, tuple)) or len(ids) != batch:
+        raise ValueError(f"{name}: expected a list of {batch} (N_i,) integer tensors, got "
+                         f"{type(ids).__name__}"
+                         f"{f' of length {len(ids)}' if hasattr(ids, '__len__') else ''}")
+    out = []
+    for i, t in enumerate(ids):
+        t = torch.as_tensor(t).detach().reshape(-1).cpu()
+        if t.is_floating_point() or t.is_complex():
+            raise ValueError(f"{name}[{i}]: expected integer instance ids, got {t.dtype}")
+        if boxes is not None and len(t) != len(boxes[i]):
+            raise ValueError(f"{name}[{i}]: {len(t)} ids for {len(boxes[i])} boxes")
+        out.append(t.long())
+    return out
+
+
+def check_ids_present(instances: Tensor, ids: list[Tensor], key: str = "box_instance_ids",
+                      where: str = "instances") -> None:
+    """Raise where a sample's id has no pixel in its ``instances`` map (any layout whose first
+    dimension is the batch); one pass over the map per id (called for the few ids that the
+    output lacks: an id the output shows is in the source)."""
+    for i, t in enumerate(ids):
+        for value in t.tolist():
+            if not bool((instances[i] == value).any()):
+                raise ValueError(f"{key}[{i}]: instance id {value} has no pixel in "
+                                 f"{where}[{i}]")
+
+
+# -------------------------------------------------------------------------------------------
+# Keypoints
+# -------------------------------------------------------------------------------------------
+def _keypoint_points(keypoints: Tensor, source_size: tuple[int, int] | None
+                     ) -> tuple[Tensor, Tensor, Tensor]:
+    """Keypoints ``(n, K, 2)`` (cube: ``(n, K, 3)`` from :func:`cube_points`), corner
+    coordinates -> the source points to map ``(n K, 2 or 3)`` (pixel centres), their samples
+    ``(n K,)`` and where they are given and in the source image ``[0, W] x [0, H]``
+    (``source_size``; None for a cube)."""
+    n, k, _ = keypoints.shape
+    flat = keypoints.reshape(n * k, -1)
+    sample = torch.arange(n).repeat_interleave(k)
+    given = torch.isfinite(flat).all(-1)
+    points = torch.where(given[:, None], flat, torch.zeros_like(flat))
+    if source_size is not None:
+        h, w = source_size
+        x, y = points[:, 0], points[:, 1]
+        given = given & (x >= 0) & (x <= w) & (y >= 0) & (y <= h)
+        points = points - 0.5
+    return points, sample, given
+
+
+def _keypoint_result(pixels: Tensor, ok: Tensor, given: Tensor, shape: tuple[int, int]
+                     ) -> tuple[Tensor, Tensor]:
+    """Mapped keypoints (pixel centres) -> ``(n, K, 2)`` corner coordinates, NaN where invalid,
+    and ``valid (n, K)``."""
+    ok = ok & given
+    out = torch.where(ok[:, None], pixels + 0.5, torch.full_like(pixels, math.nan))
+    return out.reshape(*shape, 2), ok.reshape(shape)
+
+
+def map_keypoints(change: Change, keypoints: Tensor, source_size: tuple[int, int] | None
+                  ) -> tuple[Tensor, Tensor]:
+    """Keypoints ``(n, K, 2)`` (cube: ``(n, K, 3)`` from :func:`cube_points`) of the ``n``
+    samples of ``change``, corner coordinates -> ``(n, K, 2)`` corner coordinates (NaN where
+    invalid) and ``valid (n, K)``. ``source_size``: the source image's ``(H, W)`` (corner
+    coordinates in ``[0, W] x [0, H]``), None for a cube."""
+    points, sample, given = _keypoint_points(keypoints, source_size)
+    pixels, ok = change.forward(points, sample)
+    return _keypoint_result(pixels, ok, given, keypoints.shape[:2])
+
+
+# -------------------------------------------------------------------------------------------
+# Boxes from outlines
+# -------------------------------------------------------------------------------------------
+def _outline(rects: Tensor, counts: Tensor) -> tuple[Tensor, Tensor]:
+    """Points on the outlines of ``rects (R, 4)`` (pixel-centre x0, y0, x1, y1), ``counts
+    (R,)`` per edge -> ``(T, 2)`` points and their rectangle index ``(T,)``."""
+    x0, y0, x1, y1 = rects.unbind(-1)
+    corners = torch.stack((torch.stack((x0, y0), -1), torch.stack((x1, y0), -1),
+                           torch.stack((x1, y1), -1), torch.stack((x0, y1), -1)), 1)  # (R, 4, 2)
+    start, end = corners, corners.roll(-1, dims=1)
+    per_edge = counts.repeat_interleave(4)                                   # (R * 4,)
+    edge = torch.arange(len(per_edge)).repeat_interleave(per_edge)
+    first = torch.cumsum(per_edge, 0) - per_edge
+    t = ((torch.arange(len(edge)) - first[edge]).to(rects.dtype)
+         / per_edge[edge].to(rects.dtype))[:, None]
+    start, end = start.reshape(-1, 2)[edge], end.reshape(-1, 2)[edge]
+    return start + t * (end - start), torch.arange(len(rects)).repeat_interleave(4 * counts)
+
+
+def _extent(points: Tensor, ok: Tensor, owner: Tensor, count: int) -> Tensor:
+    """``(count, 4)`` min x, min y, max x, max y of the ``ok`` points per ``owner`` (inf where
+    none)."""
+    inf = torch.full((count, 2), math.inf, dtype=points.dtype)
+    big = torch.where(ok[:, None], points, torch.full_like(points, math.inf))
+    small = torch.where(ok[:, None], points, torch.full_like(points, -math.inf))
+    lo = inf.scatter_reduce(0, owner[:, None].expand(-1, 2), big, "amin")
+    hi = (-inf).scatter_reduce(0, owner[:, None].expand(-1, 2), small, "amax")
+    return torch.cat((lo, hi), -1)
+
+
+def _on_centres(pixels: Tensor, w: int, h: int) -> Tensor:
+    """Where ``pixels`` lie within the outer pixel centres ``[0, W - 1] x [0, H - 1]``."""
+    u, v = pixels[..., 0], pixels[..., 1]
+    return (u >= -1e-9) & (u <= w - 1 + 1e-9) & (v >= -1e-9) & (v <= h - 1 + 1e-9)
+
+
+def _boundary(change: Change, sample: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Points on the boundary of sample ``sample``'s output valid area (the images of its cones
+    and the output image's edges), at most :data:`BOUNDARY_STEP` apart, ``(T, 2)``, and the
+    source pixel centres they map back to with where that holds ``(T, 2), (T,)``."""
+    out = change.output
+    h, w = out.image_size
+    step = BOUNDARY_STEP
+    # the outer pixel centres' lines: the box of an object's pixels ends there
+    xs = torch.cat((torch.arange(0, w - 1, step, dtype=torch.float64),
+                    torch.tensor([w - 1.0], dtype=torch.float64)))
+    ys = torch.cat((torch.arange(0, h - 1, step, dtype=torch.float64),
+                    torch.tensor([h - 1.0], dtype=torch.float64)))
+    parts = [torch.stack((xs, torch.zeros_like(xs)), -1),
+             torch.stack((xs, torch.full_like(xs, h - 1.0)), -1),
+             torch.stack((torch.zeros_like(ys), ys), -1),
+             torch.stack((torch.full_like(ys, w - 1.0), ys), -1)]
+    cones = [(out.fov, -_INSET), (out.blind_fov, _INSET)]
+    for angle, inset in cones:
+        if angle is None or float(angle[sample]) <= 0 or float(angle[sample]) >= 2 * math.pi:
+            continue
+        half = 0.5 * float(angle[sample]) + inset
+        for count in (256, None):   # a coarse circle measures the fine one's sample count
+            if count is None:
+                count = int(min(max(math.ceil(length / step), 64), 1 << 16))
+            phi = torch.arange(count, dtype=torch.float64) * (2 * math.pi / count)
+            rays = torch.stack((math.sin(half) * torch.cos(phi), math.sin(half) * torch.sin(phi),
+                                torch.full_like(phi, math.cos(half))), -1)
+            idx = torch.full((count,), sample, dtype=torch.long)
+            pix, ok = get_model(out.model).project(rays, out.params[idx])
+            ok = ok & torch.isfinite(pix).all(-1)
+            seg = (pix - pix.roll(-1, 0)).norm(dim=-1)
+            length = float(seg[ok & ok.roll(-1, 0)].sum()) if bool(ok.any()) else 0.0
+        parts.append(pix[ok])
+    points = torch.cat(parts)
+    src, ok = change.backward(points, torch.full((len(points),), sample, dtype=torch.long))
+    return points, src, ok
+
+
+def _pixel_box(change: Change, sample: int, extent: Tensor, rect: Tensor) -> Tensor:
+    """The extent, pixel edges in pixel-centre coordinates, of the output pixels within
+    ``extent`` (pixel-centre x0, y0, x1, y1; inf: none) whose rays meet the source rectangle
+    ``rect`` and are valid: the pixels an object cut by the valid area's boundary keeps (a
+    sliver's pixels are sparse, so its continuous extent would overstate their box)."""
+    if not bool(torch.isfinite(extent).all()):
+        return extent
+    lo, hi = extent[:2].ceil() - 1, extent[2:].floor() + 1     # a pixel of margin
+    cols = torch.arange(int(lo[0]), int(hi[0]) + 1, dtype=torch.float64)
+    rows = torch.arange(int(lo[1]), int(hi[1]) + 1, dtype=torch.float64)
+    grid = torch.stack(torch.meshgrid(cols, rows, indexing="xy"), -1).reshape(-1, 2)
+    src, ok = change.backward(grid, torch.full((len(grid),), sample, dtype=torch.long))
+    h, w = change.output.image_size
+    ok = ok & _on_centres(grid, w, h) & (src[:, 0] >= rect[0]) & (src[:, 0] <= rect[2]) & \
+        (src[:, 1] >= rect[1]) & (src[:, 1] <= rect[3])
+    centres = _extent(grid, ok, torch.zeros(len(grid), dtype=torch.long), 1)[0]
+    return centres + torch.tensor([-0.5, -0.5, 0.5, 0.5], dtype=centres.dtype)   # pixel edges
+
+
+def map_boxes(change: Change, boxes: list[Tensor], source_size: tuple[int, int], *,
+              dtype: torch.dtype = torch.float64,
+              extra: tuple[Tensor, Tensor] | None = None
+              ) -> tuple[list[Tensor], list[Tensor], tuple[Tensor, Tensor] | None]:
+    """Boxes (per sample ``(N_i, 4)`` XYXY corner coordinates, of the ``n`` samples of
+    ``change``) -> per sample the output boxes in ``dtype`` and ``box_index (M_i,)`` (module
+    docstring), and ``change.forward`` of the points and samples ``extra`` (mapped in the same
+    call as the boxes' coarse pass; None without). Boxes are clipped to the source image
+    ``source_size`` first; none left: dropped."""
+    n = len(boxes)
+    h, w = source_size
+    counts = torch.tensor([len(b) for b in boxes])
+    flat = torch.cat(boxes)
+    owner = torch.arange(n).repeat_interleave(counts)
+    number = torch.arange(len(flat)) - (torch.cumsum(counts, 0) - counts).repeat_interleave(counts)
+    clipped = torch.cat((flat[:, :2].clamp(min=0), torch.minimum(
+        flat[:, 2:], torch.tensor([w, h], dtype=flat.dtype))), -1)
+    keep = (clipped[:, 2:] > clipped[:, :2]).all(-1)
+    rects, owner, number = clipped[keep] - 0.5, owner[keep], number[keep]   # pixel centres
+    r = len(rects)
+    # coarse pass: how far apart do the edges' points land (per box, the most any edge needs)
+    coarse, which = _outline(rects, torch.full((r,), _COARSE, dtype=torch.long))
+    e = 0 if extra is None else len(extra[0])
+    if extra is not None:
+        coarse, samples = torch.cat((extra[0], coarse)), torch.cat((extra[1], owner[which]))
+    else:
+        samples = owner[which]
+    pix, ok = change.forward(coarse, samples) if len(coarse) else (coarse, samples > 0)
+    mapped = None if extra is None else (pix[:e], ok[:e])
+    pix, ok = pix[e:], ok[e:]
+    if r == 0:
+        return ([torch.zeros(0, 4, dtype=dtype) for _ in range(n)],
+                [torch.zeros(0, dtype=torch.long) for _ in range(n)], mapped)
+    pix, ok = pix.reshape(r, 4 * _COARSE, 2), ok.reshape(r, 4 * _COARSE)
+    nxt = torch.cat((pix[:, 1:], pix[:, :1]), 1)   # edges run into each other: a closed loop
+    both = ok & ok.roll(-1, 1)
+    src_len = torch.stack(((rects[:, 2] - rects[:, 0]), (rects[:, 3] - rects[:, 1])), -1)
+    src_seg = src_len[:, [0, 1, 0, 1]].repeat_interleave(_COARSE, -1) / _COARSE   # per edge
+    stretch = torch.where(both, (nxt - pix).norm(dim=-1) / src_seg.clamp(min=1e-9),
+                          torch.zeros_like(src_seg)).amax(-1).clamp(min=1.0)
+    needed = (stretch * src_len.amax(-1) / OUTLINE_STEP).ceil()
+    counts = needed.clamp(_COARSE, _MAX_PER_EDGE).long()
+    # fine pass: the outline's valid samples
+    fine, which = _outline(rects, counts)
+    pix, ok = change.forward(fine, owner[which])
+    oh, ow = change.output.image_size
+    ok = ok & _on_centres(pix, ow, oh)
+    box = _extent(pix, ok, which, r)
+    # where the outline leaves the valid area: the valid area's boundary inside the region
+    inside_all = torch.zeros(r, dtype=torch.bool).index_put_((which,), ~ok, accumulate=True)
+    for i in owner[inside_all].unique().tolist():
+        points, src, seen = _boundary(change, i)
+        seen = seen & _on_centres(points, ow, oh)
+        mine = (inside_all & (owner == i)).nonzero()[:, 0]
+        rect = rects[mine]
+        inside = seen[None] & (src[None, :, 0] >= rect[:, None, 0]) & \
+            (src[None, :, 0] <= rect[:, None, 2]) & (src[None, :, 1] >= rect[:, None, 1]) & \
+            (src[None, :, 1] <= rect[:, None, 3])                           # (m, T)
+        m, t = inside.shape
+        extra = _extent(points.repeat(m, 1), inside.reshape(-1),
+                        torch.arange(m).repeat_interleave(t), m)
+        box[mine] = torch.cat((torch.minimum(box[mine, :2], extra[:, :2]),
+                               torch.maximum(box[mine, 2:], extra[:, 2:])), -1)
+        for m, j in enumerate(mine.tolist()):
+            box[j] = _pixel_box(change, i, box[j], rect[m])
+    # pixel-centre extent -> corner coordinates: +0.5, and the image's edge where it reaches
+    # the outer pixel centres
+    limit = torch.tensor([ow - 1.0, oh - 1.0], dtype=box.dtype)
+    lo = torch.where(box[:, :2] <= 1e-6, torch.zeros_like(box[:, :2]), box[:, :2] + 0.5)
+    hi = torch.where(box[:, 2:] >= limit - 1e-6, limit + 1, box[:, 2:] + 0.5)
+    box = torch.cat((lo, hi), -1)
+    kept = torch.isfinite(box).all(-1) & (box[:, 2:] > box[:, :2]).all(-1)
+    sizes = torch.bincount(owner[kept], minlength=n).tolist()   # owner is sorted
+    return list(box[kept].to(dtype).split(sizes)), list(number[kept].split(sizes)), mapped
+
+
+# -------------------------------------------------------------------------------------------
+# Boxes from instance maps
+# -------------------------------------------------------------------------------------------
+def _hits(instances: Tensor, ids: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The pixels of one map ``instances (H, W)`` holding one of ``ids (M,)``: their flat
+    indices ``(T,)``, the position in ``ids`` of each ``(T,)``, and the order sorting ``ids``."""
+    order = torch.argsort(ids)
+    ordered = ids[order].to(instances.device)
+    flat = instances.reshape(-1).long()
+    pos = torch.searchsorted(ordered, flat).clamp_(max=len(ids) - 1)
+    where = (ordered[pos] == flat).nonzero()[:, 0]
+    return where.cpu(), order[pos[where].cpu()], order
+
+
+def _instance_extent(instances: Tensor, ids: Tensor) -> Tensor:
+    """``(M, 4)`` tight XYXY corner box of the pixels of each id of ``ids (M,)`` in one map
+    ``instances (H, W)`` (inf where an id has no pixel)."""
+    if len(ids) == 0:
+        return torch.zeros(0, 4, dtype=torch.float64)
+    w = instances.shape[1]
+    where, which, _ = _hits(instances, ids)
+    points = torch.stack((where % w, where // w), -1).to(torch.float64)
+    extent = _extent(points, torch.ones(len(where), dtype=torch.bool), which, len(ids))
+    extent[:, 2:] += 1                       # the last pixel's far edge
+    return extent
+
+
+def instance_boxes(instances: Tensor, ids: Sequence[Tensor]) -> tuple[list[Tensor], list[Tensor]]:
+    """Tight boxes of instance ids in instance maps.
+
+    Args:
+        instances: ``(B, H, W)`` (or ``(B, 1, H, W)``) integer instance ids, any range.
+        ids: per sample, the ``(N_i,)`` ids to box.
+
+    Returns:
+        per sample ``boxes (M_i, 4)`` float64 XYXY corner coordinates (the tight box of the
+        id's pixels: columns ``u0..u1`` give ``x0 = u0``, ``x1 = u1 + 1``) and ``box_index
+        (M_i,)`` int64, the position in ``ids[i]`` of each box; ids with no pixel are dropped.
+
+    Examples:
+        >>> inst = torch.zeros(1, 8, 8, dtype=torch.int64); inst[0, 2:4, 3:7] = 300
+        >>> boxes, index = instance_boxes(inst, [torch.tensor([300, 7])])
+        >>> boxes[0].tolist(), index[0].tolist()
+        ([[3.0, 2.0, 7.0, 4.0]], [0])
+    """
+    if not isinstance(instances, Tensor) or instances.is_floating_point():
+        raise TypeError("instances: expected an integer tensor (B, H, W)")
+    if instances.dim() == 4 and instances.shape[1] == 1:
+        instances = instances[:, 0]
+    if instances.dim() != 3:
+        raise ValueError(f"instances: expected (B, H, W), got {tuple(instances.shape)}")
+    ids = check_box_ids(ids, None, instances.shape[0], "ids")
+    boxes, index = [], []
+    for i, t in enumerate(ids):
+        extent = _instance_extent(instances[i], t)
+        kept = torch.isfinite(extent).all(-1)
+        boxes.append(extent[kept])
+        index.append(kept.nonzero()[:, 0])
+    return boxes, index
+
+
+def map_targets(changes: Sequence[tuple[Tensor, Change]], batch: int, *,
+                keypoints: Tensor | None = None, boxes: list[Tensor] | None = None,
+                source_size: tuple[int, int] | None = None, dtype: torch.dtype = torch.float32,
+                box_dtype: torch.dtype = torch.float32) -> dict:
+    """Keypoints and boxes of a batch through its camera changes, one per group of samples
+    ``(sample indices (n,), change)`` (e.g. one per drawn model) -> a dict ``keypoints (B, K,
+    2)`` in ``dtype``, ``keypoints_valid (B, K)``, ``boxes`` in ``box_dtype`` and ``box_index``
+    (per sample lists), those given."""
+    out = {}
+    if keypoints is not None:
+        out["keypoints"] = torch.full((batch, keypoints.shape[1], 2), math.nan, dtype=dtype)
+        out["keypoints_valid"] = torch.zeros(batch, keypoints.shape[1], dtype=torch.bool)
+    if boxes is not None:
+        out["boxes"], out["box_index"] = [None] * batch, [None] * batch
+    for index, change in changes:
+        points = mapped = None
+        if keypoints is not None:
+            points, sample, given = _keypoint_points(keypoints[index], source_size)
+        if boxes is not None:   # the keypoints mapped with the boxes' coarse pass
+            got, which, mapped = map_boxes(
+                change, [boxes[i] for i in index.tolist()], source_size, dtype=box_dtype,
+                extra=None if points is None else (points, sample))
+            for i, b, w in zip(index.tolist(), got, which):
+                out["boxes"][i], out["box_index"][i] = b, w
+        if points is not None:
+            pixels, ok = mapped if mapped is not None else change.forward(points, sample)
+            kp, ok = _keypoint_result(pixels, ok, given, (len(index), keypoints.shape[1]))
+            out["keypoints"][index], out["keypoints_valid"][index] = kp.to(dtype), ok
+    return out
+
+
+def boxes_of_instances(instances: Tensor, ids: list[Tensor], source: Tensor,
+                       dtype: torch.dtype = torch.float32) -> dict:
+    """``boxes`` and ``box_index`` (per sample lists) of the ids ``ids`` in the output instance
+    map ``instances (B, H, W)`` (:func:`instance_boxes`), boxes in ``dtype``; raises where an
+    id the output lacks has no pixel in the ``source`` instance map either."""
+    boxes, index = instance_boxes(instances, ids)
+    missing = []
+    for t, kept in zip(ids, index):
+        lost = torch.ones(len(t), dtype=torch.bool)
+        lost[kept] = False
+        missing.append(t[lost])
+    check_ids_present(source, missing)
+    return {"boxes": [b.to(dtype) for b in boxes], "box_index": index}
+
+
+# -------------------------------------------------------------------------------------------
+# The functional API, beside ot.reproject
+# -------------------------------------------------------------------------------------------
+def _change(src_camera: Camera | Tensor, dst_camera: Camera, rotation: Tensor | None,
+            batch: int, source_size: tuple[int, int] | None) -> tuple[Change, tuple[int, int]]:
+    """The :class:`Change` of ``ot.reproject``'s arguments for ``batch`` samples."""
+    from .reproject import intrinsics_from_matrix
+    if isinstance(src_camera, Tensor):
+        if source_size is None:
+            raise ValueError("source_size: a camera matrix K needs the source image's (H, W)")
+        src_camera = Camera("pinhole", intrinsics_from_matrix(src_camera, "src_camera"),
+                            source_size)
+    for name, cam in (("src_camera", src_camera), ("dst_camera", dst_camera)):
+        if not isinstance(cam, Camera):
+            raise TypeError(f"{name}: expected an ot.Camera, got {type(cam).__name__}")
+        shape = tuple(cam.batch_shape)
+        if shape not in ((), (batch,)):
+            raise ValueError(f"{name}: a batch {shape} for {batch} samples")
+    if rotation is None:
+        rot = torch.eye(3, dtype=torch.float64).expand(batch, 3, 3)
+    else:
+        rot = torch.as_tensor(rotation).detach().to("cpu", torch.float64)
+        rot = rot.expand(batch, 3, 3) if rot.dim() == 2 else rot
+        if rot.shape != (batch, 3, 3):
+            raise ValueError(f"rotation: expected (3, 3) or ({batch}, 3, 3), got "
+                             f"{tuple(rot.shape)}")
+    return (Change(Side.of(src_camera, batch), Side.of(dst_camera, batch), rot),
+            tuple(src_camera.image_size))
+
+
+def reproject_keypoints(keypoints: Tensor, src_camera: Camera | Tensor, dst_camera: Camera, *,
+                        rotation: Tensor | None = None,
+                        source_size: tuple[int, int] | None = None) -> tuple[Tensor, Tensor]:
+    """Keypoints of an image of ``src_camera`` where :func:`~omniscape_torch.reproject`'s image
+    in ``dst_camera`` (same arguments) shows them.
+
+    Args:
+        keypoints: ``(B, K, 2)`` or ``(K, 2)`` XYXY-convention corner coordinates ``(x, y)``
+            (the pixel of centre ``(u, v)`` spans ``[u, u + 1]``); NaN rows are missing.
+        src_camera: as for ``ot.reproject`` (a camera matrix ``K`` needs ``source_size``).
+        dst_camera: as for ``ot.reproject``.
+        rotation: as for ``ot.reproject``: ``ray_src = R @ ray_dst``.
+        source_size: ``(H, W)`` of the source image, for a camera matrix ``K``.
+
+    Returns:
+        ``keypoints (B, K, 2)`` float64 corner coordinates in the output, NaN where invalid, and
+        ``valid (B, K)``: the source sees the keypoint (in its image, model domain and cones)
+        and so does the output camera.
+
+    Examples:
+        >>> src = Camera("pinhole", [32.0, 32.0, 31.5, 31.5], (64, 64))
+        >>> fish = Camera("equidistant", [20.0, 20.0, 31.5, 31.5], (64, 64))
+        >>> kp, ok = reproject_keypoints(torch.tensor([[32.0, 32.0]]), src, fish)
+        >>> kp.tolist(), ok.tolist()
+        ([[[32.0, 32.0]]], [[True]])
+    """
+    kp = torch.as_tensor(keypoints)
+    batch = kp.shape[0] if kp.dim() == 3 else max(
+        [c.batch_shape[0] for c in (src_camera, dst_camera)
+         if isinstance(c, Camera) and len(c.batch_shape) == 1] + [1])
+    kp = check_keypoints(kp, batch)
+    change, size = _change(src_camera, dst_camera, rotation, batch, source_size)
+    return map_keypoints(change, kp, size)
+
+
+def reproject_boxes(boxes: Sequence[Tensor] | Tensor, src_camera: Camera | Tensor,
+                    dst_camera: Camera, *, rotation: Tensor | None = None,
+                    source_size: tuple[int, int] | None = None
+                    ) -> tuple[list[Tensor], list[Tensor]]:
+    """Boxes of an image of ``src_camera`` as :func:`~omniscape_torch.reproject`'s image in
+    ``dst_camera`` (same arguments) shows them: the tight box of each box's region mapped
+    through the cameras (its outline, sampled densely), clipped to the valid area (module
+    docstring for the bounds).
+
+    Args:
+        boxes: per sample ``(N_i, 4)`` XYXY corner coordinates (a list of B, or ``(B, N, 4)``).
+            Boxes are clipped to the source image; a box left with no area is dropped.
+        src_camera: as for ``ot.reproject`` (a camera matrix ``K`` needs ``source_size``).
+        dst_camera: as for ``ot.reproject``.
+        rotation: as for ``ot.reproject``: ``ray_src = R @ ray_dst``.
+        source_size: ``(H, W)`` of the source image, for a camera matrix ``K``.
+
+    Returns:
+        per sample ``boxes (M_i, 4)`` float64 XYXY corner coordinates and ``box_index (M_i,)``
+        int64: the input box each output box comes from (so class labels follow).
+
+    Examples:
+        >>> src = Camera("pinhole", [32.0, 32.0, 31.5, 31.5], (64, 64))
+        >>> fish = Camera("equidistant", [20.0, 20.0, 31.5, 31.5], (64, 64))
+        >>> out, index = reproject_boxes([torch.tensor([[24.0, 24.0, 40.0, 40.0]])], src, fish)
+        >>> [round(v, 1) for v in out[0][0].tolist()], index[0].tolist()
+        ([27.1, 27.1, 36.9, 36.9], [0])
+    """
+    batch = len(boxes)
+    boxes = check_boxes(boxes, batch)
+    change, size = _change(src_camera, dst_camera, rotation, batch, source_size)
+    return map_boxes(change, boxes, size)[:2]
