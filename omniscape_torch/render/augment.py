@@ -36,7 +36,7 @@ from ..cameras import Camera
 from ..cameras.registry import get_model
 from ..cubemap.faces import FACES, face_rotations
 from ..cubemap.rotation import check_rotation
-from . import fast
+from . import containers, fast
 from .fast import CameraGrid
 from .kernels import camera_grid, camera_rays
 from ..cameras.presets import yaw_pitch_roll_to_matrix
@@ -65,6 +65,9 @@ _LENS_DEFAULTS = MappingProxyType({"unified_xi_range": (0.5, 1.0),
                                    "eucm_alpha_range": (0.55, 0.7),
                                    "eucm_beta_range": (0.9, 1.2),
                                    "ds_xi_range": (-0.3, 0.0), "ds_alpha_range": (0.5, 0.7)})
+#: Dimension count of each batched input (one less: an unbatched sample; ``containers``).
+_IMAGE_DIMS = MappingProxyType({"rgb": 4, "labels": 3, "instances": 3, "depth": 3})
+_CUBE_DIMS = MappingProxyType({"rgb": 5, "labels": 4, "instances": 4, "depth": 4})
 #: The kind of a sample drawn as a catadioptric camera (a unified model under its mirror).
 _CATADIOPTRIC = "catadioptric"
 _DEG = math.pi / 180
@@ -749,6 +752,8 @@ class RandomOmniCamera(_RandomCameras):
         Returns:
             dict ``rgb``, ``labels``, ``depth`` (those given), ``valid`` and ``params``.
         """
+        cubemap, labels, depth, params, wrapping = containers.enter(
+            cubemap, labels, depth, params, batch_dims=_CUBE_DIMS, owner=self)
         if isinstance(cubemap, dict):
             unknown = set(cubemap) - {"rgb", "labels", "depth"}
             if unknown:
@@ -762,8 +767,8 @@ class RandomOmniCamera(_RandomCameras):
             raise ValueError("forward: pass at least one of cubemap, labels, depth")
         if params is None:
             params = self.forward_parameters(ref.shape[0], generator=generator)
-        out = self.render(_plain(cubemap), params, labels=_plain(labels), depth=_plain(depth))
-        return _like_inputs(out, given)
+        out = self.render(cubemap, params, labels=labels, depth=depth)
+        return containers.leave(out, wrapping)
 
 
 
@@ -1275,6 +1280,8 @@ class RandomReproject(_RandomCameras):
         Returns:
             dict ``rgb``, ``labels``, ``depth`` (those given), ``valid`` and ``params``.
         """
+        image, labels, depth, params, wrapping = containers.enter(
+            image, labels, depth, params, batch_dims=_IMAGE_DIMS, owner=self)
         if isinstance(image, dict):
             unknown = set(image) - {"rgb", "labels", "depth", "intrinsics", "source_camera"}
             if unknown:
@@ -1293,9 +1300,9 @@ class RandomReproject(_RandomCameras):
         elif intrinsics is None and source_camera is None:   # a replay: its source camera
             intrinsics = params.get("intrinsics")
             source_camera = params.get("source_camera")
-        out = self.render(_plain(image), params, labels=_plain(labels), depth=_plain(depth),
+        out = self.render(image, params, labels=labels, depth=depth,
                           intrinsics=intrinsics, source_camera=source_camera)
-        return _like_inputs(out, given)
+        return containers.leave(out, wrapping)
 
 
 def _camera_record(camera: Camera) -> dict:
@@ -1384,15 +1391,6 @@ def _plain(t: object) -> object:
     """A tensor subclass (torchvision's ``tv_tensors.Image``, ``Mask``) as the plain tensor it
     holds (no copy); anything else as it is."""
     return t.as_subclass(Tensor) if isinstance(t, Tensor) and type(t) is not Tensor else t
-
-
-def _like_inputs(out: dict, given: dict) -> dict:
-    """The outputs of the inputs that came as a tensor subclass (``tv_tensors.Image``,
-    ``Mask``: torchvision's ``transforms.v2`` route each by its class) as that class again."""
-    for key, value in given.items():
-        if key in out and isinstance(value, Tensor) and type(value) is not Tensor:
-            out[key] = out[key].as_subclass(type(value))
-    return out
 
 
 def _on_batch(out: dict, n: int, batch_size: int) -> dict:
