@@ -1,0 +1,191 @@
+"""Adapters that put the augmentation modules into other libraries' pipelines.
+
+:func:`to_albumentations` makes a :class:`~omniscape_torch.augment.RandomReproject` an
+albumentations transform (``A.Compose([...])``), with its image, mask, masks, bboxes and
+keypoints targets in albumentations' conventions. albumentations is an optional dependency,
+imported only when an adapter is made: the adapter's class derives from the
+``albumentations.DualTransform`` installed then, so the same code serves albumentations (MIT,
+2.x) and its successor AlbumentationsX (AGPL, the same ``albumentations`` package and API),
+and depends on neither.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+__all__ = ["to_albumentations"]
+
+#: The albumentations targets the adapter moves (additional targets of these types too).
+_TARGETS = ("image", "mask", "masks", "bboxes", "keypoints")
+
+
+def to_albumentations(module: nn.Module, *, intrinsics: Tensor | None = None, p: float = 1.0):
+    """An albumentations transform that runs ``module`` on each sample, for ``A.Compose``.
+
+    The transform draws the sample's camera and attitude from its albumentations generator
+    (``A.Compose(..., seed=...)`` reproduces a run) and renders every target of the sample
+    through them in one call of ``module``:
+
+    - ``image``: ``(H, W, C)`` or ``(H, W)``, ``uint8`` or floating -> ``(h, w, C)`` (or
+      ``(h, w)``) of the same dtype, ``h, w = module.image_size``; 0 outside the valid area;
+    - ``mask`` ``(H, W)`` / ``(H, W, C)`` and ``masks`` ``(N, H, W)``: integer class ids, never
+      blended, ``module.ignore_index`` outside the valid area (in the mask's dtype where it
+      fits, else int64);
+    - ``bboxes`` in the Compose's ``bbox_params`` format (``pascal_voc``, ``coco``, ``yolo``,
+      ``albumentations``) with their ``label_fields``: each box becomes the tight box of its
+      object in the output, and a box left without area is dropped with its labels;
+    - ``keypoints`` (``keypoint_params``): each mapped through the camera; one outside the
+      image or the valid area comes back as NaN, which albumentations drops when
+      ``remove_invisible=True`` (its default). Angle and scale are passed on unchanged.
+
+    Boxes and keypoints need the module's detection keys (``boxes``, ``keypoints``). Other
+    targets (``images``, volumes) raise a ``TypeError``. ``A.to_dict`` serialisation is not
+    supported (a torch module is no JSON); the transform pickles, for ``DataLoader`` workers.
+
+    Args:
+        module: a :class:`~omniscape_torch.augment.RandomReproject` whose source camera is set
+            (``source_fov`` or ``source_camera``), or given here as ``intrinsics``.
+        intrinsics: the images' pinhole ``fx, fy, cx, cy`` ``(4,)`` or ``K (3, 3)``, shared by
+            every sample (None: the module's source camera).
+        p: probability of applying the transform (albumentations' ``p``).
+
+    Returns:
+        An instance of a subclass of the installed ``albumentations.DualTransform``.
+
+    Raises:
+        ImportError: albumentations (or AlbumentationsX) is not installed.
+        TypeError: ``module`` is not an ``nn.Module``.
+    """
+    if not isinstance(module, nn.Module):
+        raise TypeError(f"module: expected an omniscape augmentation module, got "
+                        f"{type(module).__name__}")
+    try:
+        import albumentations as A
+    except ImportError as err:
+        raise ImportError("to_albumentations needs albumentations (or AlbumentationsX): see "
+                          "docs/getting-started.md for installing it beside OpenCV's contrib "
+                          f"build ({err})") from None
+    return _adapter_class(A.DualTransform)(module, intrinsics=intrinsics, p=p)
+
+
+def _adapter_class(base: type) -> type:
+    """The adapter's class on albumentations' ``DualTransform`` ``base`` (made per call of
+    :func:`to_albumentations`; an instance pickles as that call)."""
+
+    class OmniscapeTransform(base):
+        """``module`` as an albumentations transform (:func:`to_albumentations`)."""
+
+        def __init__(self, module: nn.Module, intrinsics: Tensor | None = None,
+                     p: float = 1.0) -> None:
+            super().__init__(p=p)
+            self.module = module
+            self.intrinsics = intrinsics
+
+        def __reduce__(self):
+            return (_rebuild, (self.module, self.intrinsics, self.p))
+
+        @property
+        def targets(self) -> dict:
+            return {key: self.apply_to_all for key in _TARGETS}
+
+        def apply_to_all(self, *args, **kwargs):   # (apply_with_params does the work)
+            raise NotImplementedError
+
+        def get_params(self) -> dict:
+            seed = int(self.random_generator.integers(0, 2 ** 63 - 1))
+            generator = torch.Generator().manual_seed(seed)
+            return {"omniscape": self.module.forward_parameters(1, generator=generator)}
+
+        def apply_with_params(self, params: dict, *args, **data) -> dict:
+            kinds = {key: self._additional_targets.get(key, key) for key in data}
+            others = set(base.targets.fget(self)) - set(_TARGETS)
+            refused = sorted(key for key, kind in kinds.items()
+                             if data[key] is not None and kind in others)
+            if refused:
+                raise TypeError(f"{type(self.module).__name__} in albumentations: the targets "
+                                f"{refused} are not supported (only {_TARGETS})")
+            drawn = params["omniscape"]
+            out = dict(data)
+            images = [key for key, kind in kinds.items() if kind == "image"
+                      and data[key] is not None]
+            for n, key in enumerate(images):
+                # the first image carries the boxes and keypoints (their source size is its)
+                extra = {} if n else {k: data[k] for k in ("bboxes", "keypoints")
+                                      if data.get(k) is not None}
+                out.update(_render(self.module, drawn, self.intrinsics, key, data[key],
+                                   extra))
+            for key, kind in kinds.items():
+                if kind == "mask" and data[key] is not None:
+                    out[key] = _mask(self.module, drawn, self.intrinsics, data[key])
+                elif kind == "masks" and data[key] is not None and len(data[key]):
+                    out[key] = np.stack([_mask(self.module, drawn, self.intrinsics, m)
+                                         for m in data[key]])
+            return out
+
+        def get_transform_init_args_names(self) -> tuple[str, ...]:
+            return ("module", "intrinsics")
+
+    return OmniscapeTransform
+
+
+def _rebuild(module: nn.Module, intrinsics: Tensor | None, p: float):
+    """An unpickled adapter: :func:`to_albumentations` again, on the albumentations there."""
+    return to_albumentations(module, intrinsics=intrinsics, p=p)
+
+
+def _call(module: nn.Module, drawn: dict, intrinsics: Tensor | None, sample: dict) -> dict:
+    """``module`` on one unbatched sample with the drawn parameters, without gradients."""
+    extra = {} if intrinsics is None else {"intrinsics": intrinsics}
+    with torch.no_grad():
+        return module(sample, params=drawn, **extra)
+
+
+def _render(module: nn.Module, drawn: dict, intrinsics: Tensor | None, key: str,
+            image: np.ndarray, extra: dict) -> dict:
+    """The image ``key`` (``(H, W[, C])``) and, with it, ``bboxes`` and ``keypoints``."""
+    height, width = image.shape[:2]
+    gray = image.ndim == 2
+    hwc = torch.from_numpy(np.ascontiguousarray(image[..., None] if gray else image))
+    rgb = hwc if getattr(module, "channels_last", False) else hwc.permute(2, 0, 1)
+    sample = {"rgb": rgb}
+    if "bboxes" in extra:   # normalised XYXY (+ label columns) -> pixel corners
+        scale = np.array([width, height, width, height], dtype=np.float64)
+        sample["boxes"] = torch.from_numpy(extra["bboxes"][:, :4] * scale)
+    if "keypoints" in extra:   # pixel centres at integers -> the corner convention
+        sample["keypoints"] = torch.from_numpy(extra["keypoints"][:, :2].astype(np.float64)
+                                               + 0.5)
+    got = _call(module, drawn, intrinsics, sample)
+    rgb = got["rgb"].as_subclass(Tensor)
+    rgb = rgb if getattr(module, "channels_last", False) else rgb.permute(1, 2, 0)
+    rgb = rgb.numpy()
+    out = {key: rgb[..., 0] if gray else rgb}
+    h, w = rgb.shape[:2]
+    if "bboxes" in extra:
+        boxes = extra["bboxes"]
+        index = got["box_index"].numpy()
+        moved = got["boxes"].as_subclass(Tensor).double().numpy() / [w, h, w, h]
+        out["bboxes"] = np.concatenate((moved, boxes[index, 4:]), 1).astype(boxes.dtype)
+    if "keypoints" in extra:
+        points = extra["keypoints"].copy()
+        moved = got["keypoints"].as_subclass(Tensor).double().numpy() - 0.5
+        moved[~got["keypoints_valid"].numpy()] = np.nan
+        points[:, :2] = moved
+        out["keypoints"] = points
+    return out
+
+
+def _mask(module: nn.Module, drawn: dict, intrinsics: Tensor | None,
+          mask: np.ndarray) -> np.ndarray:
+    """A mask ``(H, W)`` or ``(H, W, C)`` of integer ids through the drawn camera."""
+    if not (np.issubdtype(mask.dtype, np.integer) or mask.dtype == bool):
+        raise TypeError(f"mask: expected integer class ids, got {mask.dtype}")
+    channels = [mask] if mask.ndim == 2 else [mask[..., c] for c in range(mask.shape[-1])]
+    ignore = int(getattr(module, "ignore_index", 255))
+    dtype = mask.dtype if mask.dtype != bool and (
+        np.iinfo(mask.dtype).min <= ignore <= np.iinfo(mask.dtype).max) else np.int64
+    out = [_call(module, drawn, intrinsics, {"labels": torch.from_numpy(
+        np.ascontiguousarray(c).astype(np.int64))})["labels"].numpy().astype(dtype)
+        for c in channels]
+    return out[0] if mask.ndim == 2 else np.stack(out, -1)
