@@ -11,6 +11,8 @@ and depends on neither.
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 import torch
 from torch import Tensor, nn
@@ -19,6 +21,8 @@ __all__ = ["to_albumentations"]
 
 #: The albumentations targets the adapter moves (additional targets of these types too).
 _TARGETS = ("image", "mask", "masks", "bboxes", "keypoints")
+#: Those of albumentations' spatial targets it refuses with a TypeError.
+_REFUSED = ("images", "volume", "volumes", "mask3d", "masks3d")
 
 
 def to_albumentations(module: nn.Module, *, intrinsics: Tensor | None = None, p: float = 1.0):
@@ -72,62 +76,61 @@ def to_albumentations(module: nn.Module, *, intrinsics: Tensor | None = None, p:
 
 def _adapter_class(base: type) -> type:
     """The adapter's class on albumentations' ``DualTransform`` ``base`` (made per call of
-    :func:`to_albumentations`; an instance pickles as that call)."""
+    :func:`to_albumentations`; an instance pickles as that call). The draw is albumentations
+    2's ``get_params`` or AlbumentationsX's ``sample_parameters``, whichever ``base`` has
+    (AlbumentationsX refuses a subclass that defines the former)."""
 
-    class OmniscapeTransform(base):
-        """``module`` as an albumentations transform (:func:`to_albumentations`)."""
+    def draw(self, rng: np.random.Generator) -> dict:
+        generator = torch.Generator().manual_seed(int(rng.integers(0, 2 ** 63 - 1)))
+        return {"omniscape": self.module.forward_parameters(1, generator=generator)}
 
-        def __init__(self, module: nn.Module, intrinsics: Tensor | None = None,
-                     p: float = 1.0) -> None:
-            super().__init__(p=p)
-            self.module = module
-            self.intrinsics = intrinsics
+    def __init__(self, module: nn.Module, intrinsics: Tensor | None = None,
+                 p: float = 1.0) -> None:
+        base.__init__(self, p=p)
+        self.module = module
+        self.intrinsics = intrinsics
 
-        def __reduce__(self):
-            return (_rebuild, (self.module, self.intrinsics, self.p))
+    namespace = {
+        "__doc__": "``module`` as an albumentations transform (:func:`to_albumentations`).",
+        "__init__": __init__,
+        "__reduce__": lambda self: (_rebuild, (self.module, self.intrinsics, self.p)),
+        "targets": property(lambda self: {key: self.apply for key in _TARGETS}),
+        "apply_with_params": _apply_with_params,
+        "get_transform_init_args_names": lambda self: ("module", "intrinsics"),
+    }
+    if hasattr(base, "sample_parameters"):   # AlbumentationsX
+        sampled = vars(sys.modules[base.__module__])["SampledParams"]
+        namespace["sample_parameters"] = lambda self, params, data, targets, sampling: sampled(
+            params=draw(self, sampling.random_generator))
+    else:   # albumentations 2
+        namespace["get_params"] = lambda self: draw(self, self.random_generator)
+    return type("OmniscapeTransform", (base,), namespace)
 
-        @property
-        def targets(self) -> dict:
-            return {key: self.apply_to_all for key in _TARGETS}
 
-        def apply_to_all(self, *args, **kwargs):   # (apply_with_params does the work)
-            raise NotImplementedError
-
-        def get_params(self) -> dict:
-            seed = int(self.random_generator.integers(0, 2 ** 63 - 1))
-            generator = torch.Generator().manual_seed(seed)
-            return {"omniscape": self.module.forward_parameters(1, generator=generator)}
-
-        def apply_with_params(self, params: dict, *args, **data) -> dict:
-            kinds = {key: self._additional_targets.get(key, key) for key in data}
-            others = set(base.targets.fget(self)) - set(_TARGETS)
-            refused = sorted(key for key, kind in kinds.items()
-                             if data[key] is not None and kind in others)
-            if refused:
-                raise TypeError(f"{type(self.module).__name__} in albumentations: the targets "
-                                f"{refused} are not supported (only {_TARGETS})")
-            drawn = params["omniscape"]
-            out = dict(data)
-            images = [key for key, kind in kinds.items() if kind == "image"
-                      and data[key] is not None]
-            for n, key in enumerate(images):
-                # the first image carries the boxes and keypoints (their source size is its)
-                extra = {} if n else {k: data[k] for k in ("bboxes", "keypoints")
-                                      if data.get(k) is not None}
-                out.update(_render(self.module, drawn, self.intrinsics, key, data[key],
-                                   extra))
-            for key, kind in kinds.items():
-                if kind == "mask" and data[key] is not None:
-                    out[key] = _mask(self.module, drawn, self.intrinsics, data[key])
-                elif kind == "masks" and data[key] is not None and len(data[key]):
-                    out[key] = np.stack([_mask(self.module, drawn, self.intrinsics, m)
-                                         for m in data[key]])
-            return out
-
-        def get_transform_init_args_names(self) -> tuple[str, ...]:
-            return ("module", "intrinsics")
-
-    return OmniscapeTransform
+def _apply_with_params(self, params, *args, **data) -> dict:
+    """Every target of one sample through the drawn camera, in one pass per image (the
+    adapter's ``apply_with_params``; ``params``: a dict, or AlbumentationsX's
+    ``SampledParams`` holding one)."""
+    drawn = getattr(params, "params", params)["omniscape"]
+    kinds = {key: self._additional_targets.get(key, key) for key, value in data.items()
+             if value is not None}
+    refused = sorted(key for key, kind in kinds.items() if kind in _REFUSED)
+    if refused:
+        raise TypeError(f"{type(self.module).__name__} in albumentations: the targets "
+                        f"{refused} are not supported (only {_TARGETS})")
+    out = dict(data)
+    images = [key for key, kind in kinds.items() if kind == "image"]
+    for n, key in enumerate(images):
+        # the first image carries the boxes and keypoints (their source size is its)
+        extra = {} if n else {k: data[k] for k in ("bboxes", "keypoints") if k in kinds}
+        out.update(_render(self.module, drawn, self.intrinsics, key, data[key], extra))
+    for key, kind in kinds.items():
+        if kind == "mask":
+            out[key] = _mask(self.module, drawn, self.intrinsics, data[key])
+        elif kind == "masks" and len(data[key]):
+            out[key] = np.stack([_mask(self.module, drawn, self.intrinsics, m)
+                                 for m in data[key]])
+    return out
 
 
 def _rebuild(module: nn.Module, intrinsics: Tensor | None, p: float):
