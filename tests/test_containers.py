@@ -194,6 +194,14 @@ def test_tv_boxes_and_keypoints_containers():
     assert type(out["keypoints"]) is tv_tensors.KeyPoints
     assert tuple(out["keypoints"].canvas_size) == OUT and out["keypoints"].shape == (1, 2)
     assert type(out["valid"]) is tv_tensors.Mask
+    _, _, _, _, wrapping = containers.enter({"rgb": image, "boxes": _plain(boxes)}, None, None,
+                                            None, batch_dims={"rgb": 4}, owner=aug)
+    out = containers.leave({"valid": torch.ones(1, 1, *OUT, dtype=torch.bool),
+                            "boxes": [torch.tensor([[2.0, 3.0, 10.0, 7.0]])],
+                            "keypoints": torch.tensor([[[5.0, 6.0]]])}, wrapping)
+    assert type(out["boxes"]) is tv_tensors.BoundingBoxes   # plain boxes beside tv_tensors
+    assert out["boxes"].format == tv_tensors.BoundingBoxFormat.XYXY
+    assert tuple(out["boxes"].canvas_size) == OUT and type(out["keypoints"]) is tv_tensors.KeyPoints
 
 
 @needs_boxes

@@ -743,7 +743,9 @@ class RandomOmniCamera(_RandomCameras):
                 ``uint8``, or a dict with keys ``rgb`` and optionally ``labels`` and ``depth``
                 (so the module can start an ``nn.Sequential``). Tensor subclasses
                 (torchvision's ``tv_tensors.Image``, ``Mask``) are read as the tensors they
-                hold, and their outputs come back in their classes.
+                hold, and their outputs come back in their classes (``valid`` as a ``Mask``);
+                an unbatched sample ``(6, C, F, F)``, ``(6, F, F)`` comes back unbatched
+                (:mod:`~omniscape_torch.render.containers`).
             labels: ``(B, 6, F, F)`` integer class ids.
             depth: ``(B, 6, F, F)`` planar depth, metres.
             params: parameters from ``forward_parameters`` or a previous output, to replay.
@@ -1264,7 +1266,9 @@ class RandomReproject(_RandomCameras):
                 ``depth``, ``intrinsics`` and ``source_camera``; ``tv_tensors.Image`` /
                 ``tv_tensors.Mask``
                 are taken as the tensors they hold, and their outputs come back in their
-                classes.
+                classes (``valid`` as a ``Mask``); an unbatched sample ``(C, H, W)``,
+                ``(H, W)`` comes back unbatched, ``params`` per sample
+                (:mod:`~omniscape_torch.render.containers`).
             labels: ``(B, H, W)`` integer class ids.
             depth: planar depth ``(B, H, W)``.
             intrinsics: ``(B, 4)`` or ``(4,)`` pinhole ``fx, fy, cx, cy`` of the images, or a

@@ -105,6 +105,7 @@ def leave(out: dict, wrapping: Wrapping) -> dict:
                         [_wrap_boxes(b, one, size) for b, one in zip(out[key], like)])
         else:
             out[key] = _wrap(out[key], like, size)
+    _as_tv(out, wrapping.likes, size, wrapping.unbatched)
     if wrapping.mask_class is not None and "valid" in out:
         out["valid"] = out["valid"].as_subclass(wrapping.mask_class)
     return out
@@ -192,18 +193,39 @@ def _tv_tensors(value: object):
     return None
 
 
+def _tv_of(likes: dict):
+    """``torchvision.tv_tensors`` where any input is one of its tensors, else None."""
+    for like in likes.values():
+        for one in (like if isinstance(like, list) else [like]):
+            tv = _tv_tensors(one)
+            if tv is not None:
+                return tv
+    return None
+
+
 def _mask_class(likes: dict) -> type | None:
     """The class of ``valid``: the first label-like input's, else ``tv_tensors.Mask`` where
     any input is a ``tv_tensors`` tensor, else None (a plain tensor)."""
     for key in _MASKS:
         if likes.get(key) is not None:
             return type(likes[key])
-    for like in likes.values():
-        for one in (like if isinstance(like, list) else [like]):
-            tv = _tv_tensors(one)
-            if tv is not None:
-                return tv.Mask
-    return None
+    tv = _tv_of(likes)
+    return None if tv is None else tv.Mask
+
+
+def _as_tv(out: dict, likes: dict, size: tuple[int, int] | None, unbatched: bool) -> None:
+    """Among ``tv_tensors`` inputs, output ``boxes`` and ``keypoints`` that came as plain
+    tensors (or not at all: boxes of a cube's instances) as ``BoundingBoxes`` (XYXY) and
+    ``KeyPoints`` of the output canvas, so that v2's transforms move them too."""
+    tv = _tv_of(likes)
+    if tv is None or size is None:
+        return
+    if likes.get("boxes") is None and "boxes" in out:
+        def box(b):
+            return tv.BoundingBoxes(b, format="XYXY", canvas_size=size)
+        out["boxes"] = box(out["boxes"]) if unbatched else [box(b) for b in out["boxes"]]
+    if likes.get("keypoints") is None and "keypoints" in out and hasattr(tv, "KeyPoints"):
+        out["keypoints"] = tv.KeyPoints(out["keypoints"], canvas_size=size)
 
 
 def _wrap(value: Tensor, like: Tensor, size: tuple[int, int] | None) -> Tensor:
