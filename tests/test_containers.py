@@ -108,6 +108,28 @@ def test_unbatched_cubes():
     assert torch.equal(out["labels"], batched["labels"][0])
 
 
+@needs_boxes
+def test_unbatched_detection_keys():
+    """One sample's boxes ``(N, 4)`` and keypoints ``(K, 2)`` come back unbatched: what the
+    batch of one gives, without its list and batch dimension."""
+    gen = torch.Generator().manual_seed(8)
+    aug = ot.augment.RandomReproject(OUT, source_fov=90 * DEG, seed=9,
+                                     fov_range=(100 * DEG, 120 * DEG))
+    rgb = torch.rand(3, *SRC, generator=gen)
+    boxes = torch.tensor([[8.0, 6.0, 20.0, 18.0], [2.0, 2.0, 6.0, 5.0]])
+    points = torch.tensor([[14.0, 12.0], [1.0, 1.0]])
+    with torch.no_grad():
+        one = aug({"rgb": rgb, "boxes": boxes, "keypoints": points})
+        batch = aug({"rgb": rgb[None], "boxes": [boxes], "keypoints": points[None]},
+                    params=default_collate([one["params"]]))
+    assert one["boxes"].dim() == 2 and one["box_index"].dim() == 1
+    assert one["keypoints"].shape == (2, 2) and one["keypoints_valid"].shape == (2,)
+    assert torch.equal(one["boxes"], batch["boxes"][0])
+    assert torch.equal(one["box_index"], batch["box_index"][0])
+    assert torch.equal(one["keypoints_valid"], batch["keypoints_valid"][0])
+    torch.testing.assert_close(one["keypoints"], batch["keypoints"][0], equal_nan=True)
+
+
 # ---------------------------------------------------------------------------------------------
 # kornia
 # ---------------------------------------------------------------------------------------------
@@ -276,6 +298,17 @@ def test_albumentations_adapter_pickles_and_refuses():
         ot.augment.to_albumentations("RandomReproject")
 
 
+def _pascal_voc(box, fmt: str) -> np.ndarray:
+    """An albumentations box of format ``fmt`` on the output image as pixel corners."""
+    a, b = np.asarray(box[:2], float), np.asarray(box[2:4], float)
+    if fmt == "coco":       # x_min, y_min, width, height
+        return np.concatenate((a, a + b))
+    if fmt == "yolo":       # normalised centre and size
+        size = np.array([OUT[1], OUT[0]], float)
+        return np.concatenate(((a - b / 2) * size, (a + b / 2) * size))
+    return np.concatenate((a, b))
+
+
 @needs_boxes
 @pytest.mark.parametrize("fmt", ["pascal_voc", "coco", "yolo"])
 def test_albumentations_boxes_and_keypoints(fmt):
@@ -290,13 +323,11 @@ def test_albumentations_boxes_and_keypoints(fmt):
     corners = {"pascal_voc": [10, 8, 18, 14], "coco": [10, 8, 8, 6],
                "yolo": [14 / SRC[1], 11 / SRC[0], 8 / SRC[1], 6 / SRC[0]]}[fmt]
     compose = A.Compose([ot.augment.to_albumentations(aug)], seed=1,
-                        bbox_params=A.BboxParams(format=fmt, label_fields=["cls"]),
-                        keypoint_params=A.KeypointParams(format="xy"))
+                        bbox_params=A.BboxParams(fmt, label_fields=["cls"]),   # (its first
+                        keypoint_params=A.KeypointParams("xy"))   # argument's name varies)
     out = compose(image=image, bboxes=[corners], cls=[3], keypoints=[(13.5, 10.5)])
     rows, cols = np.nonzero(out["image"][..., 0] > 127)
     tight = np.array([cols.min(), rows.min(), cols.max() + 1, rows.max() + 1], float)
-    got = A.core.bbox_utils.convert_bboxes_to_albumentations(
-        np.array([out["bboxes"][0]]), fmt, {"height": OUT[0], "width": OUT[1]})[0]
-    np.testing.assert_allclose(got * [OUT[1], OUT[0], OUT[1], OUT[0]], tight, atol=1.0)
+    np.testing.assert_allclose(_pascal_voc(out["bboxes"][0], fmt), tight, atol=1.0)
     assert list(out["cls"]) == [3]
     np.testing.assert_allclose(out["keypoints"][0], [cols.mean(), rows.mean()], atol=0.75)

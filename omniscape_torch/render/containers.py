@@ -29,6 +29,8 @@ from torch import Tensor
 #: Keys that are no per-pixel image: never given a batch dimension (``intrinsics (4,)`` or
 #: ``(3, 3)`` and a ``source_camera`` are shared by the batch already).
 _SHARED = ("intrinsics", "source_camera")
+#: Keys holding one value per sample (a list of B): an unbatched sample's is put in a list.
+_PER_SAMPLE = ("boxes", "box_instance_ids")
 #: Label-like keys: the class of the first given as a tensor subclass is ``valid``'s.
 _MASKS = ("labels", "instances")
 #: Box formats of torchvision's ``BoundingBoxFormat`` read and written here.
@@ -153,7 +155,7 @@ def _batched(key: str, value: object) -> object:
     """One value of an unbatched sample with a batch dimension of one."""
     if key in _SHARED or value is None:
         return value
-    if key == "boxes":
+    if key in _PER_SAMPLE:
         return [value]
     return value.unsqueeze(0) if isinstance(value, Tensor) else value
 
