@@ -189,6 +189,12 @@ def test_v2_compose_flips_valid_with_the_rest():
         for key in ("rgb", "labels", "valid"):
             assert torch.equal(_plain(out[key]), plain[key].flip(-1))
         assert not torch.equal(plain["valid"], plain["valid"].flip(-1))   # the flip shows
+        with torch.no_grad():   # plain labels and depth beside an Image: moved as Masks
+            out = flip({"rgb": tv_tensors.Image(sample["rgb"]), "labels": sample["labels"],
+                        "depth": sample["depth"]})
+            plain = aug(sample, params=out["params"])
+        for key in ("rgb", "labels", "depth", "valid"):
+            assert torch.equal(_plain(out[key]), plain[key].flip(-1))
 
 
 def test_tv_boxes_and_keypoints_containers():

@@ -5,7 +5,8 @@ back at its exit, so that the modules themselves see plain batched tensors:
   tensor subclass): read as the tensors they hold, their outputs returned in their classes
   (``BoundingBoxes`` in their format, with the output size as ``canvas_size``), and ``valid``
   as a ``Mask`` (the class of the label-like input, else ``tv_tensors.Mask``), so that
-  ``transforms.v2``'s geometric transforms after the module move it with the rest;
+  ``transforms.v2``'s geometric transforms after the module move it with the rest (outputs
+  given as plain tensors beside ``tv_tensors`` come back as ``tv_tensors`` too);
 - unbatched samples (what a ``Dataset`` holds): ``(C, H, W)`` rgb, ``(H, W)`` labels, one
   ``(N, 4)`` box tensor, ``(K, 2)`` keypoints, read as a batch of one and returned without the
   batch dimension, ``params`` included (per-sample values that ``default_collate`` stacks into
@@ -216,12 +217,18 @@ def _mask_class(likes: dict) -> type | None:
 
 
 def _as_tv(out: dict, likes: dict, size: tuple[int, int] | None, unbatched: bool) -> None:
-    """Among ``tv_tensors`` inputs, output ``boxes`` and ``keypoints`` that came as plain
-    tensors (or not at all: boxes of a cube's instances) as ``BoundingBoxes`` (XYXY) and
-    ``KeyPoints`` of the output canvas, so that v2's transforms move them too."""
+    """Among ``tv_tensors`` inputs, the outputs that came as plain tensors (or not at all:
+    boxes of a cube's instances) as ``tv_tensors`` too, so that v2's transforms move them
+    (v2 passes a plain tensor beside an ``Image`` on untouched): ``rgb`` an ``Image``, the
+    other images ``(..., H, W)`` ``Mask``s, ``boxes`` ``BoundingBoxes`` (XYXY) and
+    ``keypoints`` ``KeyPoints`` of the output canvas."""
     tv = _tv_of(likes)
     if tv is None or size is None:
         return
+    for key, value in out.items():
+        if likes.get(key) is None and key != "valid" and isinstance(value, Tensor) and \
+                type(value) is Tensor and value.dim() >= 2 and tuple(value.shape[-2:]) == size:
+            out[key] = tv.Image(value) if key == "rgb" else tv.Mask(value)
     if likes.get("boxes") is None and "boxes" in out:
         def box(b):
             return tv.BoundingBoxes(b, format="XYXY", canvas_size=size)
