@@ -57,7 +57,8 @@ def enter(image: object, labels: object, depth: object, params: dict | None, *,
     Args:
         image: ``forward``'s first argument: a tensor or a dict of the module's keys.
         labels: ``forward``'s ``labels``. depth: ``forward``'s ``depth``.
-        params: ``forward``'s ``params`` (per-sample ones of an unbatched sample are batched).
+        params: ``forward``'s ``params`` (one sample's, as an unbatched call returns them, are
+            made those of a batch of one).
         batch_dims: the dimension count of each batched image key (``rgb``, label-like keys,
             ``depth``); a value with one less is an unbatched sample.
         owner: the module, named in errors.
@@ -83,8 +84,8 @@ def enter(image: object, labels: object, depth: object, params: dict | None, *,
     unbatched = _is_unbatched(plain, batch_dims)
     if unbatched:
         plain = {key: _batched(key, value) for key, value in plain.items()}
-        if params is not None and isinstance(params.get("model"), str):
-            params = _batched_params(params)
+    if isinstance(params, dict) and isinstance(params.get("model"), str):   # one sample's
+        params = _batched_params(params)
     wrapping = Wrapping(unbatched, likes, _mask_class(likes))
     if isinstance(image, dict):
         return ({key: plain[key] for key in image}, labels if "labels" in image else
