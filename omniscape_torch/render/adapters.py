@@ -120,6 +120,8 @@ def _apply_with_params(self, params, *args, **data) -> dict:
                         f"{refused} are not supported (only {_TARGETS})")
     out = dict(data)
     images = [key for key, kind in kinds.items() if kind == "image"]
+    if not images and {"bboxes", "keypoints"} & set(kinds):
+        raise TypeError("bboxes, keypoints: pass the image too (its size is their source's)")
     for n, key in enumerate(images):
         # the first image carries the boxes and keypoints (their source size is its)
         extra = {} if n else {k: data[k] for k in ("bboxes", "keypoints") if k in kinds}
