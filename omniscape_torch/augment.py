@@ -5,5 +5,7 @@ here are the same objects."""
 
 from .render.augment import (FISHEYE_MODELS, MODES, ApplyToKey, RandomOmniCamera,
                              RandomReproject)
+from .render.adapters import to_albumentations
 
-__all__ = ["ApplyToKey", "FISHEYE_MODELS", "MODES", "RandomOmniCamera", "RandomReproject"]
+__all__ = ["ApplyToKey", "FISHEYE_MODELS", "MODES", "RandomOmniCamera", "RandomReproject",
+           "to_albumentations"]

@@ -259,18 +259,21 @@ def test_tensor_subclasses_in_and_out():
         plain = aug({"rgb": image.as_subclass(torch.Tensor),
                      "labels": labels.as_subclass(torch.Tensor)}, params=out["params"])
     assert type(out["rgb"]) is Image and type(out["labels"]) is Mask
-    assert type(out["valid"]) is torch.Tensor
+    assert type(out["valid"]) is Mask   # valid is a mask: v2's geometric transforms move it
+    assert type(plain["valid"]) is torch.Tensor
     assert torch.equal(out["rgb"].as_subclass(torch.Tensor), plain["rgb"])
+    assert torch.equal(out["valid"].as_subclass(torch.Tensor), plain["valid"])
     cube = torch.rand(2, 6, 3, 8, 8, generator=gen).as_subclass(Image)
     ids = torch.randint(0, 13, (2, 6, 8, 8), generator=gen).as_subclass(Mask)
     omni = ot.augment.RandomOmniCamera((16, 16), 8, seed=0)
     with torch.no_grad():
         got = omni({"rgb": cube, "labels": ids})
     assert type(got["rgb"]) is Image and type(got["labels"]) is Mask
+    assert type(got["valid"]) is Mask
 
 
 @pytest.mark.parametrize("call, error, match", [
-    (lambda a: a(torch.rand(2, 3, 8)), ValueError, r"image: expected \(B, C, H, W\)"),
+    (lambda a: a(torch.rand(3, 8)), ValueError, r"image: expected \(B, C, H, W\)"),
     (lambda a: a(torch.randint(0, 9, (2, 3, 8, 8))), TypeError, "image: expected a floating"),
     (lambda a: a(torch.rand(2, 3, 8, 8), labels=torch.rand(2, 8, 8)), ValueError,
      "labels: expected integer class ids"),

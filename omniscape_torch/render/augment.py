@@ -36,7 +36,7 @@ from ..cameras import Camera
 from ..cameras.registry import get_model
 from ..cubemap.faces import FACES, face_rotations
 from ..cubemap.rotation import check_rotation
-from . import detection, fast
+from . import containers, detection, fast
 from .fast import CameraGrid
 from .kernels import camera_grid, camera_rays
 from ..cameras.presets import yaw_pitch_roll_to_matrix
@@ -65,6 +65,9 @@ _LENS_DEFAULTS = MappingProxyType({"unified_xi_range": (0.5, 1.0),
                                    "eucm_alpha_range": (0.55, 0.7),
                                    "eucm_beta_range": (0.9, 1.2),
                                    "ds_xi_range": (-0.3, 0.0), "ds_alpha_range": (0.5, 0.7)})
+#: Dimension count of each batched input (one less: an unbatched sample; ``containers``).
+_IMAGE_DIMS = MappingProxyType({"rgb": 4, "labels": 3, "instances": 3, "depth": 3})
+_CUBE_DIMS = MappingProxyType({"rgb": 5, "labels": 4, "instances": 4, "depth": 4})
 #: The kind of a sample drawn as a catadioptric camera (a unified model under its mirror).
 _CATADIOPTRIC = "catadioptric"
 _DEG = math.pi / 180
@@ -918,7 +921,9 @@ class RandomOmniCamera(_RandomCameras):
                 the ids to box) and ``keypoints`` ``(B, K, 3)`` rows ``(face, x, y)``, and the
                 keys of ``label_keys`` (``docs/detection.md``). Tensor subclasses
                 (torchvision's ``tv_tensors.Image``, ``Mask``) are read as the tensors they
-                hold, and their outputs come back in their classes.
+                hold, and their outputs come back in their classes (``valid`` as a ``Mask``);
+                an unbatched sample ``(6, C, F, F)``, ``(6, F, F)`` comes back unbatched
+                (:mod:`~omniscape_torch.render.containers`).
             labels: ``(B, 6, F, F)`` integer class ids.
             depth: ``(B, 6, F, F)`` planar depth, metres.
             params: parameters from ``forward_parameters`` or a previous output, to replay.
@@ -932,6 +937,8 @@ class RandomOmniCamera(_RandomCameras):
             ``box_instance_ids``); with ``keypoints``: ``keypoints (B, K, 2)`` corner
             coordinates (NaN where invalid) and ``keypoints_valid (B, K)``.
         """
+        cubemap, labels, depth, params, wrapping = containers.enter(
+            cubemap, labels, depth, params, batch_dims=_CUBE_DIMS, owner=self)
         targets = _targets(cubemap, self.label_keys, cube=True)
         if isinstance(cubemap, dict):
             unknown = set(cubemap) - {"rgb", "labels", "depth"} - _target_keys(self.label_keys)
@@ -947,9 +954,8 @@ class RandomOmniCamera(_RandomCameras):
             raise ValueError("forward: pass at least one of cubemap, labels, depth, instances")
         if params is None:
             params = self.forward_parameters(ref.shape[0], generator=generator)
-        out = self.render(_plain(cubemap), params, labels=_plain(labels), depth=_plain(depth),
-                          **targets)
-        return _like_inputs(out, given)
+        out = self.render(cubemap, params, labels=labels, depth=depth, **targets)
+        return containers.leave(out, wrapping)
 
 
 
@@ -1503,7 +1509,9 @@ class RandomReproject(_RandomCameras):
                 (``docs/detection.md``); ``tv_tensors.Image`` /
                 ``tv_tensors.Mask``
                 are taken as the tensors they hold, and their outputs come back in their
-                classes.
+                classes (``valid`` as a ``Mask``); an unbatched sample ``(C, H, W)``,
+                ``(H, W)`` comes back unbatched, ``params`` per sample
+                (:mod:`~omniscape_torch.render.containers`).
             labels: ``(B, H, W)`` integer class ids.
             depth: planar depth ``(B, H, W)``.
             intrinsics: ``(B, 4)`` or ``(4,)`` pinhole ``fx, fy, cx, cy`` of the images, or a
@@ -1524,6 +1532,8 @@ class RandomReproject(_RandomCameras):
             with ``keypoints``: ``keypoints (B, K, 2)`` (NaN where invalid) and
             ``keypoints_valid (B, K)``.
         """
+        image, labels, depth, params, wrapping = containers.enter(
+            image, labels, depth, params, batch_dims=_IMAGE_DIMS, owner=self)
         targets = _targets(image, self.label_keys, cube=False)
         if isinstance(image, dict):
             unknown = set(image) - {"rgb", "labels", "depth", "intrinsics", "source_camera"} - \
@@ -1545,9 +1555,9 @@ class RandomReproject(_RandomCameras):
         elif intrinsics is None and source_camera is None:   # a replay: its source camera
             intrinsics = params.get("intrinsics")
             source_camera = params.get("source_camera")
-        out = self.render(_plain(image), params, labels=_plain(labels), depth=_plain(depth),
+        out = self.render(image, params, labels=labels, depth=depth,
                           intrinsics=intrinsics, source_camera=source_camera, **targets)
-        return _like_inputs(out, given)
+        return containers.leave(out, wrapping)
 
 
 def _camera_record(camera: Camera) -> dict:
@@ -1636,15 +1646,6 @@ def _plain(t: object) -> object:
     """A tensor subclass (torchvision's ``tv_tensors.Image``, ``Mask``) as the plain tensor it
     holds (no copy); anything else as it is."""
     return t.as_subclass(Tensor) if isinstance(t, Tensor) and type(t) is not Tensor else t
-
-
-def _like_inputs(out: dict, given: dict) -> dict:
-    """The outputs of the inputs that came as a tensor subclass (``tv_tensors.Image``,
-    ``Mask``: torchvision's ``transforms.v2`` route each by its class) as that class again."""
-    for key, value in given.items():
-        if key in out and isinstance(value, Tensor) and type(value) is not Tensor:
-            out[key] = out[key].as_subclass(type(value))
-    return out
 
 
 def _on_batch(out: dict, n: int, batch_size: int) -> dict:
