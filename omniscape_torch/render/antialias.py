@@ -36,43 +36,43 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .reference import grid_sample
 
-__all__ = ["footprint_level", "mip_sample"]
+__all__ = ["footprint", "mip_sample", "minified", "MAX_TAPS"]
+
+#: Most taps per axis of a footprint (:func:`mip_sample`): up to ``MAX_TAPS`` source pixels
+#: across, the taps read the image itself; beyond, the mip level ``log2(rho / MAX_TAPS)``.
+MAX_TAPS = 3
 
 
-def _step(pixels: Tensor, ok: Tensor, dim: int) -> Tensor:
-    """Squared length of ``d pixels / d (output pixel)`` along ``dim`` (1: rows, 2: columns),
-    ``(B, h, w)``: the forward difference where both pixels are ``ok``, else the backward
-    one, else 0."""
+def _derivative(pixels: Tensor, ok: Tensor, dim: int) -> Tensor:
+    """``d pixels / d (output pixel)`` along ``dim`` (1: rows, 2: columns), ``(B, h, w, 2)``:
+    the forward difference where both pixels are ``ok``, else the backward one, else 0."""
     n = pixels.shape[dim]
     if n < 2:
-        return torch.zeros_like(pixels[..., 0])
-    diff = (pixels.narrow(dim, 1, n - 1) - pixels.narrow(dim, 0, n - 1)).square().sum(-1)
-    diff = diff * (ok.narrow(dim, 1, n - 1) & ok.narrow(dim, 0, n - 1))
-    zero = torch.zeros_like(diff.narrow(dim, 0, 1))
-    # forward where it is known, else backward (max: an unknown difference is 0)
-    return torch.maximum(torch.cat((diff, zero), dim), torch.cat((zero, diff), dim)) \
-        if n > 2 else torch.cat((diff, diff), dim)
+        return torch.zeros_like(pixels)
+    diff = pixels.narrow(dim, 1, n - 1) - pixels.narrow(dim, 0, n - 1)
+    both = (ok.narrow(dim, 1, n - 1) & ok.narrow(dim, 0, n - 1)).unsqueeze(-1)
+    diff = torch.where(both, diff, torch.zeros_like(diff))   # invalid positions may be inf
+    fwd = torch.cat((diff, diff.narrow(dim, 0, 1)), dim)
+    fwd_ok = torch.cat((both, torch.zeros_like(both.narrow(dim, 0, 1))), dim)
+    bwd = torch.cat((diff.narrow(dim, 0, 1), diff), dim)
+    return torch.where(fwd_ok, fwd, bwd)
 
 
-def footprint_level(pixels: Tensor, valid: Tensor) -> Tensor:
-    """The mip level ``L = log2(rho)`` of each output pixel, ``rho`` the longer Jacobian
-    column of the sampling grid in source pixels (how far the source position moves to the
-    next output pixel, across or down), by finite differences to the neighbours (the longer
-    of the forward and backward ones where both are valid; 0 where none is).
+def footprint(pixels: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]:
+    """The Jacobian columns of a sampling grid: how far the source position moves to the next
+    output pixel across (``du``) and down (``dv``), in source pixels, by finite differences
+    (forward where both pixels are valid, else backward, else 0).
 
     Args:
         pixels: ``(B, h, w, 2)`` source pixel ``(u, v)`` of each output pixel centre.
         valid: ``(B, h, w)`` bool: the pixels whose position is meaningful.
 
     Returns:
-        ``(B, h, w)`` float32 levels, ``-inf`` where ``rho = 0``; ``L <= 0`` everywhere valid
-        means the grid does not minify (:func:`mip_sample` is then plain bilinear).
+        ``du, dv``, each ``(B, h, w, 2)`` (no gradient).
     """
     pixels = pixels.detach()
-    longer = torch.maximum(_step(pixels, valid, 2), _step(pixels, valid, 1))
-    return 0.5 * torch.log2(longer.float())
+    return _derivative(pixels, valid, 2), _derivative(pixels, valid, 1)
 
 
 def _pyramid(image: Tensor, first: int, last: int) -> list[Tensor | None]:
@@ -89,64 +89,93 @@ def _pyramid(image: Tensor, first: int, last: int) -> list[Tensor | None]:
     return out
 
 
-def _bilinear(level: Tensor, batch: Tensor, x: Tensor, y: Tensor) -> Tensor:
-    """``level (B, C, H, W)`` at the pixels ``(x, y) (n,)`` of the samples ``batch (n,)``,
-    bilinear with border clamping (``grid_sample``'s ``padding_mode="border"``): ``(n, C)``."""
-    chans, height, width = level.shape[1:]
-    x = x.clamp(0, width - 1)
-    y = y.clamp(0, height - 1)
-    x0 = x.detach().floor().clamp(max=max(width - 2, 0))
-    y0 = y.detach().floor().clamp(max=max(height - 2, 0))
-    fx, fy = (x - x0).unsqueeze(1), (y - y0).unsqueeze(1)
-    x0, y0 = x0.long(), y0.long()
-    x1 = (x0 + 1).clamp(max=width - 1) - x0
-    y1 = ((y0 + 1).clamp(max=height - 1) - y0) * width
-    plane = height * width
-    base = (batch * (chans * plane) + y0 * width + x0).unsqueeze(1) + \
-        torch.arange(chans, device=x.device) * plane
-    flat = level.contiguous().reshape(-1)
-    x1, y1 = x1.unsqueeze(1), y1.unsqueeze(1)
-    top = flat.take(base) * (1 - fx) + flat.take(base + x1) * fx
-    bottom = flat.take(base + y1) * (1 - fx) + flat.take(base + y1 + x1) * fx
-    return top * (1 - fy) + bottom * fy
+def _offsets(taps: int, dtype: torch.dtype) -> Tensor:
+    """``(taps**2, 2)`` tap positions in a footprint's frame: the centres of a ``taps x taps``
+    subgrid of ``[-0.5, 0.5]^2``."""
+    o = (torch.arange(taps, dtype=dtype) + 0.5) / taps - 0.5
+    return torch.stack(torch.meshgrid(o, o, indexing="ij"), -1).reshape(-1, 2)
 
 
-def mip_sample(image: Tensor, pixels: Tensor, valid: Tensor, level: Tensor) -> Tensor:
-    """``image`` read at ``pixels`` through its mip pyramid, each output pixel prefiltered to
-    its footprint (module docstring): trilinear, bilinear in the levels ``floor(L)`` and
-    ``floor(L) + 1`` blended linearly (``L`` clamped to ``[0, top]``).
+def mip_sample(image: Tensor, pixels: Tensor, valid: Tensor, du: Tensor, dv: Tensor, *,
+               max_taps: int = MAX_TAPS) -> Tensor:
+    """``image`` averaged over each output pixel's footprint (module docstring): ``n x n``
+    taps spread over the parallelogram of the Jacobian columns ``du, dv`` about ``pixels``
+    (``n = ceil(rho)`` up to ``max_taps``, ``rho`` the longer column), each a trilinear
+    lookup of the mip pyramid at the level ``log2(rho / n)`` (0 while ``rho <= max_taps``:
+    bilinear taps of the image itself).
 
     Args:
         image: ``(B or 1, C, H, W)`` floating; a batch of 1 is shared by every sample.
         pixels: ``(B, h, w, 2)`` source pixels (centres at integers).
         valid: ``(B, h, w)`` bool: the pixels to read (the others come back 0).
-        level: ``(B, h, w)`` from :func:`footprint_level`.
+        du, dv: ``(B, h, w, 2)`` the Jacobian columns (:func:`footprint`).
+        max_taps: most taps per axis.
 
     Returns:
         ``(B, C, h, w)`` in ``image``'s dtype; differentiable with respect to ``image`` and
-        ``pixels`` (the level is not: it is a choice of filter).
+        ``pixels`` (the footprint is not: it is a choice of filter).
     """
     batch, h, w = valid.shape
     chans, height, width = image.shape[1:]
-    index = valid.reshape(-1).nonzero().squeeze(1)
-    sample = index // (h * w) if image.shape[0] > 1 else torch.zeros_like(index)
-    at = pixels.reshape(-1, 2)[index].to(image.dtype)
+    dtype = image.dtype
+    out = image.new_zeros(batch, h * w, chans)
     top = int(math.floor(math.log2(max(height, width))))
-    lv = level.reshape(-1)[index].nan_to_num(0.0).clamp(0, top)
-    first, last = (int(math.floor(float(lv.min()))), int(math.ceil(float(lv.max())))) \
-        if len(index) else (0, 0)
-    out = image.new_zeros(len(index), chans)
-    for k, mip in enumerate(_pyramid(image, first, last)):
-        if mip is None:
+    ok = valid.reshape(batch, -1)
+    for b in range(batch):   # each sample reads its own image (grid_sample: one per call)
+        index = ok[b].nonzero().squeeze(1)
+        if len(index) == 0:
             continue
-        weight = (1 - (lv - k).abs()).clamp_min(0)
-        sel = (weight > 0).nonzero().squeeze(1)
-        if len(sel) == 0:
-            continue
-        scale = 0.5 ** k
-        x = (at[sel, 0] + 0.5) * scale - 0.5
-        y = (at[sel, 1] + 0.5) * scale - 0.5
-        values = _bilinear(mip, sample[sel], x, y) * weight[sel].to(image.dtype).unsqueeze(1)
-        out = out.index_add(0, sel, values)
-    full = image.new_zeros(batch * h * w, chans).index_copy(0, index, out)
-    return full.reshape(batch, h, w, chans).permute(0, 3, 1, 2)
+        at = pixels[b].reshape(-1, 2)[index].to(dtype)
+        ju, jv = (d[b].detach().reshape(-1, 2)[index].to(dtype) for d in (du, dv))
+        rho = torch.maximum(ju.norm(dim=-1), jv.norm(dim=-1)).clamp_min(1.0)
+        taps = torch.ceil(rho).clamp(max=max_taps)
+        level = torch.log2(rho / taps).clamp(0, top)
+        mips = _pyramid(image[b if image.shape[0] > 1 else 0][None],
+                        int(level.min()), int(math.ceil(float(level.max()))))
+        for n in taps.unique().long().tolist():
+            group = None if bool((taps == n).all()) else (taps == n).nonzero().squeeze(1)
+            pick = (lambda t: t) if group is None else (lambda t: t[group])
+            lv = pick(level)
+            below = lv.floor()
+            spread = _offsets(n, dtype)                                     # (taps, 2)
+            for k in range(int(below.min()), min(int(below.max()) + 1, len(mips) - 1) + 1):
+                weight = torch.where(below == k, 1 - (lv - below), (lv - below) * (below + 1 == k))
+                # tap positions in grid_sample's coordinates of level k:
+                # g = (2 (p + 0.5) 2^-k) / W_k - 1, p = centre + o_u du + o_v dv
+                mip = mips[k]
+                scale = torch.tensor([2 * 0.5 ** k / mip.shape[-1], 2 * 0.5 ** k / mip.shape[-2]],
+                                     dtype=dtype)
+                c, u, v = ((pick(t) * scale).T for t in (at + 0.5, ju, jv))   # (2, m) each
+                grid = torch.stack([torch.addcmul(torch.addcmul(
+                    (c[i] - 1).unsqueeze(1), u[i].unsqueeze(1), spread[:, 0]),
+                    v[i].unsqueeze(1), spread[:, 1]) for i in (0, 1)], -1)   # (m, taps, 2)
+                values = F.grid_sample(mip, grid.unsqueeze(0), mode="bilinear",
+                                       padding_mode="border", align_corners=False)[0]
+                values = values.mean(-1).T * weight.unsqueeze(1)           # (m, C)
+                rows = index if group is None else index[group]
+                out[b].index_add_(0, rows, values)
+    return out.reshape(batch, h, w, chans).permute(0, 3, 1, 2)
+
+
+def minified(image: Tensor, pixels: Tensor, valid: Tensor) -> tuple[Tensor, Tensor] | None:
+    """The pixels of a resampling that minify, averaged over their footprints: what a sampler
+    writes over its point samples (module docstring's rules).
+
+    Args:
+        image: ``(B or 1, C, H, W)`` floating or ``uint8`` (read as float32 levels).
+        pixels: ``(B, h, w, 2)`` source pixels of the output pixel centres.
+        valid: ``(B, h, w)`` bool.
+
+    Returns:
+        None where no valid pixel's footprint exceeds one source pixel (nothing to change),
+        else ``values (B, C, h, w)`` (float; a ``uint8`` image's levels 0..255) and
+        ``mask (B, 1, h, w)``: the valid pixels whose footprint exceeds one source pixel
+        (a Jacobian column longer than 1), where ``values`` replace the point samples
+        (elsewhere ``values`` is 0).
+    """
+    du, dv = footprint(pixels, valid)
+    mask = valid & ((du.square().sum(-1) > 1) | (dv.square().sum(-1) > 1))
+    if not bool(mask.any()):
+        return None
+    work = image if image.dtype in (torch.float32, torch.float64) else image.float()
+    return mip_sample(work, pixels, mask, du, dv), mask.unsqueeze(1)

@@ -37,13 +37,13 @@ from ..cameras.registry import get_model
 from ..cubemap.faces import FACES, face_rotations
 from ..cubemap.rotation import check_rotation
 from . import fast, framing
-from .antialias import footprint_level, mip_sample
+from .antialias import minified
 from .fast import CameraGrid
 from .kernels import camera_grid, camera_rays
 from ..cameras.presets import yaw_pitch_roll_to_matrix
 from . import layer as projection
 from .layer import OmniProjection
-from .reference import check_out_dtype, warn_if_label_map
+from .reference import check_out_dtype, from_float, warn_if_label_map
 from .reproject import INTERPOLATIONS, intrinsics_from_matrix, sample_camera
 
 __all__ = ["ApplyToKey", "RandomOmniCamera", "RandomReproject", "FISHEYE_MODELS", "MODES"]
@@ -1180,6 +1180,9 @@ class RandomReproject(_RandomCameras):
                     image[at], rays[rows], rot, kr, self.interpolation,
                     valid=valid[rows], out=result["rgb"][at], out_dtype=result["rgb"].dtype)
                 seen.copy_(seen_rgb)
+                if self.antialias and self.interpolation != "nearest":
+                    self._antialias(image[at], rays[rows], rot, kr, seen_rgb,
+                                    result["rgb"][at])
             if labels is not None:
                 wide = labels.dtype in (torch.uint8, torch.int64)   # int64 ids in the pass
                 out = result["labels"][at].unsqueeze(1)
@@ -1198,6 +1201,20 @@ class RandomReproject(_RandomCameras):
                                                   seen_z.unsqueeze(1))
                 seen.copy_(seen_z)
 
+    @staticmethod
+    def _antialias(image: Tensor, rays: Tensor, rotation: Tensor | None, k: Tensor,
+                   seen: Tensor, out: Tensor) -> None:
+        """Overwrite the pixels of ``out`` (the fast op's samples) whose footprint minifies the
+        source with its mip lookups (:func:`~omniscape_torch.render.antialias.minified`):
+        the rays' source pixels ``K (R ray)``, as the op projects them."""
+        src = rays if rotation is None else torch.einsum("bij,bhwj->bhwi", rotation, rays)
+        z = torch.where(seen, src[..., 2], torch.ones_like(src[..., 2]))
+        pixels = src[..., :2] / z.unsqueeze(-1) * k[:, None, None, :2] + k[:, None, None, 2:]
+        mip = minified(image, pixels.expand(len(out), *pixels.shape[1:]), seen)
+        if mip is not None:
+            values = from_float(mip[0], image.dtype, out.dtype)
+            out.copy_(torch.where(mip[1], values, out))
+
     def _render_exact(self, name: str, part: "_Part", image: Tensor | None,
                       labels: Tensor | None, depth: Tensor | None, result: dict) -> None:
         """The samples ``part.index`` through ``Camera.ray_grid`` and ``sample_camera``
@@ -1213,7 +1230,7 @@ class RandomReproject(_RandomCameras):
         seen = None
         if image is not None:
             values, ok = sample_camera(image[sel], source, src, interpolation=self.interpolation,
-                                       out_dtype=result["rgb"].dtype)
+                                       out_dtype=result["rgb"].dtype, antialias=self.antialias)
             seen = ok & mask
             result["rgb"][sel] = torch.where(seen, values, torch.zeros_like(values))
         if labels is not None:
