@@ -37,20 +37,28 @@ import torch.nn.functional as F
 from torch import Tensor
 
 
-__all__ = ["footprint", "mip_sample", "minified", "MAX_TAPS"]
+__all__ = ["footprint", "mip_sample", "minified", "MAX_TAPS", "MINIFIES"]
 
 #: Most taps per axis of a footprint (:func:`mip_sample`): up to ``MAX_TAPS`` source pixels
 #: across, the taps read the image itself; beyond, the mip level ``log2(rho / MAX_TAPS)``.
 MAX_TAPS = 3
+#: A pixel minifies where a Jacobian column is longer than this many source pixels: 1, with a
+#: margin for the rounding of the grid (a pinhole into the same pinhole is 1 +- 1e-6).
+MINIFIES = 1.001
 
 
-def _derivative(pixels: Tensor, ok: Tensor, dim: int) -> Tensor:
+def _derivative(pixels: Tensor, ok: Tensor, dim: int, period: float | None) -> Tensor:
     """``d pixels / d (output pixel)`` along ``dim`` (1: rows, 2: columns), ``(B, h, w, 2)``:
-    the forward difference where both pixels are ``ok``, else the backward one, else 0."""
+    the forward difference where both pixels are ``ok``, else the backward one, else 0; ``u``
+    differences taken modulo ``period`` (a panorama's width) into ``[-period / 2, period / 2)``
+    ."""
     n = pixels.shape[dim]
     if n < 2:
         return torch.zeros_like(pixels)
     diff = pixels.narrow(dim, 1, n - 1) - pixels.narrow(dim, 0, n - 1)
+    if period is not None:
+        du = torch.remainder(diff[..., 0] + period / 2, period) - period / 2
+        diff = torch.stack((du, diff[..., 1]), -1)
     both = (ok.narrow(dim, 1, n - 1) & ok.narrow(dim, 0, n - 1)).unsqueeze(-1)
     diff = torch.where(both, diff, torch.zeros_like(diff))   # invalid positions may be inf
     fwd = torch.cat((diff, diff.narrow(dim, 0, 1)), dim)
@@ -59,7 +67,8 @@ def _derivative(pixels: Tensor, ok: Tensor, dim: int) -> Tensor:
     return torch.where(fwd_ok, fwd, bwd)
 
 
-def footprint(pixels: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]:
+def footprint(pixels: Tensor, valid: Tensor, period: float | None = None
+              ) -> tuple[Tensor, Tensor]:
     """The Jacobian columns of a sampling grid: how far the source position moves to the next
     output pixel across (``du``) and down (``dv``), in source pixels, by finite differences
     (forward where both pixels are valid, else backward, else 0).
@@ -67,12 +76,14 @@ def footprint(pixels: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]:
     Args:
         pixels: ``(B, h, w, 2)`` source pixel ``(u, v)`` of each output pixel centre.
         valid: ``(B, h, w)`` bool: the pixels whose position is meaningful.
+        period: the source's width where its columns wrap around (a full panorama): ``u``
+            moves the short way round.
 
     Returns:
         ``du, dv``, each ``(B, h, w, 2)`` (no gradient).
     """
     pixels = pixels.detach()
-    return _derivative(pixels, valid, 2), _derivative(pixels, valid, 1)
+    return _derivative(pixels, valid, 2, period), _derivative(pixels, valid, 1, period)
 
 
 def _pyramid(image: Tensor, first: int, last: int) -> list[Tensor | None]:
@@ -157,7 +168,8 @@ def mip_sample(image: Tensor, pixels: Tensor, valid: Tensor, du: Tensor, dv: Ten
     return out.reshape(batch, h, w, chans).permute(0, 3, 1, 2)
 
 
-def minified(image: Tensor, pixels: Tensor, valid: Tensor) -> tuple[Tensor, Tensor] | None:
+def minified(image: Tensor, pixels: Tensor, valid: Tensor, period: float | None = None
+             ) -> tuple[Tensor, Tensor] | None:
     """The pixels of a resampling that minify, averaged over their footprints: what a sampler
     writes over its point samples (module docstring's rules).
 
@@ -165,6 +177,7 @@ def minified(image: Tensor, pixels: Tensor, valid: Tensor) -> tuple[Tensor, Tens
         image: ``(B or 1, C, H, W)`` floating or ``uint8`` (read as float32 levels).
         pixels: ``(B, h, w, 2)`` source pixels of the output pixel centres.
         valid: ``(B, h, w)`` bool.
+        period: as for :func:`footprint`.
 
     Returns:
         None where no valid pixel's footprint exceeds one source pixel (nothing to change),
@@ -173,8 +186,9 @@ def minified(image: Tensor, pixels: Tensor, valid: Tensor) -> tuple[Tensor, Tens
         (a Jacobian column longer than 1), where ``values`` replace the point samples
         (elsewhere ``values`` is 0).
     """
-    du, dv = footprint(pixels, valid)
-    mask = valid & ((du.square().sum(-1) > 1) | (dv.square().sum(-1) > 1))
+    du, dv = footprint(pixels, valid, period)
+    limit = MINIFIES ** 2
+    mask = valid & ((du.square().sum(-1) > limit) | (dv.square().sum(-1) > limit))
     if not bool(mask.any()):
         return None
     work = image if image.dtype in (torch.float32, torch.float64) else image.float()

@@ -960,7 +960,9 @@ class RandomReproject(_RandomCameras):
             intrinsics: the source pinhole ``(B, 4)`` or ``(4,)`` ``fx, fy, cx, cy`` (or a
                 camera matrix), which ``coverage_range`` frames (else ``source_fov``'s);
                 ignored without ``coverage_range``.
-            source_size: ``(Hs, Ws)`` of the source images, needed with ``coverage_range``.
+            source_size: ``(Hs, Ws)`` of the source images: with ``coverage_range``, the
+                focal is solved for the drawn coverage of this source (as ``forward`` draws);
+                None: from ``focal_scale_range`` (the image circle inscribed), unframed.
 
         Returns:
             dict, tensors float64 on the CPU: ``model`` (tuple of ``B`` model names),
@@ -971,16 +973,13 @@ class RandomReproject(_RandomCameras):
             solved for it, :mod:`~omniscape_torch.render.framing`).
 
         Raises:
-            ValueError: ``coverage_range`` without ``source_size``, or without ``intrinsics``
-                and ``source_fov``.
+            ValueError: ``source_size`` with ``coverage_range`` but neither ``intrinsics`` nor
+                ``source_fov``.
         """
         if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
             raise ValueError(f"batch_size: expected a positive int, got {batch_size!r}")
         source = None
-        if self.coverage_range is not None:
-            if source_size is None:
-                raise ValueError("source_size: coverage_range frames the source: pass the "
-                                 "source images' (Hs, Ws) (forward passes it)")
+        if self.coverage_range is not None and source_size is not None:
             source_size = (int(source_size[0]), int(source_size[1]))
             source = self._intrinsics(intrinsics, source_size, batch_size)
         return self._draw_params(batch_size, generator, source, source_size)

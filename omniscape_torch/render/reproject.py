@@ -187,7 +187,9 @@ def sample_camera(image: Tensor, camera: Camera, rays: Tensor, *,
     if camera.batch_shape and rays.dim() == 3:
         rays = rays.expand(batch, *rays.shape)
     pixels, valid = camera.project(rays.to(camera.params.dtype))
+    period = None
     if wraps_in_longitude(camera):
+        period = float(width)
         # valid u lie in [-0.5, W - 0.5]; the padded columns hold their neighbours across the seam
         pixels = pixels + torch.tensor([float(_WRAP), 0.0], dtype=pixels.dtype,
                                        device=pixels.device)
@@ -217,7 +219,7 @@ def sample_camera(image: Tensor, camera: Camera, rays: Tensor, *,
     if antialias and interpolation != "nearest":
         if pixels.dim() == 3:
             pixels = pixels.unsqueeze(0)
-        mip = minified(work, pixels.expand(batch, *pixels.shape[1:]), valid[:, 0])
+        mip = minified(work, pixels.expand(batch, *pixels.shape[1:]), valid[:, 0], period)
         if mip is not None:
             out = torch.where(mip[1], mip[0].to(out.dtype), out)
     out = torch.where(valid, out, torch.zeros_like(out))
@@ -324,6 +326,9 @@ def equirect_to_cubemap(panorama: Tensor, face_size: int, *, interpolation: str 
     Face ``k`` is ``reproject(panorama, equirectangular_camera(W, H), face_pinhole,
     rotation=face_rotations()[k])`` with the face pinhole ``fx = fy = F / 2``,
     ``cx = cy = (F - 1) / 2``; the six faces are sampled in one call, the geometry in float64.
+    Point samples (``reproject(..., antialias=False)``'s): faces of ``F >= W / 4`` do not
+    minify the panorama but around its poles, where a face pixel's footprint is no
+    parallelogram (a pole is a whole row).
 
     Args:
         panorama: ``(B, C, H, W)`` floating or ``uint8`` (an 8-bit image), or integer labels
@@ -346,7 +351,7 @@ def equirect_to_cubemap(panorama: Tensor, face_size: int, *, interpolation: str 
     rays = cm.face_rays(face_size, dtype=torch.float64, device=panorama.device, normalize=True)
     values, _ = sample_camera(panorama, camera, rays.reshape(6 * face_size, face_size, 3),
                               interpolation=interpolation, labels=labels,
-                              ignore_index=ignore_index, out_dtype=out_dtype)
+                              ignore_index=ignore_index, out_dtype=out_dtype, antialias=False)
     if values.dim() == 3:  # labels (B, 6F, F)
         return values.reshape(-1, 6, face_size, face_size)
     return values.reshape(values.shape[0], values.shape[1], 6, face_size, face_size) \
