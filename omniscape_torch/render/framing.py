@@ -26,6 +26,8 @@ import math
 import torch
 from torch import Tensor
 
+__all__ = ["DIRECTIONS", "focal_for_coverage", "reach", "to_edge"]
+
 #: Directions about the fisheye's centre in which the valid region's radius is measured.
 DIRECTIONS = 256
 
