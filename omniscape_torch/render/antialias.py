@@ -86,18 +86,39 @@ def footprint(pixels: Tensor, valid: Tensor, period: float | None = None
     return _derivative(pixels, valid, 2, period), _derivative(pixels, valid, 1, period)
 
 
-def _pyramid(image: Tensor, first: int, last: int) -> list[Tensor | None]:
-    """Mip levels ``0..last`` of ``image (B, C, H, W)`` (floating), those below ``first``
-    None: level ``k`` the ``2**k x 2**k`` box average (``first`` in one ``avg_pool2d`` from
-    the image, the next ones by 2 x 2 averages; an odd last row or column averaged over the
-    texels it holds)."""
-    out: list[Tensor | None] = [None] * first
+def _atlas(image: Tensor, first: int, last: int) -> tuple[Tensor, Tensor]:
+    """Mip levels ``first..last`` of ``image (B, C, H, W)`` (floating) in one image, and where
+    each lies: level ``k`` the ``2**k x 2**k`` box average (``first`` in one ``avg_pool2d``,
+    the next ones by 2 x 2 averages; an odd last row or column averaged over the texels it
+    holds), level ``first`` at the top left, the others stacked down a column to its right.
+
+    Returns:
+        ``atlas (B, C, Ha, Wa)`` and ``table (last + 1, 4)`` float: per level its ``x, y``
+        offset in the atlas and its ``width, height`` (rows below ``first`` unused).
+    """
     level = image if first == 0 else F.avg_pool2d(image, 2 ** first, ceil_mode=True)
-    out.append(level)
+    levels = [level]
     for _ in range(first, last):
-        level = F.avg_pool2d(level, 2, ceil_mode=True) if min(level.shape[-2:]) > 1 else level
-        out.append(level)
-    return out
+        if min(levels[-1].shape[-2:]) > 1:
+            levels.append(F.avg_pool2d(levels[-1], 2, ceil_mode=True))
+        else:
+            levels.append(levels[-1])
+    table = torch.zeros(last + 1, 4, dtype=image.dtype)
+    height, width = level.shape[-2:]
+    table[first] = torch.tensor([0.0, 0.0, width, height])
+    if len(levels) == 1:
+        return level, table
+    column = levels[1].shape[-1]
+    atlas = image.new_zeros(*level.shape[:2], max(height, sum(m.shape[-2] for m in levels[1:])),
+                            width + column)
+    atlas[..., :height, :width] = level
+    y = 0
+    for k, mip in enumerate(levels[1:], first + 1):
+        hk, wk = mip.shape[-2:]
+        atlas[..., y:y + hk, width:width + wk] = mip
+        table[k] = torch.tensor([float(width), float(y), wk, hk])
+        y += hk
+    return atlas, table
 
 
 def _offsets(taps: int, dtype: torch.dtype) -> Tensor:
@@ -111,9 +132,10 @@ def mip_sample(image: Tensor, pixels: Tensor, valid: Tensor, du: Tensor, dv: Ten
                max_taps: int = MAX_TAPS) -> Tensor:
     """``image`` averaged over each output pixel's footprint (module docstring): ``n x n``
     taps spread over the parallelogram of the Jacobian columns ``du, dv`` about ``pixels``
-    (``n = ceil(rho)`` up to ``max_taps``, ``rho`` the longer column), each a trilinear
-    lookup of the mip pyramid at the level ``log2(rho / n)`` (0 while ``rho <= max_taps``:
-    bilinear taps of the image itself).
+    (``n = ceil(rho)`` of the call's largest footprint, up to ``max_taps``), each a trilinear
+    lookup of the mip pyramid at the level ``log2(rho / n)`` of its pixel (0 while
+    ``rho <= n``: bilinear taps of the image itself); all in one ``grid_sample`` of the
+    pyramid's atlas.
 
     Args:
         image: ``(B or 1, C, H, W)`` floating; a batch of 1 is shared by every sample.
@@ -127,45 +149,54 @@ def mip_sample(image: Tensor, pixels: Tensor, valid: Tensor, du: Tensor, dv: Ten
         ``pixels`` (the footprint is not: it is a choice of filter).
     """
     batch, h, w = valid.shape
-    chans, height, width = image.shape[1:]
     dtype = image.dtype
-    out = image.new_zeros(batch, h * w, chans)
+    height, width = image.shape[-2:]
+    chans = image.shape[1]
+    # the valid pixels of each sample first, padded to the largest count (a padding entry
+    # reads a pixel that is not valid, and is dropped at the end)
+    flat = valid.reshape(batch, -1)
+    count = int(flat.sum(1).max())
+    if count == 0:
+        return image.new_zeros(batch, chans, h, w)
+    order = torch.argsort(flat.to(torch.uint8), dim=1, descending=True, stable=True)[:, :count]
+    pick = order.unsqueeze(-1).expand(batch, count, 2)
+    at = pixels.to(dtype).reshape(batch, -1, 2).gather(1, pick)               # (B, N, 2)
+    ju, jv = (d.detach().to(dtype).reshape(batch, -1, 2).gather(1, pick) for d in (du, dv))
+    ok = flat.gather(1, order)
+    rho = torch.maximum(ju.norm(dim=-1), jv.norm(dim=-1)).clamp_min(1.0)
+    rho = torch.where(ok, rho, torch.ones_like(rho))
+    n = min(int(math.ceil(float(rho.max()))), max_taps)
     top = int(math.floor(math.log2(max(height, width))))
-    ok = valid.reshape(batch, -1)
-    for b in range(batch):   # each sample reads its own image (grid_sample: one per call)
-        index = ok[b].nonzero().squeeze(1)
-        if len(index) == 0:
-            continue
-        at = pixels[b].reshape(-1, 2)[index].to(dtype)
-        ju, jv = (d[b].detach().reshape(-1, 2)[index].to(dtype) for d in (du, dv))
-        rho = torch.maximum(ju.norm(dim=-1), jv.norm(dim=-1)).clamp_min(1.0)
-        taps = torch.ceil(rho).clamp(max=max_taps)
-        level = torch.log2(rho / taps).clamp(0, top)
-        mips = _pyramid(image[b if image.shape[0] > 1 else 0][None],
-                        int(level.min()), int(math.ceil(float(level.max()))))
-        for n in taps.unique().long().tolist():
-            group = None if bool((taps == n).all()) else (taps == n).nonzero().squeeze(1)
-            pick = (lambda t: t) if group is None else (lambda t: t[group])
-            lv = pick(level)
-            below = lv.floor()
-            spread = _offsets(n, dtype)                                     # (taps, 2)
-            for k in range(int(below.min()), min(int(below.max()) + 1, len(mips) - 1) + 1):
-                weight = torch.where(below == k, 1 - (lv - below), (lv - below) * (below + 1 == k))
-                # tap positions in grid_sample's coordinates of level k:
-                # g = (2 (p + 0.5) 2^-k) / W_k - 1, p = centre + o_u du + o_v dv
-                mip = mips[k]
-                scale = torch.tensor([2 * 0.5 ** k / mip.shape[-1], 2 * 0.5 ** k / mip.shape[-2]],
-                                     dtype=dtype)
-                c, u, v = ((pick(t) * scale).T for t in (at + 0.5, ju, jv))   # (2, m) each
-                grid = torch.stack([torch.addcmul(torch.addcmul(
-                    (c[i] - 1).unsqueeze(1), u[i].unsqueeze(1), spread[:, 0]),
-                    v[i].unsqueeze(1), spread[:, 1]) for i in (0, 1)], -1)   # (m, taps, 2)
-                values = F.grid_sample(mip, grid.unsqueeze(0), mode="bilinear",
-                                       padding_mode="border", align_corners=False)[0]
-                values = values.mean(-1).T * weight.unsqueeze(1)           # (m, C)
-                rows = index if group is None else index[group]
-                out[b].index_add_(0, rows, values)
-    return out.reshape(batch, h, w, chans).permute(0, 3, 1, 2)
+    level = torch.log2(rho / n).clamp(0, top)
+    first = int(level[ok].min())
+    last = int(math.ceil(float(level.max())))
+    level = level.clamp_min(first)
+    atlas, table = _atlas(image, first, last)
+    below = level.floor()
+    lower = below.long()
+    o = _offsets(n, dtype)                                                     # (T, 2)
+    inv_size = 2 / torch.tensor([atlas.shape[-1], atlas.shape[-2]], dtype=dtype)
+    grids = []
+    for k in ((lower,) if last == first else (lower, (lower + 1).clamp(max=last))):
+        where = table[k]                                                       # (B, N, 4)
+        scale = torch.exp2(-k.to(dtype)).unsqueeze(-1)                         # (B, N, 1)
+        centre = ((at + 0.5) * scale - 0.5).unsqueeze(-2)
+        spots = torch.addcmul(torch.addcmul(centre, o[:, :1], (ju * scale).unsqueeze(-2)),
+                              o[:, 1:], (jv * scale).unsqueeze(-2))            # (B, N, T, 2)
+        spots = torch.minimum(spots.clamp_min_(0), (where[..., 2:] - 1).unsqueeze(-2))
+        # atlas pixel x + offset -> grid_sample's (2 (x + offset) + 1) / size - 1
+        shift = ((where[..., :2] + 0.5) * inv_size - 1).unsqueeze(-2)
+        grids.append(torch.addcmul(shift, spots, inv_size))
+    grid = torch.stack(grids, -3).reshape(batch, count, -1, 2)               # (B, N, L T, 2)
+    values = F.grid_sample(atlas.expand(batch, *atlas.shape[1:]), grid, mode="bilinear",
+                           padding_mode="border", align_corners=False)       # (B, C, N, L T)
+    values = values.reshape(batch, chans, count, len(grids), len(o)).mean(-1)
+    values = values[..., 0] if len(grids) == 1 else torch.lerp(
+        values[..., 0], values[..., 1], (level - below).unsqueeze(1))        # (B, C, N)
+    out = image.new_zeros(batch, chans, h * w).scatter(
+        2, order.unsqueeze(1).expand(batch, chans, count), values)
+    out = out.reshape(batch, chans, h, w)
+    return torch.where(valid.unsqueeze(1), out, torch.zeros_like(out))
 
 
 def minified(image: Tensor, pixels: Tensor, valid: Tensor, period: float | None = None
