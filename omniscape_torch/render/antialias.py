@@ -175,24 +175,27 @@ def mip_sample(image: Tensor, pixels: Tensor, valid: Tensor, du: Tensor, dv: Ten
     below = level.floor()
     lower = below.long()
     o = _offsets(n, dtype)                                                     # (T, 2)
-    inv_size = 2 / torch.tensor([atlas.shape[-1], atlas.shape[-2]], dtype=dtype)
-    grids = []
+    sizes = (atlas.shape[-1], atlas.shape[-2])
+    grids = []   # per level (B, T, N, 2): the taps' grid_sample coordinates, pixels innermost
     for k in ((lower,) if last == first else (lower, (lower + 1).clamp(max=last))):
         where = table[k]                                                       # (B, N, 4)
-        scale = torch.exp2(-k.to(dtype)).unsqueeze(-1)                         # (B, N, 1)
-        centre = ((at + 0.5) * scale - 0.5).unsqueeze(-2)
-        spots = torch.addcmul(torch.addcmul(centre, o[:, :1], (ju * scale).unsqueeze(-2)),
-                              o[:, 1:], (jv * scale).unsqueeze(-2))            # (B, N, T, 2)
-        spots = torch.minimum(spots.clamp_min_(0), (where[..., 2:] - 1).unsqueeze(-2))
-        # atlas pixel x + offset -> grid_sample's (2 (x + offset) + 1) / size - 1
-        shift = ((where[..., :2] + 0.5) * inv_size - 1).unsqueeze(-2)
-        grids.append(torch.addcmul(shift, spots, inv_size))
-    grid = torch.stack(grids, -3).reshape(batch, count, -1, 2)               # (B, N, L T, 2)
+        scale = torch.exp2(-k.to(dtype))                                       # (B, N)
+        axes = []
+        for i in (0, 1):   # x, then y
+            centre = ((at[..., i] + 0.5) * scale - 0.5).unsqueeze(1)            # (B, 1, N)
+            spots = torch.addcmul(
+                torch.addcmul(centre, o[:, 0, None], (ju[..., i] * scale).unsqueeze(1)),
+                o[:, 1, None], (jv[..., i] * scale).unsqueeze(1))               # (B, T, N)
+            spots = torch.minimum(spots.clamp_min_(0), (where[..., 2 + i] - 1).unsqueeze(1))
+            # atlas pixel x + offset -> grid_sample's (2 (x + offset) + 1) / size - 1
+            axes.append((2 * (spots + where[..., i].unsqueeze(1)) + 1) / sizes[i] - 1)
+        grids.append(torch.stack(axes, -1))
+    grid = torch.cat(grids, 1)                                                 # (B, L T, N, 2)
     values = F.grid_sample(atlas.expand(batch, *atlas.shape[1:]), grid, mode="bilinear",
-                           padding_mode="border", align_corners=False)       # (B, C, N, L T)
-    values = values.reshape(batch, chans, count, len(grids), len(o)).mean(-1)
-    values = values[..., 0] if len(grids) == 1 else torch.lerp(
-        values[..., 0], values[..., 1], (level - below).unsqueeze(1))        # (B, C, N)
+                           padding_mode="border", align_corners=False)       # (B, C, L T, N)
+    values = values.reshape(batch, chans, len(grids), len(o), count).mean(3)
+    values = values[:, :, 0] if len(grids) == 1 else torch.lerp(
+        values[:, :, 0], values[:, :, 1], (level - below).unsqueeze(1))      # (B, C, N)
     out = image.new_zeros(batch, chans, h * w).scatter(
         2, order.unsqueeze(1).expand(batch, chans, count), values)
     out = out.reshape(batch, chans, h, w)
