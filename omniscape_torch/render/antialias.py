@@ -1,31 +1,31 @@
-"""Antialiasing of a minifying resampling: a mip pyramid of the source, trilinear lookups.
+"""Antialiasing of a minifying resampling: footprint-adaptive taps over a mip pyramid.
 
 A resampling that reads a source image at the continuous pixels ``pixels (B, h, w, 2)`` (one
 per output pixel centre) minifies where an output pixel covers more than one source pixel: a
 bilinear point sample there picks one texel of many and aliases (a 1-px line grid seen through
 a 180 degree fisheye of a 48 degree frame: 10-12 dB against the area average). Here each output
 pixel's footprint is measured from the sampling grid itself: the Jacobian of ``pixels`` by
-finite differences to the next output pixel (one-sided at the edges and beside invalid pixels),
-its longer column ``rho`` in source pixels. The source is prefiltered by a mip pyramid (level
-``k`` the ``2**k x 2**k`` box average, built by 2 x 2 averages: ``avg_pool2d``, odd edges
-averaged over the texels they hold), and the pixel is read by trilinear lookup: bilinear in
-the levels ``floor(L)`` and ``floor(L) + 1`` around ``L = log2(rho / n)``, blended linearly.
-Anisotropic footprints (the rim of a fisheye squeezes one direction many times more than the
-other) take ``n = ceil(rho / rho_minor)`` such lookups (at most :data:`MAX_ANISOTROPY`) spread
-along the longer column, as GPUs' anisotropic filtering does, instead of blurring both
-directions to the longer one.
+finite differences to the next output pixel (forward, else backward beside invalid pixels), two
+columns ``du, dv`` in source pixels, the longer of length ``rho``. A pixel with ``rho > 1``
+(:data:`MINIFIES`) is the mean of :data:`TAPS` x :data:`TAPS` taps spread over the
+parallelogram ``du, dv`` about its centre (the area average's quadrature), each a trilinear
+lookup of the source's mip pyramid (level ``k``: the ``2**k x 2**k`` box average, by 2 x 2
+averages) at the level ``log2(rho / TAPS)``: the image itself, bilinear, up to ``TAPS`` source
+pixels across; the pyramid beyond, so that each tap averages its share of the footprint. All
+taps of a call are one ``grid_sample`` of an atlas of the pyramid (:func:`_atlas`).
 
 Rules:
 
 * where no output pixel's footprint exceeds one source pixel (``rho <= 1`` everywhere: the
   output magnifies, or keeps the scale) nothing is done here and the caller samples as before,
-  bit for bit;
+  bit for bit; per pixel too: a pixel that does not minify keeps its point sample;
+* a pixel's value depends on its own footprint only, not on the rest of its batch;
 * labels, depth and other nearest-sampled data are never prefiltered: the nearest texel at the
   pixel centre, unchanged (a class id is not blended, a depth edge is not smeared);
 * validity is the caller's (the pixel centre's), unchanged.
 
-Module functions, used by :func:`~omniscape_torch.render.reproject.sample_camera` (and so
-``ot.reproject``), :class:`~omniscape_torch.augment.RandomReproject` and the cubemap layer.
+Used by :func:`~omniscape_torch.render.reproject.sample_camera` (and so ``ot.reproject``) and
+:class:`~omniscape_torch.augment.RandomReproject` (both of its paths).
 """
 
 from __future__ import annotations
@@ -37,14 +37,17 @@ import torch.nn.functional as F
 from torch import Tensor
 
 
-__all__ = ["footprint", "mip_sample", "minified", "MAX_TAPS", "MINIFIES"]
+__all__ = ["footprint", "mip_sample", "minified", "TAPS", "MINIFIES"]
 
-#: Most taps per axis of a footprint (:func:`mip_sample`): up to ``MAX_TAPS`` source pixels
-#: across, the taps read the image itself; beyond, the mip level ``log2(rho / MAX_TAPS)``.
-MAX_TAPS = 3
+#: Taps per axis of a footprint (:func:`mip_sample`): up to ``TAPS`` source pixels across, the
+#: taps read the image itself; beyond, the mip level ``log2(rho / TAPS)``. 3: >= 29 dB on the
+#: line grid of ``benchmarks/bench_antialias.py`` (2: 25 dB).
+TAPS = 3
 #: A pixel minifies where a Jacobian column is longer than this many source pixels: 1, with a
 #: margin for the rounding of the grid (a pinhole into the same pinhole is 1 +- 1e-6).
 MINIFIES = 1.001
+#: Pixels are sampled in runs of a multiple of this many (:func:`mip_sample`).
+_VECTOR = 64
 
 
 def _derivative(pixels: Tensor, ok: Tensor, dim: int, period: float | None) -> Tensor:
@@ -86,39 +89,37 @@ def footprint(pixels: Tensor, valid: Tensor, period: float | None = None
     return _derivative(pixels, valid, 2, period), _derivative(pixels, valid, 1, period)
 
 
-def _atlas(image: Tensor, first: int, last: int) -> tuple[Tensor, Tensor]:
-    """Mip levels ``first..last`` of ``image (B, C, H, W)`` (floating) in one image, and where
-    each lies: level ``k`` the ``2**k x 2**k`` box average (``first`` in one ``avg_pool2d``,
-    the next ones by 2 x 2 averages; an odd last row or column averaged over the texels it
-    holds), level ``first`` at the top left, the others stacked down a column to its right.
+def _atlas(image: Tensor, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+    """The mip pyramid of ``image (B, C, H, W)`` in one ``dtype`` image, and where each level
+    lies: level 0 the image (converted), level ``k + 1`` the 2 x 2 average of level ``k`` (an
+    odd last row or column averaged over the texels it holds) down to one texel, level 0 at
+    the top left, the others stacked down a column to its right. The layout depends on the
+    image's size only, so a pixel reads the same values whatever else its batch holds.
 
     Returns:
-        ``atlas (B, C, Ha, Wa)`` and ``table (last + 1, 4)`` float: per level its ``x, y``
-        offset in the atlas and its ``width, height`` (rows below ``first`` unused).
+        ``atlas (B, C, Ha, Wa)`` and ``table (levels, 4)``: per level its ``x, y`` offset in
+        the atlas and its ``width, height``.
     """
-    level = image if first == 0 else F.avg_pool2d(image, 2 ** first, ceil_mode=True)
+    height, width = image.shape[-2:]
+    level = image.to(dtype)
     levels = [level]
-    for _ in range(first, last):
-        if min(levels[-1].shape[-2:]) > 1:
-            levels.append(F.avg_pool2d(levels[-1], 2, ceil_mode=True))
-        else:
-            levels.append(levels[-1])
-    table = torch.zeros(last + 1, 4, dtype=image.dtype)
-    height, width = level.shape[-2:]
-    table[first] = torch.tensor([0.0, 0.0, width, height])
+    while max(level.shape[-2:]) > 1:
+        level = F.avg_pool2d(level, 2, ceil_mode=True)
+        levels.append(level)
+    table = torch.zeros(len(levels), 4, dtype=dtype)
+    table[0] = torch.tensor([0.0, 0.0, width, height])
     if len(levels) == 1:
-        return level, table
+        return levels[0], table
     column = levels[1].shape[-1]
-    atlas = image.new_zeros(*level.shape[:2], max(height, sum(m.shape[-2] for m in levels[1:])),
-                            width + column)
-    atlas[..., :height, :width] = level
     y = 0
-    for k, mip in enumerate(levels[1:], first + 1):
-        hk, wk = mip.shape[-2:]
-        atlas[..., y:y + hk, width:width + wk] = mip
-        table[k] = torch.tensor([float(width), float(y), wk, hk])
-        y += hk
-    return atlas, table
+    for k, mip in enumerate(levels[1:], 1):
+        table[k] = torch.tensor([float(width), float(y), mip.shape[-1], mip.shape[-2]])
+        y += mip.shape[-2]
+    full = max(height, y)
+    # built out of place: the image's gradient flows through the atlas
+    right = torch.cat([F.pad(m, (0, column - m.shape[-1])) for m in levels[1:]], -2)
+    return torch.cat((F.pad(levels[0], (0, 0, 0, full - height)),
+                      F.pad(right, (0, 0, 0, full - y))), -1), table
 
 
 def _offsets(taps: int, dtype: torch.dtype) -> Tensor:
@@ -129,35 +130,38 @@ def _offsets(taps: int, dtype: torch.dtype) -> Tensor:
 
 
 def mip_sample(image: Tensor, pixels: Tensor, valid: Tensor, du: Tensor, dv: Tensor, *,
-               max_taps: int = MAX_TAPS) -> Tensor:
-    """``image`` averaged over each output pixel's footprint (module docstring): ``n x n``
-    taps spread over the parallelogram of the Jacobian columns ``du, dv`` about ``pixels``
-    (``n = ceil(rho)`` of the call's largest footprint, up to ``max_taps``), each a trilinear
-    lookup of the mip pyramid at the level ``log2(rho / n)`` of its pixel (0 while
-    ``rho <= n``: bilinear taps of the image itself); all in one ``grid_sample`` of the
-    pyramid's atlas.
+               taps: int = TAPS, dtype: torch.dtype | None = None) -> Tensor:
+    """``image`` averaged over each output pixel's footprint (module docstring): ``taps x
+    taps`` taps spread over the parallelogram of the Jacobian columns ``du, dv`` about
+    ``pixels``, each a trilinear lookup of the mip pyramid at the level ``log2(rho / taps)`` of
+    its pixel (0 while ``rho <= taps``: bilinear taps of the image itself); all in one
+    ``grid_sample`` of the pyramid's atlas.
 
     Args:
-        image: ``(B or 1, C, H, W)`` floating; a batch of 1 is shared by every sample.
+        image: ``(B or 1, C, H, W)`` floating, or ``uint8`` read as its levels (0..255); a
+            batch of 1 is shared by every sample.
         pixels: ``(B, h, w, 2)`` source pixels (centres at integers).
         valid: ``(B, h, w)`` bool: the pixels to read (the others come back 0).
         du, dv: ``(B, h, w, 2)`` the Jacobian columns (:func:`footprint`).
-        max_taps: most taps per axis.
+        taps: taps per axis.
+        dtype: the floating dtype of the work and the result (default: the image's).
 
     Returns:
-        ``(B, C, h, w)`` in ``image``'s dtype; differentiable with respect to ``image`` and
-        ``pixels`` (the footprint is not: it is a choice of filter).
+        ``(B, C, h, w)`` in ``dtype``; differentiable with respect to ``image`` and ``pixels``
+        (the footprint is not: it is a choice of filter).
     """
     batch, h, w = valid.shape
-    dtype = image.dtype
-    height, width = image.shape[-2:]
+    dtype = image.dtype if dtype is None else dtype
     chans = image.shape[1]
     # the valid pixels of each sample first, padded to the largest count (a padding entry
     # reads a pixel that is not valid, and is dropped at the end)
     flat = valid.reshape(batch, -1)
     count = int(flat.sum(1).max())
     if count == 0:
-        return image.new_zeros(batch, chans, h, w)
+        return image.new_zeros(batch, chans, h, w, dtype=dtype)
+    # a whole number of vectors: every pixel goes through the kernels' vector loops, never a
+    # scalar tail that rounds otherwise (a pixel's value must not depend on its batch)
+    count = min(-(-count // _VECTOR) * _VECTOR, h * w)
     order = torch.argsort(flat.to(torch.uint8), dim=1, descending=True, stable=True)[:, :count]
     pick = order.unsqueeze(-1).expand(batch, count, 2)
     at = pixels.to(dtype).reshape(batch, -1, 2).gather(1, pick)               # (B, N, 2)
@@ -165,19 +169,17 @@ def mip_sample(image: Tensor, pixels: Tensor, valid: Tensor, du: Tensor, dv: Ten
     ok = flat.gather(1, order)
     rho = torch.maximum(ju.norm(dim=-1), jv.norm(dim=-1)).clamp_min(1.0)
     rho = torch.where(ok, rho, torch.ones_like(rho))
-    n = min(int(math.ceil(float(rho.max()))), max_taps)
-    top = int(math.floor(math.log2(max(height, width))))
-    level = torch.log2(rho / n).clamp(0, top)
-    first = int(level[ok].min())
-    last = int(math.ceil(float(level.max())))
-    level = level.clamp_min(first)
-    atlas, table = _atlas(image, first, last)
+    n = taps
+    atlas, table = _atlas(image, dtype)
+    last = len(table) - 1
+    level = torch.log2(rho / n).clamp(0, last)
     below = level.floor()
     lower = below.long()
     o = _offsets(n, dtype)                                                     # (T, 2)
     sizes = (atlas.shape[-1], atlas.shape[-2])
     grids = []   # per level (B, T, N, 2): the taps' grid_sample coordinates, pixels innermost
-    for k in ((lower,) if last == first else (lower, (lower + 1).clamp(max=last))):
+    two = bool((level > below).any())   # a second level where some pixel blends two
+    for k in ((lower, (lower + 1).clamp(max=last)) if two else (lower,)):
         where = table[k]                                                       # (B, N, 4)
         scale = torch.exp2(-k.to(dtype))                                       # (B, N)
         axes = []
@@ -196,7 +198,7 @@ def mip_sample(image: Tensor, pixels: Tensor, valid: Tensor, du: Tensor, dv: Ten
     values = values.reshape(batch, chans, len(grids), len(o), count).mean(3)
     values = values[:, :, 0] if len(grids) == 1 else torch.lerp(
         values[:, :, 0], values[:, :, 1], (level - below).unsqueeze(1))      # (B, C, N)
-    out = image.new_zeros(batch, chans, h * w).scatter(
+    out = image.new_zeros(batch, chans, h * w, dtype=dtype).scatter(
         2, order.unsqueeze(1).expand(batch, chans, count), values)
     out = out.reshape(batch, chans, h, w)
     return torch.where(valid.unsqueeze(1), out, torch.zeros_like(out))
@@ -225,5 +227,5 @@ def minified(image: Tensor, pixels: Tensor, valid: Tensor, period: float | None 
     mask = valid & ((du.square().sum(-1) > limit) | (dv.square().sum(-1) > limit))
     if not bool(mask.any()):
         return None
-    work = image if image.dtype in (torch.float32, torch.float64) else image.float()
-    return mip_sample(work, pixels, mask, du, dv), mask.unsqueeze(1)
+    dtype = image.dtype if image.dtype in (torch.float32, torch.float64) else torch.float32
+    return mip_sample(image, pixels, mask, du, dv, dtype=dtype), mask.unsqueeze(1)
