@@ -101,25 +101,35 @@ def _atlas(image: Tensor, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
         the atlas and its ``width, height``.
     """
     height, width = image.shape[-2:]
-    level = image.to(dtype)
-    levels = [level]
-    while max(level.shape[-2:]) > 1:
-        level = F.avg_pool2d(level, 2, ceil_mode=True)
-        levels.append(level)
-    table = torch.zeros(len(levels), 4, dtype=dtype)
+    sizes = [(height, width)]
+    while max(sizes[-1]) > 1:
+        sizes.append(tuple(-(-n // 2) for n in sizes[-1]))
+    table = torch.zeros(len(sizes), 4, dtype=dtype)
     table[0] = torch.tensor([0.0, 0.0, width, height])
-    if len(levels) == 1:
-        return levels[0], table
-    column = levels[1].shape[-1]
     y = 0
-    for k, mip in enumerate(levels[1:], 1):
-        table[k] = torch.tensor([float(width), float(y), mip.shape[-1], mip.shape[-2]])
-        y += mip.shape[-2]
-    full = max(height, y)
-    # built out of place: the image's gradient flows through the atlas
-    right = torch.cat([F.pad(m, (0, column - m.shape[-1])) for m in levels[1:]], -2)
-    return torch.cat((F.pad(levels[0], (0, 0, 0, full - height)),
-                      F.pad(right, (0, 0, 0, full - y))), -1), table
+    for k, (hk, wk) in enumerate(sizes[1:], 1):
+        table[k] = torch.tensor([float(width), float(y), wk, hk])
+        y += hk
+    if len(sizes) == 1:
+        return image.to(dtype), table
+    full, column = max(height, y), sizes[1][1]
+    if torch.is_grad_enabled() and image.requires_grad:
+        # out of place, so that the image's gradient flows through the atlas
+        levels = [image.to(dtype)]
+        for _ in sizes[1:]:
+            levels.append(F.avg_pool2d(levels[-1], 2, ceil_mode=True))
+        right = torch.cat([F.pad(m, (0, column - m.shape[-1])) for m in levels[1:]], -2)
+        return torch.cat((F.pad(levels[0], (0, 0, 0, full - height)),
+                          F.pad(right, (0, 0, 0, full - y))), -1), table
+    atlas = torch.zeros(*image.shape[:2], full, width + column, dtype=dtype,
+                        device=image.device)
+    level = atlas[..., :height, :width]
+    level.copy_(image)                       # the one full-size pass: the image converted
+    for k, (hk, wk) in enumerate(sizes[1:], 1):
+        x0, y0 = int(table[k, 0]), int(table[k, 1])
+        level = atlas[..., y0:y0 + hk, x0:x0 + wk].copy_(
+            F.avg_pool2d(level, 2, ceil_mode=True))
+    return atlas, table
 
 
 def _offsets(taps: int, dtype: torch.dtype) -> Tensor:
