@@ -179,7 +179,8 @@ def markdown(result: dict) -> str:
                      f"{r['mean_psnr_db']:.1f} | {r['min_psnr_db']:.1f} | "
                      f"{1e3 * r['median_s']:.1f} | {1e3 * r['iqr_s']:.1f} |")
     h = result["headline"]
-    lines += ["", f"valid share per draw: {', '.join(f'{v:.2f}' for v in result['valid_fraction'])}",
+    shares = ", ".join(f"{v:.2f}" for v in result["valid_fraction"])
+    lines += ["", f"valid share per draw: {shares}",
               f"min PSNR on {h['min_psnr_on_db']:.1f} dB (target >= {h['target_db']:.0f}: "
               f"{'ok' if h['meets_target'] else 'MISSED'}); cost on / off "
               f"{h['cost_ratio_on_off']:.2f}x"]

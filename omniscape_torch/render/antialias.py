@@ -30,8 +30,6 @@ Used by :func:`~omniscape_torch.render.reproject.sample_camera` (and so ``ot.rep
 
 from __future__ import annotations
 
-import math
-
 import torch
 import torch.nn.functional as F
 from torch import Tensor
