@@ -32,8 +32,9 @@ K = torch.tensor([FOCAL, FOCAL, (SRC[1] - 1) / 2, (SRC[0] - 1) / 2], dtype=torch
 @pytest.mark.slow
 def test_prefilter_matches_the_area_average_of_a_line_grid():
     """At the defaults (framed to 50-90 % of the output) a 1-px grid of period 4 (Cityscapes
-    at an eighth): point samples alias (< 23 dB against the area average), the prefilter reaches >= 25 dB and gains
-    more than 8 dB on every draw; labels are the nearest texel either way (never blended)."""
+    at an eighth): point samples alias (< 23 dB against the area average), the prefilter
+    reaches >= 25 dB and gains more than 8 dB on every draw; labels are the nearest texel
+    either way (never blended)."""
     res = ba.compare((64, 64), (128, 256, FOCAL / 2), 4, 2, seed=5)
     assert all(v < 23 for v in res["off"]), res
     assert all(v >= 25 for v in res["on"]), res
