@@ -6,6 +6,7 @@ pinhole ``fx = fy = 2262``; output ``S x S`` for each ``--sizes`` (512, 1024). R
 
 * ``ours``: ``RandomReproject((S, S))`` (defaults: equidistant 160-200 deg, ``coverage_range``
   0.5-0.9, ``antialias=True``) with the intrinsics, RGB ``uint8`` + labels int64 + valid;
+* ``ours_point``: the same with ``antialias=False`` (point samples: what the prefilter costs);
 * ``albumentations``: ``A.Compose([A.Resize(S, S), A.OpticalDistortion(mode="fisheye",
   p=1)])`` on the ``(H, W, 3)`` image and its mask (numpy, as it takes them); skipped, and
   said so, where albumentations cannot be imported (it is not a dependency: run this in a
@@ -135,11 +136,13 @@ def run(args: argparse.Namespace) -> dict:
     if KA is None:
         skipped["kornia"] = "not importable"
     for size in args.sizes:
-        ours_module = RandomReproject((size, size), seed=SEED, channels_last=True)
-
-        def ours(img, lab, m=ours_module):
-            return m({"rgb": img[None], "labels": lab[None], "intrinsics": intrinsics})
-        fns = {"ours": ours, **_peers(size)}
+        def ours_of(module):
+            return lambda img, lab: module({"rgb": img[None], "labels": lab[None],
+                                            "intrinsics": intrinsics})
+        fns = {"ours": ours_of(RandomReproject((size, size), seed=SEED, channels_last=True)),
+               "ours_point": ours_of(RandomReproject((size, size), seed=SEED,
+                                                     channels_last=True, antialias=False)),
+               **_peers(size)}
         if "process" in args.modes:
             calls = [lambda fn=fn: [fn(images[i], labels[i]) for i in range(n_images)]
                      for fn in fns.values()]
