@@ -105,7 +105,10 @@ def test_sampling_is_continuous_across_the_seam(interpolation, bound):
     src = ot.equirectangular_camera(512, 256, dtype=F64)
     dst = ot.equirectangular_camera(509, 254, dtype=F64)
     rotation = rot_y(math.pi + 1e-3)
-    out, valid = ot.reproject(pano, src, dst, rotation=rotation, interpolation=interpolation)
+    # point samples: the bounds are the interpolations' own (509 of 512 columns minify by
+    # 0.6%, which the prefilter would average)
+    out, valid = ot.reproject(pano, src, dst, rotation=rotation, interpolation=interpolation,
+                              antialias=False)
     assert bool(valid.all())
     rays, _ = dst.ray_grid()
     rays = rays @ rotation.T  # in the source frame
