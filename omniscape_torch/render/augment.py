@@ -833,7 +833,15 @@ class RandomReproject(_RandomCameras):
         eucm_beta_range: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
         ds_xi_range: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
         ds_alpha_range: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
-        focal_scale_range: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
+        focal_scale_range: the focal as a multiple of the one that inscribes the drawn image
+            circle (as for :class:`RandomOmniCamera`); not with ``coverage_range``. Given
+            alone, it replaces the default framing (the behaviour before it).
+        coverage_range: ``(min, max)`` share of the output's pixels the source fills (valid),
+            drawn per sample; the focal is solved for it from the source pinhole, the drawn
+            lens and attitude (:mod:`~omniscape_torch.render.framing`; ``params["coverage"]``).
+            Default, when neither it nor ``focal_scale_range`` is given: ``(0.5, 0.9)``
+            (``DEFAULT_COVERAGE``). Sources other than a pinhole, and
+            ``forward_parameters`` without ``source_size``, use ``focal_scale_range``.
         center_jitter: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
         roll_range: ``(min, max)`` radians.
         pitch_range: ``(min, max)`` radians.
@@ -848,6 +856,12 @@ class RandomReproject(_RandomCameras):
         channels_last: the images are ``(B, H, W, C)`` and ``rgb`` comes back so.
         out_dtype: dtype of ``rgb``: None for the image's, or a floating dtype (``uint8``
             scaled to [0, 1]).
+        antialias: prefilter ``rgb`` where the fisheye minifies the source (an output pixel
+            covering more than one source pixel): the mean of taps over each pixel's
+            footprint through a mip pyramid (:mod:`~omniscape_torch.render.antialias`).
+            Pixels that do not minify are as with ``antialias=False`` (point samples), bit for
+            bit; ``labels``, ``depth`` and ``valid`` are the same either way (nearest texel at
+            the pixel centre, never blended). Not for ``interpolation="nearest"``.
 
     Shapes:
         ``rgb (B, C, Hs, Ws)`` (``channels_last``: ``(B, Hs, Ws, C)``) floating or ``uint8``,
