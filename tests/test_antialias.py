@@ -29,7 +29,6 @@ FOCAL = 2262 / 4
 K = torch.tensor([FOCAL, FOCAL, (SRC[1] - 1) / 2, (SRC[0] - 1) / 2], dtype=torch.float64)
 
 
-@pytest.mark.slow
 def test_prefilter_matches_the_area_average_of_a_line_grid():
     """At the defaults (framed to 50-90 % of the output) a 1-px grid of period 4 (Cityscapes
     at an eighth): point samples alias (< 23 dB against the area average), the prefilter
