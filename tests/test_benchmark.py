@@ -484,7 +484,8 @@ def test_run_quick_writes_under_quick_and_a_full_run_under_results():
         Path("elsewhere")
 
 
-@pytest.mark.parametrize("script", ["bench_augment", "bench_busy", "bench_cameras",
+@pytest.mark.parametrize("script", ["bench_antialias", "bench_augment", "bench_busy",
+                                    "bench_cameras", "bench_fixed_cost", "bench_perspective",
                                     "bench_models_layer", "bench_png", "bench_projection",
                                     "bench_reproject", "bench_scaling", "bench_workers"])
 def test_each_quick_mode_defaults_under_quick(script):

@@ -105,7 +105,10 @@ def test_sampling_is_continuous_across_the_seam(interpolation, bound):
     src = ot.equirectangular_camera(512, 256, dtype=F64)
     dst = ot.equirectangular_camera(509, 254, dtype=F64)
     rotation = rot_y(math.pi + 1e-3)
-    out, valid = ot.reproject(pano, src, dst, rotation=rotation, interpolation=interpolation)
+    # point samples: the bounds are the interpolations' own (509 of 512 columns minify by
+    # 0.6%, which the prefilter would average)
+    out, valid = ot.reproject(pano, src, dst, rotation=rotation, interpolation=interpolation,
+                              antialias=False)
     assert bool(valid.all())
     rays, _ = dst.ray_grid()
     rays = rays @ rotation.T  # in the source frame
@@ -176,14 +179,15 @@ def test_panorama_face_conventions():
 
 def test_cubemap_is_reproject_to_each_rotated_face_pinhole():
     """equirect_to_cubemap is reproject with dst = the face pinhole and rotation = the face's
-    rig rotation (face rays into the cube/panorama frame)."""
+    rig rotation (face rays into the cube/panorama frame), point samples both
+    (``antialias=False``: 12 px faces of a 128 px panorama minify it)."""
     pano = pano_of(texture, 128, 64)
     cube = ot.equirect_to_cubemap(pano, 12)
     face_cam = ot.Camera("pinhole", torch.tensor([6.0, 6.0, 5.5, 5.5], dtype=F64), (12, 12))
     rotations = ot.cubemap.face_rotations(dtype=F64)
     for k in range(6):
         out, valid = ot.reproject(pano, ot.equirectangular_camera(128, 64, dtype=F64), face_cam,
-                                  rotation=rotations[k])
+                                  rotation=rotations[k], antialias=False)
         assert bool(valid.all())
         torch.testing.assert_close(cube[:, k], out, atol=1e-12, rtol=0)
 
@@ -397,20 +401,26 @@ def test_gradcheck_image_and_rotation():
     image = torch.rand(1, 2, 12, 12, dtype=F64, generator=gen, requires_grad=True)
     rotation = (rot_z(0.05) @ rot_y(0.03)).requires_grad_(True)
     for mode in ("bilinear", "bicubic"):
+        # point samples (the 8 px pinhole minifies the 12 px one: the prefilter's footprint
+        # moves with the rotation without a gradient)
         assert torch.autograd.gradcheck(
-            lambda img, rot: ot.reproject(img, src, dst, rotation=rot, interpolation=mode)[0],
-            (image, rotation))
+            lambda img, rot: ot.reproject(img, src, dst, rotation=rot, interpolation=mode,
+                                          antialias=False)[0], (image, rotation))
+    # the prefilter is linear in the image: its gradient is exact
+    assert torch.autograd.gradcheck(
+        lambda img: ot.reproject(img, src, dst, rotation=rotation.detach())[0], (image,))
     # across the seam of a panorama too
     pano = torch.rand(1, 1, 16, 32, dtype=F64, generator=gen, requires_grad=True)
     behind = (rot_y(math.pi - 0.02) @ rot_z(0.1)).requires_grad_(True)
     assert torch.autograd.gradcheck(
         lambda img, rot: ot.reproject(img, ot.equirectangular_camera(32, 16, dtype=F64), dst,
-                                      rotation=rot)[0], (pano, behind))
+                                      rotation=rot, antialias=False)[0], (pano, behind))
 
 
 @pytest.mark.parametrize("which", ["src", "dst"])
 def test_gradients_flow_to_camera_params(which):
-    """Autograd against central differences (step 1e-6 px: no texel boundary is crossed)."""
+    """Autograd against central differences (step 1e-6 px: no texel boundary is crossed), of
+    point samples (the 16 px pinhole minifies the 32 px source: ``antialias=False``)."""
     gen = torch.Generator().manual_seed(5)
     image = torch.rand(1, 1, 32, 32, dtype=F64, generator=gen)
     weights = torch.rand(1, 1, 16, 16, dtype=F64, generator=gen)
@@ -421,7 +431,8 @@ def test_gradients_flow_to_camera_params(which):
         ps, pd = (p, p_dst) if which == "src" else (p_src, p)
         src = ot.Camera("equidistant", ps, (32, 32), learnable=learnable and which == "src")
         dst = ot.Camera("pinhole", pd, (16, 16), learnable=learnable and which == "dst")
-        out, _ = ot.reproject(image, src, dst)
+        # point samples: the antialiasing taps spread with the footprint, which has no gradient
+        out, _ = ot.reproject(image, src, dst, antialias=False)
         return (out * weights).sum(), (src if which == "src" else dst)
 
     p0 = p_src if which == "src" else p_dst

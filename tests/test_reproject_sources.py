@@ -119,7 +119,10 @@ def test_valid_mask_is_the_source_model_projection(which, aria, opencv):
                            source_camera=cam)
         exact["rgb"].sum().backward()
     assert torch.equal(exact["valid"], out["valid"]) and leaf.grad.abs().sum() > 0
-    torch.testing.assert_close(exact["rgb"].detach(), out["rgb"], rtol=0, atol=1e-4)
+    # (antialiased where the fisheye minifies: each path's footprint is the finite difference
+    # of its own grid, the fast one's rays from tables good to 0.01 px, and the outer taps sit
+    # a third of it out: they move by up to ~0.007 px, on noise of slope <= 1 a pixel)
+    torch.testing.assert_close(exact["rgb"].detach(), out["rgb"], rtol=0, atol=1e-2)
 
 
 def _dot_image(size, centre, sigma=1.0):

@@ -36,13 +36,14 @@ from ..cameras import Camera
 from ..cameras.registry import get_model
 from ..cubemap.faces import FACES, face_rotations
 from ..cubemap.rotation import check_rotation
-from . import containers, detection, fast
+from . import containers, detection, fast, framing
+from .antialias import minified
 from .fast import CameraGrid
 from .kernels import camera_grid, camera_rays
 from ..cameras.presets import yaw_pitch_roll_to_matrix
 from . import layer as projection
 from .layer import OmniProjection
-from .reference import check_out_dtype, warn_if_label_map
+from .reference import check_out_dtype, from_float, warn_if_label_map
 from .reproject import INTERPOLATIONS, intrinsics_from_matrix, sample_camera
 
 __all__ = ["ApplyToKey", "RandomOmniCamera", "RandomReproject", "FISHEYE_MODELS", "MODES"]
@@ -70,6 +71,9 @@ _IMAGE_DIMS = MappingProxyType({"rgb": 4, "labels": 3, "instances": 3, "depth": 
 _CUBE_DIMS = MappingProxyType({"rgb": 5, "labels": 4, "instances": 4, "depth": 4})
 #: The kind of a sample drawn as a catadioptric camera (a unified model under its mirror).
 _CATADIOPTRIC = "catadioptric"
+#: ``RandomReproject``'s ``coverage_range`` when neither it nor ``focal_scale_range`` is given:
+#: a pinhole source fills 50 to 90 % of the output.
+DEFAULT_COVERAGE = (0.5, 0.9)
 _DEG = math.pi / 180
 #: Largest parameter count of the models drawn here (unified: fx, fy, cx, cy, xi, k1, k2, p1, p2):
 #: the width of ``camera_params``, whatever the models drawn.
@@ -323,15 +327,17 @@ class _RandomCameras(nn.Module):
         return torch.where((first < steps)[:, None], chosen[:, 0], torch.zeros_like(k))
 
     def _camera_rows(self, name: str, extra: Tensor, half: Tensor, scale: Tensor,
-                     jitter: Tensor) -> Tensor:
+                     jitter: Tensor, focal: Tensor | None = None) -> Tensor:
         """``(n, P)`` parameters of ``n`` cameras of model ``name``: the image circle of the
-        half field of view ``half`` inscribed in the image (times the focal ``scale``), the
-        centre the image's plus ``jitter (n, 2)``, then the lens parameters ``extra``."""
-        radius, ok = _unit_radius(name, extra, half)
-        if not bool(ok.all()):   # guarded by the range checks and _lens; a bug if it fires
-            raise RuntimeError(f"{name}: drawn field of view outside the model's domain")
+        half field of view ``half`` inscribed in the image (times the focal ``scale``; or the
+        given ``focal (n,)``), the centre the image's plus ``jitter (n, 2)``, then the lens
+        parameters ``extra``."""
         h, w = self.image_size
-        focal = scale * (min(h, w) / 2 - 0.5) / radius
+        if focal is None:
+            radius, ok = _unit_radius(name, extra, half)
+            if not bool(ok.all()):   # guarded by the range checks and _lens; a bug if it fires
+                raise RuntimeError(f"{name}: drawn field of view outside the model's domain")
+            focal = scale * (min(h, w) / 2 - 0.5) / radius
         centre = torch.stack(((w - 1) / 2 + jitter[:, 0], (h - 1) / 2 + jitter[:, 1]), -1)
         return torch.cat((focal[:, None], focal[:, None], centre, extra), -1)
 
@@ -1019,7 +1025,15 @@ class RandomReproject(_RandomCameras):
         eucm_beta_range: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
         ds_xi_range: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
         ds_alpha_range: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
-        focal_scale_range: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
+        focal_scale_range: the focal as a multiple of the one that inscribes the drawn image
+            circle (as for :class:`RandomOmniCamera`); not with ``coverage_range``. Given
+            alone, it replaces the default framing (the behaviour before it).
+        coverage_range: ``(min, max)`` share of the output's pixels the source fills (valid),
+            drawn per sample; the focal is solved for it from the source pinhole, the drawn
+            lens and attitude (:mod:`~omniscape_torch.render.framing`; ``params["coverage"]``).
+            Default, when neither it nor ``focal_scale_range`` is given: ``(0.5, 0.9)``
+            (``DEFAULT_COVERAGE``). Sources other than a pinhole, and
+            ``forward_parameters`` without ``source_size``, use ``focal_scale_range``.
         center_jitter: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
         roll_range: ``(min, max)`` radians.
         pitch_range: ``(min, max)`` radians.
@@ -1036,6 +1050,12 @@ class RandomReproject(_RandomCameras):
             scaled to [0, 1]).
         label_keys: ``{key: ignore value}``: more label-like keys the dicts may hold, as for
             :class:`RandomOmniCamera`.
+        antialias: prefilter ``rgb`` where the fisheye minifies the source (an output pixel
+            covering more than one source pixel): the mean of taps over each pixel's
+            footprint through a mip pyramid (:mod:`~omniscape_torch.render.antialias`).
+            Pixels that do not minify are as with ``antialias=False`` (point samples), bit for
+            bit; ``labels``, ``depth`` and ``valid`` are the same either way (nearest texel at
+            the pixel centre, never blended). Not for ``interpolation="nearest"``.
 
     Shapes:
         ``rgb (B, C, Hs, Ws)`` (``channels_last``: ``(B, Hs, Ws, C)``) floating or ``uint8``,
@@ -1063,7 +1083,8 @@ class RandomReproject(_RandomCameras):
                  eucm_beta_range: tuple[float, float] = _LENS_DEFAULTS["eucm_beta_range"],
                  ds_xi_range: tuple[float, float] = _LENS_DEFAULTS["ds_xi_range"],
                  ds_alpha_range: tuple[float, float] = _LENS_DEFAULTS["ds_alpha_range"],
-                 focal_scale_range: tuple[float, float] = (1.0, 1.0),
+                 focal_scale_range: tuple[float, float] | None = None,
+                 coverage_range: tuple[float, float] | None = None,
                  center_jitter: float = 0.0,
                  roll_range: tuple[float, float] = (-25 * _DEG, 25 * _DEG),
                  pitch_range: tuple[float, float] = (-10 * _DEG, 10 * _DEG),
@@ -1072,7 +1093,17 @@ class RandomReproject(_RandomCameras):
                  interpolation: str = "bilinear", depth_output: str = "range",
                  ignore_index: int = 255, seed: int | None = None,
                  channels_last: bool = False, out_dtype: torch.dtype | None = None,
-                 label_keys: Mapping[str, int] | None = None) -> None:
+                 label_keys: Mapping[str, int] | None = None,
+                 antialias: bool = True) -> None:
+        if focal_scale_range is not None and coverage_range is not None:
+            raise ValueError("coverage_range: pass coverage_range or focal_scale_range, not both")
+        if focal_scale_range is None and coverage_range is None:
+            coverage_range = DEFAULT_COVERAGE
+        if coverage_range is not None:
+            coverage_range = _check_range(coverage_range, "coverage_range", 1e-3, 1.0)
+        if not isinstance(antialias, bool):
+            raise TypeError(f"antialias: expected a bool, got {antialias!r}")
+        focal_scale_range = (1.0, 1.0) if focal_scale_range is None else focal_scale_range
         super().__init__(
             image_size, fisheye_models=fisheye_models, fov_range=fov_range,
             kb_distortion=kb_distortion, unified_xi_range=unified_xi_range,
@@ -1104,9 +1135,15 @@ class RandomReproject(_RandomCameras):
         self.source_fov = None if source_fov is None else float(source_fov)
         self.source_camera = source_camera
         self.label_keys = _check_label_keys(label_keys)
+        self.coverage_range = coverage_range
+        self.antialias = antialias
         self._check_fisheye_ranges()
 
     def __setstate__(self, state: dict) -> None:
+        state = dict(state)
+        # pickled before framing and antialiasing existed: as they rendered then
+        state.setdefault("coverage_range", None)
+        state.setdefault("antialias", False)
         super().__setstate__(state)
         if "source_camera" not in self._modules:   # pickled before it existed
             self.source_camera = None
@@ -1118,21 +1155,49 @@ class RandomReproject(_RandomCameras):
         return (f"image_size={self.image_size}, source_fov={self.source_fov}, {source}"
                 f"fisheye_models={self.fisheye_models}, p={self.p}, "
                 f"same_on_batch={self.same_on_batch}, seed={self.seed}, "
-                f"channels_last={self.channels_last}, out_dtype={self.out_dtype}")
+                f"channels_last={self.channels_last}, out_dtype={self.out_dtype}, "
+                f"coverage_range={self.coverage_range}, antialias={self.antialias}")
 
     @torch.no_grad()
-    def forward_parameters(self, batch_size: int, *, generator: torch.Generator | None = None
-                           ) -> dict:
+    def forward_parameters(self, batch_size: int, *, generator: torch.Generator | None = None,
+                           intrinsics: Tensor | None = None,
+                           source_size: tuple[int, int] | None = None) -> dict:
         """Draw fisheye cameras and attitudes for ``batch_size`` samples.
+
+        Args:
+            batch_size: ``B``.
+            generator: the generator of this call (else the module's).
+            intrinsics: the source pinhole ``(B, 4)`` or ``(4,)`` ``fx, fy, cx, cy`` (or a
+                camera matrix), which ``coverage_range`` frames (else ``source_fov``'s);
+                ignored without ``coverage_range``.
+            source_size: ``(Hs, Ws)`` of the source images: with ``coverage_range``, the
+                focal is solved for the drawn coverage of this source (as ``forward`` draws);
+                None: from ``focal_scale_range`` (the image circle inscribed), unframed.
 
         Returns:
             dict, tensors float64 on the CPU: ``model`` (tuple of ``B`` model names),
             ``camera_params (B, 9)`` (zero-padded), ``num_params (B,)``, ``fov (B,)`` and
             ``blind_fov (B,)`` (radians; 0), ``yaw``, ``pitch``, ``roll (B,)``, ``applied (B,)``,
-            ``rotation (B, 3, 3)`` fisheye -> source camera frame.
+            ``rotation (B, 3, 3)`` fisheye -> source camera frame, and with ``coverage_range``
+            and a pinhole source ``coverage (B,)``: the share of the output drawn (the focal
+            solved for it, :mod:`~omniscape_torch.render.framing`).
+
+        Raises:
+            ValueError: ``source_size`` with ``coverage_range`` but neither ``intrinsics`` nor
+                ``source_fov``.
         """
         if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
             raise ValueError(f"batch_size: expected a positive int, got {batch_size!r}")
+        source = None
+        if self.coverage_range is not None and source_size is not None:
+            source_size = (int(source_size[0]), int(source_size[1]))
+            source = self._intrinsics(intrinsics, source_size, batch_size)
+        return self._draw_params(batch_size, generator, source, source_size)
+
+    def _draw_params(self, batch_size: int, generator: torch.Generator | None,
+                    source: Tensor | None, source_size: tuple[int, int] | None) -> dict:
+        """:meth:`forward_parameters`, framed to the pinhole ``source (B, 4)`` of images of
+        ``source_size`` (None: by ``focal_scale_range``)."""
         g = self.generator if generator is None else generator
         n = 1 if self.same_on_batch else batch_size
         f64 = dict(dtype=torch.float64)
@@ -1147,24 +1212,47 @@ class RandomReproject(_RandomCameras):
         pitch = _uniform(n, self.pitch_range, g)
         roll = _uniform(n, self.roll_range, g)
         applied = torch.rand(n, generator=g, **f64) < self.p
+        coverage = None if source is None else _uniform(n, self.coverage_range, g)
 
+        zero = torch.zeros_like(yaw)
+        yaw, pitch, roll = (torch.where(applied, a, zero) for a in (yaw, pitch, roll))
+        rotation = yaw_pitch_roll_to_matrix(yaw, pitch, roll)
         index = (u_model.clamp(0, 1 - 1e-12) * len(self.fisheye_models)).long()
         models = tuple(self.fisheye_models[i] for i in index.tolist())
         params = torch.zeros(n, _MAX_P, **f64)
         num_params = torch.zeros(n, dtype=torch.long)
         for name in sorted(set(models)):
-            idx = torch.tensor([i for i, m in enumerate(models) if m == name])
+            idx = (torch.arange(n) if len(models) == 1 or len(set(models)) == 1 else
+                   torch.tensor([i for i, m in enumerate(models) if m == name]))
             extra, half = self._lens(name, 0.5 * fov[idx], k[idx], lens[idx])
             fov[idx] = 2 * half
-            row = self._camera_rows(name, extra, half, scale[idx], jitter[idx])
+            focal = None if coverage is None else self._framed_focal(
+                name, extra, half, rotation[idx], source[idx], source_size, jitter[idx],
+                coverage[idx])
+            row = self._camera_rows(name, extra, half, scale[idx], jitter[idx], focal)
             params[idx, :row.shape[-1]] = row
             num_params[idx] = row.shape[-1]
-        zero = torch.zeros_like(yaw)
-        yaw, pitch, roll = (torch.where(applied, a, zero) for a in (yaw, pitch, roll))
         out = dict(model=models, camera_params=params, num_params=num_params, fov=fov,
                    blind_fov=torch.zeros_like(fov), yaw=yaw, pitch=pitch, roll=roll,
-                   applied=applied, rotation=yaw_pitch_roll_to_matrix(yaw, pitch, roll))
+                   applied=applied, rotation=rotation)
+        if coverage is not None:
+            out["coverage"] = coverage
         return _on_batch(out, n, batch_size)
+
+    def _framed_focal(self, name: str, extra: Tensor, half: Tensor, rotation: Tensor,
+                      intrinsics: Tensor, source_size: tuple[int, int], jitter: Tensor,
+                      coverage: Tensor) -> Tensor:
+        """``(n,)`` focals at which the pinhole sources fill the shares ``coverage`` of the
+        output (:mod:`~omniscape_torch.render.framing`), for lenses ``extra``, ``half``."""
+        n, d = half.shape[0], framing.DIRECTIONS
+        phi = torch.arange(d, dtype=torch.float64) * (2 * math.pi / d)
+        theta = framing.reach(rotation, intrinsics, source_size, half, phi)      # (n, D)
+        radius, _ = _unit_radius(name, extra.repeat_interleave(d, 0), theta.reshape(-1))
+        h, w = self.image_size
+        centre = torch.stack(((w - 1) / 2 + jitter[:, 0], (h - 1) / 2 + jitter[:, 1]), -1)
+        return framing.focal_for_coverage(radius.reshape(n, d),
+                                          framing.to_edge(centre, self.image_size, phi),
+                                          coverage, self.image_size)
 
     def source_intrinsics(self, image_size: tuple[int, int], batch: int) -> Tensor:
         """``(batch, 4)`` float64 pinhole intrinsics of images of ``image_size`` from
@@ -1305,6 +1393,21 @@ class RandomReproject(_RandomCameras):
             result["params"].pop("intrinsics", None)
         return result
 
+    def _draw(self, ref: Tensor, ids: bool, intrinsics: object, source_camera: object,
+              generator: torch.Generator | None) -> dict:
+        """``forward_parameters`` for the inputs of ``forward`` (``ref``: the first given; ``ids``:
+        it is labels or depth, never channels-last), framed to their source where it is a
+        pinhole (``coverage_range``)."""
+        if isinstance(ref, bool) or not isinstance(ref, Tensor) or ref.dim() < 3:
+            raise ValueError(f"image: expected a batch of images, got "
+                             f"{tuple(getattr(ref, 'shape', ())) or type(ref).__name__}")
+        batch = ref.shape[0]
+        if self.coverage_range is None:
+            return self._draw_params(batch, generator, None, None)
+        size = tuple(ref.shape[1:3] if self.channels_last and not ids else ref.shape[-2:])
+        k, _ = self._source(intrinsics, source_camera, size, batch)
+        return self._draw_params(batch, generator, k, None if k is None else size)
+
     def _render_fast(self, name: str, part: "_Part", image: Tensor | None,
                      labels: Tensor | None, depth: Tensor | None, result: dict) -> None:
         """The samples ``part.index`` through the C++ ops: the cameras' rays from their tables
@@ -1336,6 +1439,9 @@ class RandomReproject(_RandomCameras):
                     image[at], rays[rows], rot, kr, self.interpolation,
                     valid=valid[rows], out=result["rgb"][at], out_dtype=result["rgb"].dtype)
                 seen.copy_(seen_rgb)
+                if self.antialias and self.interpolation != "nearest":
+                    self._antialias(image[at], rays[rows], rot, kr, seen_rgb,
+                                    result["rgb"][at])
             if labels is not None:
                 wide = labels.dtype in (torch.uint8, torch.int64)   # int64 ids in the pass
                 out = result["labels"][at].unsqueeze(1)
@@ -1354,6 +1460,20 @@ class RandomReproject(_RandomCameras):
                                                   seen_z.unsqueeze(1))
                 seen.copy_(seen_z)
 
+    @staticmethod
+    def _antialias(image: Tensor, rays: Tensor, rotation: Tensor | None, k: Tensor,
+                   seen: Tensor, out: Tensor) -> None:
+        """Overwrite the pixels of ``out`` (the fast op's samples) whose footprint minifies the
+        source with its mip lookups (:func:`~omniscape_torch.render.antialias.minified`):
+        the rays' source pixels ``K (R ray)``, as the op projects them."""
+        src = rays if rotation is None else torch.einsum("bij,bhwj->bhwi", rotation, rays)
+        z = torch.where(seen, src[..., 2], torch.ones_like(src[..., 2]))
+        pixels = src[..., :2] / z.unsqueeze(-1) * k[:, None, None, :2] + k[:, None, None, 2:]
+        mip = minified(image, pixels.expand(len(out), *pixels.shape[1:]), seen)
+        if mip is not None:
+            values = from_float(mip[0], image.dtype, out.dtype)
+            out.copy_(torch.where(mip[1], values, out))
+
     def _render_exact(self, name: str, part: "_Part", image: Tensor | None,
                       labels: Tensor | None, depth: Tensor | None, result: dict) -> None:
         """The samples ``part.index`` through ``Camera.ray_grid`` and ``sample_camera``
@@ -1369,7 +1489,7 @@ class RandomReproject(_RandomCameras):
         seen = None
         if image is not None:
             values, ok = sample_camera(image[sel], source, src, interpolation=self.interpolation,
-                                       out_dtype=result["rgb"].dtype)
+                                       out_dtype=result["rgb"].dtype, antialias=self.antialias)
             seen = ok & mask
             result["rgb"][sel] = torch.where(seen, values, torch.zeros_like(values))
         if labels is not None:
@@ -1551,7 +1671,8 @@ class RandomReproject(_RandomCameras):
         if ref is None:
             raise ValueError("forward: pass at least one of image, labels, depth, instances")
         if params is None:
-            params = self.forward_parameters(ref.shape[0], generator=generator)
+            params = self._draw(ref, image is None or ref is not image, intrinsics,
+                                source_camera, generator)
         elif intrinsics is None and source_camera is None:   # a replay: its source camera
             intrinsics = params.get("intrinsics")
             source_camera = params.get("source_camera")

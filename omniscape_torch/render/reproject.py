@@ -20,6 +20,7 @@ from torch import Tensor
 from .. import cubemap as cm
 from ..cameras import Camera
 from ..io.labels import IGNORE_INDEX
+from .antialias import minified
 from .reference import (check_out_dtype, from_float, grid_sample, nearest_gather,
                         pixels_to_grid, warn_if_label_map)
 
@@ -119,8 +120,8 @@ def _image_dtype(image: Tensor, labels: bool, out_dtype: object) -> torch.dtype 
 
 def sample_camera(image: Tensor, camera: Camera, rays: Tensor, *,
                   interpolation: str = "bilinear", labels: bool | None = None,
-                  ignore_index: int = IGNORE_INDEX, out_dtype: torch.dtype | None = None
-                  ) -> tuple[Tensor, Tensor]:
+                  ignore_index: int = IGNORE_INDEX, out_dtype: torch.dtype | None = None,
+                  antialias: bool = True) -> tuple[Tensor, Tensor]:
     """Sample ``image`` seen by ``camera`` along ``rays`` given in that camera's frame.
 
     Args:
@@ -139,6 +140,11 @@ def sample_camera(image: Tensor, camera: Camera, rays: Tensor, *,
         out_dtype: the image's dtype: the input's (default; ``uint8`` rounded to nearest, half
             up, and saturated, as OpenCV's ``remap``), or a floating dtype (a ``uint8`` image
             scaled to [0, 1]). Not for labels.
+        antialias: where an output pixel covers more than one source pixel (the rays' grid
+            minifies), read the image through its mip pyramid, trilinear at the pixel's
+            footprint (:mod:`~omniscape_torch.render.antialias`), instead of one point sample
+            (bilinear and bicubic; ``"nearest"`` and labels are point samples). Pixels that do
+            not minify are sampled as without it, bit for bit.
 
     Returns:
         ``values (B, C, h, w)`` in ``out_dtype`` (labels: int64, ``(B, h, w)`` for
@@ -164,6 +170,8 @@ def sample_camera(image: Tensor, camera: Camera, rays: Tensor, *,
     if (height, width) != camera.image_size:
         raise ValueError(f"image: size {(height, width)} does not match the camera's "
                          f"image_size {camera.image_size}")
+    if not isinstance(antialias, bool):
+        raise TypeError(f"antialias: expected a bool, got {antialias!r}")
     if len(camera.batch_shape) > 1:
         raise ValueError(f"camera: expected one camera or a batch (B,), got batch "
                          f"{tuple(camera.batch_shape)}")
@@ -179,7 +187,9 @@ def sample_camera(image: Tensor, camera: Camera, rays: Tensor, *,
     if camera.batch_shape and rays.dim() == 3:
         rays = rays.expand(batch, *rays.shape)
     pixels, valid = camera.project(rays.to(camera.params.dtype))
+    period = None
     if wraps_in_longitude(camera):
+        period = float(width)
         # valid u lie in [-0.5, W - 0.5]; the padded columns hold their neighbours across the seam
         pixels = pixels + torch.tensor([float(_WRAP), 0.0], dtype=pixels.dtype,
                                        device=pixels.device)
@@ -206,6 +216,12 @@ def sample_camera(image: Tensor, camera: Camera, rays: Tensor, *,
     # grid is off by pixels, and grid_sample has no uint8 kernel)
     work = image if image.dtype in (torch.float32, torch.float64) else image.float()
     out = grid_sample(work, grid.to(work.dtype), interpolation)
+    if antialias and interpolation != "nearest":
+        if pixels.dim() == 3:
+            pixels = pixels.unsqueeze(0)
+        mip = minified(work, pixels.expand(batch, *pixels.shape[1:]), valid[:, 0], period)
+        if mip is not None:
+            out = torch.where(mip[1], mip[0].to(out.dtype), out)
     out = torch.where(valid, out, torch.zeros_like(out))
     return from_float(out, image.dtype, out_dtype), valid
 
@@ -213,7 +229,8 @@ def sample_camera(image: Tensor, camera: Camera, rays: Tensor, *,
 def reproject(image: Tensor, src_camera: Camera | Tensor, dst_camera: Camera, *,
               rotation: Tensor | None = None, interpolation: str = "bilinear",
               labels: bool | None = None, ignore_index: int = IGNORE_INDEX,
-              out_dtype: torch.dtype | None = None) -> tuple[Tensor, Tensor]:
+              out_dtype: torch.dtype | None = None, antialias: bool = True
+              ) -> tuple[Tensor, Tensor]:
     """Resample ``image`` taken by ``src_camera`` into ``dst_camera`` (same centre).
 
     ``out[b, :, v, u] = image[b]`` sampled at ``src.project(R @ dst.unproject(u, v))``.
@@ -239,6 +256,10 @@ def reproject(image: Tensor, src_camera: Camera | Tensor, dst_camera: Camera, *,
         ignore_index: label of invalid pixels.
         out_dtype: the image's dtype: the input's (default; ``uint8`` rounded to nearest, half
             up, and saturated), or a floating dtype (a ``uint8`` image scaled to [0, 1]).
+        antialias: prefilter the image where the destination minifies it (a pixel covering
+            more than one source pixel): trilinear mip lookups at each pixel's footprint
+            (:func:`sample_camera`); False: one point sample per pixel. Pixels that do not
+            minify are the same either way, bit for bit.
 
     Returns:
         ``image (B, C, H_dst, W_dst)`` in ``out_dtype`` (labels: int64, ``(B, H_dst, W_dst)``
@@ -286,7 +307,8 @@ def reproject(image: Tensor, src_camera: Camera | Tensor, dst_camera: Camera, *,
         rays = (torch.einsum("ij,...hwj->...hwi", rot, rays) if rot.dim() == 2
                 else torch.einsum("bij,bhwj->bhwi", rot, rays.expand(len(rot), *rays.shape[-3:])))
     values, valid = sample_camera(image, src_camera, rays, interpolation=interpolation,
-                                  labels=labels, ignore_index=ignore_index, out_dtype=out_dtype)
+                                  labels=labels, ignore_index=ignore_index, out_dtype=out_dtype,
+                                  antialias=antialias)
     valid_dst = valid_dst.unsqueeze(0) if valid_dst.dim() == 2 else valid_dst
     valid = valid & valid_dst.unsqueeze(1)
     if not labels:
@@ -304,6 +326,9 @@ def equirect_to_cubemap(panorama: Tensor, face_size: int, *, interpolation: str 
     Face ``k`` is ``reproject(panorama, equirectangular_camera(W, H), face_pinhole,
     rotation=face_rotations()[k])`` with the face pinhole ``fx = fy = F / 2``,
     ``cx = cy = (F - 1) / 2``; the six faces are sampled in one call, the geometry in float64.
+    Point samples (``reproject(..., antialias=False)``'s): faces of ``F >= W / 4`` do not
+    minify the panorama but around its poles, where a face pixel's footprint is no
+    parallelogram (a pole is a whole row).
 
     Args:
         panorama: ``(B, C, H, W)`` floating or ``uint8`` (an 8-bit image), or integer labels
@@ -326,7 +351,7 @@ def equirect_to_cubemap(panorama: Tensor, face_size: int, *, interpolation: str 
     rays = cm.face_rays(face_size, dtype=torch.float64, device=panorama.device, normalize=True)
     values, _ = sample_camera(panorama, camera, rays.reshape(6 * face_size, face_size, 3),
                               interpolation=interpolation, labels=labels,
-                              ignore_index=ignore_index, out_dtype=out_dtype)
+                              ignore_index=ignore_index, out_dtype=out_dtype, antialias=False)
     if values.dim() == 3:  # labels (B, 6F, F)
         return values.reshape(-1, 6, face_size, face_size)
     return values.reshape(values.shape[0], values.shape[1], 6, face_size, face_size) \

@@ -1,0 +1,114 @@
+"""Fixed cost per call of perspective -> fisheye augmentation (issue 36, item 3).
+
+Tiny images, so that the time is the call's overhead (drawing the parameters, checks, dispatch),
+not its pixels: ``--batch`` (1 and 8) ``32 x 32`` RGB images into ``32 x 32`` outputs, one
+thread (``torch.set_num_threads(1)``), in one run, round-robin (``common.measure``):
+
+* ``ours``: ``RandomReproject((32, 32), source_fov=90 deg)`` at its defaults (framing to the
+  source, antialiasing on), float32 images in [0, 1] (as kornia takes them), RGB only;
+* ``ours_params``: its ``forward_parameters`` alone (the draw, framed to the source);
+* ``kornia``: ``kornia.augmentation.RandomFisheye`` (centre +-0.3, gamma 0.9-1.0: its
+  docstring's example) on the same batch.
+
+Headline: ours / kornia median time per call, per batch size (target <= 1).
+
+Usage::
+
+    python benchmarks/bench_fixed_cost.py            # batches 1 and 8, 200 calls each
+    python benchmarks/bench_fixed_cost.py --quick    # 20 calls
+
+Results: markdown on stdout and JSON (``--out``, default
+``benchmarks/results/fixed_cost.json``; ``--quick``: ``benchmarks/results/quick/``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from common import (begin_run, loadavg, measure, positive_int, results_path,  # noqa: E402
+                    run_main, run_record)
+from omniscape_torch.render.augment import RandomReproject  # noqa: E402
+
+SEED = 36
+SIZE = (32, 32)
+
+
+def run(args: argparse.Namespace) -> dict:
+    load_start = begin_run(1)
+    import kornia.augmentation as K
+
+    gen = torch.Generator().manual_seed(SEED)
+    rows, headline = [], []
+    for batch in args.batches:
+        images = torch.rand(batch, 3, *SIZE, generator=gen)
+        ours = RandomReproject(SIZE, source_fov=math.radians(90), seed=SEED)
+        fisheye = K.RandomFisheye(torch.tensor([-0.3, 0.3]), torch.tensor([-0.3, 0.3]),
+                                  torch.tensor([0.9, 1.0]), p=1.0)
+        cases = [("ours", lambda: ours(images)),
+                 ("ours_params", lambda: ours.forward_parameters(
+                     batch, intrinsics=ours.source_intrinsics(SIZE, batch), source_size=SIZE)),
+                 ("kornia", lambda: fisheye(images))]
+        with torch.no_grad():
+            times = measure([fn for _, fn in cases], args.repeats, args.warmup, settle_s=0.0)
+        by_name = {}
+        for (name, _), t in zip(cases, times):
+            row = {"name": name, "batch": batch, "median_s": t["median_s"], "iqr_s": t["iqr_s"],
+                   "min_s": t["min_s"]}
+            rows.append(row)
+            by_name[name] = row
+        ratio = by_name["ours"]["median_s"] / by_name["kornia"]["median_s"]
+        headline.append({"batch": batch, "ours_over_kornia": ratio, "meets_target": ratio <= 1})
+    return {**run_record("fixed_cost", torch.device("cpu"), 1),
+            "setup": {"size": list(SIZE), "batches": args.batches, "repeats": args.repeats,
+                      "warmup": args.warmup, "quick": args.quick, "seed": SEED},
+            "rows": rows, "headline": headline,
+            "loadavg_start": load_start, "loadavg_end": loadavg()}
+
+
+def markdown(result: dict) -> str:
+    lines = [f"fixed cost per call, 32 x 32 -> 32 x 32, 1 thread, load "
+             f"{result['loadavg_start']} -> {result['loadavg_end']}, commit "
+             f"{result['commit'][:12]}{' (dirty)' if result['dirty'] else ''}", "",
+             "| row | batch | median ms | IQR ms | min ms |", "|---|---:|---:|---:|---:|"]
+    for r in result["rows"]:
+        lines.append(f"| {r['name']} | {r['batch']} | {1e3 * r['median_s']:.3f} | "
+                     f"{1e3 * r['iqr_s']:.3f} | {1e3 * r['min_s']:.3f} |")
+    lines.append("")
+    for h in result["headline"]:
+        lines.append(f"batch {h['batch']}: ours / kornia {h['ours_over_kornia']:.2f}x "
+                     f"(target <= 1: {'ok' if h['meets_target'] else 'MISSED'})")
+    return "\n".join(lines)
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--batches", type=positive_int, nargs="+", default=[1, 8])
+    parser.add_argument("--repeats", type=positive_int, default=None,
+                        help="timed calls per row (200; 20 quick)")
+    parser.add_argument("--warmup", type=int, default=5, help="untimed calls (5)")
+    parser.add_argument("--quick", action="store_true", help="a smoke run (seconds)")
+    parser.add_argument("--out", type=Path, default=None, help="JSON output")
+    args = parser.parse_args(argv)
+    if args.out is None:
+        args.out = results_path("fixed_cost.json", quick=args.quick)
+    if args.repeats is None:
+        args.repeats = 20 if args.quick else 200
+    return args
+
+
+def main(argv=None) -> int:
+    return run_main(parse_args, run, markdown, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
