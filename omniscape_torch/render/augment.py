@@ -1399,7 +1399,7 @@ class RandomReproject(_RandomCameras):
         it is labels or depth, never channels-last), framed to their source where it is a
         pinhole (``coverage_range``)."""
         if isinstance(ref, bool) or not isinstance(ref, Tensor) or ref.dim() < 3:
-            raise ValueError(f"image: expected a batch of images, got "
+            raise ValueError(f"image: expected (B, C, H, W) (labels, depth: (B, H, W)), got "
                              f"{tuple(getattr(ref, 'shape', ())) or type(ref).__name__}")
         batch = ref.shape[0]
         if self.coverage_range is None:
