@@ -5,7 +5,7 @@ Source: Cityscapes-shaped ``uint8`` RGB ``1024 x 2048`` with ``uint8`` labels (`
 pinhole ``fx = fy = 2262``; output ``S x S`` for each ``--sizes`` (512, 1024). Rows:
 
 * ``ours``: ``RandomReproject((S, S))`` (defaults: equidistant 160-200 deg, ``coverage_range``
-  0.5-0.9, ``antialias=True``) with the intrinsics, RGB ``uint8`` + labels int64 + valid;
+  0.5-0.9) with ``antialias=True``, with the intrinsics, RGB ``uint8`` + labels int64 + valid;
 * ``ours_point``: the same with ``antialias=False`` (point samples: what the prefilter costs);
 * ``albumentations``: ``A.Compose([A.Resize(S, S), A.OpticalDistortion(mode="fisheye",
   p=1)])`` on the ``(H, W, 3)`` image and its mask (numpy, as it takes them); skipped, and
@@ -139,7 +139,8 @@ def run(args: argparse.Namespace) -> dict:
         def ours_of(module):
             return lambda img, lab: module({"rgb": img[None], "labels": lab[None],
                                             "intrinsics": intrinsics})
-        fns = {"ours": ours_of(RandomReproject((size, size), seed=SEED, channels_last=True)),
+        fns = {"ours": ours_of(RandomReproject((size, size), seed=SEED, channels_last=True,
+                                               antialias=True)),
                "ours_point": ours_of(RandomReproject((size, size), seed=SEED,
                                                      channels_last=True, antialias=False)),
                **_peers(size)}
@@ -159,7 +160,8 @@ def run(args: argparse.Namespace) -> dict:
                                         lambda s: s) for name, fn in fns.items()}
             cases["ours_collate"] = (Samples(images, labels, args.batch * args.batches),
                                      _collate_ours(RandomReproject((size, size), seed=SEED,
-                                                                   channels_last=True),
+                                                                   channels_last=True,
+                                                                   antialias=True),
                                                    intrinsics))
             rates = {name: [] for name in cases}
             load = loadavg()

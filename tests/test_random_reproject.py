@@ -107,7 +107,7 @@ def test_exact_path_is_ot_reproject_of_the_drawn_camera():
     for b in range(2):
         source = ot.Camera("pinhole", k[b], SRC)
         want, valid = ot.reproject(image[b:b + 1], source, drawn_camera(params, b),
-                                   rotation=params["rotation"][b])
+                                   rotation=params["rotation"][b], antialias=aug.antialias)
         ids, _ = ot.reproject(labels[b:b + 1], source, drawn_camera(params, b),
                               rotation=params["rotation"][b])
         assert torch.equal(out["valid"][b], valid[0])

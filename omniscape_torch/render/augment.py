@@ -1055,7 +1055,10 @@ class RandomReproject(_RandomCameras):
             footprint through a mip pyramid (:mod:`~omniscape_torch.render.antialias`).
             Pixels that do not minify are as with ``antialias=False`` (point samples), bit for
             bit; ``labels``, ``depth`` and ``valid`` are the same either way (nearest texel at
-            the pixel centre, never blended). Not for ``interpolation="nearest"``.
+            the pixel centre, never blended). Not for ``interpolation="nearest"``. Off by
+            default here (on in ``ot.reproject``): in PyTorch ops it costs about 12 times a
+            point-sampled call on Cityscapes-sized frames (``benchmarks/results/
+            antialias.md``), too much for a training loop until it has a C++ kernel.
 
     Shapes:
         ``rgb (B, C, Hs, Ws)`` (``channels_last``: ``(B, Hs, Ws, C)``) floating or ``uint8``,
@@ -1094,7 +1097,7 @@ class RandomReproject(_RandomCameras):
                  ignore_index: int = 255, seed: int | None = None,
                  channels_last: bool = False, out_dtype: torch.dtype | None = None,
                  label_keys: Mapping[str, int] | None = None,
-                 antialias: bool = True) -> None:
+                 antialias: bool = False) -> None:
         if focal_scale_range is not None and coverage_range is not None:
             raise ValueError("coverage_range: pass coverage_range or focal_scale_range, not both")
         if focal_scale_range is None and coverage_range is None:
