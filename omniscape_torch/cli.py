@@ -445,6 +445,17 @@ def cmd_fit(args: argparse.Namespace) -> int:
               f"over the image (see {Path(args.out) / 'report.md'} and uncertainty.png); add "
               f"views, or pass --accept-coverage to accept it", file=sys.stderr)
         return EXIT_POORLY_CONSTRAINED
+    limit = coverage.thresholds["max_pixel_error"]
+    if resampling is not None and not resampling.pixel_error <= limit \
+            and not args.accept_coverage:
+        # the views judged by their refits, not the noise model alone (on real photographs the
+        # refits move 2 to 5 times more than the residuals predict)
+        print(f"omniscape-torch fit: poorly constrained: refits without each view move the "
+              f"projections by {resampling.pixel_error:.3g} px (jackknife RMS where the "
+              f"corners reach), above {limit:g} px, though the residuals predict "
+              f"{coverage.pixel_rms:.3g} px; add views, or pass --accept-coverage to accept "
+              f"it", file=sys.stderr)
+        return EXIT_POORLY_CONSTRAINED
     return 0
 
 
@@ -826,7 +837,8 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--leave-one-out", action="store_true",
                      help="also refit without each view in turn and report how far the "
                           "projections move (report.json \"resampling\"): a check of the "
-                          "predicted error on real photographs (one more fit per view)")
+                          "predicted error on real photographs (one more fit per view); "
+                          f"above the limit, exit {EXIT_POORLY_CONSTRAINED} as for coverage")
     fit.add_argument("--strict", action="store_true",
                      help="refuse a near-degenerate fit (exit 1, nothing written) instead of "
                           f"writing it with exit {EXIT_POORLY_CONSTRAINED}")
