@@ -158,6 +158,27 @@ def sample_pixels(camera: Camera, grid: int, offset: float, *, max_field: float 
     return pixels[valid], rays[valid]
 
 
+def _rings(image, camera: Camera) -> tuple[Tensor, int, Tensor, Tensor]:
+    """What :func:`image_circle` and :func:`blind_cone` read of ``image``: its grey levels
+    after a 5 x 5 box blur ``(H, W)``, the step of the pixels whose rays they ring (every
+    step-th: about 200k, as a fisheye's ray grid is their cost), and those pixels' rays and
+    validity through ``camera``."""
+    img = torch.as_tensor(image).double()
+    h, w = camera.image_size
+    if img.dim() == 3:
+        img = img.mean(0) if img.shape[1:] == (h, w) else img.mean(-1)
+    if tuple(img.shape) != (h, w):
+        raise ValueError(f"image: expected an image of the camera's size {(h, w)}, got shape "
+                         f"{tuple(torch.as_tensor(image).shape)}")
+    blurred = torch.nn.functional.avg_pool2d(img[None, None], 5, 1, 2,
+                                             count_include_pad=False)[0, 0]
+    step = max(math.ceil(math.sqrt(h * w / 200_000)), 1)
+    source = Camera(camera.model, camera.params.detach().double(), (h, w))
+    with torch.no_grad():
+        rays, valid = source.unproject(source.pixel_grid()[::step, ::step])
+    return blurred, step, rays, valid
+
+
 def image_circle(image, camera: Camera) -> float:
     """The field of view (full angle, radians) of the image circle of a fisheye photograph.
 
@@ -177,23 +198,11 @@ def image_circle(image, camera: Camera) -> float:
         image: ``(H, W)``, ``(H, W, C)`` or ``(C, H, W)`` array or tensor, any dtype.
         camera: the camera that took it (its ``image_size`` is the image's).
     """
-    img = torch.as_tensor(image).double()
     h, w = camera.image_size
-    if img.dim() == 3:
-        img = img.mean(0) if img.shape[1:] == (h, w) else img.mean(-1)
-    if tuple(img.shape) != (h, w):
-        raise ValueError(f"image: expected an image of the camera's size {(h, w)}, got shape "
-                         f"{tuple(torch.as_tensor(image).shape)}")
-    blurred = torch.nn.functional.avg_pool2d(img[None, None], 5, 1, 2,
-                                             count_include_pad=False)[0, 0]
+    blurred, step, rays, valid = _rings(image, camera)
     ch, cw = max(h // 32, 1), max(w // 32, 1)
     corners = torch.cat([blurred[:ch, :cw], blurred[:ch, -cw:], blurred[-ch:, :cw],
                          blurred[-ch:, -cw:]], 0)
-    # the rings on every step-th pixel (about 200k: a fisheye's ray grid is its cost)
-    step = max(math.ceil(math.sqrt(h * w / 200_000)), 1)
-    source = Camera(camera.model, camera.params.detach().double(), (h, w))
-    with torch.no_grad():
-        rays, valid = source.unproject(source.pixel_grid()[::step, ::step])
     sub = blurred[::step, ::step]
     angle = torch.rad2deg(torch.acos(rays[..., 2].double().clamp(-1, 1)))
     row, col = torch.nonzero(valid & (angle == angle[valid].min()))[0].tolist()
@@ -230,19 +239,8 @@ def blind_cone(image, camera: Camera) -> float:
         image: ``(H, W)``, ``(H, W, C)`` or ``(C, H, W)`` array or tensor, any dtype.
         camera: the camera that took it (its ``image_size`` is the image's).
     """
-    img = torch.as_tensor(image).double()
-    h, w = camera.image_size
-    if img.dim() == 3:
-        img = img.mean(0) if img.shape[1:] == (h, w) else img.mean(-1)
-    if tuple(img.shape) != (h, w):
-        raise ValueError(f"image: expected an image of the camera's size {(h, w)}, got shape "
-                         f"{tuple(torch.as_tensor(image).shape)}")
-    step = max(math.ceil(math.sqrt(h * w / 200_000)), 1)
-    blurred = torch.nn.functional.avg_pool2d(img[None, None], 5, 1, 2,
-                                             count_include_pad=False)[0, 0][::step, ::step]
-    source = Camera(camera.model, camera.params.detach().double(), (h, w))
-    with torch.no_grad():
-        rays, valid = source.unproject(source.pixel_grid()[::step, ::step])
+    blurred, step, rays, valid = _rings(image, camera)
+    blurred = blurred[::step, ::step]
     if not bool(valid.any()):
         return 0.0
     ring = torch.rad2deg(torch.acos(rays[..., 2].clamp(-1, 1)))[valid].floor().long()
