@@ -1711,7 +1711,7 @@ def _recorded_camera(record: dict, size: tuple[int, int]) -> Camera:
     try:
         params = torch.as_tensor(record["params"], dtype=torch.float64)
         model = one("model")
-    except KeyError as err:
+    except KeyError:
         raise ValueError(f'params["source_camera"]: expected a record with "model" and '
                          f'"params", got the keys {sorted(record)}') from None
     return Camera(model, params.reshape(-1, params.shape[-1]), size, fov=one("fov"),
