@@ -365,6 +365,10 @@ def _boundary(change: Change, sample: int) -> tuple[Tensor, Tensor, Tensor]:
     return points, src, ok
 
 
+#: Width in pixels of the strips :func:`_pixel_box` reads first along each side of a window.
+_BAND = 3
+
+
 def _pixel_box(change: Change, sample: int, extent: Tensor, rect: Tensor) -> Tensor:
     """The extent, pixel edges in pixel-centre coordinates, of the output pixels within
     ``extent`` (pixel-centre x0, y0, x1, y1; inf: none) whose rays meet the source rectangle
@@ -375,12 +379,33 @@ def _pixel_box(change: Change, sample: int, extent: Tensor, rect: Tensor) -> Ten
     lo, hi = extent[:2].ceil() - 1, extent[2:].floor() + 1     # a pixel of margin
     cols = torch.arange(int(lo[0]), int(hi[0]) + 1, dtype=torch.float64)
     rows = torch.arange(int(lo[1]), int(hi[1]) + 1, dtype=torch.float64)
-    grid = torch.stack(torch.meshgrid(cols, rows, indexing="xy"), -1).reshape(-1, 2)
-    src, ok = change.backward(grid, torch.full((len(grid),), sample, dtype=torch.long))
     h, w = change.output.image_size
-    ok = ok & _on_centres(grid, w, h) & (src[:, 0] >= rect[0]) & (src[:, 0] <= rect[2]) & \
-        (src[:, 1] >= rect[1]) & (src[:, 1] <= rect[3])
-    centres = _extent(grid, ok, torch.zeros(len(grid), dtype=torch.long), 1)[0]
+
+    def grid(c: Tensor, r: Tensor) -> Tensor:
+        return torch.stack(torch.meshgrid(c, r, indexing="xy"), -1).reshape(-1, 2)
+
+    def hits(points: Tensor) -> Tensor:
+        """Where ``points (T, 2)`` are pixels of the object, ``(T,)``."""
+        src, ok = change.backward(points, torch.full((len(points),), sample, dtype=torch.long))
+        return ok & _on_centres(points, w, h) & (src[:, 0] >= rect[0]) & \
+            (src[:, 0] <= rect[2]) & (src[:, 1] >= rect[1]) & (src[:, 1] <= rect[3])
+
+    # The strips of _BAND pixels along the window's sides first (one mapping): where each
+    # holds a pixel of the object, the object's extreme pixel towards that side is in that
+    # strip (the whole window lies on the inner side of it), so the strips' extent is the
+    # window's, exactly; else the whole window.
+    k = _BAND
+    strips = [grid(cols[:k], rows), grid(cols[-k:], rows), grid(cols, rows[:k]),
+              grid(cols, rows[-k:])]
+    points = torch.cat(strips)
+    ok = hits(points)
+    if not all(bool(part.any()) for part in ok.split([len(p) for p in strips])):
+        points = grid(cols, rows)
+        ok = hits(points)
+    points = points[ok]
+    if not len(points):
+        return torch.full((4,), math.inf, dtype=extent.dtype)
+    centres = torch.cat((points.amin(0), points.amax(0)))
     return centres + torch.tensor([-0.5, -0.5, 0.5, 0.5], dtype=centres.dtype)   # pixel edges
 
 
