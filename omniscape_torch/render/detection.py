@@ -365,48 +365,68 @@ def _boundary(change: Change, sample: int) -> tuple[Tensor, Tensor, Tensor]:
     return points, src, ok
 
 
-#: Width in pixels of the strips :func:`_pixel_box` reads first along each side of a window.
+#: Width in pixels of the strips :func:`_pixel_boxes` reads first along each side of a window.
 _BAND = 3
 
 
-def _pixel_box(change: Change, sample: int, extent: Tensor, rect: Tensor) -> Tensor:
-    """The extent, pixel edges in pixel-centre coordinates, of the output pixels within
-    ``extent`` (pixel-centre x0, y0, x1, y1; inf: none) whose rays meet the source rectangle
-    ``rect`` and are valid: the pixels an object cut by the valid area's boundary keeps (a
-    sliver's pixels are sparse, so its continuous extent would overstate their box)."""
-    if not bool(torch.isfinite(extent).all()):
-        return extent
-    lo, hi = extent[:2].ceil() - 1, extent[2:].floor() + 1     # a pixel of margin
-    cols = torch.arange(int(lo[0]), int(hi[0]) + 1, dtype=torch.float64)
-    rows = torch.arange(int(lo[1]), int(hi[1]) + 1, dtype=torch.float64)
+def _pixel_boxes(change: Change, sample: int, extents: Tensor, rects: Tensor) -> Tensor:
+    """Per box ``(m, 4)``: the extent, pixel edges in pixel-centre coordinates, of the output
+    pixels within ``extents`` (pixel-centre x0, y0, x1, y1; inf: none, kept) whose rays meet
+    the source rectangle ``rects`` and are valid: the pixels an object cut by the valid area's
+    boundary keeps (a sliver's pixels are sparse, so its continuous extent would overstate
+    their box). All boxes of the sample in one mapping.
+
+    Each box reads the strips of :data:`_BAND` pixels along its window's sides first: where
+    each strip holds a pixel of the object, the object's extreme pixel towards that side is in
+    that strip (the whole window lies on the inner side of it), so the strips' extent is the
+    window's, exactly; the boxes with a strip that holds none read their whole window."""
     h, w = change.output.image_size
+    out = extents.clone()
+    todo = torch.isfinite(extents).all(-1).nonzero()[:, 0].tolist()
+    windows = {}
+    for j in todo:
+        lo, hi = extents[j, :2].ceil() - 1, extents[j, 2:].floor() + 1   # a pixel of margin
+        windows[j] = (torch.arange(int(lo[0]), int(hi[0]) + 1, dtype=torch.float64),
+                      torch.arange(int(lo[1]), int(hi[1]) + 1, dtype=torch.float64))
 
     def grid(c: Tensor, r: Tensor) -> Tensor:
         return torch.stack(torch.meshgrid(c, r, indexing="xy"), -1).reshape(-1, 2)
 
-    def hits(points: Tensor) -> Tensor:
-        """Where ``points (T, 2)`` are pixels of the object, ``(T,)``."""
+    def hits(parts: list[tuple[int, Tensor]]) -> tuple[Tensor, Tensor, Tensor]:
+        """Points of ``(box, points)`` parts, one mapping: all points, their part and
+        whether each is a pixel of its box's object."""
+        points = torch.cat([p for _, p in parts])
+        part = torch.arange(len(parts)).repeat_interleave(torch.tensor([len(p) for _, p in parts]))
+        rect = rects[torch.tensor([j for j, _ in parts])][part]
         src, ok = change.backward(points, torch.full((len(points),), sample, dtype=torch.long))
-        return ok & _on_centres(points, w, h) & (src[:, 0] >= rect[0]) & \
-            (src[:, 0] <= rect[2]) & (src[:, 1] >= rect[1]) & (src[:, 1] <= rect[3])
+        ok = ok & _on_centres(points, w, h) & (src[:, 0] >= rect[:, 0]) & \
+            (src[:, 0] <= rect[:, 2]) & (src[:, 1] >= rect[:, 1]) & (src[:, 1] <= rect[:, 3])
+        return points, part, ok
 
-    # The strips of _BAND pixels along the window's sides first (one mapping): where each
-    # holds a pixel of the object, the object's extreme pixel towards that side is in that
-    # strip (the whole window lies on the inner side of it), so the strips' extent is the
-    # window's, exactly; else the whole window.
+    def extent_of(parts: list[tuple[int, Tensor]], points: Tensor, part: Tensor, ok: Tensor):
+        boxes = torch.tensor([j for j, _ in parts])[part]
+        found = _extent(points, ok, boxes, len(extents))
+        for j in {j for j, _ in parts}:
+            out[j] = found[j] + torch.tensor([-0.5, -0.5, 0.5, 0.5], dtype=out.dtype)
+
+    if not todo:
+        return out
     k = _BAND
-    strips = [grid(cols[:k], rows), grid(cols[-k:], rows), grid(cols, rows[:k]),
-              grid(cols, rows[-k:])]
-    points = torch.cat(strips)
-    ok = hits(points)
-    if not all(bool(part.any()) for part in ok.split([len(p) for p in strips])):
-        points = grid(cols, rows)
-        ok = hits(points)
-    points = points[ok]
-    if not len(points):
-        return torch.full((4,), math.inf, dtype=extent.dtype)
-    centres = torch.cat((points.amin(0), points.amax(0)))
-    return centres + torch.tensor([-0.5, -0.5, 0.5, 0.5], dtype=centres.dtype)   # pixel edges
+    parts = [(j, g) for j in todo for g in (
+        grid(windows[j][0][:k], windows[j][1]), grid(windows[j][0][-k:], windows[j][1]),
+        grid(windows[j][0], windows[j][1][:k]), grid(windows[j][0], windows[j][1][-k:]))]
+    points, part, ok = hits(parts)
+    held = torch.zeros(len(parts), dtype=torch.bool).index_put_((part,), ok, accumulate=True)
+    whole = [j for n, j in enumerate(todo) if not bool(held[4 * n:4 * n + 4].all())]
+    strips = [(j, g) for j, g in parts if j not in whole]
+    if strips:
+        keep = torch.tensor([j not in whole for j, _ in parts])[part]
+        kept_part = torch.cumsum(torch.tensor([j not in whole for j, _ in parts]), 0) - 1
+        extent_of(strips, points[keep], kept_part[part[keep]], ok[keep])
+    if whole:
+        parts = [(j, grid(*windows[j])) for j in whole]
+        extent_of(parts, *hits(parts))
+    return out
 
 
 def map_boxes(change: Change, boxes: list[Tensor], source_size: tuple[int, int], *,
@@ -472,8 +492,7 @@ def map_boxes(change: Change, boxes: list[Tensor], source_size: tuple[int, int],
                         torch.arange(m).repeat_interleave(t), m)
         box[mine] = torch.cat((torch.minimum(box[mine, :2], extra[:, :2]),
                                torch.maximum(box[mine, 2:], extra[:, 2:])), -1)
-        for m, j in enumerate(mine.tolist()):
-            box[j] = _pixel_box(change, i, box[j], rect[m])
+        box[mine] = _pixel_boxes(change, i, box[mine], rect)
     # pixel-centre extent -> corner coordinates: +0.5, and the image's edge where it reaches
     # the outer pixel centres
     limit = torch.tensor([ow - 1.0, oh - 1.0], dtype=box.dtype)
