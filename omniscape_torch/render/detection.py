@@ -327,10 +327,13 @@ def _on_centres(pixels: Tensor, w: int, h: int) -> Tensor:
     return (u >= -1e-9) & (u <= w - 1 + 1e-9) & (v >= -1e-9) & (v <= h - 1 + 1e-9)
 
 
-def _boundary(change: Change, sample: int) -> tuple[Tensor, Tensor, Tensor]:
-    """Points on the boundary of sample ``sample``'s output valid area (the images of its cones
-    and the output image's edges), at most :data:`BOUNDARY_STEP` apart, ``(T, 2)``, and the
-    source pixel centres they map back to with where that holds ``(T, 2), (T,)``."""
+def _boundaries(change: Change, samples: list[int]
+                ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Points on the boundary of each of ``samples``' output valid area (the images of its
+    cones and the output image's edges), at most :data:`BOUNDARY_STEP` apart, ``(T, 2)``, their
+    sample ``(T,)``, and the source pixel centres they map back to with where that holds
+    ``(T, 2), (T,)``: the cones' projections and the mapping back each one call for all
+    ``samples``."""
     out = change.output
     h, w = out.image_size
     step = BOUNDARY_STEP
@@ -339,30 +342,47 @@ def _boundary(change: Change, sample: int) -> tuple[Tensor, Tensor, Tensor]:
                     torch.tensor([w - 1.0], dtype=torch.float64)))
     ys = torch.cat((torch.arange(0, h - 1, step, dtype=torch.float64),
                     torch.tensor([h - 1.0], dtype=torch.float64)))
-    parts = [torch.stack((xs, torch.zeros_like(xs)), -1),
-             torch.stack((xs, torch.full_like(xs, h - 1.0)), -1),
-             torch.stack((torch.zeros_like(ys), ys), -1),
-             torch.stack((torch.full_like(ys, w - 1.0), ys), -1)]
-    cones = [(out.fov, -_INSET), (out.blind_fov, _INSET)]
-    for angle, inset in cones:
-        if angle is None or float(angle[sample]) <= 0 or float(angle[sample]) >= 2 * math.pi:
-            continue
-        half = 0.5 * float(angle[sample]) + inset
-        for count in (256, None):   # a coarse circle measures the fine one's sample count
-            if count is None:
-                count = int(min(max(math.ceil(length / step), 64), 1 << 16))
+    edges = torch.cat((torch.stack((xs, torch.zeros_like(xs)), -1),
+                       torch.stack((xs, torch.full_like(xs, h - 1.0)), -1),
+                       torch.stack((torch.zeros_like(ys), ys), -1),
+                       torch.stack((torch.full_like(ys, w - 1.0), ys), -1)))
+    parts = [edges.repeat(len(samples), 1)]
+    owners = [torch.tensor(samples).repeat_interleave(len(edges))]
+    project = get_model(out.model).project
+
+    def circles(rings: list[tuple[int, float, int]]) -> tuple[Tensor, Tensor, Tensor]:
+        """``(sample, half angle, count)`` -> the rings' projections, ok and samples."""
+        rays, idx = [], []
+        for i, half, count in rings:
             phi = torch.arange(count, dtype=torch.float64) * (2 * math.pi / count)
-            rays = torch.stack((math.sin(half) * torch.cos(phi), math.sin(half) * torch.sin(phi),
-                                torch.full_like(phi, math.cos(half))), -1)
-            idx = torch.full((count,), sample, dtype=torch.long)
-            pix, ok = get_model(out.model).project(rays, out.params[idx])
-            ok = ok & torch.isfinite(pix).all(-1)
-            seg = (pix - pix.roll(-1, 0)).norm(dim=-1)
-            length = float(seg[ok & ok.roll(-1, 0)].sum()) if bool(ok.any()) else 0.0
+            rays.append(torch.stack((math.sin(half) * torch.cos(phi),
+                                     math.sin(half) * torch.sin(phi),
+                                     torch.full_like(phi, math.cos(half))), -1))
+            idx.append(torch.full((count,), i, dtype=torch.long))
+        idx = torch.cat(idx)
+        pix, ok = project(torch.cat(rays), out.params[idx])
+        return pix, ok & torch.isfinite(pix).all(-1), idx
+
+    for angle, inset in ((out.fov, -_INSET), (out.blind_fov, _INSET)):
+        if angle is None:
+            continue
+        halves = [(i, 0.5 * float(angle[i]) + inset) for i in samples
+                  if 0 < float(angle[i]) < 2 * math.pi]
+        if not halves:
+            continue
+        # a coarse circle measures the fine one's sample count
+        pix, ok, _ = circles([(i, half, 256) for i, half in halves])
+        pix, ok = pix.reshape(len(halves), 256, 2), ok.reshape(len(halves), 256)
+        seg = (pix - pix.roll(-1, 1)).norm(dim=-1)
+        lengths = torch.where(ok & ok.roll(-1, 1), seg, torch.zeros_like(seg)).sum(-1)
+        pix, ok, idx = circles([
+            (i, half, int(min(max(math.ceil(float(length) / step), 64), 1 << 16)))
+            for (i, half), length in zip(halves, lengths)])
         parts.append(pix[ok])
-    points = torch.cat(parts)
-    src, ok = change.backward(points, torch.full((len(points),), sample, dtype=torch.long))
-    return points, src, ok
+        owners.append(idx[ok])
+    points, owner = torch.cat(parts), torch.cat(owners)
+    src, ok = change.backward(points, owner)
+    return points, owner, src, ok
 
 
 #: Width in pixels of the strips :func:`_pixel_boxes` reads first along each side of a window.
@@ -479,8 +499,11 @@ def map_boxes(change: Change, boxes: list[Tensor], source_size: tuple[int, int],
     box = _extent(pix, ok, which, r)
     # where the outline leaves the valid area: the valid area's boundary inside the region
     inside_all = torch.zeros(r, dtype=torch.bool).index_put_((which,), ~ok, accumulate=True)
-    for i in owner[inside_all].unique().tolist():
-        points, src, seen = _boundary(change, i)
+    cut = owner[inside_all].unique().tolist()
+    every, of, every_src, every_seen = _boundaries(change, cut) if cut else (None,) * 4
+    for i in cut:
+        mask = of == i
+        points, src, seen = every[mask], every_src[mask], every_seen[mask]
         seen = seen & _on_centres(points, ow, oh)
         mine = (inside_all & (owner == i)).nonzero()[:, 0]
         rect = rects[mine]
