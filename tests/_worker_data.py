@@ -106,3 +106,26 @@ class AugmentedSamples(AugmentedImages):
         out = self.aug({"rgb": self.images[i:i + 1], "labels": self.labels[i:i + 1]})
         out["params"]["model"] = out["params"]["model"][0]   # one name: collates to a list
         return {k: (v[0] if isinstance(v, torch.Tensor) else v) for k, v in out.items()}
+
+
+class DetectionSamples(torch.utils.data.Dataset):
+    """Unbatched perspective samples with boxes and keypoints, augmented one at a time in
+    ``__getitem__`` (what a detection ``Dataset`` does): an item is the module's output dict,
+    its input beside it under ``"input"`` (to replay it in the main process)."""
+
+    def __init__(self, aug: RandomReproject) -> None:
+        self.aug = aug
+        gen = torch.Generator().manual_seed(3)
+        self.images = torch.randint(0, 256, (ITEMS, 3, 24, 32), generator=gen,
+                                    dtype=torch.uint8)
+        corner = torch.rand(ITEMS, 4, 2, generator=gen) * torch.tensor([20.0, 14.0])
+        self.boxes = torch.cat((corner, corner + 2 + 8 * torch.rand(ITEMS, 4, 2, generator=gen)),
+                               -1)
+        self.keypoints = torch.rand(ITEMS, 5, 2, generator=gen) * torch.tensor([32.0, 24.0])
+
+    def __len__(self) -> int:
+        return ITEMS
+
+    def __getitem__(self, i: int) -> dict:
+        sample = {"rgb": self.images[i], "boxes": self.boxes[i], "keypoints": self.keypoints[i]}
+        return dict(self.aug(sample), input=sample)

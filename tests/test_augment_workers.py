@@ -10,9 +10,10 @@ from torch.utils.data import DataLoader, default_collate
 
 import omniscape_torch as ot
 
-from _worker_data import (FACE, AugmentCollate, AugmentedCubes, AugmentedImages,
-                          AugmentedSamples, PlainCubes, distorted_source, make_aug,
-                          make_reproject, params_rows, reseed_worker)
+from _worker_data import (FACE, ITEMS, AugmentCollate, AugmentedCubes, AugmentedImages,
+                          AugmentedSamples, DetectionSamples, PlainCubes, distorted_source,
+                          make_aug, make_reproject, params_rows, reseed_worker)
+from omniscape_torch.render.augment import RandomReproject
 
 EPOCHS = 2
 
@@ -184,3 +185,26 @@ def test_a_distorted_source_in_workers_collates_and_replays(context):
                        source_camera=batch["params"]["source_camera"])
     assert torch.equal(again["rgb"], batch["rgb"]) and torch.equal(again["valid"],
                                                                     batch["valid"])
+
+
+def test_boxes_and_keypoints_follow_each_workers_draw_across_epochs():
+    """Detection targets augmented per sample in forked workers, two epochs (a detection
+    ``Dataset`` with ``collate_fn=list``): every item's boxes and keypoints are those of its own
+    draw (replayed in the main process from the item's params), and the epochs draw anew."""
+    aug = RandomReproject((32, 32), source_fov=1.5, seed=0, fisheye_models=("equidistant",))
+    loader = torch.utils.data.DataLoader(DetectionSamples(aug), batch_size=4, num_workers=2,
+                                         collate_fn=list, multiprocessing_context="fork")
+    epochs = [[item for batch in loader for item in batch] for _ in range(2)]
+    for items in epochs:
+        assert len(items) == ITEMS
+        # (something to compare: most boxes and keypoints stay in view)
+        assert sum(len(item["boxes"]) for item in items) > 2 * ITEMS
+        assert sum(int(item["keypoints_valid"].sum()) for item in items) > 2 * ITEMS
+        for item in items:
+            again = aug(item["input"], params=item["params"])
+            assert torch.equal(again["box_index"], item["box_index"])
+            assert torch.equal(again["boxes"], item["boxes"])
+            assert torch.equal(again["keypoints_valid"], item["keypoints_valid"])
+            assert torch.allclose(again["keypoints"], item["keypoints"], equal_nan=True)
+    first, second = ([item["params"]["rotation"] for item in items] for items in epochs)
+    assert not any(torch.equal(a, b) for a, b in zip(first, second))
