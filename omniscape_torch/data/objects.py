@@ -27,6 +27,7 @@ import torch
 from torch import Tensor
 
 from ..io.labels import CLASSES
+from ..render.detection import instance_boxes
 
 __all__ = ["INSTANCE_SHIFT", "decode_objects", "encode_objects", "instance_image",
            "instance_objects", "pack_instances", "unpack_instances"]
@@ -66,7 +67,6 @@ def instance_objects(instances: Tensor, labels: Tensor) -> list[dict]:
         raise ValueError(f"instances, labels: expected two (H, W) maps, got "
                          f"{tuple(instances.shape)} and {tuple(labels.shape)}")
     # numpy, on one thread (as pack_instances): a few milliseconds for an image
-    width = instances.shape[1]
     ids = instances.detach().cpu().reshape(-1).numpy().astype(np.int64)
     if ids.size and int(ids.min()) < 0:
         raise ValueError("instances: ids must be >= 0 (0: none)")
@@ -75,16 +75,13 @@ def instance_objects(instances: Tensor, labels: Tensor) -> list[dict]:
         return []
     unique, index = np.unique(ids[where], return_inverse=True)
     n = unique.size
-    order = np.argsort(index, kind="stable")          # the pixels of each id together
-    starts = np.searchsorted(index[order], np.arange(n))
-    rows, cols = (where // width)[order], (where % width)[order]
     lab = labels.detach().cpu().reshape(-1).numpy()[where].astype(np.int64)
     lab = np.where((lab >= 0) & (lab < _LABEL_RANGE), lab, _LABEL_RANGE - 1)
     counts = np.bincount(index * _LABEL_RANGE + lab, minlength=n * _LABEL_RANGE)
     label = counts.reshape(n, _LABEL_RANGE).argmax(1)   # the first of equal counts
-    boxes = np.stack([np.minimum.reduceat(cols, starts), np.minimum.reduceat(rows, starts),
-                      np.maximum.reduceat(cols, starts) + 1,
-                      np.maximum.reduceat(rows, starts) + 1], 1)
+    # the tight boxes as the augmentation's exact mode computes them (every id has a pixel)
+    boxes = instance_boxes(instances.detach().cpu().reshape(1, *instances.shape),
+                           [torch.from_numpy(unique)])[0][0].long()
     pixels = np.bincount(index, minlength=n)
     return [{"instance_id": int(i), "label": int(c),
              "class": CLASSES[c] if c < len(CLASSES) else "unknown",
