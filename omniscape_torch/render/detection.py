@@ -424,10 +424,10 @@ def _pixel_boxes(change: Change, sample: int, extents: Tensor, rects: Tensor) ->
         return points, part, ok
 
     def extent_of(parts: list[tuple[int, Tensor]], points: Tensor, part: Tensor, ok: Tensor):
-        boxes = torch.tensor([j for j, _ in parts])[part]
-        found = _extent(points, ok, boxes, len(extents))
-        for j in {j for j, _ in parts}:
-            out[j] = found[j] + torch.tensor([-0.5, -0.5, 0.5, 0.5], dtype=out.dtype)
+        owners = torch.tensor([j for j, _ in parts])
+        found = _extent(points, ok, owners[part], len(extents))
+        mine = owners.unique()
+        out[mine] = found[mine] + torch.tensor([-0.5, -0.5, 0.5, 0.5], dtype=out.dtype)
 
     if not todo:
         return out
@@ -437,13 +437,9 @@ def _pixel_boxes(change: Change, sample: int, extents: Tensor, rects: Tensor) ->
         grid(windows[j][0], windows[j][1][:k]), grid(windows[j][0], windows[j][1][-k:]))]
     points, part, ok = hits(parts)
     held = torch.zeros(len(parts), dtype=torch.bool).index_put_((part,), ok, accumulate=True)
+    extent_of(parts, points, part, ok)
     whole = [j for n, j in enumerate(todo) if not bool(held[4 * n:4 * n + 4].all())]
-    strips = [(j, g) for j, g in parts if j not in whole]
-    if strips:
-        keep = torch.tensor([j not in whole for j, _ in parts])[part]
-        kept_part = torch.cumsum(torch.tensor([j not in whole for j, _ in parts]), 0) - 1
-        extent_of(strips, points[keep], kept_part[part[keep]], ok[keep])
-    if whole:
+    if whole:   # their strips' extent is replaced by their whole window's
         parts = [(j, grid(*windows[j])) for j in whole]
         extent_of(parts, *hits(parts))
     return out
