@@ -58,13 +58,16 @@ def test_camera_models_match_cpu(model, params, size):
     ("unified", [70.0, 70.0, 63.5, 63.5, 0.9, 0.0, 0.0, 0.0, 0.0]),
 ])
 def test_layer_renders_and_differentiates_as_on_cpu(model, params):
-    """``OmniProjection`` on CUDA: RGB, depth and labels as on the CPU (labels equal where both
-    are valid), and the gradient to learnable intrinsics the CPU's."""
+    """``OmniProjection`` on CUDA: RGB, depth (a sphere's range) and labels as on the CPU
+    (labels equal where both are valid), and the gradient to learnable intrinsics the CPU's."""
     gen = torch.Generator().manual_seed(1)
     face = 32
     cube = torch.rand(2, 6, 3, face, face, generator=gen)
     labels = torch.randint(0, 13, (2, 6, face, face), generator=gen)
-    depth = 1 + 9 * torch.rand(2, 6, face, face, generator=gen)
+    # a sphere of radius 5 m about the camera: planar depth 5 / |(x, y, 1)| on every face, so
+    # the output range is 5 m wherever it is valid (an oracle for both devices)
+    t = (torch.arange(face) - (face - 1) / 2) / (face / 2)
+    depth = (5 / (1 + t[:, None] ** 2 + t[None, :] ** 2).sqrt()).expand(2, 6, face, face)
     outs, grads = [], []
     for device in ("cpu", CUDA):
         cam = ot.Camera(model, params, (128, 128), learnable=True).to(device)
@@ -80,8 +83,10 @@ def test_layer_renders_and_differentiates_as_on_cpu(model, params):
     assert int(both.sum()) > 0.3 * both.numel()
     torch.testing.assert_close(gpu["rgb"].permute(0, 2, 3, 1)[both],
                                cpu["rgb"].permute(0, 2, 3, 1)[both], atol=1e-4, rtol=0)
+    for out in (cpu, gpu):
+        assert float((out["depth"][:, 0][both] - 5).abs().max()) < 0.05
     torch.testing.assert_close(gpu["depth"][:, 0][both], cpu["depth"][:, 0][both],
-                               atol=1e-3, rtol=1e-4)
+                               atol=1e-3, rtol=0)
     assert (gpu["labels"][both] == cpu["labels"][both]).float().mean() > 0.999
     torch.testing.assert_close(grads[1], grads[0], rtol=2e-3, atol=1e-6)
 

@@ -195,7 +195,13 @@ def test_without_ray_the_option_fails_at_once_naming_the_install(tmp_path, capsy
     (["--frames-per-shard", "4"], "webdataset"),
     (["--ray", "--workers", "2"], "workers"),
 ])
-def test_bad_options_are_one_line_and_exit_2(tmp_path, capsys, argv, message):
+@pytest.mark.parametrize("ray_installed", [True, False])
+def test_bad_options_are_one_line_and_exit_2(tmp_path, capsys, monkeypatch, argv, message,
+                                             ray_installed):
+    """A usage error is exit 2 whether or not the optional Ray is installed (a machine without
+    it once answered ``--ray --workers 2`` with "Ray is not installed", exit 1)."""
+    if not ray_installed:
+        monkeypatch.setitem(sys.modules, "ray", None)      # `import ray` raises ImportError
     with pytest.raises(SystemExit) as info:   # argparse's usage error, or ours
         sys.exit(cli.main(["generate", "--out", str(tmp_path / "x"), *ARGS, *argv]))
     assert info.value.code == 2

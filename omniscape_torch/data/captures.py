@@ -450,10 +450,10 @@ def convert_captures(cubemaps_dir: str | Path, out_dir: str | Path, *, label_set
     """
     use_ray = ray is not None and ray is not False
     if use_ray:
-        distributed.import_ray()
-        if torch.device(device).type != "cpu":
+        if torch.device(device).type != "cpu":   # a usage error first, Ray installed or not
             raise ValueError(f"device: with ray, captures are converted on the cluster's CPUs; "
                              f"got {device!r}")
+        distributed.import_ray()
     if depth_output not in ("range", "z"):
         raise ValueError(f"depth_output: expected 'range' or 'z', got {depth_output!r}")
     if label_set not in LABEL_SETS:

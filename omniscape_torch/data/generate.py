@@ -797,10 +797,10 @@ def generate(out: str | Path, config: DatasetConfig | None = None, *, workers: i
     require_pillow()   # the images are PNGs written with Pillow: say so before any work
     use_ray = ray is not None and ray is not False
     if use_ray:
-        distributed.import_ray()
-        if workers != 1:
+        if workers != 1:   # a usage error first, whether or not Ray is installed
             raise ValueError(f"workers: with ray, the cluster's CPUs render the frames; give "
                              f"one or the other, got workers={workers}")
+        distributed.import_ray()
     if format not in FORMATS:
         raise ValueError(f"format: expected one of {FORMATS}, got {format!r}")
     if frames_per_shard is not None:

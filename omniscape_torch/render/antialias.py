@@ -102,12 +102,11 @@ def _atlas(image: Tensor, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
     sizes = [(height, width)]
     while max(sizes[-1]) > 1:
         sizes.append(tuple(-(-n // 2) for n in sizes[-1]))
-    table = torch.zeros(len(sizes), 4, dtype=dtype)
-    table[0] = torch.tensor([0.0, 0.0, width, height])
-    y = 0
-    for k, (hk, wk) in enumerate(sizes[1:], 1):
-        table[k] = torch.tensor([float(width), float(y), wk, hk])
+    rows, y = [[0.0, 0.0, width, height]], 0
+    for hk, wk in sizes[1:]:
+        rows.append([width, y, wk, hk])
         y += hk
+    table = torch.tensor(rows, dtype=dtype, device=image.device)
     if len(sizes) == 1:
         return image.to(dtype), table
     full, column = max(height, y), sizes[1][1]
@@ -130,10 +129,10 @@ def _atlas(image: Tensor, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
     return atlas, table
 
 
-def _offsets(taps: int, dtype: torch.dtype) -> Tensor:
+def _offsets(taps: int, dtype: torch.dtype, device: torch.device) -> Tensor:
     """``(taps**2, 2)`` tap positions in a footprint's frame: the centres of a ``taps x taps``
     subgrid of ``[-0.5, 0.5]^2``."""
-    o = (torch.arange(taps, dtype=dtype) + 0.5) / taps - 0.5
+    o = (torch.arange(taps, dtype=dtype, device=device) + 0.5) / taps - 0.5
     return torch.stack(torch.meshgrid(o, o, indexing="ij"), -1).reshape(-1, 2)
 
 
@@ -183,7 +182,7 @@ def mip_sample(image: Tensor, pixels: Tensor, valid: Tensor, du: Tensor, dv: Ten
     level = torch.log2(rho / n).clamp(0, last)
     below = level.floor()
     lower = below.long()
-    o = _offsets(n, dtype)                                                     # (T, 2)
+    o = _offsets(n, dtype, image.device)                                                   # (T, 2)
     sizes = (atlas.shape[-1], atlas.shape[-2])
     grids = []   # per level (B, T, N, 2): the taps' grid_sample coordinates, pixels innermost
     two = bool((level > below).any())   # a second level where some pixel blends two
