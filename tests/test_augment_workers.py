@@ -187,13 +187,15 @@ def test_a_distorted_source_in_workers_collates_and_replays(context):
                                                                     batch["valid"])
 
 
-def test_boxes_and_keypoints_follow_each_workers_draw_across_epochs():
-    """Detection targets augmented per sample in forked workers, two epochs (a detection
-    ``Dataset`` with ``collate_fn=list``): every item's boxes and keypoints are those of its own
-    draw (replayed in the main process from the item's params), and the epochs draw anew."""
+@pytest.mark.parametrize("context", ["fork", pytest.param("spawn", marks=pytest.mark.slow)])
+def test_boxes_and_keypoints_follow_each_workers_draw_across_epochs(context):
+    """Detection targets augmented per sample in forked and spawned workers, two epochs (a
+    detection ``Dataset`` with ``collate_fn=list``): every item's boxes and keypoints are those
+    of its own draw (replayed in the main process from the item's params), and the epochs draw
+    anew."""
     aug = RandomReproject((32, 32), source_fov=1.5, seed=0, fisheye_models=("equidistant",))
     loader = torch.utils.data.DataLoader(DetectionSamples(aug), batch_size=4, num_workers=2,
-                                         collate_fn=list, multiprocessing_context="fork")
+                                         collate_fn=list, multiprocessing_context=context)
     epochs = [[item for batch in loader for item in batch] for _ in range(2)]
     for items in epochs:
         assert len(items) == ITEMS
