@@ -23,8 +23,7 @@ from __future__ import annotations
 
 import math
 
-import torch
-from torch import Tensor
+import numpy as np
 
 __all__ = ["DIRECTIONS", "focal_for_coverage", "reach", "to_edge"]
 
@@ -32,52 +31,53 @@ __all__ = ["DIRECTIONS", "focal_for_coverage", "reach", "to_edge"]
 DIRECTIONS = 256
 
 
-def _source_planes(intrinsics: Tensor, source_size: tuple[int, int]) -> Tensor:
+def _source_planes(intrinsics: np.ndarray, source_size: tuple[int, int]) -> np.ndarray:
     """``(n, 5, 3)`` normals ``m`` of the planes bounding the rays a pinhole sees,
     ``m . ray <= 0`` inside: the image's four edges (pixel centres at integers, edges at
     ``-0.5`` and ``W - 0.5``) and ``z > 0``."""
-    fx, fy, cx, cy = intrinsics.unbind(-1)
+    fx, fy, cx, cy = np.moveaxis(intrinsics, -1, 0)
     height, width = source_size
-    one, zero = torch.ones_like(fx), torch.zeros_like(fx)
-    left, right = (-0.5 - cx) / fx, (width - 0.5 - cx) / fx
-    top, bottom = (-0.5 - cy) / fy, (height - 0.5 - cy) / fy
-    return torch.stack((torch.stack((one, zero, -right), -1),     # x / z <= right
-                        torch.stack((-one, zero, left), -1),      # x / z >= left
-                        torch.stack((zero, one, -bottom), -1),
-                        torch.stack((zero, -one, top), -1),
-                        torch.stack((zero, zero, -one), -1)), 1)  # z >= 0
+    planes = np.zeros((len(fx), 5, 3))
+    planes[:, 0, 0], planes[:, 0, 2] = 1, -(width - 0.5 - cx) / fx     # x / z <= right
+    planes[:, 1, 0], planes[:, 1, 2] = -1, (-0.5 - cx) / fx            # x / z >= left
+    planes[:, 2, 1], planes[:, 2, 2] = 1, -(height - 0.5 - cy) / fy
+    planes[:, 3, 1], planes[:, 3, 2] = -1, (-0.5 - cy) / fy
+    planes[:, 4, 2] = -1                                               # z >= 0
+    return planes
 
 
-def reach(rotation: Tensor, intrinsics: Tensor, source_size: tuple[int, int], half: Tensor,
-          phi: Tensor) -> Tensor:
+def reach(rotation: np.ndarray, intrinsics: np.ndarray, source_size: tuple[int, int],
+          half: np.ndarray, phi: np.ndarray) -> np.ndarray:
     """``theta_max (n, D)``: along each image direction ``phi (D,)`` about the fisheye's
     centre, the angle from its axis out to which its rays (``ray_src = R @ ray``,
     ``rotation (n, 3, 3)``) reach the pinhole image (``intrinsics (n, 4)``, ``source_size``),
-    at most the half field of view ``half (n,)``; 0 where the axis itself misses it."""
-    planes = _source_planes(intrinsics, source_size)                 # source frame
-    m = torch.einsum("nkj,nji->nki", planes, rotation)               # R^T m: fisheye frame
-    a = m[..., 2].unsqueeze(-1)                                      # (n, 5, 1)
-    b = m[..., 0, None] * torch.cos(phi) + m[..., 1, None] * torch.sin(phi)   # (n, 5, D)
-    cross = torch.where(a < 0, torch.atan2(-a, b), torch.zeros_like(b))
-    return torch.minimum(cross.amin(1), half.unsqueeze(-1))
+    at most the half field of view ``half (n,)``; 0 where the axis itself misses it. Arrays
+    are float64 numpy (tensors are read as such)."""
+    planes = _source_planes(np.asarray(intrinsics, np.float64), source_size)   # source frame
+    m = planes @ np.asarray(rotation, np.float64)                    # R^T m: fisheye frame
+    a = m[..., 2, None]                                              # (n, 5, 1)
+    b = m[..., 0, None] * np.cos(phi) + m[..., 1, None] * np.sin(phi)   # (n, 5, D)
+    cross = np.where(a < 0, np.arctan2(-a, b), 0.0)
+    return np.minimum(cross.min(1), np.asarray(half, np.float64)[:, None])
 
 
-def to_edge(centre: Tensor, image_size: tuple[int, int], phi: Tensor) -> Tensor:
+def to_edge(centre: np.ndarray, image_size: tuple[int, int], phi: np.ndarray) -> np.ndarray:
     """``(n, D)`` distance from ``centre (n, 2)`` to the output rectangle's edge (pixel edges
     ``-0.5`` and ``W - 0.5``) along each direction ``phi``."""
     height, width = image_size
-    cos, sin = torch.cos(phi), torch.sin(phi)
-    big = torch.tensor(math.inf, dtype=centre.dtype)
+    cos, sin = np.cos(phi), np.sin(phi)
+    centre = np.asarray(centre, np.float64)
     cx, cy = centre[:, :1], centre[:, 1:]
-    tx = torch.where(cos > 1e-12, (width - 0.5 - cx) / cos,
-                     torch.where(cos < -1e-12, (-0.5 - cx) / cos, big))
-    ty = torch.where(sin > 1e-12, (height - 0.5 - cy) / sin,
-                     torch.where(sin < -1e-12, (-0.5 - cy) / sin, big))
-    return torch.minimum(tx, ty)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tx = np.where(cos > 1e-12, (width - 0.5 - cx) / cos,
+                      np.where(cos < -1e-12, (-0.5 - cx) / cos, math.inf))
+        ty = np.where(sin > 1e-12, (height - 0.5 - cy) / sin,
+                      np.where(sin < -1e-12, (-0.5 - cy) / sin, math.inf))
+    return np.minimum(tx, ty)
 
 
-def focal_for_coverage(radius: Tensor, to_edge: Tensor, coverage: Tensor,
-                       image_size: tuple[int, int]) -> Tensor:
+def focal_for_coverage(radius: np.ndarray, to_edge: np.ndarray, coverage: np.ndarray,
+                       image_size: tuple[int, int]) -> np.ndarray:
     """The focal ``f (n,)`` at which ``sum_d min(f radius, to_edge)^2 * pi / (D H W)`` (the
     valid share, module docstring) equals ``coverage (n,)``.
 
@@ -88,23 +88,26 @@ def focal_for_coverage(radius: Tensor, to_edge: Tensor, coverage: Tensor,
             (a source that does not surround the centre) gives the focal that fills it most.
         image_size: ``(H, W)`` of the output.
     """
+    radius, to_edge = np.asarray(radius, np.float64), np.asarray(to_edge, np.float64)
+    coverage = np.asarray(coverage, np.float64)
     n, d = radius.shape
     norm = math.pi / (d * image_size[0] * image_size[1])             # share per unit r^2
-    breaks = torch.where(radius > 0, to_edge / radius.clamp_min(1e-300),
-                         torch.full_like(radius, math.inf))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        breaks = np.where(radius > 0, to_edge / np.maximum(radius, 1e-300), math.inf)
+    rows = np.arange(n)[:, None]
     order = breaks.argsort(-1)
-    breaks = breaks.gather(-1, order)
-    r2 = radius.gather(-1, order).square()
-    e2 = to_edge.gather(-1, order).square()
-    zero = torch.zeros(n, 1, dtype=radius.dtype)
-    clipped = torch.cat((zero, e2.cumsum(-1)), -1)                   # before break i: sum e^2
-    free = r2.flip(-1).cumsum(-1).flip(-1)                           # from break i on: sum r^2
-    free = torch.cat((free, zero), -1)
-    finite = torch.isfinite(breaks)
-    at_break = norm * (clipped[:, :-1] + breaks.square() * free[:, :-1])
-    at_break = torch.where(finite, at_break, torch.full_like(at_break, math.inf))
-    i = (at_break < coverage.unsqueeze(-1)).sum(-1, keepdim=True)    # the piece holding it
-    c, u = clipped.gather(-1, i)[:, 0], free.gather(-1, i)[:, 0]
-    focal = torch.sqrt(((coverage / norm - c) / u.clamp_min(1e-300)).clamp_min(0))
-    last = torch.where(finite, breaks, torch.zeros_like(breaks)).amax(-1)
-    return torch.where(u > 0, focal, last)
+    breaks = breaks[rows, order]
+    r2 = np.square(radius[rows, order])
+    e2 = np.square(to_edge[rows, order])
+    zero = np.zeros((n, 1))
+    clipped = np.concatenate((zero, e2.cumsum(-1)), -1)              # before break i: sum e^2
+    free = np.concatenate((r2[:, ::-1].cumsum(-1)[:, ::-1], zero), -1)   # from break i on
+    finite = np.isfinite(breaks)
+    with np.errstate(invalid="ignore"):
+        at_break = np.where(finite, norm * (clipped[:, :-1] + np.square(breaks) * free[:, :-1]),
+                            math.inf)
+    i = (at_break < coverage[:, None]).sum(-1)                       # the piece holding it
+    c, u = clipped[rows[:, 0], i], free[rows[:, 0], i]
+    focal = np.sqrt(np.maximum((coverage / norm - c) / np.maximum(u, 1e-300), 0))
+    last = np.where(finite, breaks, 0.0).max(-1)
+    return np.where(u > 0, focal, last)
