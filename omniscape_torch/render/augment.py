@@ -364,18 +364,21 @@ class _RandomCameras(nn.Module):
         out = {}
         models = params["model"]
         names = sorted(set(models))
+        counts = params["num_params"].tolist()
         for name in names:
             if len(names) == 1:
                 idx = torch.arange(len(models))
-                p = int(params["num_params"][0])
+                p = counts[0]
                 rows = params["camera_params"][:, :p]
             else:
+                first = models.index(name)
                 idx = torch.tensor([i for i, m in enumerate(models) if m == name],
                                    dtype=torch.long)
-                p = int(params["num_params"][idx[0]])
+                p = counts[first]
                 rows = params["camera_params"][idx, :p]
             if name in _FIXED_REACH and p == 4:
-                if not bool((torch.isfinite(rows).all(-1) & (rows[:, :2] > 0).all(-1)).all()):
+                values = rows.detach().cpu().numpy()
+                if not (np.isfinite(values).all() and (values[:, :2] > 0).all()):
                     raise ValueError(f'params["camera_params"]: expected finite {name} '
                                      f"parameters with fx, fy > 0, got {rows.tolist()}")
                 out[name] = (idx, rows.to(dtype=dtype, device=device))
@@ -1170,11 +1173,13 @@ class RandomReproject(_RandomCameras):
         self.coverage_range = coverage_range
         self.antialias = antialias
         self._check_fisheye_ranges()
-        self._unit_lenses: dict[str, _UnitLens] = {}   # _unit_lens, by model
+        # what depends on the arguments above alone, made on first use (keyed by the values
+        # it depends on): _unit_lens, the framing's distances to the edges without jitter
+        self._cached: dict[tuple, object] = {}
 
     def __getstate__(self) -> dict:
         state = super().__getstate__()
-        state["_unit_lenses"] = {}   # made again on first use (no tensors in the pickle)
+        state["_cached"] = {}   # made again on first use (no tensors in the pickle)
         return state
 
     def __setstate__(self, state: dict) -> None:
@@ -1182,7 +1187,7 @@ class RandomReproject(_RandomCameras):
         # pickled before framing and antialiasing existed: as they rendered then
         state.setdefault("coverage_range", None)
         state.setdefault("antialias", False)
-        state.setdefault("_unit_lenses", {})
+        state.setdefault("_cached", {})
         super().__setstate__(state)
         if "source_camera" not in self._modules:   # pickled before it existed
             self.source_camera = None
@@ -1261,9 +1266,9 @@ class RandomReproject(_RandomCameras):
                             for a, bounds in ((yaw, self.yaw_range), (pitch, self.pitch_range),
                                               (roll, self.roll_range)))
         coverage = self._scaled(coverage[:, 0], self.coverage_range) if framed else None
-        rotation = np.stack([np.stack(row, -1) for row in rotation_rows(
+        rotation = np.stack([entry for row in rotation_rows(
             np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll),
-            np.sin(roll))], -2)
+            np.sin(roll)) for entry in row], -1).reshape(n, 3, 3)
         h, w = self.image_size
         centre = np.stack(((w - 1) / 2 + jitter[:, 0], (h - 1) / 2 + jitter[:, 1]), -1)
         index = (np.clip(u_model[:, 0], 0, 1 - 1e-12) * len(self.fisheye_models)).astype(np.int64)
@@ -1317,7 +1322,7 @@ class RandomReproject(_RandomCameras):
         """``(n,)`` focals at which the pinhole sources fill the shares ``coverage`` of the
         output (:mod:`~omniscape_torch.render.framing`), for lenses ``extra``, ``half``
         centred at ``centre (n, 2)``. The lens radius at focal 1 of a lens without parameters
-        comes from its table (:meth:`_unit_lens`, linear between its angles: within 1e-7 of
+        comes from its table (:meth:`_unit_lens`, linear between its angles: within 1e-9 of
         the model's), of the others from the model's projection."""
         d = framing.DIRECTIONS
         phi = np.arange(d) * (2 * math.pi / d)
@@ -1329,8 +1334,15 @@ class RandomReproject(_RandomCameras):
             n = theta.shape[0]
             radius = _unit_radius(name, torch.from_numpy(extra).repeat_interleave(d, 0),
                                   torch.from_numpy(theta.reshape(-1)))[0].numpy().reshape(n, d)
-        return framing.focal_for_coverage(radius, framing.to_edge(centre, self.image_size, phi),
-                                          coverage, self.image_size)
+        if self.center_jitter == 0:   # every centre the image's: its distances made once
+            key = ("to_edge", self.image_size)
+            edges = self._cached.get(key)
+            if edges is None:
+                edges = self._cached[key] = framing.to_edge(centre[:1], self.image_size, phi)
+            edges = np.broadcast_to(edges, radius.shape)
+        else:
+            edges = framing.to_edge(centre, self.image_size, phi)
+        return framing.focal_for_coverage(radius, edges, coverage, self.image_size)
 
     def _unit_lens(self, name: str) -> "_UnitLens | None":
         """For a lens without parameters (``equidistant``, ``equisolid``, ``stereographic``),
@@ -1342,7 +1354,8 @@ class RandomReproject(_RandomCameras):
         drawn field of view)."""
         if name not in _FIXED_REACH:
             return None
-        unit = self._unit_lenses.get(name)
+        key = (name, self.fov_range[1], self.image_size)
+        unit = self._cached.get(key)
         if unit is None:
             f64 = dict(dtype=torch.float64)
             half = 0.5 * self.fov_range[1]     # < the model's reach (_check_fisheye_ranges)
@@ -1356,7 +1369,7 @@ class RandomReproject(_RandomCameras):
             limits[2] = limits[2].clamp_max(radius[-1])   # valid within the table only
             unit = _UnitLens(theta.numpy(), radius.numpy(), limits.numpy(),
                              {torch.float64: table, torch.float32: table.float()})
-            self._unit_lenses[name] = unit
+            self._cached[key] = unit
         return unit
 
     def _rays(self, name: str, params: Tensor, fov: Tensor) -> tuple[Tensor, Tensor]:
@@ -1367,17 +1380,19 @@ class RandomReproject(_RandomCameras):
         unit = self._unit_lens(name)
         if unit is None:
             return camera_rays(name, params, self.image_size, fov=fov, dtype=params.dtype)
-        fx, fy, cx, cy = params[:, :4].to(torch.float64).numpy().T
+        fx, fy, cx, cy = params[:, :4].numpy().astype(np.float64).T
         n = len(fx)
         affine = np.zeros((n, 6))          # cx, cy and M = diag(1 / fx, 1 / fy)
         affine[:, 0], affine[:, 1], affine[:, 2], affine[:, 5] = cx, cy, 1 / fx, 1 / fy
         limits = np.empty((n, 5))          # scale, root, end, cos(fov / 2), no blind cone
         limits[:, :3] = unit.limits
-        limits[:, 3] = np.cos(0.5 * fov.to(torch.float64).numpy())
+        limits[:, 3] = np.cos(0.5 * fov.numpy().astype(np.float64))
         limits[:, 4] = 2.0
-        return fast.camera_rays(torch.from_numpy(affine), torch.from_numpy(limits),
-                                unit.tables[params.dtype].expand(n, -1, -1), self.image_size,
-                                params.dtype)
+        table = unit.tables[params.dtype]
+        as_dtype = table.numpy().dtype     # in the rays' dtype, as the op takes them
+        return fast.camera_rays(torch.from_numpy(affine.astype(as_dtype)),
+                                torch.from_numpy(limits.astype(as_dtype)),
+                                table.expand(n, -1, -1), self.image_size, params.dtype)
 
     def source_intrinsics(self, image_size: tuple[int, int], batch: int) -> Tensor:
         """``(batch, 4)`` float64 pinhole intrinsics of images of ``image_size`` from
@@ -1388,7 +1403,7 @@ class RandomReproject(_RandomCameras):
                              "cy, or construct RandomReproject with source_fov")
         h, w = image_size
         f = (w / 2) / math.tan(self.source_fov / 2)
-        return torch.tensor([[f, f, (w - 1) / 2, (h - 1) / 2]] * batch, dtype=torch.float64)
+        return torch.from_numpy(np.tile(np.array([f, f, (w - 1) / 2, (h - 1) / 2]), (batch, 1)))
 
     def render(self, image: Tensor | None, params: dict, *, labels: Tensor | None = None,
                depth: Tensor | None = None, intrinsics: Tensor | None = None,
@@ -1497,13 +1512,15 @@ class RandomReproject(_RandomCameras):
                             fov=source.fov, blind_fov=source.blind_fov)
         # on the CPU a few samples at a time (projection.CHUNK_PIXELS): the rays of a chunk
         chunk = batch if device.type != "cpu" else max(1, projection.CHUNK_PIXELS // (h * w))
-        for name, (idx, cam_params) in self._camera_params(params, dtype, device).items():
+        groups = self._camera_params(params, dtype, device)
+        rotations = params["rotation"].to(dtype=dtype, device=device)
+        fovs = params["fov"].to(dtype=dtype, device=device)
+        for name, (idx, cam_params) in groups.items():
             for start in range(0, len(idx), chunk):
                 sel = idx[start:start + chunk]
-                part = _Part(cam_params[start:start + chunk], sel,
-                             params["rotation"][sel].to(dtype=dtype, device=device),
-                             params["fov"][sel].to(dtype=dtype, device=device),
-                             None if k is None else k[sel].to(device), size,
+                at = slice(start, start + chunk) if len(groups) == 1 else sel   # (views)
+                part = _Part(cam_params[start:start + chunk], sel, rotations[at], fovs[at],
+                             None if k is None else k[at].to(device), size,
                              None if source is None else _rows(source, sel.to(device)))
                 render = self._render_fast if fast_path else self._render_exact
                 render(name, part, image, labels, depth, result)
@@ -1858,8 +1875,8 @@ def _rows(camera: Camera, index: Tensor) -> Camera:
 
 
 #: Angles of a lens's radius at focal 1 in :meth:`RandomReproject._unit_lens` (linear between
-#: them: within 1e-7 of the model's radius out to 200 degrees).
-_UNIT_ANGLES = 4096
+#: them: within 1e-9 of the model's radius, relative, out to 200 degrees).
+_UNIT_ANGLES = 16384
 
 
 class _UnitLens(NamedTuple):

@@ -35,15 +35,21 @@ def _source_planes(intrinsics: np.ndarray, source_size: tuple[int, int]) -> np.n
     """``(n, 5, 3)`` normals ``m`` of the planes bounding the rays a pinhole sees,
     ``m . ray <= 0`` inside: the image's four edges (pixel centres at integers, edges at
     ``-0.5`` and ``W - 0.5``) and ``z > 0``."""
-    fx, fy, cx, cy = np.moveaxis(intrinsics, -1, 0)
+    fx, fy, cx, cy = intrinsics.T
     height, width = source_size
     planes = np.zeros((len(fx), 5, 3))
-    planes[:, 0, 0], planes[:, 0, 2] = 1, -(width - 0.5 - cx) / fx     # x / z <= right
-    planes[:, 1, 0], planes[:, 1, 2] = -1, (-0.5 - cx) / fx            # x / z >= left
-    planes[:, 2, 1], planes[:, 2, 2] = 1, -(height - 0.5 - cy) / fy
-    planes[:, 3, 1], planes[:, 3, 2] = -1, (-0.5 - cy) / fy
-    planes[:, 4, 2] = -1                                               # z >= 0
+    planes[:, :4, :2] = _EDGE_NORMALS
+    planes[:, :, 2] = np.stack((-(width - 0.5 - cx) / fx,           # x / z <= right
+                                (-0.5 - cx) / fx,                   # x / z >= left
+                                -(height - 0.5 - cy) / fy,
+                                (-0.5 - cy) / fy,
+                                np.full_like(fx, -1.0)), -1)        # z >= 0
     return planes
+
+
+#: The ``x, y`` components of the normals of :func:`_source_planes`' four edges.
+_EDGE_NORMALS = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
+_EDGE_NORMALS.flags.writeable = False
 
 
 def reach(rotation: np.ndarray, intrinsics: np.ndarray, source_size: tuple[int, int],
@@ -52,28 +58,36 @@ def reach(rotation: np.ndarray, intrinsics: np.ndarray, source_size: tuple[int, 
     centre, the angle from its axis out to which its rays (``ray_src = R @ ray``,
     ``rotation (n, 3, 3)``) reach the pinhole image (``intrinsics (n, 4)``, ``source_size``),
     at most the half field of view ``half (n,)``; 0 where the axis itself misses it. Arrays
-    are float64 numpy (tensors are read as such)."""
+    are float64 NumPy (tensors are read as such).
+
+    Each plane's crossing ``t = atan2(-A, B)`` (``A < 0``: the axis inside) decreases with
+    ``B / -A``, so the nearest plane is the one of the largest ratio: one ``atan2`` per
+    direction, not one per plane."""
     planes = _source_planes(np.asarray(intrinsics, np.float64), source_size)   # source frame
     m = planes @ np.asarray(rotation, np.float64)                    # R^T m: fisheye frame
-    a = m[..., 2, None]                                              # (n, 5, 1)
-    b = m[..., 0, None] * np.cos(phi) + m[..., 1, None] * np.sin(phi)   # (n, 5, D)
-    cross = np.where(a < 0, np.arctan2(-a, b), 0.0)
-    return np.minimum(cross.min(1), np.asarray(half, np.float64)[:, None])
+    a = m[..., 2]                                                    # (n, 5)
+    inside = (a < 0).all(-1)                                         # the axis sees the source
+    scale = np.where(inside[:, None], -1 / np.where(a < 0, a, -1.0), 0.0)
+    ratio = ((m[..., 0] * scale)[..., None] * np.cos(phi) +
+             (m[..., 1] * scale)[..., None] * np.sin(phi)).max(1)   # (n, D)
+    cross = np.where(inside[:, None], np.arctan2(1.0, ratio), 0.0)
+    return np.minimum(cross, np.asarray(half, np.float64)[:, None])
 
 
 def to_edge(centre: np.ndarray, image_size: tuple[int, int], phi: np.ndarray) -> np.ndarray:
     """``(n, D)`` distance from ``centre (n, 2)`` to the output rectangle's edge (pixel edges
     ``-0.5`` and ``W - 0.5``) along each direction ``phi``."""
     height, width = image_size
-    cos, sin = np.cos(phi), np.sin(phi)
     centre = np.asarray(centre, np.float64)
     cx, cy = centre[:, :1], centre[:, 1:]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        tx = np.where(cos > 1e-12, (width - 0.5 - cx) / cos,
-                      np.where(cos < -1e-12, (-0.5 - cx) / cos, math.inf))
-        ty = np.where(sin > 1e-12, (height - 0.5 - cy) / sin,
-                      np.where(sin < -1e-12, (-0.5 - cy) / sin, math.inf))
-    return np.minimum(tx, ty)
+    out = np.full((len(centre), len(phi)), math.inf)
+    for c, size, t in ((np.cos(phi), width, cx), (np.sin(phi), height, cy)):
+        ahead, behind = c > 1e-12, c < -1e-12
+        safe = np.where(ahead | behind, c, 1.0)
+        dist = np.where(ahead, (size - 0.5 - t) / safe, np.where(behind, (-0.5 - t) / safe,
+                                                                  math.inf))
+        np.minimum(out, dist, out=out)
+    return out
 
 
 def focal_for_coverage(radius: np.ndarray, to_edge: np.ndarray, coverage: np.ndarray,
@@ -92,8 +106,7 @@ def focal_for_coverage(radius: np.ndarray, to_edge: np.ndarray, coverage: np.nda
     coverage = np.asarray(coverage, np.float64)
     n, d = radius.shape
     norm = math.pi / (d * image_size[0] * image_size[1])             # share per unit r^2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        breaks = np.where(radius > 0, to_edge / np.maximum(radius, 1e-300), math.inf)
+    breaks = np.where(radius > 0, to_edge / np.maximum(radius, 1e-300), math.inf)
     rows = np.arange(n)[:, None]
     order = breaks.argsort(-1)
     breaks = breaks[rows, order]
@@ -103,11 +116,11 @@ def focal_for_coverage(radius: np.ndarray, to_edge: np.ndarray, coverage: np.nda
     clipped = np.concatenate((zero, e2.cumsum(-1)), -1)              # before break i: sum e^2
     free = np.concatenate((r2[:, ::-1].cumsum(-1)[:, ::-1], zero), -1)   # from break i on
     finite = np.isfinite(breaks)
-    with np.errstate(invalid="ignore"):
-        at_break = np.where(finite, norm * (clipped[:, :-1] + np.square(breaks) * free[:, :-1]),
-                            math.inf)
+    ends = np.where(finite, breaks, 0.0)                               # (no inf * 0)
+    at_break = np.where(finite, norm * (clipped[:, :-1] + np.square(ends) * free[:, :-1]),
+                        math.inf)
     i = (at_break < coverage[:, None]).sum(-1)                       # the piece holding it
     c, u = clipped[rows[:, 0], i], free[rows[:, 0], i]
     focal = np.sqrt(np.maximum((coverage / norm - c) / np.maximum(u, 1e-300), 0))
-    last = np.where(finite, breaks, 0.0).max(-1)
+    last = ends.max(-1)
     return np.where(u > 0, focal, last)
