@@ -1324,24 +1324,22 @@ class RandomReproject(_RandomCameras):
         centred at ``centre (n, 2)``. The lens radius at focal 1 of a lens without parameters
         comes from its table (:meth:`_unit_lens`, linear between its angles: within 1e-9 of
         the model's), of the others from the model's projection."""
-        d = framing.DIRECTIONS
-        phi = np.arange(d) * (2 * math.pi / d)
-        theta = framing.reach(rotation, intrinsics, source_size, half, phi)      # (n, D)
+        theta = framing.reach(rotation, intrinsics, source_size, half)           # (n, D)
         unit = self._unit_lens(name)
         if unit is not None:
             radius = np.interp(theta, unit.theta, unit.radius)
         else:
-            n = theta.shape[0]
+            n, d = theta.shape
             radius = _unit_radius(name, torch.from_numpy(extra).repeat_interleave(d, 0),
                                   torch.from_numpy(theta.reshape(-1)))[0].numpy().reshape(n, d)
         if self.center_jitter == 0:   # every centre the image's: its distances made once
             key = ("to_edge", self.image_size)
             edges = self._cached.get(key)
             if edges is None:
-                edges = self._cached[key] = framing.to_edge(centre[:1], self.image_size, phi)
+                edges = self._cached[key] = framing.to_edge(centre[:1], self.image_size)
             edges = np.broadcast_to(edges, radius.shape)
         else:
-            edges = framing.to_edge(centre, self.image_size, phi)
+            edges = framing.to_edge(centre, self.image_size)
         return framing.focal_for_coverage(radius, edges, coverage, self.image_size)
 
     def _unit_lens(self, name: str) -> "_UnitLens | None":
