@@ -1327,7 +1327,7 @@ class RandomReproject(_RandomCameras):
         theta = framing.reach(rotation, intrinsics, source_size, half)           # (n, D)
         unit = self._unit_lens(name)
         if unit is not None:
-            radius = np.interp(theta, unit.theta, unit.radius)
+            radius = unit.radius_at(theta)
         else:
             n, d = theta.shape
             radius = _unit_radius(name, torch.from_numpy(extra).repeat_interleave(d, 0),
@@ -1337,7 +1337,6 @@ class RandomReproject(_RandomCameras):
             edges = self._cached.get(key)
             if edges is None:
                 edges = self._cached[key] = framing.to_edge(centre[:1], self.image_size)
-            edges = np.broadcast_to(edges, radius.shape)
         else:
             edges = framing.to_edge(centre, self.image_size)
         return framing.focal_for_coverage(radius, edges, coverage, self.image_size)
@@ -1358,14 +1357,16 @@ class RandomReproject(_RandomCameras):
             f64 = dict(dtype=torch.float64)
             half = 0.5 * self.fov_range[1]     # < the model's reach (_check_fisheye_ranges)
             limit = float(get_model(name).max_angle(torch.ones(1, 4, **f64)))
-            theta = torch.linspace(0, min(half + 0.02, 0.5 * (half + limit)), _UNIT_ANGLES, **f64)
+            step = min(half + 0.02, 0.5 * (half + limit)) / (_UNIT_ANGLES - 1)
+            theta = torch.arange(_UNIT_ANGLES, **f64) * step
             radius, _ = _unit_radius(name, torch.zeros(_UNIT_ANGLES, 0, **f64), theta)
             radius[0] = 0.0
             _, limits, table = radial_table(name, torch.tensor([[1.0, 1.0, 0.0, 0.0]], **f64),
                                             self.image_size, reach=float(radius[-1]))
             limits = limits[0, :3].clone()
             limits[2] = limits[2].clamp_max(radius[-1])   # valid within the table only
-            unit = _UnitLens(theta.numpy(), radius.numpy(), limits.numpy(),
+            radius = radius.numpy()
+            unit = _UnitLens(1 / step, radius, np.append(np.diff(radius), 0.0), limits.numpy(),
                              {torch.float64: table, torch.float32: table.float()})
             self._cached[key] = unit
         return unit
@@ -1878,14 +1879,23 @@ _UNIT_ANGLES = 16384
 
 
 class _UnitLens(NamedTuple):
-    """:meth:`RandomReproject._unit_lens`: ``theta (A,)`` and the radius at focal 1 there
-    ``radius (A,)`` (float64 NumPy), the table's ``limits (3,)`` ``scale, root, end`` and its
-    ``tables (1, 2, K)`` by dtype (float64, float32)."""
+    """:meth:`RandomReproject._unit_lens`: the radius at focal 1 ``radius (A,)`` at the angles
+    ``j / per_angle`` and its steps ``slope (A,)`` to the next (float64 NumPy), the table's
+    ``limits (3,)`` ``scale, root, end`` and its ``tables (1, 2, K)`` by dtype (float64,
+    float32)."""
 
-    theta: np.ndarray
+    per_angle: float
     radius: np.ndarray
+    slope: np.ndarray
     limits: np.ndarray
     tables: dict
+
+    def radius_at(self, theta: np.ndarray) -> np.ndarray:
+        """The radius at focal 1 at the angles ``theta`` (within the table), linear between
+        its entries (``np.interp``'s values, without its search)."""
+        at = theta * self.per_angle
+        j = np.minimum(at.astype(np.intp), len(self.radius) - 2)
+        return self.radius[j] + (at - j) * self.slope[j]
 
 
 class _Part(NamedTuple):

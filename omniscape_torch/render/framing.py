@@ -104,25 +104,28 @@ def focal_for_coverage(radius: np.ndarray, to_edge: np.ndarray, coverage: np.nda
 
     Args:
         radius: ``(n, D)`` the valid region's radius at focal 1 in each direction.
-        to_edge: ``(n, D)`` the output rectangle's radius in each direction.
+        to_edge: ``(n, D)`` (or ``(1, D)``, shared) the output rectangle's radius in each
+            direction.
         coverage: ``(n,)`` targets in ``(0, 1]``; one beyond what the source can fill
             (a source that does not surround the centre) gives the focal that fills it most.
         image_size: ``(H, W)`` of the output.
     """
-    radius, to_edge = np.asarray(radius, np.float64), np.asarray(to_edge, np.float64)
+    radius = np.ascontiguousarray(radius, np.float64)
+    to_edge = np.asarray(to_edge, np.float64)
     coverage = np.asarray(coverage, np.float64)
     n, d = radius.shape
     norm = math.pi / (d * image_size[0] * image_size[1])             # share per unit r^2
     finite = radius > 0
     breaks = np.where(finite, to_edge / np.where(finite, radius, 1.0), math.inf)
     rows = np.arange(n)[:, None]
-    order = breaks.argsort(-1)
-    breaks, r2, e2 = breaks[rows, order], radius[rows, order] ** 2, to_edge[rows, order] ** 2
+    flat = breaks.argsort(-1) + rows * d                             # sorted, flat indices
+    breaks, finite = breaks.ravel()[flat], finite.ravel()[flat]
+    r2 = radius.ravel()[flat] ** 2
+    e2 = np.ascontiguousarray(np.broadcast_to(to_edge, (n, d))).ravel()[flat] ** 2
     # sum e^2 before break i (clipped), sum r^2 from break i on (free), i = 0..D
     clipped, free = np.zeros((n, d + 1)), np.zeros((n, d + 1))
     np.cumsum(e2, -1, out=clipped[:, 1:])
     np.cumsum(r2[:, ::-1], -1, out=free[:, -2::-1])
-    finite = finite[rows, order]
     ends = np.where(finite, breaks, 0.0)                             # (no inf * 0)
     at_break = np.where(finite, norm * (clipped[:, :-1] + ends ** 2 * free[:, :-1]), math.inf)
     i = (at_break < coverage[:, None]).sum(-1)                       # the piece holding it
