@@ -1253,24 +1253,27 @@ class RandomReproject(_RandomCameras):
         n = 1 if self.same_on_batch else batch_size
         framed = source is not None
         u = torch.rand((15 + framed) * n, generator=g, dtype=torch.float64).numpy()
-        u_model, fov, k, lens, scale, jitter, yaw, pitch, roll, applied, coverage = (
+        u_model, fov, k, lens, scale, jitter, attitude, applied, coverage = (
             u[n * a:n * b].reshape(n, b - a) for a, b in (
-                (0, 1), (1, 2), (2, 6), (6, 8), (8, 9), (9, 11), (11, 12), (12, 13), (13, 14),
-                (14, 15), (15, 15 + framed)))
+                (0, 1), (1, 2), (2, 6), (6, 8), (8, 9), (9, 11), (11, 14), (14, 15),
+                (15, 15 + framed)))
         fov = self._scaled(fov[:, 0], self.fov_range)
         k = (2 * k - 1) * self.kb_distortion
         scale = self._scaled(scale[:, 0], self.focal_scale_range)
         jitter = (2 * jitter - 1) * self.center_jitter
         applied = applied[:, 0] < self.p
-        yaw, pitch, roll = (np.where(applied, self._scaled(a[:, 0], bounds), 0.0)
-                            for a, bounds in ((yaw, self.yaw_range), (pitch, self.pitch_range),
-                                              (roll, self.roll_range)))
+        # yaw, pitch, roll: the rows of (3, n) uniforms, 0 where no attitude is applied
+        bounds = np.array((self.yaw_range, self.pitch_range, self.roll_range))     # (3, 2)
+        attitude = np.where(applied, self._scaled(attitude.reshape(3, n), bounds.T[..., None]),
+                            0.0)
+        yaw, pitch, roll = attitude
         coverage = self._scaled(coverage[:, 0], self.coverage_range) if framed else None
+        cos, sin = np.cos(attitude), np.sin(attitude)
         rotation = np.stack([entry for row in rotation_rows(
-            np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll),
-            np.sin(roll)) for entry in row], -1).reshape(n, 3, 3)
+            cos[0], sin[0], cos[1], sin[1], cos[2], sin[2]) for entry in row],
+            -1).reshape(n, 3, 3)
         h, w = self.image_size
-        centre = np.stack(((w - 1) / 2 + jitter[:, 0], (h - 1) / 2 + jitter[:, 1]), -1)
+        centre = jitter + np.array([(w - 1) / 2, (h - 1) / 2])
         index = (np.clip(u_model[:, 0], 0, 1 - 1e-12) * len(self.fisheye_models)).astype(np.int64)
         models = tuple(self.fisheye_models[i] for i in index.tolist())
         source = None if source is None else source[:n].numpy()   # (same_on_batch: the first)
