@@ -4,9 +4,15 @@ Tiny images, so that the time is the call's overhead (drawing the parameters, ch
 not its pixels: ``--batch`` (1 and 8) ``32 x 32`` RGB images into ``32 x 32`` outputs, one
 thread (``torch.set_num_threads(1)``), in one run, round-robin (``common.measure``):
 
-* ``ours``: ``RandomReproject((32, 32), source_fov=90 deg)`` at its defaults (framing to the
-  source, antialiasing on), float32 images in [0, 1] (as kornia takes them), RGB only;
+* ``ours``: ``RandomReproject((32, 32), source_fov=90 deg)`` at its defaults (framed to the
+  source by the default ``coverage_range``; ``antialias=False``, its default: the prefilter is
+  opt-in in ``RandomReproject``, on in ``ot.reproject``), float32 images in [0, 1] (as kornia
+  takes them), RGB only;
 * ``ours_params``: its ``forward_parameters`` alone (the draw, framed to the source);
+* ``ours_render``: its ``render`` of drawn parameters alone (the checks, the rays, sampling);
+* ``ours_ops``: the floor of that sampling: the two C++ passes on prepared inputs
+  (``render.fast.camera_rays`` of the drawn cameras' radius tables, then
+  ``render.fast.sample_image``), wrappers included;
 * ``kornia``: ``kornia.augmentation.RandomFisheye`` (centre +-0.3, gamma 0.9-1.0: its
   docstring's example) on the same batch.
 
@@ -36,10 +42,31 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import (begin_run, loadavg, measure, positive_int, results_path,  # noqa: E402
                     run_main, run_record)
+from omniscape_torch.render import fast, kernels  # noqa: E402
 from omniscape_torch.render.augment import RandomReproject  # noqa: E402
 
 SEED = 36
 SIZE = (32, 32)
+
+
+def sampling_floor(params: dict, images: torch.Tensor):
+    """The C++ passes of ``RandomReproject``'s fast path on prepared inputs: the rays of the
+    drawn (equidistant) cameras from their radius tables, then the images sampled along them
+    (float32, as the module samples float32 images)."""
+    batch = images.shape[0]
+    cams = params["camera_params"][:, :4]
+    affine, limits, table = kernels.radial_table("equidistant", cams, SIZE)
+    limits[:, 3] = torch.cos(0.5 * params["fov"])
+    affine, limits, table = (t.float().contiguous() for t in (affine, limits, table))
+    rotation = params["rotation"].float()
+    k = RandomReproject(SIZE, source_fov=math.radians(90)).source_intrinsics(SIZE, batch).float()
+    out = torch.empty(batch, 3, *SIZE)
+
+    def call():
+        rays, valid = fast.camera_rays(affine, limits, table, SIZE, torch.float32)
+        fast.sample_image(images, rays, rotation, k, "bilinear", valid=valid, out=out)
+
+    return call
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -53,9 +80,13 @@ def run(args: argparse.Namespace) -> dict:
         ours = RandomReproject(SIZE, source_fov=math.radians(90), seed=SEED)
         fisheye = K.RandomFisheye(torch.tensor([-0.3, 0.3]), torch.tensor([-0.3, 0.3]),
                                   torch.tensor([0.9, 1.0]), p=1.0)
+        drawn = ours.forward_parameters(batch, intrinsics=ours.source_intrinsics(SIZE, batch),
+                                        source_size=SIZE)
         cases = [("ours", lambda: ours(images)),
                  ("ours_params", lambda: ours.forward_parameters(
                      batch, intrinsics=ours.source_intrinsics(SIZE, batch), source_size=SIZE)),
+                 ("ours_render", lambda: ours.render(images, drawn)),
+                 ("ours_ops", sampling_floor(drawn, images)),
                  ("kornia", lambda: fisheye(images))]
         with torch.no_grad():
             times = measure([fn for _, fn in cases], args.repeats, args.warmup, settle_s=0.0)

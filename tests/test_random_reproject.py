@@ -214,6 +214,37 @@ def test_seeds_calls_and_generators():
                        aug.forward_parameters(2, generator=g2)["rotation"])
 
 
+def test_draws_are_the_documented_uniforms():
+    """The draw of a batch reads one stream, family after family (``u_model``, ``fov``,
+    ``k (B, 4)``, ``lens (B, 2)``, ``scale``, ``jitter (B, 2)``, ``yaw``, ``pitch``, ``roll``,
+    ``applied``, ``coverage``): each value is ``lo + (hi - lo) u`` of its uniforms, recomputed
+    here from the generator's stream and the documented ranges (jitter ``(2u - 1) j``,
+    ``applied`` ``u < p``, the attitude 0 where not applied, ``R`` of the angles)."""
+    n, seed = 6, 13
+    aug = ot.augment.RandomReproject(OUT, source_fov=90 * DEG, center_jitter=3.0, p=0.5,
+                                     fov_range=(150 * DEG, 190 * DEG),
+                                     coverage_range=(0.4, 0.8))
+    params = aug.forward_parameters(n, generator=torch.Generator().manual_seed(seed),
+                                    intrinsics=aug.source_intrinsics(SRC, n), source_size=SRC)
+    u = torch.rand(16 * n, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+    block = {name: u[n * a:n * b].reshape(n, b - a) for name, a, b in (
+        ("fov", 1, 2), ("jitter", 9, 11), ("yaw", 11, 12), ("pitch", 12, 13), ("roll", 13, 14),
+        ("applied", 14, 15), ("coverage", 15, 16))}
+    def uniform(name, lo, hi):
+        return lo + (hi - lo) * block[name][:, 0]
+    applied = block["applied"][:, 0] < 0.5
+    assert torch.equal(params["applied"], applied) and 0 < int(applied.sum()) < n
+    assert torch.equal(params["fov"], uniform("fov", 150 * DEG, 190 * DEG))
+    assert torch.equal(params["coverage"], uniform("coverage", 0.4, 0.8))
+    for name, bound in (("yaw", 10 * DEG), ("pitch", 10 * DEG), ("roll", 25 * DEG)):
+        want = torch.where(applied, uniform(name, -bound, bound), 0.0)
+        assert torch.equal(params[name], want), name
+    centre = torch.tensor([(OUT[1] - 1) / 2, (OUT[0] - 1) / 2], dtype=torch.float64)
+    assert torch.equal(params["camera_params"][:, 2:4], (2 * block["jitter"] - 1) * 3.0 + centre)
+    rotation = ot.presets.yaw_pitch_roll_to_matrix(params["yaw"], params["pitch"], params["roll"])
+    torch.testing.assert_close(params["rotation"], rotation, atol=1e-15, rtol=0)
+
+
 def test_drawn_lenses_see_their_drawn_field_of_view():
     """Every lens drawn is valid out to its returned fov / 2 and its image circle is inscribed
     in the image: the unified, EUCM and double sphere lenses whose reach is shorter than the

@@ -112,15 +112,18 @@ def yaw_pitch_roll_to_matrix(yaw: float | Tensor, pitch: float | Tensor,
         [1.0, 0.0, -0.0]
     """
     yaw, pitch, roll = _angles(yaw=yaw, pitch=pitch, roll=roll)
-    cy, sy = torch.cos(yaw), torch.sin(yaw)
-    cp, sp = torch.cos(pitch), torch.sin(pitch)
-    cr, sr = torch.cos(roll), torch.sin(roll)
-    rows = (
-        (cy * cr + sy * sp * sr, sy * sp * cr - cy * sr, sy * cp),
-        (cp * sr, cp * cr, -sp),
-        (cy * sp * sr - sy * cr, sy * sr + cy * sp * cr, cy * cp),
-    )
+    rows = rotation_rows(torch.cos(yaw), torch.sin(yaw), torch.cos(pitch), torch.sin(pitch),
+                         torch.cos(roll), torch.sin(roll))
     return torch.stack([torch.stack(row, dim=-1) for row in rows], dim=-2)
+
+
+def rotation_rows(cy, sy, cp, sp, cr, sr) -> tuple:
+    """The entries of :func:`yaw_pitch_roll_to_matrix`'s ``R``, row by row, from the cosines and
+    sines of yaw, pitch and roll: tensors or NumPy arrays (``augment.RandomReproject`` draws its
+    attitudes in NumPy: on a few samples, torch's dispatch costs more than the arithmetic)."""
+    return ((cy * cr + sy * sp * sr, sy * sp * cr - cy * sr, sy * cp),
+            (cp * sr, cp * cr, -sp),
+            (cy * sp * sr - sy * cr, sy * sr + cy * sp * cr, cy * cp))
 
 
 def matrix_to_yaw_pitch_roll(rotation: Tensor, *, eps: float | None = None

@@ -39,8 +39,8 @@ from ..cubemap.rotation import check_rotation
 from . import containers, detection, fast, framing
 from .antialias import minified
 from .fast import CameraGrid
-from .kernels import camera_grid, camera_rays
-from ..cameras.presets import yaw_pitch_roll_to_matrix
+from .kernels import camera_grid, camera_rays, radial_table
+from ..cameras.presets import rotation_rows, yaw_pitch_roll_to_matrix
 from . import layer as projection
 from .layer import OmniProjection
 from .reference import check_out_dtype, from_float, warn_if_label_map
@@ -353,6 +353,38 @@ class _RandomCameras(nn.Module):
             p = int(params["num_params"][idx[0]])
             cam_params = params["camera_params"][idx, :p].to(dtype=dtype, device=device)
             out[name] = (idx, Camera(name, cam_params, self.image_size))
+        return out
+
+    def _camera_params(self, params: dict, dtype: torch.dtype, device: torch.device
+                       ) -> dict[str, tuple[Tensor, Tensor]]:
+        """What :meth:`cameras` holds, checked as ``Camera`` checks it, without making the
+        cameras: ``{model: (sample indices (n,), params (n, P) in dtype on device)}``. The
+        lenses without parameters (``fx, fy, cx, cy``: finite, ``fx, fy > 0``) are checked
+        in one operation for the batch."""
+        out = {}
+        models = params["model"]
+        names = sorted(set(models))
+        counts = params["num_params"].tolist()
+        for name in names:
+            if len(names) == 1:
+                idx = torch.arange(len(models))
+                p = counts[0]
+                rows = params["camera_params"][:, :p]
+            else:
+                first = models.index(name)
+                idx = torch.tensor([i for i, m in enumerate(models) if m == name],
+                                   dtype=torch.long)
+                p = counts[first]
+                rows = params["camera_params"][idx, :p]
+            if name in _FIXED_REACH and p == 4:
+                values = rows.detach().cpu().numpy()
+                if not (np.isfinite(values).all() and (values[:, :2] > 0).all()):
+                    raise ValueError(f'params["camera_params"]: expected finite {name} '
+                                     f"parameters with fx, fy > 0, got {rows.tolist()}")
+                out[name] = (idx, rows.to(dtype=dtype, device=device))
+            else:
+                rows = rows.to(dtype=dtype, device=device)
+                out[name] = (idx, Camera(name, rows, self.image_size).params)
         return out
 
     def _changes(self, params: dict, source: "detection.Side"
@@ -1141,12 +1173,21 @@ class RandomReproject(_RandomCameras):
         self.coverage_range = coverage_range
         self.antialias = antialias
         self._check_fisheye_ranges()
+        # what depends on the arguments above alone, made on first use (keyed by the values
+        # it depends on): _unit_lens, the framing's distances to the edges without jitter
+        self._cached: dict[tuple, object] = {}
+
+    def __getstate__(self) -> dict:
+        state = super().__getstate__()
+        state["_cached"] = {}   # made again on first use (no tensors in the pickle)
+        return state
 
     def __setstate__(self, state: dict) -> None:
         state = dict(state)
         # pickled before framing and antialiasing existed: as they rendered then
         state.setdefault("coverage_range", None)
         state.setdefault("antialias", False)
+        state.setdefault("_cached", {})
         super().__setstate__(state)
         if "source_camera" not in self._modules:   # pickled before it existed
             self.source_camera = None
@@ -1198,64 +1239,162 @@ class RandomReproject(_RandomCameras):
         return self._draw_params(batch_size, generator, source, source_size)
 
     def _draw_params(self, batch_size: int, generator: torch.Generator | None,
-                    source: Tensor | None, source_size: tuple[int, int] | None) -> dict:
+                     source: Tensor | None, source_size: tuple[int, int] | None) -> dict:
         """:meth:`forward_parameters`, framed to the pinhole ``source (B, 4)`` of images of
-        ``source_size`` (None: by ``focal_scale_range``)."""
+        ``source_size`` (None: by ``focal_scale_range``).
+
+        The uniforms come from one call of the generator, in the order (and so with the values)
+        of one call per family: ``u_model (n)``, ``fov (n)``, ``k (n, 4)``, ``lens (n, 2)``,
+        ``scale (n)``, ``jitter (n, 2)``, ``yaw``, ``pitch``, ``roll``, ``applied (n)``, then
+        ``coverage (n)`` where framed; every draw for every sample, whatever its model (the
+        stream does not branch). The arithmetic runs in float64 NumPy, a few operations per
+        family for the whole batch (on a few samples torch's dispatch costs more than it)."""
         g = self.generator if generator is None else generator
         n = 1 if self.same_on_batch else batch_size
-        f64 = dict(dtype=torch.float64)
-        # every draw for every sample, whatever its model (the stream does not branch)
-        u_model = torch.rand(n, generator=g, **f64)
-        fov = _uniform(n, self.fov_range, g)
-        k = (2 * torch.rand(n, 4, generator=g, **f64) - 1) * self.kb_distortion
-        lens = torch.rand(n, 2, generator=g, **f64)
-        scale = _uniform(n, self.focal_scale_range, g)
-        jitter = (2 * torch.rand(n, 2, generator=g, **f64) - 1) * self.center_jitter
-        yaw = _uniform(n, self.yaw_range, g)
-        pitch = _uniform(n, self.pitch_range, g)
-        roll = _uniform(n, self.roll_range, g)
-        applied = torch.rand(n, generator=g, **f64) < self.p
-        coverage = None if source is None else _uniform(n, self.coverage_range, g)
-
-        zero = torch.zeros_like(yaw)
-        yaw, pitch, roll = (torch.where(applied, a, zero) for a in (yaw, pitch, roll))
-        rotation = yaw_pitch_roll_to_matrix(yaw, pitch, roll)
-        index = (u_model.clamp(0, 1 - 1e-12) * len(self.fisheye_models)).long()
+        framed = source is not None
+        u = torch.rand((15 + framed) * n, generator=g, dtype=torch.float64).numpy()
+        u_model, fov, k, lens, scale, jitter, attitude, applied, coverage = (
+            u[n * a:n * b].reshape(n, b - a) for a, b in (
+                (0, 1), (1, 2), (2, 6), (6, 8), (8, 9), (9, 11), (11, 14), (14, 15),
+                (15, 15 + framed)))
+        fov = self._scaled(fov[:, 0], self.fov_range)
+        k = (2 * k - 1) * self.kb_distortion
+        scale = self._scaled(scale[:, 0], self.focal_scale_range)
+        jitter = (2 * jitter - 1) * self.center_jitter
+        applied = applied[:, 0] < self.p
+        # yaw, pitch, roll: the rows of (3, n) uniforms, 0 where no attitude is applied
+        bounds = np.array((self.yaw_range, self.pitch_range, self.roll_range))     # (3, 2)
+        attitude = np.where(applied, self._scaled(attitude.reshape(3, n), bounds.T[..., None]),
+                            0.0)
+        yaw, pitch, roll = attitude
+        coverage = self._scaled(coverage[:, 0], self.coverage_range) if framed else None
+        cos, sin = np.cos(attitude), np.sin(attitude)
+        rotation = np.stack([entry for row in rotation_rows(
+            cos[0], sin[0], cos[1], sin[1], cos[2], sin[2]) for entry in row],
+            -1).reshape(n, 3, 3)
+        h, w = self.image_size
+        centre = jitter + np.array([(w - 1) / 2, (h - 1) / 2])
+        index = (np.clip(u_model[:, 0], 0, 1 - 1e-12) * len(self.fisheye_models)).astype(np.int64)
         models = tuple(self.fisheye_models[i] for i in index.tolist())
-        params = torch.zeros(n, _MAX_P, **f64)
-        num_params = torch.zeros(n, dtype=torch.long)
+        source = None if source is None else source[:n].numpy()   # (same_on_batch: the first)
+        params = np.zeros((n, _MAX_P))
+        num_params = np.zeros(n, dtype=np.int64)
         for name in sorted(set(models)):
-            idx = (torch.arange(n) if len(models) == 1 or len(set(models)) == 1 else
-                   torch.tensor([i for i, m in enumerate(models) if m == name]))
-            extra, half = self._lens(name, 0.5 * fov[idx], k[idx], lens[idx])
+            idx = slice(None) if len(set(models)) == 1 else index == self.fisheye_models.index(
+                name)
+            half = 0.5 * fov[idx]
+            if name in _FIXED_REACH:   # no lens parameters, the drawn half field of view
+                extra = np.zeros((len(half), 0))
+            else:
+                extra, half = (t.numpy() for t in self._lens(
+                    name, torch.from_numpy(half), torch.from_numpy(k[idx]),
+                    torch.from_numpy(lens[idx])))
             fov[idx] = 2 * half
-            focal = None if coverage is None else self._framed_focal(
-                name, extra, half, rotation[idx], source[idx], source_size, jitter[idx],
-                coverage[idx])
-            row = self._camera_rows(name, extra, half, scale[idx], jitter[idx], focal)
+            if framed:
+                focal = self._framed_focal(name, extra, half, rotation[idx], source[idx],
+                                           source_size, centre[idx], coverage[idx])
+            else:
+                radius, ok = _unit_radius(name, torch.from_numpy(extra), torch.from_numpy(half))
+                if not bool(ok.all()):   # guarded by the range checks and _lens: a bug if so
+                    raise RuntimeError(f"{name}: drawn field of view outside the model's "
+                                       f"domain")
+                focal = scale[idx] * (min(h, w) / 2 - 0.5) / radius.numpy()
+            row = np.concatenate((focal[:, None], focal[:, None], centre[idx], extra), -1)
             params[idx, :row.shape[-1]] = row
             num_params[idx] = row.shape[-1]
-        out = dict(model=models, camera_params=params, num_params=num_params, fov=fov,
-                   blind_fov=torch.zeros_like(fov), yaw=yaw, pitch=pitch, roll=roll,
-                   applied=applied, rotation=rotation)
-        if coverage is not None:
-            out["coverage"] = coverage
+        out = {key: torch.from_numpy(value) for key, value in (
+            ("camera_params", params), ("num_params", num_params), ("fov", fov),
+            ("blind_fov", np.zeros(n)), ("yaw", yaw), ("pitch", pitch), ("roll", roll),
+            ("applied", applied), ("rotation", rotation))}
+        out["model"] = models
+        if framed:
+            out["coverage"] = torch.from_numpy(coverage)
         return _on_batch(out, n, batch_size)
 
-    def _framed_focal(self, name: str, extra: Tensor, half: Tensor, rotation: Tensor,
-                      intrinsics: Tensor, source_size: tuple[int, int], jitter: Tensor,
-                      coverage: Tensor) -> Tensor:
+    @staticmethod
+    def _scaled(u: np.ndarray, bounds: tuple[float, float]) -> np.ndarray:
+        """Uniforms ``u`` in ``[0, 1)`` to ``[lo, hi]`` as :func:`_uniform` (exactly ``lo``
+        when ``lo == hi``)."""
+        lo, hi = bounds
+        return lo + (hi - lo) * u
+
+    def _framed_focal(self, name: str, extra: np.ndarray, half: np.ndarray,
+                      rotation: np.ndarray, intrinsics: np.ndarray,
+                      source_size: tuple[int, int], centre: np.ndarray,
+                      coverage: np.ndarray) -> np.ndarray:
         """``(n,)`` focals at which the pinhole sources fill the shares ``coverage`` of the
-        output (:mod:`~omniscape_torch.render.framing`), for lenses ``extra``, ``half``."""
-        n, d = half.shape[0], framing.DIRECTIONS
-        phi = torch.arange(d, dtype=torch.float64) * (2 * math.pi / d)
-        theta = framing.reach(rotation, intrinsics, source_size, half, phi)      # (n, D)
-        radius, _ = _unit_radius(name, extra.repeat_interleave(d, 0), theta.reshape(-1))
-        h, w = self.image_size
-        centre = torch.stack(((w - 1) / 2 + jitter[:, 0], (h - 1) / 2 + jitter[:, 1]), -1)
-        return framing.focal_for_coverage(radius.reshape(n, d),
-                                          framing.to_edge(centre, self.image_size, phi),
-                                          coverage, self.image_size)
+        output (:mod:`~omniscape_torch.render.framing`), for lenses ``extra``, ``half``
+        centred at ``centre (n, 2)``. The lens radius at focal 1 of a lens without parameters
+        comes from its table (:meth:`_unit_lens`, linear between its angles: within 1e-9 of
+        the model's), of the others from the model's projection."""
+        theta = framing.reach(rotation, intrinsics, source_size, half)           # (n, D)
+        unit = self._unit_lens(name)
+        if unit is not None:
+            radius = unit.radius_at(theta)
+        else:
+            n, d = theta.shape
+            radius = _unit_radius(name, torch.from_numpy(extra).repeat_interleave(d, 0),
+                                  torch.from_numpy(theta.reshape(-1)))[0].numpy().reshape(n, d)
+        if self.center_jitter == 0:   # every centre the image's: its distances made once
+            key = ("to_edge", self.image_size)
+            edges = self._cached.get(key)
+            if edges is None:
+                edges = self._cached[key] = framing.to_edge(centre[:1], self.image_size)
+        else:
+            edges = framing.to_edge(centre, self.image_size)
+        return framing.focal_for_coverage(radius, edges, coverage, self.image_size)
+
+    def _unit_lens(self, name: str) -> "_UnitLens | None":
+        """For a lens without parameters (``equidistant``, ``equisolid``, ``stereographic``),
+        None for the others: what depends on the constructor's arguments alone, made on first
+        use and kept in the instance. Its radius at focal 1 at :data:`_UNIT_ANGLES` angles out
+        past the widest half field of view drawn (``fov_range``), and its radius -> ray table
+        (:func:`~omniscape_torch.render.kernels.radial_table` of the camera of focal 1 out to
+        that radius, whatever each call's focal; the pixels beyond are invalid, outside every
+        drawn field of view)."""
+        if name not in _FIXED_REACH:
+            return None
+        key = (name, self.fov_range[1], self.image_size)
+        unit = self._cached.get(key)
+        if unit is None:
+            f64 = dict(dtype=torch.float64)
+            half = 0.5 * self.fov_range[1]     # < the model's reach (_check_fisheye_ranges)
+            limit = float(get_model(name).max_angle(torch.ones(1, 4, **f64)))
+            step = min(half + 0.02, 0.5 * (half + limit)) / (_UNIT_ANGLES - 1)
+            theta = torch.arange(_UNIT_ANGLES, **f64) * step
+            radius, _ = _unit_radius(name, torch.zeros(_UNIT_ANGLES, 0, **f64), theta)
+            radius[0] = 0.0
+            _, limits, table = radial_table(name, torch.tensor([[1.0, 1.0, 0.0, 0.0]], **f64),
+                                            self.image_size, reach=float(radius[-1]))
+            limits = limits[0, :3].clone()
+            limits[2] = limits[2].clamp_max(radius[-1])   # valid within the table only
+            radius = radius.numpy()
+            unit = _UnitLens(1 / step, radius, np.append(np.diff(radius), 0.0), limits.numpy(),
+                             {torch.float64: table, torch.float32: table.float()})
+            self._cached[key] = unit
+        return unit
+
+    def _rays(self, name: str, params: Tensor, fov: Tensor) -> tuple[Tensor, Tensor]:
+        """The unit rays ``(n, H, W, 3)`` and validity ``(n, H, W)`` of ``n`` cameras of model
+        ``name`` (``params (n, P)`` in the rays' dtype, float32 or float64) within their fields
+        of view ``fov (n,)``: :func:`~omniscape_torch.render.kernels.camera_rays`, through
+        the table of :meth:`_unit_lens` where the model has one."""
+        unit = self._unit_lens(name)
+        if unit is None:
+            return camera_rays(name, params, self.image_size, fov=fov, dtype=params.dtype)
+        fx, fy, cx, cy = params[:, :4].numpy().astype(np.float64).T
+        n = len(fx)
+        affine = np.zeros((n, 6))          # cx, cy and M = diag(1 / fx, 1 / fy)
+        affine[:, 0], affine[:, 1], affine[:, 2], affine[:, 5] = cx, cy, 1 / fx, 1 / fy
+        limits = np.empty((n, 5))          # scale, root, end, cos(fov / 2), no blind cone
+        limits[:, :3] = unit.limits
+        limits[:, 3] = np.cos(0.5 * fov.numpy().astype(np.float64))
+        limits[:, 4] = 2.0
+        table = unit.tables[params.dtype]
+        as_dtype = table.numpy().dtype     # in the rays' dtype, as the op takes them
+        return fast.camera_rays(torch.from_numpy(affine.astype(as_dtype)),
+                                torch.from_numpy(limits.astype(as_dtype)),
+                                table.expand(n, -1, -1), self.image_size, params.dtype)
 
     def source_intrinsics(self, image_size: tuple[int, int], batch: int) -> Tensor:
         """``(batch, 4)`` float64 pinhole intrinsics of images of ``image_size`` from
@@ -1266,8 +1405,7 @@ class RandomReproject(_RandomCameras):
                              "cy, or construct RandomReproject with source_fov")
         h, w = image_size
         f = (w / 2) / math.tan(self.source_fov / 2)
-        return torch.tensor([f, f, (w - 1) / 2, (h - 1) / 2], dtype=torch.float64).expand(
-            batch, 4).clone()
+        return torch.from_numpy(np.tile(np.array([f, f, (w - 1) / 2, (h - 1) / 2]), (batch, 1)))
 
     def render(self, image: Tensor | None, params: dict, *, labels: Tensor | None = None,
                depth: Tensor | None = None, intrinsics: Tensor | None = None,
@@ -1376,13 +1514,15 @@ class RandomReproject(_RandomCameras):
                             fov=source.fov, blind_fov=source.blind_fov)
         # on the CPU a few samples at a time (projection.CHUNK_PIXELS): the rays of a chunk
         chunk = batch if device.type != "cpu" else max(1, projection.CHUNK_PIXELS // (h * w))
-        for name, (idx, camera) in self.cameras(params, dtype, device).items():
+        groups = self._camera_params(params, dtype, device)
+        rotations = params["rotation"].to(dtype=dtype, device=device)
+        fovs = params["fov"].to(dtype=dtype, device=device)
+        for name, (idx, cam_params) in groups.items():
             for start in range(0, len(idx), chunk):
                 sel = idx[start:start + chunk]
-                part = _Part(camera.params[start:start + chunk], sel,
-                             params["rotation"][sel].to(dtype=dtype, device=device),
-                             params["fov"][sel].to(dtype=dtype, device=device),
-                             None if k is None else k[sel].to(device), size,
+                at = slice(start, start + chunk) if len(groups) == 1 else sel   # (views)
+                part = _Part(cam_params[start:start + chunk], sel, rotations[at], fovs[at],
+                             None if k is None else k[at].to(device), size,
                              None if source is None else _rows(source, sel.to(device)))
                 render = self._render_fast if fast_path else self._render_exact
                 render(name, part, image, labels, depth, result)
@@ -1415,8 +1555,7 @@ class RandomReproject(_RandomCameras):
                      labels: Tensor | None, depth: Tensor | None, result: dict) -> None:
         """The samples ``part.index`` through the C++ ops: the cameras' rays from their tables
         (or ``Camera.ray_grid`` where a model has none), then ``fast.sample_image``."""
-        rays, valid = camera_rays(name, part.params, self.image_size, fov=part.fov,
-                                  dtype=part.params.dtype)
+        rays, valid = self._rays(name, part.params, part.fov)
         target, rotation = rays, part.rotation
         if part.source is None:
             k = part.intrinsics.to(rays.dtype)
@@ -1735,6 +1874,31 @@ def _rows(camera: Camera, index: Tensor) -> Camera:
     """The cameras ``index`` of a batch ``(B,)``."""
     return Camera(camera.model, camera.params[index], camera.image_size, fov=camera.fov,
                   blind_fov=camera.blind_fov)
+
+
+#: Angles of a lens's radius at focal 1 in :meth:`RandomReproject._unit_lens` (linear between
+#: them: within 1e-9 of the model's radius, relative, out to 200 degrees).
+_UNIT_ANGLES = 16384
+
+
+class _UnitLens(NamedTuple):
+    """:meth:`RandomReproject._unit_lens`: the radius at focal 1 ``radius (A,)`` at the angles
+    ``j / per_angle`` and its steps ``slope (A,)`` to the next (float64 NumPy), the table's
+    ``limits (3,)`` ``scale, root, end`` and its ``tables (1, 2, K)`` by dtype (float64,
+    float32)."""
+
+    per_angle: float
+    radius: np.ndarray
+    slope: np.ndarray
+    limits: np.ndarray
+    tables: dict
+
+    def radius_at(self, theta: np.ndarray) -> np.ndarray:
+        """The radius at focal 1 at the angles ``theta`` (within the table), linear between
+        its entries (``np.interp``'s values, without its search)."""
+        at = theta * self.per_angle
+        j = np.minimum(at.astype(np.intp), len(self.radius) - 2)
+        return self.radius[j] + (at - j) * self.slope[j]
 
 
 class _Part(NamedTuple):

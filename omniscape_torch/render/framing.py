@@ -17,94 +17,118 @@ at ``rho(phi)``, so the valid share is ``sum_phi min(f r, rho)^2 dphi / (2 H W)`
 reaches the rectangle, solved exactly after sorting them. Where the fisheye's axis misses the
 source (a turn larger than the source's half field of view) the directions away from it count
 nothing, so the share is underestimated and the focal comes out larger (more zoom).
+
+The arrays are float64 NumPy (tensors are read as such): ``RandomReproject`` frames each call's
+draws here, and on a few samples NumPy's calls cost a fraction of torch's dispatch.
 """
 
 from __future__ import annotations
 
 import math
 
-import torch
-from torch import Tensor
+import numpy as np
 
-__all__ = ["DIRECTIONS", "focal_for_coverage", "reach", "to_edge"]
+__all__ = ["DIRECTIONS", "PHI", "focal_for_coverage", "reach", "to_edge"]
 
 #: Directions about the fisheye's centre in which the valid region's radius is measured.
 DIRECTIONS = 256
+#: Their angles ``phi`` (radians, ``(D,)``, evenly spaced from 0; read-only).
+PHI = np.arange(DIRECTIONS) * (2 * math.pi / DIRECTIONS)
+_COS, _SIN = np.cos(PHI), np.sin(PHI)
+#: The ``x, y`` components of the normals of the planes bounding a pinhole's rays: its image's
+#: right, left, bottom and top edges, then ``z > 0`` (:func:`reach`).
+_NORMALS_XY = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0], [0.0, 0.0]])
+#: Per edge plane ``m_z = (sign * c - offset) / f`` with ``(f, c)`` the focal and principal
+#: point of its axis: ``sign``, the intrinsics' columns of ``f`` and ``c``, and ``offset`` as
+#: ``(1, W - 0.5)`` pairs (edges at ``-0.5`` and ``W - 0.5``: pixel centres at integers).
+_SIGN = np.array([1.0, -1.0, 1.0, -1.0])
+_FOCAL_COLUMN, _CENTRE_COLUMN = [0, 0, 1, 1], [2, 2, 3, 3]
+for _table in (PHI, _COS, _SIN, _NORMALS_XY, _SIGN):
+    _table.flags.writeable = False
 
 
-def _source_planes(intrinsics: Tensor, source_size: tuple[int, int]) -> Tensor:
+def _normals(intrinsics: np.ndarray, source_size: tuple[int, int]) -> np.ndarray:
     """``(n, 5, 3)`` normals ``m`` of the planes bounding the rays a pinhole sees,
-    ``m . ray <= 0`` inside: the image's four edges (pixel centres at integers, edges at
-    ``-0.5`` and ``W - 0.5``) and ``z > 0``."""
-    fx, fy, cx, cy = intrinsics.unbind(-1)
+    ``m . ray <= 0`` inside: ``x / z <= right``, ``x / z >= left``, the same in ``y``, and
+    ``z >= 0``."""
     height, width = source_size
-    one, zero = torch.ones_like(fx), torch.zeros_like(fx)
-    left, right = (-0.5 - cx) / fx, (width - 0.5 - cx) / fx
-    top, bottom = (-0.5 - cy) / fy, (height - 0.5 - cy) / fy
-    return torch.stack((torch.stack((one, zero, -right), -1),     # x / z <= right
-                        torch.stack((-one, zero, left), -1),      # x / z >= left
-                        torch.stack((zero, one, -bottom), -1),
-                        torch.stack((zero, -one, top), -1),
-                        torch.stack((zero, zero, -one), -1)), 1)  # z >= 0
+    offset = np.array([width - 0.5, 0.5, height - 0.5, 0.5])
+    normals = np.empty((len(intrinsics), 5, 3))
+    normals[..., :2] = _NORMALS_XY
+    normals[:, :4, 2] = ((_SIGN * intrinsics[:, _CENTRE_COLUMN] - offset) /
+                         intrinsics[:, _FOCAL_COLUMN])
+    normals[:, 4, 2] = -1.0
+    return normals
 
 
-def reach(rotation: Tensor, intrinsics: Tensor, source_size: tuple[int, int], half: Tensor,
-          phi: Tensor) -> Tensor:
-    """``theta_max (n, D)``: along each image direction ``phi (D,)`` about the fisheye's
+def reach(rotation: np.ndarray, intrinsics: np.ndarray, source_size: tuple[int, int],
+          half: np.ndarray) -> np.ndarray:
+    """``theta_max (n, D)``: along each image direction :data:`PHI` about the fisheye's
     centre, the angle from its axis out to which its rays (``ray_src = R @ ray``,
     ``rotation (n, 3, 3)``) reach the pinhole image (``intrinsics (n, 4)``, ``source_size``),
-    at most the half field of view ``half (n,)``; 0 where the axis itself misses it."""
-    planes = _source_planes(intrinsics, source_size)                 # source frame
-    m = torch.einsum("nkj,nji->nki", planes, rotation)               # R^T m: fisheye frame
-    a = m[..., 2].unsqueeze(-1)                                      # (n, 5, 1)
-    b = m[..., 0, None] * torch.cos(phi) + m[..., 1, None] * torch.sin(phi)   # (n, 5, D)
-    cross = torch.where(a < 0, torch.atan2(-a, b), torch.zeros_like(b))
-    return torch.minimum(cross.amin(1), half.unsqueeze(-1))
+    at most the half field of view ``half (n,)``; 0 where the axis itself misses it.
+
+    Each plane's crossing ``t = atan2(-A, B)`` (``A < 0``: the axis inside) decreases with
+    ``B / -A``, so the nearest plane is the one of the largest ratio: one ``atan2`` per
+    direction, not one per plane."""
+    intrinsics = np.asarray(intrinsics, np.float64)
+    m = _normals(intrinsics, source_size) @ np.asarray(rotation, np.float64)   # fisheye frame
+    a = m[..., 2]                                                    # (n, 5)
+    inside = (a < 0).all(-1, keepdims=True)                          # the axis sees the source
+    scale = np.where(inside, -1 / np.where(a < 0, a, -1.0), 0.0)
+    ratio = ((m[..., 0] * scale)[..., None] * _COS +
+             (m[..., 1] * scale)[..., None] * _SIN).max(1)           # (n, D)
+    cross = np.where(inside, np.arctan2(1.0, ratio), 0.0)
+    return np.minimum(cross, np.asarray(half, np.float64)[:, None])
 
 
-def to_edge(centre: Tensor, image_size: tuple[int, int], phi: Tensor) -> Tensor:
+def to_edge(centre: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
     """``(n, D)`` distance from ``centre (n, 2)`` to the output rectangle's edge (pixel edges
-    ``-0.5`` and ``W - 0.5``) along each direction ``phi``."""
+    ``-0.5`` and ``W - 0.5``) along each direction :data:`PHI`."""
     height, width = image_size
-    cos, sin = torch.cos(phi), torch.sin(phi)
-    big = torch.tensor(math.inf, dtype=centre.dtype)
-    cx, cy = centre[:, :1], centre[:, 1:]
-    tx = torch.where(cos > 1e-12, (width - 0.5 - cx) / cos,
-                     torch.where(cos < -1e-12, (-0.5 - cx) / cos, big))
-    ty = torch.where(sin > 1e-12, (height - 0.5 - cy) / sin,
-                     torch.where(sin < -1e-12, (-0.5 - cy) / sin, big))
-    return torch.minimum(tx, ty)
+    centre = np.asarray(centre, np.float64)
+    out = np.full((len(centre), DIRECTIONS), math.inf)
+    for c, size, t in ((_COS, width, centre[:, :1]), (_SIN, height, centre[:, 1:])):
+        ahead, behind = c > 1e-12, c < -1e-12
+        safe = np.where(ahead | behind, c, 1.0)
+        dist = np.where(ahead, (size - 0.5 - t) / safe, np.where(behind, (-0.5 - t) / safe,
+                                                                  math.inf))
+        np.minimum(out, dist, out=out)
+    return out
 
 
-def focal_for_coverage(radius: Tensor, to_edge: Tensor, coverage: Tensor,
-                       image_size: tuple[int, int]) -> Tensor:
+def focal_for_coverage(radius: np.ndarray, to_edge: np.ndarray, coverage: np.ndarray,
+                       image_size: tuple[int, int]) -> np.ndarray:
     """The focal ``f (n,)`` at which ``sum_d min(f radius, to_edge)^2 * pi / (D H W)`` (the
     valid share, module docstring) equals ``coverage (n,)``.
 
     Args:
         radius: ``(n, D)`` the valid region's radius at focal 1 in each direction.
-        to_edge: ``(n, D)`` the output rectangle's radius in each direction.
+        to_edge: ``(n, D)`` (or ``(1, D)``, shared) the output rectangle's radius in each
+            direction.
         coverage: ``(n,)`` targets in ``(0, 1]``; one beyond what the source can fill
             (a source that does not surround the centre) gives the focal that fills it most.
         image_size: ``(H, W)`` of the output.
     """
+    radius = np.ascontiguousarray(radius, np.float64)
+    to_edge = np.asarray(to_edge, np.float64)
+    coverage = np.asarray(coverage, np.float64)
     n, d = radius.shape
     norm = math.pi / (d * image_size[0] * image_size[1])             # share per unit r^2
-    breaks = torch.where(radius > 0, to_edge / radius.clamp_min(1e-300),
-                         torch.full_like(radius, math.inf))
-    order = breaks.argsort(-1)
-    breaks = breaks.gather(-1, order)
-    r2 = radius.gather(-1, order).square()
-    e2 = to_edge.gather(-1, order).square()
-    zero = torch.zeros(n, 1, dtype=radius.dtype)
-    clipped = torch.cat((zero, e2.cumsum(-1)), -1)                   # before break i: sum e^2
-    free = r2.flip(-1).cumsum(-1).flip(-1)                           # from break i on: sum r^2
-    free = torch.cat((free, zero), -1)
-    finite = torch.isfinite(breaks)
-    at_break = norm * (clipped[:, :-1] + breaks.square() * free[:, :-1])
-    at_break = torch.where(finite, at_break, torch.full_like(at_break, math.inf))
-    i = (at_break < coverage.unsqueeze(-1)).sum(-1, keepdim=True)    # the piece holding it
-    c, u = clipped.gather(-1, i)[:, 0], free.gather(-1, i)[:, 0]
-    focal = torch.sqrt(((coverage / norm - c) / u.clamp_min(1e-300)).clamp_min(0))
-    last = torch.where(finite, breaks, torch.zeros_like(breaks)).amax(-1)
-    return torch.where(u > 0, focal, last)
+    finite = radius > 0
+    breaks = np.where(finite, to_edge / np.where(finite, radius, 1.0), math.inf)
+    rows = np.arange(n)[:, None]
+    flat = breaks.argsort(-1) + rows * d                             # sorted, flat indices
+    breaks, finite = breaks.ravel()[flat], finite.ravel()[flat]
+    r2 = radius.ravel()[flat] ** 2
+    e2 = np.ascontiguousarray(np.broadcast_to(to_edge, (n, d))).ravel()[flat] ** 2
+    # sum e^2 before break i (clipped), sum r^2 from break i on (free), i = 0..D
+    clipped, free = np.zeros((n, d + 1)), np.zeros((n, d + 1))
+    np.cumsum(e2, -1, out=clipped[:, 1:])
+    np.cumsum(r2[:, ::-1], -1, out=free[:, -2::-1])
+    ends = np.where(finite, breaks, 0.0)                             # (no inf * 0)
+    at_break = np.where(finite, norm * (clipped[:, :-1] + ends ** 2 * free[:, :-1]), math.inf)
+    i = (at_break < coverage[:, None]).sum(-1)                       # the piece holding it
+    c, u = clipped[rows[:, 0], i], free[rows[:, 0], i]
+    focal = np.sqrt(np.maximum((coverage / norm - c) / np.maximum(u, 1e-300), 0))
+    return np.where(u > 0, focal, ends.max(-1))

@@ -75,7 +75,8 @@ def _affine(model: str, params: Tensor) -> Tensor:
 
 
 def radial_table(model: str, params: Tensor, image_size: tuple[int, int],
-                 entries: int = RADIAL_ENTRIES) -> tuple[Tensor, Tensor, Tensor] | None:
+                 entries: int = RADIAL_ENTRIES, *, reach: float | None = None
+                 ) -> tuple[Tensor, Tensor, Tensor] | None:
     """The per-camera tables of ``torch.ops.omniscape_torch.camera_grid``, in float64, or None
     where a camera's rays are not a function of the radius alone (tangential distortion) or its
     domain is not a disc about the principal point.
@@ -92,7 +93,9 @@ def radial_table(model: str, params: Tensor, image_size: tuple[int, int],
     ``root^2`` the last valid radius. ``limits (B, 5)``: ``scale`` (entries per unit of
     ``rho`` or ``w``), ``root`` (0 for even spacing in ``rho``), ``end`` (``inf`` without one),
     and ``cos(fov / 2) = -2``, ``cos(blind_fov / 2) = 2`` (no cones: :func:`camera_grid` sets
-    them).
+    them). ``reach``: tabulate out to this normalised radius instead of the image's farthest
+    corner (``image_size`` unused; the pixels beyond read the last entry: a caller that reads
+    such pixels bounds them with ``end``).
     """
     unproject = get_model(model).unproject
     if model not in RADIAL or (model == "unified" and bool(params[:, 7:9].ne(0).any())):
@@ -105,8 +108,11 @@ def radial_table(model: str, params: Tensor, image_size: tuple[int, int],
                            dtype=torch.float64)
     m = affine[:, 2:].view(batch, 1, 2, 2)
     offsets = corners[None] - affine[:, None, :2]                          # (B, 4, 2)
-    reach = torch.linalg.vector_norm((m @ offsets[..., None])[..., 0], dim=-1).amax(-1)
-    reach = reach.clamp_min(1e-12)
+    if reach is None:
+        reach = torch.linalg.vector_norm((m @ offsets[..., None])[..., 0], dim=-1).amax(-1)
+        reach = reach.clamp_min(1e-12)
+    else:
+        reach = torch.full((batch,), float(reach), dtype=torch.float64)
     at = (affine, _x_step(m[:, 0]), p)
     # where the domain ends within the reach: the first invalid of an even sampling, then the
     # same between it and the valid point before it, to float64 rounding (an unprojection call
