@@ -41,6 +41,7 @@ from torch import Tensor
 from ..cameras import Camera
 from ..cameras.registry import get_model
 from ..cubemap.faces import face_rotations
+from . import fast
 
 __all__ = ["instance_boxes", "reproject_boxes", "reproject_keypoints", "OUTLINE_STEP",
            "BOUNDARY_STEP"]
@@ -98,21 +99,25 @@ class Side(NamedTuple):
         u, v = pixels[..., 0], pixels[..., 1]
         return (u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5)
 
-    def unproject(self, points: Tensor, sample: Tensor) -> tuple[Tensor, Tensor]:
+    def unproject(self, points: Tensor, sample: Tensor, domain: bool = False) -> tuple:
         """Pixel centres ``(T, 2)`` (a cube: ``(T, 3)`` face, u, v) of samples ``sample`` ->
-        unit rays ``(T, 3)`` and where they are seen."""
+        unit rays ``(T, 3)`` and where they are seen (``domain``: and where the model maps
+        them, wherever they lie)."""
         if self.params is None:
-            return _cube_rays(points)
+            rays, ok = _cube_rays(points)
+            return (rays, ok, ok) if domain else (rays, ok)
         rays, ok = get_model(self.model).unproject(points, self.params[sample])
         rays = torch.nn.functional.normalize(rays, dim=-1)
-        return rays, ok & self.in_image(points) & self.cones(rays, sample)
+        seen = ok & self.in_image(points) & self.cones(rays, sample)
+        return (rays, seen, ok) if domain else (rays, seen)
 
-    def project(self, rays: Tensor, sample: Tensor) -> tuple[Tensor, Tensor]:
+    def project(self, rays: Tensor, sample: Tensor, domain: bool = False) -> tuple:
         """Unit ``rays (T, 3)`` of samples ``sample`` -> pixel centres ``(T, 2)`` and where
-        they are seen."""
+        they are seen (``domain``: and where the model maps them, wherever they land)."""
         pixels, ok = get_model(self.model).project(rays, self.params[sample])
         ok = ok & torch.isfinite(pixels).all(-1)
-        return pixels, ok & self.in_image(pixels) & self.cones(rays, sample)
+        seen = ok & self.in_image(pixels) & self.cones(rays, sample)
+        return (pixels, seen, ok) if domain else (pixels, seen)
 
 
 class Change(NamedTuple):
@@ -122,18 +127,21 @@ class Change(NamedTuple):
     output: Side
     rotation: Tensor          # (n, 3, 3) float64
 
-    def forward(self, points: Tensor, sample: Tensor) -> tuple[Tensor, Tensor]:
+    def forward(self, points: Tensor, sample: Tensor, domain: bool = False) -> tuple:
         """Source pixel centres ``(T, 2)`` (cube: ``(T, 3)``) -> output pixel centres ``(T, 2)``
-        and where both cameras see them."""
-        rays, ok = self.source.unproject(points, sample)
-        rays = (self.rotation[sample] * rays[:, :, None]).sum(1)       # R^T @ ray
-        pixels, seen = self.output.project(rays, sample)
+        and where both cameras see them (``domain``: and where both models map them, seen or
+        not)."""
+        rays, ok, mapped = self.source.unproject(points, sample, domain=True)
+        rays = torch.bmm(rays[:, None, :], self.rotation[sample])[:, 0]   # R^T @ ray
+        pixels, seen, through = self.output.project(rays, sample, domain=True)
+        if domain:
+            return pixels, ok & seen, mapped & through
         return pixels, ok & seen
 
     def backward(self, pixels: Tensor, sample: Tensor) -> tuple[Tensor, Tensor]:
         """Output pixel centres ``(T, 2)`` -> source pixel centres and where both see them."""
         rays, ok = self.output.unproject(pixels, sample)
-        rays = (self.rotation[sample] * rays[:, None, :]).sum(2)       # R @ ray
+        rays = torch.bmm(self.rotation[sample], rays[:, :, None])[:, :, 0]   # R @ ray
         points, seen = self.source.project(rays, sample)
         return points, ok & seen
 
@@ -327,200 +335,166 @@ def _on_centres(pixels: Tensor, w: int, h: int) -> Tensor:
     return (u >= -1e-9) & (u <= w - 1 + 1e-9) & (v >= -1e-9) & (v <= h - 1 + 1e-9)
 
 
-def _boundaries(change: Change, samples: list[int]
-                ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Points on the boundary of each of ``samples``' output valid area (the images of its
-    cones and the output image's edges), at most :data:`BOUNDARY_STEP` apart, ``(T, 2)``, their
-    sample ``(T,)``, and the source pixel centres they map back to with where that holds
-    ``(T, 2), (T,)``: the cones' projections and the mapping back each one call for all
-    ``samples``."""
-    out = change.output
-    h, w = out.image_size
-    step = BOUNDARY_STEP
-    # the outer pixel centres' lines: the box of an object's pixels ends there
-    xs = torch.cat((torch.arange(0, w - 1, step, dtype=torch.float64),
-                    torch.tensor([w - 1.0], dtype=torch.float64)))
-    ys = torch.cat((torch.arange(0, h - 1, step, dtype=torch.float64),
-                    torch.tensor([h - 1.0], dtype=torch.float64)))
-    edges = torch.cat((torch.stack((xs, torch.zeros_like(xs)), -1),
-                       torch.stack((xs, torch.full_like(xs, h - 1.0)), -1),
-                       torch.stack((torch.zeros_like(ys), ys), -1),
-                       torch.stack((torch.full_like(ys, w - 1.0), ys), -1)))
-    parts = [edges.repeat(len(samples), 1)]
-    owners = [torch.tensor(samples).repeat_interleave(len(edges))]
-    project = get_model(out.model).project
-
-    def circles(rings: list[tuple[int, float, int]]) -> tuple[Tensor, Tensor, Tensor]:
-        """``(sample, half angle, count)`` -> the rings' projections, ok and samples."""
-        rays, idx = [], []
-        for i, half, count in rings:
-            phi = torch.arange(count, dtype=torch.float64) * (2 * math.pi / count)
-            rays.append(torch.stack((math.sin(half) * torch.cos(phi),
-                                     math.sin(half) * torch.sin(phi),
-                                     torch.full_like(phi, math.cos(half))), -1))
-            idx.append(torch.full((count,), i, dtype=torch.long))
-        idx = torch.cat(idx)
-        pix, ok = project(torch.cat(rays), out.params[idx])
-        return pix, ok & torch.isfinite(pix).all(-1), idx
-
-    for angle, inset in ((out.fov, -_INSET), (out.blind_fov, _INSET)):
-        if angle is None:
-            continue
-        halves = [(i, 0.5 * float(angle[i]) + inset) for i in samples
-                  if 0 < float(angle[i]) < 2 * math.pi]
-        if not halves:
-            continue
-        # a coarse circle measures the fine one's sample count
-        pix, ok, _ = circles([(i, half, 256) for i, half in halves])
-        pix, ok = pix.reshape(len(halves), 256, 2), ok.reshape(len(halves), 256)
-        seg = (pix - pix.roll(-1, 1)).norm(dim=-1)
-        lengths = torch.where(ok & ok.roll(-1, 1), seg, torch.zeros_like(seg)).sum(-1)
-        pix, ok, idx = circles([
-            (i, half, int(min(max(math.ceil(float(length) / step), 64), 1 << 16)))
-            for (i, half), length in zip(halves, lengths)])
-        parts.append(pix[ok])
-        owners.append(idx[ok])
-    points, owner = torch.cat(parts), torch.cat(owners)
-    src, ok = change.backward(points, owner)
-    return points, owner, src, ok
+def _in_rects(points: Tensor, rects: Tensor) -> Tensor:
+    """Where source pixel centres ``points (T, 2)`` lie in their ``rects (T, 4)``."""
+    return (points[:, 0] >= rects[:, 0]) & (points[:, 0] <= rects[:, 2]) & \
+        (points[:, 1] >= rects[:, 1]) & (points[:, 1] <= rects[:, 3])
 
 
-#: Width in pixels of the strips :func:`_pixel_boxes` reads first along each side of a window.
-_BAND = 3
+#: Pixels a window reaches past the extent of its box's mapped outline samples (which miss the
+#: mapped outline's extreme by its sagitta between two samples, far below a pixel).
+_MARGIN = 1.0
+#: Most pixels mapped back in one call of the scans in torch (:func:`_scan_back`).
+_SCAN_CHUNK = 1 << 20
 
 
-def _pixel_boxes(change: Change, sample: int, extents: Tensor, rects: Tensor) -> Tensor:
-    """Per box ``(m, 4)``: the extent, pixel edges in pixel-centre coordinates, of the output
-    pixels within ``extents`` (pixel-centre x0, y0, x1, y1; inf: none, kept) whose rays meet
-    the source rectangle ``rects`` and are valid: the pixels an object cut by the valid area's
-    boundary keeps (a sliver's pixels are sparse, so its continuous extent would overstate
-    their box). All boxes of the sample in one mapping.
-
-    Each box reads the strips of :data:`_BAND` pixels along its window's sides first: where
-    each strip holds a pixel of the object, the object's extreme pixel towards that side is in
-    that strip (the whole window lies on the inner side of it), so the strips' extent is the
-    window's, exactly; the boxes with a strip that holds none read their whole window."""
-    h, w = change.output.image_size
-    out = extents.clone()
-    todo = torch.isfinite(extents).all(-1).nonzero()[:, 0].tolist()
-    windows = {}
-    for j in todo:
-        lo, hi = extents[j, :2].ceil() - 1, extents[j, 2:].floor() + 1   # a pixel of margin
-        windows[j] = (torch.arange(int(lo[0]), int(hi[0]) + 1, dtype=torch.float64),
-                      torch.arange(int(lo[1]), int(hi[1]) + 1, dtype=torch.float64))
-
-    def grid(c: Tensor, r: Tensor) -> Tensor:
-        return torch.stack(torch.meshgrid(c, r, indexing="xy"), -1).reshape(-1, 2)
-
-    def hits(parts: list[tuple[int, Tensor]]) -> tuple[Tensor, Tensor, Tensor]:
-        """Points of ``(box, points)`` parts, one mapping: all points, their part and
-        whether each is a pixel of its box's object."""
-        points = torch.cat([p for _, p in parts])
-        part = torch.arange(len(parts)).repeat_interleave(torch.tensor([len(p) for _, p in parts]))
-        rect = rects[torch.tensor([j for j, _ in parts])][part]
-        src, ok = change.backward(points, torch.full((len(points),), sample, dtype=torch.long))
-        ok = ok & _on_centres(points, w, h) & (src[:, 0] >= rect[:, 0]) & \
-            (src[:, 0] <= rect[:, 2]) & (src[:, 1] >= rect[:, 1]) & (src[:, 1] <= rect[:, 3])
-        return points, part, ok
-
-    def extent_of(parts: list[tuple[int, Tensor]], points: Tensor, part: Tensor, ok: Tensor):
-        owners = torch.tensor([j for j, _ in parts])
-        found = _extent(points, ok, owners[part], len(extents))
-        mine = owners.unique()
-        out[mine] = found[mine] + torch.tensor([-0.5, -0.5, 0.5, 0.5], dtype=out.dtype)
-
-    if not todo:
-        return out
-    k = _BAND
-    parts = [(j, g) for j in todo for g in (
-        grid(windows[j][0][:k], windows[j][1]), grid(windows[j][0][-k:], windows[j][1]),
-        grid(windows[j][0], windows[j][1][:k]), grid(windows[j][0], windows[j][1][-k:]))]
-    points, part, ok = hits(parts)
-    held = torch.zeros(len(parts), dtype=torch.bool).index_put_((part,), ok, accumulate=True)
-    extent_of(parts, points, part, ok)
-    whole = [j for n, j in enumerate(todo) if not bool(held[4 * n:4 * n + 4].all())]
-    if whole:   # their strips' extent is replaced by their whole window's
-        parts = [(j, grid(*windows[j])) for j in whole]
-        extent_of(parts, *hits(parts))
+def _scan_back(change: Change, sample: Tensor, windows: Tensor, rects: Tensor) -> Tensor:
+    """The pixel scan of :class:`Outline` in torch: per box the extent ``(m, 4)`` (min column,
+    min row, max column, max row; -1 where none) of the output pixels of ``windows (m, 4)``
+    (inclusive) of its ``sample`` that ``change.backward`` maps, valid, into its source
+    ``rects (m, 4)`` (pixel centres)."""
+    out = torch.full((len(windows), 4), -1, dtype=torch.long)
+    sizes = ((windows[:, 2] - windows[:, 0] + 1) * (windows[:, 3] - windows[:, 1] + 1)).tolist()
+    first = 0
+    while first < len(windows):
+        last, total = first + 1, sizes[first]
+        while last < len(windows) and total + sizes[last] <= _SCAN_CHUNK:
+            total, last = total + sizes[last], last + 1
+        grids = [torch.stack(torch.meshgrid(torch.arange(c0, c1 + 1), torch.arange(r0, r1 + 1),
+                                            indexing="xy"), -1).reshape(-1, 2)
+                 for c0, r0, c1, r1 in windows[first:last].tolist()]
+        box = torch.arange(first, last).repeat_interleave(torch.tensor(sizes[first:last]))
+        pixels = torch.cat(grids)
+        src, ok = change.backward(pixels.to(torch.float64), sample[box])
+        ok = ok & _in_rects(src, rects[box])
+        found = _extent(pixels.to(torch.float64), ok, box - first, last - first)
+        out[first:last] = torch.where(torch.isfinite(found), found, -1.0).long()
+        first = last
     return out
 
 
-def map_boxes(change: Change, boxes: list[Tensor], source_size: tuple[int, int], *,
-              dtype: torch.dtype = torch.float64,
-              extra: tuple[Tensor, Tensor] | None = None
-              ) -> tuple[list[Tensor], list[Tensor], tuple[Tensor, Tensor] | None]:
-    """Boxes (per sample ``(N_i, 4)`` XYXY corner coordinates, of the ``n`` samples of
-    ``change``) -> per sample the output boxes in ``dtype`` and ``box_index (M_i,)`` (module
-    docstring), and ``change.forward`` of the points and samples ``extra`` (mapped in the same
-    call as the boxes' coarse pass; None without). Boxes are clipped to the source image
-    ``source_size`` first; none left: dropped."""
-    n = len(boxes)
-    h, w = source_size
-    counts = torch.tensor([len(b) for b in boxes])
-    flat = torch.cat(boxes)
-    owner = torch.arange(n).repeat_interleave(counts)
-    number = torch.arange(len(flat)) - (torch.cumsum(counts, 0) - counts).repeat_interleave(counts)
-    clipped = torch.cat((flat[:, :2].clamp(min=0), torch.minimum(
-        flat[:, 2:], torch.tensor([w, h], dtype=flat.dtype))), -1)
-    keep = (clipped[:, 2:] > clipped[:, :2]).all(-1)
-    rects, owner, number = clipped[keep] - 0.5, owner[keep], number[keep]   # pixel centres
-    r = len(rects)
-    # coarse pass: how far apart do the edges' points land (per box, the most any edge needs)
-    coarse, which = _outline(rects, torch.full((r,), _COARSE, dtype=torch.long))
-    e = 0 if extra is None else len(extra[0])
-    if extra is not None:
-        coarse, samples = torch.cat((extra[0], coarse)), torch.cat((extra[1], owner[which]))
-    else:
-        samples = owner[which]
-    pix, ok = change.forward(coarse, samples) if len(coarse) else (coarse, samples > 0)
-    mapped = None if extra is None else (pix[:e], ok[:e])
-    pix, ok = pix[e:], ok[e:]
-    if r == 0:
-        return ([torch.zeros(0, 4, dtype=dtype) for _ in range(n)],
-                [torch.zeros(0, dtype=torch.long) for _ in range(n)], mapped)
-    pix, ok = pix.reshape(r, 4 * _COARSE, 2), ok.reshape(r, 4 * _COARSE)
-    nxt = torch.cat((pix[:, 1:], pix[:, :1]), 1)   # edges run into each other: a closed loop
-    both = ok & ok.roll(-1, 1)
-    src_len = torch.stack(((rects[:, 2] - rects[:, 0]), (rects[:, 3] - rects[:, 1])), -1)
-    src_seg = src_len[:, [0, 1, 0, 1]].repeat_interleave(_COARSE, -1) / _COARSE   # per edge
-    stretch = torch.where(both, (nxt - pix).norm(dim=-1) / src_seg.clamp(min=1e-9),
-                          torch.zeros_like(src_seg)).amax(-1).clamp(min=1.0)
-    needed = (stretch * src_len.amax(-1) / OUTLINE_STEP).ceil()
-    counts = needed.clamp(_COARSE, _MAX_PER_EDGE).long()
-    # fine pass: the outline's valid samples
-    fine, which = _outline(rects, counts)
-    pix, ok = change.forward(fine, owner[which])
-    oh, ow = change.output.image_size
-    ok = ok & _on_centres(pix, ow, oh)
-    box = _extent(pix, ok, which, r)
-    # where the outline leaves the valid area: the valid area's boundary inside the region
-    inside_all = torch.zeros(r, dtype=torch.bool).index_put_((which,), ~ok, accumulate=True)
-    cut = owner[inside_all].unique().tolist()
-    every, of, every_src, every_seen = _boundaries(change, cut) if cut else (None,) * 4
-    for i in cut:
-        mask = of == i
-        points, src, seen = every[mask], every_src[mask], every_seen[mask]
-        seen = seen & _on_centres(points, ow, oh)
-        mine = (inside_all & (owner == i)).nonzero()[:, 0]
-        rect = rects[mine]
-        inside = seen[None] & (src[None, :, 0] >= rect[:, None, 0]) & \
-            (src[None, :, 0] <= rect[:, None, 2]) & (src[None, :, 1] >= rect[:, None, 1]) & \
-            (src[None, :, 1] <= rect[:, None, 3])                           # (m, T)
-        m, t = inside.shape
-        extra = _extent(points.repeat(m, 1), inside.reshape(-1),
-                        torch.arange(m).repeat_interleave(t), m)
-        box[mine] = torch.cat((torch.minimum(box[mine, :2], extra[:, :2]),
-                               torch.maximum(box[mine, 2:], extra[:, 2:])), -1)
-        box[mine] = _pixel_boxes(change, i, box[mine], rect)
-    # pixel-centre extent -> corner coordinates: +0.5, and the image's edge where it reaches
-    # the outer pixel centres
-    limit = torch.tensor([ow - 1.0, oh - 1.0], dtype=box.dtype)
-    lo = torch.where(box[:, :2] <= 1e-6, torch.zeros_like(box[:, :2]), box[:, :2] + 0.5)
-    hi = torch.where(box[:, 2:] >= limit - 1e-6, limit + 1, box[:, 2:] + 0.5)
-    box = torch.cat((lo, hi), -1)
-    kept = torch.isfinite(box).all(-1) & (box[:, 2:] > box[:, :2]).all(-1)
-    sizes = torch.bincount(owner[kept], minlength=n).tolist()   # owner is sorted
-    return list(box[kept].to(dtype).split(sizes)), list(number[kept].split(sizes)), mapped
+class Outline:
+    """Boxes of the ``n`` samples of a :class:`Change` mapped by their outlines (module
+    docstring), in two steps: the outlines (on construction), then the pixels of the boxes that
+    the valid area cuts, read from the rays a renderer samples along (:meth:`scan`) or mapped
+    back here (:meth:`result`).
+
+    ``boxes``: per sample ``(N_i, 4)`` XYXY corner coordinates, clipped to the source image
+    ``source_size`` first (none left: dropped); ``extra``: points and samples mapped by
+    ``change.forward`` in the same call as the outlines' coarse pass (``mapped``; None
+    without)."""
+
+    def __init__(self, change: Change, boxes: list[Tensor], source_size: tuple[int, int],
+                 extra: tuple[Tensor, Tensor] | None = None):
+        self.change, self.n = change, len(boxes)
+        h, w = source_size
+        counts = torch.tensor([len(b) for b in boxes])
+        flat = torch.cat(boxes)
+        owner = torch.arange(self.n).repeat_interleave(counts)
+        number = torch.arange(len(flat)) - (torch.cumsum(counts, 0) - counts).repeat_interleave(
+            counts)
+        clipped = torch.cat((flat[:, :2].clamp(min=0), torch.minimum(
+            flat[:, 2:], torch.tensor([w, h], dtype=flat.dtype))), -1)
+        keep = (clipped[:, 2:] > clipped[:, :2]).all(-1)
+        rects, owner, number = clipped[keep] - 0.5, owner[keep], number[keep]  # pixel centres
+        self.rects, self.owner, self.number = rects, owner, number
+        r = len(rects)
+        # coarse pass: how far apart do the edges' points land (per box, the most any edge
+        # needs)
+        coarse, which = _outline(rects, torch.full((r,), _COARSE, dtype=torch.long))
+        e = 0 if extra is None else len(extra[0])
+        if extra is not None:
+            coarse = torch.cat((extra[0], coarse))
+            samples = torch.cat((extra[1], owner[which]))
+        else:
+            samples = owner[which]
+        pix, ok = change.forward(coarse, samples) if len(coarse) else (coarse, samples > 0)
+        self.mapped = None if extra is None else (pix[:e], ok[:e])
+        oh, ow = change.output.image_size
+        self.box = torch.zeros(r, 4, dtype=torch.float64)
+        self.cut = torch.zeros(r, dtype=torch.bool)
+        self.windows = torch.zeros(r, 4, dtype=torch.long)
+        self.pixels = torch.full((r, 4), -1, dtype=torch.long)
+        self.scanned = torch.zeros(r, dtype=torch.bool)
+        if r == 0:
+            return
+        pix, ok = pix[e:].reshape(r, 4 * _COARSE, 2), ok[e:].reshape(r, 4 * _COARSE)
+        nxt = torch.cat((pix[:, 1:], pix[:, :1]), 1)   # edges run into each other: a loop
+        both = ok & ok.roll(-1, 1)
+        src_len = torch.stack(((rects[:, 2] - rects[:, 0]), (rects[:, 3] - rects[:, 1])), -1)
+        src_seg = src_len[:, [0, 1, 0, 1]].repeat_interleave(_COARSE, -1) / _COARSE  # per edge
+        stretch = torch.where(both, (nxt - pix).norm(dim=-1) / src_seg.clamp(min=1e-9),
+                              torch.zeros_like(src_seg)).amax(-1).clamp(min=1.0)
+        needed = (stretch * src_len.amax(-1) / OUTLINE_STEP).ceil()
+        counts = needed.clamp(_COARSE, _MAX_PER_EDGE).long()
+        # fine pass: the outline's valid samples bound the box where the whole outline is valid
+        fine, which = _outline(rects, counts)
+        pix, ok, through = change.forward(fine, owner[which], domain=True)
+        ok = ok & _on_centres(pix, ow, oh)
+        self.box = _extent(pix, ok, which, r)
+        # the boxes whose outline leaves the valid area, or whose region holds the direction
+        # the output camera cannot map (its back, -z), are scanned pixel by pixel in a window
+        # that holds the whole mapped region: the extent of its mapped outline, or the image
+        back = -change.rotation[owner][:, :, 2]            # the output's -z in the source frame
+        pole, seen = change.source.project(back, owner)
+        self.cut = torch.zeros(r, dtype=torch.bool).index_put_((which,), ~ok, accumulate=True)
+        self.cut |= seen & _in_rects(pole, rects)
+        whole = torch.zeros(r, dtype=torch.bool).index_put_((which,), ~through,
+                                                            accumulate=True)
+        whole |= (needed > _MAX_PER_EDGE) | (seen & _in_rects(pole, rects))
+        span = _extent(pix, through, which, r)
+        lo = (span[:, :2] - _MARGIN).floor().clamp(min=0)
+        hi = torch.minimum((span[:, 2:] + _MARGIN).ceil(),
+                           torch.tensor([ow - 1.0, oh - 1.0], dtype=span.dtype))
+        image = torch.tensor([0, 0, ow - 1, oh - 1], dtype=torch.long)
+        windows = torch.where(whole[:, None], image, torch.cat((lo, hi), -1).long())
+        empty = (windows[:, 2:] < windows[:, :2]).any(-1)   # the region misses the image
+        self.scanned = ~self.cut | empty
+        self.windows = windows
+
+    def scan(self, index: Tensor, rays: Tensor, rotation: Tensor | None, k: Tensor,
+             valid: Tensor | None) -> None:
+        """Read the pixels of the cut boxes of the samples ``index (m,)`` (of this change) from
+        the rays ``(m, h, w, 3)`` a renderer samples the source along: the C++ op
+        ``box_pixels``, as ``fast.sample_image`` projects them (``rotation (m, 3, 3)`` or
+        None, the pinhole ``k (1 or m, 4)``, ``valid (m, h, w)``)."""
+        at = torch.full((self.n,), -1, dtype=torch.long)
+        at[index] = torch.arange(len(index))
+        todo = (~self.scanned & (at[self.owner] >= 0)).nonzero()[:, 0]
+        if len(todo) == 0:
+            return
+        out = torch.empty(len(todo), 4, dtype=torch.long)
+        fast._require().box_pixels(
+            rays.contiguous(), None if rotation is None else rotation.to(rays.dtype).contiguous(),
+            k.to(rays.dtype).contiguous(), None if valid is None else valid.contiguous(),
+            at[self.owner[todo]], self.windows[todo], self.rects[todo], out)
+        self.pixels[todo] = out
+        self.scanned[todo] = True
+
+    def result(self, dtype: torch.dtype = torch.float64) -> tuple[list[Tensor], list[Tensor]]:
+        """Per sample the output boxes in ``dtype`` and ``box_index (M_i,)``, the cut boxes
+        not scanned yet mapped back here (:func:`_scan_back`)."""
+        todo = (~self.scanned).nonzero()[:, 0]
+        if len(todo):
+            self.pixels[todo] = _scan_back(self.change, self.owner[todo], self.windows[todo],
+                                           self.rects[todo])
+        # a cut box: the extent of its pixels (their edges, in pixel-centre coordinates)
+        found = (self.pixels >= 0).all(-1)
+        pixel_box = torch.where(found[:, None], self.pixels.to(torch.float64)
+                                + torch.tensor([-0.5, -0.5, 0.5, 0.5], dtype=torch.float64),
+                                math.inf)
+        box = torch.where(self.cut[:, None], pixel_box, self.box)
+        # pixel-centre extent -> corner coordinates: +0.5, and the image's edge where it
+        # reaches the outer pixel centres
+        oh, ow = self.change.output.image_size
+        limit = torch.tensor([ow - 1.0, oh - 1.0], dtype=box.dtype)
+        lo = torch.where(box[:, :2] <= 1e-6, torch.zeros_like(box[:, :2]), box[:, :2] + 0.5)
+        hi = torch.where(box[:, 2:] >= limit - 1e-6, limit + 1, box[:, 2:] + 0.5)
+        box = torch.cat((lo, hi), -1)
+        kept = torch.isfinite(box).all(-1) & (box[:, 2:] > box[:, :2]).all(-1)
+        sizes = torch.bincount(self.owner[kept], minlength=self.n).tolist()   # owner sorted
+        return (list(box[kept].to(dtype).split(sizes)),
+                list(self.number[kept].split(sizes)))
 
 
 # -------------------------------------------------------------------------------------------
@@ -584,35 +558,72 @@ def instance_boxes(instances: Tensor, ids: Sequence[Tensor]) -> tuple[list[Tenso
     return boxes, index
 
 
+class Targets:
+    """Keypoints and boxes of a batch through its camera changes, one per group of samples
+    ``(sample indices (n,), change)`` (e.g. one per drawn model): the keypoints and the
+    boxes' outlines on construction, the cut boxes' pixels from a renderer's rays
+    (:meth:`scan`, optional), then :meth:`result`."""
+
+    def __init__(self, changes: Sequence[tuple[Tensor, Change]], batch: int, *,
+                 keypoints: Tensor | None = None, boxes: list[Tensor] | None = None,
+                 source_size: tuple[int, int] | None = None):
+        self.batch, self.keypoints = batch, keypoints
+        self.parts = []   # (sample indices, Outline or None, keypoints or None)
+        for index, change in changes:
+            points = outline = mapped = None
+            if keypoints is not None:
+                points, sample, given = _keypoint_points(keypoints[index], source_size)
+            if boxes is not None:   # the keypoints mapped with the boxes' coarse pass
+                outline = Outline(change, [boxes[i] for i in index.tolist()], source_size,
+                                  extra=None if points is None else (points, sample))
+                mapped = outline.mapped
+            kp = None
+            if points is not None:
+                pixels, ok = mapped if mapped is not None else change.forward(points, sample)
+                kp = _keypoint_result(pixels, ok, given, (len(index), keypoints.shape[1]))
+            self.parts.append((index, outline, kp))
+
+    def scan(self, index: Tensor, rays: Tensor, rotation: Tensor | None, k: Tensor,
+             valid: Tensor | None) -> None:
+        """The cut boxes' pixels of the samples ``index (m,)`` of one change (all drawn with
+        one model) from the rays a renderer samples them along (:meth:`Outline.scan`)."""
+        for part, outline, _ in self.parts:
+            if outline is None:
+                continue
+            at = torch.full((self.batch,), -1, dtype=torch.long)
+            at[part] = torch.arange(len(part))
+            mine = at[index.cpu()]
+            if bool((mine >= 0).all()):
+                outline.scan(mine, rays, rotation, k, valid)
+
+    def result(self, dtype: torch.dtype = torch.float32,
+               box_dtype: torch.dtype = torch.float32) -> dict:
+        """A dict ``keypoints (B, K, 2)`` in ``dtype``, ``keypoints_valid (B, K)``, ``boxes``
+        in ``box_dtype`` and ``box_index`` (per sample lists), those given."""
+        out = {}
+        if self.keypoints is not None:
+            k = self.keypoints.shape[1]
+            out["keypoints"] = torch.full((self.batch, k, 2), math.nan, dtype=dtype)
+            out["keypoints_valid"] = torch.zeros(self.batch, k, dtype=torch.bool)
+        if any(outline is not None for _, outline, _ in self.parts):
+            out["boxes"], out["box_index"] = [None] * self.batch, [None] * self.batch
+        for index, outline, kp in self.parts:
+            if outline is not None:
+                got, which = outline.result(box_dtype)
+                for i, b, w in zip(index.tolist(), got, which):
+                    out["boxes"][i], out["box_index"][i] = b, w
+            if kp is not None:
+                out["keypoints"][index], out["keypoints_valid"][index] = kp[0].to(dtype), kp[1]
+        return out
+
+
 def map_targets(changes: Sequence[tuple[Tensor, Change]], batch: int, *,
                 keypoints: Tensor | None = None, boxes: list[Tensor] | None = None,
                 source_size: tuple[int, int] | None = None, dtype: torch.dtype = torch.float32,
                 box_dtype: torch.dtype = torch.float32) -> dict:
-    """Keypoints and boxes of a batch through its camera changes, one per group of samples
-    ``(sample indices (n,), change)`` (e.g. one per drawn model) -> a dict ``keypoints (B, K,
-    2)`` in ``dtype``, ``keypoints_valid (B, K)``, ``boxes`` in ``box_dtype`` and ``box_index``
-    (per sample lists), those given."""
-    out = {}
-    if keypoints is not None:
-        out["keypoints"] = torch.full((batch, keypoints.shape[1], 2), math.nan, dtype=dtype)
-        out["keypoints_valid"] = torch.zeros(batch, keypoints.shape[1], dtype=torch.bool)
-    if boxes is not None:
-        out["boxes"], out["box_index"] = [None] * batch, [None] * batch
-    for index, change in changes:
-        points = mapped = None
-        if keypoints is not None:
-            points, sample, given = _keypoint_points(keypoints[index], source_size)
-        if boxes is not None:   # the keypoints mapped with the boxes' coarse pass
-            got, which, mapped = map_boxes(
-                change, [boxes[i] for i in index.tolist()], source_size, dtype=box_dtype,
-                extra=None if points is None else (points, sample))
-            for i, b, w in zip(index.tolist(), got, which):
-                out["boxes"][i], out["box_index"][i] = b, w
-        if points is not None:
-            pixels, ok = mapped if mapped is not None else change.forward(points, sample)
-            kp, ok = _keypoint_result(pixels, ok, given, (len(index), keypoints.shape[1]))
-            out["keypoints"][index], out["keypoints_valid"][index] = kp.to(dtype), ok
-    return out
+    """:class:`Targets`' result, every cut box's pixels mapped back here."""
+    return Targets(changes, batch, keypoints=keypoints, boxes=boxes,
+                   source_size=source_size).result(dtype, box_dtype)
 
 
 def boxes_of_instances(instances: Tensor, ids: list[Tensor], source: Tensor,
@@ -726,4 +737,4 @@ def reproject_boxes(boxes: Sequence[Tensor] | Tensor, src_camera: Camera | Tenso
     batch = len(boxes)
     boxes = check_boxes(boxes, batch)
     change, size = _change(src_camera, dst_camera, rotation, batch, source_size)
-    return map_boxes(change, boxes, size)[:2]
+    return Outline(change, boxes, size).result()

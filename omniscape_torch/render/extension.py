@@ -329,6 +329,12 @@ def _fake_sample_image(image, rays, rotation, intrinsics, valid, bilinear, fill,
            "sample_image: expected image (B, C, H, W), rays (B, h, w, 3), out (B, C, h, w)")
 
 
+def _fake_box_pixels(rays, rotation, intrinsics, valid, sample, windows, rects, out) -> None:
+    _check(rays.dim() == 4 and rays.shape[-1] == 3 and sample.dim() == 1
+           and windows.shape == rects.shape == out.shape == (sample.shape[0], 4),
+           "box_pixels: expected rays (n, h, w, 3), sample (M,), windows, rects and out (M, 4)")
+
+
 def _fake_rays(o, d, t, tri, u, v, what: str) -> None:
     n = d.shape[0]
     _check(d.dim() == 2 and d.shape[1] == 3 and o.dim() == 2 and o.shape[1] == 3
@@ -367,7 +373,8 @@ def _fake_town_store(d, index, start, rgb, range_, labels, hit, axis, far, rgb_o
 _FAKES = {"build_lut": _fake_build_lut, "sample_lut": _fake_sample_lut,
           "sample_grid": _fake_sample_grid, "sample_rays": _fake_sample_rays,
           "camera_grid": _fake_camera_grid, "camera_rays": _fake_camera_rays,
-          "sample_image": _fake_sample_image, "town_backfaces": _fake_town_backfaces,
+          "sample_image": _fake_sample_image, "box_pixels": _fake_box_pixels,
+          "town_backfaces": _fake_town_backfaces,
           "town_prepare": _fake_town_prepare, "town_shade": _fake_town_shade,
           "town_store": _fake_town_store}
 

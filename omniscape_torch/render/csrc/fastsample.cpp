@@ -1903,6 +1903,174 @@ void camera_rays_op(const at::Tensor& affine, const at::Tensor& limits, const at
     }
 }
 
+// ------------------------------------------------------------------------------------------
+// Boxes of objects in an image sampled along rays (detection): the pixels whose rays land in a
+// source rectangle
+// ------------------------------------------------------------------------------------------
+
+// Whether the pixel `p` of one sample (ray p, rotated by r into the pinhole k, as
+// locate_pinhole projects it) is valid and lands in the pixel-centre rectangle u0..u1, v0..v1.
+template <typename G, bool Rotate>
+inline bool lands_in(const G* __restrict rays, const G* r, const G* k, const uint8_t* valid,
+                     int64_t p, G u0, G v0, G u1, G v1) {
+    if (valid != nullptr && !valid[p]) {
+        return false;
+    }
+    G px, py, pz;
+    rotate<G, Rotate>(r, rays[3 * p], rays[3 * p + 1], rays[3 * p + 2], px, py, pz);
+    if (!(pz > G(0))) {
+        return false;
+    }
+    const G u = k[0] * (px / pz) + k[2], v = k[1] * (py / pz) + k[3];
+    return (u >= u0) & (u <= u1) & (v >= v0) & (v <= v1);
+}
+
+// The extent (min column, min row, max column, max row; -1 where none) of the pixels of the
+// window c0..c1, r0..r1 (inclusive) of one sample `width` wide that land in the rectangle:
+// the rows from the top and from the bottom to the first that holds one, then per row in
+// between its columns from each side up to the extent found so far (about the window's
+// perimeter for a convex object, its area at most).
+template <typename G, bool Rotate>
+void box_extent(const G* rays, const G* rot, const G* k, const uint8_t* valid, int64_t width,
+                const int64_t* window, const double* rect, int64_t* out) {
+    G r[9];
+    if (Rotate) {
+        std::copy(rot, rot + 9, r);
+    }
+    const G u0 = G(rect[0]), v0 = G(rect[1]), u1 = G(rect[2]), v1 = G(rect[3]);
+    const int64_t c0 = window[0], r0 = window[1], c1 = window[2], r1 = window[3];
+    const auto hit = [&](int64_t row, int64_t col) {
+        return lands_in<G, Rotate>(rays, r, k, valid, row * width + col, u0, v0, u1, v1);
+    };
+    const auto row_holds = [&](int64_t row) {
+        for (int64_t col = c0; col <= c1; ++col) {
+            if (hit(row, col)) {
+                return true;
+            }
+        }
+        return false;
+    };
+    std::fill(out, out + 4, int64_t(-1));
+    int64_t top = r0;
+    while (top <= r1 && !row_holds(top)) {
+        ++top;
+    }
+    if (top > r1) {
+        return;
+    }
+    int64_t bottom = r1;
+    while (bottom > top && !row_holds(bottom)) {
+        --bottom;
+    }
+    int64_t left = c1 + 1, right = c0 - 1;
+    for (int64_t row = top; row <= bottom; ++row) {
+        for (int64_t col = c0; col < left; ++col) {
+            if (hit(row, col)) {
+                left = col;
+                break;
+            }
+        }
+        for (int64_t col = c1; col > right; --col) {
+            if (hit(row, col)) {
+                right = col;
+                break;
+            }
+        }
+    }
+    out[0] = left;
+    out[1] = top;
+    out[2] = right;
+    out[3] = bottom;
+}
+
+// box_pixels: for each box m, the extent (int64 (M, 4): min column, min row, max column, max
+// row, -1 where none) of the pixels of sample[m] within windows[m] (c0, r0, c1, r1, inclusive)
+// whose rays (n, h, w, 3), rotated by rotation (n, 3, 3, or none) into the pinhole intrinsics
+// (1 or n, 4) as sample_image projects them, are valid (n, h, w, or none) and land in the
+// source pixel-centre rectangle rects[m] (float64 u0, v0, u1, v1).
+void box_pixels_op(const at::Tensor& rays, const std::optional<at::Tensor>& rotation,
+                   const at::Tensor& intrinsics, const std::optional<at::Tensor>& valid,
+                   const at::Tensor& sample, const at::Tensor& windows, const at::Tensor& rects,
+                   const at::Tensor& out) {
+    const char* op = "omniscape_torch::box_pixels";
+    for (const auto& [name, t] : {std::pair<const char*, const at::Tensor*>{"rays", &rays},
+                                  {"intrinsics", &intrinsics}, {"sample", &sample},
+                                  {"windows", &windows}, {"rects", &rects}, {"out", &out}}) {
+        check_cpu(op, name, *t);
+        check_contiguous(op, name, *t);
+    }
+    const at::ScalarType dtype = rays.scalar_type();
+    TORCH_CHECK((dtype == at::kFloat || dtype == at::kDouble) && rays.dim() == 4 &&
+                    rays.size(3) == 3, op, ": rays: expected float32 or float64 (n, h, w, 3), got ",
+                rays.scalar_type(), " ", rays.sizes());
+    const int64_t n = rays.size(0), height = rays.size(1), width = rays.size(2);
+    TORCH_CHECK(intrinsics.scalar_type() == dtype && intrinsics.dim() == 2 &&
+                    intrinsics.size(1) == 4 && (intrinsics.size(0) == 1 || intrinsics.size(0) == n),
+                op, ": intrinsics: expected (1 or n, 4) in the rays' dtype, got ",
+                intrinsics.sizes());
+    if (rotation.has_value()) {
+        check_cpu(op, "rotation", *rotation);
+        check_contiguous(op, "rotation", *rotation);
+        TORCH_CHECK(rotation->scalar_type() == dtype &&
+                        rotation->sizes() == at::IntArrayRef({n, 3, 3}),
+                    op, ": rotation: expected (n, 3, 3) in the rays' dtype, got ",
+                    rotation->sizes());
+    }
+    if (valid.has_value()) {
+        check_cpu(op, "valid", *valid);
+        check_contiguous(op, "valid", *valid);
+        TORCH_CHECK(valid->scalar_type() == at::kBool &&
+                        valid->sizes() == at::IntArrayRef({n, height, width}),
+                    op, ": valid: expected bool (n, h, w), got ", valid->sizes());
+    }
+    const int64_t boxes = sample.size(0);
+    TORCH_CHECK(sample.scalar_type() == at::kLong && sample.dim() == 1 &&
+                    windows.scalar_type() == at::kLong &&
+                    windows.sizes() == at::IntArrayRef({boxes, 4}) &&
+                    rects.scalar_type() == at::kDouble &&
+                    rects.sizes() == at::IntArrayRef({boxes, 4}) &&
+                    out.scalar_type() == at::kLong && out.sizes() == at::IntArrayRef({boxes, 4}),
+                op, ": expected sample int64 (M,), windows int64, rects float64 and out int64 "
+                "(M, 4)");
+    const int64_t* s = sample.const_data_ptr<int64_t>();
+    const int64_t* win = windows.const_data_ptr<int64_t>();
+    for (int64_t m = 0; m < boxes; ++m) {
+        const int64_t* w = win + 4 * m;
+        TORCH_CHECK(s[m] >= 0 && s[m] < n && w[0] >= 0 && w[1] >= 0 && w[2] < width &&
+                        w[3] < height,
+                    op, ": box ", m, ": sample or window outside the rays (n, h, w) = (", n,
+                    ", ", height, ", ", width, ")");
+    }
+    const uint8_t* ok = mask(valid);
+    const auto run = [&](auto g) {
+        using G = decltype(g);
+        const G* ray = rays.const_data_ptr<G>();
+        const G* rot = rotation.has_value() ? rotation->const_data_ptr<G>() : nullptr;
+        const G* k = intrinsics.const_data_ptr<G>();
+        const int64_t k_batch = intrinsics.size(0) == 1 ? 0 : 4;
+        at::parallel_for(0, boxes, 1, [&](int64_t lo, int64_t hi) {
+            for (int64_t m = lo; m < hi; ++m) {
+                const int64_t b = s[m];
+                const G* r = ray + b * height * width * 3;
+                const uint8_t* v = ok == nullptr ? nullptr : ok + b * height * width;
+                int64_t* o = out.mutable_data_ptr<int64_t>() + 4 * m;
+                if (rot != nullptr) {
+                    box_extent<G, true>(r, rot + 9 * b, k + k_batch * b, v, width, win + 4 * m,
+                                        rects.const_data_ptr<double>() + 4 * m, o);
+                } else {
+                    box_extent<G, false>(r, nullptr, k + k_batch * b, v, width, win + 4 * m,
+                                         rects.const_data_ptr<double>() + 4 * m, o);
+                }
+            }
+        });
+    };
+    if (dtype == at::kFloat) {
+        run(float{});
+    } else {
+        run(double{});
+    }
+}
+
 }  // namespace
 
 TORCH_LIBRARY(omniscape_torch, m) {
@@ -1924,6 +2092,8 @@ TORCH_LIBRARY(omniscape_torch, m) {
           "Tensor(b!) valid) -> ()");
     m.def("sample_image(Tensor image, Tensor rays, Tensor? rotation, Tensor intrinsics, "
           "Tensor? valid, bool bilinear, int fill, Tensor(a!) out, Tensor(b!)? valid_out) -> ()");
+    m.def("box_pixels(Tensor rays, Tensor? rotation, Tensor intrinsics, Tensor? valid, "
+          "Tensor sample, Tensor windows, Tensor rects, Tensor(a!) out) -> ()");
 }
 
 TORCH_LIBRARY_IMPL(omniscape_torch, CPU, m) {
@@ -1934,4 +2104,5 @@ TORCH_LIBRARY_IMPL(omniscape_torch, CPU, m) {
     m.impl("camera_grid", &camera_grid_op);
     m.impl("camera_rays", &camera_rays_op);
     m.impl("sample_image", &sample_image_op);
+    m.impl("box_pixels", &box_pixels_op);
 }
