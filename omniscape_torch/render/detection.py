@@ -84,14 +84,15 @@ class Side(NamedTuple):
         return Side(self.model, pick(self.params), self.image_size, pick(self.fov),
                     pick(self.blind_fov))
 
-    def cones(self, rays: Tensor, sample: Tensor) -> Tensor:
-        """``(T,)`` True where unit ``rays (T, 3)`` of samples ``sample (T,)`` lie in the cones."""
+    def cones(self, rays: Tensor, sample: Tensor | None) -> Tensor:
+        """``(T,)`` True where unit ``rays (T, 3)`` of samples ``sample (T,)`` lie in the cones
+        (``sample`` None: ``rays (n, M, 3)``, row i of sample i)."""
         ok = torch.ones(rays.shape[:-1], dtype=torch.bool)
         if self.fov is not None:
-            ok = ok & (rays[:, 2] >= torch.cos(0.5 * self.fov)[sample])
+            ok = ok & (rays[..., 2] >= _rows(torch.cos(0.5 * self.fov), sample))
         if self.blind_fov is not None and bool((self.blind_fov > 0).any()):
             blind = torch.where(self.blind_fov > 0, torch.cos(0.5 * self.blind_fov), 2.0)
-            ok = ok & (rays[:, 2] < blind[sample])
+            ok = ok & (rays[..., 2] < _rows(blind, sample))
         return ok
 
     def in_image(self, pixels: Tensor) -> Tensor:
@@ -106,7 +107,7 @@ class Side(NamedTuple):
         if self.params is None:
             rays, ok = _cube_rays(points)
             return (rays, ok, ok) if domain else (rays, ok)
-        rays, ok = get_model(self.model).unproject(points, self.params[sample])
+        rays, ok = get_model(self.model).unproject(points, _rows(self.params, sample))
         rays = torch.nn.functional.normalize(rays, dim=-1)
         seen = ok & self.in_image(points) & self.cones(rays, sample)
         return (rays, seen, ok) if domain else (rays, seen)
@@ -114,7 +115,7 @@ class Side(NamedTuple):
     def project(self, rays: Tensor, sample: Tensor, domain: bool = False) -> tuple:
         """Unit ``rays (T, 3)`` of samples ``sample`` -> pixel centres ``(T, 2)`` and where
         they are seen (``domain``: and where the model maps them, wherever they land)."""
-        pixels, ok = get_model(self.model).project(rays, self.params[sample])
+        pixels, ok = get_model(self.model).project(rays, _rows(self.params, sample))
         ok = ok & torch.isfinite(pixels).all(-1)
         seen = ok & self.in_image(pixels) & self.cones(rays, sample)
         return (pixels, seen, ok) if domain else (pixels, seen)
@@ -132,27 +133,52 @@ class Change(NamedTuple):
         and where both cameras see them (``domain``: and where both models map them, seen or
         not)."""
         rays, ok, mapped = self.source.unproject(points, sample, domain=True)
-        rays = torch.bmm(rays[:, None, :], self.rotation[sample])[:, 0]   # R^T @ ray
+        rays = _turn(rays, self.rotation, sample, back=True)
         pixels, seen, through = self.output.project(rays, sample, domain=True)
         if domain:
             return pixels, ok & seen, mapped & through
         return pixels, ok & seen
 
+    def forward_rows(self, points: list[Tensor], domain: bool = False) -> tuple:
+        """:meth:`forward` of the points ``(T_i, 2)`` of each sample i, in one call without a
+        per-point gather of the cameras (the samples' rows padded to one length) -> the
+        results of the samples one after the other."""
+        sizes = [len(p) for p in points]
+        padded = torch.nn.utils.rnn.pad_sequence(points, batch_first=True)
+        return tuple(torch.cat([t[i, :size] for i, size in enumerate(sizes)])
+                     for t in self.forward(padded, None, domain))
+
     def backward(self, pixels: Tensor, sample: Tensor) -> tuple[Tensor, Tensor]:
         """Output pixel centres ``(T, 2)`` -> source pixel centres and where both see them."""
         rays, ok = self.output.unproject(pixels, sample)
-        rays = torch.bmm(self.rotation[sample], rays[:, :, None])[:, :, 0]   # R @ ray
+        rays = _turn(rays, self.rotation, sample)
         points, seen = self.source.project(rays, sample)
         return points, ok & seen
 
 
+def _rows(t: Tensor, sample: Tensor | None) -> Tensor:
+    """Per-sample rows ``t (n, ...)`` for points of samples ``sample (T,)``, or (``sample``
+    None) for points ``(n, M, ...)``, broadcasting."""
+    return t[sample] if sample is not None else t[:, None]
+
+
+def _turn(rays: Tensor, rotation: Tensor, sample: Tensor | None, back: bool = False) -> Tensor:
+    """``R @ ray`` (``back``: ``R^T @ ray``) of ``rays (T, 3)`` of samples ``sample``, or
+    (``sample`` None) ``rays (n, M, 3)`` by ``rotation (n, 3, 3)``."""
+    if sample is None:
+        return torch.matmul(rays, rotation if back else rotation.transpose(1, 2))
+    if back:
+        return torch.bmm(rays[:, None, :], rotation[sample])[:, 0]
+    return torch.bmm(rotation[sample], rays[:, :, None])[:, :, 0]
+
+
 def _cube_rays(points: Tensor) -> tuple[Tensor, Tensor]:
-    """``(T, 3)`` rows ``(face, x, y)`` of :func:`cube_points` (``x = (u - c) / f``) -> unit
+    """``(..., 3)`` rows ``(face, x, y)`` of :func:`cube_points` (``x = (u - c) / f``) -> unit
     rays in the cube frame, and where the point lies on its face."""
-    face = points[:, 0].long()
-    local = torch.cat((points[:, 1:], torch.ones_like(points[:, :1])), -1)
-    rays = torch.einsum("tij,tj->ti", face_rotations(torch.float64)[face], local)
-    on_face = (points[:, 1:].abs() <= 1 + 1e-9).all(-1)
+    face = points[..., 0].long()
+    local = torch.cat((points[..., 1:], torch.ones_like(points[..., :1])), -1)
+    rays = torch.einsum("...ij,...j->...i", face_rotations(torch.float64)[face], local)
+    on_face = (points[..., 1:].abs() <= 1 + 1e-9).all(-1)
     return torch.nn.functional.normalize(rays, dim=-1), on_face
 
 
@@ -380,12 +406,12 @@ class Outline:
     back here (:meth:`result`).
 
     ``boxes``: per sample ``(N_i, 4)`` XYXY corner coordinates, clipped to the source image
-    ``source_size`` first (none left: dropped); ``extra``: points and samples mapped by
-    ``change.forward`` in the same call as the outlines' coarse pass (``mapped``; None
-    without)."""
+    ``source_size`` first (none left: dropped); ``extra``: per sample points ``(T_i, 2)``
+    mapped by ``change.forward`` in the same call as the outlines' coarse pass (``mapped``,
+    the samples' one after the other; None without)."""
 
     def __init__(self, change: Change, boxes: list[Tensor], source_size: tuple[int, int],
-                 extra: tuple[Tensor, Tensor] | None = None):
+                 extra: list[Tensor] | None = None):
         self.change, self.n = change, len(boxes)
         h, w = source_size
         counts = torch.tensor([len(b) for b in boxes])
@@ -399,49 +425,46 @@ class Outline:
         rects, owner, number = clipped[keep] - 0.5, owner[keep], number[keep]  # pixel centres
         self.rects, self.owner, self.number = rects, owner, number
         r = len(rects)
-        # coarse pass: how far apart do the edges' points land (per box, the most any edge
-        # needs)
-        coarse, which = _outline(rects, torch.full((r,), _COARSE, dtype=torch.long))
-        e = 0 if extra is None else len(extra[0])
-        if extra is not None:
-            coarse = torch.cat((extra[0], coarse))
-            samples = torch.cat((extra[1], owner[which]))
-        else:
-            samples = owner[which]
-        pix, ok = change.forward(coarse, samples) if len(coarse) else (coarse, samples > 0)
-        self.mapped = None if extra is None else (pix[:e], ok[:e])
         oh, ow = change.output.image_size
         self.box = torch.zeros(r, 4, dtype=torch.float64)
         self.cut = torch.zeros(r, dtype=torch.bool)
         self.windows = torch.zeros(r, 4, dtype=torch.long)
         self.pixels = torch.full((r, 4), -1, dtype=torch.long)
         self.scanned = torch.zeros(r, dtype=torch.bool)
+        # the outlines sampled OUTLINE_STEP source pixels apart, mapped with the points
+        # ``extra``; where their mapped samples (near the image) lie further apart, sampled
+        # again that much finer (a few boxes, where the camera magnifies)
+        src_len = (rects[:, 2:] - rects[:, :2]).amax(-1)
+        counts = (src_len / OUTLINE_STEP).ceil().clamp(_COARSE, _MAX_PER_EDGE).long()
+        pix, ok, through, which, longest, self.mapped = self._pass(rects, owner, counts,
+                                                                   extra)
+        for _ in range(3):
+            redo = (longest > OUTLINE_STEP) & (counts < _MAX_PER_EDGE)
+            if not bool(redo.any()):
+                break
+            sub = redo.nonzero()[:, 0]
+            counts[sub] = (counts[sub] * longest[sub] / OUTLINE_STEP).ceil().clamp(
+                max=_MAX_PER_EDGE).long()
+            again = self._pass(rects[sub], owner[sub], counts[sub], None)
+            keep = ~redo[which]
+            pix, ok, through = (torch.cat((t[keep], u)) for t, u in zip(
+                (pix, ok, through), again[:3]))
+            which = torch.cat((which[keep], sub[again[3]]))
+            longest[sub] = again[4]
         if r == 0:
             return
-        pix, ok = pix[e:].reshape(r, 4 * _COARSE, 2), ok[e:].reshape(r, 4 * _COARSE)
-        nxt = torch.cat((pix[:, 1:], pix[:, :1]), 1)   # edges run into each other: a loop
-        both = ok & ok.roll(-1, 1)
-        src_len = torch.stack(((rects[:, 2] - rects[:, 0]), (rects[:, 3] - rects[:, 1])), -1)
-        src_seg = src_len[:, [0, 1, 0, 1]].repeat_interleave(_COARSE, -1) / _COARSE  # per edge
-        stretch = torch.where(both, (nxt - pix).norm(dim=-1) / src_seg.clamp(min=1e-9),
-                              torch.zeros_like(src_seg)).amax(-1).clamp(min=1.0)
-        needed = (stretch * src_len.amax(-1) / OUTLINE_STEP).ceil()
-        counts = needed.clamp(_COARSE, _MAX_PER_EDGE).long()
-        # fine pass: the outline's valid samples bound the box where the whole outline is valid
-        fine, which = _outline(rects, counts)
-        pix, ok, through = change.forward(fine, owner[which], domain=True)
         ok = ok & _on_centres(pix, ow, oh)
         self.box = _extent(pix, ok, which, r)
         # the boxes whose outline leaves the valid area, or whose region holds the direction
         # the output camera cannot map (its back, -z), are scanned pixel by pixel in a window
         # that holds the whole mapped region: the extent of its mapped outline, or the image
-        back = -change.rotation[owner][:, :, 2]            # the output's -z in the source frame
-        pole, seen = change.source.project(back, owner)
+        back = -change.rotation[:, None, :, 2]           # the output's -z in the source frame
+        pole, seen = (t[:, 0][owner] for t in change.source.project(back, None))
         self.cut = torch.zeros(r, dtype=torch.bool).index_put_((which,), ~ok, accumulate=True)
         self.cut |= seen & _in_rects(pole, rects)
         whole = torch.zeros(r, dtype=torch.bool).index_put_((which,), ~through,
                                                             accumulate=True)
-        whole |= (needed > _MAX_PER_EDGE) | (seen & _in_rects(pole, rects))
+        whole |= (longest > OUTLINE_STEP) | (seen & _in_rects(pole, rects))
         span = _extent(pix, through, which, r)
         lo = (span[:, :2] - _MARGIN).floor().clamp(min=0)
         hi = torch.minimum((span[:, 2:] + _MARGIN).ceil(),
@@ -451,6 +474,46 @@ class Outline:
         empty = (windows[:, 2:] < windows[:, :2]).any(-1)   # the region misses the image
         self.scanned = ~self.cut | empty
         self.windows = windows
+
+    def _pass(self, rects: Tensor, owner: Tensor, counts: Tensor, extra: list[Tensor] | None
+              ) -> tuple:
+        """The outlines of ``rects (m, 4)`` of samples ``owner (m,)`` (sorted), ``counts
+        (m,)`` points per edge, mapped in one call with the points ``extra`` of each sample
+        (or None) -> the outline points' output pixels ``(T, 2)``, where they are seen and
+        where both models map them ``(T,)``, their box ``(T,)``, per box the longest step
+        between two consecutive mapped points of which one lies near the output image
+        ``(m,)``, and ``extra``'s pixels and where seen (None without)."""
+        points, which = _outline(rects, counts)
+        sizes = (torch.zeros(self.n, dtype=torch.long)
+                 .index_add_(0, owner, 4 * counts).tolist())
+        groups = list(points.split(sizes))
+        if extra is not None:
+            groups = [torch.cat(pair) for pair in zip(extra, groups)]
+        if not sum(map(len, groups)):
+            empty = torch.zeros(0, dtype=torch.bool)
+            return (points, empty, empty, which, torch.zeros(len(rects), dtype=points.dtype),
+                    None if extra is None else (points, empty))
+        pix, ok, through = self.change.forward_rows(groups, domain=True)
+        mapped = None
+        if extra is not None:   # (the extra points, then the outline's, of each sample)
+            parts = [m for e, size in zip(extra, sizes) for m in (len(e), size)]
+            pieces = [t.split(parts) for t in (pix, ok, through)]
+            mapped = (torch.cat(pieces[0][0::2]), torch.cat(pieces[1][0::2]))
+            pix, ok, through = (torch.cat(p[1::2]) for p in pieces)
+        # the steps between consecutive points of a box, and from its last to its first
+        oh, ow = self.change.output.image_size
+        near = through & (pix[:, 0] > -OUTLINE_STEP) & (pix[:, 0] < ow - 1 + OUTLINE_STEP) & \
+            (pix[:, 1] > -OUTLINE_STEP) & (pix[:, 1] < oh - 1 + OUTLINE_STEP)
+        nxt, near_nxt = pix.roll(-1, 0), near.roll(-1, 0)
+        last = torch.cumsum(4 * counts, 0) - 1
+        first = last - 4 * counts + 1
+        nxt[last], near_nxt[last] = pix[first], near[first]
+        both = through & through.roll(-1, 0)
+        both[last] = through[last] & through[first]
+        step = torch.where(both & (near | near_nxt), (nxt - pix).norm(dim=-1), 0.0)
+        longest = torch.zeros(len(rects), dtype=step.dtype).scatter_reduce(
+            0, which, step, "amax")
+        return pix, ok, through, which, longest, mapped
 
     def scan(self, index: Tensor, rays: Tensor, rotation: Tensor | None, k: Tensor,
              valid: Tensor | None) -> None:
@@ -573,13 +636,14 @@ class Targets:
             points = outline = mapped = None
             if keypoints is not None:
                 points, sample, given = _keypoint_points(keypoints[index], source_size)
+            rows = None if points is None else list(points.split(keypoints.shape[1]))
             if boxes is not None:   # the keypoints mapped with the boxes' coarse pass
                 outline = Outline(change, [boxes[i] for i in index.tolist()], source_size,
-                                  extra=None if points is None else (points, sample))
+                                  extra=rows)
                 mapped = outline.mapped
             kp = None
             if points is not None:
-                pixels, ok = mapped if mapped is not None else change.forward(points, sample)
+                pixels, ok = mapped if mapped is not None else change.forward_rows(rows)
                 kp = _keypoint_result(pixels, ok, given, (len(index), keypoints.shape[1]))
             self.parts.append((index, outline, kp))
 
