@@ -47,7 +47,10 @@ __all__ = ["instance_boxes", "reproject_boxes", "reproject_keypoints", "OUTLINE_
            "BOUNDARY_STEP"]
 
 #: Largest spacing, in output pixels, of the samples of a box's outline.
-OUTLINE_STEP = 8.0
+OUTLINE_STEP = 16.0
+#: Spacing, in source pixels, of the first samples of a box's outline (refined where they land
+#: further than OUTLINE_STEP apart: where the camera magnifies more than twice).
+FIRST_STEP = 8.0
 #: Spacing, in output pixels, of the samples of the valid area's boundary.
 BOUNDARY_STEP = 0.5
 #: Segments per edge of the coarse pass that estimates how much a box's edges stretch.
@@ -143,10 +146,11 @@ class Change(NamedTuple):
         """:meth:`forward` of the points ``(T_i, 2)`` of each sample i, in one call without a
         per-point gather of the cameras (the samples' rows padded to one length) -> the
         results of the samples one after the other."""
-        sizes = [len(p) for p in points]
-        padded = torch.nn.utils.rnn.pad_sequence(points, batch_first=True)
-        return tuple(torch.cat([t[i, :size] for i, size in enumerate(sizes)])
-                     for t in self.forward(padded, None, domain))
+        sizes = torch.tensor([len(p) for p in points])
+        rows = torch.arange(int(sizes.max()))[None] < sizes[:, None]       # (n, M)
+        flat = torch.cat(points)
+        padded = flat.new_zeros(*rows.shape, flat.shape[-1]).index_put_((rows,), flat)
+        return tuple(t[rows] for t in self.forward(padded, None, domain))
 
     def backward(self, pixels: Tensor, sample: Tensor) -> tuple[Tensor, Tensor]:
         """Output pixel centres ``(T, 2)`` -> source pixel centres and where both see them."""
@@ -430,12 +434,12 @@ class Outline:
         self.cut = torch.zeros(r, dtype=torch.bool)
         self.windows = torch.zeros(r, 4, dtype=torch.long)
         self.pixels = torch.full((r, 4), -1, dtype=torch.long)
-        self.scanned = torch.zeros(r, dtype=torch.bool)
+        self.waiting = []   # (box, sample) of the cut boxes whose pixels are still to read
         # the outlines sampled OUTLINE_STEP source pixels apart, mapped with the points
         # ``extra``; where their mapped samples (near the image) lie further apart, sampled
         # again that much finer (a few boxes, where the camera magnifies)
         src_len = (rects[:, 2:] - rects[:, :2]).amax(-1)
-        counts = (src_len / OUTLINE_STEP).ceil().clamp(_COARSE, _MAX_PER_EDGE).long()
+        counts = (src_len / FIRST_STEP).ceil().clamp(_COARSE, _MAX_PER_EDGE).long()
         pix, ok, through, which, longest, self.mapped = self._pass(rects, owner, counts,
                                                                    extra)
         for _ in range(3):
@@ -460,11 +464,10 @@ class Outline:
         # that holds the whole mapped region: the extent of its mapped outline, or the image
         back = -change.rotation[:, None, :, 2]           # the output's -z in the source frame
         pole, seen = (t[:, 0][owner] for t in change.source.project(back, None))
-        self.cut = torch.zeros(r, dtype=torch.bool).index_put_((which,), ~ok, accumulate=True)
-        self.cut |= seen & _in_rects(pole, rects)
-        whole = torch.zeros(r, dtype=torch.bool).index_put_((which,), ~through,
-                                                            accumulate=True)
-        whole |= (longest > OUTLINE_STEP) | (seen & _in_rects(pole, rects))
+        pole = seen & _in_rects(pole, rects)
+        self.cut = (torch.bincount(which[~ok], minlength=r) > 0) | pole
+        whole = (torch.bincount(which[~through], minlength=r) > 0) | pole | \
+            (longest > OUTLINE_STEP)
         span = _extent(pix, through, which, r)
         lo = (span[:, :2] - _MARGIN).floor().clamp(min=0)
         hi = torch.minimum((span[:, 2:] + _MARGIN).ceil(),
@@ -472,8 +475,9 @@ class Outline:
         image = torch.tensor([0, 0, ow - 1, oh - 1], dtype=torch.long)
         windows = torch.where(whole[:, None], image, torch.cat((lo, hi), -1).long())
         empty = (windows[:, 2:] < windows[:, :2]).any(-1)   # the region misses the image
-        self.scanned = ~self.cut | empty
         self.windows = windows
+        todo = (self.cut & ~empty).nonzero()[:, 0]
+        self.waiting = list(zip(todo.tolist(), owner[todo].tolist()))
 
     def _pass(self, rects: Tensor, owner: Tensor, counts: Tensor, extra: list[Tensor] | None
               ) -> tuple:
@@ -515,32 +519,33 @@ class Outline:
             0, which, step, "amax")
         return pix, ok, through, which, longest, mapped
 
-    def scan(self, index: Tensor, rays: Tensor, rotation: Tensor | None, k: Tensor,
+    def scan(self, index: list[int], rays: Tensor, rotation: Tensor | None, k: Tensor,
              valid: Tensor | None) -> None:
-        """Read the pixels of the cut boxes of the samples ``index (m,)`` (of this change) from
+        """Read the pixels of the cut boxes of the samples ``index`` (m, of this change) from
         the rays ``(m, h, w, 3)`` a renderer samples the source along: the C++ op
         ``box_pixels``, as ``fast.sample_image`` projects them (``rotation (m, 3, 3)`` or
         None, the pinhole ``k (1 or m, 4)``, ``valid (m, h, w)``)."""
-        at = torch.full((self.n,), -1, dtype=torch.long)
-        at[index] = torch.arange(len(index))
-        todo = (~self.scanned & (at[self.owner] >= 0)).nonzero()[:, 0]
-        if len(todo) == 0:
+        at = {sample: i for i, sample in enumerate(index)}
+        todo = [(j, at[sample]) for j, sample in self.waiting if sample in at]
+        if not todo:
             return
+        self.waiting = [(j, sample) for j, sample in self.waiting if sample not in at]
+        rows, samples = (torch.tensor(t) for t in zip(*todo))
         out = torch.empty(len(todo), 4, dtype=torch.long)
         fast._require().box_pixels(
             rays.contiguous(), None if rotation is None else rotation.to(rays.dtype).contiguous(),
             k.to(rays.dtype).contiguous(), None if valid is None else valid.contiguous(),
-            at[self.owner[todo]], self.windows[todo], self.rects[todo], out)
-        self.pixels[todo] = out
-        self.scanned[todo] = True
+            samples, self.windows[rows], self.rects[rows], out)
+        self.pixels[rows] = out
 
     def result(self, dtype: torch.dtype = torch.float64) -> tuple[list[Tensor], list[Tensor]]:
         """Per sample the output boxes in ``dtype`` and ``box_index (M_i,)``, the cut boxes
         not scanned yet mapped back here (:func:`_scan_back`)."""
-        todo = (~self.scanned).nonzero()[:, 0]
-        if len(todo):
-            self.pixels[todo] = _scan_back(self.change, self.owner[todo], self.windows[todo],
-                                           self.rects[todo])
+        if self.waiting:
+            rows, samples = (torch.tensor(t) for t in zip(*self.waiting))
+            self.pixels[rows] = _scan_back(self.change, samples, self.windows[rows],
+                                           self.rects[rows])
+            self.waiting = []
         # a cut box: the extent of its pixels (their edges, in pixel-centre coordinates)
         found = (self.pixels >= 0).all(-1)
         pixel_box = torch.where(found[:, None], self.pixels.to(torch.float64)
@@ -651,14 +656,13 @@ class Targets:
              valid: Tensor | None) -> None:
         """The cut boxes' pixels of the samples ``index (m,)`` of one change (all drawn with
         one model) from the rays a renderer samples them along (:meth:`Outline.scan`)."""
+        index = index.tolist()
         for part, outline, _ in self.parts:
             if outline is None:
                 continue
-            at = torch.full((self.batch,), -1, dtype=torch.long)
-            at[part] = torch.arange(len(part))
-            mine = at[index.cpu()]
-            if bool((mine >= 0).all()):
-                outline.scan(mine, rays, rotation, k, valid)
+            at = {sample: i for i, sample in enumerate(part.tolist())}
+            if all(sample in at for sample in index):
+                outline.scan([at[sample] for sample in index], rays, rotation, k, valid)
 
     def result(self, dtype: torch.dtype = torch.float32,
                box_dtype: torch.dtype = torch.float32) -> dict:
