@@ -403,6 +403,42 @@ def _scan_back(change: Change, sample: Tensor, windows: Tensor, rects: Tensor) -
     return out
 
 
+def _reduce(pix: Tensor, ok: Tensor, through: Tensor, counts: Tensor,
+            size: tuple[int, int]) -> tuple[Tensor, Tensor, Tensor]:
+    """Per box, its ``4 counts (M,)`` consecutive outline points' output pixels ``pix (T, 2)``
+    (seen where ``ok``, mapped by both models where ``through``) in an output image of
+    ``size`` -> ``extents (M, 8)``: the extent of its seen points within the outer pixel
+    centres, then of its mapped points (inf where none); ``longest (M,)``: the longest step
+    between consecutive mapped points of the closed outline of which one lies within
+    :data:`OUTLINE_STEP` pixels of those centres; ``flags (M,)``: 1 where a point is not seen
+    within them, 2 where one is not mapped. The C++ op ``outline_reduce``, else torch."""
+    h, w = size
+    m = len(counts)
+    if fast.available():
+        extents = torch.empty(m, 8, dtype=torch.float64)
+        longest = torch.empty(m, dtype=torch.float64)
+        flags = torch.empty(m, dtype=torch.long)
+        fast._require().outline_reduce(pix.contiguous(), ok.contiguous(),
+                                       through.contiguous(), counts, w, h, OUTLINE_STEP,
+                                       extents, longest, flags)
+        return extents, longest, flags
+    which = torch.arange(m).repeat_interleave(4 * counts)
+    seen = ok & _on_centres(pix, w, h)
+    extents = torch.cat((_extent(pix, seen, which, m), _extent(pix, through, which, m)), -1)
+    near = through & (pix[:, 0] > -OUTLINE_STEP) & (pix[:, 0] < w - 1 + OUTLINE_STEP) & \
+        (pix[:, 1] > -OUTLINE_STEP) & (pix[:, 1] < h - 1 + OUTLINE_STEP)
+    nxt, near_nxt, through_nxt = pix.roll(-1, 0), near.roll(-1, 0), through.roll(-1, 0)
+    last = torch.cumsum(4 * counts, 0) - 1
+    first = last - 4 * counts + 1
+    nxt[last], near_nxt[last], through_nxt[last] = pix[first], near[first], through[first]
+    step = torch.where(through & through_nxt & (near | near_nxt), (nxt - pix).norm(dim=-1),
+                       0.0)
+    longest = torch.zeros(m, dtype=step.dtype).scatter_reduce(0, which, step, "amax")
+    flags = ((torch.bincount(which[~seen], minlength=m) > 0).long() +
+             2 * (torch.bincount(which[~through], minlength=m) > 0).long())
+    return extents, longest, flags
+
+
 class Outline:
     """Boxes of the ``n`` samples of a :class:`Change` mapped by their outlines (module
     docstring), in two steps: the outlines (on construction), then the pixels of the boxes that
@@ -440,8 +476,7 @@ class Outline:
         # again that much finer (a few boxes, where the camera magnifies)
         src_len = (rects[:, 2:] - rects[:, :2]).amax(-1)
         counts = (src_len / FIRST_STEP).ceil().clamp(_COARSE, _MAX_PER_EDGE).long()
-        pix, ok, through, which, longest, self.mapped = self._pass(rects, owner, counts,
-                                                                   extra)
+        extents, longest, flags, self.mapped = self._pass(rects, owner, counts, extra)
         for _ in range(3):
             redo = (longest > OUTLINE_STEP) & (counts < _MAX_PER_EDGE)
             if not bool(redo.any()):
@@ -449,26 +484,19 @@ class Outline:
             sub = redo.nonzero()[:, 0]
             counts[sub] = (counts[sub] * longest[sub] / OUTLINE_STEP).ceil().clamp(
                 max=_MAX_PER_EDGE).long()
-            again = self._pass(rects[sub], owner[sub], counts[sub], None)
-            keep = ~redo[which]
-            pix, ok, through = (torch.cat((t[keep], u)) for t, u in zip(
-                (pix, ok, through), again[:3]))
-            which = torch.cat((which[keep], sub[again[3]]))
-            longest[sub] = again[4]
+            extents[sub], longest[sub], flags[sub], _ = self._pass(rects[sub], owner[sub],
+                                                                   counts[sub], None)
         if r == 0:
             return
-        ok = ok & _on_centres(pix, ow, oh)
-        self.box = _extent(pix, ok, which, r)
+        self.box, span = extents[:, :4], extents[:, 4:]
         # the boxes whose outline leaves the valid area, or whose region holds the direction
         # the output camera cannot map (its back, -z), are scanned pixel by pixel in a window
         # that holds the whole mapped region: the extent of its mapped outline, or the image
         back = -change.rotation[:, None, :, 2]           # the output's -z in the source frame
         pole, seen = (t[:, 0][owner] for t in change.source.project(back, None))
         pole = seen & _in_rects(pole, rects)
-        self.cut = (torch.bincount(which[~ok], minlength=r) > 0) | pole
-        whole = (torch.bincount(which[~through], minlength=r) > 0) | pole | \
-            (longest > OUTLINE_STEP)
-        span = _extent(pix, through, which, r)
+        self.cut = ((flags & 1) > 0) | pole
+        whole = ((flags & 2) > 0) | pole | (longest > OUTLINE_STEP)
         lo = (span[:, :2] - _MARGIN).floor().clamp(min=0)
         hi = torch.minimum((span[:, 2:] + _MARGIN).ceil(),
                            torch.tensor([ow - 1.0, oh - 1.0], dtype=span.dtype))
@@ -483,20 +511,18 @@ class Outline:
               ) -> tuple:
         """The outlines of ``rects (m, 4)`` of samples ``owner (m,)`` (sorted), ``counts
         (m,)`` points per edge, mapped in one call with the points ``extra`` of each sample
-        (or None) -> the outline points' output pixels ``(T, 2)``, where they are seen and
-        where both models map them ``(T,)``, their box ``(T,)``, per box the longest step
-        between two consecutive mapped points of which one lies near the output image
-        ``(m,)``, and ``extra``'s pixels and where seen (None without)."""
-        points, which = _outline(rects, counts)
+        (or None) -> per box :func:`_reduce`'s extents, longest step and flags, and
+        ``extra``'s pixels and where seen (None without)."""
+        points, _ = _outline(rects, counts)
         sizes = (torch.zeros(self.n, dtype=torch.long)
                  .index_add_(0, owner, 4 * counts).tolist())
         groups = list(points.split(sizes))
         if extra is not None:
             groups = [torch.cat(pair) for pair in zip(extra, groups)]
         if not sum(map(len, groups)):
-            empty = torch.zeros(0, dtype=torch.bool)
-            return (points, empty, empty, which, torch.zeros(len(rects), dtype=points.dtype),
-                    None if extra is None else (points, empty))
+            return (torch.zeros(0, 8, dtype=points.dtype), torch.zeros(0, dtype=points.dtype),
+                    torch.zeros(0, dtype=torch.long),
+                    None if extra is None else (points, torch.zeros(0, dtype=torch.bool)))
         pix, ok, through = self.change.forward_rows(groups, domain=True)
         mapped = None
         if extra is not None:   # (the extra points, then the outline's, of each sample)
@@ -504,20 +530,7 @@ class Outline:
             pieces = [t.split(parts) for t in (pix, ok, through)]
             mapped = (torch.cat(pieces[0][0::2]), torch.cat(pieces[1][0::2]))
             pix, ok, through = (torch.cat(p[1::2]) for p in pieces)
-        # the steps between consecutive points of a box, and from its last to its first
-        oh, ow = self.change.output.image_size
-        near = through & (pix[:, 0] > -OUTLINE_STEP) & (pix[:, 0] < ow - 1 + OUTLINE_STEP) & \
-            (pix[:, 1] > -OUTLINE_STEP) & (pix[:, 1] < oh - 1 + OUTLINE_STEP)
-        nxt, near_nxt = pix.roll(-1, 0), near.roll(-1, 0)
-        last = torch.cumsum(4 * counts, 0) - 1
-        first = last - 4 * counts + 1
-        nxt[last], near_nxt[last] = pix[first], near[first]
-        both = through & through.roll(-1, 0)
-        both[last] = through[last] & through[first]
-        step = torch.where(both & (near | near_nxt), (nxt - pix).norm(dim=-1), 0.0)
-        longest = torch.zeros(len(rects), dtype=step.dtype).scatter_reduce(
-            0, which, step, "amax")
-        return pix, ok, through, which, longest, mapped
+        return (*_reduce(pix, ok, through, counts, self.change.output.image_size), mapped)
 
     def scan(self, index: list[int], rays: Tensor, rotation: Tensor | None, k: Tensor,
              valid: Tensor | None) -> None:
@@ -527,7 +540,7 @@ class Outline:
         None, the pinhole ``k (1 or m, 4)``, ``valid (m, h, w)``)."""
         at = {sample: i for i, sample in enumerate(index)}
         todo = [(j, at[sample]) for j, sample in self.waiting if sample in at]
-        if not todo:
+        if not todo or not fast.available():
             return
         self.waiting = [(j, sample) for j, sample in self.waiting if sample not in at]
         rows, samples = (torch.tensor(t) for t in zip(*todo))

@@ -36,6 +36,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <limits>
 #include <optional>
 #ifdef __SSE4_1__
 #include <immintrin.h>
@@ -2071,6 +2072,101 @@ void box_pixels_op(const at::Tensor& rays, const std::optional<at::Tensor>& rota
     }
 }
 
+// outline_reduce: per box m, its 4 counts[m] consecutive outline points (output pixels pix
+// (T, 2) float64, where seen `ok` and where both models map them `through`, (T,) bool) ->
+// extents (M, 8): the extent x0, y0, x1, y1 of its seen points within the outer pixel centres
+// [0, width - 1] x [0, height - 1] (inf, -inf where none), then of its mapped points; longest
+// (M,): the longest step between two consecutive mapped points of its closed outline of which
+// one lies within `near` pixels of those centres; flags (M,): 1 where a point is not seen
+// within the centres, 2 where a point is not mapped.
+void outline_reduce_op(const at::Tensor& pix, const at::Tensor& ok, const at::Tensor& through,
+                       const at::Tensor& counts, int64_t width, int64_t height, double near,
+                       const at::Tensor& extents, const at::Tensor& longest,
+                       const at::Tensor& flags) {
+    const char* op = "omniscape_torch::outline_reduce";
+    for (const auto& [name, t] : {std::pair<const char*, const at::Tensor*>{"pix", &pix},
+                                  {"ok", &ok}, {"through", &through}, {"counts", &counts},
+                                  {"extents", &extents}, {"longest", &longest},
+                                  {"flags", &flags}}) {
+        check_cpu(op, name, *t);
+        check_contiguous(op, name, *t);
+    }
+    const int64_t points = pix.size(0), boxes = counts.size(0);
+    TORCH_CHECK(pix.scalar_type() == at::kDouble && pix.dim() == 2 && pix.size(1) == 2 &&
+                    ok.scalar_type() == at::kBool && through.scalar_type() == at::kBool &&
+                    ok.sizes() == at::IntArrayRef({points}) &&
+                    through.sizes() == at::IntArrayRef({points}) &&
+                    counts.scalar_type() == at::kLong && counts.dim() == 1 &&
+                    extents.scalar_type() == at::kDouble &&
+                    extents.sizes() == at::IntArrayRef({boxes, 8}) &&
+                    longest.scalar_type() == at::kDouble &&
+                    longest.sizes() == at::IntArrayRef({boxes}) &&
+                    flags.scalar_type() == at::kLong && flags.sizes() == at::IntArrayRef({boxes}),
+                op, ": expected pix float64 (T, 2), ok and through bool (T,), counts int64 (M,), "
+                "extents float64 (M, 8), longest float64 (M,) and flags int64 (M,)");
+    const int64_t* c = counts.const_data_ptr<int64_t>();
+    int64_t total = 0;
+    for (int64_t m = 0; m < boxes; ++m) {
+        TORCH_CHECK(c[m] >= 1, op, ": counts must be positive");
+        total += 4 * c[m];
+    }
+    TORCH_CHECK(total == points, op, ": 4 sum(counts) = ", total, " points expected, got ",
+                points);
+    const double* p = pix.const_data_ptr<double>();
+    const bool* seen = ok.const_data_ptr<bool>();
+    const bool* mapped = through.const_data_ptr<bool>();
+    double* e = extents.mutable_data_ptr<double>();
+    double* l = longest.mutable_data_ptr<double>();
+    int64_t* f = flags.mutable_data_ptr<int64_t>();
+    const double inf = std::numeric_limits<double>::infinity();
+    const double right = double(width - 1), bottom = double(height - 1);
+    const auto centred = [&](int64_t i) {
+        const double u = p[2 * i], v = p[2 * i + 1];
+        return (u >= -1e-9) & (u <= right + 1e-9) & (v >= -1e-9) & (v <= bottom + 1e-9);
+    };
+    const auto close = [&](int64_t i) {
+        const double u = p[2 * i], v = p[2 * i + 1];
+        return (u > -near) & (u < right + near) & (v > -near) & (v < bottom + near);
+    };
+    int64_t start = 0;
+    for (int64_t m = 0; m < boxes; ++m) {
+        const int64_t end = start + 4 * c[m];
+        double* box = e + 8 * m;
+        for (int k = 0; k < 2; ++k) {
+            box[4 * k] = box[4 * k + 1] = inf;
+            box[4 * k + 2] = box[4 * k + 3] = -inf;
+        }
+        double step = 0.0;
+        int64_t flag = 0;
+        for (int64_t i = start; i < end; ++i) {
+            const double u = p[2 * i], v = p[2 * i + 1];
+            if (seen[i] && centred(i)) {
+                box[0] = std::min(box[0], u);
+                box[1] = std::min(box[1], v);
+                box[2] = std::max(box[2], u);
+                box[3] = std::max(box[3], v);
+            } else {
+                flag |= 1;
+            }
+            if (!mapped[i]) {
+                flag |= 2;
+                continue;
+            }
+            box[4] = std::min(box[4], u);
+            box[5] = std::min(box[5], v);
+            box[6] = std::max(box[6], u);
+            box[7] = std::max(box[7], v);
+            const int64_t j = i + 1 < end ? i + 1 : start;   // the outline is closed
+            if (mapped[j] && (close(i) || close(j))) {
+                step = std::max(step, std::hypot(p[2 * j] - u, p[2 * j + 1] - v));
+            }
+        }
+        l[m] = step;
+        f[m] = flag;
+        start = end;
+    }
+}
+
 }  // namespace
 
 TORCH_LIBRARY(omniscape_torch, m) {
@@ -2094,6 +2190,9 @@ TORCH_LIBRARY(omniscape_torch, m) {
           "Tensor? valid, bool bilinear, int fill, Tensor(a!) out, Tensor(b!)? valid_out) -> ()");
     m.def("box_pixels(Tensor rays, Tensor? rotation, Tensor intrinsics, Tensor? valid, "
           "Tensor sample, Tensor windows, Tensor rects, Tensor(a!) out) -> ()");
+    m.def("outline_reduce(Tensor pix, Tensor ok, Tensor through, Tensor counts, int width, "
+          "int height, float near, Tensor(a!) extents, Tensor(b!) longest, Tensor(c!) flags) "
+          "-> ()");
 }
 
 TORCH_LIBRARY_IMPL(omniscape_torch, CPU, m) {
@@ -2105,4 +2204,5 @@ TORCH_LIBRARY_IMPL(omniscape_torch, CPU, m) {
     m.impl("camera_rays", &camera_rays_op);
     m.impl("sample_image", &sample_image_op);
     m.impl("box_pixels", &box_pixels_op);
+    m.impl("outline_reduce", &outline_reduce_op);
 }
