@@ -142,16 +142,6 @@ class Change(NamedTuple):
             return pixels, ok & seen, mapped & through
         return pixels, ok & seen
 
-    def forward_rows(self, points: list[Tensor], domain: bool = False) -> tuple:
-        """:meth:`forward` of the points ``(T_i, 2)`` of each sample i, in one call without a
-        per-point gather of the cameras (the samples' rows padded to one length) -> the
-        results of the samples one after the other."""
-        sizes = torch.tensor([len(p) for p in points])
-        rows = torch.arange(int(sizes.max()))[None] < sizes[:, None]       # (n, M)
-        flat = torch.cat(points)
-        padded = flat.new_zeros(*rows.shape, flat.shape[-1]).index_put_((rows,), flat)
-        return tuple(t[rows] for t in self.forward(padded, None, domain))
-
     def backward(self, pixels: Tensor, sample: Tensor) -> tuple[Tensor, Tensor]:
         """Output pixel centres ``(T, 2)`` -> source pixel centres and where both see them."""
         rays, ok = self.output.unproject(pixels, sample)
@@ -403,40 +393,60 @@ def _scan_back(change: Change, sample: Tensor, windows: Tensor, rects: Tensor) -
     return out
 
 
-def _reduce(pix: Tensor, ok: Tensor, through: Tensor, counts: Tensor,
-            size: tuple[int, int]) -> tuple[Tensor, Tensor, Tensor]:
-    """Per box, its ``4 counts (M,)`` consecutive outline points' output pixels ``pix (T, 2)``
-    (seen where ``ok``, mapped by both models where ``through``) in an output image of
-    ``size`` -> ``extents (M, 8)``: the extent of its seen points within the outer pixel
-    centres, then of its mapped points (inf where none); ``longest (M,)``: the longest step
-    between consecutive mapped points of the closed outline of which one lies within
-    :data:`OUTLINE_STEP` pixels of those centres; ``flags (M,)``: 1 where a point is not seen
-    within them, 2 where one is not mapped. The C++ op ``outline_reduce``, else torch."""
-    h, w = size
-    m = len(counts)
-    if fast.available():
-        extents = torch.empty(m, 8, dtype=torch.float64)
-        longest = torch.empty(m, dtype=torch.float64)
-        flags = torch.empty(m, dtype=torch.long)
-        fast._require().outline_reduce(pix.contiguous(), ok.contiguous(),
-                                       through.contiguous(), counts, w, h, OUTLINE_STEP,
-                                       extents, longest, flags)
-        return extents, longest, flags
-    which = torch.arange(m).repeat_interleave(4 * counts)
-    seen = ok & _on_centres(pix, w, h)
-    extents = torch.cat((_extent(pix, seen, which, m), _extent(pix, through, which, m)), -1)
-    near = through & (pix[:, 0] > -OUTLINE_STEP) & (pix[:, 0] < w - 1 + OUTLINE_STEP) & \
-        (pix[:, 1] > -OUTLINE_STEP) & (pix[:, 1] < h - 1 + OUTLINE_STEP)
-    nxt, near_nxt, through_nxt = pix.roll(-1, 0), near.roll(-1, 0), through.roll(-1, 0)
-    last = torch.cumsum(4 * counts, 0) - 1
-    first = last - 4 * counts + 1
-    nxt[last], near_nxt[last], through_nxt[last] = pix[first], near[first], through[first]
-    step = torch.where(through & through_nxt & (near | near_nxt), (nxt - pix).norm(dim=-1),
-                       0.0)
-    longest = torch.zeros(m, dtype=step.dtype).scatter_reduce(0, which, step, "amax")
-    flags = ((torch.bincount(which[~seen], minlength=m) > 0).long() +
-             2 * (torch.bincount(which[~through], minlength=m) > 0).long())
-    return extents, longest, flags
+def _outlines(change: Change, rects: Tensor, counts: Tensor, owner: Tensor,
+              extra: Tensor | None) -> tuple:
+    """The outlines of ``rects (m, 4)`` (pixel centres) of samples ``owner (m,)`` (sorted),
+    ``counts (m,)`` points per edge, mapped by ``change`` in one call, each sample's points a
+    row after its points ``extra (n, K, 2)`` (or None) -> per box ``extents (m, 8)``: the
+    extent of its seen points within the output's outer pixel centres, then of its mapped
+    points (both models map them, seen or not; inf where none); ``longest (m,)``: the longest
+    step between consecutive mapped points of its closed outline of which one lies within
+    :data:`OUTLINE_STEP` pixels of those centres; ``flags (m,)``: 1 where a point is not seen
+    within them, 2 where one is not mapped; and ``extra``'s output pixels and where seen
+    ``(n K, 2), (n K,)`` (None without). The C++ ops ``outline_points`` and
+    ``outline_reduce``, else their torch equivalent."""
+    n = len(change.rotation)
+    k = 0 if extra is None else extra.shape[1]
+    sizes = torch.zeros(n, dtype=torch.long).index_add_(0, owner, 4 * counts)
+    columns = k + int(sizes.max()) if len(rects) else k
+    m = len(rects)
+    extents = torch.full((m, 8), math.inf, dtype=torch.float64)
+    longest = torch.zeros(m, dtype=torch.float64)
+    flags = torch.zeros(m, dtype=torch.long)
+    if columns == 0:
+        return extents, longest, flags, None
+    padded = torch.zeros(n, columns, 2, dtype=torch.float64)
+    if k:
+        padded[:, :k] = extra
+    h, w = change.output.image_size
+    ops = fast._require() if fast.available() else None
+    if ops is not None:
+        ops.outline_points(rects.contiguous(), counts, owner, k, padded)
+        pix, ok, through = change.forward(padded, None, domain=True)
+        ops.outline_reduce(pix.contiguous(), ok.contiguous(), through.contiguous(), counts,
+                           owner, k, w, h, OUTLINE_STEP, extents, longest, flags)
+    else:
+        slots = torch.arange(columns)[None]
+        slots = (slots >= k) & (slots < k + sizes[:, None])
+        points, which = _outline(rects, counts)
+        padded[slots] = points
+        pix, ok, through = change.forward(padded, None, domain=True)
+        line, seen, mapped = pix[slots], ok[slots], through[slots]
+        seen = seen & _on_centres(line, w, h)
+        extents = torch.cat((_extent(line, seen, which, m), _extent(line, mapped, which, m)), -1)
+        near = mapped & (line[:, 0] > -OUTLINE_STEP) & (line[:, 0] < w - 1 + OUTLINE_STEP) & \
+            (line[:, 1] > -OUTLINE_STEP) & (line[:, 1] < h - 1 + OUTLINE_STEP)
+        nxt, near_nxt, mapped_nxt = line.roll(-1, 0), near.roll(-1, 0), mapped.roll(-1, 0)
+        last = torch.cumsum(4 * counts, 0) - 1
+        first = last - 4 * counts + 1
+        nxt[last], near_nxt[last], mapped_nxt[last] = line[first], near[first], mapped[first]
+        step = torch.where(mapped & mapped_nxt & (near | near_nxt),
+                           (nxt - line).norm(dim=-1), 0.0)
+        longest = torch.zeros(m, dtype=step.dtype).scatter_reduce(0, which, step, "amax")
+        flags = ((torch.bincount(which[~seen], minlength=m) > 0).long() +
+                 2 * (torch.bincount(which[~mapped], minlength=m) > 0).long())
+    mapped_extra = None if not k else (pix[:, :k].reshape(-1, 2), ok[:, :k].reshape(-1))
+    return extents, longest, flags, mapped_extra
 
 
 class Outline:
@@ -446,12 +456,12 @@ class Outline:
     back here (:meth:`result`).
 
     ``boxes``: per sample ``(N_i, 4)`` XYXY corner coordinates, clipped to the source image
-    ``source_size`` first (none left: dropped); ``extra``: per sample points ``(T_i, 2)``
-    mapped by ``change.forward`` in the same call as the outlines' coarse pass (``mapped``,
-    the samples' one after the other; None without)."""
+    ``source_size`` first (none left: dropped); ``extra``: points ``(n, K, 2)`` mapped by
+    ``change.forward`` in the same call as the outlines (``mapped``: their pixels and where
+    seen, ``(n K, 2), (n K,)``; None without)."""
 
     def __init__(self, change: Change, boxes: list[Tensor], source_size: tuple[int, int],
-                 extra: list[Tensor] | None = None):
+                 extra: Tensor | None = None):
         self.change, self.n = change, len(boxes)
         h, w = source_size
         counts = torch.tensor([len(b) for b in boxes])
@@ -476,7 +486,7 @@ class Outline:
         # again that much finer (a few boxes, where the camera magnifies)
         src_len = (rects[:, 2:] - rects[:, :2]).amax(-1)
         counts = (src_len / FIRST_STEP).ceil().clamp(_COARSE, _MAX_PER_EDGE).long()
-        extents, longest, flags, self.mapped = self._pass(rects, owner, counts, extra)
+        extents, longest, flags, self.mapped = _outlines(change, rects, counts, owner, extra)
         for _ in range(3):
             redo = (longest > OUTLINE_STEP) & (counts < _MAX_PER_EDGE)
             if not bool(redo.any()):
@@ -484,8 +494,8 @@ class Outline:
             sub = redo.nonzero()[:, 0]
             counts[sub] = (counts[sub] * longest[sub] / OUTLINE_STEP).ceil().clamp(
                 max=_MAX_PER_EDGE).long()
-            extents[sub], longest[sub], flags[sub], _ = self._pass(rects[sub], owner[sub],
-                                                                   counts[sub], None)
+            extents[sub], longest[sub], flags[sub], _ = _outlines(change, rects[sub],
+                                                                  counts[sub], owner[sub], None)
         if r == 0:
             return
         self.box, span = extents[:, :4], extents[:, 4:]
@@ -506,31 +516,6 @@ class Outline:
         self.windows = windows
         todo = (self.cut & ~empty).nonzero()[:, 0]
         self.waiting = list(zip(todo.tolist(), owner[todo].tolist()))
-
-    def _pass(self, rects: Tensor, owner: Tensor, counts: Tensor, extra: list[Tensor] | None
-              ) -> tuple:
-        """The outlines of ``rects (m, 4)`` of samples ``owner (m,)`` (sorted), ``counts
-        (m,)`` points per edge, mapped in one call with the points ``extra`` of each sample
-        (or None) -> per box :func:`_reduce`'s extents, longest step and flags, and
-        ``extra``'s pixels and where seen (None without)."""
-        points, _ = _outline(rects, counts)
-        sizes = (torch.zeros(self.n, dtype=torch.long)
-                 .index_add_(0, owner, 4 * counts).tolist())
-        groups = list(points.split(sizes))
-        if extra is not None:
-            groups = [torch.cat(pair) for pair in zip(extra, groups)]
-        if not sum(map(len, groups)):
-            return (torch.zeros(0, 8, dtype=points.dtype), torch.zeros(0, dtype=points.dtype),
-                    torch.zeros(0, dtype=torch.long),
-                    None if extra is None else (points, torch.zeros(0, dtype=torch.bool)))
-        pix, ok, through = self.change.forward_rows(groups, domain=True)
-        mapped = None
-        if extra is not None:   # (the extra points, then the outline's, of each sample)
-            parts = [m for e, size in zip(extra, sizes) for m in (len(e), size)]
-            pieces = [t.split(parts) for t in (pix, ok, through)]
-            mapped = (torch.cat(pieces[0][0::2]), torch.cat(pieces[1][0::2]))
-            pix, ok, through = (torch.cat(p[1::2]) for p in pieces)
-        return (*_reduce(pix, ok, through, counts, self.change.output.image_size), mapped)
 
     def scan(self, index: list[int], rays: Tensor, rotation: Tensor | None, k: Tensor,
              valid: Tensor | None) -> None:
@@ -653,15 +638,16 @@ class Targets:
         for index, change in changes:
             points = outline = mapped = None
             if keypoints is not None:
-                points, sample, given = _keypoint_points(keypoints[index], source_size)
-            rows = None if points is None else list(points.split(keypoints.shape[1]))
-            if boxes is not None:   # the keypoints mapped with the boxes' coarse pass
+                points, _, given = _keypoint_points(keypoints[index], source_size)
+            rows = None if points is None else points.reshape(len(index), -1, points.shape[-1])
+            if boxes is not None:   # the keypoints mapped with the boxes' outlines
                 outline = Outline(change, [boxes[i] for i in index.tolist()], source_size,
                                   extra=rows)
                 mapped = outline.mapped
             kp = None
             if points is not None:
-                pixels, ok = mapped if mapped is not None else change.forward_rows(rows)
+                pixels, ok = mapped if mapped is not None else (
+                    t.reshape(-1, *t.shape[2:]) for t in change.forward(rows, None))
                 kp = _keypoint_result(pixels, ok, given, (len(index), keypoints.shape[1]))
             self.parts.append((index, outline, kp))
 

@@ -335,13 +335,19 @@ def _fake_box_pixels(rays, rotation, intrinsics, valid, sample, windows, rects, 
            "box_pixels: expected rays (n, h, w, 3), sample (M,), windows, rects and out (M, 4)")
 
 
-def _fake_outline_reduce(pix, ok, through, counts, width, height, near, extents, longest,
-                         flags) -> None:
-    _check(pix.dim() == 2 and pix.shape[1] == 2 and ok.shape == through.shape == (pix.shape[0],)
-           and extents.shape == (counts.shape[0], 8)
+def _fake_outline_points(rects, counts, owner, offset, points) -> None:
+    _check(rects.shape == (counts.shape[0], 4) and owner.shape == counts.shape
+           and points.dim() == 3 and points.shape[-1] == 2,
+           "outline_points: expected rects (M, 4), counts, owner (M,), points (n, columns, 2)")
+
+
+def _fake_outline_reduce(pix, ok, through, counts, owner, offset, width, height, near,
+                         extents, longest, flags) -> None:
+    _check(pix.dim() == 3 and pix.shape[-1] == 2 and ok.shape == through.shape == pix.shape[:2]
+           and owner.shape == counts.shape and extents.shape == (counts.shape[0], 8)
            and longest.shape == flags.shape == (counts.shape[0],),
-           "outline_reduce: expected pix (T, 2), ok, through (T,), extents (M, 8), longest and "
-           "flags (M,)")
+           "outline_reduce: expected pix (n, columns, 2), ok, through (n, columns), counts, "
+           "owner (M,), extents (M, 8), longest and flags (M,)")
 
 
 def _fake_rays(o, d, t, tri, u, v, what: str) -> None:
@@ -383,7 +389,7 @@ _FAKES = {"build_lut": _fake_build_lut, "sample_lut": _fake_sample_lut,
           "sample_grid": _fake_sample_grid, "sample_rays": _fake_sample_rays,
           "camera_grid": _fake_camera_grid, "camera_rays": _fake_camera_rays,
           "sample_image": _fake_sample_image, "box_pixels": _fake_box_pixels,
-          "outline_reduce": _fake_outline_reduce,
+          "outline_points": _fake_outline_points, "outline_reduce": _fake_outline_reduce,
           "town_backfaces": _fake_town_backfaces,
           "town_prepare": _fake_town_prepare, "town_shade": _fake_town_shade,
           "town_store": _fake_town_store}

@@ -2072,46 +2072,107 @@ void box_pixels_op(const at::Tensor& rays, const std::optional<at::Tensor>& rota
     }
 }
 
-// outline_reduce: per box m, its 4 counts[m] consecutive outline points (output pixels pix
-// (T, 2) float64, where seen `ok` and where both models map them `through`, (T,) bool) ->
-// extents (M, 8): the extent x0, y0, x1, y1 of its seen points within the outer pixel centres
-// [0, width - 1] x [0, height - 1] (inf, -inf where none), then of its mapped points; longest
-// (M,): the longest step between two consecutive mapped points of its closed outline of which
-// one lies within `near` pixels of those centres; flags (M,): 1 where a point is not seen
-// within the centres, 2 where a point is not mapped.
+// The outlines of boxes laid out in rows, one per sample (detection): box m (of sample
+// owner[m], the owners sorted) has 4 counts[m] points, counts[m] per edge, in its sample's row
+// after `offset` columns and the points of the sample's boxes before it.
+void check_outlines(const char* op, const at::Tensor& counts, const at::Tensor& owner,
+                    int64_t offset, int64_t rows, int64_t columns) {
+    for (const auto& [name, t] : {std::pair<const char*, const at::Tensor*>{"counts", &counts},
+                                  {"owner", &owner}}) {
+        check_cpu(op, name, *t);
+        check_contiguous(op, name, *t);
+        TORCH_CHECK(t->scalar_type() == at::kLong && t->dim() == 1 &&
+                        t->size(0) == counts.size(0),
+                    op, ": counts, owner: expected int64 (M,)");
+    }
+    const int64_t* c = counts.const_data_ptr<int64_t>();
+    const int64_t* o = owner.const_data_ptr<int64_t>();
+    int64_t row = -1, used = 0;
+    for (int64_t m = 0; m < counts.size(0); ++m) {
+        TORCH_CHECK(c[m] >= 1 && o[m] >= 0 && o[m] < rows && o[m] >= row, op,
+                    ": box ", m, ": counts must be positive and owners sorted within 0..", rows - 1);
+        used = o[m] == row ? used : offset;
+        row = o[m];
+        used += 4 * c[m];
+        TORCH_CHECK(used <= columns, op, ": the outlines of sample ", row, " exceed ", columns,
+                    " columns");
+    }
+}
+
+// outline_points: the outlines of rects (M, 4) float64 (x0, y0, x1, y1), laid out as
+// check_outlines says, into points (n, columns, 2) float64: edge e (top, right, bottom, left)
+// from its corner to the next, point t at t / counts[m] of the way.
+void outline_points_op(const at::Tensor& rects, const at::Tensor& counts,
+                       const at::Tensor& owner, int64_t offset, const at::Tensor& points) {
+    const char* op = "omniscape_torch::outline_points";
+    check_cpu(op, "rects", rects);
+    check_contiguous(op, "rects", rects);
+    check_cpu(op, "points", points);
+    check_contiguous(op, "points", points);
+    TORCH_CHECK(rects.scalar_type() == at::kDouble &&
+                    rects.sizes() == at::IntArrayRef({counts.size(0), 4}) &&
+                    points.scalar_type() == at::kDouble && points.dim() == 3 &&
+                    points.size(2) == 2,
+                op, ": expected rects float64 (M, 4) and points float64 (n, columns, 2)");
+    check_outlines(op, counts, owner, offset, points.size(0), points.size(1));
+    const int64_t* c = counts.const_data_ptr<int64_t>();
+    const int64_t* o = owner.const_data_ptr<int64_t>();
+    const double* r = rects.const_data_ptr<double>();
+    double* out = points.mutable_data_ptr<double>();
+    const int64_t columns = points.size(1);
+    int64_t row = -1, at = 0;
+    for (int64_t m = 0; m < counts.size(0); ++m) {
+        at = o[m] == row ? at : offset;
+        row = o[m];
+        const double x0 = r[4 * m], y0 = r[4 * m + 1], x1 = r[4 * m + 2], y1 = r[4 * m + 3];
+        const double xs[5] = {x0, x1, x1, x0, x0}, ys[5] = {y0, y0, y1, y1, y0};
+        double* p = out + 2 * (row * columns + at);
+        for (int e = 0; e < 4; ++e) {
+            for (int64_t t = 0; t < c[m]; ++t) {
+                const double f = double(t) / double(c[m]);
+                p[0] = xs[e] + f * (xs[e + 1] - xs[e]);
+                p[1] = ys[e] + f * (ys[e + 1] - ys[e]);
+                p += 2;
+            }
+        }
+        at += 4 * c[m];
+    }
+}
+
+// outline_reduce: per box m, its outline points laid out as check_outlines says (output pixels
+// pix (n, columns, 2) float64, where seen `ok` and where both models map them `through`,
+// (n, columns) bool) -> extents (M, 8): the extent x0, y0, x1, y1 of its seen points within
+// the outer pixel centres [0, width - 1] x [0, height - 1] (inf, -inf where none), then of
+// its mapped points; longest (M,): the longest step between two consecutive mapped points of
+// its closed outline of which one lies within `near` pixels of those centres; flags (M,): 1
+// where a point is not seen within the centres, 2 where a point is not mapped.
 void outline_reduce_op(const at::Tensor& pix, const at::Tensor& ok, const at::Tensor& through,
-                       const at::Tensor& counts, int64_t width, int64_t height, double near,
-                       const at::Tensor& extents, const at::Tensor& longest,
-                       const at::Tensor& flags) {
+                       const at::Tensor& counts, const at::Tensor& owner, int64_t offset,
+                       int64_t width, int64_t height, double near, const at::Tensor& extents,
+                       const at::Tensor& longest, const at::Tensor& flags) {
     const char* op = "omniscape_torch::outline_reduce";
     for (const auto& [name, t] : {std::pair<const char*, const at::Tensor*>{"pix", &pix},
-                                  {"ok", &ok}, {"through", &through}, {"counts", &counts},
-                                  {"extents", &extents}, {"longest", &longest},
-                                  {"flags", &flags}}) {
+                                  {"ok", &ok}, {"through", &through}, {"extents", &extents},
+                                  {"longest", &longest}, {"flags", &flags}}) {
         check_cpu(op, name, *t);
         check_contiguous(op, name, *t);
     }
-    const int64_t points = pix.size(0), boxes = counts.size(0);
-    TORCH_CHECK(pix.scalar_type() == at::kDouble && pix.dim() == 2 && pix.size(1) == 2 &&
+    const int64_t boxes = counts.size(0);
+    TORCH_CHECK(pix.scalar_type() == at::kDouble && pix.dim() == 3 && pix.size(2) == 2 &&
                     ok.scalar_type() == at::kBool && through.scalar_type() == at::kBool &&
-                    ok.sizes() == at::IntArrayRef({points}) &&
-                    through.sizes() == at::IntArrayRef({points}) &&
-                    counts.scalar_type() == at::kLong && counts.dim() == 1 &&
+                    ok.sizes() == pix.sizes().slice(0, 2) &&
+                    through.sizes() == pix.sizes().slice(0, 2) &&
                     extents.scalar_type() == at::kDouble &&
                     extents.sizes() == at::IntArrayRef({boxes, 8}) &&
                     longest.scalar_type() == at::kDouble &&
                     longest.sizes() == at::IntArrayRef({boxes}) &&
                     flags.scalar_type() == at::kLong && flags.sizes() == at::IntArrayRef({boxes}),
-                op, ": expected pix float64 (T, 2), ok and through bool (T,), counts int64 (M,), "
+                op, ": expected pix float64 (n, columns, 2), ok and through bool (n, columns), "
                 "extents float64 (M, 8), longest float64 (M,) and flags int64 (M,)");
+    check_outlines(op, counts, owner, offset, pix.size(0), pix.size(1));
     const int64_t* c = counts.const_data_ptr<int64_t>();
-    int64_t total = 0;
-    for (int64_t m = 0; m < boxes; ++m) {
-        TORCH_CHECK(c[m] >= 1, op, ": counts must be positive");
-        total += 4 * c[m];
-    }
-    TORCH_CHECK(total == points, op, ": 4 sum(counts) = ", total, " points expected, got ",
-                points);
+    const int64_t* o = owner.const_data_ptr<int64_t>();
+    const int64_t columns = pix.size(1);
     const double* p = pix.const_data_ptr<double>();
     const bool* seen = ok.const_data_ptr<bool>();
     const bool* mapped = through.const_data_ptr<bool>();
@@ -2128,9 +2189,12 @@ void outline_reduce_op(const at::Tensor& pix, const at::Tensor& ok, const at::Te
         const double u = p[2 * i], v = p[2 * i + 1];
         return (u > -near) & (u < right + near) & (v > -near) & (v < bottom + near);
     };
-    int64_t start = 0;
+    int64_t row = -1, at = 0;
     for (int64_t m = 0; m < boxes; ++m) {
-        const int64_t end = start + 4 * c[m];
+        at = o[m] == row ? at : offset;
+        row = o[m];
+        const int64_t start = row * columns + at, end = start + 4 * c[m];
+        at += 4 * c[m];
         double* box = e + 8 * m;
         for (int k = 0; k < 2; ++k) {
             box[4 * k] = box[4 * k + 1] = inf;
@@ -2163,7 +2227,6 @@ void outline_reduce_op(const at::Tensor& pix, const at::Tensor& ok, const at::Te
         }
         l[m] = step;
         f[m] = flag;
-        start = end;
     }
 }
 
@@ -2190,9 +2253,11 @@ TORCH_LIBRARY(omniscape_torch, m) {
           "Tensor? valid, bool bilinear, int fill, Tensor(a!) out, Tensor(b!)? valid_out) -> ()");
     m.def("box_pixels(Tensor rays, Tensor? rotation, Tensor intrinsics, Tensor? valid, "
           "Tensor sample, Tensor windows, Tensor rects, Tensor(a!) out) -> ()");
-    m.def("outline_reduce(Tensor pix, Tensor ok, Tensor through, Tensor counts, int width, "
-          "int height, float near, Tensor(a!) extents, Tensor(b!) longest, Tensor(c!) flags) "
-          "-> ()");
+    m.def("outline_points(Tensor rects, Tensor counts, Tensor owner, int offset, "
+          "Tensor(a!) points) -> ()");
+    m.def("outline_reduce(Tensor pix, Tensor ok, Tensor through, Tensor counts, Tensor owner, "
+          "int offset, int width, int height, float near, Tensor(a!) extents, "
+          "Tensor(b!) longest, Tensor(c!) flags) -> ()");
 }
 
 TORCH_LIBRARY_IMPL(omniscape_torch, CPU, m) {
@@ -2204,5 +2269,6 @@ TORCH_LIBRARY_IMPL(omniscape_torch, CPU, m) {
     m.impl("camera_rays", &camera_rays_op);
     m.impl("sample_image", &sample_image_op);
     m.impl("box_pixels", &box_pixels_op);
+    m.impl("outline_points", &outline_points_op);
     m.impl("outline_reduce", &outline_reduce_op);
 }
