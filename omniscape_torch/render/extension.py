@@ -12,7 +12,8 @@ own dispatch, about 0.5 microseconds a ray in all (2 cores, batches of 16 to 64 
 more than Embree's tracing (0.25); one C++ loop over the rays does it in registers, about 0.03.
 
 The ops, ``torch.ops.omniscape_torch.*`` (:data:`OPS`; schemas in the sources): the samplers
-``build_lut, sample_lut, sample_grid, sample_rays, camera_grid, camera_rays, sample_image`` and
+``build_lut, sample_lut, sample_grid, sample_rays, camera_grid, camera_rays, sample_image``,
+the detection boxes' ``box_pixels, outline_points, outline_reduce`` (``detection``) and
 the town's ``town_backfaces, town_prepare, town_shade, town_store``. Each checks its arguments
 (device, dtype, shape, contiguity, index ranges) before it reads any, raising a RuntimeError
 that names the op and the argument; their fake implementations for ``torch.compile`` are
@@ -83,7 +84,8 @@ SOURCES = (Path(__file__).with_name("csrc") / "fastsample.cpp",
            Path(__file__).with_name("csrc") / "town_shade.cpp")
 NAMESPACE = "omniscape_torch"
 OPS = ("build_lut", "sample_lut", "sample_grid", "sample_rays", "camera_grid", "camera_rays",
-       "sample_image", "town_backfaces", "town_prepare", "town_shade", "town_store")
+       "sample_image", "box_pixels", "outline_points", "outline_reduce", "town_backfaces",
+       "town_prepare", "town_shade", "town_store")
 #: ``-march=native``: the library is built for this machine's CPU (its flags are in the name);
 #: ``-fno-trapping-math``: float comparisons may be evaluated speculatively, so the tap
 #: computation vectorises (no result changes); ``-ffp-contract=off``: no fused multiply-adds
