@@ -190,7 +190,8 @@ def test_opcheck_detection_ops():
     rays[..., 2] = rays[..., 2].abs() + 0.5
     rotation, k, valid = make_rotation(2, f64), torch.tensor([[4.0, 4.5, 3.5, 3.0]], dtype=f64), \
         make_valid(2, 5, 7)
-    sample, windows = torch.tensor([0, 1, 1]), torch.tensor([[0, 0, 6, 4], [1, 1, 5, 3], [0, 0, 6, 4]])
+    sample = torch.tensor([0, 1, 1])
+    windows = torch.tensor([[0, 0, 6, 4], [1, 1, 5, 3], [0, 0, 6, 4]])
     rects = torch.tensor([[0.0, 0, 5, 4], [1, 1, 6, 5], [-9, -9, -8, -8]], dtype=f64)
     out = torch.empty(3, 4, dtype=torch.long)
     torch.library.opcheck(ops().box_pixels, (rays, rotation, k, valid, sample, windows, rects,

@@ -13,19 +13,25 @@ plus 0.5, converted here and only here).
   and outside its blind cone), else its coordinates are NaN.
 * A box from its outline (``reproject_boxes``): the box region is mapped through the cameras
   and its tight box in the output is taken, clipped to the output's valid area. The outline is
-  sampled with points at most :data:`OUTLINE_STEP` output pixels apart (the spacing estimated
-  per box from a coarse pass), so a straight edge's curved image is missed by at most its
-  sagitta, ``OUTLINE_STEP**2 / (8 rho)`` for a curvature radius ``rho`` (against a sampling 64
-  times finer: at most 0.012 px over 1280 boxes at 512 x 512). Where the outline leaves the
-  valid area, the box of the valid part is bounded by the outline's valid samples and by the
-  valid area's own boundary (the ``fov`` and blind cones' images and the output image's edges,
-  sampled every :data:`BOUNDARY_STEP` pixels) where it lies inside the region (checked by
-  mapping it back into the source); the output pixels within that bound are then tested one by
-  one (mapped back into the source box), so a box cut by the valid area is the tight box of its
-  valid pixels. Elsewhere the tight box of the object's *pixels* (pixel centres inside the
-  mapped region) differs from the continuous box by up to half a pixel per side, a little more
-  at a sharp corner or for an object thinner than a pixel; tests hold boxes within 1 px of
-  their objects' pixels.
+  sampled every :data:`FIRST_STEP` source pixels and mapped; a box whose mapped samples near
+  the output image lie more than :data:`OUTLINE_STEP` output pixels apart (a camera that
+  magnifies it more than twice) is sampled again that much finer, so a straight edge's curved
+  image is missed by at most its sagitta, ``OUTLINE_STEP**2 / (8 rho)`` for a curvature radius
+  ``rho`` (against a sampling every 0.25 px: at most 0.018 px over 2303 boxes of 8 to 300 px
+  at 512 x 512, equidistant, Kannala-Brandt, EUCM, double sphere, unified and cropped
+  equisolid draws). Where the outline leaves the valid area (the ``fov`` and blind cones, the
+  output image's edges, the source's), the object's output pixels are found one by one: the
+  pixels of a window that holds the whole mapped region (the extent of the mapped outline, its
+  points seen or not, one pixel wider; the whole image where a point of the outline is not
+  mapped by both models or the output camera's back direction lies in the box) whose rays
+  land in the source box and are valid, scanned from each side to the first that does; the box
+  is then the tight box of those pixels. ``RandomReproject`` scans the rays its sampler
+  samples the image along (the C++ op ``box_pixels``, as ``sample_image`` projects them), so
+  these boxes are those of the pixels its labels give the object; elsewhere the window's
+  pixels are mapped back here. Elsewhere the tight box of the object's *pixels* (pixel centres
+  inside the mapped region) differs from the continuous box by up to half a pixel per side, a
+  little more at a sharp corner or for an object thinner than a pixel; tests hold boxes within
+  1 px of their objects' pixels.
 * A box from an instance map (:func:`instance_boxes`): the tight box of the output pixels of
   its instance id, exact.
 """
@@ -44,21 +50,17 @@ from ..cubemap.faces import face_rotations
 from . import fast
 
 __all__ = ["instance_boxes", "reproject_boxes", "reproject_keypoints", "OUTLINE_STEP",
-           "BOUNDARY_STEP"]
+           "FIRST_STEP"]
 
-#: Largest spacing, in output pixels, of the samples of a box's outline.
+#: Largest spacing, in output pixels, of the samples of a box's outline near the image.
 OUTLINE_STEP = 16.0
 #: Spacing, in source pixels, of the first samples of a box's outline (refined where they land
 #: further than OUTLINE_STEP apart: where the camera magnifies more than twice).
 FIRST_STEP = 8.0
-#: Spacing, in output pixels, of the samples of the valid area's boundary.
-BOUNDARY_STEP = 0.5
-#: Segments per edge of the coarse pass that estimates how much a box's edges stretch.
-_COARSE = 4
+#: Fewest samples per edge of a box's outline.
+_FEWEST = 4
 #: Most samples per edge (a box stretched past this is sampled coarser).
 _MAX_PER_EDGE = 4096
-#: Boundary samples are taken this far (radians, pixels) inside the cones and the image edges.
-_INSET = 1e-7
 
 
 class Side(NamedTuple):
@@ -485,7 +487,7 @@ class Outline:
         # ``extra``; where their mapped samples (near the image) lie further apart, sampled
         # again that much finer (a few boxes, where the camera magnifies)
         src_len = (rects[:, 2:] - rects[:, :2]).amax(-1)
-        counts = (src_len / FIRST_STEP).ceil().clamp(_COARSE, _MAX_PER_EDGE).long()
+        counts = (src_len / FIRST_STEP).ceil().clamp(_FEWEST, _MAX_PER_EDGE).long()
         extents, longest, flags, self.mapped = _outlines(change, rects, counts, owner, extra)
         for _ in range(3):
             redo = (longest > OUTLINE_STEP) & (counts < _MAX_PER_EDGE)

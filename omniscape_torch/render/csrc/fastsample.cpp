@@ -2090,7 +2090,8 @@ void check_outlines(const char* op, const at::Tensor& counts, const at::Tensor& 
     int64_t row = -1, used = 0;
     for (int64_t m = 0; m < counts.size(0); ++m) {
         TORCH_CHECK(c[m] >= 1 && o[m] >= 0 && o[m] < rows && o[m] >= row, op,
-                    ": box ", m, ": counts must be positive and owners sorted within 0..", rows - 1);
+                    ": box ", m, ": counts must be positive and owners sorted within 0..",
+                    rows - 1);
         used = o[m] == row ? used : offset;
         row = o[m];
         used += 4 * c[m];
