@@ -478,9 +478,6 @@ class Outline:
         self.rects, self.owner, self.number = rects, owner, number
         r = len(rects)
         oh, ow = change.output.image_size
-        self.box = torch.zeros(r, 4, dtype=torch.float64)
-        self.cut = torch.zeros(r, dtype=torch.bool)
-        self.windows = torch.zeros(r, 4, dtype=torch.long)
         self.pixels = torch.full((r, 4), -1, dtype=torch.long)
         self.waiting = []   # (box, sample) of the cut boxes whose pixels are still to read
         # the outlines sampled OUTLINE_STEP source pixels apart, mapped with the points
@@ -498,15 +495,18 @@ class Outline:
                 max=_MAX_PER_EDGE).long()
             extents[sub], longest[sub], flags[sub], _ = _outlines(change, rects[sub],
                                                                   counts[sub], owner[sub], None)
-        if r == 0:
-            return
         self.box, span = extents[:, :4], extents[:, 4:]
+        if r == 0:
+            self.cut, self.windows = torch.zeros(0, dtype=torch.bool), self.pixels
+            return
         # the boxes whose outline leaves the valid area, or whose region holds the direction
         # the output camera cannot map (its back, -z), are scanned pixel by pixel in a window
         # that holds the whole mapped region: the extent of its mapped outline, or the image
         back = -change.rotation[:, None, :, 2]           # the output's -z in the source frame
-        pole, seen = (t[:, 0][owner] for t in change.source.project(back, None))
-        pole = seen & _in_rects(pole, rects)
+        pole = torch.zeros(r, dtype=torch.bool)
+        if change.source.model != "pinhole" or bool((back[..., 2] > 0).any()):   # (z > 0)
+            at, seen = (t[:, 0][owner] for t in change.source.project(back, None))
+            pole = seen & _in_rects(at, rects)
         self.cut = ((flags & 1) > 0) | pole
         whole = ((flags & 2) > 0) | pole | (longest > OUTLINE_STEP)
         lo = (span[:, :2] - _MARGIN).floor().clamp(min=0)
