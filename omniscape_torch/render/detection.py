@@ -201,23 +201,23 @@ def check_boxes(boxes: object, batch: int, name: str = "boxes") -> list[Tensor]:
         raise ValueError(f"{name}: {len(boxes)} samples, the batch has {batch}")
     out = []
     for i, b in enumerate(boxes):
-        b = torch.as_tensor(b).detach()
+        b = torch.as_tensor(b)
         if b.numel() == 0:
             b = b.reshape(0, 4)
         if b.dim() != 2 or b.shape[-1] != 4 or b.is_complex():
             raise ValueError(f"{name}[{i}]: expected (N, 4) x0, y0, x1, y1, got "
                              f"{tuple(b.shape)}")
-        out.append(b.to("cpu", torch.float64))
-    flat = torch.cat(out)
-    owner = torch.arange(batch).repeat_interleave(torch.tensor([len(b) for b in out]))
+        out.append(b)
+    flat = torch.cat(out).detach().to("cpu", torch.float64)   # one conversion for the batch
+    sizes = [len(b) for b in out]
     for bad, what in ((~torch.isfinite(flat).all(-1), "boxes must be finite: NaN or inf"),
                       ((flat[:, 2:] < flat[:, :2]).any(-1),
                        "expected x0 <= x1 and y0 <= y1 (XYXY corner coordinates)")):
         if bool(bad.any()):
             first = int(bad.nonzero()[0, 0])
-            raise ValueError(f"{name}[{int(owner[first])}]: {what} (sample "
-                             f"{int(owner[first])}: {flat[first].tolist()})")
-    return out
+            i = int(torch.searchsorted(torch.tensor(sizes).cumsum(0), first, right=True))
+            raise ValueError(f"{name}[{i}]: {what} (sample {i}: {flat[first].tolist()})")
+    return list(flat.split(sizes))
 
 
 def check_keypoints(keypoints: object, batch: int, columns: int = 2,
