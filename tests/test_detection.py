@@ -9,6 +9,7 @@ of its output). Sizes are small (64-96 px); the sweep over many boxes is in the 
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -156,6 +157,47 @@ def test_boxes_crossing_the_field_of_view_keep_their_valid_part():
         corners = torch.tensor([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
         cut += int(not bool(detection.reproject_keypoints(corners, src, dst)[1].all()))
     assert cut >= 2   # the cone cut some objects (else the test shows nothing new)
+
+
+@pytest.mark.parametrize("ops", [True, False])
+def test_outline_boxes_at_the_valid_areas_border_under_strong_distortion(ops, monkeypatch):
+    """The outline's sampling (OUTLINE_STEP apart in the output) against the object's pixels
+    where it is hardest: strongly distorting lenses (Kannala-Brandt, double sphere, unified)
+    whose drawn cone (120-170 deg, about the 130 deg source's) and cropped image circle cut
+    the objects, boxes reaching the source's edges turned towards the cone's edge; every
+    box within a pixel of its object's tight pixel box, with the C++ ops (``ops``) and with
+    the torch code the box mapping falls back to without them."""
+    if not ops:
+        monkeypatch.setattr(detection, "fast", SimpleNamespace(available=lambda: False))
+    elif not ot.render.fast.available():
+        pytest.skip("the C++ ops cannot be built here")
+    size = (48, 64)
+    aug = ot.augment.RandomReproject(
+        (64, 64), source_fov=130 * DEG, interpolation="nearest", seed=3,
+        fisheye_models=("kannala_brandt", "double_sphere", "unified"),
+        fov_range=(120 * DEG, 170 * DEG), focal_scale_range=(1.0, 1.4),
+        yaw_range=(-35 * DEG, 35 * DEG), pitch_range=(-25 * DEG, 25 * DEG))
+    gen = torch.Generator().manual_seed(4)
+    compared = cut = 0
+    for _ in range(2):
+        boxes = torch.cat((random_boxes(8, size, gen, low=6, high=0.9),
+                           torch.tensor([[0.0, 0, 30, 48], [34, 0, 64, 20], [0, 30, 64, 48]])))
+        corners = boxes[:, [0, 1, 2, 1, 2, 3, 0, 3]].reshape(1, -1, 2)   # each box's corners
+        out = aug({"rgb": torch.zeros(1, 1, *size), "boxes": [boxes], "keypoints": corners})
+        again = aug({"labels": rectangles(boxes, size)}, params=_repeat(out["params"],
+                                                                          len(boxes)))
+        outside = ~out["keypoints_valid"][0].reshape(-1, 4).all(-1)   # the outline leaves
+        for j in range(len(boxes)):
+            expected = tight_box(again["labels"][j] == 1)
+            got = out["boxes"][0][out["box_index"][0] == j]
+            if expected is None:
+                continue
+            assert len(got) == 1, f"box {j}: object has pixels, box dropped"
+            assert np.abs(got[0].double().numpy() - expected).max() <= BOX_PX, (j, got,
+                                                                               expected)
+            compared += 1
+            cut += int(outside[j])
+    assert cut >= 4 and compared - cut >= 4
 
 
 def test_instance_boxes_are_exact_and_carry_wide_ids():

@@ -181,6 +181,53 @@ def test_opcheck_sample_image(dtype, mode):
         ops().sample_image(image, rays, None, k[0], None, mode == "bilinear", 0, out, seen)
 
 
+def test_opcheck_detection_ops():
+    """box_pixels: the extent of the window's pixels whose rays land in the rectangle (a
+    torch reference of the same projection); outline_points and outline_reduce: opcheck, and
+    arguments refused by name."""
+    gen = torch.Generator().manual_seed(7)
+    rays = torch.randn(2, 5, 7, 3, generator=gen, dtype=f64)
+    rays[..., 2] = rays[..., 2].abs() + 0.5
+    rotation, k, valid = make_rotation(2, f64), torch.tensor([[4.0, 4.5, 3.5, 3.0]], dtype=f64), \
+        make_valid(2, 5, 7)
+    sample = torch.tensor([0, 1, 1])
+    windows = torch.tensor([[0, 0, 6, 4], [1, 1, 5, 3], [0, 0, 6, 4]])
+    rects = torch.tensor([[0.0, 0, 5, 4], [1, 1, 6, 5], [-9, -9, -8, -8]], dtype=f64)
+    out = torch.empty(3, 4, dtype=torch.long)
+    torch.library.opcheck(ops().box_pixels, (rays, rotation, k, valid, sample, windows, rects,
+                                             out))
+    ops().box_pixels(rays, rotation, k, valid, sample, windows, rects, out)
+    src = torch.einsum("bij,bhwj->bhwi", rotation, rays)
+    u = k[0, 0] * src[..., 0] / src[..., 2] + k[0, 2]
+    v = k[0, 1] * src[..., 1] / src[..., 2] + k[0, 3]
+    for m, (s, (c0, r0, c1, r1), (u0, v0, u1, v1)) in enumerate(zip(
+            sample.tolist(), windows.tolist(), rects.tolist())):
+        hit = torch.zeros(5, 7, dtype=torch.bool)
+        hit[r0:r1 + 1, c0:c1 + 1] = True
+        hit &= valid[s] & (src[s, ..., 2] > 0) & (u[s] >= u0) & (u[s] <= u1) & (v[s] >= v0) & \
+            (v[s] <= v1)
+        rows, cols = hit.nonzero(as_tuple=True)
+        expected = ([int(cols.min()), int(rows.min()), int(cols.max()), int(rows.max())]
+                    if len(rows) else [-1] * 4)
+        assert out[m].tolist() == expected, m
+    with pytest.raises(RuntimeError, match="box_pixels: box 0: sample or window outside"):
+        ops().box_pixels(rays, rotation, k, valid, sample, windows + 3, rects, out)
+    counts, owner = torch.tensor([2, 1, 3]), torch.tensor([0, 0, 1])
+    points = torch.zeros(2, 16, 2, dtype=f64)
+    torch.library.opcheck(ops().outline_points, (rects, counts, owner, 2, points))
+    pix, ok = torch.randn(2, 16, 2, generator=gen, dtype=f64), make_valid(2, 16, 1)[..., 0]
+    extents, longest, flags = (torch.empty(3, 8, dtype=f64), torch.empty(3, dtype=f64),
+                               torch.empty(3, dtype=torch.long))
+    torch.library.opcheck(ops().outline_reduce, (pix, ok, ok, counts, owner, 2, 7, 5, 16.0,
+                                                 extents, longest, flags))
+    with pytest.raises(RuntimeError, match="outline_points: the outlines of sample 1 exceed"):
+        ops().outline_points(rects, torch.tensor([2, 1, 4]), owner, 2, points)
+    with pytest.raises(RuntimeError, match="outline_reduce: box 1: counts must be positive and "
+                                           "owners sorted"):
+        ops().outline_reduce(pix, ok, ok, counts, torch.tensor([1, 0, 1]), 2, 7, 5, 16.0,
+                             extents, longest, flags)
+
+
 def test_ops_write_what_the_python_functions_return():
     """The ops called directly give ``fast.sample_cube``'s and ``fast.sample_rays``' images."""
     cube, ring_src, ring_weight, out = make_inputs(f32)

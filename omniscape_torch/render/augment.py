@@ -26,7 +26,7 @@ from __future__ import annotations
 import math
 import os
 from types import MappingProxyType
-from typing import Mapping, NamedTuple, Sequence
+from typing import Callable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 import torch
@@ -1456,31 +1456,38 @@ class RandomReproject(_RandomCameras):
                                  "output pixels of each box's instance id)")
             ids = detection.check_box_ids(box_instance_ids, boxes, batch)
         sources = dict(intrinsics=intrinsics, source_camera=source_camera)
+        targets = None
+        if keypoints is not None or (boxes is not None and ids is None):
+            # mapped before the maps are rendered: the boxes that the valid area cuts read
+            # their pixels from the rays the maps are sampled along (Targets.scan)
+            size = _source_size(image, labels, depth, maps, self.channels_last)
+            k, camera = self._source(intrinsics, source_camera, size, batch)
+            source = (detection.Side("pinhole", k, size) if k is not None
+                      else detection.Side.of(camera, batch))
+            targets = detection.Targets(
+                self._changes(params, source), batch, keypoints=keypoints,
+                boxes=None if ids is not None else boxes, source_size=size)
         result = {}
         if any(t is not None for t in (image, labels, depth)):
-            result = self._render_maps(image, params, labels=labels, depth=depth, **sources)
+            result = self._render_maps(image, params, labels=labels, depth=depth,
+                                       scan=None if targets is None else targets.scan,
+                                       **sources)
         _render_label_maps(result, maps, lambda ids: self._render_maps(
             None, params, labels=ids, **sources))
         if ids is not None:
             result.update(detection.boxes_of_instances(result["instances"], ids,
                                                        _plain(instances), box_dtype))
-        if keypoints is not None or (boxes is not None and ids is None):
-            size = _source_size(image, labels, depth, maps, self.channels_last)
-            record = result["params"]
-            source = (detection.Side("pinhole", record["intrinsics"], size)
-                      if "intrinsics" in record else detection.Side.of(
-                          _recorded_camera(record["source_camera"], size), batch))
-            result.update(detection.map_targets(
-                self._changes(record, source), batch, keypoints=keypoints,
-                boxes=None if ids is not None else boxes, source_size=size,
-                dtype=kp_dtype, box_dtype=box_dtype))
+        if targets is not None:
+            result.update(targets.result(kp_dtype, box_dtype))
         return result
 
     def _render_maps(self, image: Tensor | None, params: dict, *, labels: Tensor | None = None,
                      depth: Tensor | None = None, intrinsics: Tensor | None = None,
-                     source_camera: Camera | None = None) -> dict:
+                     source_camera: Camera | None = None, scan: Callable | None = None
+                     ) -> dict:
         """:meth:`render` of the modalities alone (``valid``, ``rgb``, ``labels``, ``depth``,
-        ``params`` with the source camera's record)."""
+        ``params`` with the source camera's record); ``scan``: called on the fast path with
+        each chunk's samples and the rays they are sampled along (``detection.Targets.scan``)."""
         image, labels, depth, size = self._check_inputs(image, labels, depth)
         batch = next(t for t in (image, labels, depth) if t is not None).shape[0]
         if len(params["model"]) != batch:
@@ -1524,8 +1531,10 @@ class RandomReproject(_RandomCameras):
                 part = _Part(cam_params[start:start + chunk], sel, rotations[at], fovs[at],
                              None if k is None else k[at].to(device), size,
                              None if source is None else _rows(source, sel.to(device)))
-                render = self._render_fast if fast_path else self._render_exact
-                render(name, part, image, labels, depth, result)
+                if fast_path:
+                    self._render_fast(name, part, image, labels, depth, result, scan)
+                else:
+                    self._render_exact(name, part, image, labels, depth, result)
         if image is not None and self.channels_last:
             result["rgb"] = result["rgb"].permute(0, 2, 3, 1)
         if k is not None:
@@ -1552,9 +1561,11 @@ class RandomReproject(_RandomCameras):
         return self._draw_params(batch, generator, k, None if k is None else size)
 
     def _render_fast(self, name: str, part: "_Part", image: Tensor | None,
-                     labels: Tensor | None, depth: Tensor | None, result: dict) -> None:
+                     labels: Tensor | None, depth: Tensor | None, result: dict,
+                     scan: Callable | None = None) -> None:
         """The samples ``part.index`` through the C++ ops: the cameras' rays from their tables
-        (or ``Camera.ray_grid`` where a model has none), then ``fast.sample_image``."""
+        (or ``Camera.ray_grid`` where a model has none), then ``fast.sample_image``; ``scan``
+        (if given) reads the rays as ``sample_image`` does."""
         rays, valid = self._rays(name, part.params, part.fov)
         target, rotation = rays, part.rotation
         if part.source is None:
@@ -1571,6 +1582,8 @@ class RandomReproject(_RandomCameras):
             rays = torch.cat((pixels, torch.ones_like(pixels[..., :1])), dim=-1)
             rotation = None
             k = torch.tensor([[1.0, 1.0, 0.0, 0.0]], dtype=rays.dtype)
+        if scan is not None:
+            scan(part.index, rays, rotation, k, valid)
         for at, (a, b) in _slices(part.index):   # runs of consecutive samples: views
             rows = slice(a, b)
             rot = None if rotation is None else rotation[rows]

@@ -13,19 +13,25 @@ plus 0.5, converted here and only here).
   and outside its blind cone), else its coordinates are NaN.
 * A box from its outline (``reproject_boxes``): the box region is mapped through the cameras
   and its tight box in the output is taken, clipped to the output's valid area. The outline is
-  sampled with points at most :data:`OUTLINE_STEP` output pixels apart (the spacing estimated
-  per box from a coarse pass), so a straight edge's curved image is missed by at most its
-  sagitta, ``OUTLINE_STEP**2 / (8 rho)`` for a curvature radius ``rho`` (against a sampling 64
-  times finer: at most 0.012 px over 1280 boxes at 512 x 512). Where the outline leaves the
-  valid area, the box of the valid part is bounded by the outline's valid samples and by the
-  valid area's own boundary (the ``fov`` and blind cones' images and the output image's edges,
-  sampled every :data:`BOUNDARY_STEP` pixels) where it lies inside the region (checked by
-  mapping it back into the source); the output pixels within that bound are then tested one by
-  one (mapped back into the source box), so a box cut by the valid area is the tight box of its
-  valid pixels. Elsewhere the tight box of the object's *pixels* (pixel centres inside the
-  mapped region) differs from the continuous box by up to half a pixel per side, a little more
-  at a sharp corner or for an object thinner than a pixel; tests hold boxes within 1 px of
-  their objects' pixels.
+  sampled every :data:`FIRST_STEP` source pixels and mapped; a box whose mapped samples near
+  the output image lie more than :data:`OUTLINE_STEP` output pixels apart (a camera that
+  magnifies it more than twice) is sampled again that much finer, so a straight edge's curved
+  image is missed by at most its sagitta, ``OUTLINE_STEP**2 / (8 rho)`` for a curvature radius
+  ``rho`` (against a sampling every 0.25 px: at most 0.018 px over 2303 boxes of 8 to 300 px
+  at 512 x 512, equidistant, Kannala-Brandt, EUCM, double sphere, unified and cropped
+  equisolid draws). Where the outline leaves the valid area (the ``fov`` and blind cones, the
+  output image's edges, the source's), the object's output pixels are found one by one: the
+  pixels of a window that holds the whole mapped region (the extent of the mapped outline, its
+  points seen or not, one pixel wider; the whole image where a point of the outline is not
+  mapped by both models or the output camera's back direction lies in the box) whose rays
+  land in the source box and are valid, scanned from each side to the first that does; the box
+  is then the tight box of those pixels. ``RandomReproject`` scans the rays its sampler
+  samples the image along (the C++ op ``box_pixels``, as ``sample_image`` projects them), so
+  these boxes are those of the pixels its labels give the object; elsewhere the window's
+  pixels are mapped back here. Elsewhere the tight box of the object's *pixels* (pixel centres
+  inside the mapped region) differs from the continuous box by up to half a pixel per side, a
+  little more at a sharp corner or for an object thinner than a pixel; tests hold boxes within
+  1 px of their objects' pixels.
 * A box from an instance map (:func:`instance_boxes`): the tight box of the output pixels of
   its instance id, exact.
 """
@@ -41,20 +47,20 @@ from torch import Tensor
 from ..cameras import Camera
 from ..cameras.registry import get_model
 from ..cubemap.faces import face_rotations
+from . import fast
 
 __all__ = ["instance_boxes", "reproject_boxes", "reproject_keypoints", "OUTLINE_STEP",
-           "BOUNDARY_STEP"]
+           "FIRST_STEP"]
 
-#: Largest spacing, in output pixels, of the samples of a box's outline.
-OUTLINE_STEP = 8.0
-#: Spacing, in output pixels, of the samples of the valid area's boundary.
-BOUNDARY_STEP = 0.5
-#: Segments per edge of the coarse pass that estimates how much a box's edges stretch.
-_COARSE = 4
+#: Largest spacing, in output pixels, of the samples of a box's outline near the image.
+OUTLINE_STEP = 16.0
+#: Spacing, in source pixels, of the first samples of a box's outline (refined where they land
+#: further than OUTLINE_STEP apart: where the camera magnifies more than twice).
+FIRST_STEP = 8.0
+#: Fewest samples per edge of a box's outline.
+_FEWEST = 4
 #: Most samples per edge (a box stretched past this is sampled coarser).
 _MAX_PER_EDGE = 4096
-#: Boundary samples are taken this far (radians, pixels) inside the cones and the image edges.
-_INSET = 1e-7
 
 
 class Side(NamedTuple):
@@ -83,14 +89,15 @@ class Side(NamedTuple):
         return Side(self.model, pick(self.params), self.image_size, pick(self.fov),
                     pick(self.blind_fov))
 
-    def cones(self, rays: Tensor, sample: Tensor) -> Tensor:
-        """``(T,)`` True where unit ``rays (T, 3)`` of samples ``sample (T,)`` lie in the cones."""
+    def cones(self, rays: Tensor, sample: Tensor | None) -> Tensor:
+        """``(T,)`` True where unit ``rays (T, 3)`` of samples ``sample (T,)`` lie in the cones
+        (``sample`` None: ``rays (n, M, 3)``, row i of sample i)."""
         ok = torch.ones(rays.shape[:-1], dtype=torch.bool)
         if self.fov is not None:
-            ok = ok & (rays[:, 2] >= torch.cos(0.5 * self.fov)[sample])
+            ok = ok & (rays[..., 2] >= _rows(torch.cos(0.5 * self.fov), sample))
         if self.blind_fov is not None and bool((self.blind_fov > 0).any()):
             blind = torch.where(self.blind_fov > 0, torch.cos(0.5 * self.blind_fov), 2.0)
-            ok = ok & (rays[:, 2] < blind[sample])
+            ok = ok & (rays[..., 2] < _rows(blind, sample))
         return ok
 
     def in_image(self, pixels: Tensor) -> Tensor:
@@ -98,21 +105,25 @@ class Side(NamedTuple):
         u, v = pixels[..., 0], pixels[..., 1]
         return (u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5)
 
-    def unproject(self, points: Tensor, sample: Tensor) -> tuple[Tensor, Tensor]:
+    def unproject(self, points: Tensor, sample: Tensor, domain: bool = False) -> tuple:
         """Pixel centres ``(T, 2)`` (a cube: ``(T, 3)`` face, u, v) of samples ``sample`` ->
-        unit rays ``(T, 3)`` and where they are seen."""
+        unit rays ``(T, 3)`` and where they are seen (``domain``: and where the model maps
+        them, wherever they lie)."""
         if self.params is None:
-            return _cube_rays(points)
-        rays, ok = get_model(self.model).unproject(points, self.params[sample])
+            rays, ok = _cube_rays(points)
+            return (rays, ok, ok) if domain else (rays, ok)
+        rays, ok = get_model(self.model).unproject(points, _rows(self.params, sample))
         rays = torch.nn.functional.normalize(rays, dim=-1)
-        return rays, ok & self.in_image(points) & self.cones(rays, sample)
+        seen = ok & self.in_image(points) & self.cones(rays, sample)
+        return (rays, seen, ok) if domain else (rays, seen)
 
-    def project(self, rays: Tensor, sample: Tensor) -> tuple[Tensor, Tensor]:
+    def project(self, rays: Tensor, sample: Tensor, domain: bool = False) -> tuple:
         """Unit ``rays (T, 3)`` of samples ``sample`` -> pixel centres ``(T, 2)`` and where
-        they are seen."""
-        pixels, ok = get_model(self.model).project(rays, self.params[sample])
+        they are seen (``domain``: and where the model maps them, wherever they land)."""
+        pixels, ok = get_model(self.model).project(rays, _rows(self.params, sample))
         ok = ok & torch.isfinite(pixels).all(-1)
-        return pixels, ok & self.in_image(pixels) & self.cones(rays, sample)
+        seen = ok & self.in_image(pixels) & self.cones(rays, sample)
+        return (pixels, seen, ok) if domain else (pixels, seen)
 
 
 class Change(NamedTuple):
@@ -122,29 +133,48 @@ class Change(NamedTuple):
     output: Side
     rotation: Tensor          # (n, 3, 3) float64
 
-    def forward(self, points: Tensor, sample: Tensor) -> tuple[Tensor, Tensor]:
+    def forward(self, points: Tensor, sample: Tensor, domain: bool = False) -> tuple:
         """Source pixel centres ``(T, 2)`` (cube: ``(T, 3)``) -> output pixel centres ``(T, 2)``
-        and where both cameras see them."""
-        rays, ok = self.source.unproject(points, sample)
-        rays = (self.rotation[sample] * rays[:, :, None]).sum(1)       # R^T @ ray
-        pixels, seen = self.output.project(rays, sample)
+        and where both cameras see them (``domain``: and where both models map them, seen or
+        not)."""
+        rays, ok, mapped = self.source.unproject(points, sample, domain=True)
+        rays = _turn(rays, self.rotation, sample, back=True)
+        pixels, seen, through = self.output.project(rays, sample, domain=True)
+        if domain:
+            return pixels, ok & seen, mapped & through
         return pixels, ok & seen
 
     def backward(self, pixels: Tensor, sample: Tensor) -> tuple[Tensor, Tensor]:
         """Output pixel centres ``(T, 2)`` -> source pixel centres and where both see them."""
         rays, ok = self.output.unproject(pixels, sample)
-        rays = (self.rotation[sample] * rays[:, None, :]).sum(2)       # R @ ray
+        rays = _turn(rays, self.rotation, sample)
         points, seen = self.source.project(rays, sample)
         return points, ok & seen
 
 
+def _rows(t: Tensor, sample: Tensor | None) -> Tensor:
+    """Per-sample rows ``t (n, ...)`` for points of samples ``sample (T,)``, or (``sample``
+    None) for points ``(n, M, ...)``, broadcasting."""
+    return t[sample] if sample is not None else t[:, None]
+
+
+def _turn(rays: Tensor, rotation: Tensor, sample: Tensor | None, back: bool = False) -> Tensor:
+    """``R @ ray`` (``back``: ``R^T @ ray``) of ``rays (T, 3)`` of samples ``sample``, or
+    (``sample`` None) ``rays (n, M, 3)`` by ``rotation (n, 3, 3)``."""
+    if sample is None:
+        return torch.matmul(rays, rotation if back else rotation.transpose(1, 2))
+    if back:
+        return torch.bmm(rays[:, None, :], rotation[sample])[:, 0]
+    return torch.bmm(rotation[sample], rays[:, :, None])[:, :, 0]
+
+
 def _cube_rays(points: Tensor) -> tuple[Tensor, Tensor]:
-    """``(T, 3)`` rows ``(face, x, y)`` of :func:`cube_points` (``x = (u - c) / f``) -> unit
+    """``(..., 3)`` rows ``(face, x, y)`` of :func:`cube_points` (``x = (u - c) / f``) -> unit
     rays in the cube frame, and where the point lies on its face."""
-    face = points[:, 0].long()
-    local = torch.cat((points[:, 1:], torch.ones_like(points[:, :1])), -1)
-    rays = torch.einsum("tij,tj->ti", face_rotations(torch.float64)[face], local)
-    on_face = (points[:, 1:].abs() <= 1 + 1e-9).all(-1)
+    face = points[..., 0].long()
+    local = torch.cat((points[..., 1:], torch.ones_like(points[..., :1])), -1)
+    rays = torch.einsum("...ij,...j->...i", face_rotations(torch.float64)[face], local)
+    on_face = (points[..., 1:].abs() <= 1 + 1e-9).all(-1)
     return torch.nn.functional.normalize(rays, dim=-1), on_face
 
 
@@ -171,23 +201,23 @@ def check_boxes(boxes: object, batch: int, name: str = "boxes") -> list[Tensor]:
         raise ValueError(f"{name}: {len(boxes)} samples, the batch has {batch}")
     out = []
     for i, b in enumerate(boxes):
-        b = torch.as_tensor(b).detach()
+        b = torch.as_tensor(b)
         if b.numel() == 0:
             b = b.reshape(0, 4)
         if b.dim() != 2 or b.shape[-1] != 4 or b.is_complex():
             raise ValueError(f"{name}[{i}]: expected (N, 4) x0, y0, x1, y1, got "
                              f"{tuple(b.shape)}")
-        out.append(b.to("cpu", torch.float64))
-    flat = torch.cat(out)
-    owner = torch.arange(batch).repeat_interleave(torch.tensor([len(b) for b in out]))
+        out.append(b)
+    flat = torch.cat(out).detach().to("cpu", torch.float64)   # one conversion for the batch
+    sizes = [len(b) for b in out]
     for bad, what in ((~torch.isfinite(flat).all(-1), "boxes must be finite: NaN or inf"),
                       ((flat[:, 2:] < flat[:, :2]).any(-1),
                        "expected x0 <= x1 and y0 <= y1 (XYXY corner coordinates)")):
         if bool(bad.any()):
             first = int(bad.nonzero()[0, 0])
-            raise ValueError(f"{name}[{int(owner[first])}]: {what} (sample "
-                             f"{int(owner[first])}: {flat[first].tolist()})")
-    return out
+            i = int(torch.searchsorted(torch.tensor(sizes).cumsum(0), first, right=True))
+            raise ValueError(f"{name}[{i}]: {what} (sample {i}: {flat[first].tolist()})")
+    return list(flat.split(sizes))
 
 
 def check_keypoints(keypoints: object, batch: int, columns: int = 2,
@@ -327,200 +357,212 @@ def _on_centres(pixels: Tensor, w: int, h: int) -> Tensor:
     return (u >= -1e-9) & (u <= w - 1 + 1e-9) & (v >= -1e-9) & (v <= h - 1 + 1e-9)
 
 
-def _boundaries(change: Change, samples: list[int]
-                ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Points on the boundary of each of ``samples``' output valid area (the images of its
-    cones and the output image's edges), at most :data:`BOUNDARY_STEP` apart, ``(T, 2)``, their
-    sample ``(T,)``, and the source pixel centres they map back to with where that holds
-    ``(T, 2), (T,)``: the cones' projections and the mapping back each one call for all
-    ``samples``."""
-    out = change.output
-    h, w = out.image_size
-    step = BOUNDARY_STEP
-    # the outer pixel centres' lines: the box of an object's pixels ends there
-    xs = torch.cat((torch.arange(0, w - 1, step, dtype=torch.float64),
-                    torch.tensor([w - 1.0], dtype=torch.float64)))
-    ys = torch.cat((torch.arange(0, h - 1, step, dtype=torch.float64),
-                    torch.tensor([h - 1.0], dtype=torch.float64)))
-    edges = torch.cat((torch.stack((xs, torch.zeros_like(xs)), -1),
-                       torch.stack((xs, torch.full_like(xs, h - 1.0)), -1),
-                       torch.stack((torch.zeros_like(ys), ys), -1),
-                       torch.stack((torch.full_like(ys, w - 1.0), ys), -1)))
-    parts = [edges.repeat(len(samples), 1)]
-    owners = [torch.tensor(samples).repeat_interleave(len(edges))]
-    project = get_model(out.model).project
-
-    def circles(rings: list[tuple[int, float, int]]) -> tuple[Tensor, Tensor, Tensor]:
-        """``(sample, half angle, count)`` -> the rings' projections, ok and samples."""
-        rays, idx = [], []
-        for i, half, count in rings:
-            phi = torch.arange(count, dtype=torch.float64) * (2 * math.pi / count)
-            rays.append(torch.stack((math.sin(half) * torch.cos(phi),
-                                     math.sin(half) * torch.sin(phi),
-                                     torch.full_like(phi, math.cos(half))), -1))
-            idx.append(torch.full((count,), i, dtype=torch.long))
-        idx = torch.cat(idx)
-        pix, ok = project(torch.cat(rays), out.params[idx])
-        return pix, ok & torch.isfinite(pix).all(-1), idx
-
-    for angle, inset in ((out.fov, -_INSET), (out.blind_fov, _INSET)):
-        if angle is None:
-            continue
-        halves = [(i, 0.5 * float(angle[i]) + inset) for i in samples
-                  if 0 < float(angle[i]) < 2 * math.pi]
-        if not halves:
-            continue
-        # a coarse circle measures the fine one's sample count
-        pix, ok, _ = circles([(i, half, 256) for i, half in halves])
-        pix, ok = pix.reshape(len(halves), 256, 2), ok.reshape(len(halves), 256)
-        seg = (pix - pix.roll(-1, 1)).norm(dim=-1)
-        lengths = torch.where(ok & ok.roll(-1, 1), seg, torch.zeros_like(seg)).sum(-1)
-        pix, ok, idx = circles([
-            (i, half, int(min(max(math.ceil(float(length) / step), 64), 1 << 16)))
-            for (i, half), length in zip(halves, lengths)])
-        parts.append(pix[ok])
-        owners.append(idx[ok])
-    points, owner = torch.cat(parts), torch.cat(owners)
-    src, ok = change.backward(points, owner)
-    return points, owner, src, ok
+def _in_rects(points: Tensor, rects: Tensor) -> Tensor:
+    """Where source pixel centres ``points (T, 2)`` lie in their ``rects (T, 4)``."""
+    return (points[:, 0] >= rects[:, 0]) & (points[:, 0] <= rects[:, 2]) & \
+        (points[:, 1] >= rects[:, 1]) & (points[:, 1] <= rects[:, 3])
 
 
-#: Width in pixels of the strips :func:`_pixel_boxes` reads first along each side of a window.
-_BAND = 3
+#: Pixels a window reaches past the extent of its box's mapped outline samples (which miss the
+#: mapped outline's extreme by its sagitta between two samples, far below a pixel).
+_MARGIN = 1.0
+#: Most pixels mapped back in one call of the scans in torch (:func:`_scan_back`).
+_SCAN_CHUNK = 1 << 20
 
 
-def _pixel_boxes(change: Change, sample: int, extents: Tensor, rects: Tensor) -> Tensor:
-    """Per box ``(m, 4)``: the extent, pixel edges in pixel-centre coordinates, of the output
-    pixels within ``extents`` (pixel-centre x0, y0, x1, y1; inf: none, kept) whose rays meet
-    the source rectangle ``rects`` and are valid: the pixels an object cut by the valid area's
-    boundary keeps (a sliver's pixels are sparse, so its continuous extent would overstate
-    their box). All boxes of the sample in one mapping.
-
-    Each box reads the strips of :data:`_BAND` pixels along its window's sides first: where
-    each strip holds a pixel of the object, the object's extreme pixel towards that side is in
-    that strip (the whole window lies on the inner side of it), so the strips' extent is the
-    window's, exactly; the boxes with a strip that holds none read their whole window."""
-    h, w = change.output.image_size
-    out = extents.clone()
-    todo = torch.isfinite(extents).all(-1).nonzero()[:, 0].tolist()
-    windows = {}
-    for j in todo:
-        lo, hi = extents[j, :2].ceil() - 1, extents[j, 2:].floor() + 1   # a pixel of margin
-        windows[j] = (torch.arange(int(lo[0]), int(hi[0]) + 1, dtype=torch.float64),
-                      torch.arange(int(lo[1]), int(hi[1]) + 1, dtype=torch.float64))
-
-    def grid(c: Tensor, r: Tensor) -> Tensor:
-        return torch.stack(torch.meshgrid(c, r, indexing="xy"), -1).reshape(-1, 2)
-
-    def hits(parts: list[tuple[int, Tensor]]) -> tuple[Tensor, Tensor, Tensor]:
-        """Points of ``(box, points)`` parts, one mapping: all points, their part and
-        whether each is a pixel of its box's object."""
-        points = torch.cat([p for _, p in parts])
-        part = torch.arange(len(parts)).repeat_interleave(torch.tensor([len(p) for _, p in parts]))
-        rect = rects[torch.tensor([j for j, _ in parts])][part]
-        src, ok = change.backward(points, torch.full((len(points),), sample, dtype=torch.long))
-        ok = ok & _on_centres(points, w, h) & (src[:, 0] >= rect[:, 0]) & \
-            (src[:, 0] <= rect[:, 2]) & (src[:, 1] >= rect[:, 1]) & (src[:, 1] <= rect[:, 3])
-        return points, part, ok
-
-    def extent_of(parts: list[tuple[int, Tensor]], points: Tensor, part: Tensor, ok: Tensor):
-        owners = torch.tensor([j for j, _ in parts])
-        found = _extent(points, ok, owners[part], len(extents))
-        mine = owners.unique()
-        out[mine] = found[mine] + torch.tensor([-0.5, -0.5, 0.5, 0.5], dtype=out.dtype)
-
-    if not todo:
-        return out
-    k = _BAND
-    parts = [(j, g) for j in todo for g in (
-        grid(windows[j][0][:k], windows[j][1]), grid(windows[j][0][-k:], windows[j][1]),
-        grid(windows[j][0], windows[j][1][:k]), grid(windows[j][0], windows[j][1][-k:]))]
-    points, part, ok = hits(parts)
-    held = torch.zeros(len(parts), dtype=torch.bool).index_put_((part,), ok, accumulate=True)
-    extent_of(parts, points, part, ok)
-    whole = [j for n, j in enumerate(todo) if not bool(held[4 * n:4 * n + 4].all())]
-    if whole:   # their strips' extent is replaced by their whole window's
-        parts = [(j, grid(*windows[j])) for j in whole]
-        extent_of(parts, *hits(parts))
+def _scan_back(change: Change, sample: Tensor, windows: Tensor, rects: Tensor) -> Tensor:
+    """The pixel scan of :class:`Outline` in torch: per box the extent ``(m, 4)`` (min column,
+    min row, max column, max row; -1 where none) of the output pixels of ``windows (m, 4)``
+    (inclusive) of its ``sample`` that ``change.backward`` maps, valid, into its source
+    ``rects (m, 4)`` (pixel centres)."""
+    out = torch.full((len(windows), 4), -1, dtype=torch.long)
+    sizes = ((windows[:, 2] - windows[:, 0] + 1) * (windows[:, 3] - windows[:, 1] + 1)).tolist()
+    first = 0
+    while first < len(windows):
+        last, total = first + 1, sizes[first]
+        while last < len(windows) and total + sizes[last] <= _SCAN_CHUNK:
+            total, last = total + sizes[last], last + 1
+        grids = [torch.stack(torch.meshgrid(torch.arange(c0, c1 + 1), torch.arange(r0, r1 + 1),
+                                            indexing="xy"), -1).reshape(-1, 2)
+                 for c0, r0, c1, r1 in windows[first:last].tolist()]
+        box = torch.arange(first, last).repeat_interleave(torch.tensor(sizes[first:last]))
+        pixels = torch.cat(grids)
+        src, ok = change.backward(pixels.to(torch.float64), sample[box])
+        ok = ok & _in_rects(src, rects[box])
+        found = _extent(pixels.to(torch.float64), ok, box - first, last - first)
+        out[first:last] = torch.where(torch.isfinite(found), found, -1.0).long()
+        first = last
     return out
 
 
-def map_boxes(change: Change, boxes: list[Tensor], source_size: tuple[int, int], *,
-              dtype: torch.dtype = torch.float64,
-              extra: tuple[Tensor, Tensor] | None = None
-              ) -> tuple[list[Tensor], list[Tensor], tuple[Tensor, Tensor] | None]:
-    """Boxes (per sample ``(N_i, 4)`` XYXY corner coordinates, of the ``n`` samples of
-    ``change``) -> per sample the output boxes in ``dtype`` and ``box_index (M_i,)`` (module
-    docstring), and ``change.forward`` of the points and samples ``extra`` (mapped in the same
-    call as the boxes' coarse pass; None without). Boxes are clipped to the source image
-    ``source_size`` first; none left: dropped."""
-    n = len(boxes)
-    h, w = source_size
-    counts = torch.tensor([len(b) for b in boxes])
-    flat = torch.cat(boxes)
-    owner = torch.arange(n).repeat_interleave(counts)
-    number = torch.arange(len(flat)) - (torch.cumsum(counts, 0) - counts).repeat_interleave(counts)
-    clipped = torch.cat((flat[:, :2].clamp(min=0), torch.minimum(
-        flat[:, 2:], torch.tensor([w, h], dtype=flat.dtype))), -1)
-    keep = (clipped[:, 2:] > clipped[:, :2]).all(-1)
-    rects, owner, number = clipped[keep] - 0.5, owner[keep], number[keep]   # pixel centres
-    r = len(rects)
-    # coarse pass: how far apart do the edges' points land (per box, the most any edge needs)
-    coarse, which = _outline(rects, torch.full((r,), _COARSE, dtype=torch.long))
-    e = 0 if extra is None else len(extra[0])
-    if extra is not None:
-        coarse, samples = torch.cat((extra[0], coarse)), torch.cat((extra[1], owner[which]))
+def _outlines(change: Change, rects: Tensor, counts: Tensor, owner: Tensor,
+              extra: Tensor | None) -> tuple:
+    """The outlines of ``rects (m, 4)`` (pixel centres) of samples ``owner (m,)`` (sorted),
+    ``counts (m,)`` points per edge, mapped by ``change`` in one call, each sample's points a
+    row after its points ``extra (n, K, 2)`` (or None) -> per box ``extents (m, 8)``: the
+    extent of its seen points within the output's outer pixel centres, then of its mapped
+    points (both models map them, seen or not; inf where none); ``longest (m,)``: the longest
+    step between consecutive mapped points of its closed outline of which one lies within
+    :data:`OUTLINE_STEP` pixels of those centres; ``flags (m,)``: 1 where a point is not seen
+    within them, 2 where one is not mapped; and ``extra``'s output pixels and where seen
+    ``(n K, 2), (n K,)`` (None without). The C++ ops ``outline_points`` and
+    ``outline_reduce``, else their torch equivalent."""
+    n = len(change.rotation)
+    k = 0 if extra is None else extra.shape[1]
+    sizes = torch.zeros(n, dtype=torch.long).index_add_(0, owner, 4 * counts)
+    columns = k + int(sizes.max()) if len(rects) else k
+    m = len(rects)
+    extents = torch.full((m, 8), math.inf, dtype=torch.float64)
+    longest = torch.zeros(m, dtype=torch.float64)
+    flags = torch.zeros(m, dtype=torch.long)
+    if columns == 0:
+        return extents, longest, flags, None
+    padded = torch.zeros(n, columns, 2, dtype=torch.float64)
+    if k:
+        padded[:, :k] = extra
+    h, w = change.output.image_size
+    ops = fast._require() if fast.available() else None
+    if ops is not None:
+        ops.outline_points(rects.contiguous(), counts, owner, k, padded)
+        pix, ok, through = change.forward(padded, None, domain=True)
+        ops.outline_reduce(pix.contiguous(), ok.contiguous(), through.contiguous(), counts,
+                           owner, k, w, h, OUTLINE_STEP, extents, longest, flags)
     else:
-        samples = owner[which]
-    pix, ok = change.forward(coarse, samples) if len(coarse) else (coarse, samples > 0)
-    mapped = None if extra is None else (pix[:e], ok[:e])
-    pix, ok = pix[e:], ok[e:]
-    if r == 0:
-        return ([torch.zeros(0, 4, dtype=dtype) for _ in range(n)],
-                [torch.zeros(0, dtype=torch.long) for _ in range(n)], mapped)
-    pix, ok = pix.reshape(r, 4 * _COARSE, 2), ok.reshape(r, 4 * _COARSE)
-    nxt = torch.cat((pix[:, 1:], pix[:, :1]), 1)   # edges run into each other: a closed loop
-    both = ok & ok.roll(-1, 1)
-    src_len = torch.stack(((rects[:, 2] - rects[:, 0]), (rects[:, 3] - rects[:, 1])), -1)
-    src_seg = src_len[:, [0, 1, 0, 1]].repeat_interleave(_COARSE, -1) / _COARSE   # per edge
-    stretch = torch.where(both, (nxt - pix).norm(dim=-1) / src_seg.clamp(min=1e-9),
-                          torch.zeros_like(src_seg)).amax(-1).clamp(min=1.0)
-    needed = (stretch * src_len.amax(-1) / OUTLINE_STEP).ceil()
-    counts = needed.clamp(_COARSE, _MAX_PER_EDGE).long()
-    # fine pass: the outline's valid samples
-    fine, which = _outline(rects, counts)
-    pix, ok = change.forward(fine, owner[which])
-    oh, ow = change.output.image_size
-    ok = ok & _on_centres(pix, ow, oh)
-    box = _extent(pix, ok, which, r)
-    # where the outline leaves the valid area: the valid area's boundary inside the region
-    inside_all = torch.zeros(r, dtype=torch.bool).index_put_((which,), ~ok, accumulate=True)
-    cut = owner[inside_all].unique().tolist()
-    every, of, every_src, every_seen = _boundaries(change, cut) if cut else (None,) * 4
-    for i in cut:
-        mask = of == i
-        points, src, seen = every[mask], every_src[mask], every_seen[mask]
-        seen = seen & _on_centres(points, ow, oh)
-        mine = (inside_all & (owner == i)).nonzero()[:, 0]
-        rect = rects[mine]
-        inside = seen[None] & (src[None, :, 0] >= rect[:, None, 0]) & \
-            (src[None, :, 0] <= rect[:, None, 2]) & (src[None, :, 1] >= rect[:, None, 1]) & \
-            (src[None, :, 1] <= rect[:, None, 3])                           # (m, T)
-        m, t = inside.shape
-        extra = _extent(points.repeat(m, 1), inside.reshape(-1),
-                        torch.arange(m).repeat_interleave(t), m)
-        box[mine] = torch.cat((torch.minimum(box[mine, :2], extra[:, :2]),
-                               torch.maximum(box[mine, 2:], extra[:, 2:])), -1)
-        box[mine] = _pixel_boxes(change, i, box[mine], rect)
-    # pixel-centre extent -> corner coordinates: +0.5, and the image's edge where it reaches
-    # the outer pixel centres
-    limit = torch.tensor([ow - 1.0, oh - 1.0], dtype=box.dtype)
-    lo = torch.where(box[:, :2] <= 1e-6, torch.zeros_like(box[:, :2]), box[:, :2] + 0.5)
-    hi = torch.where(box[:, 2:] >= limit - 1e-6, limit + 1, box[:, 2:] + 0.5)
-    box = torch.cat((lo, hi), -1)
-    kept = torch.isfinite(box).all(-1) & (box[:, 2:] > box[:, :2]).all(-1)
-    sizes = torch.bincount(owner[kept], minlength=n).tolist()   # owner is sorted
-    return list(box[kept].to(dtype).split(sizes)), list(number[kept].split(sizes)), mapped
+        slots = torch.arange(columns)[None]
+        slots = (slots >= k) & (slots < k + sizes[:, None])
+        points, which = _outline(rects, counts)
+        padded[slots] = points
+        pix, ok, through = change.forward(padded, None, domain=True)
+        line, seen, mapped = pix[slots], ok[slots], through[slots]
+        seen = seen & _on_centres(line, w, h)
+        extents = torch.cat((_extent(line, seen, which, m), _extent(line, mapped, which, m)), -1)
+        near = mapped & (line[:, 0] > -OUTLINE_STEP) & (line[:, 0] < w - 1 + OUTLINE_STEP) & \
+            (line[:, 1] > -OUTLINE_STEP) & (line[:, 1] < h - 1 + OUTLINE_STEP)
+        nxt, near_nxt, mapped_nxt = line.roll(-1, 0), near.roll(-1, 0), mapped.roll(-1, 0)
+        last = torch.cumsum(4 * counts, 0) - 1
+        first = last - 4 * counts + 1
+        nxt[last], near_nxt[last], mapped_nxt[last] = line[first], near[first], mapped[first]
+        step = torch.where(mapped & mapped_nxt & (near | near_nxt),
+                           (nxt - line).norm(dim=-1), 0.0)
+        longest = torch.zeros(m, dtype=step.dtype).scatter_reduce(0, which, step, "amax")
+        flags = ((torch.bincount(which[~seen], minlength=m) > 0).long() +
+                 2 * (torch.bincount(which[~mapped], minlength=m) > 0).long())
+    mapped_extra = None if not k else (pix[:, :k].reshape(-1, 2), ok[:, :k].reshape(-1))
+    return extents, longest, flags, mapped_extra
+
+
+class Outline:
+    """Boxes of the ``n`` samples of a :class:`Change` mapped by their outlines (module
+    docstring), in two steps: the outlines (on construction), then the pixels of the boxes that
+    the valid area cuts, read from the rays a renderer samples along (:meth:`scan`) or mapped
+    back here (:meth:`result`).
+
+    ``boxes``: per sample ``(N_i, 4)`` XYXY corner coordinates, clipped to the source image
+    ``source_size`` first (none left: dropped); ``extra``: points ``(n, K, 2)`` mapped by
+    ``change.forward`` in the same call as the outlines (``mapped``: their pixels and where
+    seen, ``(n K, 2), (n K,)``; None without)."""
+
+    def __init__(self, change: Change, boxes: list[Tensor], source_size: tuple[int, int],
+                 extra: Tensor | None = None):
+        self.change, self.n = change, len(boxes)
+        h, w = source_size
+        counts = torch.tensor([len(b) for b in boxes])
+        flat = torch.cat(boxes)
+        owner = torch.arange(self.n).repeat_interleave(counts)
+        number = torch.arange(len(flat)) - (torch.cumsum(counts, 0) - counts).repeat_interleave(
+            counts)
+        clipped = torch.cat((flat[:, :2].clamp(min=0), torch.minimum(
+            flat[:, 2:], torch.tensor([w, h], dtype=flat.dtype))), -1)
+        keep = (clipped[:, 2:] > clipped[:, :2]).all(-1)
+        rects, owner, number = clipped[keep] - 0.5, owner[keep], number[keep]  # pixel centres
+        self.rects, self.owner, self.number = rects, owner, number
+        r = len(rects)
+        oh, ow = change.output.image_size
+        self.pixels = torch.full((r, 4), -1, dtype=torch.long)
+        self.waiting = []   # (box, sample) of the cut boxes whose pixels are still to read
+        # the outlines sampled OUTLINE_STEP source pixels apart, mapped with the points
+        # ``extra``; where their mapped samples (near the image) lie further apart, sampled
+        # again that much finer (a few boxes, where the camera magnifies)
+        src_len = (rects[:, 2:] - rects[:, :2]).amax(-1)
+        counts = (src_len / FIRST_STEP).ceil().clamp(_FEWEST, _MAX_PER_EDGE).long()
+        extents, longest, flags, self.mapped = _outlines(change, rects, counts, owner, extra)
+        for _ in range(3):
+            redo = (longest > OUTLINE_STEP) & (counts < _MAX_PER_EDGE)
+            if not bool(redo.any()):
+                break
+            sub = redo.nonzero()[:, 0]
+            counts[sub] = (counts[sub] * longest[sub] / OUTLINE_STEP).ceil().clamp(
+                max=_MAX_PER_EDGE).long()
+            extents[sub], longest[sub], flags[sub], _ = _outlines(change, rects[sub],
+                                                                  counts[sub], owner[sub], None)
+        self.box, span = extents[:, :4], extents[:, 4:]
+        if r == 0:
+            self.cut, self.windows = torch.zeros(0, dtype=torch.bool), self.pixels
+            return
+        # the boxes whose outline leaves the valid area, or whose region holds the direction
+        # the output camera cannot map (its back, -z), are scanned pixel by pixel in a window
+        # that holds the whole mapped region: the extent of its mapped outline, or the image
+        back = -change.rotation[:, None, :, 2]           # the output's -z in the source frame
+        pole = torch.zeros(r, dtype=torch.bool)
+        if change.source.model != "pinhole" or bool((back[..., 2] > 0).any()):   # (z > 0)
+            at, seen = (t[:, 0][owner] for t in change.source.project(back, None))
+            pole = seen & _in_rects(at, rects)
+        self.cut = ((flags & 1) > 0) | pole
+        whole = ((flags & 2) > 0) | pole | (longest > OUTLINE_STEP)
+        lo = (span[:, :2] - _MARGIN).floor().clamp(min=0)
+        hi = torch.minimum((span[:, 2:] + _MARGIN).ceil(),
+                           torch.tensor([ow - 1.0, oh - 1.0], dtype=span.dtype))
+        image = torch.tensor([0, 0, ow - 1, oh - 1], dtype=torch.long)
+        windows = torch.where(whole[:, None], image, torch.cat((lo, hi), -1).long())
+        empty = (windows[:, 2:] < windows[:, :2]).any(-1)   # the region misses the image
+        self.windows = windows
+        todo = (self.cut & ~empty).nonzero()[:, 0]
+        self.waiting = list(zip(todo.tolist(), owner[todo].tolist()))
+
+    def scan(self, index: list[int], rays: Tensor, rotation: Tensor | None, k: Tensor,
+             valid: Tensor | None) -> None:
+        """Read the pixels of the cut boxes of the samples ``index`` (m, of this change) from
+        the rays ``(m, h, w, 3)`` a renderer samples the source along: the C++ op
+        ``box_pixels``, as ``fast.sample_image`` projects them (``rotation (m, 3, 3)`` or
+        None, the pinhole ``k (1 or m, 4)``, ``valid (m, h, w)``)."""
+        at = {sample: i for i, sample in enumerate(index)}
+        todo = [(j, at[sample]) for j, sample in self.waiting if sample in at]
+        if not todo or not fast.available():
+            return
+        self.waiting = [(j, sample) for j, sample in self.waiting if sample not in at]
+        rows, samples = (torch.tensor(t) for t in zip(*todo))
+        out = torch.empty(len(todo), 4, dtype=torch.long)
+        fast._require().box_pixels(
+            rays.contiguous(), None if rotation is None else rotation.to(rays.dtype).contiguous(),
+            k.to(rays.dtype).contiguous(), None if valid is None else valid.contiguous(),
+            samples, self.windows[rows], self.rects[rows], out)
+        self.pixels[rows] = out
+
+    def result(self, dtype: torch.dtype = torch.float64) -> tuple[list[Tensor], list[Tensor]]:
+        """Per sample the output boxes in ``dtype`` and ``box_index (M_i,)``, the cut boxes
+        not scanned yet mapped back here (:func:`_scan_back`)."""
+        if self.waiting:
+            rows, samples = (torch.tensor(t) for t in zip(*self.waiting))
+            self.pixels[rows] = _scan_back(self.change, samples, self.windows[rows],
+                                           self.rects[rows])
+            self.waiting = []
+        # a cut box: the extent of its pixels (their edges, in pixel-centre coordinates)
+        found = (self.pixels >= 0).all(-1)
+        pixel_box = torch.where(found[:, None], self.pixels.to(torch.float64)
+                                + torch.tensor([-0.5, -0.5, 0.5, 0.5], dtype=torch.float64),
+                                math.inf)
+        box = torch.where(self.cut[:, None], pixel_box, self.box)
+        # pixel-centre extent -> corner coordinates: +0.5, and the image's edge where it
+        # reaches the outer pixel centres
+        oh, ow = self.change.output.image_size
+        limit = torch.tensor([ow - 1.0, oh - 1.0], dtype=box.dtype)
+        lo = torch.where(box[:, :2] <= 1e-6, torch.zeros_like(box[:, :2]), box[:, :2] + 0.5)
+        hi = torch.where(box[:, 2:] >= limit - 1e-6, limit + 1, box[:, 2:] + 0.5)
+        box = torch.cat((lo, hi), -1)
+        kept = torch.isfinite(box).all(-1) & (box[:, 2:] > box[:, :2]).all(-1)
+        sizes = torch.bincount(self.owner[kept], minlength=self.n).tolist()   # owner sorted
+        return (list(box[kept].to(dtype).split(sizes)),
+                list(self.number[kept].split(sizes)))
 
 
 # -------------------------------------------------------------------------------------------
@@ -584,35 +626,73 @@ def instance_boxes(instances: Tensor, ids: Sequence[Tensor]) -> tuple[list[Tenso
     return boxes, index
 
 
+class Targets:
+    """Keypoints and boxes of a batch through its camera changes, one per group of samples
+    ``(sample indices (n,), change)`` (e.g. one per drawn model): the keypoints and the
+    boxes' outlines on construction, the cut boxes' pixels from a renderer's rays
+    (:meth:`scan`, optional), then :meth:`result`."""
+
+    def __init__(self, changes: Sequence[tuple[Tensor, Change]], batch: int, *,
+                 keypoints: Tensor | None = None, boxes: list[Tensor] | None = None,
+                 source_size: tuple[int, int] | None = None):
+        self.batch, self.keypoints = batch, keypoints
+        self.parts = []   # (sample indices, Outline or None, keypoints or None)
+        for index, change in changes:
+            points = outline = mapped = None
+            if keypoints is not None:
+                points, _, given = _keypoint_points(keypoints[index], source_size)
+            rows = None if points is None else points.reshape(len(index), -1, points.shape[-1])
+            if boxes is not None:   # the keypoints mapped with the boxes' outlines
+                outline = Outline(change, [boxes[i] for i in index.tolist()], source_size,
+                                  extra=rows)
+                mapped = outline.mapped
+            kp = None
+            if points is not None:
+                pixels, ok = mapped if mapped is not None else (
+                    t.reshape(-1, *t.shape[2:]) for t in change.forward(rows, None))
+                kp = _keypoint_result(pixels, ok, given, (len(index), keypoints.shape[1]))
+            self.parts.append((index, outline, kp))
+
+    def scan(self, index: Tensor, rays: Tensor, rotation: Tensor | None, k: Tensor,
+             valid: Tensor | None) -> None:
+        """The cut boxes' pixels of the samples ``index (m,)`` of one change (all drawn with
+        one model) from the rays a renderer samples them along (:meth:`Outline.scan`)."""
+        index = index.tolist()
+        for part, outline, _ in self.parts:
+            if outline is None:
+                continue
+            at = {sample: i for i, sample in enumerate(part.tolist())}
+            if all(sample in at for sample in index):
+                outline.scan([at[sample] for sample in index], rays, rotation, k, valid)
+
+    def result(self, dtype: torch.dtype = torch.float32,
+               box_dtype: torch.dtype = torch.float32) -> dict:
+        """A dict ``keypoints (B, K, 2)`` in ``dtype``, ``keypoints_valid (B, K)``, ``boxes``
+        in ``box_dtype`` and ``box_index`` (per sample lists), those given."""
+        out = {}
+        if self.keypoints is not None:
+            k = self.keypoints.shape[1]
+            out["keypoints"] = torch.full((self.batch, k, 2), math.nan, dtype=dtype)
+            out["keypoints_valid"] = torch.zeros(self.batch, k, dtype=torch.bool)
+        if any(outline is not None for _, outline, _ in self.parts):
+            out["boxes"], out["box_index"] = [None] * self.batch, [None] * self.batch
+        for index, outline, kp in self.parts:
+            if outline is not None:
+                got, which = outline.result(box_dtype)
+                for i, b, w in zip(index.tolist(), got, which):
+                    out["boxes"][i], out["box_index"][i] = b, w
+            if kp is not None:
+                out["keypoints"][index], out["keypoints_valid"][index] = kp[0].to(dtype), kp[1]
+        return out
+
+
 def map_targets(changes: Sequence[tuple[Tensor, Change]], batch: int, *,
                 keypoints: Tensor | None = None, boxes: list[Tensor] | None = None,
                 source_size: tuple[int, int] | None = None, dtype: torch.dtype = torch.float32,
                 box_dtype: torch.dtype = torch.float32) -> dict:
-    """Keypoints and boxes of a batch through its camera changes, one per group of samples
-    ``(sample indices (n,), change)`` (e.g. one per drawn model) -> a dict ``keypoints (B, K,
-    2)`` in ``dtype``, ``keypoints_valid (B, K)``, ``boxes`` in ``box_dtype`` and ``box_index``
-    (per sample lists), those given."""
-    out = {}
-    if keypoints is not None:
-        out["keypoints"] = torch.full((batch, keypoints.shape[1], 2), math.nan, dtype=dtype)
-        out["keypoints_valid"] = torch.zeros(batch, keypoints.shape[1], dtype=torch.bool)
-    if boxes is not None:
-        out["boxes"], out["box_index"] = [None] * batch, [None] * batch
-    for index, change in changes:
-        points = mapped = None
-        if keypoints is not None:
-            points, sample, given = _keypoint_points(keypoints[index], source_size)
-        if boxes is not None:   # the keypoints mapped with the boxes' coarse pass
-            got, which, mapped = map_boxes(
-                change, [boxes[i] for i in index.tolist()], source_size, dtype=box_dtype,
-                extra=None if points is None else (points, sample))
-            for i, b, w in zip(index.tolist(), got, which):
-                out["boxes"][i], out["box_index"][i] = b, w
-        if points is not None:
-            pixels, ok = mapped if mapped is not None else change.forward(points, sample)
-            kp, ok = _keypoint_result(pixels, ok, given, (len(index), keypoints.shape[1]))
-            out["keypoints"][index], out["keypoints_valid"][index] = kp.to(dtype), ok
-    return out
+    """:class:`Targets`' result, every cut box's pixels mapped back here."""
+    return Targets(changes, batch, keypoints=keypoints, boxes=boxes,
+                   source_size=source_size).result(dtype, box_dtype)
 
 
 def boxes_of_instances(instances: Tensor, ids: list[Tensor], source: Tensor,
@@ -726,4 +806,4 @@ def reproject_boxes(boxes: Sequence[Tensor] | Tensor, src_camera: Camera | Tenso
     batch = len(boxes)
     boxes = check_boxes(boxes, batch)
     change, size = _change(src_camera, dst_camera, rotation, batch, source_size)
-    return map_boxes(change, boxes, size)[:2]
+    return Outline(change, boxes, size).result()

@@ -12,7 +12,8 @@ own dispatch, about 0.5 microseconds a ray in all (2 cores, batches of 16 to 64 
 more than Embree's tracing (0.25); one C++ loop over the rays does it in registers, about 0.03.
 
 The ops, ``torch.ops.omniscape_torch.*`` (:data:`OPS`; schemas in the sources): the samplers
-``build_lut, sample_lut, sample_grid, sample_rays, camera_grid, camera_rays, sample_image`` and
+``build_lut, sample_lut, sample_grid, sample_rays, camera_grid, camera_rays, sample_image``,
+the detection boxes' ``box_pixels, outline_points, outline_reduce`` (``detection``) and
 the town's ``town_backfaces, town_prepare, town_shade, town_store``. Each checks its arguments
 (device, dtype, shape, contiguity, index ranges) before it reads any, raising a RuntimeError
 that names the op and the argument; their fake implementations for ``torch.compile`` are
@@ -83,7 +84,8 @@ SOURCES = (Path(__file__).with_name("csrc") / "fastsample.cpp",
            Path(__file__).with_name("csrc") / "town_shade.cpp")
 NAMESPACE = "omniscape_torch"
 OPS = ("build_lut", "sample_lut", "sample_grid", "sample_rays", "camera_grid", "camera_rays",
-       "sample_image", "town_backfaces", "town_prepare", "town_shade", "town_store")
+       "sample_image", "box_pixels", "outline_points", "outline_reduce", "town_backfaces",
+       "town_prepare", "town_shade", "town_store")
 #: ``-march=native``: the library is built for this machine's CPU (its flags are in the name);
 #: ``-fno-trapping-math``: float comparisons may be evaluated speculatively, so the tap
 #: computation vectorises (no result changes); ``-ffp-contract=off``: no fused multiply-adds
@@ -329,6 +331,27 @@ def _fake_sample_image(image, rays, rotation, intrinsics, valid, bilinear, fill,
            "sample_image: expected image (B, C, H, W), rays (B, h, w, 3), out (B, C, h, w)")
 
 
+def _fake_box_pixels(rays, rotation, intrinsics, valid, sample, windows, rects, out) -> None:
+    _check(rays.dim() == 4 and rays.shape[-1] == 3 and sample.dim() == 1
+           and windows.shape == rects.shape == out.shape == (sample.shape[0], 4),
+           "box_pixels: expected rays (n, h, w, 3), sample (M,), windows, rects and out (M, 4)")
+
+
+def _fake_outline_points(rects, counts, owner, offset, points) -> None:
+    _check(rects.shape == (counts.shape[0], 4) and owner.shape == counts.shape
+           and points.dim() == 3 and points.shape[-1] == 2,
+           "outline_points: expected rects (M, 4), counts, owner (M,), points (n, columns, 2)")
+
+
+def _fake_outline_reduce(pix, ok, through, counts, owner, offset, width, height, near,
+                         extents, longest, flags) -> None:
+    _check(pix.dim() == 3 and pix.shape[-1] == 2 and ok.shape == through.shape == pix.shape[:2]
+           and owner.shape == counts.shape and extents.shape == (counts.shape[0], 8)
+           and longest.shape == flags.shape == (counts.shape[0],),
+           "outline_reduce: expected pix (n, columns, 2), ok, through (n, columns), counts, "
+           "owner (M,), extents (M, 8), longest and flags (M,)")
+
+
 def _fake_rays(o, d, t, tri, u, v, what: str) -> None:
     n = d.shape[0]
     _check(d.dim() == 2 and d.shape[1] == 3 and o.dim() == 2 and o.shape[1] == 3
@@ -367,7 +390,9 @@ def _fake_town_store(d, index, start, rgb, range_, labels, hit, axis, far, rgb_o
 _FAKES = {"build_lut": _fake_build_lut, "sample_lut": _fake_sample_lut,
           "sample_grid": _fake_sample_grid, "sample_rays": _fake_sample_rays,
           "camera_grid": _fake_camera_grid, "camera_rays": _fake_camera_rays,
-          "sample_image": _fake_sample_image, "town_backfaces": _fake_town_backfaces,
+          "sample_image": _fake_sample_image, "box_pixels": _fake_box_pixels,
+          "outline_points": _fake_outline_points, "outline_reduce": _fake_outline_reduce,
+          "town_backfaces": _fake_town_backfaces,
           "town_prepare": _fake_town_prepare, "town_shade": _fake_town_shade,
           "town_store": _fake_town_store}
 

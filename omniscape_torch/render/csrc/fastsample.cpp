@@ -36,6 +36,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <limits>
 #include <optional>
 #ifdef __SSE4_1__
 #include <immintrin.h>
@@ -1903,6 +1904,333 @@ void camera_rays_op(const at::Tensor& affine, const at::Tensor& limits, const at
     }
 }
 
+// ------------------------------------------------------------------------------------------
+// Boxes of objects in an image sampled along rays (detection): the pixels whose rays land in a
+// source rectangle
+// ------------------------------------------------------------------------------------------
+
+// Whether the pixel `p` of one sample (ray p, rotated by r into the pinhole k, as
+// locate_pinhole projects it) is valid and lands in the pixel-centre rectangle u0..u1, v0..v1.
+template <typename G, bool Rotate>
+inline bool lands_in(const G* __restrict rays, const G* r, const G* k, const uint8_t* valid,
+                     int64_t p, G u0, G v0, G u1, G v1) {
+    if (valid != nullptr && !valid[p]) {
+        return false;
+    }
+    G px, py, pz;
+    rotate<G, Rotate>(r, rays[3 * p], rays[3 * p + 1], rays[3 * p + 2], px, py, pz);
+    if (!(pz > G(0))) {
+        return false;
+    }
+    const G u = k[0] * (px / pz) + k[2], v = k[1] * (py / pz) + k[3];
+    return (u >= u0) & (u <= u1) & (v >= v0) & (v <= v1);
+}
+
+// The extent (min column, min row, max column, max row; -1 where none) of the pixels of the
+// window c0..c1, r0..r1 (inclusive) of one sample `width` wide that land in the rectangle:
+// the rows from the top and from the bottom to the first that holds one, then per row in
+// between its columns from each side up to the extent found so far (about the window's
+// perimeter for a convex object, its area at most).
+template <typename G, bool Rotate>
+void box_extent(const G* rays, const G* rot, const G* k, const uint8_t* valid, int64_t width,
+                const int64_t* window, const double* rect, int64_t* out) {
+    G r[9];
+    if (Rotate) {
+        std::copy(rot, rot + 9, r);
+    }
+    const G u0 = G(rect[0]), v0 = G(rect[1]), u1 = G(rect[2]), v1 = G(rect[3]);
+    const int64_t c0 = window[0], r0 = window[1], c1 = window[2], r1 = window[3];
+    const auto hit = [&](int64_t row, int64_t col) {
+        return lands_in<G, Rotate>(rays, r, k, valid, row * width + col, u0, v0, u1, v1);
+    };
+    const auto row_holds = [&](int64_t row) {
+        for (int64_t col = c0; col <= c1; ++col) {
+            if (hit(row, col)) {
+                return true;
+            }
+        }
+        return false;
+    };
+    std::fill(out, out + 4, int64_t(-1));
+    int64_t top = r0;
+    while (top <= r1 && !row_holds(top)) {
+        ++top;
+    }
+    if (top > r1) {
+        return;
+    }
+    int64_t bottom = r1;
+    while (bottom > top && !row_holds(bottom)) {
+        --bottom;
+    }
+    int64_t left = c1 + 1, right = c0 - 1;
+    for (int64_t row = top; row <= bottom; ++row) {
+        for (int64_t col = c0; col < left; ++col) {
+            if (hit(row, col)) {
+                left = col;
+                break;
+            }
+        }
+        for (int64_t col = c1; col > right; --col) {
+            if (hit(row, col)) {
+                right = col;
+                break;
+            }
+        }
+    }
+    out[0] = left;
+    out[1] = top;
+    out[2] = right;
+    out[3] = bottom;
+}
+
+// box_pixels: for each box m, the extent (int64 (M, 4): min column, min row, max column, max
+// row, -1 where none) of the pixels of sample[m] within windows[m] (c0, r0, c1, r1, inclusive)
+// whose rays (n, h, w, 3), rotated by rotation (n, 3, 3, or none) into the pinhole intrinsics
+// (1 or n, 4) as sample_image projects them, are valid (n, h, w, or none) and land in the
+// source pixel-centre rectangle rects[m] (float64 u0, v0, u1, v1).
+void box_pixels_op(const at::Tensor& rays, const std::optional<at::Tensor>& rotation,
+                   const at::Tensor& intrinsics, const std::optional<at::Tensor>& valid,
+                   const at::Tensor& sample, const at::Tensor& windows, const at::Tensor& rects,
+                   const at::Tensor& out) {
+    const char* op = "omniscape_torch::box_pixels";
+    for (const auto& [name, t] : {std::pair<const char*, const at::Tensor*>{"rays", &rays},
+                                  {"intrinsics", &intrinsics}, {"sample", &sample},
+                                  {"windows", &windows}, {"rects", &rects}, {"out", &out}}) {
+        check_cpu(op, name, *t);
+        check_contiguous(op, name, *t);
+    }
+    const at::ScalarType dtype = rays.scalar_type();
+    TORCH_CHECK((dtype == at::kFloat || dtype == at::kDouble) && rays.dim() == 4 &&
+                    rays.size(3) == 3, op, ": rays: expected float32 or float64 (n, h, w, 3), got ",
+                rays.scalar_type(), " ", rays.sizes());
+    const int64_t n = rays.size(0), height = rays.size(1), width = rays.size(2);
+    TORCH_CHECK(intrinsics.scalar_type() == dtype && intrinsics.dim() == 2 &&
+                    intrinsics.size(1) == 4 && (intrinsics.size(0) == 1 || intrinsics.size(0) == n),
+                op, ": intrinsics: expected (1 or n, 4) in the rays' dtype, got ",
+                intrinsics.sizes());
+    if (rotation.has_value()) {
+        check_cpu(op, "rotation", *rotation);
+        check_contiguous(op, "rotation", *rotation);
+        TORCH_CHECK(rotation->scalar_type() == dtype &&
+                        rotation->sizes() == at::IntArrayRef({n, 3, 3}),
+                    op, ": rotation: expected (n, 3, 3) in the rays' dtype, got ",
+                    rotation->sizes());
+    }
+    if (valid.has_value()) {
+        check_cpu(op, "valid", *valid);
+        check_contiguous(op, "valid", *valid);
+        TORCH_CHECK(valid->scalar_type() == at::kBool &&
+                        valid->sizes() == at::IntArrayRef({n, height, width}),
+                    op, ": valid: expected bool (n, h, w), got ", valid->sizes());
+    }
+    const int64_t boxes = sample.size(0);
+    TORCH_CHECK(sample.scalar_type() == at::kLong && sample.dim() == 1 &&
+                    windows.scalar_type() == at::kLong &&
+                    windows.sizes() == at::IntArrayRef({boxes, 4}) &&
+                    rects.scalar_type() == at::kDouble &&
+                    rects.sizes() == at::IntArrayRef({boxes, 4}) &&
+                    out.scalar_type() == at::kLong && out.sizes() == at::IntArrayRef({boxes, 4}),
+                op, ": expected sample int64 (M,), windows int64, rects float64 and out int64 "
+                "(M, 4)");
+    const int64_t* s = sample.const_data_ptr<int64_t>();
+    const int64_t* win = windows.const_data_ptr<int64_t>();
+    for (int64_t m = 0; m < boxes; ++m) {
+        const int64_t* w = win + 4 * m;
+        TORCH_CHECK(s[m] >= 0 && s[m] < n && w[0] >= 0 && w[1] >= 0 && w[2] < width &&
+                        w[3] < height,
+                    op, ": box ", m, ": sample or window outside the rays (n, h, w) = (", n,
+                    ", ", height, ", ", width, ")");
+    }
+    const uint8_t* ok = mask(valid);
+    const auto run = [&](auto g) {
+        using G = decltype(g);
+        const G* ray = rays.const_data_ptr<G>();
+        const G* rot = rotation.has_value() ? rotation->const_data_ptr<G>() : nullptr;
+        const G* k = intrinsics.const_data_ptr<G>();
+        const int64_t k_batch = intrinsics.size(0) == 1 ? 0 : 4;
+        at::parallel_for(0, boxes, 1, [&](int64_t lo, int64_t hi) {
+            for (int64_t m = lo; m < hi; ++m) {
+                const int64_t b = s[m];
+                const G* r = ray + b * height * width * 3;
+                const uint8_t* v = ok == nullptr ? nullptr : ok + b * height * width;
+                int64_t* o = out.mutable_data_ptr<int64_t>() + 4 * m;
+                if (rot != nullptr) {
+                    box_extent<G, true>(r, rot + 9 * b, k + k_batch * b, v, width, win + 4 * m,
+                                        rects.const_data_ptr<double>() + 4 * m, o);
+                } else {
+                    box_extent<G, false>(r, nullptr, k + k_batch * b, v, width, win + 4 * m,
+                                         rects.const_data_ptr<double>() + 4 * m, o);
+                }
+            }
+        });
+    };
+    if (dtype == at::kFloat) {
+        run(float{});
+    } else {
+        run(double{});
+    }
+}
+
+// The outlines of boxes laid out in rows, one per sample (detection): box m (of sample
+// owner[m], the owners sorted) has 4 counts[m] points, counts[m] per edge, in its sample's row
+// after `offset` columns and the points of the sample's boxes before it.
+void check_outlines(const char* op, const at::Tensor& counts, const at::Tensor& owner,
+                    int64_t offset, int64_t rows, int64_t columns) {
+    for (const auto& [name, t] : {std::pair<const char*, const at::Tensor*>{"counts", &counts},
+                                  {"owner", &owner}}) {
+        check_cpu(op, name, *t);
+        check_contiguous(op, name, *t);
+        TORCH_CHECK(t->scalar_type() == at::kLong && t->dim() == 1 &&
+                        t->size(0) == counts.size(0),
+                    op, ": counts, owner: expected int64 (M,)");
+    }
+    const int64_t* c = counts.const_data_ptr<int64_t>();
+    const int64_t* o = owner.const_data_ptr<int64_t>();
+    int64_t row = -1, used = 0;
+    for (int64_t m = 0; m < counts.size(0); ++m) {
+        TORCH_CHECK(c[m] >= 1 && o[m] >= 0 && o[m] < rows && o[m] >= row, op,
+                    ": box ", m, ": counts must be positive and owners sorted within 0..",
+                    rows - 1);
+        used = o[m] == row ? used : offset;
+        row = o[m];
+        used += 4 * c[m];
+        TORCH_CHECK(used <= columns, op, ": the outlines of sample ", row, " exceed ", columns,
+                    " columns");
+    }
+}
+
+// outline_points: the outlines of rects (M, 4) float64 (x0, y0, x1, y1), laid out as
+// check_outlines says, into points (n, columns, 2) float64: edge e (top, right, bottom, left)
+// from its corner to the next, point t at t / counts[m] of the way.
+void outline_points_op(const at::Tensor& rects, const at::Tensor& counts,
+                       const at::Tensor& owner, int64_t offset, const at::Tensor& points) {
+    const char* op = "omniscape_torch::outline_points";
+    check_cpu(op, "rects", rects);
+    check_contiguous(op, "rects", rects);
+    check_cpu(op, "points", points);
+    check_contiguous(op, "points", points);
+    TORCH_CHECK(rects.scalar_type() == at::kDouble &&
+                    rects.sizes() == at::IntArrayRef({counts.size(0), 4}) &&
+                    points.scalar_type() == at::kDouble && points.dim() == 3 &&
+                    points.size(2) == 2,
+                op, ": expected rects float64 (M, 4) and points float64 (n, columns, 2)");
+    check_outlines(op, counts, owner, offset, points.size(0), points.size(1));
+    const int64_t* c = counts.const_data_ptr<int64_t>();
+    const int64_t* o = owner.const_data_ptr<int64_t>();
+    const double* r = rects.const_data_ptr<double>();
+    double* out = points.mutable_data_ptr<double>();
+    const int64_t columns = points.size(1);
+    int64_t row = -1, at = 0;
+    for (int64_t m = 0; m < counts.size(0); ++m) {
+        at = o[m] == row ? at : offset;
+        row = o[m];
+        const double x0 = r[4 * m], y0 = r[4 * m + 1], x1 = r[4 * m + 2], y1 = r[4 * m + 3];
+        const double xs[5] = {x0, x1, x1, x0, x0}, ys[5] = {y0, y0, y1, y1, y0};
+        double* p = out + 2 * (row * columns + at);
+        for (int e = 0; e < 4; ++e) {
+            for (int64_t t = 0; t < c[m]; ++t) {
+                const double f = double(t) / double(c[m]);
+                p[0] = xs[e] + f * (xs[e + 1] - xs[e]);
+                p[1] = ys[e] + f * (ys[e + 1] - ys[e]);
+                p += 2;
+            }
+        }
+        at += 4 * c[m];
+    }
+}
+
+// outline_reduce: per box m, its outline points laid out as check_outlines says (output pixels
+// pix (n, columns, 2) float64, where seen `ok` and where both models map them `through`,
+// (n, columns) bool) -> extents (M, 8): the extent x0, y0, x1, y1 of its seen points within
+// the outer pixel centres [0, width - 1] x [0, height - 1] (inf, -inf where none), then of
+// its mapped points; longest (M,): the longest step between two consecutive mapped points of
+// its closed outline of which one lies within `near` pixels of those centres; flags (M,): 1
+// where a point is not seen within the centres, 2 where a point is not mapped.
+void outline_reduce_op(const at::Tensor& pix, const at::Tensor& ok, const at::Tensor& through,
+                       const at::Tensor& counts, const at::Tensor& owner, int64_t offset,
+                       int64_t width, int64_t height, double near, const at::Tensor& extents,
+                       const at::Tensor& longest, const at::Tensor& flags) {
+    const char* op = "omniscape_torch::outline_reduce";
+    for (const auto& [name, t] : {std::pair<const char*, const at::Tensor*>{"pix", &pix},
+                                  {"ok", &ok}, {"through", &through}, {"extents", &extents},
+                                  {"longest", &longest}, {"flags", &flags}}) {
+        check_cpu(op, name, *t);
+        check_contiguous(op, name, *t);
+    }
+    const int64_t boxes = counts.size(0);
+    TORCH_CHECK(pix.scalar_type() == at::kDouble && pix.dim() == 3 && pix.size(2) == 2 &&
+                    ok.scalar_type() == at::kBool && through.scalar_type() == at::kBool &&
+                    ok.sizes() == pix.sizes().slice(0, 2) &&
+                    through.sizes() == pix.sizes().slice(0, 2) &&
+                    extents.scalar_type() == at::kDouble &&
+                    extents.sizes() == at::IntArrayRef({boxes, 8}) &&
+                    longest.scalar_type() == at::kDouble &&
+                    longest.sizes() == at::IntArrayRef({boxes}) &&
+                    flags.scalar_type() == at::kLong && flags.sizes() == at::IntArrayRef({boxes}),
+                op, ": expected pix float64 (n, columns, 2), ok and through bool (n, columns), "
+                "extents float64 (M, 8), longest float64 (M,) and flags int64 (M,)");
+    check_outlines(op, counts, owner, offset, pix.size(0), pix.size(1));
+    const int64_t* c = counts.const_data_ptr<int64_t>();
+    const int64_t* o = owner.const_data_ptr<int64_t>();
+    const int64_t columns = pix.size(1);
+    const double* p = pix.const_data_ptr<double>();
+    const bool* seen = ok.const_data_ptr<bool>();
+    const bool* mapped = through.const_data_ptr<bool>();
+    double* e = extents.mutable_data_ptr<double>();
+    double* l = longest.mutable_data_ptr<double>();
+    int64_t* f = flags.mutable_data_ptr<int64_t>();
+    const double inf = std::numeric_limits<double>::infinity();
+    const double right = double(width - 1), bottom = double(height - 1);
+    const auto centred = [&](int64_t i) {
+        const double u = p[2 * i], v = p[2 * i + 1];
+        return (u >= -1e-9) & (u <= right + 1e-9) & (v >= -1e-9) & (v <= bottom + 1e-9);
+    };
+    const auto close = [&](int64_t i) {
+        const double u = p[2 * i], v = p[2 * i + 1];
+        return (u > -near) & (u < right + near) & (v > -near) & (v < bottom + near);
+    };
+    int64_t row = -1, at = 0;
+    for (int64_t m = 0; m < boxes; ++m) {
+        at = o[m] == row ? at : offset;
+        row = o[m];
+        const int64_t start = row * columns + at, end = start + 4 * c[m];
+        at += 4 * c[m];
+        double* box = e + 8 * m;
+        for (int k = 0; k < 2; ++k) {
+            box[4 * k] = box[4 * k + 1] = inf;
+            box[4 * k + 2] = box[4 * k + 3] = -inf;
+        }
+        double step = 0.0;
+        int64_t flag = 0;
+        for (int64_t i = start; i < end; ++i) {
+            const double u = p[2 * i], v = p[2 * i + 1];
+            if (seen[i] && centred(i)) {
+                box[0] = std::min(box[0], u);
+                box[1] = std::min(box[1], v);
+                box[2] = std::max(box[2], u);
+                box[3] = std::max(box[3], v);
+            } else {
+                flag |= 1;
+            }
+            if (!mapped[i]) {
+                flag |= 2;
+                continue;
+            }
+            box[4] = std::min(box[4], u);
+            box[5] = std::min(box[5], v);
+            box[6] = std::max(box[6], u);
+            box[7] = std::max(box[7], v);
+            const int64_t j = i + 1 < end ? i + 1 : start;   // the outline is closed
+            if (mapped[j] && (close(i) || close(j))) {
+                step = std::max(step, std::hypot(p[2 * j] - u, p[2 * j + 1] - v));
+            }
+        }
+        l[m] = step;
+        f[m] = flag;
+    }
+}
+
 }  // namespace
 
 TORCH_LIBRARY(omniscape_torch, m) {
@@ -1924,6 +2252,13 @@ TORCH_LIBRARY(omniscape_torch, m) {
           "Tensor(b!) valid) -> ()");
     m.def("sample_image(Tensor image, Tensor rays, Tensor? rotation, Tensor intrinsics, "
           "Tensor? valid, bool bilinear, int fill, Tensor(a!) out, Tensor(b!)? valid_out) -> ()");
+    m.def("box_pixels(Tensor rays, Tensor? rotation, Tensor intrinsics, Tensor? valid, "
+          "Tensor sample, Tensor windows, Tensor rects, Tensor(a!) out) -> ()");
+    m.def("outline_points(Tensor rects, Tensor counts, Tensor owner, int offset, "
+          "Tensor(a!) points) -> ()");
+    m.def("outline_reduce(Tensor pix, Tensor ok, Tensor through, Tensor counts, Tensor owner, "
+          "int offset, int width, int height, float near, Tensor(a!) extents, "
+          "Tensor(b!) longest, Tensor(c!) flags) -> ()");
 }
 
 TORCH_LIBRARY_IMPL(omniscape_torch, CPU, m) {
@@ -1934,4 +2269,7 @@ TORCH_LIBRARY_IMPL(omniscape_torch, CPU, m) {
     m.impl("camera_grid", &camera_grid_op);
     m.impl("camera_rays", &camera_rays_op);
     m.impl("sample_image", &sample_image_op);
+    m.impl("box_pixels", &box_pixels_op);
+    m.impl("outline_points", &outline_points_op);
+    m.impl("outline_reduce", &outline_reduce_op);
 }
