@@ -154,7 +154,8 @@ def mip_sample(image: Tensor, pixels: Tensor, valid: Tensor, du: Tensor, dv: Ten
             batch of 1 is shared by every sample.
         pixels: ``(B, h, w, 2)`` source pixels (centres at integers).
         valid: ``(B, h, w)`` bool: the pixels to read (the others come back 0).
-        du, dv: ``(B, h, w, 2)`` the Jacobian columns (:func:`footprint`).
+        du: ``(B, h, w, 2)`` the Jacobian column across (:func:`footprint`).
+        dv: ``(B, h, w, 2)`` the Jacobian column down.
         taps: taps per axis.
         dtype: the floating dtype of the work and the result (default: the image's).
 

@@ -680,7 +680,9 @@ def mip_image(image: Tensor, rays: Tensor, rotation: Tensor | None, intrinsics: 
 
     Args:
         image: ``(B, C, H, W)`` ``uint8``, float32 or float64 on the CPU, any strides.
-        rays, rotation, intrinsics: as given to :func:`sample_image`.
+        rays: as given to :func:`sample_image`.
+        rotation: as given to :func:`sample_image`.
+        intrinsics: as given to :func:`sample_image`.
         valid: ``(B, h, w)`` bool: the pixels :func:`sample_image` found valid (its second
             result); the footprint's differences are taken between valid pixels only.
         out: ``(B, C, h, w)`` :func:`sample_image`'s samples (``uint8`` or float32 for a
