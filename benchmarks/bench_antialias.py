@@ -11,8 +11,8 @@ rotation, the pinhole projection, nearest source texel), ``16 x 16`` samples per
 averaged. PSNR (peak 1) over the output pixels whose 256 samples all see the source (the
 interior of the valid region; at its rim a pixel is part source, part void).
 
-Rows: ``off`` (``antialias=False``: one bilinear sample per pixel) and ``on`` (``antialias=True``; ``ot.reproject``'s default, opt-in in ``RandomReproject``),
-PSNR per draw and their mean, and the time of one call (batch 1, float32 image, one thread,
+Rows: ``off`` (``antialias=False``: one bilinear sample per pixel) and ``on``
+(``antialias=True``, the default: ``fast.mip_image``), PSNR per draw and their mean, and the time of one call (batch 1, float32 image, one thread,
 median of ``--repeats`` round-robin calls) of each.
 
 Usage::

@@ -228,6 +228,24 @@ def test_opcheck_detection_ops():
                              extents, longest, flags)
 
 
+@pytest.mark.parametrize("dtype", [torch.uint8, f32, f64])
+def test_opcheck_mip_image(dtype):
+    gen = torch.Generator().manual_seed(8)
+    image = (torch.rand(2, 3, 16, 16, generator=gen) * 255).to(dtype)
+    g = grid_dtype(dtype)
+    rays = torch.randn(1, 5, 7, 3, generator=gen, dtype=g)
+    rays[..., 2] = 1
+    k = torch.tensor([[9.0, 9.5, 7.5, 7.0]], dtype=g)
+    out = torch.zeros(2, 3, 5, 7, dtype=dtype)
+    valid = torch.ones(2, 5, 7, dtype=torch.bool)
+    torch.library.opcheck(ops().mip_image, (image, rays, make_rotation(2, g), k, valid, 1.001,
+                                            out))
+    with pytest.raises(RuntimeError, match="mip_image: valid: expected one per sample"):
+        ops().mip_image(image, rays, None, k, valid[:1], 1.001, out)
+    with pytest.raises(RuntimeError, match="mip_image: image: expected uint8, float32"):
+        ops().mip_image(image.half(), rays.float(), None, k.float(), valid, 1.001, out.half())
+
+
 def test_ops_write_what_the_python_functions_return():
     """The ops called directly give ``fast.sample_cube``'s and ``fast.sample_rays``' images."""
     cube, ring_src, ring_weight, out = make_inputs(f32)

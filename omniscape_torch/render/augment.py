@@ -37,13 +37,12 @@ from ..cameras.registry import get_model
 from ..cubemap.faces import FACES, face_rotations
 from ..cubemap.rotation import check_rotation
 from . import containers, detection, fast, framing
-from .antialias import minified
 from .fast import CameraGrid
 from .kernels import camera_grid, camera_rays, radial_table
 from ..cameras.presets import rotation_rows, yaw_pitch_roll_to_matrix
 from . import layer as projection
 from .layer import OmniProjection
-from .reference import check_out_dtype, from_float, warn_if_label_map
+from .reference import check_out_dtype, warn_if_label_map
 from .reproject import INTERPOLATIONS, intrinsics_from_matrix, sample_camera
 
 __all__ = ["ApplyToKey", "RandomOmniCamera", "RandomReproject", "FISHEYE_MODELS", "MODES"]
@@ -1084,13 +1083,14 @@ class RandomReproject(_RandomCameras):
             :class:`RandomOmniCamera`.
         antialias: prefilter ``rgb`` where the fisheye minifies the source (an output pixel
             covering more than one source pixel): the mean of taps over each pixel's
-            footprint through a mip pyramid (:mod:`~omniscape_torch.render.antialias`).
-            Pixels that do not minify are as with ``antialias=False`` (point samples), bit for
-            bit; ``labels``, ``depth`` and ``valid`` are the same either way (nearest texel at
-            the pixel centre, never blended). Not for ``interpolation="nearest"``. Off by
-            default here (on in ``ot.reproject``): in PyTorch ops it costs about 12 times a
-            point-sampled call on Cityscapes-sized frames (``benchmarks/results/
-            antialias.md``), too much for a training loop until it has a C++ kernel.
+            footprint through a mip pyramid. On the CPU fast path (``uint8``, float32 and
+            float64 images, no gradient) the C++ op :func:`~omniscape_torch.render.fast.
+            mip_image` (2 x 2 taps); elsewhere :mod:`~omniscape_torch.render.antialias`
+            (3 x 3 trilinear taps, differentiable). Pixels that do not minify are as with
+            ``antialias=False`` (point samples), bit for bit; ``labels``, ``depth`` and
+            ``valid`` are the same either way (nearest texel at the pixel centre, never
+            blended). Not for ``interpolation="nearest"``. On by default (as in
+            ``ot.reproject``): its cost is in ``docs/augmentation.md`` (Antialiasing).
 
     Shapes:
         ``rgb (B, C, Hs, Ws)`` (``channels_last``: ``(B, Hs, Ws, C)``) floating or ``uint8``,
@@ -1129,7 +1129,7 @@ class RandomReproject(_RandomCameras):
                  ignore_index: int = 255, seed: int | None = None,
                  channels_last: bool = False, out_dtype: torch.dtype | None = None,
                  label_keys: Mapping[str, int] | None = None,
-                 antialias: bool = False) -> None:
+                 antialias: bool = True) -> None:
         if focal_scale_range is not None and coverage_range is not None:
             raise ValueError("coverage_range: pass coverage_range or focal_scale_range, not both")
         if focal_scale_range is None and coverage_range is None:
@@ -1619,15 +1619,14 @@ class RandomReproject(_RandomCameras):
     def _antialias(image: Tensor, rays: Tensor, rotation: Tensor | None, k: Tensor,
                    seen: Tensor, out: Tensor) -> None:
         """Overwrite the pixels of ``out`` (the fast op's samples) whose footprint minifies the
-        source with its mip lookups (:func:`~omniscape_torch.render.antialias.minified`):
-        the rays' source pixels ``K (R ray)``, as the op projects them."""
-        src = rays if rotation is None else torch.einsum("bij,bhwj->bhwi", rotation, rays)
-        z = torch.where(seen, src[..., 2], torch.ones_like(src[..., 2]))
-        pixels = src[..., :2] / z.unsqueeze(-1) * k[:, None, None, :2] + k[:, None, None, 2:]
-        mip = minified(image, pixels.expand(len(out), *pixels.shape[1:]), seen)
-        if mip is not None:
-            values = from_float(mip[0], image.dtype, out.dtype)
-            out.copy_(torch.where(mip[1], values, out))
+        source with its mip filter, :func:`~omniscape_torch.render.fast.mip_image`; float16
+        and bfloat16 images through float32, in which the op blends them."""
+        if image.dtype in fast.MIPMAPPED:
+            fast.mip_image(image, rays, rotation, k, seen, out)
+        else:
+            work = out.float()
+            fast.mip_image(image.float(), rays, rotation, k, seen, work)
+            out.copy_(work)
 
     def _render_exact(self, name: str, part: "_Part", image: Tensor | None,
                       labels: Tensor | None, depth: Tensor | None, result: dict) -> None:

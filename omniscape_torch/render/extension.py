@@ -13,8 +13,9 @@ more than Embree's tracing (0.25); one C++ loop over the rays does it in registe
 
 The ops, ``torch.ops.omniscape_torch.*`` (:data:`OPS`; schemas in the sources): the samplers
 ``build_lut, sample_lut, sample_grid, sample_rays, camera_grid, camera_rays, sample_image``,
-the detection boxes' ``box_pixels, outline_points, outline_reduce`` (``detection``) and
-the town's ``town_backfaces, town_prepare, town_shade, town_store``. Each checks its arguments
+its antialiasing ``mip_image``, the detection boxes' ``box_pixels, outline_points,
+outline_reduce`` (``detection``) and the town's ``town_backfaces, town_prepare, town_shade,
+town_store``. Each checks its arguments
 (device, dtype, shape, contiguity, index ranges) before it reads any, raising a RuntimeError
 that names the op and the argument; their fake implementations for ``torch.compile`` are
 registered here. A call through ``torch.ops`` releases the GIL while the op runs, so the town's
@@ -84,8 +85,8 @@ SOURCES = (Path(__file__).with_name("csrc") / "fastsample.cpp",
            Path(__file__).with_name("csrc") / "town_shade.cpp")
 NAMESPACE = "omniscape_torch"
 OPS = ("build_lut", "sample_lut", "sample_grid", "sample_rays", "camera_grid", "camera_rays",
-       "sample_image", "box_pixels", "outline_points", "outline_reduce", "town_backfaces",
-       "town_prepare", "town_shade", "town_store")
+       "sample_image", "mip_image", "box_pixels", "outline_points", "outline_reduce",
+       "town_backfaces", "town_prepare", "town_shade", "town_store")
 #: ``-march=native``: the library is built for this machine's CPU (its flags are in the name);
 #: ``-fno-trapping-math``: float comparisons may be evaluated speculatively, so the tap
 #: computation vectorises (no result changes); ``-ffp-contract=off``: no fused multiply-adds
@@ -352,6 +353,12 @@ def _fake_outline_reduce(pix, ok, through, counts, owner, offset, width, height,
            "owner (M,), extents (M, 8), longest and flags (M,)")
 
 
+def _fake_mip_image(image, rays, rotation, intrinsics, valid, minifies, out) -> None:
+    _check(image.dim() == 4 and rays.dim() == 4 and rays.shape[-1] == 3
+           and out.shape == (image.shape[0], image.shape[1], *rays.shape[1:3]),
+           "mip_image: expected image (B, C, H, W), rays (B, h, w, 3), out (B, C, h, w)")
+
+
 def _fake_rays(o, d, t, tri, u, v, what: str) -> None:
     n = d.shape[0]
     _check(d.dim() == 2 and d.shape[1] == 3 and o.dim() == 2 and o.shape[1] == 3
@@ -390,8 +397,9 @@ def _fake_town_store(d, index, start, rgb, range_, labels, hit, axis, far, rgb_o
 _FAKES = {"build_lut": _fake_build_lut, "sample_lut": _fake_sample_lut,
           "sample_grid": _fake_sample_grid, "sample_rays": _fake_sample_rays,
           "camera_grid": _fake_camera_grid, "camera_rays": _fake_camera_rays,
-          "sample_image": _fake_sample_image, "box_pixels": _fake_box_pixels,
-          "outline_points": _fake_outline_points, "outline_reduce": _fake_outline_reduce,
+          "sample_image": _fake_sample_image, "mip_image": _fake_mip_image,
+          "box_pixels": _fake_box_pixels, "outline_points": _fake_outline_points,
+          "outline_reduce": _fake_outline_reduce,
           "town_backfaces": _fake_town_backfaces,
           "town_prepare": _fake_town_prepare, "town_shade": _fake_town_shade,
           "town_store": _fake_town_store}

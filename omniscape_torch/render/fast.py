@@ -56,13 +56,15 @@ import torch
 from torch import Tensor
 
 from . import extension
+from .antialias import MINIFIES
 from ..cubemap.atlas import atlas_to_faces
 from ..cubemap.padding import border_plan, check_cubemap
 from ..cubemap.grid import rotated_rays_to_grid
 from ..cubemap.grid import _check_inputs as _check_rays
 
 __all__ = ["CubeLUT", "CameraGrid", "build_lut", "camera_rays", "sample_cube", "sample_rays",
-           "sample_image", "reads_rays", "sample_atlas", "available", "unavailable_reason",
+           "sample_image", "mip_image", "MIPMAPPED", "reads_rays", "sample_atlas", "available",
+           "unavailable_reason",
            "compile_failures", "holds", "is_channels_last", "work_dtype", "grid_dtype",
            "output_dtypes", "MODES", "BORDERS", "BLENDED"]
 
@@ -649,6 +651,56 @@ def sample_image(image: Tensor, rays: Tensor, rotation: Tensor | None, intrinsic
                          None if valid is None else valid.contiguous(), mode == "bilinear",
                          fill, out, seen)
     return out, seen
+
+
+#: Image dtypes :func:`mip_image` filters (the others: ``antialias.minified``).
+MIPMAPPED = (torch.uint8, torch.float32, torch.float64)
+
+
+def mip_image(image: Tensor, rays: Tensor, rotation: Tensor | None, intrinsics: Tensor,
+              valid: Tensor, out: Tensor) -> Tensor:
+    """Antialias :func:`sample_image`'s bilinear samples in place: the pixels of ``out`` whose
+    footprint minifies the image are overwritten by a filter of its mip pyramid, in one C++
+    pass; the others are left as they are, bit for bit.
+
+    The footprint is :func:`~omniscape_torch.render.antialias.footprint`'s: the Jacobian
+    columns ``du, dv`` of the rays' image pixels (as :func:`sample_image` projects them) by
+    finite differences to the next output pixel, forward where both pixels are ``valid``,
+    else backward, else 0; a pixel minifies where a column is longer than
+    :data:`~omniscape_torch.render.antialias.MINIFIES` source pixels. Its value is the mean of
+    4 bilinear lookups at ``(u, v) +- du / 4 +- dv / 4`` (the centres of the footprint's
+    quarters) in the mip level ``k = floor(log2(rho / 2))`` (``rho``: the longer column's
+    length; 0 below ``rho = 4``), whose texels (``2**k`` source pixels) are at most a
+    quarter's width across, clamped to the level's edge. The pyramid (level ``k + 1`` the
+    2 x 2 average of level ``k``, an odd last row or column averaged over the texels it holds;
+    ``uint8`` levels rounded half up) is built per call, only to the deepest level a pixel
+    reads. :func:`~omniscape_torch.render.antialias.mip_sample` (3 x 3 trilinear taps) is
+    the reference of the rule, and the filter off the CPU or with gradients; this one reads
+    16 texels a pixel (``docs/augmentation.md``, Antialiasing).
+
+    Args:
+        image: ``(B, C, H, W)`` ``uint8``, float32 or float64 on the CPU, any strides.
+        rays: as given to :func:`sample_image`.
+        rotation: as given to :func:`sample_image`.
+        intrinsics: as given to :func:`sample_image`.
+        valid: ``(B, h, w)`` bool: the pixels :func:`sample_image` found valid (its second
+            result); the footprint's differences are taken between valid pixels only.
+        out: ``(B, C, h, w)`` :func:`sample_image`'s samples (``uint8`` or float32 for a
+            ``uint8`` image, else the image's dtype), overwritten where the pixels minify.
+
+    Returns:
+        ``out``.
+    """
+    if not isinstance(image, Tensor) or image.dtype not in MIPMAPPED:
+        raise TypeError(f"image: expected one of {[str(d) for d in MIPMAPPED]}, got "
+                        f"{getattr(image, 'dtype', type(image).__name__)}")
+    dtype = work_dtype(image.dtype)
+    with torch.no_grad():
+        _require().mip_image(image, rays.to(dtype).contiguous(),
+                             None if rotation is None else rotation.to(dtype).contiguous(),
+                             intrinsics.to(dtype).contiguous(), valid.contiguous(), MINIFIES,
+                             out)
+    return out
 
 
 def is_channels_last(t: Tensor) -> bool:
