@@ -54,8 +54,11 @@ def test_camera_models_match_cpu(model, params, size):
 
 
 @pytest.mark.parametrize("model, params", [
-    ("equidistant", [60.0, 60.0, 63.5, 63.5]),
-    ("unified", [70.0, 70.0, 63.5, 63.5, 0.9, 0.0, 0.0, 0.0, 0.0]),
+    # principal points off the pixel grid's symmetry: with (63.5, 63.5) the rows and columns
+    # through the centre land exactly on texel edges, where nearest labels are ties that a
+    # rounding of either device decides (0.3% of pixels differed on an H200)
+    ("equidistant", [60.0, 60.0, 63.3, 63.8]),
+    ("unified", [70.0, 70.0, 63.2, 63.7, 0.9, 0.0, 0.0, 0.0, 0.0]),
 ])
 def test_layer_renders_and_differentiates_as_on_cpu(model, params):
     """``OmniProjection`` on CUDA: RGB, depth (a sphere's range) and labels as on the CPU
@@ -121,15 +124,16 @@ def test_random_omni_camera_on_cuda(dtype, channels_last):
 
 
 def test_random_reproject_on_cuda_matches_cpu():
-    """``RandomReproject`` on CUDA (uint8 RGB, labels, boxes, keypoints), the CPU's draws: the
-    same valid area up to rims, RGB within a level on nearly every pixel, labels agreeing,
-    boxes and keypoints the CPU's to a hundredth of a pixel."""
+    """``RandomReproject`` on CUDA (uint8 RGB, antialiased where it minifies, labels, boxes,
+    keypoints), the CPU's draws: the same valid area up to rims, RGB within the rounding of
+    the CPU's 8-bit pyramid levels (the same filter rule on both), labels agreeing, boxes and
+    keypoints the CPU's to a hundredth of a pixel."""
     gen = torch.Generator().manual_seed(4)
-    size = (48, 64)
+    size = (192, 256)   # into 80 x 80: most pixels minify
     rgb = (torch.rand(2, 3, *size, generator=gen) * 255).round().to(torch.uint8)
     labels = torch.randint(0, 13, (2, *size), generator=gen)
     boxes = [random_boxes(5, size, gen) for _ in range(2)]
-    kp = torch.rand(2, 7, 2, generator=gen) * torch.tensor([60.0, 44.0]) + 2
+    kp = torch.rand(2, 7, 2, generator=gen) * torch.tensor([250.0, 186.0]) + 2
     aug = ot.augment.RandomReproject((80, 80), source_fov=90 * DEG, seed=5,
                                      fisheye_models=("equidistant", "unified"))
     params = aug.forward_parameters(2)
@@ -142,7 +146,7 @@ def test_random_reproject_on_cuda_matches_cpu():
     both = (cpu["valid"] & gpu["valid"].cpu())[:, 0]
     diff = (gpu["rgb"].cpu().permute(0, 2, 3, 1)[both].int() -
             cpu["rgb"].permute(0, 2, 3, 1)[both].int()).abs()
-    assert int(diff.max()) <= 2 and float((diff > 1).float().mean()) < 1e-3
+    assert int(diff.max()) <= 2 and float((diff > 1).float().mean()) < 0.01
     assert (gpu["labels"].cpu()[both] == cpu["labels"][both]).float().mean() > 0.995
     for i in range(2):
         assert torch.equal(gpu["box_index"][i].cpu(), cpu["box_index"][i])

@@ -105,6 +105,20 @@ def test_mip_image_is_its_documented_rule(dtype, channels_last, chans, focal, an
     assert float((got - expected)[:, mask].abs().max()) <= tol
 
 
+@pytest.mark.parametrize("focal,angle", [(14.0, 0.2), (110.0, 0.6)])
+def test_the_torch_path_is_the_same_rule(focal, angle):
+    """``antialias.minified`` (what CUDA, gradients and ``ot.reproject`` run) is the rule of the
+    C++ op, to float64 rounding: one module gives one image on every device and path."""
+    image, rays, rot, k, out, seen, pixels = _fisheye_case(torch.float64, False, 3, focal,
+                                                           angle)
+    expected, mask = _rule(image[0], pixels, seen[0])
+    values, where = antialias.minified(image, pixels[None], seen)
+    assert torch.equal(where[0, 0], mask) and int(mask.sum()) >= 200
+    assert float((values[0] - expected)[:, mask].abs().max()) <= 1e-9
+    fast.mip_image(image, rays, rot, k, seen, out)
+    assert float((out[0] - values[0])[:, mask].abs().max()) <= 1e-9
+
+
 @pytest.mark.parametrize("channels_last", [True, False])
 def test_uniform_minification_is_the_box_average(channels_last):
     """A pinhole 4x coarser, its pixels on 4 x 4 blocks of the source: each output pixel is
@@ -141,3 +155,25 @@ def test_mip_image_arguments():
     with pytest.raises(RuntimeError, match="valid"):
         fast.mip_image(image.float(), rays, None, torch.ones(1, 4),
                        torch.ones(1, 5, 4, dtype=torch.bool), torch.zeros(1, 3, 4, 4))
+
+
+def test_fast_and_exact_paths_of_random_reproject_agree():
+    """``RandomReproject`` antialiased on its C++ path (``uint8``, no gradient) and on the
+    exact one (a float image that requires a gradient: what CUDA runs too) give the same
+    image to the rounding of the 8-bit pyramid levels, where most pixels minify."""
+    gen = torch.Generator().manual_seed(4)
+    rgb = (torch.rand(2, 3, 192, 256, generator=gen) * 255).round().to(torch.uint8)
+    aug = ot.augment.RandomReproject((80, 80), source_fov=math.radians(90), seed=5,
+                                     fisheye_models=("equidistant", "unified"))
+    params = aug.forward_parameters(2)
+    fast_out = aug(rgb, params=params)
+    exact = aug(rgb.float().requires_grad_(True), params=params)
+    assert torch.equal(fast_out["valid"], exact["valid"])
+    both = fast_out["valid"].expand_as(fast_out["rgb"])
+    diff = (exact["rgb"].detach()[both] - fast_out["rgb"][both].float()).abs()
+    assert float(diff.max()) <= 2 and float(diff.mean()) < 0.5
+    # the draws minify (the filter matters: point samples differ by tens of levels)
+    point = ot.augment.RandomReproject((80, 80), source_fov=math.radians(90), seed=5,
+                                       fisheye_models=("equidistant", "unified"),
+                                       antialias=False)(rgb, params=params)
+    assert float((point["rgb"][both].float() - fast_out["rgb"][both].float()).abs().max()) > 20

@@ -7,12 +7,13 @@ a 180 degree fisheye of a 48 degree frame: 10-12 dB against the area average). H
 pixel's footprint is measured from the sampling grid itself: the Jacobian of ``pixels`` by
 finite differences to the next output pixel (forward, else backward beside invalid pixels), two
 columns ``du, dv`` in source pixels, the longer of length ``rho``. A pixel with ``rho > 1``
-(:data:`MINIFIES`) is the mean of :data:`TAPS` x :data:`TAPS` taps spread over the
-parallelogram ``du, dv`` about its centre (the area average's quadrature), each a trilinear
-lookup of the source's mip pyramid (level ``k``: the ``2**k x 2**k`` box average, by 2 x 2
-averages) at the level ``log2(rho / TAPS)``: the image itself, bilinear, up to ``TAPS`` source
-pixels across; the pyramid beyond, so that each tap averages its share of the footprint. All
-taps of a call are one ``grid_sample`` of an atlas of the pyramid (:func:`_atlas`).
+(:data:`MINIFIES`) is the mean of :data:`TAPS` x :data:`TAPS` (2 x 2) taps spread over the
+parallelogram ``du, dv`` about its centre (at ``+-du / 4 +- dv / 4``: the area average's
+quadrature), each a bilinear lookup of the source's mip pyramid (level ``k``: the
+``2**k x 2**k`` box average, by 2 x 2 averages) at the level ``floor(log2(rho / TAPS))``: the
+image itself up to ``2 TAPS`` source pixels across, the pyramid beyond, so that each tap
+averages about its share of the footprint. All taps of a call are one ``grid_sample`` of an
+atlas of the pyramid (:func:`_atlas`).
 
 Rules:
 
@@ -26,10 +27,10 @@ Rules:
 
 Used by :func:`~omniscape_torch.render.reproject.sample_camera` (and so ``ot.reproject``) and
 :class:`~omniscape_torch.augment.RandomReproject`'s exact path (gradients, other devices). Its
-CPU fast path runs the same footprint rule in C++, :func:`~omniscape_torch.render.fast.
-mip_image`: 2 x 2 bilinear taps at the level ``floor(log2(rho / 2))`` instead of 3 x 3
-trilinear ones (16 texels a pixel instead of 72; on the line grid of
-``benchmarks/bench_antialias.py`` 26.7 dB at worst, ``docs/augmentation.md``).
+CPU fast path runs the same rule in C++, :func:`~omniscape_torch.render.fast.mip_image` (16
+texels a pixel; on the line grid of ``benchmarks/bench_antialias.py`` 26.7 dB at worst,
+``docs/augmentation.md``), so that a module gives the same image on every device and path, to
+the rounding of the 8-bit pyramid levels the C++ keeps (a level or two).
 """
 
 from __future__ import annotations
@@ -41,10 +42,11 @@ from torch import Tensor
 
 __all__ = ["footprint", "mip_sample", "minified", "TAPS", "MINIFIES"]
 
-#: Taps per axis of a footprint (:func:`mip_sample`): up to ``TAPS`` source pixels across, the
-#: taps read the image itself; beyond, the mip level ``log2(rho / TAPS)``. 3: >= 29 dB on the
-#: line grid of ``benchmarks/bench_antialias.py`` (2: 25 dB).
-TAPS = 3
+#: Taps per axis of a footprint (:func:`mip_sample`): up to ``2 TAPS`` source pixels across, the
+#: taps read the image itself; beyond, the mip level ``floor(log2(rho / TAPS))``. 2, the C++
+#: rule (``fast.mip_image``): >= 26 dB on the line grid of ``benchmarks/bench_antialias.py``
+#: (3 x 3 trilinear taps: 29 dB, at 4.5 times the texels).
+TAPS = 2
 #: A pixel minifies where a Jacobian column is longer than this many source pixels: 1, with a
 #: margin for the rounding of the grid (a pinhole into the same pinhole is 1 +- 1e-6).
 MINIFIES = 1.001
@@ -144,9 +146,9 @@ def mip_sample(image: Tensor, pixels: Tensor, valid: Tensor, du: Tensor, dv: Ten
                taps: int = TAPS, dtype: torch.dtype | None = None) -> Tensor:
     """``image`` averaged over each output pixel's footprint (module docstring): ``taps x
     taps`` taps spread over the parallelogram of the Jacobian columns ``du, dv`` about
-    ``pixels``, each a trilinear lookup of the mip pyramid at the level ``log2(rho / taps)`` of
-    its pixel (0 while ``rho <= taps``: bilinear taps of the image itself); all in one
-    ``grid_sample`` of the pyramid's atlas.
+    ``pixels``, each a bilinear lookup of the mip pyramid at the level
+    ``floor(log2(rho / taps))`` of its pixel (0 while ``rho < 2 taps``: the image itself); all
+    in one ``grid_sample`` of the pyramid's atlas.
 
     Args:
         image: ``(B or 1, C, H, W)`` floating, or ``uint8`` read as its levels (0..255); a
@@ -184,32 +186,23 @@ def mip_sample(image: Tensor, pixels: Tensor, valid: Tensor, du: Tensor, dv: Ten
     n = taps
     atlas, table = _atlas(image, dtype)
     last = len(table) - 1
-    level = torch.log2(rho / n).clamp(0, last)
-    below = level.floor()
-    lower = below.long()
-    o = _offsets(n, dtype, image.device)                                                   # (T, 2)
+    k = torch.log2(rho / n).floor().clamp(0, last).long()                      # (B, N)
+    o = _offsets(n, dtype, image.device)                                       # (T, 2)
     sizes = (atlas.shape[-1], atlas.shape[-2])
-    grids = []   # per level (B, T, N, 2): the taps' grid_sample coordinates, pixels innermost
-    two = bool((level > below).any())   # a second level where some pixel blends two
-    for k in ((lower, (lower + 1).clamp(max=last)) if two else (lower,)):
-        where = table[k]                                                       # (B, N, 4)
-        scale = torch.exp2(-k.to(dtype))                                       # (B, N)
-        axes = []
-        for i in (0, 1):   # x, then y
-            centre = ((at[..., i] + 0.5) * scale - 0.5).unsqueeze(1)            # (B, 1, N)
-            spots = torch.addcmul(
-                torch.addcmul(centre, o[:, 0, None], (ju[..., i] * scale).unsqueeze(1)),
-                o[:, 1, None], (jv[..., i] * scale).unsqueeze(1))               # (B, T, N)
-            spots = torch.minimum(spots.clamp_min_(0), (where[..., 2 + i] - 1).unsqueeze(1))
-            # atlas pixel x + offset -> grid_sample's (2 (x + offset) + 1) / size - 1
-            axes.append((2 * (spots + where[..., i].unsqueeze(1)) + 1) / sizes[i] - 1)
-        grids.append(torch.stack(axes, -1))
-    grid = torch.cat(grids, 1)                                                 # (B, L T, N, 2)
-    values = F.grid_sample(atlas.expand(batch, *atlas.shape[1:]), grid, mode="bilinear",
-                           padding_mode="border", align_corners=False)       # (B, C, L T, N)
-    values = values.reshape(batch, chans, len(grids), len(o), count).mean(3)
-    values = values[:, :, 0] if len(grids) == 1 else torch.lerp(
-        values[:, :, 0], values[:, :, 1], (level - below).unsqueeze(1))      # (B, C, N)
+    where = table[k]                                                           # (B, N, 4)
+    scale = torch.exp2(-k.to(dtype))                                           # (B, N)
+    axes = []   # (B, T, N): the taps' grid_sample coordinates, pixels innermost
+    for i in (0, 1):   # x, then y
+        centre = ((at[..., i] + 0.5) * scale - 0.5).unsqueeze(1)                # (B, 1, N)
+        spots = torch.addcmul(
+            torch.addcmul(centre, o[:, 0, None], (ju[..., i] * scale).unsqueeze(1)),
+            o[:, 1, None], (jv[..., i] * scale).unsqueeze(1))                   # (B, T, N)
+        spots = torch.minimum(spots.clamp_min_(0), (where[..., 2 + i] - 1).unsqueeze(1))
+        # atlas pixel x + offset -> grid_sample's (2 (x + offset) + 1) / size - 1
+        axes.append((2 * (spots + where[..., i].unsqueeze(1)) + 1) / sizes[i] - 1)
+    values = F.grid_sample(atlas.expand(batch, *atlas.shape[1:]), torch.stack(axes, -1),
+                           mode="bilinear", padding_mode="border",
+                           align_corners=False).mean(2)                        # (B, C, N)
     out = image.new_zeros(batch, chans, h * w, dtype=dtype).scatter(
         2, order.unsqueeze(1).expand(batch, chans, count), values)
     out = out.reshape(batch, chans, h, w)

@@ -1085,8 +1085,8 @@ class RandomReproject(_RandomCameras):
             covering more than one source pixel): the mean of taps over each pixel's
             footprint through a mip pyramid. On the CPU fast path (``uint8``, float32 and
             float64 images, no gradient) the C++ op :func:`~omniscape_torch.render.fast.
-            mip_image` (2 x 2 taps); elsewhere :mod:`~omniscape_torch.render.antialias`
-            (3 x 3 trilinear taps, differentiable). Pixels that do not minify are as with
+            mip_image`; elsewhere :mod:`~omniscape_torch.render.antialias` (the same rule,
+            differentiable). Pixels that do not minify are as with
             ``antialias=False`` (point samples), bit for bit; ``labels``, ``depth`` and
             ``valid`` are the same either way (nearest texel at the pixel centre, never
             blended). Not for ``interpolation="nearest"``. On by default (as in

@@ -674,9 +674,8 @@ def mip_image(image: Tensor, rays: Tensor, rotation: Tensor | None, intrinsics: 
     quarter's width across, clamped to the level's edge. The pyramid (level ``k + 1`` the
     2 x 2 average of level ``k``, an odd last row or column averaged over the texels it holds;
     ``uint8`` levels rounded half up) is built per call, only to the deepest level a pixel
-    reads. :func:`~omniscape_torch.render.antialias.mip_sample` (3 x 3 trilinear taps) is
-    the reference of the rule, and the filter off the CPU or with gradients; this one reads
-    16 texels a pixel (``docs/augmentation.md``, Antialiasing).
+    reads. :func:`~omniscape_torch.render.antialias.mip_sample` is the same rule in PyTorch,
+    the filter off the CPU or with gradients (``docs/augmentation.md``, Antialiasing).
 
     Args:
         image: ``(B, C, H, W)`` ``uint8``, float32 or float64 on the CPU, any strides.

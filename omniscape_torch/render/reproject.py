@@ -141,7 +141,7 @@ def sample_camera(image: Tensor, camera: Camera, rays: Tensor, *,
             up, and saturated, as OpenCV's ``remap``), or a floating dtype (a ``uint8`` image
             scaled to [0, 1]). Not for labels.
         antialias: where an output pixel covers more than one source pixel (the rays' grid
-            minifies), read the image through its mip pyramid, trilinear at the pixel's
+            minifies), read the image through its mip pyramid, 2 x 2 taps over the pixel's
             footprint (:mod:`~omniscape_torch.render.antialias`), instead of one point sample
             (bilinear and bicubic; ``"nearest"`` and labels are point samples). Pixels that do
             not minify are sampled as without it, bit for bit.
@@ -257,7 +257,7 @@ def reproject(image: Tensor, src_camera: Camera | Tensor, dst_camera: Camera, *,
         out_dtype: the image's dtype: the input's (default; ``uint8`` rounded to nearest, half
             up, and saturated), or a floating dtype (a ``uint8`` image scaled to [0, 1]).
         antialias: prefilter the image where the destination minifies it (a pixel covering
-            more than one source pixel): trilinear mip lookups at each pixel's footprint
+            more than one source pixel): mip lookups over each pixel's footprint
             (:func:`sample_camera`); False: one point sample per pixel. Pixels that do not
             minify are the same either way, bit for bit.
 
