@@ -153,9 +153,9 @@ def run(args: argparse.Namespace) -> dict:
 
 
 def markdown(result: dict) -> str:
-    gpus = result["machine"].get("gpus") or [result["machine"].get("device", "")]
+    device = result["machine"].get("gpu") or result["device"]
     s = result["setup"]
-    lines = [f"{', '.join(map(str, gpus))}: layer {s['size']} x {s['size']} from 6 x "
+    lines = [f"{device}: layer {s['size']} x {s['size']} from 6 x "
              f"{s['face']}, augmentation {s['aug_size']} x {s['aug_size']}; torch "
              f"{result['versions']['torch']}, commit {result['commit'][:12]}"
              f"{' (dirty)' if result['dirty'] else ''}", "",
