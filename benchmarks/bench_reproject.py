@@ -39,9 +39,9 @@ minifies the image; the exact chain ``antialias.mip_sample``).
 
 Headline: ``ours_sample`` and ``ours_batch`` images/s over ``albumentations`` images/s (target
 >= 1.5, ``TARGET``). Checks in the same run: ours against the exact chain on the same draws,
-point samples (``antialias=False``: the two paths' prefilters differ) (validity equal, RGB
-within a level of the float image rounded, label agreement on the pixels both call valid) and
-the valid fraction of our images.
+framed to the source and antialiased (one filter rule on both paths; validity equal, RGB within
+the rounding of the C++ path's 8-bit pyramid levels, a level or two, of the float image
+rounded, label agreement on the pixels both call valid) and the valid fraction of our images.
 
 Usage::
 
@@ -149,15 +149,17 @@ def run(args: argparse.Namespace) -> dict:
     except ImportError:
         skipped["kornia"] = "kornia is not installed"
 
-    # Agreement on the same draws: ours (uint8, fast path) against the exact chain, point
-    # samples (their prefilters differ: fast.mip_image, antialias.mip_sample)
-    point, exact_point = module(antialias=False), module(antialias=False)
-    params = point.forward_parameters(b, generator=torch.Generator().manual_seed(SEED + 1))
+    # Agreement on the same draws (framed to the source, as a call draws them): ours (uint8,
+    # fast path) against the exact chain, both antialiased (one rule: fast.mip_image in C++,
+    # antialias.mip_sample in torch; the C++ keeps 8-bit pyramid levels)
+    ours_aug, exact_aug = module(), module()
+    params = ours_aug.forward_parameters(b, generator=torch.Generator().manual_seed(SEED + 1),
+                                         source_size=(h, w))
     with torch.no_grad():
-        ours = point({"rgb": images, "labels": labels}, params=params)
+        ours = ours_aug({"rgb": images, "labels": labels}, params=params)
     with torch.enable_grad():
-        reference = exact_point({"rgb": floats.requires_grad_(), "labels": labels.long()},
-                                params=params)
+        reference = exact_aug({"rgb": floats.requires_grad_(), "labels": labels.long()},
+                              params=params)
     both = ours["valid"] & reference["valid"]
     rounded = (reference["rgb"].detach() * 255 + 0.5).floor()
     diff = (ours["rgb"].double() - rounded).abs()[both.expand_as(ours["rgb"])]
