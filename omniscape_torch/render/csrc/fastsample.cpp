@@ -1345,11 +1345,15 @@ MipLevel<T> mip_halve(const MipLevel<T>& from, int64_t chans, T* dst) {
 }
 
 // acc (chans) += weight x the bilinear value of level M at (x, y) (its pixels, centres at
-// integers), the position clamped to the level (border padding).
-template <typename T>
+// integers), the position clamped to the level (border padding). N > 0: chans == N, known at
+// compile time (the channels' loop unrolled: 1.6x faster for 3 float32 planes).
+template <int N, typename T>
 inline void mip_tap(const MipLevel<T>& M, int64_t chans, W<T> x, W<T> y, W<T> weight,
                     W<T>* acc) {
     using V = W<T>;
+    if constexpr (N > 0) {
+        chans = N;
+    }
     x = std::min(std::max(x, V(0)), V(M.width - 1));
     y = std::min(std::max(y, V(0)), V(M.height - 1));
     const int64_t j = static_cast<int64_t>(x), i = static_cast<int64_t>(y);
@@ -1655,9 +1659,18 @@ void mip_image(const T* src, int64_t src_batch, int64_t src_chan, const G* rays,
                 }
 #endif
                 std::fill(acc.begin(), acc.end(), V(0));
-                for (int t = 0; t < kMipTaps; ++t) {
-                    mip_tap(M, chans, V(X[t * kSegment + p]), V(Y[t * kSegment + p]), weight,
-                            acc.data());
+                const auto taps = [&](auto n_) {
+                    for (int t = 0; t < kMipTaps; ++t) {
+                        mip_tap<decltype(n_)::value>(M, chans, V(X[t * kSegment + p]),
+                                                     V(Y[t * kSegment + p]), weight, acc.data());
+                    }
+                };
+                if (chans == 3) {
+                    taps(std::integral_constant<int, 3>{});
+                } else if (chans == 1) {
+                    taps(std::integral_constant<int, 1>{});
+                } else {
+                    taps(std::integral_constant<int, 0>{});
                 }
                 for (int64_t c = 0; c < chans; ++c) {
                     o[c * S.out_chan] = store<T, O>(acc[c]);
