@@ -44,6 +44,7 @@
 #include <immintrin.h>
 #endif
 #include <type_traits>
+#include <utility>
 
 // The face table, per case 2 axis + (dominant component < 0) and then the zero ray: the face,
 // then r and b as (axis, sign). Generated from cubemap/faces.py (the only face table) by
@@ -2797,32 +2798,30 @@ void framing_focal_op(const at::Tensor& radius, const at::Tensor& to_edge,
     double* out = focal.mutable_data_ptr<double>();
     const double norm = M_PI / (double(d) * double(height) * double(width));
     const double inf = std::numeric_limits<double>::infinity();
-    std::vector<double> breaks(d), clipped(d + 1), free(d + 1);
-    std::vector<int64_t> order(d);
+    std::vector<double> clipped(d + 1), free(d + 1);
+    std::vector<std::pair<double, int64_t>> order(d);   // (break, direction), sorted
     for (int64_t b = 0; b < n; ++b) {
         const double* r = rad + d * b;
         const double* e = edge + edge_batch * b;
         for (int64_t i = 0; i < d; ++i) {
-            breaks[i] = r[i] > 0 ? e[i] / r[i] : inf;
-            order[i] = i;
+            order[i] = {r[i] > 0 ? e[i] / r[i] : inf, i};
         }
-        std::stable_sort(order.begin(), order.end(),
-                         [&](int64_t p, int64_t q) { return breaks[p] < breaks[q]; });
+        std::sort(order.begin(), order.end());
         clipped[0] = 0.0;
         for (int64_t i = 0; i < d; ++i) {
-            const double ei = e[order[i]];
+            const double ei = e[order[i].second];
             clipped[i + 1] = clipped[i] + ei * ei;
         }
         free[d] = 0.0;
         for (int64_t i = d - 1; i >= 0; --i) {
-            const double ri = r[order[i]];
+            const double ri = r[order[i].second];
             free[i] = free[i + 1] + ri * ri;
         }
         int64_t piece = 0;
         double widest = 0.0;
         for (int64_t i = 0; i < d; ++i) {
-            const bool finite = r[order[i]] > 0;
-            const double end = finite ? breaks[order[i]] : 0.0;
+            const bool finite = r[order[i].second] > 0;
+            const double end = finite ? order[i].first : 0.0;
             widest = std::max(widest, end);
             const double at_break = finite ? norm * (clipped[i] + end * end * free[i]) : inf;
             piece += at_break < cov[b];
