@@ -163,6 +163,15 @@ def test_opcheck_camera_grid_and_camera_rays(dtype):
     with pytest.raises(RuntimeError, match="camera_rays: limits: expected shape"):
         ops().camera_rays(cameras[0], cameras[1][:1], cameras[2],
                           torch.empty(2, 5, 7, 3, dtype=dtype), valid)
+    # one table shared by the cameras (1, 2, K): the rays of that table copied per camera
+    shared = kernels.radial_table("equidistant", params[:1].expand(2, 4), (5, 7), entries=16)[2]
+    one = [cameras[0], cameras[1], shared[:1].to(dtype)]
+    rays, valid_shared = (torch.empty(2, 5, 7, 3, dtype=dtype),
+                          torch.empty(2, 5, 7, dtype=torch.bool))
+    torch.library.opcheck(ops().camera_rays, (*one, rays, valid_shared))
+    want, want_valid = fastsample.camera_rays(*cameras[:2], shared.to(dtype), (5, 7), dtype)
+    got, got_valid = fastsample.camera_rays(*one, (5, 7), dtype)
+    assert torch.equal(got, want) and torch.equal(got_valid, want_valid)
 
 
 def test_framing_ops_are_the_numpy_framing(monkeypatch):

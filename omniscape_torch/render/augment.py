@@ -1397,7 +1397,7 @@ class RandomReproject(_RandomCameras):
         as_dtype = table.numpy().dtype     # in the rays' dtype, as the op takes them
         return fast.camera_rays(torch.from_numpy(affine.astype(as_dtype)),
                                 torch.from_numpy(limits.astype(as_dtype)),
-                                table.expand(n, -1, -1), self.image_size, params.dtype)
+                                table, self.image_size, params.dtype)
 
     def source_intrinsics(self, image_size: tuple[int, int], batch: int) -> Tensor:
         """``(batch, 4)`` float64 pinhole intrinsics of images of ``image_size`` from

@@ -1755,7 +1755,7 @@ void radial_rays(const RadialCamera<G>& cam, int64_t width, int64_t lo, int64_t 
 // `rays` instead of `grid` (rot and L unused), their camera-frame rays (B, H, W, 3).
 template <typename G>
 void radial_grid(const G* affine, const G* limits, const G* table, int64_t entries,
-                 const G* rot, int64_t batch, int64_t height, int64_t width, const Layout& L,
+                 int64_t table_batch, const G* rot, int64_t batch, int64_t height, int64_t width, const Layout& L,
                  G* grid, G* rays, uint8_t* valid) {
     const int64_t pixels = height * width;
     const int64_t segments = (width + kSegment - 1) / kSegment;
@@ -1765,7 +1765,7 @@ void radial_grid(const G* affine, const G* limits, const G* table, int64_t entri
         const int64_t y = rest / segments, x0 = (rest % segments) * kSegment;
         const int64_t m = std::min(kSegment, width - x0), lo = y * width + x0;
         const RadialCamera<G> cam{affine + 6 * b, limits + 5 * b,
-                                  table + 2 * entries * b, entries};
+                                  table + table_batch * b, entries};
         uint8_t* ok = valid + b * pixels + lo;
         G* r = rays == nullptr ? buffer : rays + 3 * (b * pixels + lo);
         radial_rays<G>(cam, width, lo, m, r, ok);
@@ -2278,8 +2278,9 @@ void mip_image_op(const at::Tensor& image, const at::Tensor& rays,
     });
 }
 
-// Radially symmetric cameras (radial_rays): affine (N, 6), limits (N, 5), table (N, 2, K),
-// K >= 2, N >= 1, contiguous, all in one floating dtype (returned).
+// Radially symmetric cameras (radial_rays): affine (N, 6), limits (N, 5), table (N, 2, K) or
+// (1, 2, K) (shared by the cameras), K >= 2, N >= 1, contiguous, all in one floating dtype
+// (returned).
 at::ScalarType check_cameras(const char* op, const at::Tensor& affine, const at::Tensor& limits,
                              const at::Tensor& table) {
     const at::ScalarType dtype = affine.scalar_type();
@@ -2294,10 +2295,16 @@ at::ScalarType check_cameras(const char* op, const at::Tensor& affine, const at:
     };
     check("affine", affine, {n, 6});
     check("limits", limits, {n, 5});
-    check("table", table, {n, 2, table.dim() == 3 ? table.size(2) : -1});
+    const bool shared = table.dim() == 3 && table.size(0) == 1;
+    check("table", table, {shared ? 1 : n, 2, table.dim() == 3 ? table.size(2) : -1});
     TORCH_CHECK(n >= 1 && table.size(2) >= 2 && table.size(2) < kMaxOffset / 2, op,
                 ": table: expected 1 or more cameras of 2 or more entries, got ", table.sizes());
     return dtype;
+}
+
+// The elements between the tables of consecutive cameras (check_cameras): 0 for one shared.
+int64_t table_batch(const at::Tensor& table) {
+    return table.size(0) == 1 ? 0 : 2 * table.size(2);
 }
 
 // valid (B, H, W) bool, contiguous, of `batch` cameras.
@@ -2340,7 +2347,8 @@ void camera_grid_op(const at::Tensor& affine, const at::Tensor& limits, const at
     const auto run = [&](auto g) {
         using G = decltype(g);
         radial_grid<G>(affine.const_data_ptr<G>(), limits.const_data_ptr<G>(),
-                       table.const_data_ptr<G>(), table.size(2), rotation.const_data_ptr<G>(),
+                       table.const_data_ptr<G>(), table.size(2), table_batch(table),
+                       rotation.const_data_ptr<G>(),
                        batch, valid.size(1), valid.size(2), L, grid.mutable_data_ptr<G>(),
                        nullptr, static_cast<uint8_t*>(valid.mutable_data_ptr()));
     };
@@ -2363,7 +2371,8 @@ void camera_rays_op(const at::Tensor& affine, const at::Tensor& limits, const at
     const auto run = [&](auto g) {
         using G = decltype(g);
         radial_grid<G>(affine.const_data_ptr<G>(), limits.const_data_ptr<G>(),
-                       table.const_data_ptr<G>(), table.size(2), nullptr, batch, valid.size(1),
+                       table.const_data_ptr<G>(), table.size(2), table_batch(table), nullptr,
+                       batch, valid.size(1),
                        valid.size(2), Layout{}, nullptr, rays.mutable_data_ptr<G>(),
                        static_cast<uint8_t*>(valid.mutable_data_ptr()));
     };
