@@ -428,8 +428,8 @@ def test_training_benchmark_parts(monkeypatch):
 
     condition = bt.make_condition("reproject", faces, cubes, 3)
     calls = []
-    render = ot.augment.RandomReproject.render
-    monkeypatch.setattr(ot.augment.RandomReproject, "render",
+    render = ot.augment.RandomReproject._render   # (forward's render of its own draws)
+    monkeypatch.setattr(ot.augment.RandomReproject, "_render",
                         lambda self, *a, **k: calls.append(k["intrinsics"]) or render(self, *a,
                                                                                       **k))
     condition.batch(idx)

@@ -163,6 +163,55 @@ def test_opcheck_camera_grid_and_camera_rays(dtype):
     with pytest.raises(RuntimeError, match="camera_rays: limits: expected shape"):
         ops().camera_rays(cameras[0], cameras[1][:1], cameras[2],
                           torch.empty(2, 5, 7, 3, dtype=dtype), valid)
+    # one table shared by the cameras (1, 2, K): the rays of that table copied per camera
+    shared = kernels.radial_table("equidistant", params[:1].expand(2, 4), (5, 7), entries=16)[2]
+    one = [cameras[0], cameras[1], shared[:1].to(dtype)]
+    rays, valid_shared = (torch.empty(2, 5, 7, 3, dtype=dtype),
+                          torch.empty(2, 5, 7, dtype=torch.bool))
+    torch.library.opcheck(ops().camera_rays, (*one, rays, valid_shared))
+    want, want_valid = fastsample.camera_rays(*cameras[:2], shared.to(dtype), (5, 7), dtype)
+    got, got_valid = fastsample.camera_rays(*one, (5, 7), dtype)
+    assert torch.equal(got, want) and torch.equal(got_valid, want_valid)
+
+
+def test_framing_ops_are_the_numpy_framing(monkeypatch):
+    """framing_reach and framing_focal (what framing.reach and focal_for_coverage run) against
+    those functions' NumPy arithmetic (the extension hidden), within float rounding: lenses
+    turned up to 60 degrees (some axes miss the source: theta 0), off-centre pinholes, shared
+    and per-sample distances to the edge, coverages beyond what a source can fill; and
+    opcheck."""
+    from omniscape_torch.render import framing
+    g = torch.Generator().manual_seed(5)
+    n, f64 = 24, torch.float64
+    angles = (torch.rand(n, 3, generator=g, dtype=f64) * 2 - 1) * math.radians(60)
+    rotation = ot.presets.yaw_pitch_roll_to_matrix(*angles.T).contiguous().numpy()
+    intrinsics = torch.cat((20 + 40 * torch.rand(n, 2, generator=g, dtype=f64),
+                            10 + 30 * torch.rand(n, 2, generator=g, dtype=f64)), 1).numpy()
+    half = (1.2 + 0.6 * torch.rand(n, generator=g, dtype=f64)).numpy()
+    coverage = (0.05 + torch.rand(n, generator=g, dtype=f64)).clamp_max(1.0).numpy()
+    centre = (torch.rand(n, 2, generator=g, dtype=f64) * 8 + 12).numpy()
+    theta = framing.reach(rotation, intrinsics, (30, 40), half)
+    radius = theta * 1.1                                   # a lens of radius 1.1 theta
+    focal = [framing.focal_for_coverage(radius, e, coverage, (32, 36))
+             for e in (framing.to_edge(centre, (32, 36)), framing.to_edge(centre[:1], (32, 36)))]
+    monkeypatch.setattr(extension, "ops", lambda: None)   # framing's NumPy arithmetic
+    want = framing.reach(rotation, intrinsics, (30, 40), half)
+    assert (want == 0).all(1).any() and (want > 0).all(1).any()
+    np_focal = [framing.focal_for_coverage(radius, e, coverage, (32, 36))
+                for e in (framing.to_edge(centre, (32, 36)), framing.to_edge(centre[:1], (32, 36)))]
+    torch.testing.assert_close(torch.from_numpy(theta), torch.from_numpy(want), rtol=0,
+                               atol=1e-14)
+    for got, ref in zip(focal, np_focal):
+        torch.testing.assert_close(torch.from_numpy(got), torch.from_numpy(ref), rtol=1e-12,
+                                   atol=0)
+    t = [torch.from_numpy(a) for a in (rotation, intrinsics, half, radius, coverage)]
+    cos_sin = framing._COS_SIN
+    torch.library.opcheck(ops().framing_reach, (t[0], t[1], t[2], cos_sin[0], cos_sin[1], 30,
+                                                40, torch.empty(n, framing.DIRECTIONS, dtype=f64)))
+    torch.library.opcheck(ops().framing_focal, (t[3], torch.from_numpy(framing.to_edge(
+        centre[:1], (32, 36))), t[4], 32, 36, torch.empty(n, dtype=f64)))
+    with pytest.raises(RuntimeError, match="framing_focal: radius: expected float64"):
+        ops().framing_focal(t[3].float(), t[3], t[4], 32, 36, torch.empty(n, dtype=f64))
 
 
 @pytest.mark.parametrize("dtype,mode", CASES)

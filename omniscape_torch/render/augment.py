@@ -354,12 +354,13 @@ class _RandomCameras(nn.Module):
             out[name] = (idx, Camera(name, cam_params, self.image_size))
         return out
 
-    def _camera_params(self, params: dict, dtype: torch.dtype, device: torch.device
-                       ) -> dict[str, tuple[Tensor, Tensor]]:
+    def _camera_params(self, params: dict, dtype: torch.dtype, device: torch.device,
+                       checked: bool = False) -> dict[str, tuple[Tensor, Tensor]]:
         """What :meth:`cameras` holds, checked as ``Camera`` checks it, without making the
         cameras: ``{model: (sample indices (n,), params (n, P) in dtype on device)}``. The
         lenses without parameters (``fx, fy, cx, cy``: finite, ``fx, fy > 0``) are checked
-        in one operation for the batch."""
+        in one operation for the batch; ``checked``: the module's own draws of this call,
+        not checked again."""
         out = {}
         models = params["model"]
         names = sorted(set(models))
@@ -375,7 +376,9 @@ class _RandomCameras(nn.Module):
                                    dtype=torch.long)
                 p = counts[first]
                 rows = params["camera_params"][idx, :p]
-            if name in _FIXED_REACH and p == 4:
+            if checked:
+                out[name] = (idx, rows.to(dtype=dtype, device=device))
+            elif name in _FIXED_REACH and p == 4:
                 values = rows.detach().cpu().numpy()
                 if not (np.isfinite(values).all() and (values[:, :2] > 0).all()):
                     raise ValueError(f'params["camera_params"]: expected finite {name} '
@@ -1394,7 +1397,7 @@ class RandomReproject(_RandomCameras):
         as_dtype = table.numpy().dtype     # in the rays' dtype, as the op takes them
         return fast.camera_rays(torch.from_numpy(affine.astype(as_dtype)),
                                 torch.from_numpy(limits.astype(as_dtype)),
-                                table.expand(n, -1, -1), self.image_size, params.dtype)
+                                table, self.image_size, params.dtype)
 
     def source_intrinsics(self, image_size: tuple[int, int], batch: int) -> Tensor:
         """``(batch, 4)`` float64 pinhole intrinsics of images of ``image_size`` from
@@ -1437,6 +1440,23 @@ class RandomReproject(_RandomCameras):
             float64 on the CPU[, "fov", "blind_fov"]}``, which ``default_collate`` stacks and a
             replay reads back.
         """
+        return self._render(image, params, None, labels=labels, depth=depth,
+                            intrinsics=intrinsics, source_camera=source_camera,
+                            instances=instances, boxes=boxes, box_instance_ids=box_instance_ids,
+                            keypoints=keypoints, label_maps=label_maps)
+
+    def _render(self, image: Tensor | None, params: dict, drawn: tuple | None, *,
+                labels: Tensor | None = None, depth: Tensor | None = None,
+                intrinsics: Tensor | None = None, source_camera: Camera | None = None,
+                instances: Tensor | None = None, boxes: Sequence[Tensor] | None = None,
+                box_instance_ids: Sequence[Tensor] | None = None,
+                keypoints: Tensor | None = None, label_maps: Mapping[str, Tensor] | None = None
+                ) -> dict:
+        """:meth:`render`; ``drawn``: where ``forward`` drew ``params`` itself in this call,
+        the source ``(k, camera)`` of :meth:`_source` (checked) for images of ``(Hs, Ws)``
+        that it drew them for, else None. Drawn params are not checked again (their rotations,
+        cameras and batch are the module's own) nor is their source made again (for inputs of
+        that size)."""
         maps = _label_maps(self.label_keys, instances, label_maps, cube=False)
         batch = _check_batches(params, **dict(
             (key, t) for key, (t, _) in maps.items()), box_instance_ids=box_instance_ids,
@@ -1461,7 +1481,8 @@ class RandomReproject(_RandomCameras):
             # mapped before the maps are rendered: the boxes that the valid area cuts read
             # their pixels from the rays the maps are sampled along (Targets.scan)
             size = _source_size(image, labels, depth, maps, self.channels_last)
-            k, camera = self._source(intrinsics, source_camera, size, batch)
+            k, camera = (drawn[:2] if drawn is not None and drawn[2] == size else
+                         self._source(intrinsics, source_camera, size, batch))
             source = (detection.Side("pinhole", k, size) if k is not None
                       else detection.Side.of(camera, batch))
             targets = detection.Targets(
@@ -1471,9 +1492,9 @@ class RandomReproject(_RandomCameras):
         if any(t is not None for t in (image, labels, depth)):
             result = self._render_maps(image, params, labels=labels, depth=depth,
                                        scan=None if targets is None else targets.scan,
-                                       **sources)
+                                       drawn=drawn, **sources)
         _render_label_maps(result, maps, lambda ids: self._render_maps(
-            None, params, labels=ids, **sources))
+            None, params, labels=ids, drawn=drawn, **sources))
         if ids is not None:
             result.update(detection.boxes_of_instances(result["instances"], ids,
                                                        _plain(instances), box_dtype))
@@ -1483,18 +1504,22 @@ class RandomReproject(_RandomCameras):
 
     def _render_maps(self, image: Tensor | None, params: dict, *, labels: Tensor | None = None,
                      depth: Tensor | None = None, intrinsics: Tensor | None = None,
-                     source_camera: Camera | None = None, scan: Callable | None = None
-                     ) -> dict:
+                     source_camera: Camera | None = None, scan: Callable | None = None,
+                     drawn: tuple | None = None) -> dict:
         """:meth:`render` of the modalities alone (``valid``, ``rgb``, ``labels``, ``depth``,
         ``params`` with the source camera's record); ``scan``: called on the fast path with
-        each chunk's samples and the rays they are sampled along (``detection.Targets.scan``)."""
+        each chunk's samples and the rays they are sampled along (``detection.Targets.scan``);
+        ``drawn``: as for :meth:`_render`."""
         image, labels, depth, size = self._check_inputs(image, labels, depth)
         batch = next(t for t in (image, labels, depth) if t is not None).shape[0]
-        if len(params["model"]) != batch:
-            raise ValueError(f"params: drawn for {len(params['model'])} samples, the batch has "
-                             f"{batch}")
-        check_rotation(params["rotation"], 'params["rotation"]')
-        k, source = self._source(intrinsics, source_camera, size, batch)
+        if drawn is None or drawn[2] != size:
+            if len(params["model"]) != batch:
+                raise ValueError(f"params: drawn for {len(params['model'])} samples, the batch "
+                                 f"has {batch}")
+            check_rotation(params["rotation"], 'params["rotation"]')
+            k, source = self._source(intrinsics, source_camera, size, batch)
+        else:
+            k, source = drawn[:2]
         ref = next(t for t in (image, labels, depth) if t is not None)
         device = ref.device
         dtype = torch.float64 if ref.dtype == torch.float64 else torch.float32
@@ -1521,7 +1546,8 @@ class RandomReproject(_RandomCameras):
                             fov=source.fov, blind_fov=source.blind_fov)
         # on the CPU a few samples at a time (projection.CHUNK_PIXELS): the rays of a chunk
         chunk = batch if device.type != "cpu" else max(1, projection.CHUNK_PIXELS // (h * w))
-        groups = self._camera_params(params, dtype, device)
+        groups = self._camera_params(params, dtype, device,
+                                     checked=drawn is not None and drawn[2] == size)
         rotations = params["rotation"].to(dtype=dtype, device=device)
         fovs = params["fov"].to(dtype=dtype, device=device)
         for name, (idx, cam_params) in groups.items():
@@ -1546,19 +1572,20 @@ class RandomReproject(_RandomCameras):
         return result
 
     def _draw(self, ref: Tensor, ids: bool, intrinsics: object, source_camera: object,
-              generator: torch.Generator | None) -> dict:
+              generator: torch.Generator | None) -> tuple[dict, tuple]:
         """``forward_parameters`` for the inputs of ``forward`` (``ref``: the first given; ``ids``:
         it is labels or depth, never channels-last), framed to their source where it is a
-        pinhole (``coverage_range``)."""
+        pinhole (``coverage_range``), and that source as :meth:`_render` takes it: ``(k,
+        camera, (Hs, Ws))``."""
         if isinstance(ref, bool) or not isinstance(ref, Tensor) or ref.dim() < 3:
             raise ValueError(f"image: expected (B, C, H, W) (labels, depth: (B, H, W)), got "
                              f"{tuple(getattr(ref, 'shape', ())) or type(ref).__name__}")
         batch = ref.shape[0]
-        if self.coverage_range is None:
-            return self._draw_params(batch, generator, None, None)
         size = tuple(ref.shape[1:3] if self.channels_last and not ids else ref.shape[-2:])
-        k, _ = self._source(intrinsics, source_camera, size, batch)
-        return self._draw_params(batch, generator, k, None if k is None else size)
+        k, camera = self._source(intrinsics, source_camera, size, batch)
+        framed = self.coverage_range is not None and k is not None
+        return (self._draw_params(batch, generator, k if framed else None,
+                                  size if framed else None), (k, camera, size))
 
     def _render_fast(self, name: str, part: "_Part", image: Tensor | None,
                      labels: Tensor | None, depth: Tensor | None, result: dict,
@@ -1824,14 +1851,15 @@ class RandomReproject(_RandomCameras):
                                 targets.get("instances")) if t is not None), None)
         if ref is None:
             raise ValueError("forward: pass at least one of image, labels, depth, instances")
+        drawn = None
         if params is None:
-            params = self._draw(ref, image is None or ref is not image, intrinsics,
-                                source_camera, generator)
+            params, drawn = self._draw(ref, image is None or ref is not image, intrinsics,
+                                       source_camera, generator)
         elif intrinsics is None and source_camera is None:   # a replay: its source camera
             intrinsics = params.get("intrinsics")
             source_camera = params.get("source_camera")
-        out = self.render(image, params, labels=labels, depth=depth,
-                          intrinsics=intrinsics, source_camera=source_camera, **targets)
+        out = self._render(image, params, drawn, labels=labels, depth=depth,
+                           intrinsics=intrinsics, source_camera=source_camera, **targets)
         return containers.leave(out, wrapping)
 
 

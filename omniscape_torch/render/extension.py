@@ -13,7 +13,8 @@ more than Embree's tracing (0.25); one C++ loop over the rays does it in registe
 
 The ops, ``torch.ops.omniscape_torch.*`` (:data:`OPS`; schemas in the sources): the samplers
 ``build_lut, sample_lut, sample_grid, sample_rays, camera_grid, camera_rays, sample_image``,
-its antialiasing ``mip_image``, the detection boxes' ``box_pixels, outline_points,
+its antialiasing ``mip_image``, the framing's ``framing_reach, framing_focal``
+(:mod:`~omniscape_torch.render.framing`), the detection boxes' ``box_pixels, outline_points,
 outline_reduce`` (``detection``) and the town's ``town_backfaces, town_prepare, town_shade,
 town_store``. Each checks its arguments
 (device, dtype, shape, contiguity, index ranges) before it reads any, raising a RuntimeError
@@ -85,7 +86,8 @@ SOURCES = (Path(__file__).with_name("csrc") / "fastsample.cpp",
            Path(__file__).with_name("csrc") / "town_shade.cpp")
 NAMESPACE = "omniscape_torch"
 OPS = ("build_lut", "sample_lut", "sample_grid", "sample_rays", "camera_grid", "camera_rays",
-       "sample_image", "mip_image", "box_pixels", "outline_points", "outline_reduce",
+       "sample_image", "mip_image", "framing_reach", "framing_focal", "box_pixels",
+       "outline_points", "outline_reduce",
        "town_backfaces", "town_prepare", "town_shade", "town_store")
 #: ``-march=native``: the library is built for this machine's CPU (its flags are in the name);
 #: ``-fno-trapping-math``: float comparisons may be evaluated speculatively, so the tap
@@ -359,6 +361,16 @@ def _fake_mip_image(image, rays, rotation, intrinsics, valid, minifies, out) -> 
            "mip_image: expected image (B, C, H, W), rays (B, h, w, 3), out (B, C, h, w)")
 
 
+def _fake_framing_reach(rotation, intrinsics, half, cos, sin, height, width, theta) -> None:
+    _check(theta.dim() == 2 and theta.shape == (half.shape[0], cos.shape[0]),
+           "framing_reach: expected theta (n, D)")
+
+
+def _fake_framing_focal(radius, to_edge, coverage, height, width, focal) -> None:
+    _check(radius.dim() == 2 and focal.shape == coverage.shape == radius.shape[:1],
+           "framing_focal: expected radius (n, D), coverage and focal (n,)")
+
+
 def _fake_rays(o, d, t, tri, u, v, what: str) -> None:
     n = d.shape[0]
     _check(d.dim() == 2 and d.shape[1] == 3 and o.dim() == 2 and o.shape[1] == 3
@@ -398,6 +410,7 @@ _FAKES = {"build_lut": _fake_build_lut, "sample_lut": _fake_sample_lut,
           "sample_grid": _fake_sample_grid, "sample_rays": _fake_sample_rays,
           "camera_grid": _fake_camera_grid, "camera_rays": _fake_camera_rays,
           "sample_image": _fake_sample_image, "mip_image": _fake_mip_image,
+          "framing_reach": _fake_framing_reach, "framing_focal": _fake_framing_focal,
           "box_pixels": _fake_box_pixels, "outline_points": _fake_outline_points,
           "outline_reduce": _fake_outline_reduce,
           "town_backfaces": _fake_town_backfaces,

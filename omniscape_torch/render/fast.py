@@ -495,7 +495,8 @@ def camera_rays(affine: Tensor, limits: Tensor, table: Tensor, image_size: tuple
                 dtype: torch.dtype) -> tuple[Tensor, Tensor]:
     """The camera-frame unit rays ``(B, H, W, 3)`` in ``dtype`` (float32 or float64) and
     validity ``(B, H, W)`` (domain and cones) of every pixel centre of ``B`` radially symmetric
-    cameras, from their tables (``kernels.radial_table``), in one pass of the C++ op."""
+    cameras, from their tables (``kernels.radial_table``; ``table (B, 2, K)``, or ``(1, 2, K)``
+    shared by the cameras), in one pass of the C++ op."""
     tables = [t.to("cpu", dtype).contiguous() for t in (affine, limits, table)]
     batch = affine.shape[0]
     rays = torch.empty((batch, *image_size, 3), dtype=dtype)

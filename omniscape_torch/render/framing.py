@@ -19,7 +19,10 @@ source (a turn larger than the source's half field of view) the directions away 
 nothing, so the share is underestimated and the focal comes out larger (more zoom).
 
 The arrays are float64 NumPy (tensors are read as such): ``RandomReproject`` frames each call's
-draws here, and on a few samples NumPy's calls cost a fraction of torch's dispatch.
+draws here. :func:`reach` and :func:`focal_for_coverage` run as the C++ ops ``framing_reach``
+and ``framing_focal`` (:mod:`~omniscape_torch.render.extension`: the same arithmetic, per
+sample in one loop; within float rounding of the NumPy below, which runs where the extension
+cannot be built): on a few samples NumPy's two dozen calls cost about ten times the loops.
 """
 
 from __future__ import annotations
@@ -27,6 +30,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import torch
+
+from . import extension
 
 __all__ = ["DIRECTIONS", "PHI", "focal_for_coverage", "reach", "to_edge"]
 
@@ -45,6 +51,13 @@ _SIGN = np.array([1.0, -1.0, 1.0, -1.0])
 _FOCAL_COLUMN, _CENTRE_COLUMN = [0, 0, 1, 1], [2, 2, 3, 3]
 for _table in (PHI, _COS, _SIN, _NORMALS_XY, _SIGN):
     _table.flags.writeable = False
+#: ``cos, sin (2, D)`` of :data:`PHI` as the C++ op reads them (never written).
+_COS_SIN = torch.from_numpy(np.stack((_COS, _SIN)))
+
+
+def _as_tensors(*arrays: np.ndarray) -> list[torch.Tensor]:
+    """float64 contiguous tensors of ``arrays`` (sharing their memory where they are such)."""
+    return [torch.from_numpy(np.ascontiguousarray(a, np.float64)) for a in arrays]
 
 
 def _normals(intrinsics: np.ndarray, source_size: tuple[int, int]) -> np.ndarray:
@@ -71,6 +84,12 @@ def reach(rotation: np.ndarray, intrinsics: np.ndarray, source_size: tuple[int, 
     Each plane's crossing ``t = atan2(-A, B)`` (``A < 0``: the axis inside) decreases with
     ``B / -A``, so the nearest plane is the one of the largest ratio: one ``atan2`` per
     direction, not one per plane."""
+    ops = extension.ops()
+    if ops is not None:
+        theta = np.empty((len(half), DIRECTIONS))
+        ops.framing_reach(*_as_tensors(rotation, intrinsics, half), _COS_SIN[0], _COS_SIN[1],
+                          int(source_size[0]), int(source_size[1]), torch.from_numpy(theta))
+        return theta
     intrinsics = np.asarray(intrinsics, np.float64)
     m = _normals(intrinsics, source_size) @ np.asarray(rotation, np.float64)   # fisheye frame
     a = m[..., 2]                                                    # (n, 5)
@@ -110,6 +129,12 @@ def focal_for_coverage(radius: np.ndarray, to_edge: np.ndarray, coverage: np.nda
             (a source that does not surround the centre) gives the focal that fills it most.
         image_size: ``(H, W)`` of the output.
     """
+    ops = extension.ops()
+    if ops is not None:
+        focal = np.empty(len(coverage))
+        ops.framing_focal(*_as_tensors(radius, to_edge, coverage), int(image_size[0]),
+                          int(image_size[1]), torch.from_numpy(focal))
+        return focal
     radius = np.ascontiguousarray(radius, np.float64)
     to_edge = np.asarray(to_edge, np.float64)
     coverage = np.asarray(coverage, np.float64)
