@@ -41,7 +41,9 @@ Headline: ``ours_sample`` and ``ours_batch`` images/s over ``albumentations`` im
 >= 1.5, ``TARGET``). Checks in the same run: ours against the exact chain on the same draws,
 framed to the source and antialiased (one filter rule on both paths; validity equal, RGB within
 the rounding of the C++ path's 8-bit pyramid levels, a level or two, of the float image
-rounded, label agreement on the pixels both call valid) and the valid fraction of our images.
+rounded, but for the rare pixel whose footprint is a power of two within rounding, where the
+paths read neighbouring levels: the share beyond 2 levels is reported; label agreement on the
+pixels both call valid) and the valid fraction of our images.
 
 Usage::
 
@@ -166,6 +168,8 @@ def run(args: argparse.Namespace) -> dict:
     agreement = {
         "valid_mismatch_fraction": float((ours["valid"] != reference["valid"]).float().mean()),
         "rgb_max_abs_diff_levels": float(diff.max()) if diff.numel() else 0.0,
+        # pixels whose footprint is a power of two within rounding: neighbouring mip levels
+        "rgb_over_2_levels_fraction": float((diff > 2).double().mean()) if diff.numel() else 0.0,
         "label_agreement": float((ours["labels"] == reference["labels"])[both[:, 0]]
                                  .float().mean()),
         "valid_fraction": float(ours["valid"].float().mean()),
