@@ -87,13 +87,24 @@ Augmentation cost: each condition's images per second on one batch (gather + aug
 
 Cost: ``--estimate`` times ``--estimate-steps`` training steps of every condition at the full
 settings (on random data of the full shapes) and the tracing of one image and one cube, and
-prints the projected cost of the whole table: ESTIMATE_PLACEHOLDER
+prints the projected cost of the whole table (every run at ``--min-steps``, every run at the
+cap), without running it. Measured at commit bee583f on this project's shared 2-core VM
+(not yet the full run): with 2 threads at load 1.2-2.1, 0.43-0.52 s a step for 5 of the 6
+conditions (the sixth, timed first, 3.2 s: the process's warm-up, untimed since), so the 18
+runs and 6 search runs at the cap (21,000 steps) plus data (1.6 min) and evaluation (2.8 min)
+project to about 2.8 h, and 1.3 h if every run were flat at 400 steps; with 1 thread at load
+about 2, 0.52-0.79 s a step: 4.05 h at the cap, 1.86 h at 400 steps. Two threads on a busy
+machine collapse (load 1.7-3.2: 2.1-3.5 s a step, 19 h projected): run the table on idle
+cores, or with ``--threads 1`` where others share them. One full-size run (``--conditions
+reproject --seeds 0 --threads 1 --max-steps 800``, load 1.2-4) was not flat at 800 steps
+(the last quarter's mean loss 0.176, 19.7 % under the previous quarter's 0.219; 799 s), so
+at these defaults most runs may stop at the cap (the table says which).
 
 Usage::
 
-    python benchmarks/bench_training.py             # the full table (see the estimate above)
+    python benchmarks/bench_training.py             # the full table (~2.8 h at the cap, above)
     python benchmarks/bench_training.py --estimate  # its projected cost on this machine
-    python benchmarks/bench_training.py --quick     # 32 x 32, a few steps, seed 0 (~30 s)
+    python benchmarks/bench_training.py --quick     # 32 x 32, 8-12 steps, seed 0 (~15 s)
 
 Results: ``benchmarks/results/training.json`` (``--out``; every run's losses, stopping, per-class
 IoU and timings; the kornia search), the markdown tables beside it (``training.md``) and on
@@ -291,7 +302,7 @@ def traced_set(cache: Path, name: str, town_seed: int, layout: int,
     ``name`` (``test``, ``val``, ``upper``) of ``town_seed``: at every position ``views`` yaws
     in [-pi, pi) (drawn from a generator seeded by ``YAW_SEED``, ``town_seed`` and ``name``),
     each seen by a fisheye and a catadioptric camera (:func:`trace_image`), position ``i`` in
-    ``weathers[i % len(weathers)]``; cached in ``cache / f"{name}_town{town_seed}.pt"``."""
+    ``weathers[i % len(weathers)]``; cached in ``cache`` (one ``.pt`` a set and size)."""
     g = torch.Generator().manual_seed(YAW_SEED + 100 * town_seed + sum(map(ord, name)))
     yaws = (torch.rand(len(positions) * views, generator=g, dtype=torch.float64) * 2 - 1) \
         * math.pi
@@ -314,7 +325,7 @@ def traced_set(cache: Path, name: str, town_seed: int, layout: int,
                 out[f"{kind}_labels"].append(labels)
         return {k: torch.stack(v) for k, v in out.items()}
 
-    saved, made = _cached(cache / f"{name}_town{town_seed}.pt", meta, render)
+    saved, made = _cached(cache / f"{name}_town{town_seed}_size{size}.pt", meta, render)
     log(f"{name}: {len(yaws)} fisheye + {len(yaws)} catadioptric images of town {town_seed} "
         f"(layout {layout}), {'traced' if made else 'read'} in "
         f"{time.perf_counter() - start:.1f} s")
@@ -829,7 +840,8 @@ def run(args: argparse.Namespace, log: Callable[[str], None] = print) -> dict:
 
 def estimate(args: argparse.Namespace, log: Callable[[str], None] = print) -> dict:
     """The projected cost of the table at ``args``' settings on this machine: ``args.
-    estimate_steps`` training steps of every condition (after one untimed) on random data of
+    estimate_steps + 1`` training steps of every condition (after an untimed run of
+    condition (a)'s, the process's warm-up), median and fastest, on random data of
     the full shapes, the tracing of one image of each kind and of one cube, and the
     evaluation of one batch; the whole table's training at the cap (every run and search run
     at its ``max_steps``) and at ``min_steps`` (every run flat at once)."""
@@ -847,6 +859,8 @@ def estimate(args: argparse.Namespace, log: Callable[[str], None] = print) -> di
     timed = argparse.Namespace(**{**vars(args), "chunk": args.estimate_steps + 1,
                                   "min_steps": 1, "max_steps": args.estimate_steps + 1})
     step_s, step_s_min = {}, {}
+    # untimed: the process's first steps (allocator, kernels' first use) are slower
+    train_run(make_condition("none", faces, cubes, 0), None, timed, 0)
     for name in names:
         condition = make_condition(name, faces, cubes, 0, omni_mode=args.omni_mode,
                                    traced=faces)

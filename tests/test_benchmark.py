@@ -398,7 +398,8 @@ def test_training_benchmark_quick(tmp_path, monkeypatch):
     assert out.with_suffix(".png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
     cubes = sorted((cache / "train_town0_face32").glob("cube_*.pt"))
-    traced = [cache / name for name in ("test_town1.pt", "val_town0.pt", "upper_town0.pt")]
+    traced = [cache / name for name in ("test_town1_size32.pt", "val_town0_size32.pt",
+                                          "upper_town0_size32.pt")]
     assert len(cubes) == 4
     renamed = {dst for src, dst in replaced
                if src.parent == dst.parent and src.name.startswith(f".{dst.name}.")}
