@@ -511,6 +511,7 @@ def test_training_benchmark_parts(monkeypatch):
                           (["--quick", "--max-steps", "10"], "--max-steps"),
                           (["--quick", "--min-steps", "4", "--chunk", "2"], "--min-steps"),
                           (["--quick", "--flat-tol", "1.5"], "--flat-tol"),
+                          (["--quick", "--test-weathers", "clear_noon"], "--test-weathers"),
                           (["--quick", "--lr", "-1"], "--lr")):
         with pytest.raises(SystemExit) as exit_:
             bt.main(argv)
