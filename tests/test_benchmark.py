@@ -337,7 +337,7 @@ def test_workers_benchmark_rows_and_its_peer(tmp_path):
 
 
 # --------------------------------------------------------------------------------------------
-# bench_training.py: issue 17's "proof that it helps", in its quick mode
+# bench_training.py: issue 36's "proof that it helps", in its quick mode
 # --------------------------------------------------------------------------------------------
 
 #: A temporary of omniscape_torch.io.atomic: ``.<name>.<pid>.<8 characters>[suffix]``.
@@ -346,8 +346,10 @@ _TEMPORARY = re.compile(r"^\..+\.\d+\.[a-z0-9_]{8}(\..+)?$")
 
 @pytest.mark.slow
 def test_training_benchmark_quick(tmp_path, monkeypatch):
-    """Every condition and camera kind in the JSON, mIoUs finite in [0, 1], every run's loss
-    down, and every output and cached cube written by rename from a temporary beside it."""
+    """Every condition (albumentations skipped only with a reason) and camera kind in the JSON,
+    mIoUs finite in [0, 1], per-class IoU, every run stopped by the rule, the kornia search
+    over the whole grid; every output and cached file written by rename from a temporary
+    beside it; and --estimate's projection."""
     import bench_training as bt
 
     replaced = []
@@ -363,30 +365,45 @@ def test_training_benchmark_quick(tmp_path, monkeypatch):
     assert bt.main(["--quick", "--cache", str(cache), "--out", str(out), "--no-progress"]) == 0
     result = json.loads(out.read_text())
     assert {"commit", "dirty", "machine", "versions", "threads", "setup", "runs", "summary",
-            "augment_timing", "loadavg_start", "loadavg_end"} <= set(result)
-    assert list(result["conditions"]) == list(bt.CONDITIONS)
+            "augment_timing", "kornia_search", "skipped", "loadavg_start",
+            "loadavg_end"} <= set(result)
+    assert set(result["skipped"]) <= {"albumentations"}
+    names = [n for n in bt.CONDITIONS if n not in result["skipped"]]
+    assert list(result["conditions"]) == names and set(result["summary"]) == set(names)
     table = out.with_suffix(".md").read_text()
-    assert set(result["summary"]) == set(bt.CONDITIONS)
-    for name in bt.CONDITIONS:
+    stopping = result["setup"]["stopping"]
+    for name in names:
         assert set(result["summary"][name]) == set(bt.CAMERA_KINDS)
         runs = [r for r in result["runs"] if r["condition"] == name]
         assert [r["seed"] for r in runs] == result["seeds"] == [0]
         for r in runs:
-            assert len(r["losses"]) == result["setup"]["steps"]
-            assert r["loss_decreased"] and r["loss_end"] < r["loss_start"]
+            assert stopping["min_steps"] <= r["steps"] <= stopping["max_steps"]
+            assert len(r["losses"]) == r["steps"] and r["stopped"] in ("flat", "cap")
+            assert (r["stopped"] == "flat") == (r["quarter_change"] <= stopping["flat_tol"])
+            assert r["loss_end"] < r["loss_start"]
             for kind in bt.CAMERA_KINDS:
                 miou = r["eval"][kind]["miou"]
                 assert math.isfinite(miou) and 0 <= miou <= 1
                 assert r["eval"][kind]["classes_present"]
+        for kind in bt.CAMERA_KINDS:
+            assert set(result["summary"][name][kind]["iou_mean"]) == set(bt.CLASSES)
         assert result["augment_timing"][name]["images_per_s"] > 0
         assert f"| {bt.LABELS[name]} |" in table
+    assert "**Pole**" in table and "**Pedestrian**" in table and "**TrafficSign**" in table
+    search = result["kornia_search"]
+    assert len(search["grid"]) == len(bt.KORNIA_GRID)
+    assert search["best"] in [{"center": r["center"], "gamma": r["gamma"]}
+                              for r in search["grid"]]
+    assert result["conditions"]["kornia_fisheye"]["gamma"] == search["best"]["gamma"]
     assert out.with_suffix(".png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
     cubes = sorted((cache / "train_town0_face32").glob("cube_*.pt"))
+    traced = [cache / name for name in ("test_town1_size32.pt", "val_town0_size32.pt",
+                                          "upper_town0_size32.pt")]
     assert len(cubes) == 4
     renamed = {dst for src, dst in replaced
                if src.parent == dst.parent and src.name.startswith(f".{dst.name}.")}
-    for path in [out, out.with_suffix(".md"), out.with_suffix(".png"), *cubes]:
+    for path in [out, out.with_suffix(".md"), out.with_suffix(".png"), *cubes, *traced]:
         assert path in renamed, path
     assert not [p for p in tmp_path.rglob(".*") if _TEMPORARY.match(p.name)]
 
@@ -395,11 +412,20 @@ def test_training_benchmark_quick(tmp_path, monkeypatch):
     again = bt.training_cubes(cache, 0, 4, 32, log=lines.append)
     assert "0 rendered" in lines[0] and again["rgb"].shape == (4, 6, 3, 32, 32)
 
+    estimate = tmp_path / "estimate.json"
+    assert bt.main(["--quick", "--estimate", "--estimate-steps", "1", "--cache", str(cache),
+                    "--out", str(estimate)]) == 0
+    est = json.loads(estimate.read_text())
+    assert set(est["step_s"]) == set(names) and all(v > 0 for v in est["step_s"].values())
+    assert 0 < est["total_at_min_steps_s"] <= est["total_at_cap_s"]
+
 
 def test_training_benchmark_parts(monkeypatch):
     """kornia's RandomFisheye with labels: the image's field, nearest, 255 where the image
     is zero padding; conditions reproducible from their seed, the global RNG untouched;
-    RandomReproject given the faces' own intrinsics; IoU on a known case; bad flags named."""
+    RandomReproject given the faces' own intrinsics; traced labels those of the analytic
+    equidistant rays; the stopping rule, the network's size, IoU on a known case; bad flags
+    named."""
     import bench_training as bt
 
     g = torch.Generator().manual_seed(0)
@@ -414,17 +440,21 @@ def test_training_benchmark_parts(monkeypatch):
     assert bool((labels[inside] == 0).all()) and bool((labels[outside] == 255).all())
 
     idx = torch.tensor([0, 2, 3])
-    for name in ("kornia_fisheye", "reproject", "omni_camera"):
+    names = ["kornia_fisheye", "reproject", "omni_camera", "fisheye_upper"]
+    if not isinstance(bt.albumentations_or_reason(), str):
+        names.append("albumentations")
+    for name in names:
         state = torch.get_rng_state()
-        a = bt.make_condition(name, faces, cubes, 5).batch(idx if name != "omni_camera"
-                                                           else torch.zeros(3, dtype=torch.long))
+        pick = idx if name != "omni_camera" else torch.zeros(3, dtype=torch.long)
+        a = bt.make_condition(name, faces, cubes, 5, traced=faces).batch(pick)
         assert torch.equal(torch.get_rng_state(), state)
-        b = bt.make_condition(name, faces, cubes, 5).batch(idx if name != "omni_camera"
-                                                           else torch.zeros(3, dtype=torch.long))
+        b = bt.make_condition(name, faces, cubes, 5, traced=faces).batch(pick)
         assert all(torch.equal(x, y) for x, y in zip(a, b))
         assert a[1].dtype == torch.int64 and a[0].shape == (3, 3, 16, 16)
     with pytest.raises(ValueError, match="name"):
-        bt.make_condition("albumentations", faces, cubes, 0)
+        bt.make_condition("cutmix", faces, cubes, 0)
+    with pytest.raises(ValueError, match="traced"):
+        bt.make_condition("fisheye_upper", faces, cubes, 0)
 
     condition = bt.make_condition("reproject", faces, cubes, 3)
     calls = []
@@ -435,6 +465,37 @@ def test_training_benchmark_parts(monkeypatch):
     condition.batch(idx)
     assert torch.equal(calls[0], torch.tensor([[8.0, 8.0, 7.5, 7.5]]).expand(3, 4))
 
+    # traced: the labels of the equidistant rays (theta = r / f, f theta(95 deg) = 7.5 px)
+    town, size = ot.scenes.Town(1, layout=2), 16
+    camera, attitude = bt.test_camera("fisheye", size)
+    rotation = bt.yaw_matrix(0.7) @ attitude
+    position = [1.0, -1.0, 5.0]
+    rgb, labels = bt.trace_image(town, camera, rotation, position, 0.0, "clear_sunset", 2)
+    f, c = (size / 2 - 0.5) / math.radians(95), (size - 1) / 2
+    v, u = torch.meshgrid(torch.arange(size, dtype=torch.float64),
+                          torch.arange(size, dtype=torch.float64), indexing="ij")
+    x, y = (u - c) / f, (v - c) / f
+    theta = torch.hypot(x, y)
+    scale = torch.where(theta > 0, torch.sin(theta) / theta, torch.ones_like(theta))
+    rays = torch.stack((x * scale, y * scale, torch.cos(theta)), -1)
+    truth = town.render_rays(torch.tensor(position), rays.float() @ rotation.T, t=0.0,
+                             weather="clear_sunset")["labels"]
+    clear = (theta - math.radians(95)).abs() > 1e-4
+    inside = clear & (theta < math.radians(95))
+    assert rgb.dtype == labels.dtype == torch.uint8 and rgb.shape == (3, size, size)
+    assert torch.equal(labels[inside].long(), truth[inside])
+    assert bool((labels[clear & ~inside] == 255).all()) and bool((rgb[:, clear & ~inside] == 0)
+                                                                 .all())
+
+    assert sum(p.numel() for p in bt.UNet(13, 16, 4).parameters()) == 488_909
+    assert sum(p.numel() for p in bt.UNet(13, 16, 3).parameters()) == 119_117
+    assert bt.UNet(13, 4, 4)(torch.rand(1, 3, 24, 24)).shape == (1, 13, 24, 24)
+
+    assert not bt.flat([4.0] * 4 + [3.0, 3.0, 2.0, 2.0], 0.02)["flat"]   # 3 -> 2: a third down
+    rule = bt.flat([4.0] * 4 + [3.0, 3.0, 2.95, 2.95], 0.02)
+    assert rule["flat"] and rule["quarter_change"] == pytest.approx(0.05 / 3)
+    assert bt.flat([1.0] * 6 + [1.5] * 2, 0.0)["flat"]   # rising is flat
+
     truth = torch.tensor([[0, 0, 1, 255], [2, 2, 2, 255]])
     pred = torch.tensor([[0, 1, 1, 0], [2, 2, 0, 1]])
     scores = bt.iou_scores(bt.confusion(pred, truth, classes=4))
@@ -443,9 +504,14 @@ def test_training_benchmark_parts(monkeypatch):
     assert scores["miou"] == pytest.approx((1 / 3 + 1 / 2 + 2 / 3) / 3)
     assert scores["classes_present"] == [0, 1, 2] and scores["pixels"] == 6
 
-    for argv, message in ((["--train-town", "1"], "--train-town and --eval-seed"),
+    for argv, message in ((["--test-town", "0"], "--train-town and --test-town"),
                           (["--quick", "--size", "4"], "--size"),
+                          (["--quick", "--size", "30"], "--size"),
                           (["--quick", "--seeds", "0", "0"], "--seeds"),
+                          (["--quick", "--max-steps", "10"], "--max-steps"),
+                          (["--quick", "--min-steps", "4", "--chunk", "2"], "--min-steps"),
+                          (["--quick", "--flat-tol", "1.5"], "--flat-tol"),
+                          (["--quick", "--test-weathers", "clear_noon"], "--test-weathers"),
                           (["--quick", "--lr", "-1"], "--lr")):
         with pytest.raises(SystemExit) as exit_:
             bt.main(argv)
