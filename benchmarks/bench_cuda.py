@@ -141,7 +141,6 @@ def run(args: argparse.Namespace) -> dict:
             by["kornia_fisheye"]["images_per_s"],
             "omni_camera_throughput_over_kornia": by["omni_camera"]["images_per_s"] /
             by["kornia_fisheye"]["images_per_s"]})
-        del cube, small, small_labels, persp, persp_labels, square
     import kornia
     return {**run_record("cuda", device, args.threads),
             "versions_peers": {"kornia": kornia.__version__},
