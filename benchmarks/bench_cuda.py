@@ -47,6 +47,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import (begin_run, loadavg, measure, positive_int, results_path,  # noqa: E402
                     run_main, run_record)
 import omniscape_torch as ot  # noqa: E402
+from omniscape_torch.cameras.presets import yaw_pitch_roll_to_matrix  # noqa: E402
 from omniscape_torch.cubemap import ray_to_face  # noqa: E402
 
 DEG = math.pi / 180
@@ -55,19 +56,9 @@ SEED = 20261127
 
 def _rotations(batch: int, gen: torch.Generator) -> torch.Tensor:
     """``(batch, 3, 3)`` attitudes: yaw anywhere, roll +-25 deg, pitch +-10 deg."""
-    angles = (torch.rand(batch, 3, generator=gen) * 2 - 1) * torch.tensor(
-        [25 * DEG, 10 * DEG, math.pi])
-    return _euler(angles)
-
-
-def _euler(angles: torch.Tensor) -> torch.Tensor:
-    """Roll (about z), pitch (about x), yaw (about y) to rotation matrices, ``R = Ry Rx Rz``."""
-    c, s = angles.cos(), angles.sin()
-    one, zero = torch.ones_like(c[:, 0]), torch.zeros_like(c[:, 0])
-    rz = torch.stack([c[:, 0], -s[:, 0], zero, s[:, 0], c[:, 0], zero, zero, zero, one], -1)
-    rx = torch.stack([one, zero, zero, zero, c[:, 1], -s[:, 1], zero, s[:, 1], c[:, 1]], -1)
-    ry = torch.stack([c[:, 2], zero, s[:, 2], zero, one, zero, -s[:, 2], zero, c[:, 2]], -1)
-    return ry.view(-1, 3, 3) @ rx.view(-1, 3, 3) @ rz.view(-1, 3, 3)
+    roll, pitch, yaw = (torch.rand(3, batch, generator=gen) * 2 - 1) * torch.tensor(
+        [25 * DEG, 10 * DEG, math.pi])[:, None]
+    return yaw_pitch_roll_to_matrix(yaw, pitch, roll)
 
 
 def _six_faces(camera: ot.Camera, face: int, device: torch.device):

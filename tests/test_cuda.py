@@ -20,8 +20,8 @@ import torch
 
 import omniscape_torch as ot
 from conftest import all_cases
-from test_detection import (BOX_PX, KEYPOINT_PX, centroids, discs, random_boxes, rectangles,
-                            tight_box)
+from test_detection import (BOX_PX, KEYPOINT_PX, _repeat, centroids, discs, random_boxes,
+                            rectangles, tight_box)
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 
@@ -173,10 +173,8 @@ def test_detection_contracts_on_cuda(models, options):
                                      interpolation="nearest", seed=7, **options)
     boxes = random_boxes(10, size, gen)
     out = aug({"rgb": torch.zeros(1, 1, *size, device=CUDA), "boxes": [boxes.to(CUDA)]})
-    params = {k: (v * len(boxes) if k == "model" else
-                  v.expand(len(boxes), *v.shape[1:]) if isinstance(v, torch.Tensor) else v)
-              for k, v in out["params"].items()}
-    again = aug({"labels": rectangles(boxes, size).to(CUDA)}, params=params)
+    again = aug({"labels": rectangles(boxes, size).to(CUDA)},
+                params=_repeat(out["params"], len(boxes)))
     compared = 0
     for j in range(len(boxes)):
         expected = tight_box(again["labels"][j].cpu() == 1)
