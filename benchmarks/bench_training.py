@@ -102,9 +102,16 @@ reproject --seeds 0 --threads 1 --max-steps 800``, load 1.2-4) was not flat at 8
 (the last quarter's mean loss 0.176, 19.7 % under the previous quarter's 0.219; 799 s), so
 at these defaults most runs may stop at the cap (the table says which).
 
+Every finished run (and search run) is saved in ``<cache>/runs/`` under its settings
+(:func:`cached_run`), so an interrupted table resumes where it stopped, and one command started
+in two processes shares the runs between them (each claims a run before it trains it; the
+table is written by each once every run is saved): on 2 cores, two one-thread processes
+(``--threads 1``) use them better than one two-thread process.
+
 Usage::
 
     python benchmarks/bench_training.py             # the full table (~2.8 h at the cap, above)
+    python benchmarks/bench_training.py --threads 1 & python benchmarks/bench_training.py --threads 1
     python benchmarks/bench_training.py --estimate  # its projected cost on this machine
     python benchmarks/bench_training.py --quick     # 32 x 32, 8-12 steps, seed 0 (~15 s)
 
@@ -118,7 +125,9 @@ from __future__ import annotations
 
 import argparse
 import io
+import json
 import math
+import os
 import statistics
 import sys
 import time
@@ -222,6 +231,93 @@ def _cached(path: Path, meta: dict, make: Callable[[], dict[str, Tensor]]) -> tu
 
 def _to_uint8(rgb: Tensor) -> Tensor:
     return (rgb.clamp(0, 1) * 255).round().to(torch.uint8)
+
+
+#: The flags a run's record depends on (with ``RUN_VERSION``, a finished run's cache key).
+RUN_FLAGS = ("size", "cubes", "batch", "width", "levels", "lr", "warmup", "chunk", "min_steps",
+             "flat_tol", "train_town", "test_town", "test_layout", "test_weathers",
+             "test_frames", "val_frames", "trace_aa", "omni_mode")
+#: Bumped when a run's record changes meaning.
+RUN_VERSION = 1
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def cached_run(cache: Path, key: str, meta: dict, train: Callable[[], dict],
+               log: Callable[[str], None] = print, *, wait: bool = True,
+               poll_s: float = 10.0) -> dict | None:
+    """A finished run's record from ``cache/runs/<key>.json`` if its ``meta`` is ``meta``,
+    else ``train()``'s, saved there atomically.
+
+    Several processes may share one cache (``--cache``): the one that first creates
+    ``<key>.claim`` (``O_EXCL``, holding its pid) trains the run; for another the run is
+    None (``wait=False``: it goes on to other runs) or, with ``wait``, the record once the
+    claiming process has saved it (polled every ``poll_s`` seconds). A dead process's claim
+    is taken over. So the table's runs can be spread over processes started with the same
+    command (:func:`cached_runs`), and an interrupted table resumes where it stopped."""
+    meta = json.loads(json.dumps(meta))   # as it reads back: tuples are lists
+    folder = Path(cache) / "runs"
+    folder.mkdir(parents=True, exist_ok=True)
+    path, claim = folder / f"{key}.json", folder / f"{key}.claim"
+    waiting = False
+    while True:
+        if path.is_file():
+            try:
+                saved = json.loads(path.read_text())
+            except ValueError:   # not ours: train again
+                saved = None
+            if saved is not None and saved.get("meta") == meta:
+                return saved["run"]
+        try:
+            fd = os.open(claim, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+        except FileExistsError:
+            try:
+                pid = int(claim.read_text() or 0)
+            except (OSError, ValueError):
+                pid = 0
+            if pid and pid != os.getpid() and _pid_alive(pid):
+                if not wait:
+                    return None
+                if not waiting:
+                    log(f"{key}: trained by process {pid}, waiting for its record")
+                    waiting = True
+                time.sleep(poll_s)
+                continue
+            claim.unlink(missing_ok=True)   # a dead process's claim
+            continue
+        with os.fdopen(fd, "w") as f:
+            f.write(str(os.getpid()))
+        try:
+            record = train()
+            write_json_atomic({"meta": meta, "run": record}, path)
+        finally:
+            claim.unlink(missing_ok=True)
+        return record
+
+
+def cached_runs(cache: Path, jobs: list[tuple[str, dict, Callable[[], dict]]],
+                log: Callable[[str], None] = print, done: Callable[[], None] = lambda: None,
+                poll_s: float = 10.0) -> list[dict]:
+    """:func:`cached_run` of every ``(key, meta, train)`` job, in order: first those no other
+    process is training, then the others' once they are saved; ``done()`` after each."""
+    records: list[dict | None] = []
+    for key, meta, train in jobs:
+        records.append(cached_run(cache, key, meta, train, log, wait=False))
+        if records[-1] is not None:
+            done()
+    for i, (key, meta, train) in enumerate(jobs):
+        if records[i] is None:
+            records[i] = cached_run(cache, key, meta, train, log, poll_s=poll_s)
+            done()
+    return records
 
 
 def training_cubes(cache: Path, town_seed: int, count: int, face: int,
@@ -617,6 +713,13 @@ def flat(losses: list[float], tol: float) -> dict:
             "loss_last_quarter": last, "quarter_change": change}
 
 
+def run_meta(args: argparse.Namespace, **extra) -> dict:
+    """A run's cache key: the flags it depends on and ``extra`` (its condition, seed, cap and
+    ranges)."""
+    return {"version": RUN_VERSION, **{f: (list(getattr(args, f)) if isinstance(
+        getattr(args, f), tuple) else getattr(args, f)) for f in RUN_FLAGS}, **extra}
+
+
 def train_run(condition: Condition, sets: dict | None, args: argparse.Namespace, seed: int,
               *, max_steps: int | None = None) -> dict:
     """Train a fresh network under ``condition`` by the stopping rule (chunks of
@@ -707,10 +810,15 @@ def search_kornia(faces: dict, cubes: dict, val: dict, args: argparse.Namespace,
     """(b)'s ranges: every ``KORNIA_GRID`` setting trained with seed 0 (capped at
     ``args.search_max_steps``) and scored on the validation split (the mean of its camera
     kinds' mIoU); the best."""
+    jobs = [(f"kornia_search{i}",
+             run_meta(args, condition="kornia_search", seed=0, kornia=ranges,
+                      max_steps=args.search_max_steps),
+             lambda ranges=ranges: train_run(
+                 make_condition("kornia_fisheye", faces, cubes, 0, kornia=ranges), val, args,
+                 0, max_steps=args.search_max_steps))
+            for i, ranges in enumerate(KORNIA_GRID)]
     rows = []
-    for ranges in KORNIA_GRID:
-        run = train_run(make_condition("kornia_fisheye", faces, cubes, 0, kornia=ranges), val,
-                        args, 0, max_steps=args.search_max_steps)
+    for ranges, run in zip(KORNIA_GRID, cached_runs(args.cache, jobs, log)):
         score = statistics.fmean(run["eval"][k]["miou"] for k in CAMERA_KINDS)
         rows.append({**ranges, "val_miou": score, "steps": run["steps"],
                      "stopped": run["stopped"], "train_s": run["train_s"],
@@ -777,20 +885,22 @@ def run(args: argparse.Namespace, log: Callable[[str], None] = print) -> dict:
         return make_condition(name, faces, cubes, seed, omni_mode=args.omni_mode,
                               kornia=search and search["best"], traced=data.get("upper"))
 
+    jobs = [(f"{name}_seed{seed}",
+             run_meta(args, condition=name, seed=seed, max_steps=args.max_steps,
+                      kornia=(search["best"] if name == "kornia_fisheye" else None)),
+             lambda name=name, seed=seed: train_run(fresh(name, seed), data["test"], args,
+                                                    seed))
+            for name in names for seed in args.seeds]
+    with tqdm(total=len(jobs), desc="training runs", unit="run", file=sys.stderr,
+              disable=not args.progress) as bar:
+        runs = cached_runs(args.cache, jobs, log, bar.update)
+    settings = {}
+    for name in names:   # the first seed's settings (a module's repr names its seed)
+        condition = fresh(name, args.seeds[0])
+        settings[name] = {"source": condition.source, "samples": condition.size,
+                          **condition.settings}
     timing = time_augmentations({n: fresh(n, 12345) for n in names}, args.batch,
                                 args.timing_repeats, args.timing_warmup)
-    runs, settings = [], {}
-    with tqdm(total=len(names) * len(args.seeds), desc="training runs", unit="run",
-              file=sys.stderr, disable=not args.progress) as bar:
-        for name in names:
-            for seed in args.seeds:
-                bar.set_postfix_str(f"{name} seed {seed}")
-                condition = fresh(name, seed)
-                # the first seed's settings (a module's repr names its seed)
-                settings.setdefault(name, {"source": condition.source,
-                                           "samples": condition.size, **condition.settings})
-                runs.append(train_run(condition, data["test"], args, seed))
-                bar.update()
 
     net = UNet(NUM_CLASSES, args.width, args.levels)
     return {

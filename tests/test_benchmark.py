@@ -518,6 +518,65 @@ def test_training_benchmark_parts(monkeypatch):
         assert exit_.value.code == 2
 
 
+def test_training_runs_resume_and_are_shared_between_processes(tmp_path):
+    """A finished run is read back, not trained again; other settings train it again; a
+    dead process's claim is taken over; a live one's is waited for until its record lands."""
+    import threading
+
+    import bench_training as bt
+
+    calls = []
+
+    def train(value):
+        def f():
+            calls.append(value)
+            return {"value": value}
+        return f
+
+    meta = {"seed": 0, "kornia": {"center": (-0.1, 0.1)}}   # a tuple: JSON reads back a list
+    assert bt.cached_run(tmp_path, "k", meta, train(1), log=calls.append) == {"value": 1}
+    assert bt.cached_run(tmp_path, "k", meta, train(2), log=calls.append) == {"value": 1}
+    assert calls == [1]
+    assert bt.cached_run(tmp_path, "k", {**meta, "seed": 1}, train(3)) == {"value": 3}
+    assert not list((tmp_path / "runs").glob("*.claim"))
+
+    # a claim left by a process that has died: taken over
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    (tmp_path / "runs" / "d.claim").write_text(str(dead.pid))
+    assert bt.cached_run(tmp_path, "d", meta, train(4)) == {"value": 4}
+
+    # a live process's claim (this process's parent): wait for the record it writes
+    (tmp_path / "runs" / "w.claim").write_text(str(os.getppid()))
+    logged = []
+
+    def other():
+        bt.write_json_atomic({"meta": json.loads(json.dumps(meta)), "run": {"value": 5}},
+                             tmp_path / "runs" / "w.json")
+        (tmp_path / "runs" / "w.claim").unlink()
+
+    timer = threading.Timer(0.2, other)
+    timer.start()
+    assert bt.cached_run(tmp_path, "w", meta, train(6), wait=False) is None
+    assert bt.cached_run(tmp_path, "w", meta, train(6), log=logged.append,
+                         poll_s=0.05) == {"value": 5}
+    timer.join()
+    assert 6 not in calls and "waiting" in logged[0]
+
+    # several jobs: the one another process trains is taken last, the others first, in order
+    (tmp_path / "runs" / "b.claim").write_text(str(os.getppid()))
+    calls.clear()
+    timer = threading.Timer(0.2, lambda: (
+        bt.write_json_atomic({"meta": {}, "run": {"value": "b"}}, tmp_path / "runs" / "b.json"),
+        (tmp_path / "runs" / "b.claim").unlink()))
+    timer.start()
+    jobs = [(key, {}, train(key)) for key in "abc"]
+    assert bt.cached_runs(tmp_path, jobs, logged.append, poll_s=0.05) == [
+        {"value": "a"}, {"value": "b"}, {"value": "c"}]
+    timer.join()
+    assert calls == ["a", "c"]
+
+
 # --------------------------------------------------------------------------------------------
 # --quick never overwrites the committed full-run results (issue 32)
 # --------------------------------------------------------------------------------------------
