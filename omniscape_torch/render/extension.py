@@ -1,5 +1,6 @@
 """The package's C++ kernels as PyTorch custom ops, one library built on first use: the fast
-sampler's per-pixel loops (``csrc/fastsample.cpp``) and the town's shading loops
+sampler's per-pixel loops (``csrc/fastsample.h``, their ops in ``csrc/fastsample.cpp``, the
+cube samplers', and ``csrc/fastimage.cpp``, the others) and the town's shading loops
 (``csrc/town_shade.cpp``).
 
 Why hand-written: a bilinear tap is four loads a texel apart, which a C loop does in a few
@@ -22,11 +23,13 @@ that names the op and the argument; their fake implementations for ``torch.compi
 registered here. A call through ``torch.ops`` releases the GIL while the op runs, so the town's
 worker threads shade in parallel.
 
-Build: :func:`load` builds both sources with one ``torch.utils.cpp_extension.load`` call (ninja
-and the C++ compiler torch uses, ``$CXX`` else ``c++``; about 45 s once per machine on 2 cores,
-the two sources compiled side by side, most of it the instantiations of the samplers per
-element, output and grid type; the torch headers take 5 s, against 30 s with
-``torch/extension.h``) into torch's extension cache (``$TORCH_EXTENSIONS_DIR``, default
+Build: :func:`load` builds the three sources with one ``torch.utils.cpp_extension.load`` call
+(ninja and the C++ compiler torch uses, ``$CXX`` else ``c++``; about 45 s once per machine on 2
+cores, the sources compiled side by side, most of it the instantiations of the samplers per
+element, output and grid type, which is why the samplers' ops are two translation units, the
+cube's and the image's, of about the same cost: one of 2,900 lines took 94 s where the two
+took 91 s side by side, at a load of 4 on 2 cores; the torch headers take 5 s a source,
+against 30 s with ``torch/extension.h``) into torch's extension cache (``$TORCH_EXTENSIONS_DIR``, default
 ``~/.cache/torch_extensions/<python>_<device>/``) and loads the library. A build prints one line
 to stderr as it starts (``omniscape_torch: building the C++ kernels ...``) and one when it is
 done, with its time. A process that finds the library built (the ``.so`` of its name in its
@@ -81,9 +84,10 @@ from ..io.atomic import atomic_path
 __all__ = ["load", "ops", "unavailable_reason", "name", "face_case_flags", "CFLAGS", "LDFLAGS",
            "NAMESPACE", "OPS", "SOURCES"]
 
-#: The sources of the one library: the samplers (which define the namespace) and the town.
-SOURCES = (Path(__file__).with_name("csrc") / "fastsample.cpp",
-           Path(__file__).with_name("csrc") / "town_shade.cpp")
+#: The sources of the one library: the samplers' kernels (a header), their ops (the cube's,
+#: which define the namespace, and the image's) and the town's.
+SOURCES = tuple(Path(__file__).with_name("csrc") / file for file in (
+    "fastsample.h", "fastsample.cpp", "fastimage.cpp", "town_shade.cpp"))
 NAMESPACE = "omniscape_torch"
 OPS = ("build_lut", "sample_lut", "sample_grid", "sample_rays", "camera_grid", "camera_rays",
        "sample_image", "mip_image", "framing_reach", "framing_focal", "box_pixels",
@@ -223,7 +227,7 @@ def _build() -> str:
         torch.ops.load_library(str(library))
         return str(library)
     _check_compiler()
-    paths = _copy_sources(sources, folder)
+    paths = [p for p in _copy_sources(sources, folder) if p.endswith(".cpp")]   # not the .h
     with _ninja_on_path():
         print("omniscape_torch: building the C++ kernels for this install (about 40 s, once) "
               f"in {folder} ...", file=sys.stderr, flush=True)
