@@ -293,6 +293,10 @@ def test_opcheck_mip_image(dtype):
         ops().mip_image(image, rays, None, k, valid[:1], 1.001, out)
     with pytest.raises(RuntimeError, match="mip_image: image: expected uint8, float32"):
         ops().mip_image(image.half(), rays.float(), None, k.float(), valid, 1.001, out.half())
+    # a check it shares with sample_image: a rotation has 3 rows
+    with pytest.raises(RuntimeError, match=r"mip_image: rotation: expected \(1 or B, 3, 3\)"):
+        ops().mip_image(image, rays, make_rotation(2, g)[:, :2].contiguous(), k, valid, 1.001,
+                        out)
 
 
 def test_ops_write_what_the_python_functions_return():
