@@ -951,6 +951,15 @@ def run(args: argparse.Namespace, log: Callable[[str], None] = print) -> dict:
         "timing_repeats": args.timing_repeats, "timing_warmup": args.timing_warmup,
         "timestamp_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "total_s": time.perf_counter() - started,
+        "cost": {"runs": len(runs), "steps": sum(r["steps"] for r in runs),
+                 "runs_s": sum(r["train_s"] + r["eval_s"] for r in runs),
+                 "search_runs": len(search["grid"]) if search else 0,
+                 "search_steps": sum(r["steps"] for r in search["grid"]) if search else 0,
+                 "search_s": sum(r["train_s"] for r in search["grid"]) if search else 0.0,
+                 "data_s": data_s,
+                 "note": "seconds of training and evaluation summed over the runs, each on "
+                         "--threads threads; runs spread over processes (cached_run) overlap "
+                         "in wall time"},
         "loadavg_start": load_start,
         "loadavg_end": loadavg(),
     }
@@ -1077,7 +1086,7 @@ def markdown(result: dict) -> str:
         f"thread{'s' if result['threads'] > 1 else ''}, commit {result['commit'][:12]}"
         f"{' (dirty)' if result['dirty'] else ''}", "",
         "| condition | fisheye mIoU % | catadioptric mIoU % | fisheye pole / sign / pedestrian "
-        "IoU % | steps (stopped) | augmentation images/s | train s / run |",
+        "IoU % | steps (stopped, %) | augmentation images/s | train s / run |",
         "|---|---:|---:|---:|---:|---:|---:|"]
 
     def cell(entry: dict) -> str:
@@ -1088,7 +1097,8 @@ def markdown(result: dict) -> str:
         summary = result["summary"][name]
         runs = [r for r in result["runs"] if r["condition"] == name]
         small = " / ".join(_pct(summary["fisheye"]["iou_mean"][c]) for c in SMALL_CLASSES)
-        steps = ", ".join(f"{r['steps']} ({r['stopped']})" for r in runs)
+        steps = ", ".join(f"{r['steps']} ({r['stopped']}, {-100 * r['quarter_change']:+.1f} %)"
+                          for r in runs)
         lines.append(f"| {info['label']} | {cell(summary['fisheye'])} | "
                      f"{cell(summary['catadioptric'])} | {small} | {steps} | "
                      f"{result['augment_timing'][name]['images_per_s']:.0f} | "
@@ -1119,8 +1129,19 @@ def markdown(result: dict) -> str:
               "Absent from the test set, so left out: " + "; ".join(
                   f"{kind}: {', '.join(te[kind]['classes_absent']) or 'none'}"
                   for kind in CAMERA_KINDS) + ".",
+              f"steps (stopped, %): each seed's steps, why it stopped (flat or the cap) and "
+              f"the change of its mean loss from the previous quarter of its steps to the last "
+              f"(flat: at most -{100 * st['flat_tol']:g} %).",
               f"augmentation images/s: one batch of {s['batch']} (gather + augment), median of "
               f"{result['timing_repeats']} calls; (a) and (f) are the gather alone."]
+    cost = result.get("cost")
+    if cost:
+        lines.append(
+            f"cost: {cost['runs']} runs ({cost['steps']:,} steps) and {cost['search_runs']} "
+            f"search runs ({cost['search_steps']:,} steps) trained and evaluated in "
+            f"{(cost['runs_s'] + cost['search_s']) / 3600:.2f} h of {result['threads']} "
+            f"thread{'s' if result['threads'] > 1 else ''} each (summed over the runs), the "
+            f"data in {cost['data_s'] / 60:.1f} min.")
     if result["skipped"]:
         lines.append("skipped: " + "; ".join(f"{LABELS[k]}: {v}"
                                              for k, v in result["skipped"].items()))
