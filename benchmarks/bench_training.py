@@ -100,7 +100,11 @@ machine collapse (load 1.7-3.2: 2.1-3.5 s a step, 19 h projected): run the table
 cores, or with ``--threads 1`` where others share them. One full-size run (``--conditions
 reproject --seeds 0 --threads 1 --max-steps 800``, load 1.2-4) was not flat at 800 steps
 (the last quarter's mean loss 0.176, 19.7 % under the previous quarter's 0.219; 799 s), so
-at these defaults most runs may stop at the cap (the table says which).
+at these defaults most runs may stop at the cap (the table says which). The committed table
+(commit d96cef1) took 7,670 s (2.1 h) in two one-thread processes sharing the runs, on the
+2-core VM with other work beside it for part of the time (0.54-1.04 s a step, medians per
+run); 15 of its 18 runs stopped at the cap, their loss 7-30 % lower in the last quarter of
+their steps than in the one before.
 
 Every finished run (and search run) is saved in ``<cache>/runs/`` under its settings
 (:func:`cached_run`), so an interrupted table resumes where it stopped, and one command started
@@ -1140,8 +1144,9 @@ def markdown(result: dict) -> str:
             f"cost: {cost['runs']} runs ({cost['steps']:,} steps) and {cost['search_runs']} "
             f"search runs ({cost['search_steps']:,} steps) trained and evaluated in "
             f"{(cost['runs_s'] + cost['search_s']) / 3600:.2f} h of {result['threads']} "
-            f"thread{'s' if result['threads'] > 1 else ''} each (summed over the runs), the "
-            f"data in {cost['data_s'] / 60:.1f} min.")
+            f"thread{'s' if result['threads'] > 1 else ''} each (summed over the runs; this "
+            f"process read the runs it found saved), the data made or read in "
+            f"{cost['data_s'] / 60:.1f} min.")
     if result["skipped"]:
         lines.append("skipped: " + "; ".join(f"{LABELS[k]}: {v}"
                                              for k, v in result["skipped"].items()))
@@ -1177,8 +1182,9 @@ def chart(result: dict, path: Path) -> None:
     s = result["setup"]
     ax.set_title(f"Segmentation trained on town {s['train']['town_seed']} under each condition, "
                  f"tested on omni images traced in town {s['test']['town_seed']}\n"
-                 f"until flat, batch {s['batch']}, {s['image_size'][0]} px, "
-                 f"{len(result['seeds'])} seed(s): bar mean, whiskers min-max, dots seeds",
+                 f"until flat or {s['stopping']['max_steps']} steps, batch {s['batch']}, "
+                 f"{s['image_size'][0]} px, {len(result['seeds'])} seed(s): bar mean, whiskers "
+                 "min-max, dots seeds",
                  fontsize=9)
     ax.grid(True, axis="y", alpha=0.3)
     ax.legend(fontsize=8)
