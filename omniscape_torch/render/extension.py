@@ -27,8 +27,8 @@ Build: :func:`load` builds the three sources with one ``torch.utils.cpp_extensio
 (ninja and the C++ compiler torch uses, ``$CXX`` else ``c++``; about 45 s once per machine on 2
 cores, the sources compiled side by side, most of it the instantiations of the samplers per
 element, output and grid type, which is why the samplers' ops are two translation units, the
-cube's and the image's, of about the same cost: one of 2,900 lines took 94 s where the two
-took 91 s side by side, at a load of 4 on 2 cores; the torch headers take 5 s a source,
+cube's and the image's, of about the same cost: the whole build took 40 s on 2 idle cores
+(76 s of CPU), the one source of 2,900 lines before it 65 s; the torch headers take 5 s a source,
 against 30 s with ``torch/extension.h``) into torch's extension cache (``$TORCH_EXTENSIONS_DIR``, default
 ``~/.cache/torch_extensions/<python>_<device>/``) and loads the library. A build prints one line
 to stderr as it starts (``omniscape_torch: building the C++ kernels ...``) and one when it is

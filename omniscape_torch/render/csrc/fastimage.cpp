@@ -39,15 +39,7 @@ void sample_image_op(const at::Tensor& image, const at::Tensor& rays,
     check_cpu(op, "image", image);
     TORCH_CHECK(image.dim() == 4 && image.size(2) >= 1 && image.size(3) >= 1, op,
                 ": image: expected shape (B, C, H, W), got ", image.sizes());
-    if (bilinear) {
-        TORCH_CHECK(blends(image), op, ": image: bilinear sampling needs float32, float64, "
-                    "float16, bfloat16 or uint8, got ", image.scalar_type());
-    } else {
-        const int64_t size = image.element_size();
-        TORCH_CHECK(blends(image) || size == 1 || size == 2 || size == 4 || size == 8, op,
-                    ": image: nearest sampling copies elements of 1, 2, 4 or 8 bytes, got ",
-                    image.scalar_type());
-    }
+    check_elements(op, "image", image, bilinear);
     const int64_t height = image.size(2), width = image.size(3);
     const Layout L = check_image_rays(op, image, rays, rotation, intrinsics, bilinear);
     const at::Tensor cube = image.unsqueeze(1).narrow(3, 0, 1).narrow(4, 0, 1);

@@ -1884,6 +1884,21 @@ Layout check_layout(const char* op, int64_t face, int64_t pad, at::IntArrayRef s
     return L;
 }
 
+// The elements a sampler reads from t (a cube or an image): blended ones (float32, float64,
+// float16, bfloat16, uint8) for bilinear sampling, or any of 1, 2, 4 or 8 bytes, copied, for
+// nearest.
+void check_elements(const char* op, const char* name, const at::Tensor& t, bool bilinear) {
+    if (bilinear) {
+        TORCH_CHECK(blends(t), op, ": ", name, ": bilinear sampling needs float32, float64, "
+                    "float16, bfloat16 or uint8, got ", t.scalar_type());
+    } else {
+        const int64_t size = t.element_size();
+        TORCH_CHECK(blends(t) || size == 1 || size == 2 || size == 4 || size == 8, op, ": ",
+                    name, ": nearest sampling copies elements of 1, 2, 4 or 8 bytes, got ",
+                    t.scalar_type());
+    }
+}
+
 // cube (B, 6, C, F, F) on the CPU, any strides; its element type one the loops read; offsets
 // within a sample and channel that fit the int32 codes.
 Layout check_cube(const char* op, const at::Tensor& cube, bool bilinear, int64_t pad) {
@@ -1891,15 +1906,7 @@ Layout check_cube(const char* op, const at::Tensor& cube, bool bilinear, int64_t
     TORCH_CHECK(cube.dim() == 5 && cube.size(1) == 6 && cube.size(3) == cube.size(4) &&
                     cube.size(3) >= 1,
                 op, ": cube: expected shape (B, 6, C, F, F), got ", cube.sizes());
-    if (bilinear) {
-        TORCH_CHECK(blends(cube), op, ": cube: bilinear sampling needs float32, float64, "
-                    "float16, bfloat16 or uint8, got ", cube.scalar_type());
-    } else {
-        const int64_t size = cube.element_size();
-        TORCH_CHECK(blends(cube) || size == 1 || size == 2 || size == 4 || size == 8, op,
-                    ": cube: nearest sampling copies elements of 1, 2, 4 or 8 bytes, got ",
-                    cube.scalar_type());
-    }
+    check_elements(op, "cube", cube, bilinear);
     return check_layout(op, cube.size(4), pad, {cube.stride(1), cube.stride(3), cube.stride(4)});
 }
 
