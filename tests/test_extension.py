@@ -299,6 +299,30 @@ def test_opcheck_mip_image(dtype):
                         out)
 
 
+@pytest.mark.parametrize("dtype", [torch.uint8, f32])
+def test_opcheck_reproject_image(dtype):
+    gen = torch.Generator().manual_seed(9)
+    image = (torch.rand(2, 3, 16, 16, generator=gen) * 255).to(dtype)
+    labels = torch.randint(0, 5, (2, 16, 16), generator=gen)
+    params = torch.tensor([[4.0, 4.0, 3.0, 2.0], [3.0, 3.5, 3.5, 2.5]], dtype=torch.float64)
+    cameras = [t.float() for t in kernels.radial_table("equidistant", params, (5, 7),
+                                                        entries=16)]
+    k = torch.tensor([[9.0, 9.5, 7.5, 7.0]])
+    out = torch.zeros(2, 3, 5, 7, dtype=dtype)
+    out_labels = torch.zeros(2, 5, 7, dtype=torch.int64)
+    valid = torch.zeros(2, 5, 7, dtype=torch.bool)
+    torch.library.opcheck(ops().reproject_image, (image, labels, *cameras, make_rotation(2, f32),
+                                                  k, True, 1.001, 255, out, out_labels, valid))
+    torch.library.opcheck(ops().reproject_image, (None, labels, *cameras, make_rotation(2, f32),
+                                                  k, True, 0.0, 255, None, out_labels, valid))
+    with pytest.raises(RuntimeError, match="reproject_image: expected image with out"):
+        ops().reproject_image(image, labels, *cameras, make_rotation(2, f32), k, True, 0.0, 255,
+                              None, out_labels, valid)
+    with pytest.raises(RuntimeError, match="reproject_image: valid: expected bool"):
+        ops().reproject_image(image, None, *cameras, make_rotation(2, f32), k, True, 0.0, 255,
+                              out, None, valid[:1])
+
+
 def test_ops_write_what_the_python_functions_return():
     """The ops called directly give ``fast.sample_cube``'s and ``fast.sample_rays``' images."""
     cube, ring_src, ring_weight, out = make_inputs(f32)

@@ -180,3 +180,46 @@ def test_fast_and_exact_paths_of_random_reproject_agree():
                                        fisheye_models=("equidistant", "unified"),
                                        antialias=False)(rgb, params=params)
     assert float((point["rgb"][both].float() - fast_out["rgb"][both].float()).abs().max()) > 20
+
+
+@pytest.mark.parametrize("dtype,channels_last", [(torch.uint8, True), (torch.uint8, False),
+                                                 (torch.float32, False), (torch.float64, True)])
+@pytest.mark.parametrize("labels_dtype", [None, torch.uint8, torch.int64])
+def test_reproject_image_is_the_ops_in_turn(dtype, channels_last, labels_dtype):
+    """``fast.reproject_image`` (``RandomReproject``'s fused fast path) writes what
+    ``camera_rays``, ``sample_image``, ``mip_image`` and the labels' ``sample_image`` write
+    in turn, bit for bit: two equidistant cameras, turned, one minifying the source, one
+    magnifying it, ``valid`` included."""
+    gen = torch.Generator().manual_seed(11)
+    src = torch.rand(2, 3, 96, 160, generator=gen, dtype=torch.float64)
+    image = (src * 255).round().to(torch.uint8) if dtype == torch.uint8 else src.to(dtype)
+    if channels_last:
+        image = image.permute(0, 2, 3, 1).contiguous().permute(0, 3, 1, 2)
+    labels = (None if labels_dtype is None else
+              torch.randint(0, 19, (2, 96, 160), generator=gen).to(labels_dtype))
+    work = fast.work_dtype(image.dtype)
+    cams = torch.tensor([[14.0, 14.0, 23.5, 23.5], [110.0, 110.0, 20.0, 26.0]],
+                        dtype=torch.float64)
+    affine, limits, table = ot.render.kernels.radial_table("equidistant", cams, (48, 48))
+    limits[:, 3] = math.cos(math.radians(85))
+    affine, limits, table = (t.to(work).contiguous() for t in (affine, limits, table))
+    rot = torch.stack([torch.tensor([[math.cos(a), 0, math.sin(a)], [0, 1, 0],
+                                     [-math.sin(a), 0, math.cos(a)]]) for a in (0.2, -0.5)])
+    rot, k = rot.to(work), torch.tensor([[90.0, 90.0, 79.5, 47.5]], dtype=work).expand(2, 4)
+    rays, ok = fast.camera_rays(affine, limits, table, (48, 48), work)
+    want, seen = fast.sample_image(image, rays, rot, k, valid=ok)
+    fast.mip_image(image, rays, rot, k, seen, want)
+    out, valid = torch.empty_like(want), torch.empty_like(seen)
+    out_labels = None if labels is None else torch.empty(2, 48, 48, dtype=torch.int64)
+    fast.reproject_image(image, labels, affine, limits, table, rot, k, True,
+                         antialias.MINIFIES, 255, out, out_labels, valid)
+    assert torch.equal(out, want) and torch.equal(valid, seen)
+    assert 0.2 < float(seen.float().mean()) < 1
+    if labels is not None:
+        ids, seen_ids = fast.sample_image(labels.unsqueeze(1), rays, rot, k, "nearest",
+                                          valid=ok, fill=255, out_dtype=torch.int64)
+        assert torch.equal(out_labels, ids[:, 0]) and torch.equal(seen_ids, seen)
+        # labels alone: their validity written
+        fast.reproject_image(None, labels, affine, limits, table, rot, k, True, 0.0, 255,
+                             None, out_labels, valid.fill_(False))
+        assert torch.equal(out_labels, ids[:, 0]) and torch.equal(valid, seen)

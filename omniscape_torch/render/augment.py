@@ -1382,9 +1382,16 @@ class RandomReproject(_RandomCameras):
         ``name`` (``params (n, P)`` in the rays' dtype, float32 or float64) within their fields
         of view ``fov (n,)``: :func:`~omniscape_torch.render.kernels.camera_rays`, through
         the table of :meth:`_unit_lens` where the model has one."""
-        unit = self._unit_lens(name)
-        if unit is None:
+        if self._unit_lens(name) is None:
             return camera_rays(name, params, self.image_size, fov=fov, dtype=params.dtype)
+        return fast.camera_rays(*self._tables(name, params, fov), self.image_size, params.dtype)
+
+    def _tables(self, name: str, params: Tensor, fov: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """``affine (n, 6)``, ``limits (n, 5)`` and ``table (1, 2, K)`` of ``n`` cameras of a
+        model with a :meth:`_unit_lens` table, in the dtype of ``params (n, P)``, as
+        :func:`~omniscape_torch.render.fast.camera_rays` takes them: ``cx, cy`` and ``M =
+        diag(1 / fx, 1 / fy)``, the table's limits with ``cos(fov / 2)`` and no blind cone."""
+        unit = self._unit_lens(name)
         fx, fy, cx, cy = params[:, :4].numpy().astype(np.float64).T
         n = len(fx)
         affine = np.zeros((n, 6))          # cx, cy and M = diag(1 / fx, 1 / fy)
@@ -1395,9 +1402,8 @@ class RandomReproject(_RandomCameras):
         limits[:, 4] = 2.0
         table = unit.tables[params.dtype]
         as_dtype = table.numpy().dtype     # in the rays' dtype, as the op takes them
-        return fast.camera_rays(torch.from_numpy(affine.astype(as_dtype)),
-                                torch.from_numpy(limits.astype(as_dtype)),
-                                table, self.image_size, params.dtype)
+        return (torch.from_numpy(affine.astype(as_dtype)),
+                torch.from_numpy(limits.astype(as_dtype)), table)
 
     def source_intrinsics(self, image_size: tuple[int, int], batch: int) -> Tensor:
         """``(batch, 4)`` float64 pinhole intrinsics of images of ``image_size`` from
@@ -1592,7 +1598,16 @@ class RandomReproject(_RandomCameras):
                      scan: Callable | None = None) -> None:
         """The samples ``part.index`` through the C++ ops: the cameras' rays from their tables
         (or ``Camera.ray_grid`` where a model has none), then ``fast.sample_image``; ``scan``
-        (if given) reads the rays as ``sample_image`` does."""
+        (if given) reads the rays as ``sample_image`` does. The common case (a lens with a
+        table, a pinhole source, image and ``uint8`` or int64 labels, no depth, no detection
+        targets) runs as one call of the C++ op ``reproject_image`` per run of samples: the
+        same kernels, in the same order, without the rays in Python."""
+        if (part.source is None and scan is None and depth is None and
+                self._unit_lens(name) is not None and
+                (image is None or image.dtype in fast.MIPMAPPED or not self.antialias) and
+                (labels is None or labels.dtype in (torch.uint8, torch.int64))):
+            self._render_fused(name, part, image, labels, result)
+            return
         rays, valid = self._rays(name, part.params, part.fov)
         target, rotation = rays, part.rotation
         if part.source is None:
@@ -1641,6 +1656,22 @@ class RandomReproject(_RandomCameras):
                 result["depth"][at] = self._range(z, target[rows], part.rotation[rows],
                                                   seen_z.unsqueeze(1))
                 seen.copy_(seen_z)
+
+    def _render_fused(self, name: str, part: "_Part", image: Tensor | None,
+                      labels: Tensor | None, result: dict) -> None:
+        """:meth:`_render_fast` of the common case, one ``reproject_image`` call per run of
+        consecutive samples."""
+        affine, limits, table = self._tables(name, part.params, part.fov)
+        k = part.intrinsics.to(part.params.dtype)
+        minifies = (fast.MINIFIES if image is not None and self.antialias and
+                    self.interpolation != "nearest" else 0.0)
+        for at, (a, b) in _slices(part.index):   # runs of consecutive samples: views
+            fast.reproject_image(
+                None if image is None else image[at], None if labels is None else labels[at],
+                affine[a:b], limits[a:b], table, part.rotation[a:b], k[a:b],
+                self.interpolation == "bilinear", minifies, self.ignore_index,
+                None if image is None else result["rgb"][at],
+                None if labels is None else result["labels"][at], result["valid"][at, 0])
 
     @staticmethod
     def _antialias(image: Tensor, rays: Tensor, rotation: Tensor | None, k: Tensor,

@@ -64,7 +64,7 @@ from ..cubemap.grid import rotated_rays_to_grid
 from ..cubemap.grid import _check_inputs as _check_rays
 
 __all__ = ["CubeLUT", "CameraGrid", "build_lut", "camera_rays", "sample_cube", "sample_rays",
-           "sample_image", "mip_image", "MIPMAPPED", "reads_rays", "sample_atlas", "available",
+           "sample_image", "mip_image", "reproject_image", "MIPMAPPED", "reads_rays", "sample_atlas", "available",
            "unavailable_reason",
            "compile_failures", "holds", "is_channels_last", "work_dtype", "grid_dtype",
            "output_dtypes", "MODES", "BORDERS", "BLENDED"]
@@ -702,6 +702,27 @@ def mip_image(image: Tensor, rays: Tensor, rotation: Tensor | None, intrinsics: 
                              intrinsics.to(dtype).contiguous(), valid.contiguous(), MINIFIES,
                              out)
     return out
+
+
+def reproject_image(image: Tensor | None, labels: Tensor | None, affine: Tensor, limits: Tensor,
+                    table: Tensor, rotation: Tensor, intrinsics: Tensor, bilinear: bool,
+                    minifies: float, fill: int, out: Tensor | None, out_labels: Tensor | None,
+                    valid: Tensor) -> None:
+    """In one call of the C++ op: :func:`camera_rays` of ``B`` radially symmetric cameras
+    (``affine (B, 6)``, ``limits (B, 5)``, ``table (1 or B, 2, K)``, in the rays' dtype: the
+    :func:`work_dtype` of the image, float32 for labels alone), :func:`sample_image` of
+    ``image (B, C, H, W)`` along them into ``out (B, C, h, w)`` (``bilinear`` or nearest), its
+    validity into ``valid (B, h, w)`` bool, :func:`mip_image` of the pixels that minify where
+    ``minifies > 0`` (the threshold, :data:`~omniscape_torch.render.antialias.MINIFIES`;
+    ``uint8``, float32 or float64 images), and ``labels (B, H, W)`` (``uint8`` or int64 ids)
+    sampled nearest into ``out_labels (B, h, w)`` int64, ``fill`` outside. The results of those
+    functions in turn, bit for bit (``RandomReproject``'s fast path; the rays stay inside the
+    call). The op checks what it reads (a ``RuntimeError`` naming the tensor); the rotations
+    ``(1 or B, 3, 3)`` and ``intrinsics (1 or B, 4)`` must be in the rays' dtype."""
+    _require().reproject_image(image, None if labels is None else labels.contiguous(),
+                               affine, limits, table, rotation.contiguous(),
+                               intrinsics.contiguous(), bilinear, float(minifies), int(fill),
+                               out, out_labels, valid)
 
 
 def is_channels_last(t: Tensor) -> bool:

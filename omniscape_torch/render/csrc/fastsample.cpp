@@ -158,6 +158,9 @@ TORCH_LIBRARY(omniscape_torch, m) {
           "Tensor(b!) longest, Tensor(c!) flags) -> ()");
     m.def("mip_image(Tensor image, Tensor rays, Tensor? rotation, Tensor intrinsics, "
           "Tensor valid, float minifies, Tensor(a!) out) -> ()");
+    m.def("reproject_image(Tensor? image, Tensor? labels, Tensor affine, Tensor limits, "
+          "Tensor table, Tensor rotation, Tensor intrinsics, bool bilinear, float minifies, "
+          "int fill, Tensor(a!)? out, Tensor(b!)? out_labels, Tensor(c!) valid_out) -> ()");
     m.def("framing_reach(Tensor rotation, Tensor intrinsics, Tensor half, Tensor cos, "
           "Tensor sin, int height, int width, Tensor(a!) theta) -> ()");
     m.def("framing_focal(Tensor radius, Tensor to_edge, Tensor coverage, int height, "
