@@ -16,6 +16,7 @@ import pytest
 import torch
 
 import omniscape_torch as ot
+from omniscape_torch.render import framing
 from omniscape_torch.render.augment import RandomReproject
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
@@ -96,6 +97,34 @@ def test_drawn_coverage_is_the_valid_share(models):
     default = RandomReproject((96, 96), fisheye_models=models, seed=3, antialias=False)(
         {"rgb": image, "intrinsics": K})
     assert float(default["valid"].float().mean((1, 2, 3)).min()) >= 0.5 - 0.02
+
+
+@pytest.mark.parametrize("jitter,same", [(0.0, False), (3.0, False), (0.0, True)])
+def test_one_call_draw_is_the_framing_steps(jitter, same):
+    """The draw of one lens with a table (``frame_lens``: rotations, reach, radius and focal in
+    one C++ call) gives the rotations of ``presets.rotation_rows`` and the focals of
+    ``framing.reach``, the lens's radius table and ``framing.focal_for_coverage`` in turn."""
+    aug = RandomReproject((64, 80), coverage_range=(0.4, 0.9), center_jitter=jitter,
+                          same_on_batch=same, seed=5)
+    k = K.expand(5, 4)
+    params = aug.forward_parameters(5, intrinsics=k, source_size=SRC)
+    cos = torch.stack([params[a] for a in ("yaw", "pitch", "roll")]).cos().numpy()
+    sin = torch.stack([params[a] for a in ("yaw", "pitch", "roll")]).sin().numpy()
+    rows = ot.cameras.presets.rotation_rows(cos[0], sin[0], cos[1], sin[1], cos[2], sin[2])
+    want = torch.tensor([[[float(e[b]) for e in row] for row in rows] for b in range(5)],
+                        dtype=torch.float64)
+    torch.testing.assert_close(params["rotation"], want, atol=1e-15, rtol=0)
+    half = (params["fov"] / 2).numpy()
+    theta = framing.reach(want.numpy(), k.numpy(), SRC, half)
+    unit = aug._unit_lens("equidistant")
+    centre = params["camera_params"][:, 2:4].numpy()
+    focal = framing.focal_for_coverage(unit.radius_at(theta),
+                                       framing.to_edge(centre, (64, 80)),
+                                       params["coverage"].numpy(), (64, 80))
+    torch.testing.assert_close(params["camera_params"][:, 0], torch.from_numpy(focal),
+                               rtol=1e-12, atol=0)
+    assert torch.equal(params["camera_params"][:, 0], params["camera_params"][:, 1])
+    assert params["model"] == ("equidistant",) * 5
 
 
 def test_framing_and_antialias_arguments():

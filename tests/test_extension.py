@@ -205,13 +205,25 @@ def test_framing_ops_are_the_numpy_framing(monkeypatch):
         torch.testing.assert_close(torch.from_numpy(got), torch.from_numpy(ref), rtol=1e-12,
                                    atol=0)
     t = [torch.from_numpy(a) for a in (rotation, intrinsics, half, radius, coverage)]
-    cos_sin = framing._COS_SIN
+    cos_sin = framing.COS_SIN
     torch.library.opcheck(ops().framing_reach, (t[0], t[1], t[2], cos_sin[0], cos_sin[1], 30,
                                                 40, torch.empty(n, framing.DIRECTIONS, dtype=f64)))
     torch.library.opcheck(ops().framing_focal, (t[3], torch.from_numpy(framing.to_edge(
         centre[:1], (32, 36))), t[4], 32, 36, torch.empty(n, dtype=f64)))
     with pytest.raises(RuntimeError, match="framing_focal: radius: expected float64"):
         ops().framing_focal(t[3].float(), t[3], t[4], 32, 36, torch.empty(n, dtype=f64))
+    # the one-call draw: rotations from the attitudes' cosines and sines, reach, a radius table
+    angles = torch.rand(3, n, generator=torch.Generator().manual_seed(2), dtype=f64) - 0.5
+    table = torch.linspace(0, 3, 64, dtype=f64)
+    torch.library.opcheck(ops().frame_lens, (
+        angles.cos(), angles.sin(), t[1], t[2], cos_sin[0], cos_sin[1], 30, 40, table,
+        torch.full((64,), 3 / 63, dtype=f64), 63 / 2.0, torch.from_numpy(framing.to_edge(
+            centre[:1], (32, 36))), t[4], 32, 36, torch.empty(n, 3, 3, dtype=f64),
+        torch.empty(n, dtype=f64)))
+    with pytest.raises(RuntimeError, match="frame_lens: slope: expected float64"):
+        ops().frame_lens(angles.cos(), angles.sin(), t[1], t[2], cos_sin[0], cos_sin[1], 30, 40,
+                         table, table[:3], 63 / 2.0, t[3], t[4], 32, 36,
+                         torch.empty(n, 3, 3, dtype=f64), torch.empty(n, dtype=f64))
 
 
 @pytest.mark.parametrize("dtype,mode", CASES)

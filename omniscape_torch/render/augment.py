@@ -36,7 +36,7 @@ from ..cameras import Camera
 from ..cameras.registry import get_model
 from ..cubemap.faces import FACES, face_rotations
 from ..cubemap.rotation import check_rotation
-from . import containers, detection, fast, framing
+from . import containers, detection, extension, fast, framing
 from .fast import CameraGrid
 from .kernels import camera_grid, camera_rays, radial_table
 from ..cameras.presets import rotation_rows, yaw_pitch_roll_to_matrix
@@ -1272,19 +1272,38 @@ class RandomReproject(_RandomCameras):
         yaw, pitch, roll = attitude
         coverage = self._scaled(coverage[:, 0], self.coverage_range) if framed else None
         cos, sin = np.cos(attitude), np.sin(attitude)
-        rotation = np.stack([entry for row in rotation_rows(
-            cos[0], sin[0], cos[1], sin[1], cos[2], sin[2]) for entry in row],
-            -1).reshape(n, 3, 3)
         h, w = self.image_size
         centre = jitter + np.array([(w - 1) / 2, (h - 1) / 2])
-        index = (np.clip(u_model[:, 0], 0, 1 - 1e-12) * len(self.fisheye_models)).astype(np.int64)
-        models = tuple(self.fisheye_models[i] for i in index.tolist())
+        if len(self.fisheye_models) == 1:
+            index, models = None, self.fisheye_models * n
+        else:
+            index = (np.clip(u_model[:, 0], 0, 1 - 1e-12) *
+                     len(self.fisheye_models)).astype(np.int64)
+            models = tuple(self.fisheye_models[i] for i in index.tolist())
         source = None if source is None else source[:n].numpy()   # (same_on_batch: the first)
         params = np.zeros((n, _MAX_P))
         num_params = np.zeros(n, dtype=np.int64)
+        ops = extension.ops()
+        unit = self._unit_lens(models[0])
+        if framed and index is None and unit is not None and ops is not None:
+            # the common case (one lens with a table, framed) in one call of the C++ op: the
+            # rotations and focals of the steps below, the same values
+            rotation, focal = np.empty((n, 3, 3)), np.empty(n)
+            ops.frame_lens(*(torch.from_numpy(np.ascontiguousarray(a)) for a in (
+                cos, sin, source, 0.5 * fov)), *framing.COS_SIN, *source_size,
+                *unit.tensors, unit.per_angle, torch.from_numpy(self._to_edge(centre)),
+                torch.from_numpy(coverage), h, w, torch.from_numpy(rotation),
+                torch.from_numpy(focal))
+            params[:, :2] = focal[:, None]
+            params[:, 2:4] = centre
+            num_params[:] = 4
+            models = ()
+        else:
+            rotation = np.stack([entry for row in rotation_rows(
+                cos[0], sin[0], cos[1], sin[1], cos[2], sin[2]) for entry in row],
+                -1).reshape(n, 3, 3)
         for name in sorted(set(models)):
-            idx = slice(None) if len(set(models)) == 1 else index == self.fisheye_models.index(
-                name)
+            idx = slice(None) if index is None else index == self.fisheye_models.index(name)
             half = 0.5 * fov[idx]
             if name in _FIXED_REACH:   # no lens parameters, the drawn half field of view
                 extra = np.zeros((len(half), 0))
@@ -1309,7 +1328,7 @@ class RandomReproject(_RandomCameras):
             ("camera_params", params), ("num_params", num_params), ("fov", fov),
             ("blind_fov", np.zeros(n)), ("yaw", yaw), ("pitch", pitch), ("roll", roll),
             ("applied", applied), ("rotation", rotation))}
-        out["model"] = models
+        out["model"] = self.fisheye_models * n if index is None else models
         if framed:
             out["coverage"] = torch.from_numpy(coverage)
         return _on_batch(out, n, batch_size)
@@ -1338,14 +1357,20 @@ class RandomReproject(_RandomCameras):
             n, d = theta.shape
             radius = _unit_radius(name, torch.from_numpy(extra).repeat_interleave(d, 0),
                                   torch.from_numpy(theta.reshape(-1)))[0].numpy().reshape(n, d)
-        if self.center_jitter == 0:   # every centre the image's: its distances made once
-            key = ("to_edge", self.image_size)
-            edges = self._cached.get(key)
-            if edges is None:
-                edges = self._cached[key] = framing.to_edge(centre[:1], self.image_size)
-        else:
-            edges = framing.to_edge(centre, self.image_size)
-        return framing.focal_for_coverage(radius, edges, coverage, self.image_size)
+        return framing.focal_for_coverage(radius, self._to_edge(centre), coverage,
+                                          self.image_size)
+
+    def _to_edge(self, centre: np.ndarray) -> np.ndarray:
+        """:func:`~omniscape_torch.render.framing.to_edge` of the output from ``centre (n,
+        2)``: ``(1, D)`` made once where every centre is the image's (no ``center_jitter``),
+        else ``(n, D)``."""
+        if self.center_jitter != 0:
+            return framing.to_edge(centre, self.image_size)
+        key = ("to_edge", self.image_size)
+        edges = self._cached.get(key)
+        if edges is None:
+            edges = self._cached[key] = framing.to_edge(centre[:1], self.image_size)
+        return edges
 
     def _unit_lens(self, name: str) -> "_UnitLens | None":
         """For a lens without parameters (``equidistant``, ``equisolid``, ``stereographic``),
@@ -1372,8 +1397,10 @@ class RandomReproject(_RandomCameras):
             limits = limits[0, :3].clone()
             limits[2] = limits[2].clamp_max(radius[-1])   # valid within the table only
             radius = radius.numpy()
-            unit = _UnitLens(1 / step, radius, np.append(np.diff(radius), 0.0), limits.numpy(),
-                             {torch.float64: table, torch.float32: table.float()})
+            slope = np.append(np.diff(radius), 0.0)
+            unit = _UnitLens(1 / step, radius, slope, limits.numpy(),
+                             {torch.float64: table, torch.float32: table.float()},
+                             (torch.from_numpy(radius), torch.from_numpy(slope)))
             self._cached[key] = unit
         return unit
 
@@ -1963,6 +1990,7 @@ class _UnitLens(NamedTuple):
     slope: np.ndarray
     limits: np.ndarray
     tables: dict
+    tensors: tuple
 
     def radius_at(self, theta: np.ndarray) -> np.ndarray:
         """The radius at focal 1 at the angles ``theta`` (within the table), linear between

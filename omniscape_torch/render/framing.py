@@ -34,7 +34,7 @@ import torch
 
 from . import extension
 
-__all__ = ["DIRECTIONS", "PHI", "focal_for_coverage", "reach", "to_edge"]
+__all__ = ["COS_SIN", "DIRECTIONS", "PHI", "focal_for_coverage", "reach", "to_edge"]
 
 #: Directions about the fisheye's centre in which the valid region's radius is measured.
 DIRECTIONS = 256
@@ -51,8 +51,9 @@ _SIGN = np.array([1.0, -1.0, 1.0, -1.0])
 _FOCAL_COLUMN, _CENTRE_COLUMN = [0, 0, 1, 1], [2, 2, 3, 3]
 for _table in (PHI, _COS, _SIN, _NORMALS_XY, _SIGN):
     _table.flags.writeable = False
-#: ``cos, sin (2, D)`` of :data:`PHI` as the C++ op reads them (never written).
-_COS_SIN = torch.from_numpy(np.stack((_COS, _SIN)))
+#: ``cos, sin (2, D)`` float64 tensor of :data:`PHI`, as the C++ ops read them (never
+#: written).
+COS_SIN = torch.from_numpy(np.stack((_COS, _SIN)))
 
 
 def _as_tensors(*arrays: np.ndarray) -> list[torch.Tensor]:
@@ -87,7 +88,7 @@ def reach(rotation: np.ndarray, intrinsics: np.ndarray, source_size: tuple[int, 
     ops = extension.ops()
     if ops is not None:
         theta = np.empty((len(half), DIRECTIONS))
-        ops.framing_reach(*_as_tensors(rotation, intrinsics, half), _COS_SIN[0], _COS_SIN[1],
+        ops.framing_reach(*_as_tensors(rotation, intrinsics, half), COS_SIN[0], COS_SIN[1],
                           int(source_size[0]), int(source_size[1]), torch.from_numpy(theta))
         return theta
     intrinsics = np.asarray(intrinsics, np.float64)

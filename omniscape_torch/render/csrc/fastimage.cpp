@@ -602,96 +602,61 @@ void check_framing(const char* op, const char* name, const at::Tensor& t, at::In
                 ": expected float64 ", shape, ", got ", t.scalar_type(), " ", t.sizes());
 }
 
-// framing_reach: theta (n, D), along each direction (cos, sin (D,)) about the fisheye's centre
-// the angle from its axis out to which its rays (ray_src = R ray, rotation (n, 3, 3)) reach the
-// pinhole image (intrinsics (n, 4) fx, fy, cx, cy; height x width pixels, edges at -0.5 and
-// W - 0.5), at most half (n,); 0 where the axis misses the image. framing.reach's arithmetic.
-void framing_reach_op(const at::Tensor& rotation, const at::Tensor& intrinsics,
-                      const at::Tensor& half, const at::Tensor& cos, const at::Tensor& sin,
-                      int64_t height, int64_t width, const at::Tensor& theta) {
-    const char* op = "omniscape_torch::framing_reach";
-    const int64_t n = half.dim() == 1 ? half.size(0) : -1, d = cos.numel();
-    check_framing(op, "half", half, {n});
-    check_framing(op, "rotation", rotation, {n, 3, 3});
-    check_framing(op, "intrinsics", intrinsics, {n, 4});
-    check_framing(op, "cos", cos, {d});
-    check_framing(op, "sin", sin, {d});
-    check_framing(op, "theta", theta, {n, d});
-    const double* R = rotation.const_data_ptr<double>();
-    const double* K = intrinsics.const_data_ptr<double>();
-    const double* H = half.const_data_ptr<double>();
-    const double* C = cos.const_data_ptr<double>();
-    const double* S = sin.const_data_ptr<double>();
-    double* out = theta.mutable_data_ptr<double>();
+// The reach of one sample (framing_reach): theta[0, d) of the fisheye turned by r (3 x 3,
+// row-major) onto the pinhole k (fx, fy, cx, cy) of height x width pixels, at most half.
+void reach_one(const double* r, const double* k, double half, const double* C, const double* S,
+               int64_t d, int64_t height, int64_t width, double* t) {
     const double offset[4] = {double(width) - 0.5, 0.5, double(height) - 0.5, 0.5};
     const double sign[4] = {1.0, -1.0, 1.0, -1.0};
     const double nxy[5][2] = {{1, 0}, {-1, 0}, {0, 1}, {0, -1}, {0, 0}};
-    for (int64_t b = 0; b < n; ++b) {
-        const double* r = R + 9 * b;
-        const double* k = K + 4 * b;
-        double x[5], y[5], a[5];
-        bool inside = true;
-        for (int j = 0; j < 5; ++j) {
-            // the plane's normal (framing._normals), then in the fisheye's frame (m = n R)
-            const double nz = j < 4 ? (sign[j] * k[j < 2 ? 2 : 3] - offset[j]) / k[j < 2 ? 0 : 1]
-                                    : -1.0;
-            const double m[3] = {nxy[j][0], nxy[j][1], nz};
-            double v[3];
-            for (int c = 0; c < 3; ++c) {
-                v[c] = m[0] * r[c] + m[1] * r[3 + c] + m[2] * r[6 + c];
-            }
-            x[j] = v[0];
-            y[j] = v[1];
-            a[j] = v[2];
-            inside = inside && a[j] < 0;
+    double x[5], y[5], a[5];
+    bool inside = true;
+    for (int j = 0; j < 5; ++j) {
+        // the plane's normal (framing._normals), then in the fisheye's frame (m = n R)
+        const double nz = j < 4 ? (sign[j] * k[j < 2 ? 2 : 3] - offset[j]) / k[j < 2 ? 0 : 1]
+                                : -1.0;
+        const double m[3] = {nxy[j][0], nxy[j][1], nz};
+        double v[3];
+        for (int c = 0; c < 3; ++c) {
+            v[c] = m[0] * r[c] + m[1] * r[3 + c] + m[2] * r[6 + c];
         }
-        double* t = out + d * b;
-        if (!inside) {
-            std::fill(t, t + d, std::min(0.0, H[b]));
-            continue;
+        x[j] = v[0];
+        y[j] = v[1];
+        a[j] = v[2];
+        inside = inside && a[j] < 0;
+    }
+    if (!inside) {
+        std::fill(t, t + d, std::min(0.0, half));
+        return;
+    }
+    for (int j = 0; j < 5; ++j) {
+        const double scale = -1 / a[j];
+        x[j] *= scale;
+        y[j] *= scale;
+    }
+    for (int64_t i = 0; i < d; ++i) {
+        double ratio = x[0] * C[i] + y[0] * S[i];
+        for (int j = 1; j < 5; ++j) {
+            ratio = std::max(ratio, x[j] * C[i] + y[j] * S[i]);
         }
-        for (int j = 0; j < 5; ++j) {
-            const double scale = -1 / a[j];
-            x[j] *= scale;
-            y[j] *= scale;
-        }
-        for (int64_t i = 0; i < d; ++i) {
-            double ratio = x[0] * C[i] + y[0] * S[i];
-            for (int j = 1; j < 5; ++j) {
-                ratio = std::max(ratio, x[j] * C[i] + y[j] * S[i]);
-            }
-            t[i] = std::min(std::atan2(1.0, ratio), H[b]);
-        }
+        t[i] = std::min(std::atan2(1.0, ratio), half);
     }
 }
 
-// framing_focal: focal (n,) at which sum_d min(f radius, to_edge)^2 pi / (D H W) (the valid
-// share) equals coverage (n,): radius (n, D), to_edge (n or 1, D). framing.focal_for_coverage's
-// arithmetic (the pieces between the sorted focals where a direction reaches the edge).
-void framing_focal_op(const at::Tensor& radius, const at::Tensor& to_edge,
-                      const at::Tensor& coverage, int64_t height, int64_t width,
-                      const at::Tensor& focal) {
-    const char* op = "omniscape_torch::framing_focal";
-    const int64_t n = coverage.dim() == 1 ? coverage.size(0) : -1;
-    const int64_t d = radius.dim() == 2 ? radius.size(1) : -1;
-    check_framing(op, "coverage", coverage, {n});
-    check_framing(op, "radius", radius, {n, d});
-    check_framing(op, "to_edge", to_edge, {to_edge.dim() == 2 && to_edge.size(0) == 1 ? 1 : n, d});
-    check_framing(op, "focal", focal, {n});
-    TORCH_CHECK(d >= 1 && height >= 1 && width >= 1, op, ": expected D >= 1 directions and an "
-                "output of 1 pixel or more, got ", d, " and ", height, " x ", width);
-    const double* rad = radius.const_data_ptr<double>();
-    const double* edge = to_edge.const_data_ptr<double>();
-    const int64_t edge_batch = to_edge.size(0) == 1 ? 0 : d;
-    const double* cov = coverage.const_data_ptr<double>();
-    double* out = focal.mutable_data_ptr<double>();
-    const double norm = M_PI / (double(d) * double(height) * double(width));
-    const double inf = std::numeric_limits<double>::infinity();
-    std::vector<double> clipped(d + 1), free(d + 1);
-    std::vector<std::pair<double, int64_t>> order(d);   // (break, direction), sorted
-    for (int64_t b = 0; b < n; ++b) {
-        const double* r = rad + d * b;
-        const double* e = edge + edge_batch * b;
+// The focal of one sample (framing_focal): the radius r[0, D) at focal 1 and the output's
+// edge e[0, D) in each direction, the share `coverage`; its buffers kept between samples.
+struct FocalSolver {
+    int64_t d;
+    double norm;
+    std::vector<double> clipped, free;
+    std::vector<std::pair<double, int64_t>> order;   // (break, direction), sorted
+
+    FocalSolver(int64_t d, int64_t height, int64_t width)
+        : d(d), norm(M_PI / (double(d) * double(height) * double(width))), clipped(d + 1),
+          free(d + 1), order(d) {}
+
+    double operator()(const double* r, const double* e, double coverage) {
+        const double inf = std::numeric_limits<double>::infinity();
         for (int64_t i = 0; i < d; ++i) {
             order[i] = {r[i] > 0 ? e[i] / r[i] : inf, i};
         }
@@ -713,11 +678,117 @@ void framing_focal_op(const at::Tensor& radius, const at::Tensor& to_edge,
             const double end = finite ? order[i].first : 0.0;
             widest = std::max(widest, end);
             const double at_break = finite ? norm * (clipped[i] + end * end * free[i]) : inf;
-            piece += at_break < cov[b];
+            piece += at_break < coverage;
         }
         const double c = clipped[piece], u = free[piece];
-        const double f = std::sqrt(std::max((cov[b] / norm - c) / std::max(u, 1e-300), 0.0));
-        out[b] = u > 0 ? f : widest;
+        const double f = std::sqrt(std::max((coverage / norm - c) / std::max(u, 1e-300), 0.0));
+        return u > 0 ? f : widest;
+    }
+};
+
+// framing_reach: theta (n, D), along each direction (cos, sin (D,)) about the fisheye's centre
+// the angle from its axis out to which its rays (ray_src = R ray, rotation (n, 3, 3)) reach the
+// pinhole image (intrinsics (n, 4) fx, fy, cx, cy; height x width pixels, edges at -0.5 and
+// W - 0.5), at most half (n,); 0 where the axis misses the image. framing.reach's arithmetic.
+void framing_reach_op(const at::Tensor& rotation, const at::Tensor& intrinsics,
+                      const at::Tensor& half, const at::Tensor& cos, const at::Tensor& sin,
+                      int64_t height, int64_t width, const at::Tensor& theta) {
+    const char* op = "omniscape_torch::framing_reach";
+    const int64_t n = half.dim() == 1 ? half.size(0) : -1, d = cos.numel();
+    check_framing(op, "half", half, {n});
+    check_framing(op, "rotation", rotation, {n, 3, 3});
+    check_framing(op, "intrinsics", intrinsics, {n, 4});
+    check_framing(op, "cos", cos, {d});
+    check_framing(op, "sin", sin, {d});
+    check_framing(op, "theta", theta, {n, d});
+    for (int64_t b = 0; b < n; ++b) {
+        reach_one(rotation.const_data_ptr<double>() + 9 * b,
+                  intrinsics.const_data_ptr<double>() + 4 * b, half.const_data_ptr<double>()[b],
+                  cos.const_data_ptr<double>(), sin.const_data_ptr<double>(), d, height, width,
+                  theta.mutable_data_ptr<double>() + d * b);
+    }
+}
+
+// framing_focal: focal (n,) at which sum_d min(f radius, to_edge)^2 pi / (D H W) (the valid
+// share) equals coverage (n,): radius (n, D), to_edge (n or 1, D). framing.focal_for_coverage's
+// arithmetic (the pieces between the sorted focals where a direction reaches the edge).
+void framing_focal_op(const at::Tensor& radius, const at::Tensor& to_edge,
+                      const at::Tensor& coverage, int64_t height, int64_t width,
+                      const at::Tensor& focal) {
+    const char* op = "omniscape_torch::framing_focal";
+    const int64_t n = coverage.dim() == 1 ? coverage.size(0) : -1;
+    const int64_t d = radius.dim() == 2 ? radius.size(1) : -1;
+    check_framing(op, "coverage", coverage, {n});
+    check_framing(op, "radius", radius, {n, d});
+    check_framing(op, "to_edge", to_edge, {to_edge.dim() == 2 && to_edge.size(0) == 1 ? 1 : n, d});
+    check_framing(op, "focal", focal, {n});
+    TORCH_CHECK(d >= 1 && height >= 1 && width >= 1, op, ": expected D >= 1 directions and an "
+                "output of 1 pixel or more, got ", d, " and ", height, " x ", width);
+    const int64_t edge_batch = to_edge.size(0) == 1 ? 0 : d;
+    FocalSolver solve(d, height, width);
+    for (int64_t b = 0; b < n; ++b) {
+        focal.mutable_data_ptr<double>()[b] =
+            solve(radius.const_data_ptr<double>() + d * b,
+                  to_edge.const_data_ptr<double>() + edge_batch * b,
+                  coverage.const_data_ptr<double>()[b]);
+    }
+}
+
+// frame_lens: what RandomReproject's draw frames per sample, for a lens with a radius table, in
+// one call: the rotations (n, 3, 3) from the cosines and sines (3, n) of yaw, pitch and roll
+// (presets.rotation_rows' entries, in its order of operations), then framing_reach, the radius
+// at focal 1 at those angles (radius (A,) at j / per_angle, slope (A,) to the next: _UnitLens.
+// radius_at's interpolation) and framing_focal: the same values as those steps in turn.
+void frame_lens_op(const at::Tensor& cos_att, const at::Tensor& sin_att,
+                   const at::Tensor& intrinsics, const at::Tensor& half, const at::Tensor& cos,
+                   const at::Tensor& sin, int64_t src_height, int64_t src_width,
+                   const at::Tensor& radius, const at::Tensor& slope, double per_angle,
+                   const at::Tensor& to_edge, const at::Tensor& coverage, int64_t height,
+                   int64_t width, const at::Tensor& rotation, const at::Tensor& focal) {
+    const char* op = "omniscape_torch::frame_lens";
+    const int64_t n = half.dim() == 1 ? half.size(0) : -1, d = cos.numel();
+    const int64_t entries = radius.numel();
+    check_framing(op, "cos_att", cos_att, {3, n});
+    check_framing(op, "sin_att", sin_att, {3, n});
+    check_framing(op, "intrinsics", intrinsics, {n, 4});
+    check_framing(op, "half", half, {n});
+    check_framing(op, "cos", cos, {d});
+    check_framing(op, "sin", sin, {d});
+    check_framing(op, "radius", radius, {entries});
+    check_framing(op, "slope", slope, {entries});
+    check_framing(op, "to_edge", to_edge, {to_edge.dim() == 2 && to_edge.size(0) == 1 ? 1 : n, d});
+    check_framing(op, "coverage", coverage, {n});
+    check_framing(op, "rotation", rotation, {n, 3, 3});
+    check_framing(op, "focal", focal, {n});
+    TORCH_CHECK(d >= 1 && entries >= 2 && height >= 1 && width >= 1, op,
+                ": expected D >= 1 directions, a table of 2 entries or more and an output of "
+                "1 pixel or more, got ", d, ", ", entries, " and ", height, " x ", width);
+    const double* ca = cos_att.const_data_ptr<double>();
+    const double* sa = sin_att.const_data_ptr<double>();
+    const double* tab = radius.const_data_ptr<double>();
+    const double* step = slope.const_data_ptr<double>();
+    const int64_t edge_batch = to_edge.size(0) == 1 ? 0 : d;
+    std::vector<double> r(d);
+    FocalSolver solve(d, height, width);
+    for (int64_t b = 0; b < n; ++b) {
+        const double cy = ca[b], sy = sa[b], cp = ca[n + b], sp = sa[n + b], cr = ca[2 * n + b],
+                     sr = sa[2 * n + b];
+        double* R = rotation.mutable_data_ptr<double>() + 9 * b;
+        const double entries_[9] = {cy * cr + sy * sp * sr, sy * sp * cr - cy * sr, sy * cp,
+                                    cp * sr, cp * cr, -sp,
+                                    cy * sp * sr - sy * cr, sy * sr + cy * sp * cr, cy * cp};
+        std::copy(entries_, entries_ + 9, R);
+        reach_one(R, intrinsics.const_data_ptr<double>() + 4 * b,
+                  half.const_data_ptr<double>()[b], cos.const_data_ptr<double>(),
+                  sin.const_data_ptr<double>(), d, src_height, src_width, r.data());
+        for (int64_t i = 0; i < d; ++i) {   // the angle -> the radius at focal 1
+            const double at = r[i] * per_angle;
+            const int64_t j = std::min(static_cast<int64_t>(at), entries - 2);
+            r[i] = tab[j] + (at - double(j)) * step[j];
+        }
+        focal.mutable_data_ptr<double>()[b] = solve(
+            r.data(), to_edge.const_data_ptr<double>() + edge_batch * b,
+            coverage.const_data_ptr<double>()[b]);
     }
 }
 
@@ -734,4 +805,5 @@ TORCH_LIBRARY_IMPL(omniscape_torch, CPU, m) {
     m.impl("reproject_image", &reproject_image_op);
     m.impl("framing_reach", &framing_reach_op);
     m.impl("framing_focal", &framing_focal_op);
+    m.impl("frame_lens", &frame_lens_op);
 }

@@ -165,6 +165,10 @@ TORCH_LIBRARY(omniscape_torch, m) {
           "Tensor sin, int height, int width, Tensor(a!) theta) -> ()");
     m.def("framing_focal(Tensor radius, Tensor to_edge, Tensor coverage, int height, "
           "int width, Tensor(a!) focal) -> ()");
+    m.def("frame_lens(Tensor cos_att, Tensor sin_att, Tensor intrinsics, Tensor half, "
+          "Tensor cos, Tensor sin, int src_height, int src_width, Tensor radius, Tensor slope, "
+          "float per_angle, Tensor to_edge, Tensor coverage, int height, int width, "
+          "Tensor(a!) rotation, Tensor(b!) focal) -> ()");
 }
 
 TORCH_LIBRARY_IMPL(omniscape_torch, CPU, m) {

@@ -1493,9 +1493,10 @@ inline G power_of_two(int32_t n) {
 // positions X[t * kSegment + p], Y[...]. us, vs, ok: the image positions and validity, padded
 // by one element before and after (index -1 and h w are readable, ok 0 there).
 template <typename G>
-void mip_footprints(const G* us, const G* vs, const uint8_t* ok, int64_t i, int64_t lo,
-                    int64_t m, int64_t h, int64_t w, G limit, int32_t last, int32_t* level,
-                    G* X, G* Y) {
+void mip_footprints(const G* __restrict us, const G* __restrict vs,
+                    const uint8_t* __restrict ok, int64_t i, int64_t lo, int64_t m, int64_t h,
+                    int64_t w, G limit, int32_t last, int32_t* __restrict level,
+                    G* __restrict X, G* __restrict Y) {
     const int64_t row = i * w;
     // the rows above and below (the row itself where there is none: its differences are 0)
     const int64_t up = i > 0 ? row - w : row, down = i + 1 < h ? row + w : row;
