@@ -1398,7 +1398,7 @@ class RandomReproject(_RandomCameras):
             limits[2] = limits[2].clamp_max(radius[-1])   # valid within the table only
             radius = radius.numpy()
             slope = np.append(np.diff(radius), 0.0)
-            unit = _UnitLens(1 / step, radius, slope, limits.numpy(),
+            unit = _UnitLens(1 / step, radius, slope, np.append(limits.numpy(), (0.0, 2.0)),
                              {torch.float64: table, torch.float32: table.float()},
                              (torch.from_numpy(radius), torch.from_numpy(slope)))
             self._cached[key] = unit
@@ -1419,14 +1419,13 @@ class RandomReproject(_RandomCameras):
         :func:`~omniscape_torch.render.fast.camera_rays` takes them: ``cx, cy`` and ``M =
         diag(1 / fx, 1 / fy)``, the table's limits with ``cos(fov / 2)`` and no blind cone."""
         unit = self._unit_lens(name)
-        fx, fy, cx, cy = params[:, :4].numpy().astype(np.float64).T
-        n = len(fx)
+        cams = params[:, :4].numpy().astype(np.float64)
+        n = len(cams)
         affine = np.zeros((n, 6))          # cx, cy and M = diag(1 / fx, 1 / fy)
-        affine[:, 0], affine[:, 1], affine[:, 2], affine[:, 5] = cx, cy, 1 / fx, 1 / fy
-        limits = np.empty((n, 5))          # scale, root, end, cos(fov / 2), no blind cone
-        limits[:, :3] = unit.limits
+        affine[:, :2] = cams[:, 2:]
+        affine[:, 2::3] = 1 / cams[:, :2]
+        limits = np.tile(unit.limits_row, (n, 1))   # scale, root, end, cos(fov / 2), no blind
         limits[:, 3] = np.cos(0.5 * fov.numpy().astype(np.float64))
-        limits[:, 4] = 2.0
         table = unit.tables[params.dtype]
         as_dtype = table.numpy().dtype     # in the rays' dtype, as the op takes them
         return (torch.from_numpy(affine.astype(as_dtype)),
@@ -1439,9 +1438,14 @@ class RandomReproject(_RandomCameras):
         if self.source_fov is None:
             raise ValueError("intrinsics: pass the images' pinhole intrinsics (B, 4) fx, fy, cx, "
                              "cy, or construct RandomReproject with source_fov")
-        h, w = image_size
-        f = (w / 2) / math.tan(self.source_fov / 2)
-        return torch.from_numpy(np.tile(np.array([f, f, (w - 1) / 2, (h - 1) / 2]), (batch, 1)))
+        key = ("source", tuple(image_size))
+        row = self._cached.get(key)
+        if row is None:   # one row per image size, repeated (a new tensor) per call
+            h, w = image_size
+            f = (w / 2) / math.tan(self.source_fov / 2)
+            row = self._cached[key] = torch.tensor([[f, f, (w - 1) / 2, (h - 1) / 2]],
+                                                   dtype=torch.float64)
+        return row.repeat(batch, 1)
 
     def render(self, image: Tensor | None, params: dict, *, labels: Tensor | None = None,
                depth: Tensor | None = None, intrinsics: Tensor | None = None,
@@ -1981,14 +1985,15 @@ _UNIT_ANGLES = 16384
 
 class _UnitLens(NamedTuple):
     """:meth:`RandomReproject._unit_lens`: the radius at focal 1 ``radius (A,)`` at the angles
-    ``j / per_angle`` and its steps ``slope (A,)`` to the next (float64 NumPy), the table's
-    ``limits (3,)`` ``scale, root, end`` and its ``tables (1, 2, K)`` by dtype (float64,
-    float32)."""
+    ``j / per_angle`` and its steps ``slope (A,)`` to the next (float64 NumPy; ``tensors``:
+    both as tensors, for the C++ draw), a row of the cameras' ``limits_row (5,)`` ``scale,
+    root, end`` of the table, 0 for ``cos(fov / 2)``, 2 for no blind cone, and its ``tables
+    (1, 2, K)`` by dtype (float64, float32)."""
 
     per_angle: float
     radius: np.ndarray
     slope: np.ndarray
-    limits: np.ndarray
+    limits_row: np.ndarray
     tables: dict
     tensors: tuple
 
