@@ -127,6 +127,30 @@ def test_one_call_draw_is_the_framing_steps(jitter, same):
     assert params["model"] == ("equidistant",) * 5
 
 
+@pytest.mark.parametrize("jitter,same,p", [(0.0, False, 1.0), (3.0, False, 0.5),
+                                           (0.0, True, 1.0)])
+def test_one_call_draw_is_the_numpy_draw(monkeypatch, jitter, same, p):
+    """The same uniforms give the same draw through the C++ op as through the NumPy steps
+    (which run where the extension cannot be built): every key, the attitudes and fields of
+    view exactly, the rotations and focals within the rounding of their cosines."""
+    def draw():
+        aug = RandomReproject((64, 80), coverage_range=(0.4, 0.9), center_jitter=jitter,
+                              same_on_batch=same, p=p, seed=5)
+        return aug.forward_parameters(6, intrinsics=K, source_size=SRC)
+
+    fast_draw = draw()
+    monkeypatch.setattr(ot.render.extension, "ops", lambda: None)
+    slow = draw()
+    assert fast_draw.keys() == slow.keys() and fast_draw["model"] == slow["model"]
+    for key in ("fov", "yaw", "pitch", "roll", "applied", "coverage", "num_params",
+                "blind_fov"):
+        assert torch.equal(fast_draw[key], slow[key]), key
+    assert bool((~slow["applied"]).any()) == (p < 1)
+    torch.testing.assert_close(fast_draw["rotation"], slow["rotation"], atol=1e-15, rtol=0)
+    torch.testing.assert_close(fast_draw["camera_params"], slow["camera_params"], rtol=1e-12,
+                               atol=1e-12)
+
+
 def test_framing_and_antialias_arguments():
     with pytest.raises(ValueError, match="coverage_range"):
         RandomReproject((32, 32), coverage_range=(0.5, 1.5))

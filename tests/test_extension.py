@@ -212,18 +212,20 @@ def test_framing_ops_are_the_numpy_framing(monkeypatch):
         centre[:1], (32, 36))), t[4], 32, 36, torch.empty(n, dtype=f64)))
     with pytest.raises(RuntimeError, match="framing_focal: radius: expected float64"):
         ops().framing_focal(t[3].float(), t[3], t[4], 32, 36, torch.empty(n, dtype=f64))
-    # the one-call draw: rotations from the attitudes' cosines and sines, reach, a radius table
-    angles = torch.rand(3, n, generator=torch.Generator().manual_seed(2), dtype=f64) - 0.5
+    # the one-call draw: uniforms -> attitudes, rotations, reach, a radius table, focals
+    u = torch.rand(16 * n, generator=torch.Generator().manual_seed(2), dtype=f64)
+    spec = torch.tensor([2.8, 3.4, -0.2, 0.2, -0.1, 0.1, -0.4, 0.4, 0.3, 0.9, 0.5], dtype=f64)
     table = torch.linspace(0, 3, 64, dtype=f64)
+    outs = (torch.zeros(n, 9, dtype=f64), torch.empty(n, dtype=f64), torch.empty(3, n, dtype=f64),
+            torch.empty(n, dtype=torch.bool), torch.empty(n, 3, 3, dtype=f64),
+            torch.empty(n, dtype=f64))
+    edge = torch.from_numpy(framing.to_edge(centre[:1], (32, 36)))
     torch.library.opcheck(ops().frame_lens, (
-        angles.cos(), angles.sin(), t[1], t[2], cos_sin[0], cos_sin[1], 30, 40, table,
-        torch.full((64,), 3 / 63, dtype=f64), 63 / 2.0, torch.from_numpy(framing.to_edge(
-            centre[:1], (32, 36))), t[4], 32, 36, torch.empty(n, 3, 3, dtype=f64),
-        torch.empty(n, dtype=f64)))
+        u, spec, t[1], torch.tensor([[17.5, 15.5]], dtype=f64), cos_sin[0], cos_sin[1], 30, 40,
+        table, torch.full((64,), 3 / 63, dtype=f64), 63 / 2.0, edge, 32, 36, *outs))
     with pytest.raises(RuntimeError, match="frame_lens: slope: expected float64"):
-        ops().frame_lens(angles.cos(), angles.sin(), t[1], t[2], cos_sin[0], cos_sin[1], 30, 40,
-                         table, table[:3], 63 / 2.0, t[3], t[4], 32, 36,
-                         torch.empty(n, 3, 3, dtype=f64), torch.empty(n, dtype=f64))
+        ops().frame_lens(u, spec, t[1], torch.tensor([[17.5, 15.5]], dtype=f64), cos_sin[0],
+                         cos_sin[1], 30, 40, table, table[:3], 63 / 2.0, edge, 32, 36, *outs)
 
 
 @pytest.mark.parametrize("dtype,mode", CASES)

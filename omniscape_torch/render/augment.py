@@ -1255,7 +1255,13 @@ class RandomReproject(_RandomCameras):
         g = self.generator if generator is None else generator
         n = 1 if self.same_on_batch else batch_size
         framed = source is not None
-        u = torch.rand((15 + framed) * n, generator=g, dtype=torch.float64).numpy()
+        u = torch.rand((15 + framed) * n, generator=g, dtype=torch.float64)
+        ops = extension.ops()
+        if (framed and len(self.fisheye_models) == 1 and ops is not None and
+                self._unit_lens(self.fisheye_models[0]) is not None):
+            return _on_batch(self._draw_one_lens(ops, u, n, source[:n], source_size), n,
+                             batch_size)
+        u = u.numpy()
         u_model, fov, k, lens, scale, jitter, attitude, applied, coverage = (
             u[n * a:n * b].reshape(n, b - a) for a, b in (
                 (0, 1), (1, 2), (2, 6), (6, 8), (8, 9), (9, 11), (11, 14), (14, 15),
@@ -1272,38 +1278,19 @@ class RandomReproject(_RandomCameras):
         yaw, pitch, roll = attitude
         coverage = self._scaled(coverage[:, 0], self.coverage_range) if framed else None
         cos, sin = np.cos(attitude), np.sin(attitude)
+        rotation = np.stack([entry for row in rotation_rows(
+            cos[0], sin[0], cos[1], sin[1], cos[2], sin[2]) for entry in row],
+            -1).reshape(n, 3, 3)
         h, w = self.image_size
         centre = jitter + np.array([(w - 1) / 2, (h - 1) / 2])
-        if len(self.fisheye_models) == 1:
-            index, models = None, self.fisheye_models * n
-        else:
-            index = (np.clip(u_model[:, 0], 0, 1 - 1e-12) *
-                     len(self.fisheye_models)).astype(np.int64)
-            models = tuple(self.fisheye_models[i] for i in index.tolist())
+        index = (np.clip(u_model[:, 0], 0, 1 - 1e-12) * len(self.fisheye_models)).astype(np.int64)
+        models = tuple(self.fisheye_models[i] for i in index.tolist())
         source = None if source is None else source[:n].numpy()   # (same_on_batch: the first)
         params = np.zeros((n, _MAX_P))
         num_params = np.zeros(n, dtype=np.int64)
-        ops = extension.ops()
-        unit = self._unit_lens(models[0])
-        if framed and index is None and unit is not None and ops is not None:
-            # the common case (one lens with a table, framed) in one call of the C++ op: the
-            # rotations and focals of the steps below, the same values
-            rotation, focal = np.empty((n, 3, 3)), np.empty(n)
-            ops.frame_lens(*(torch.from_numpy(np.ascontiguousarray(a)) for a in (
-                cos, sin, source, 0.5 * fov)), *framing.COS_SIN, *source_size,
-                *unit.tensors, unit.per_angle, torch.from_numpy(self._to_edge(centre)),
-                torch.from_numpy(coverage), h, w, torch.from_numpy(rotation),
-                torch.from_numpy(focal))
-            params[:, :2] = focal[:, None]
-            params[:, 2:4] = centre
-            num_params[:] = 4
-            models = ()
-        else:
-            rotation = np.stack([entry for row in rotation_rows(
-                cos[0], sin[0], cos[1], sin[1], cos[2], sin[2]) for entry in row],
-                -1).reshape(n, 3, 3)
         for name in sorted(set(models)):
-            idx = slice(None) if index is None else index == self.fisheye_models.index(name)
+            idx = slice(None) if len(set(models)) == 1 else index == self.fisheye_models.index(
+                name)
             half = 0.5 * fov[idx]
             if name in _FIXED_REACH:   # no lens parameters, the drawn half field of view
                 extra = np.zeros((len(half), 0))
@@ -1328,10 +1315,47 @@ class RandomReproject(_RandomCameras):
             ("camera_params", params), ("num_params", num_params), ("fov", fov),
             ("blind_fov", np.zeros(n)), ("yaw", yaw), ("pitch", pitch), ("roll", roll),
             ("applied", applied), ("rotation", rotation))}
-        out["model"] = self.fisheye_models * n if index is None else models
+        out["model"] = models
         if framed:
             out["coverage"] = torch.from_numpy(coverage)
         return _on_batch(out, n, batch_size)
+
+    def _draw_one_lens(self, ops, u: Tensor, n: int, source: Tensor,
+                       source_size: tuple[int, int]) -> dict:
+        """:meth:`_draw_params` of ``n`` samples of the one lens of ``fisheye_models``, which
+        has a table (:meth:`_unit_lens`), framed to the pinholes ``source (n, 4)``: the C++ op
+        ``frame_lens`` computes from the uniforms ``u (16 n,)`` what the NumPy steps compute
+        (attitudes, rotations, reach, radius, focal; within rounding of the cosines: the
+        rotations within 1e-15, the focals within 1e-12, relative), without their two dozen
+        calls on a few numbers each."""
+        name = self.fisheye_models[0]
+        unit = self._unit_lens(name)
+        h, w = self.image_size
+        key = ("spec", self.image_size)
+        spec, middle = self._cached.get(key, (None, None))
+        if spec is None:   # the ranges and p as the op reads them; the image's centre
+            spec = torch.tensor([*self.fov_range, *self.yaw_range, *self.pitch_range,
+                                 *self.roll_range, *self.coverage_range, self.p],
+                                dtype=torch.float64)
+            middle = np.array([[(w - 1) / 2, (h - 1) / 2]])
+            self._cached[key] = spec, middle
+        centre = middle
+        if self.center_jitter != 0:   # the jitter's uniforms: (n, 2) from 9 n
+            jitter = u[9 * n:11 * n].numpy().reshape(n, 2)
+            centre = (2 * jitter - 1) * self.center_jitter + middle
+        params, fov, attitude, applied, rotation, coverage = (
+            torch.zeros(n, _MAX_P, dtype=torch.float64), torch.empty(n, dtype=torch.float64),
+            torch.empty(3, n, dtype=torch.float64), torch.empty(n, dtype=torch.bool),
+            torch.empty(n, 3, 3, dtype=torch.float64), torch.empty(n, dtype=torch.float64))
+        ops.frame_lens(u, spec, source.contiguous(), torch.from_numpy(centre), *framing.COS_SIN,
+                       *source_size, *unit.tensors, unit.per_angle,
+                       torch.from_numpy(self._to_edge(centre)), h, w, params, fov, attitude,
+                       applied, rotation, coverage)
+        yaw, pitch, roll = attitude
+        return {"camera_params": params, "num_params": torch.full((n,), 4),
+                "fov": fov, "blind_fov": torch.zeros(n, dtype=torch.float64), "yaw": yaw,
+                "pitch": pitch, "roll": roll, "applied": applied, "rotation": rotation,
+                "model": (name,) * n, "coverage": coverage}
 
     @staticmethod
     def _scaled(u: np.ndarray, bounds: tuple[float, float]) -> np.ndarray:
@@ -1445,7 +1469,7 @@ class RandomReproject(_RandomCameras):
             f = (w / 2) / math.tan(self.source_fov / 2)
             row = self._cached[key] = torch.tensor([[f, f, (w - 1) / 2, (h - 1) / 2]],
                                                    dtype=torch.float64)
-        return row.repeat(batch, 1)
+        return torch.empty(batch, 4, dtype=torch.float64).copy_(row)   # (repeat: 4x slower)
 
     def render(self, image: Tensor | None, params: dict, *, labels: Tensor | None = None,
                depth: Tensor | None = None, intrinsics: Tensor | None = None,
@@ -1696,13 +1720,15 @@ class RandomReproject(_RandomCameras):
         k = part.intrinsics.to(part.params.dtype)
         minifies = (fast.MINIFIES if image is not None and self.antialias and
                     self.interpolation != "nearest" else 0.0)
+        outs = [result.get("rgb"), result.get("labels"), result["valid"][:, 0]]
         for at, (a, b) in _slices(part.index):   # runs of consecutive samples: views
-            fast.reproject_image(
-                None if image is None else image[at], None if labels is None else labels[at],
-                affine[a:b], limits[a:b], table, part.rotation[a:b], k[a:b],
-                self.interpolation == "bilinear", minifies, self.ignore_index,
-                None if image is None else result["rgb"][at],
-                None if labels is None else result["labels"][at], result["valid"][at, 0])
+            whole = b - a == len(outs[2])        # (the batch: no views to make)
+            fast.reproject_image(*(None if t is None else t if whole else t[at]
+                                   for t in (image, labels)),
+                                 *(t if whole else t[a:b] for t in (affine, limits)), table,
+                                 *(t if whole else t[a:b] for t in (part.rotation, k)),
+                                 self.interpolation == "bilinear", minifies, self.ignore_index,
+                                 *(None if t is None else t if whole else t[at] for t in outs))
 
     @staticmethod
     def _antialias(image: Tensor, rays: Tensor, rotation: Tensor | None, k: Tensor,

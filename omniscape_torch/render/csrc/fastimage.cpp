@@ -734,61 +734,94 @@ void framing_focal_op(const at::Tensor& radius, const at::Tensor& to_edge,
     }
 }
 
-// frame_lens: what RandomReproject's draw frames per sample, for a lens with a radius table, in
-// one call: the rotations (n, 3, 3) from the cosines and sines (3, n) of yaw, pitch and roll
-// (presets.rotation_rows' entries, in its order of operations), then framing_reach, the radius
-// at focal 1 at those angles (radius (A,) at j / per_angle, slope (A,) to the next: _UnitLens.
-// radius_at's interpolation) and framing_focal: the same values as those steps in turn.
-void frame_lens_op(const at::Tensor& cos_att, const at::Tensor& sin_att,
-                   const at::Tensor& intrinsics, const at::Tensor& half, const at::Tensor& cos,
-                   const at::Tensor& sin, int64_t src_height, int64_t src_width,
-                   const at::Tensor& radius, const at::Tensor& slope, double per_angle,
-                   const at::Tensor& to_edge, const at::Tensor& coverage, int64_t height,
-                   int64_t width, const at::Tensor& rotation, const at::Tensor& focal) {
+// frame_lens: RandomReproject's draw of n fisheyes of one lens with a radius table, framed to
+// pinhole sources, in one call (RandomReproject._draw_params' arithmetic, per sample): from the
+// uniforms u (16 n: the families of _draw_params, in its order) and spec (11,) = the ranges
+// (lo, hi) of fov, yaw, pitch, roll and coverage, then p: fov (n,), attitude (3, n) (yaw, pitch,
+// roll; 0 where applied (n,) is false: u >= p), coverage (n,), the rotations (n, 3, 3)
+// (presets.rotation_rows' entries, in its order of operations), then framing_reach onto
+// intrinsics (n, 4) of src_height x src_width pixels, the lens radius at focal 1 at those angles
+// (radius (A,) at j / per_angle, slope (A,) to the next: _UnitLens.radius_at's interpolation)
+// and framing_focal against to_edge (1 or n, D): params (n, P) rows (f, f, centre (1 or n, 2)),
+// the rest left as they are.
+void frame_lens_op(const at::Tensor& u, const at::Tensor& spec, const at::Tensor& intrinsics,
+                   const at::Tensor& centre, const at::Tensor& cos, const at::Tensor& sin,
+                   int64_t src_height, int64_t src_width, const at::Tensor& radius,
+                   const at::Tensor& slope, double per_angle, const at::Tensor& to_edge,
+                   int64_t height, int64_t width, const at::Tensor& params,
+                   const at::Tensor& fov, const at::Tensor& attitude, const at::Tensor& applied,
+                   const at::Tensor& rotation, const at::Tensor& coverage) {
     const char* op = "omniscape_torch::frame_lens";
-    const int64_t n = half.dim() == 1 ? half.size(0) : -1, d = cos.numel();
+    const int64_t n = fov.dim() == 1 ? fov.size(0) : -1, d = cos.numel();
     const int64_t entries = radius.numel();
-    check_framing(op, "cos_att", cos_att, {3, n});
-    check_framing(op, "sin_att", sin_att, {3, n});
+    check_framing(op, "u", u, {16 * n});
+    check_framing(op, "spec", spec, {11});
     check_framing(op, "intrinsics", intrinsics, {n, 4});
-    check_framing(op, "half", half, {n});
+    check_framing(op, "centre", centre, {centre.dim() == 2 && centre.size(0) == 1 ? 1 : n, 2});
     check_framing(op, "cos", cos, {d});
     check_framing(op, "sin", sin, {d});
     check_framing(op, "radius", radius, {entries});
     check_framing(op, "slope", slope, {entries});
     check_framing(op, "to_edge", to_edge, {to_edge.dim() == 2 && to_edge.size(0) == 1 ? 1 : n, d});
-    check_framing(op, "coverage", coverage, {n});
+    check_framing(op, "params", params, {n, params.dim() == 2 ? params.size(1) : -1});
+    check_framing(op, "fov", fov, {n});
+    check_framing(op, "attitude", attitude, {3, n});
     check_framing(op, "rotation", rotation, {n, 3, 3});
-    check_framing(op, "focal", focal, {n});
-    TORCH_CHECK(d >= 1 && entries >= 2 && height >= 1 && width >= 1, op,
-                ": expected D >= 1 directions, a table of 2 entries or more and an output of "
-                "1 pixel or more, got ", d, ", ", entries, " and ", height, " x ", width);
-    const double* ca = cos_att.const_data_ptr<double>();
-    const double* sa = sin_att.const_data_ptr<double>();
+    check_framing(op, "coverage", coverage, {n});
+    check_contiguous(op, "applied", applied);
+    TORCH_CHECK(applied.scalar_type() == at::kBool && applied.sizes() == at::IntArrayRef({n}),
+                op, ": applied: expected bool (", n, "), got ", applied.scalar_type(), " ",
+                applied.sizes());
+    TORCH_CHECK(d >= 1 && entries >= 2 && params.size(1) >= 4 && height >= 1 && width >= 1, op,
+                ": expected D >= 1 directions, a table of 2 entries or more, params of 4 or "
+                "more and an output of 1 pixel or more, got ", d, ", ", entries, ", ",
+                params.size(1), " and ", height, " x ", width);
+    const double* U = u.const_data_ptr<double>();
+    const double* sp_ = spec.const_data_ptr<double>();
     const double* tab = radius.const_data_ptr<double>();
     const double* step = slope.const_data_ptr<double>();
     const int64_t edge_batch = to_edge.size(0) == 1 ? 0 : d;
+    const int64_t centre_batch = centre.size(0) == 1 ? 0 : 2;
+    const auto scaled = [&](int range, double value) {   // _scaled: lo + (hi - lo) u
+        return sp_[2 * range] + (sp_[2 * range + 1] - sp_[2 * range]) * value;
+    };
     std::vector<double> r(d);
     FocalSolver solve(d, height, width);
     for (int64_t b = 0; b < n; ++b) {
-        const double cy = ca[b], sy = sa[b], cp = ca[n + b], sp = sa[n + b], cr = ca[2 * n + b],
-                     sr = sa[2 * n + b];
+        const double f = scaled(0, U[n + b]);
+        const bool on = U[14 * n + b] < sp_[10];
+        double angle[3], c[3], s[3];
+        for (int k = 0; k < 3; ++k) {
+            angle[k] = on ? scaled(1 + k, U[11 * n + k * n + b]) : 0.0;
+            c[k] = std::cos(angle[k]);
+            s[k] = std::sin(angle[k]);
+            attitude.mutable_data_ptr<double>()[k * n + b] = angle[k];
+        }
+        const double cov = scaled(4, U[15 * n + b]);
+        fov.mutable_data_ptr<double>()[b] = f;
+        applied.mutable_data_ptr<bool>()[b] = on;
+        coverage.mutable_data_ptr<double>()[b] = cov;
+        const double cy = c[0], sy = s[0], cp = c[1], sp = s[1], cr = c[2], sr = s[2];
         double* R = rotation.mutable_data_ptr<double>() + 9 * b;
         const double entries_[9] = {cy * cr + sy * sp * sr, sy * sp * cr - cy * sr, sy * cp,
                                     cp * sr, cp * cr, -sp,
                                     cy * sp * sr - sy * cr, sy * sr + cy * sp * cr, cy * cp};
         std::copy(entries_, entries_ + 9, R);
-        reach_one(R, intrinsics.const_data_ptr<double>() + 4 * b,
-                  half.const_data_ptr<double>()[b], cos.const_data_ptr<double>(),
-                  sin.const_data_ptr<double>(), d, src_height, src_width, r.data());
+        reach_one(R, intrinsics.const_data_ptr<double>() + 4 * b, 0.5 * f,
+                  cos.const_data_ptr<double>(), sin.const_data_ptr<double>(), d, src_height,
+                  src_width, r.data());
         for (int64_t i = 0; i < d; ++i) {   // the angle -> the radius at focal 1
             const double at = r[i] * per_angle;
             const int64_t j = std::min(static_cast<int64_t>(at), entries - 2);
             r[i] = tab[j] + (at - double(j)) * step[j];
         }
-        focal.mutable_data_ptr<double>()[b] = solve(
-            r.data(), to_edge.const_data_ptr<double>() + edge_batch * b,
-            coverage.const_data_ptr<double>()[b]);
+        const double focal = solve(r.data(), to_edge.const_data_ptr<double>() + edge_batch * b,
+                                   cov);
+        double* row = params.mutable_data_ptr<double>() + params.size(1) * b;
+        const double* ctr = centre.const_data_ptr<double>() + centre_batch * b;
+        row[0] = row[1] = focal;
+        row[2] = ctr[0];
+        row[3] = ctr[1];
     }
 }
 

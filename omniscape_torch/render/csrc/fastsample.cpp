@@ -165,10 +165,11 @@ TORCH_LIBRARY(omniscape_torch, m) {
           "Tensor sin, int height, int width, Tensor(a!) theta) -> ()");
     m.def("framing_focal(Tensor radius, Tensor to_edge, Tensor coverage, int height, "
           "int width, Tensor(a!) focal) -> ()");
-    m.def("frame_lens(Tensor cos_att, Tensor sin_att, Tensor intrinsics, Tensor half, "
-          "Tensor cos, Tensor sin, int src_height, int src_width, Tensor radius, Tensor slope, "
-          "float per_angle, Tensor to_edge, Tensor coverage, int height, int width, "
-          "Tensor(a!) rotation, Tensor(b!) focal) -> ()");
+    m.def("frame_lens(Tensor u, Tensor spec, Tensor intrinsics, Tensor centre, Tensor cos, "
+          "Tensor sin, int src_height, int src_width, Tensor radius, Tensor slope, "
+          "float per_angle, Tensor to_edge, int height, int width, Tensor(a!) params, "
+          "Tensor(b!) fov, Tensor(c!) attitude, Tensor(d!) applied, Tensor(e!) rotation, "
+          "Tensor(f!) coverage) -> ()");
 }
 
 TORCH_LIBRARY_IMPL(omniscape_torch, CPU, m) {
