@@ -676,7 +676,8 @@ def mip_image(image: Tensor, rays: Tensor, rotation: Tensor | None, intrinsics: 
     quarter's width across, clamped to the level's edge. The pyramid (level ``k + 1`` the
     2 x 2 average of level ``k``, an odd last row or column averaged over the texels it holds;
     ``uint8`` levels rounded half up) is built per call, only to the deepest level a pixel
-    reads. :func:`~omniscape_torch.render.antialias.mip_sample` is the same rule in PyTorch,
+    reads (whole for an image of at most 4 source pixels an output pixel, where finding that
+    level costs more than the levels). :func:`~omniscape_torch.render.antialias.mip_sample` is the same rule in PyTorch,
     the filter off the CPU or with gradients (``docs/augmentation.md``, Antialiasing).
 
     Args:

@@ -1556,6 +1556,10 @@ void mip_image(const T* src, int64_t src_batch, int64_t src_chan, const G* rays,
     while ((int64_t(1) << depth) < std::max(height, width)) {
         ++depth;
     }
+    // an image of at most 4 texels an output pixel: its whole pyramid (at most 1/3 of its
+    // texels) costs less than the pass that finds the levels read (the footprints of every
+    // pixel once more), and the levels read are the same (clamped to the deepest either way)
+    const bool whole = height * width <= 4 * S.pixels;
     std::vector<std::vector<T>> memory;
     std::vector<MipLevel<T>> levels;
     const T* built = nullptr;
@@ -1580,19 +1584,23 @@ void mip_image(const T* src, int64_t src_batch, int64_t src_chan, const G* rays,
             });
         };
         r != nullptr ? first(std::true_type{}) : first(std::false_type{});
-        parallel_units(h, w, [&](int64_t i) {
-            int32_t level[kSegment];
-            for (int64_t s = 0; s < segments; ++s) {
-                const int64_t lo = s * kSegment, m = std::min(kSegment, w - lo);
-                mip_footprints<G>(us, vs, ok, i, lo, m, h, w, limit, depth, level, nullptr,
-                                  nullptr);
-                int32_t peak = -1;
-                for (int64_t p = 0; p < m; ++p) {
-                    peak = std::max(peak, level[p]);
+        if (whole) {   // every level, every segment: no pass to find them
+            std::fill(peaks.begin(), peaks.end(), depth);
+        } else {
+            parallel_units(h, w, [&](int64_t i) {
+                int32_t level[kSegment];
+                for (int64_t s = 0; s < segments; ++s) {
+                    const int64_t lo = s * kSegment, m = std::min(kSegment, w - lo);
+                    mip_footprints<G>(us, vs, ok, i, lo, m, h, w, limit, depth, level, nullptr,
+                                      nullptr);
+                    int32_t peak = -1;
+                    for (int64_t p = 0; p < m; ++p) {
+                        peak = std::max(peak, level[p]);
+                    }
+                    peaks[i * segments + s] = peak;
                 }
-                peaks[i * segments + s] = peak;
-            }
-        });
+            });
+        }
         const int32_t peak = *std::max_element(peaks.begin(), peaks.end());
         if (peak < 0) {
             continue;   // nothing minifies
