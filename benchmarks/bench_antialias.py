@@ -13,7 +13,11 @@ interior of the valid region; at its rim a pixel is part source, part void).
 
 Rows: ``off`` (``antialias=False``: one bilinear sample per pixel) and ``on``
 (``antialias=True``, the default: ``fast.mip_image``), PSNR per draw and their mean, and the time of one call (batch 1, float32 image, one thread,
-median of ``--repeats`` round-robin calls) of each.
+median of ``--repeats`` round-robin calls) of each; and ``area xS`` for S in ``AREA_FACTORS``:
+the cheaper order of albumentations' pipeline (``Resize``, then the distortion), the source
+reduced by ``cv2.resize(..., INTER_AREA)`` by S (its intrinsics scaled with it: ``f / S``,
+``(c + 0.5) / S - 0.5``), then point samples along the same rays (``antialias=False``), the
+reduction timed in the call (skipped, and said so, without OpenCV).
 
 Usage::
 
@@ -33,6 +37,11 @@ from pathlib import Path
 
 import torch
 
+try:
+    import cv2
+except ImportError:   # the area rows are skipped
+    cv2 = None
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -43,6 +52,8 @@ from omniscape_torch.io import atomic_write_text  # noqa: E402
 from omniscape_torch.render.augment import RandomReproject  # noqa: E402
 
 SEED = 20261127
+#: Factors of the ``area`` rows' source reduction.
+AREA_FACTORS = (1.5, 2.0, 3.0)
 #: PSNR (dB) the default must reach (issue 36).
 TARGET_DB = 25.0
 #: Cityscapes' source: 1024 x 2048, fx = fy = 2262.
@@ -107,29 +118,57 @@ def psnr(image: torch.Tensor, reference: torch.Tensor, mask: torch.Tensor) -> fl
 
 def compare(size: tuple[int, int], source_shape: tuple[int, int, float], period: int,
             samples: int, seed: int, **module_kwargs) -> dict:
-    """PSNR off and on for ``samples`` draws of ``RandomReproject(size, **module_kwargs)``
-    (its defaults otherwise) on the line grid: ``{"off": [...], "on": [...],
-    "coverage": [...]}`` per draw, and the modules and inputs for timing."""
+    """PSNR of each row for ``samples`` draws of ``RandomReproject(size, **module_kwargs)``
+    (its defaults otherwise) on the line grid: ``{"off": [...], "on": [...], "area x1.5":
+    [...], ..., "coverage": [...], "valid": [...]}`` per draw, the rows' ``calls`` (``fn(params
+    =None)``, for timing) and the ``modules`` ``off`` and ``on``."""
     hs, ws, focal = source_shape
     source = line_grid(hs, ws, period)
     intrinsics = torch.tensor([focal, focal, (ws - 1) / 2, (hs - 1) / 2], dtype=torch.float64)
     image = source.float()[None, None]
     modules = {name: RandomReproject(size, seed=seed, antialias=name == "on", **module_kwargs)
                for name in ("off", "on")}
+    calls = {name: (lambda module: lambda params=None: module(
+        {"rgb": image, "intrinsics": intrinsics}, params=params))(module)
+        for name, module in modules.items()}
+    if cv2 is not None:
+        for factor in AREA_FACTORS:
+            calls[f"area x{factor:g}"] = area_call(modules["off"], source, intrinsics, factor)
     params = modules["on"].forward_parameters(samples, intrinsics=intrinsics,
                                               source_size=(hs, ws))
-    out = {"off": [], "on": [], "coverage": [], "valid": []}
+    out = {**{name: [] for name in calls}, "coverage": [], "valid": []}
     for i in range(samples):
         one = {key: (value[i:i + 1] if isinstance(value, torch.Tensor) else value[i:i + 1])
                for key, value in params.items()}
         reference, full = area_average(source, intrinsics, params, i, size)
-        for name, module in modules.items():
-            rendered = module({"rgb": image, "intrinsics": intrinsics}, params=one)
+        for name, call in calls.items():
+            rendered = call(one)
             out[name].append(psnr(rendered["rgb"][0, 0], reference, full))
+            if name == "on":
+                out["valid"].append(float(rendered["valid"].float().mean()))
         out["coverage"].append(float(params["coverage"][i]))
-        out["valid"].append(float(rendered["valid"].float().mean()))
-    out["inputs"] = (modules, image, intrinsics)
+    out["calls"], out["modules"] = calls, modules
     return out
+
+
+def area_call(module: RandomReproject, source: torch.Tensor, intrinsics: torch.Tensor,
+              factor: float):
+    """A call of ``module`` (point samples) on ``source`` reduced by ``cv2.resize(...,
+    INTER_AREA)`` by ``factor``, with the intrinsics of the reduced image (pixel centres at
+    integers: ``f / s``, ``(c + 0.5) / s - 0.5`` per axis): ``fn(params=None) -> output``."""
+    hs, ws = source.shape
+    small_size = (round(ws / factor), round(hs / factor))
+    sx, sy = ws / small_size[0], hs / small_size[1]
+    fx, fy, cx, cy = intrinsics.tolist()
+    k = torch.tensor([fx / sx, fy / sy, (cx + 0.5) / sx - 0.5, (cy + 0.5) / sy - 0.5],
+                     dtype=torch.float64)
+    full = source.float().numpy()
+
+    def call(params=None):
+        small = cv2.resize(full, small_size, interpolation=cv2.INTER_AREA)
+        return module({"rgb": torch.from_numpy(small)[None, None], "intrinsics": k},
+                      params=params)
+    return call
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -139,12 +178,12 @@ def run(args: argparse.Namespace) -> dict:
     hs, ws, focal = CITYSCAPES
     source_shape = (round(hs * scale), round(ws * scale), focal * scale)
     res = compare(size, source_shape, args.period, args.samples, SEED)
-    modules, image, intrinsics = res.pop("inputs")
-    calls = [lambda m=m: m({"rgb": image, "intrinsics": intrinsics}) for m in modules.values()]
+    calls = res.pop("calls")
+    res.pop("modules")
     with torch.no_grad():
-        times = measure(calls, args.repeats, args.warmup)
+        times = measure(list(calls.values()), args.repeats, args.warmup)
     rows = []
-    for (name, _), t in zip(modules.items(), times):
+    for name, t in zip(calls, times):
         values = res[name]
         rows.append({"name": name, "psnr_db": values, "mean_psnr_db": sum(values) / len(values),
                      "min_psnr_db": min(values), "median_s": t["median_s"], "iqr_s": t["iqr_s"],
@@ -156,7 +195,7 @@ def run(args: argparse.Namespace) -> dict:
                   "samples": args.samples, "seed": SEED, "subsamples": 16,
                   "repeats": args.repeats, "quick": args.quick},
         "coverage_drawn": res["coverage"], "valid_fraction": res["valid"],
-        "rows": rows,
+        "rows": rows, "skipped": {} if cv2 is not None else {"area": "OpenCV not importable"},
         "headline": {"min_psnr_on_db": on["min_psnr_db"], "target_db": TARGET_DB,
                      "meets_target": on["min_psnr_db"] >= TARGET_DB,
                      "cost_ratio_on_off": on["median_s"] / rows[0]["median_s"]},
@@ -172,7 +211,7 @@ def markdown(result: dict) -> str:
              f"samples per pixel; {result['threads']} thread(s), load "
              f"{result['loadavg_start']} -> {result['loadavg_end']}, commit "
              f"{result['commit'][:12]}{' (dirty)' if result['dirty'] else ''}", "",
-             "| antialias | PSNR per draw (dB) | mean dB | min dB | median ms / call | IQR ms |",
+             "| filter | PSNR per draw (dB) | mean dB | min dB | median ms / call | IQR ms |",
              "|---|---|---:|---:|---:|---:|"]
     for r in result["rows"]:
         lines.append(f"| {r['name']} | {', '.join(f'{v:.1f}' for v in r['psnr_db'])} | "
