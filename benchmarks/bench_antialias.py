@@ -12,8 +12,9 @@ averaged. PSNR (peak 1) over the output pixels whose 256 samples all see the sou
 interior of the valid region; at its rim a pixel is part source, part void).
 
 Rows: ``off`` (``antialias=False``: one bilinear sample per pixel) and ``on``
-(``antialias=True``, the default: ``fast.mip_image``), PSNR per draw and their mean, and the time of one call (batch 1, float32 image, one thread,
-median of ``--repeats`` round-robin calls) of each; and ``area xS`` for S in ``AREA_FACTORS``:
+(``antialias=True``, the default: ``fast.mip_image``), PSNR per draw and their mean, and the
+time of one call (batch 1, float32 image, one thread, median of ``--repeats`` round-robin
+calls) of each; and ``area xS`` for S in ``AREA_FACTORS``:
 the cheaper order of albumentations' pipeline (``Resize``, then the distortion), the source
 reduced by ``cv2.resize(..., INTER_AREA)`` by S (its intrinsics scaled with it: ``f / S``,
 ``(c + 0.5) / S - 0.5``), then point samples along the same rays (``antialias=False``), the

@@ -1720,15 +1720,18 @@ class RandomReproject(_RandomCameras):
         k = part.intrinsics.to(part.params.dtype)
         minifies = (fast.MINIFIES if image is not None and self.antialias and
                     self.interpolation != "nearest" else 0.0)
-        outs = [result.get("rgb"), result.get("labels"), result["valid"][:, 0]]
-        for at, (a, b) in _slices(part.index):   # runs of consecutive samples: views
-            whole = b - a == len(outs[2])        # (the batch: no views to make)
-            fast.reproject_image(*(None if t is None else t if whole else t[at]
-                                   for t in (image, labels)),
-                                 *(t if whole else t[a:b] for t in (affine, limits)), table,
-                                 *(t if whole else t[a:b] for t in (part.rotation, k)),
-                                 self.interpolation == "bilinear", minifies, self.ignore_index,
-                                 *(None if t is None else t if whole else t[at] for t in outs))
+        rgb, ids, valid = result.get("rgb"), result.get("labels"), result["valid"][:, 0]
+        for at, (a, b) in _slices(part.index):   # runs of consecutive samples
+            whole = b - a == len(valid)          # the batch: the tensors, not views of them
+
+            def rows(t: Tensor | None, index: slice) -> Tensor | None:
+                return t if t is None or whole else t[index]
+
+            fast.reproject_image(
+                rows(image, at), rows(labels, at), rows(affine, slice(a, b)),
+                rows(limits, slice(a, b)), table, rows(part.rotation, slice(a, b)),
+                rows(k, slice(a, b)), self.interpolation == "bilinear", minifies,
+                self.ignore_index, rows(rgb, at), rows(ids, at), rows(valid, at))
 
     @staticmethod
     def _antialias(image: Tensor, rays: Tensor, rotation: Tensor | None, k: Tensor,

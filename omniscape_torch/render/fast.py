@@ -64,8 +64,8 @@ from ..cubemap.grid import rotated_rays_to_grid
 from ..cubemap.grid import _check_inputs as _check_rays
 
 __all__ = ["CubeLUT", "CameraGrid", "build_lut", "camera_rays", "sample_cube", "sample_rays",
-           "sample_image", "mip_image", "reproject_image", "MIPMAPPED", "reads_rays", "sample_atlas", "available",
-           "unavailable_reason",
+           "sample_image", "mip_image", "reproject_image", "MIPMAPPED", "reads_rays",
+           "sample_atlas", "available", "unavailable_reason",
            "compile_failures", "holds", "is_channels_last", "work_dtype", "grid_dtype",
            "output_dtypes", "MODES", "BORDERS", "BLENDED"]
 
@@ -677,8 +677,9 @@ def mip_image(image: Tensor, rays: Tensor, rotation: Tensor | None, intrinsics: 
     2 x 2 average of level ``k``, an odd last row or column averaged over the texels it holds;
     ``uint8`` levels rounded half up) is built per call, only to the deepest level a pixel
     reads (whole for an image of at most 4 source pixels an output pixel, where finding that
-    level costs more than the levels). :func:`~omniscape_torch.render.antialias.mip_sample` is the same rule in PyTorch,
-    the filter off the CPU or with gradients (``docs/augmentation.md``, Antialiasing).
+    level costs more than the levels). :func:`~omniscape_torch.render.antialias.mip_sample` is
+    the same rule in PyTorch, the filter off the CPU or with gradients (``docs/augmentation.md``,
+    Antialiasing).
 
     Args:
         image: ``(B, C, H, W)`` ``uint8``, float32 or float64 on the CPU, any strides.

@@ -228,8 +228,8 @@ void camera_rays_op(const at::Tensor& affine, const at::Tensor& limits, const at
 // (camera_rays), the image sampled along them into out (sample_image, `bilinear`; its validity
 // into valid_out), the pixels that minify antialiased (mip_image, where minifies > 0), and the
 // labels (uint8 or int64 ids, may be absent) sampled nearest into out_labels (int64, `fill`
-// outside). The same kernels and results as the four ops in turn, without their calls from
-// Python (a third of the call's cost on a 32 x 32 image); the rays live in this call only.
+// outside). The same kernels and results as the four ops in turn, without their calls and
+// wrappers in Python; the rays live in this call only.
 void reproject_image_op(const std::optional<at::Tensor>& image,
                         const std::optional<at::Tensor>& labels, const at::Tensor& affine,
                         const at::Tensor& limits, const at::Tensor& table,

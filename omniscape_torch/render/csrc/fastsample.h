@@ -1678,8 +1678,8 @@ void mip_image(const T* src, int64_t src_batch, int64_t src_chan, const G* rays,
                 }
 #endif
                 // the sums of N channels known at compile time in a local array (registers:
-                // through the heap vector each tap's sums went to memory and back, 1.5x the
-                // time), any other number in `acc`
+                // through the heap vector each tap's sums went to memory and back, 1.1-1.4x
+                // the time), any other number in `acc`
                 const auto taps = [&](auto n_) {
                     constexpr int N = decltype(n_)::value;
                     V local[N > 0 ? N : 1] = {};
