@@ -266,6 +266,7 @@ class _RandomCameras(nn.Module):
         state = dict(base() if base is not None else self.__dict__)
         if state.get("_generator") is not None:
             state["_generator"] = state["_generator"].get_state().numpy().tobytes()
+        state.pop("_aranges", None)   # (tensors: made again on first use)
         return state
 
     def __setstate__(self, state: dict) -> None:
@@ -367,7 +368,7 @@ class _RandomCameras(nn.Module):
         counts = params["num_params"].tolist()
         for name in names:
             if len(names) == 1:
-                idx = torch.arange(len(models))
+                idx = self._every(len(models))
                 p = counts[0]
                 rows = params["camera_params"][:, :p]
             else:
@@ -388,6 +389,17 @@ class _RandomCameras(nn.Module):
                 rows = rows.to(dtype=dtype, device=device)
                 out[name] = (idx, Camera(name, rows, self.image_size).params)
         return out
+
+    def _every(self, n: int) -> Tensor:
+        """``torch.arange(n)``, made once per ``n`` (the sample indices of a batch of one
+        model; read, never written)."""
+        cached = getattr(self, "_aranges", None)
+        if cached is None:
+            cached = self._aranges = {}
+        idx = cached.get(n)
+        if idx is None:
+            idx = cached[n] = torch.arange(n)
+        return idx
 
     def _changes(self, params: dict, source: "detection.Side"
                  ) -> list[tuple[Tensor, "detection.Change"]]:
@@ -1332,24 +1344,25 @@ class RandomReproject(_RandomCameras):
         unit = self._unit_lens(name)
         h, w = self.image_size
         key = ("spec", self.image_size)
-        spec, middle = self._cached.get(key, (None, None))
+        spec, middle, edges = self._cached.get(key, (None, None, None))
         if spec is None:   # the ranges and p as the op reads them; the image's centre
             spec = torch.tensor([*self.fov_range, *self.yaw_range, *self.pitch_range,
                                  *self.roll_range, *self.coverage_range, self.p],
                                 dtype=torch.float64)
             middle = np.array([[(w - 1) / 2, (h - 1) / 2]])
-            self._cached[key] = spec, middle
-        centre = middle
+            edges = torch.from_numpy(framing.to_edge(middle, self.image_size))
+            self._cached[key] = spec, middle, edges
+        centre = torch.from_numpy(middle)
         if self.center_jitter != 0:   # the jitter's uniforms: (n, 2) from 9 n
-            jitter = u[9 * n:11 * n].numpy().reshape(n, 2)
-            centre = (2 * jitter - 1) * self.center_jitter + middle
+            jitter = (2 * u[9 * n:11 * n].numpy().reshape(n, 2) - 1) * self.center_jitter
+            centre = torch.from_numpy(jitter + middle)
+            edges = torch.from_numpy(framing.to_edge(centre.numpy(), self.image_size))
         params, fov, attitude, applied, rotation, coverage = (
             torch.zeros(n, _MAX_P, dtype=torch.float64), torch.empty(n, dtype=torch.float64),
             torch.empty(3, n, dtype=torch.float64), torch.empty(n, dtype=torch.bool),
             torch.empty(n, 3, 3, dtype=torch.float64), torch.empty(n, dtype=torch.float64))
-        ops.frame_lens(u, spec, source.contiguous(), torch.from_numpy(centre), *framing.COS_SIN,
-                       *source_size, *unit.tensors, unit.per_angle,
-                       torch.from_numpy(self._to_edge(centre)), h, w, params, fov, attitude,
+        ops.frame_lens(u, spec, source.contiguous(), centre, *framing.COS_SIN, *source_size,
+                       *unit.tensors, unit.per_angle, edges, h, w, params, fov, attitude,
                        applied, rotation, coverage)
         yaw, pitch, roll = attitude
         return {"camera_params": params, "num_params": torch.full((n,), 4),
@@ -1448,7 +1461,8 @@ class RandomReproject(_RandomCameras):
         affine = np.zeros((n, 6))          # cx, cy and M = diag(1 / fx, 1 / fy)
         affine[:, :2] = cams[:, 2:]
         affine[:, 2::3] = 1 / cams[:, :2]
-        limits = np.tile(unit.limits_row, (n, 1))   # scale, root, end, cos(fov / 2), no blind
+        limits = np.empty((n, 5))          # scale, root, end, cos(fov / 2), no blind cone
+        limits[:] = unit.limits_row
         limits[:, 3] = np.cos(0.5 * fov.numpy().astype(np.float64))
         table = unit.tables[params.dtype]
         as_dtype = table.numpy().dtype     # in the rays' dtype, as the op takes them
