@@ -1456,7 +1456,7 @@ class RandomReproject(_RandomCameras):
         :func:`~omniscape_torch.render.fast.camera_rays` takes them: ``cx, cy`` and ``M =
         diag(1 / fx, 1 / fy)``, the table's limits with ``cos(fov / 2)`` and no blind cone."""
         unit = self._unit_lens(name)
-        cams = params[:, :4].numpy().astype(np.float64)
+        cams = params.numpy()[:, :4].astype(np.float64)   # (NumPy's slicing: cheaper)
         n = len(cams)
         affine = np.zeros((n, 6))          # cx, cy and M = diag(1 / fx, 1 / fy)
         affine[:, :2] = cams[:, 2:]
@@ -1465,7 +1465,7 @@ class RandomReproject(_RandomCameras):
         limits[:] = unit.limits_row
         limits[:, 3] = np.cos(0.5 * fov.numpy().astype(np.float64))
         table = unit.tables[params.dtype]
-        as_dtype = table.numpy().dtype     # in the rays' dtype, as the op takes them
+        as_dtype = cams.dtype if params.dtype == torch.float64 else np.float32   # the rays'
         return (torch.from_numpy(affine.astype(as_dtype)),
                 torch.from_numpy(limits.astype(as_dtype)), table)
 
