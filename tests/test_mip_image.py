@@ -223,3 +223,36 @@ def test_reproject_image_is_the_ops_in_turn(dtype, channels_last, labels_dtype):
         fast.reproject_image(None, labels, affine, limits, table, rot, k, True, 0.0, 255,
                              None, out_labels, valid.fill_(False))
         assert torch.equal(out_labels, ids[:, 0]) and torch.equal(valid, seen)
+
+
+def test_reproject_image_arguments():
+    """``fast.reproject_image`` names the argument that is not as documented."""
+    image = torch.zeros(2, 3, 16, 16, dtype=torch.uint8)
+    labels = torch.zeros(2, 16, 16, dtype=torch.int64)
+    cams = torch.tensor([[4.0, 4.0, 3.0, 2.0], [3.0, 3.5, 3.5, 2.5]], dtype=torch.float64)
+    affine, limits, table = (t.float() for t in ot.render.kernels.radial_table(
+        "equidistant", cams, (5, 7), entries=16))
+    rot, k = torch.eye(3).expand(2, 3, 3), torch.tensor([[9.0, 9.5, 7.5, 7.0]])
+    out, ids = torch.zeros(2, 3, 5, 7, dtype=torch.uint8), torch.zeros(2, 5, 7, dtype=torch.int64)
+    valid = torch.zeros(2, 5, 7, dtype=torch.bool)
+    args = [image, labels, affine, limits, table, rot, k, True, 1.001, 255, out, ids, valid]
+    fast.reproject_image(*args)
+    assert bool(valid.any())
+    for at, value, error, match in [
+            (0, image.half(), TypeError, "image: expected one of"),
+            (1, labels.int(), ValueError, "labels: expected uint8 or int64"),
+            (2, affine.double(), ValueError, r"affine: expected torch.float32 \(2, 6\)"),
+            (4, table[0], ValueError, r"table: expected .* \(1 or B, 2, K\)"),
+            (5, rot[:, :2], ValueError, r"rotation: expected .* \(1 or B, 3, 3\)"),
+            (6, k.double(), ValueError, "intrinsics: expected torch.float32"),
+            (8, -1.0, ValueError, "minifies: expected a threshold"),
+            (9, 1.5, TypeError, "fill: expected an int"),
+            (10, out.long(), TypeError, "out_dtype: expected one of"),
+            (11, None, ValueError, "out, out_labels: expected"),
+            (12, valid.float(), ValueError, "valid: expected a contiguous bool")]:
+        bad = list(args)
+        bad[at] = value
+        with pytest.raises(error, match=match):
+            fast.reproject_image(*bad)
+    with pytest.raises(ValueError, match="image, labels: pass at least one"):
+        fast.reproject_image(None, None, *args[2:10], None, None, valid)

@@ -1735,17 +1735,17 @@ class RandomReproject(_RandomCameras):
         minifies = (fast.MINIFIES if image is not None and self.antialias and
                     self.interpolation != "nearest" else 0.0)
         rgb, ids, valid = result.get("rgb"), result.get("labels"), result["valid"][:, 0]
+        op = fast._require().reproject_image     # (the inputs are the module's own: checked)
         for at, (a, b) in _slices(part.index):   # runs of consecutive samples
             whole = b - a == len(valid)          # the batch: the tensors, not views of them
 
             def rows(t: Tensor | None, index: slice) -> Tensor | None:
                 return t if t is None or whole else t[index]
 
-            fast.reproject_image(
-                rows(image, at), rows(labels, at), rows(affine, slice(a, b)),
-                rows(limits, slice(a, b)), table, rows(part.rotation, slice(a, b)),
-                rows(k, slice(a, b)), self.interpolation == "bilinear", minifies,
-                self.ignore_index, rows(rgb, at), rows(ids, at), rows(valid, at))
+            op(rows(image, at), rows(labels, at), rows(affine, slice(a, b)),
+               rows(limits, slice(a, b)), table, rows(part.rotation, slice(a, b)),
+               rows(k, slice(a, b)), self.interpolation == "bilinear", minifies,
+               self.ignore_index, rows(rgb, at), rows(ids, at), rows(valid, at))
 
     @staticmethod
     def _antialias(image: Tensor, rays: Tensor, rotation: Tensor | None, k: Tensor,

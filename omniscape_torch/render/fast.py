@@ -710,20 +710,91 @@ def reproject_image(image: Tensor | None, labels: Tensor | None, affine: Tensor,
                     table: Tensor, rotation: Tensor, intrinsics: Tensor, bilinear: bool,
                     minifies: float, fill: int, out: Tensor | None, out_labels: Tensor | None,
                     valid: Tensor) -> None:
-    """In one call of the C++ op: :func:`camera_rays` of ``B`` radially symmetric cameras
-    (``affine (B, 6)``, ``limits (B, 5)``, ``table (1 or B, 2, K)``, in the rays' dtype: the
-    :func:`work_dtype` of the image, float32 for labels alone), :func:`sample_image` of
-    ``image (B, C, H, W)`` along them into ``out (B, C, h, w)`` (``bilinear`` or nearest), its
-    validity into ``valid (B, h, w)`` bool, :func:`mip_image` of the pixels that minify where
-    ``minifies > 0`` (the threshold, :data:`~omniscape_torch.render.antialias.MINIFIES`;
-    ``uint8``, float32 or float64 images), and ``labels (B, H, W)`` (``uint8`` or int64 ids)
-    sampled nearest into ``out_labels (B, h, w)`` int64, ``fill`` outside. The results of those
-    functions in turn, bit for bit (``RandomReproject``'s fast path; the rays stay inside the
-    call). The op checks what it reads (a ``RuntimeError`` naming the tensor); the rotations
-    ``(1 or B, 3, 3)`` and ``intrinsics (1 or B, 4)`` must be in the rays' dtype."""
-    _require().reproject_image(image, None if labels is None else labels.contiguous(),
-                               affine, limits, table, rotation.contiguous(),
-                               intrinsics.contiguous(), bilinear, float(minifies), int(fill),
+    """In one call of the C++ op: :func:`camera_rays` of ``B`` radially symmetric cameras,
+    :func:`sample_image` of ``image`` along them into ``out`` (its validity into ``valid``),
+    :func:`mip_image` of the pixels that minify where ``minifies > 0``, and ``labels``
+    sampled nearest into ``out_labels``: those functions' results in turn, bit for bit
+    (``RandomReproject``'s fast path; the rays stay inside the call).
+
+    Args:
+        image: ``(B, C, H, W)`` ``uint8``, float32 or float64 on the CPU (any strides), or None.
+        labels: ``(B, H, W)`` ``uint8`` or int64 ids, or None (one of ``image``, ``labels``).
+        affine: ``(B, 6)``, as :func:`camera_rays` takes it (``kernels.radial_table``), in the
+            rays' dtype: :func:`work_dtype` of ``image`` (float32 or float64 for labels alone).
+        limits: ``(B, 5)``, likewise.
+        table: ``(1 or B, 2, K)``, likewise.
+        rotation: ``(1 or B, 3, 3)`` rays -> the image's camera frame, in the rays' dtype.
+        intrinsics: ``(1 or B, 4)`` the image's pinhole ``fx, fy, cx, cy``, in the rays' dtype.
+        bilinear: the image's samples bilinear (else nearest).
+        minifies: the prefilter's threshold
+            (:data:`~omniscape_torch.render.antialias.MINIFIES`), or 0: no prefilter.
+        fill: the label of the pixels outside (an int).
+        out: ``(B, C, h, w)`` with ``image`` (its dtype, or float32 for ``uint8``), else None.
+        out_labels: ``(B, h, w)`` int64 with ``labels``, else None.
+        valid: ``(B, h, w)`` bool, contiguous: written.
+
+    Raises:
+        TypeError, ValueError: naming the argument that is not as above.
+    """
+    if image is None and labels is None:
+        raise ValueError("image, labels: pass at least one")
+    if (image is None) != (out is None) or (labels is None) != (out_labels is None):
+        raise ValueError("out, out_labels: expected out with image and out_labels with labels")
+    # the rays' dtype: the image's work dtype; for labels alone float32 or float64 (affine's)
+    dtype = getattr(affine, "dtype", None)
+    dtype = dtype if dtype in (torch.float32, torch.float64) else torch.float32
+    if image is not None:
+        if not isinstance(image, Tensor) or image.dim() != 4 or image.device.type != "cpu":
+            raise ValueError(f"image: expected a CPU tensor (B, C, H, W), got "
+                             f"{tuple(getattr(image, 'shape', ())) or type(image).__name__}")
+        if image.dtype not in MIPMAPPED:
+            raise TypeError(f"image: expected one of {[str(d) for d in MIPMAPPED]}, got "
+                            f"{image.dtype}")
+        dtype = work_dtype(image.dtype)
+    if labels is not None and (not isinstance(labels, Tensor) or labels.dim() != 3 or
+                               labels.dtype not in (torch.uint8, torch.int64)):
+        raise ValueError(f"labels: expected uint8 or int64 ids (B, H, W), got "
+                         f"{getattr(labels, 'dtype', type(labels).__name__)} "
+                         f"{tuple(getattr(labels, 'shape', ()))}")
+    if not isinstance(valid, Tensor) or valid.dtype != torch.bool or valid.dim() != 3 or \
+            not valid.is_contiguous():
+        raise ValueError(f"valid: expected a contiguous bool tensor (B, h, w), got "
+                         f"{getattr(valid, 'dtype', type(valid).__name__)} "
+                         f"{tuple(getattr(valid, 'shape', ()))}")
+    batch, size = valid.shape[0], tuple(valid.shape[1:])
+    for name, t, shape in (("affine", affine, (batch, 6)), ("limits", limits, (batch, 5)),
+                           ("rotation", rotation, (3, 3)), ("intrinsics", intrinsics, (4,)),
+                           ("table", table, None)):
+        ok = isinstance(t, Tensor) and t.dtype == dtype and (
+            tuple(t.shape) == shape if name in ("affine", "limits") else
+            t.dim() == 3 and t.shape[0] in (1, batch) and t.shape[1] == 2 if name == "table"
+            else t.dim() == len(shape) + 1 and t.shape[0] in (1, batch) and
+            tuple(t.shape[1:]) == shape)
+        if not ok:
+            want = {"table": "(1 or B, 2, K)", "rotation": "(1 or B, 3, 3)",
+                    "intrinsics": "(1 or B, 4)"}.get(name, str(shape))
+            raise ValueError(f"{name}: expected {dtype} {want} (B = {batch}, valid's), got "
+                             f"{getattr(t, 'dtype', type(t).__name__)} "
+                             f"{tuple(getattr(t, 'shape', ()))}")
+    for name, t, t_out in (("image", image, out), ("labels", labels, out_labels)):
+        if t is None:
+            continue
+        if t.shape[0] != batch:
+            raise ValueError(f"{name}: {t.shape[0]} samples, valid has {batch}")
+        if not isinstance(t_out, Tensor):
+            raise TypeError(f"out{'' if name == 'image' else '_labels'}: expected a tensor, "
+                            f"got {type(t_out).__name__}")
+        mode = "bilinear" if bilinear and name == "image" else "nearest"
+        _check_out(t_out if name == "image" else t_out.unsqueeze(1),
+                   (batch, t.shape[1] if name == "image" else 1, *size),
+                   _out_dtype(t.dtype, t_out.dtype, mode, name))
+    if isinstance(minifies, bool) or not isinstance(minifies, (int, float)) or minifies < 0:
+        raise ValueError(f"minifies: expected a threshold >= 0 (0: no prefilter), got "
+                         f"{minifies!r}")
+    if isinstance(fill, bool) or not isinstance(fill, int):
+        raise TypeError(f"fill: expected an int, got {type(fill).__name__}")
+    _require().reproject_image(image, labels, affine, limits, table, rotation.contiguous(),
+                               intrinsics.contiguous(), bool(bilinear), float(minifies), fill,
                                out, out_labels, valid)
 
 
