@@ -11,6 +11,7 @@ from __future__ import annotations
 import ast
 import math
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -92,6 +93,11 @@ def test_ops_are_registered_after_a_render():
     assert fastsample.available() and fastsample.compile_failures() == {}
     for name in extension.OPS:
         assert hasattr(torch.ops.omniscape_torch, name), name
+    # every op the sources define is listed and has a fake implementation (torch.compile)
+    defined = {m for path in extension.SOURCES
+               for m in re.findall(r'm\.def\("(\w+)\(', path.read_text(encoding="utf-8"))}
+    assert defined == set(extension.OPS) == set(extension._FAKES), (
+        defined ^ set(extension.OPS), defined ^ set(extension._FAKES))
 
 
 @pytest.mark.parametrize("dtype", [f32, f64])

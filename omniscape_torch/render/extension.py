@@ -90,8 +90,8 @@ SOURCES = tuple(Path(__file__).with_name("csrc") / file for file in (
     "fastsample.h", "fastsample.cpp", "fastimage.cpp", "town_shade.cpp"))
 NAMESPACE = "omniscape_torch"
 OPS = ("build_lut", "sample_lut", "sample_grid", "sample_rays", "camera_grid", "camera_rays",
-       "sample_image", "mip_image", "framing_reach", "framing_focal", "box_pixels",
-       "outline_points", "outline_reduce",
+       "sample_image", "mip_image", "reproject_image", "framing_reach", "framing_focal",
+       "frame_lens", "box_pixels", "outline_points", "outline_reduce",
        "town_backfaces", "town_prepare", "town_shade", "town_store")
 #: ``-march=native``: the library is built for this machine's CPU (its flags are in the name);
 #: ``-fno-trapping-math``: float comparisons may be evaluated speculatively, so the tap
@@ -375,6 +375,25 @@ def _fake_framing_focal(radius, to_edge, coverage, height, width, focal) -> None
            "framing_focal: expected radius (n, D), coverage and focal (n,)")
 
 
+def _fake_reproject_image(image, labels, affine, limits, table, rotation, intrinsics, bilinear,
+                          minifies, fill, out, out_labels, valid) -> None:
+    _check(valid.dim() == 3 and affine.shape == (valid.shape[0], 6)
+           and (out is None or out.shape[:1] + out.shape[2:] == valid.shape)
+           and (out_labels is None or out_labels.shape == valid.shape),
+           "reproject_image: expected valid (B, h, w), affine (B, 6), out (B, C, h, w), "
+           "out_labels (B, h, w)")
+
+
+def _fake_frame_lens(u, spec, intrinsics, centre, cos, sin, src_height, src_width, radius,
+                     slope, per_angle, to_edge, height, width, params, fov, attitude, applied,
+                     rotation, coverage) -> None:
+    n = fov.shape[0]
+    _check(u.shape == (16 * n,) and params.shape[0] == n and attitude.shape == (3, n)
+           and applied.shape == coverage.shape == (n,) and rotation.shape == (n, 3, 3),
+           "frame_lens: expected u (16 n,), params (n, P), fov, applied, coverage (n,), "
+           "attitude (3, n), rotation (n, 3, 3)")
+
+
 def _fake_rays(o, d, t, tri, u, v, what: str) -> None:
     n = d.shape[0]
     _check(d.dim() == 2 and d.shape[1] == 3 and o.dim() == 2 and o.shape[1] == 3
@@ -414,6 +433,7 @@ _FAKES = {"build_lut": _fake_build_lut, "sample_lut": _fake_sample_lut,
           "sample_grid": _fake_sample_grid, "sample_rays": _fake_sample_rays,
           "camera_grid": _fake_camera_grid, "camera_rays": _fake_camera_rays,
           "sample_image": _fake_sample_image, "mip_image": _fake_mip_image,
+          "reproject_image": _fake_reproject_image, "frame_lens": _fake_frame_lens,
           "framing_reach": _fake_framing_reach, "framing_focal": _fake_framing_focal,
           "box_pixels": _fake_box_pixels, "outline_points": _fake_outline_points,
           "outline_reduce": _fake_outline_reduce,
