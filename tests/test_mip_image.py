@@ -241,7 +241,7 @@ def test_reproject_image_arguments():
     for at, value, error, match in [
             (0, image.half(), TypeError, "image: expected one of"),
             (1, labels.int(), ValueError, "labels: expected uint8 or int64"),
-            (2, affine.double(), ValueError, r"affine: expected torch.float32 \(2, 6\)"),
+            (2, affine.double(), ValueError, r"affine: expected torch.float32 \(B, 6\) \(B = 2"),
             (4, table[0], ValueError, r"table: expected .* \(1 or B, 2, K\)"),
             (5, rot[:, :2], ValueError, r"rotation: expected .* \(1 or B, 3, 3\)"),
             (6, k.double(), ValueError, "intrinsics: expected torch.float32"),

@@ -762,17 +762,16 @@ def reproject_image(image: Tensor | None, labels: Tensor | None, affine: Tensor,
                          f"{getattr(valid, 'dtype', type(valid).__name__)} "
                          f"{tuple(getattr(valid, 'shape', ()))}")
     batch, size = valid.shape[0], tuple(valid.shape[1:])
-    for name, t, shape in (("affine", affine, (batch, 6)), ("limits", limits, (batch, 5)),
-                           ("rotation", rotation, (3, 3)), ("intrinsics", intrinsics, (4,)),
-                           ("table", table, None)):
-        ok = isinstance(t, Tensor) and t.dtype == dtype and (
-            tuple(t.shape) == shape if name in ("affine", "limits") else
-            t.dim() == 3 and t.shape[0] in (1, batch) and t.shape[1] == 2 if name == "table"
-            else t.dim() == len(shape) + 1 and t.shape[0] in (1, batch) and
-            tuple(t.shape[1:]) == shape)
-        if not ok:
-            want = {"table": "(1 or B, 2, K)", "rotation": "(1 or B, 3, 3)",
-                    "intrinsics": "(1 or B, 4)"}.get(name, str(shape))
+    # each tensor: its first dimension's sizes allowed, the rest (None: any), as written
+    for name, t, firsts, rest, want in (
+            ("affine", affine, (batch,), (6,), "(B, 6)"),
+            ("limits", limits, (batch,), (5,), "(B, 5)"),
+            ("table", table, (1, batch), (2, None), "(1 or B, 2, K)"),
+            ("rotation", rotation, (1, batch), (3, 3), "(1 or B, 3, 3)"),
+            ("intrinsics", intrinsics, (1, batch), (4,), "(1 or B, 4)")):
+        if not (isinstance(t, Tensor) and t.dtype == dtype and t.dim() == 1 + len(rest) and
+                t.shape[0] in firsts and
+                all(r is None or n == r for n, r in zip(t.shape[1:], rest))):
             raise ValueError(f"{name}: expected {dtype} {want} (B = {batch}, valid's), got "
                              f"{getattr(t, 'dtype', type(t).__name__)} "
                              f"{tuple(getattr(t, 'shape', ()))}")
