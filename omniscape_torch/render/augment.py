@@ -1344,19 +1344,18 @@ class RandomReproject(_RandomCameras):
         unit = self._unit_lens(name)
         h, w = self.image_size
         key = ("spec", self.image_size)
-        spec, middle, edges = self._cached.get(key, (None, None, None))
+        spec, centre = self._cached.get(key, (None, None))
         if spec is None:   # the ranges and p as the op reads them; the image's centre
             spec = torch.tensor([*self.fov_range, *self.yaw_range, *self.pitch_range,
                                  *self.roll_range, *self.coverage_range, self.p],
                                 dtype=torch.float64)
-            middle = np.array([[(w - 1) / 2, (h - 1) / 2]])
-            edges = torch.from_numpy(framing.to_edge(middle, self.image_size))
-            self._cached[key] = spec, middle, edges
-        centre = torch.from_numpy(middle)
+            centre = np.array([[(w - 1) / 2, (h - 1) / 2]])
+            self._cached[key] = spec, centre
         if self.center_jitter != 0:   # the jitter's uniforms: (n, 2) from 9 n
             jitter = (2 * u[9 * n:11 * n].numpy().reshape(n, 2) - 1) * self.center_jitter
-            centre = torch.from_numpy(jitter + middle)
-            edges = torch.from_numpy(framing.to_edge(centre.numpy(), self.image_size))
+            centre = jitter + centre
+        edges = torch.from_numpy(self._to_edge(centre))
+        centre = torch.from_numpy(centre)
         params, fov, attitude, applied, rotation, coverage = (
             torch.zeros(n, _MAX_P, dtype=torch.float64), torch.empty(n, dtype=torch.float64),
             torch.empty(3, n, dtype=torch.float64), torch.empty(n, dtype=torch.bool),
