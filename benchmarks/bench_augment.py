@@ -82,7 +82,7 @@ from omniscape_torch.render.augment import RandomOmniCamera  # noqa: E402
 from omniscape_torch.cameras import Camera  # noqa: E402
 from omniscape_torch.cubemap import face_axes  # noqa: E402
 from omniscape_torch.render.layer import CHUNK_PIXELS, OmniProjection  # noqa: E402
-from omniscape_torch.render.kernels import camera_grid  # noqa: E402
+from omniscape_torch.render.kernels.camera import camera_grid  # noqa: E402
 
 try:
     import cv2

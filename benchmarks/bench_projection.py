@@ -118,7 +118,7 @@ import omniscape_torch as ot  # noqa: E402
 from common import begin_run, loadavg, measure, results_path, run_main, run_record  # noqa: E402
 from omniscape_torch import cubemap as cm  # noqa: E402
 from omniscape_torch.cubemap import grid as fastgrid  # noqa: E402
-from omniscape_torch.render import fast as fastsample  # noqa: E402
+from omniscape_torch.render.kernels import sample as fastsample  # noqa: E402
 
 try:
     import cv2

@@ -176,7 +176,7 @@ def main(argv: list[str] | None = None) -> dict:
     # fast sampler's and the town's kernels, one library) is built (or found built) before the
     # clock starts
     try:
-        from omniscape_torch.render import extension
+        from omniscape_torch.render.kernels import build as extension
         extension.load()
     except Exception as err:  # noqa: BLE001 - the layer and the town fall back to torch
         print(f"# the C++ kernels are not available ({err})", file=sys.stderr)

@@ -16,7 +16,7 @@ import pytest
 import torch
 
 import omniscape_torch as ot
-from omniscape_torch.render import framing
+from omniscape_torch.render.kernels import framing
 from omniscape_torch.render.augment import RandomReproject
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
@@ -143,7 +143,7 @@ def test_one_call_draw_is_the_numpy_draw(monkeypatch, jitter, same, p):
         return aug.forward_parameters(6, intrinsics=K, source_size=SRC)
 
     fast_draw = draw()
-    monkeypatch.setattr(ot.render.extension, "ops", lambda: None)
+    monkeypatch.setattr(ot.render.kernels.build, "ops", lambda: None)
     slow = draw()
     assert fast_draw.keys() == slow.keys() and fast_draw["model"] == slow["model"]
     for key in ("fov", "yaw", "pitch", "roll", "applied", "coverage", "num_params",

@@ -169,7 +169,7 @@ def test_outline_boxes_at_the_valid_areas_border_under_strong_distortion(ops, mo
     the torch code the box mapping falls back to without them."""
     if not ops:
         monkeypatch.setattr(detection, "fast", SimpleNamespace(available=lambda: False))
-    elif not ot.render.fast.available():
+    elif not ot.render.kernels.available():
         pytest.skip("the C++ ops cannot be built here")
     size = (48, 64)
     aug = ot.augment.RandomReproject(

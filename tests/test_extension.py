@@ -22,7 +22,7 @@ import pytest
 import torch
 
 import omniscape_torch as ot
-from omniscape_torch.render import extension, fast as fastsample, kernels
+from omniscape_torch.render.kernels import build as extension, camera as kernels, sample as fastsample
 from omniscape_torch.scenes import Town
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -186,7 +186,7 @@ def test_framing_ops_are_the_numpy_framing(monkeypatch):
     turned up to 60 degrees (some axes miss the source: theta 0), off-centre pinholes, shared
     and per-sample distances to the edge, coverages beyond what a source can fill; and
     opcheck."""
-    from omniscape_torch.render import framing
+    from omniscape_torch.render.kernels import framing
     g = torch.Generator().manual_seed(5)
     n, f64 = 24, torch.float64
     angles = (torch.rand(n, 3, generator=g, dtype=f64) * 2 - 1) * math.radians(60)
@@ -666,13 +666,13 @@ CHILD = textwrap.dedent("""
     import os, sys, warnings
     warnings.simplefilter("error")
     import torch
-    from omniscape_torch.render import fast
+    from omniscape_torch.render.kernels import sample as fast
     path = os.environ.get("PATH")
     cube = torch.rand(2, 6, 3, 8, 8, generator=torch.Generator().manual_seed(0))
     grid = torch.rand(1, 5, 7, 2, generator=torch.Generator().manual_seed(1)) * 2.2 - 1.1
     image = fast.sample_cube(cube, grid, pad=1)
     print(float(image.double().sum()), os.environ.get("PATH") == path, fast.available())
-    from omniscape_torch.render import extension
+    from omniscape_torch.render.kernels import build as extension
     print(extension._LOADED[0])
 """)
 

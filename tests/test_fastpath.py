@@ -18,7 +18,7 @@ import torch.nn.functional as F_nn
 import omniscape_torch as ot
 from omniscape_torch import cubemap as cm
 from omniscape_torch.cubemap import grid as fastgrid
-from omniscape_torch.render import extension, fast as fastsample
+from omniscape_torch.render.kernels import build as extension, sample as fastsample
 
 f32, f64 = torch.float32, torch.float64
 #: Rounding of a blend of 4 texels in [0, 1]. float32: the weights are grid_sample's bit for bit,

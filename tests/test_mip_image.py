@@ -12,7 +12,8 @@ import torch
 import torch.nn.functional as F
 
 import omniscape_torch as ot
-from omniscape_torch.render import antialias, fast
+from omniscape_torch.render import antialias
+from omniscape_torch.render.kernels import sample as fast
 
 pytestmark = pytest.mark.skipif(not fast.available(), reason="C++ kernels unavailable")
 
@@ -200,7 +201,7 @@ def test_reproject_image_is_the_ops_in_turn(dtype, channels_last, labels_dtype):
     work = fast.work_dtype(image.dtype)
     cams = torch.tensor([[14.0, 14.0, 23.5, 23.5], [110.0, 110.0, 20.0, 26.0]],
                         dtype=torch.float64)
-    affine, limits, table = ot.render.kernels.radial_table("equidistant", cams, (48, 48))
+    affine, limits, table = ot.render.kernels.camera.radial_table("equidistant", cams, (48, 48))
     limits[:, 3] = math.cos(math.radians(85))
     affine, limits, table = (t.to(work).contiguous() for t in (affine, limits, table))
     rot = torch.stack([torch.tensor([[math.cos(a), 0, math.sin(a)], [0, 1, 0],
@@ -230,7 +231,7 @@ def test_reproject_image_arguments():
     image = torch.zeros(2, 3, 16, 16, dtype=torch.uint8)
     labels = torch.zeros(2, 16, 16, dtype=torch.int64)
     cams = torch.tensor([[4.0, 4.0, 3.0, 2.0], [3.0, 3.5, 3.5, 2.5]], dtype=torch.float64)
-    affine, limits, table = (t.float() for t in ot.render.kernels.radial_table(
+    affine, limits, table = (t.float() for t in ot.render.kernels.camera.radial_table(
         "equidistant", cams, (5, 7), entries=16))
     rot, k = torch.eye(3).expand(2, 3, 3), torch.tensor([[9.0, 9.5, 7.5, 7.0]])
     out, ids = torch.zeros(2, 3, 5, 7, dtype=torch.uint8), torch.zeros(2, 5, 7, dtype=torch.int64)

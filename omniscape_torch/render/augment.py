@@ -36,9 +36,10 @@ from ..cameras import Camera
 from ..cameras.registry import get_model
 from ..cubemap.faces import FACES, face_rotations
 from ..cubemap.rotation import check_rotation
-from . import containers, detection, extension, fast, framing
-from .fast import CameraGrid
-from .kernels import camera_grid, camera_rays, radial_table
+from . import containers, detection
+from .kernels import build as extension, framing, sample as fast
+from .kernels.sample import CameraGrid
+from .kernels.camera import camera_grid, camera_rays, radial_table
 from ..cameras.presets import rotation_rows, yaw_pitch_roll_to_matrix
 from . import layer as projection
 from .layer import OmniProjection

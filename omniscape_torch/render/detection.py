@@ -47,7 +47,7 @@ from torch import Tensor
 from ..cameras import Camera
 from ..cameras.registry import get_model
 from ..cubemap.faces import face_rotations
-from . import fast
+from .kernels import sample as fast
 
 __all__ = ["instance_boxes", "reproject_boxes", "reproject_keypoints", "OUTLINE_STEP",
            "FIRST_STEP"]

@@ -28,7 +28,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .. import cubemap as cm
-from . import fast as fastsample
+from .kernels import sample as fastsample
 from ..cameras import Camera
 from ..cubemap.grid import rotated_rays_to_grid
 from .reference import (check_out_dtype, from_float, grid_sample, nearest_gather,

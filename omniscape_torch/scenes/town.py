@@ -68,7 +68,7 @@ from torch import Tensor
 
 from ..cameras._base import broadcast_shapes
 from ..cubemap.faces import face_axes, face_pixel_to_ray, face_rays
-from ..render import extension as _extension
+from ..render.kernels import build as _extension
 from . import mesh as _mesh
 
 __all__ = ["CARLA_PRESETS", "CARLA_WEATHERS", "CLASS_IDS", "LAYOUTS", "Street", "Town", "Weather",

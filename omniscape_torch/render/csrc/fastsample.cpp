@@ -132,7 +132,7 @@ void sample_rays_op(const at::Tensor& cube, const at::Tensor& rays,
 
 TORCH_LIBRARY(omniscape_torch, m) {
     // the fake (meta) implementations, for torch.compile, are registered there
-    m.set_python_module("omniscape_torch.render.extension");
+    m.set_python_module("omniscape_torch.render.kernels.build");
     m.def("build_lut(Tensor grid, int face, int pad, int[] strides, bool bilinear, "
           "Tensor(a!) table) -> ()");
     m.def("sample_lut(Tensor cube, Tensor table, Tensor grid, Tensor ring_src, "

@@ -32,7 +32,7 @@ import math
 import numpy as np
 import torch
 
-from . import extension
+from . import build as extension
 
 __all__ = ["COS_SIN", "DIRECTIONS", "PHI", "focal_for_coverage", "reach", "to_edge"]
 

@@ -21,14 +21,14 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from ..cameras import Camera
-from ..cameras.radial import (kannala_brandt_angles, kannala_brandt_tabulate,
+from ...cameras import Camera
+from ...cameras.radial import (kannala_brandt_angles, kannala_brandt_tabulate,
                                kannala_brandt_unproject_table_xyz)
-from ..cameras.registry import get_model
-from ..cameras.unified import unified_unproject_undistorted_xyz
-from ..cubemap.faces import _check_face_size, _check_pad
-from ..cubemap.grid import compiled_kernel, fail, rotated_grid_xy, rotated_rays_to_grid
-from . import fast
+from ...cameras.registry import get_model
+from ...cameras.unified import unified_unproject_undistorted_xyz
+from ...cubemap.faces import _check_face_size, _check_pad
+from ...cubemap.grid import compiled_kernel, fail, rotated_grid_xy, rotated_rays_to_grid
+from . import sample as fast
 
 __all__ = ["camera_grid", "camera_rays", "radial_table", "RADIAL", "RADIAL_ENTRIES"]
 

@@ -56,12 +56,12 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from . import extension
-from .antialias import MINIFIES
-from ..cubemap.atlas import atlas_to_faces
-from ..cubemap.padding import border_plan, check_cubemap
-from ..cubemap.grid import rotated_rays_to_grid
-from ..cubemap.grid import _check_inputs as _check_rays
+from . import build as extension
+from ..antialias import MINIFIES
+from ...cubemap.atlas import atlas_to_faces
+from ...cubemap.padding import border_plan, check_cubemap
+from ...cubemap.grid import rotated_rays_to_grid
+from ...cubemap.grid import _check_inputs as _check_rays
 
 __all__ = ["CubeLUT", "CameraGrid", "build_lut", "camera_rays", "sample_cube", "sample_rays",
            "sample_image", "mip_image", "reproject_image", "MIPMAPPED", "reads_rays",

@@ -79,14 +79,14 @@ from pathlib import Path
 
 import torch
 
-from ..io.atomic import atomic_path
+from ...io.atomic import atomic_path
 
 __all__ = ["load", "ops", "unavailable_reason", "name", "face_case_flags", "CFLAGS", "LDFLAGS",
            "NAMESPACE", "OPS", "SOURCES"]
 
 #: The sources of the one library: the samplers' kernels (a header), their ops (the cube's,
 #: which define the namespace, and the image's) and the town's.
-SOURCES = tuple(Path(__file__).with_name("csrc") / file for file in (
+SOURCES = tuple(Path(__file__).parent.parent / "csrc" / file for file in (
     "fastsample.h", "fastsample.cpp", "fastimage.cpp", "town_shade.cpp"))
 NAMESPACE = "omniscape_torch"
 OPS = ("build_lut", "sample_lut", "sample_grid", "sample_rays", "camera_grid", "camera_rays",
@@ -159,7 +159,7 @@ def face_case_flags() -> list[str]:
     """``-DOS_FACE_CASES=...``: the kernel's face table, the 6 cases of
     ``cubemap.grid._CASES`` (derived from ``cubemap.faces``) and its zero-ray case, 35 integers
     (commas only: nothing a shell or ninja would rewrite)."""
-    from ..cubemap import grid
+    from ...cubemap import grid
     values = [int(v) for case in (*grid._CASES, grid._ZERO_CASE) for v in case]
     return ["-DOS_FACE_CASES=" + ",".join(map(str, values))]
 

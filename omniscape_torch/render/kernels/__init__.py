@@ -1,0 +1,25 @@
+"""The kernel boundary: the only place where Python meets the package's C++ ops.
+
+One public function per computation, each beside its torch (or NumPy) reference twin: it
+checks its arguments once, then runs the C++ op or the twin, chosen by its `backend` argument
+(`"auto"`, `"cpp"` or `"torch"`; `_backend.choose` is the one place that decides). Modules above
+this package (the layer, the augmentation, detection, the town) pass their `backend` down and
+never ask whether the C++ ops exist.
+
+- `build`: the one C++ library (`render/csrc/`), built on first use, its ops' fake
+  implementations for `torch.compile`.
+- `sample`: sampling a cube through a grid, a lookup table or rays; sampling an image along
+  rays, with or without the antialiasing prefilter, with labels (`reproject_image`).
+- `camera`: pixel centres -> rays -> atlas grid of whole cameras (`camera_grid`,
+  `camera_rays`, `radial_table`).
+- `framing`: the focal at which a perspective source fills a share of a fisheye.
+
+On a GPU (or any device but the CPU) every function takes its torch route: the C++ ops are
+CPU-only and forward-only.
+"""
+
+from . import build, camera, framing, sample
+from ._backend import BACKENDS, available, check_backend, choose
+
+__all__ = ["BACKENDS", "available", "build", "camera", "check_backend", "choose", "framing",
+           "sample"]
