@@ -50,7 +50,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import (begin_run, loadavg, measure, positive_int, results_path,  # noqa: E402
                     run_main, run_record)
 from omniscape_torch.io import atomic_write_text  # noqa: E402
-from omniscape_torch.render.augment import RandomReproject  # noqa: E402
+from omniscape_torch.augment import RandomReproject  # noqa: E402
 
 SEED = 20261127
 #: Factors of the ``area`` rows' source reduction.

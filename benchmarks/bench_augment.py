@@ -78,7 +78,7 @@ sys.path.insert(0, str(ROOT))
 
 from common import (HEAP_MODES, begin_run, loadavg, measure, results_path, run_main,  # noqa: E402
                     run_record, set_heap)
-from omniscape_torch.render.augment import RandomOmniCamera  # noqa: E402
+from omniscape_torch.augment import RandomOmniCamera  # noqa: E402
 from omniscape_torch.cameras import Camera  # noqa: E402
 from omniscape_torch.cubemap import face_axes  # noqa: E402
 from omniscape_torch.render.layer import CHUNK_PIXELS, OmniProjection  # noqa: E402

@@ -51,7 +51,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import (begin_run, loadavg, measure, positive_int, results_path,  # noqa: E402
                     run_main, run_record)
-from omniscape_torch.render.augment import RandomReproject  # noqa: E402
+from omniscape_torch.augment import RandomReproject  # noqa: E402
 
 try:
     import albumentations as A

@@ -156,7 +156,7 @@ from omniscape_torch.cubemap import FACES  # noqa: E402
 from omniscape_torch.io import (CLASSES, IGNORE_INDEX, atomic_write_bytes,  # noqa: E402
                                  atomic_write_text)
 from omniscape_torch.io.atomic import atomic_path  # noqa: E402
-from omniscape_torch.render.augment import RandomOmniCamera  # noqa: E402
+from omniscape_torch.augment import RandomOmniCamera  # noqa: E402
 
 #: The conditions, in the order of the table, and how the table names them.
 CONDITIONS = ("none", "kornia_fisheye", "albumentations", "reproject", "omni_camera",

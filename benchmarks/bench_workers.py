@@ -56,7 +56,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_augment import FOV_RANGE, atlas_maps, peer_atlas, peer_draw, SEED  # noqa: E402
 from common import (begin_run, loadavg, positive_int, results_path, run_main,  # noqa: E402
                     run_record)
-from omniscape_torch.render.augment import FISHEYE_MODELS, RandomOmniCamera  # noqa: E402
+from omniscape_torch.augment import FISHEYE_MODELS, RandomOmniCamera  # noqa: E402
 
 try:
     import cv2

@@ -3,7 +3,7 @@ workers unpickle them by name, so they cannot live in a test module)."""
 
 import torch
 
-from omniscape_torch.render.augment import FISHEYE_MODELS, RandomOmniCamera, RandomReproject
+from omniscape_torch.augment import FISHEYE_MODELS, RandomOmniCamera, RandomReproject
 
 #: Small on purpose: output image (H, W), cube face side F, dataset length.
 SIZE, FACE, ITEMS = (16, 16), 8, 8

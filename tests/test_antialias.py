@@ -17,7 +17,7 @@ import torch
 
 import omniscape_torch as ot
 from omniscape_torch.render.kernels import framing
-from omniscape_torch.render.augment import RandomReproject
+from omniscape_torch.augment import RandomReproject
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 

@@ -13,7 +13,7 @@ from pathlib import Path
 PACKAGE = Path(__file__).resolve().parents[1] / "omniscape_torch"
 
 #: ARCHITECTURE.md: each package may import only those after it.
-LAYERS = ("data", "scenes", "calibration", "render", "cubemap", "cameras", "io")
+LAYERS = ("data", "scenes", "calibration", "augment", "render", "cubemap", "cameras", "io")
 
 
 def _modules() -> dict[str, Path]:

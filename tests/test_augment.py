@@ -8,7 +8,7 @@ import pytest
 import torch
 from torch import nn
 
-from omniscape_torch.render.augment import ApplyToKey, RandomOmniCamera
+from omniscape_torch.augment import ApplyToKey, RandomOmniCamera
 from omniscape_torch.cameras import Camera
 from omniscape_torch.cameras.registry import get_model
 from omniscape_torch.cubemap.faces import FACES, face_rotations

@@ -13,7 +13,7 @@ import omniscape_torch as ot
 from _worker_data import (FACE, ITEMS, AugmentCollate, AugmentedCubes, AugmentedImages,
                           AugmentedSamples, DetectionSamples, PlainCubes, distorted_source,
                           make_aug, make_reproject, params_rows, reseed_worker)
-from omniscape_torch.render.augment import RandomReproject
+from omniscape_torch.augment import RandomReproject
 
 EPOCHS = 2
 

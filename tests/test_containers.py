@@ -1,5 +1,5 @@
-"""The containers around the augmentation modules (``render/containers.py``,
-``render/adapters.py``): unbatched samples, torchvision's ``tv_tensors`` and ``transforms.v2``,
+"""The containers around the augmentation modules (``augment/containers.py``,
+``augment/adapters.py``): unbatched samples, torchvision's ``tv_tensors`` and ``transforms.v2``,
 kornia's ``AugmentationSequential``, and the albumentations adapter.
 
 torchvision and albumentations are optional: their tests skip where they do not import (the
@@ -18,7 +18,7 @@ import torch
 from torch.utils.data import default_collate
 
 import omniscape_torch as ot
-from omniscape_torch.render import containers
+from omniscape_torch.augment import containers
 
 SRC = (24, 28)
 OUT = (32, 32)

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 import omniscape_torch as ot
-from omniscape_torch.render import augment
+from omniscape_torch import augment
 
 DEG = math.pi / 180
 SRC = (48, 64)     # source images (H, W)
@@ -263,7 +263,7 @@ def test_drawn_lenses_see_their_drawn_field_of_view():
         model = ot.cameras.get_model(params["model"][b])
         reach = float(model.max_angle(camera.params.double()))
         half = float(params["fov"][b]) / 2
-        assert half <= reach - augment._ANGLE_MARGIN + 1e-12
+        assert half <= reach - augment.draw._ANGLE_MARGIN + 1e-12
         edge = torch.tensor([[math.sin(half), 0.0, math.cos(half)]], dtype=torch.float64)
         pixel, ok = model.project(edge, camera.params.double())
         assert bool(ok.all())

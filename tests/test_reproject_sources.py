@@ -11,7 +11,7 @@ import pytest
 import torch
 
 import omniscape_torch as ot
-from omniscape_torch.render import augment
+from omniscape_torch import augment
 
 DATA = Path(__file__).parent / "data" / "camera_files"
 ARIA = DATA / "aria" / "DeviceModelTests-calib.json"
