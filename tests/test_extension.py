@@ -196,14 +196,13 @@ def test_framing_ops_are_the_numpy_framing(monkeypatch):
     half = (1.2 + 0.6 * torch.rand(n, generator=g, dtype=f64)).numpy()
     coverage = (0.05 + torch.rand(n, generator=g, dtype=f64)).clamp_max(1.0).numpy()
     centre = (torch.rand(n, 2, generator=g, dtype=f64) * 8 + 12).numpy()
-    theta = framing.reach(rotation, intrinsics, (30, 40), half)
+    theta = framing.reach(rotation, intrinsics, (30, 40), half, backend="cpp")
     radius = theta * 1.1                                   # a lens of radius 1.1 theta
-    focal = [framing.focal_for_coverage(radius, e, coverage, (32, 36))
+    focal = [framing.focal_for_coverage(radius, e, coverage, (32, 36), backend="cpp")
              for e in (framing.to_edge(centre, (32, 36)), framing.to_edge(centre[:1], (32, 36)))]
-    monkeypatch.setattr(extension, "ops", lambda: None)   # framing's NumPy arithmetic
-    want = framing.reach(rotation, intrinsics, (30, 40), half)
+    want = framing.reach(rotation, intrinsics, (30, 40), half, backend="torch")   # NumPy's
     assert (want == 0).all(1).any() and (want > 0).all(1).any()
-    np_focal = [framing.focal_for_coverage(radius, e, coverage, (32, 36))
+    np_focal = [framing.focal_for_coverage(radius, e, coverage, (32, 36), backend="torch")
                 for e in (framing.to_edge(centre, (32, 36)), framing.to_edge(centre[:1], (32, 36)))]
     torch.testing.assert_close(torch.from_numpy(theta), torch.from_numpy(want), rtol=0,
                                atol=1e-14)
@@ -219,7 +218,8 @@ def test_framing_ops_are_the_numpy_framing(monkeypatch):
     with pytest.raises(RuntimeError, match="framing_focal: radius: expected float64"):
         ops().framing_focal(t[3].float(), t[3], t[4], 32, 36, torch.empty(n, dtype=f64))
     # the one-call draw: uniforms -> attitudes, rotations, reach, a radius table, focals
-    u = torch.rand(16 * n, generator=torch.Generator().manual_seed(2), dtype=f64)
+    from omniscape_torch.render.kernels.draw import STREAM_WIDTH
+    u = torch.rand(STREAM_WIDTH * n, generator=torch.Generator().manual_seed(2), dtype=f64)
     spec = torch.tensor([2.8, 3.4, -0.2, 0.2, -0.1, 0.1, -0.4, 0.4, 0.3, 0.9, 0.5], dtype=f64)
     table = torch.linspace(0, 3, 64, dtype=f64)
     outs = (torch.zeros(n, 9, dtype=f64), torch.empty(n, dtype=f64), torch.empty(3, n, dtype=f64),

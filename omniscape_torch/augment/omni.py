@@ -10,8 +10,6 @@ import torch
 from torch import Tensor
 
 from ..cameras import Camera
-from ..cameras.presets import yaw_pitch_roll_to_matrix
-from ..cubemap.faces import FACES, face_rotations
 from ..cubemap.rotation import check_rotation
 from ..render import detection
 from ..render import layer as projection
@@ -21,22 +19,18 @@ from ..render.reference import check_out_dtype
 from . import containers
 from .draw import (
     _ANGLE_MARGIN,
-    _CATADIOPTRIC,
     _CUBE_DIMS,
     _DEG,
     _LENS_DEFAULTS,
-    _MAX_P,
     MODES,
     _check_range,
     _RandomCameras,
-    _uniform,
 )
 from .targets import (
     _check_batches,
     _check_label_keys,
     _grid_rows,
     _label_maps,
-    _on_batch,
     _plain,
     _render_label_maps,
     _runs,
@@ -183,7 +177,7 @@ class RandomOmniCamera(_RandomCameras):
                  interpolation: str = "bilinear", depth_output: str = "range",
                  ignore_index: int = 255, seed: int | None = None,
                  channels_last: bool = False, out_dtype: torch.dtype | None = None,
-                 label_keys: Mapping[str, int] | None = None) -> None:
+                 label_keys: Mapping[str, int] | None = None, backend: str = "auto") -> None:
         super().__init__(
             image_size, fisheye_models=fisheye_models, fov_range=fov_range,
             kb_distortion=kb_distortion, unified_xi_range=unified_xi_range,
@@ -193,7 +187,7 @@ class RandomOmniCamera(_RandomCameras):
             roll_range=roll_range, pitch_range=pitch_range, yaw_range=yaw_range, p=p,
             same_on_batch=same_on_batch, interpolation=interpolation, depth_output=depth_output,
             ignore_index=ignore_index, seed=seed, channels_last=channels_last,
-            out_dtype=out_dtype)
+            out_dtype=out_dtype, backend=backend)
         if isinstance(face_size, bool) or not isinstance(face_size, int) or face_size < 1:
             raise ValueError(f"face_size: expected a positive int, got {face_size!r}")
         if mode not in MODES:
@@ -251,71 +245,7 @@ class RandomOmniCamera(_RandomCameras):
         """
         if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
             raise ValueError(f"batch_size: expected a positive int, got {batch_size!r}")
-        g = self.generator if generator is None else generator
-        n = 1 if self.same_on_batch else batch_size
-        f64 = dict(dtype=torch.float64)
-        # Every draw below happens for every sample whatever its model, so the stream (and hence
-        # a seed's batch) does not depend on which branch a sample takes.
-        u_model = torch.rand(n, generator=g, **f64)
-        fish_fov = _uniform(n, self.fov_range, g)
-        cata_fov = _uniform(n, self.cata_fov_range, g)
-        xi = _uniform(n, self.xi_range, g)
-        k = (2 * torch.rand(n, 4, generator=g, **f64) - 1) * self.kb_distortion
-        scale = _uniform(n, self.focal_scale_range, g)
-        jitter = (2 * torch.rand(n, 2, generator=g, **f64) - 1) * self.center_jitter
-        yaw = _uniform(n, self.yaw_range, g)
-        pitch = _uniform(n, self.pitch_range, g)
-        roll = _uniform(n, self.roll_range, g)
-        applied = torch.rand(n, generator=g, **f64) < self.p
-        # drawn last, and only where a model takes them: the other draws stay those of older
-        # versions for the same seed
-        lens = (torch.rand(n, 2, generator=g, **f64) if self._draws_lens
-                else torch.zeros(n, 2, **f64))
-
-        if self.mode == "fisheye":
-            cata = torch.zeros(n, dtype=torch.bool)
-        elif self.mode == "catadioptric":
-            cata = torch.ones(n, dtype=torch.bool)
-        else:
-            cata = u_model < self.catadioptric_prob
-        n_fish = len(self.fisheye_models)
-        # the same uniform picks the fisheye model, rescaled to [0, 1) on the fisheye branch
-        u_fish = u_model if self.mode == "fisheye" else (
-            (u_model - self.catadioptric_prob) / max(1 - self.catadioptric_prob, 1e-12))
-        fish_index = (u_fish.clamp(0, 1 - 1e-12) * n_fish).long()
-        kinds = tuple(_CATADIOPTRIC if c else self.fisheye_models[i]
-                      for c, i in zip(cata.tolist(), fish_index.tolist()))
-
-        fov = torch.where(cata, cata_fov, fish_fov)
-        blind = torch.where(cata, torch.full_like(fov, self.blind_fov or 0.0),
-                            torch.zeros_like(fov))
-        params = torch.zeros(n, _MAX_P, **f64)
-        num_params = torch.zeros(n, dtype=torch.long)
-        for kind in sorted(set(kinds)):
-            idx = torch.tensor([i for i, m in enumerate(kinds) if m == kind])
-            half = 0.5 * fov[idx]
-            if kind == _CATADIOPTRIC:   # under or over its mirror: xi_range, no distortion
-                name = "unified"
-                extra = torch.cat((xi[idx, None], torch.zeros(len(idx), 4, **f64)), -1)
-            else:
-                name = kind
-                extra, half = self._lens(name, half, k[idx], lens[idx])
-                fov[idx] = 2 * half
-            row = self._camera_rows(name, extra, half, scale[idx], jitter[idx])
-            params[idx, :row.shape[-1]] = row
-            num_params[idx] = row.shape[-1]
-        models = tuple("unified" if kind == _CATADIOPTRIC else kind for kind in kinds)
-
-        zero = torch.zeros_like(yaw)
-        yaw, pitch, roll = (torch.where(applied, a, zero) for a in (yaw, pitch, roll))
-        mount = torch.eye(3, **f64).expand(n, 3, 3).clone()
-        mount[cata] = face_rotations(torch.float64)[FACES.index(self.looking)]
-        rotation = yaw_pitch_roll_to_matrix(yaw, pitch, roll) @ mount
-
-        out = dict(model=models, camera_params=params, num_params=num_params, fov=fov,
-                   blind_fov=blind, yaw=yaw, pitch=pitch, roll=roll, applied=applied,
-                   rotation=rotation)
-        return _on_batch(out, n, batch_size)
+        return self._draw_params(batch_size, generator)
 
     # ---------------------------------------------------------------------------------------
     # Rendering

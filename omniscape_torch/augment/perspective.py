@@ -23,7 +23,6 @@ from .draw import (
     _LENS_DEFAULTS,
     DEFAULT_COVERAGE,
     _check_range,
-    _FramedDraw,
     _RandomCameras,
 )
 from .routes import _Routes
@@ -45,7 +44,7 @@ from .targets import (
 )
 
 
-class RandomReproject(_FramedDraw, _Routes, _RandomCameras):
+class RandomReproject(_Routes, _RandomCameras):
     """Per sample, a perspective (or any camera's) image seen through a random fisheye lens and
     attitude.
 
@@ -177,7 +176,7 @@ class RandomReproject(_FramedDraw, _Routes, _RandomCameras):
                  ignore_index: int = 255, seed: int | None = None,
                  channels_last: bool = False, out_dtype: torch.dtype | None = None,
                  label_keys: Mapping[str, int] | None = None,
-                 antialias: bool = True) -> None:
+                 antialias: bool = True, backend: str = "auto") -> None:
         if focal_scale_range is not None and coverage_range is not None:
             raise ValueError("coverage_range: pass coverage_range or focal_scale_range, not both")
         if focal_scale_range is None and coverage_range is None:
@@ -196,7 +195,7 @@ class RandomReproject(_FramedDraw, _Routes, _RandomCameras):
             roll_range=roll_range, pitch_range=pitch_range, yaw_range=yaw_range, p=p,
             same_on_batch=same_on_batch, interpolation=interpolation, depth_output=depth_output,
             ignore_index=ignore_index, seed=seed, channels_last=channels_last,
-            out_dtype=out_dtype)
+            out_dtype=out_dtype, backend=backend)
         if source_fov is not None and not (isinstance(source_fov, (int, float)) and not
                                            isinstance(source_fov, bool) and
                                            0 < source_fov < math.pi):
@@ -221,21 +220,12 @@ class RandomReproject(_FramedDraw, _Routes, _RandomCameras):
         self.coverage_range = coverage_range
         self.antialias = antialias
         self._check_fisheye_ranges()
-        # what depends on the arguments above alone, made on first use (keyed by the values
-        # it depends on): _unit_lens, the framing's distances to the edges without jitter
-        self._cached: dict[tuple, object] = {}
-
-    def __getstate__(self) -> dict:
-        state = super().__getstate__()
-        state["_cached"] = {}   # made again on first use (no tensors in the pickle)
-        return state
 
     def __setstate__(self, state: dict) -> None:
         state = dict(state)
         # pickled before framing and antialiasing existed: as they rendered then
         state.setdefault("coverage_range", None)
         state.setdefault("antialias", False)
-        state.setdefault("_cached", {})
         super().__setstate__(state)
         if "source_camera" not in self._modules:   # pickled before it existed
             self.source_camera = None

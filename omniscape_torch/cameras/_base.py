@@ -22,6 +22,31 @@ from torch import Tensor
 
 
 @dataclass(frozen=True)
+class FisheyeDraw:
+    """How the augmentation modules draw a fisheye lens of a model (`render/kernels/draw.py`).
+
+    Attributes:
+        ranges: per parameter drawn after ``fx, fy, cx, cy``: the augmentation modules' argument
+            that holds its ``(min, max)`` range, and that range's default.
+        zeros: parameters after the drawn ones that are 0 (unified's ``k1, k2, p1, p2``: no
+            lens distortion).
+        distortion: the model's coefficients are drawn in ``+-kb_distortion`` and halved
+            until the lens stays monotonic past the drawn half field of view
+            (Kannala-Brandt's ``k1..k4``).
+    """
+
+    ranges: tuple[tuple[str, tuple[float, float]], ...] = ()
+    zeros: int = 0
+    distortion: bool = False
+
+    @property
+    def fixed_reach(self) -> bool:
+        """No lens parameters: the model's reach is fixed, so a ``fov_range`` beyond it is
+        refused at construction; the others are fitted to each drawn field of view."""
+        return not self.ranges and not self.distortion
+
+
+@dataclass(frozen=True)
 class CameraModel:
     """One camera model of the registry.
 
@@ -48,6 +73,11 @@ class CameraModel:
             the normalised radius is below a bound: ``params (..., P) -> (...)``, that bound
             (``inf``: none), so that ``render.kernels.radial_table`` need not search for it;
             None for the others.
+        radial: the ray of a pixel depends on its distance from the principal point in
+            normalised coordinates alone (radially symmetric), so one radius -> ray table per
+            camera holds every pixel's ray (``render.kernels.camera.radial_table``).
+        fisheye_draw: how the augmentation modules draw a fisheye lens of this model
+            (``ot.augment``'s ``fisheye_models``), or None: not drawn.
     """
 
     name: str
@@ -61,6 +91,8 @@ class CameraModel:
     unproject_xyz: Callable[..., tuple[Tensor, Tensor, Tensor, Tensor]] | None = None
     domain_end: Callable[[Tensor], Tensor] | None = None
     optional: tuple[str, ...] = ()
+    radial: bool = False
+    fisheye_draw: FisheyeDraw | None = None
 
     @property
     def num_params(self) -> int:

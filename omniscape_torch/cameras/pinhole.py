@@ -55,4 +55,4 @@ PINHOLE = CameraModel(
     "pinhole", _NAMES, pinhole_project, pinhole_unproject,
     lambda p: torch.full(p.shape[:-1], math.pi / 2, dtype=p.dtype, device=p.device),
     {"focal": (0, 1), "center": (2, 3)},
-    check_values=lambda p: check_positive(p, (0, 1), _NAMES, "pinhole"))
+    check_values=lambda p: check_positive(p, (0, 1), _NAMES, "pinhole"), radial=True)

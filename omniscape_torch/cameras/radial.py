@@ -30,7 +30,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from ._base import (CameraModel, broadcast_shapes, check_inputs, check_positive, implicit_step,
+from ._base import (CameraModel, FisheyeDraw, broadcast_shapes, check_inputs, check_positive, implicit_step,
                     invert_monotone, near_zero_radius, polar, polyder, polyval, safe_div,
                     safe_sqrt, smallest_positive_root)
 
@@ -96,8 +96,10 @@ def _check_focal(params: Tensor, name: str) -> None:
 
 
 def _closed_form_model(name: str, r_of_theta, theta_of_r, r_limit: float, theta_limit: float,
-                       inclusive: bool, doc: str) -> CameraModel:
-    """A parameter-free radial law ``r(theta)`` scaled by (fx, fy) and shifted by (cx, cy)."""
+                       inclusive: bool, doc: str, fisheye_draw: FisheyeDraw | None = None
+                       ) -> CameraModel:
+    """A parameter-free radial law ``r(theta)`` scaled by (fx, fy) and shifted by (cx, cy);
+    ``fisheye_draw``: the augmentation draws it (``CameraModel.fisheye_draw``)."""
 
     def valid_theta(theta: Tensor) -> Tensor:
         return theta <= theta_limit if inclusive else theta < theta_limit
@@ -130,7 +132,7 @@ def _closed_form_model(name: str, r_of_theta, theta_of_r, r_limit: float, theta_
     project.__doc__ = unproject.__doc__ = doc
     return CameraModel(name, _FOCAL_NAMES, project, unproject, max_angle, _GROUPS,
                        check_values=lambda p: _check_focal(p, name), unproject_xyz=unproject_xyz,
-                       domain_end=domain_end)
+                       domain_end=domain_end, radial=True, fisheye_draw=fisheye_draw)
 
 
 def _orthographic_theta(r: Tensor) -> Tensor:
@@ -146,14 +148,14 @@ def _equisolid_theta(r: Tensor) -> Tensor:
 
 EQUIDISTANT = _closed_form_model(
     "equidistant", lambda t: t, lambda r: r, math.pi, math.pi, False,
-    "Equidistant fisheye: r = f theta, valid for theta < pi.")
+    "Equidistant fisheye: r = f theta, valid for theta < pi.", FisheyeDraw())
 EQUISOLID = _closed_form_model(
     "equisolid", lambda t: 2.0 * torch.sin(0.5 * t), _equisolid_theta, 2.0, math.pi, False,
-    "Equisolid-angle fisheye: r = 2 f sin(theta / 2), valid for theta < pi.")
+    "Equisolid-angle fisheye: r = 2 f sin(theta / 2), valid for theta < pi.", FisheyeDraw())
 STEREOGRAPHIC = _closed_form_model(
     "stereographic", lambda t: 2.0 * torch.tan(0.5 * t), lambda r: 2.0 * torch.atan(0.5 * r),
     math.inf, math.pi, False,
-    "Stereographic fisheye: r = 2 f tan(theta / 2), valid for theta < pi.")
+    "Stereographic fisheye: r = 2 f tan(theta / 2), valid for theta < pi.", FisheyeDraw())
 ORTHOGRAPHIC = _closed_form_model(
     "orthographic", torch.sin, _orthographic_theta, 1.0, math.pi / 2, True,
     "Orthographic fisheye: r = f sin(theta), valid for theta <= pi / 2.")
@@ -376,4 +378,5 @@ def _check_kb(params: Tensor) -> None:
 KANNALA_BRANDT = CameraModel(
     "kannala_brandt", _KB_NAMES, kannala_brandt_project, kannala_brandt_unproject,
     kannala_brandt_max_angle, {**_GROUPS, "distortion": (4, 5, 6, 7), "skew": (8,)},
-    check_values=_check_kb, domain_end=kannala_brandt_domain_end, optional=("s",))
+    check_values=_check_kb, domain_end=kannala_brandt_domain_end, optional=("s",), radial=True,
+    fisheye_draw=FisheyeDraw(distortion=True))

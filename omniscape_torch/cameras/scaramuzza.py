@@ -156,4 +156,4 @@ def _check_values(params: Tensor) -> None:
 SCARAMUZZA = CameraModel(
     "scaramuzza", _NAMES, scaramuzza_project, scaramuzza_unproject, scaramuzza_max_angle,
     {"center": (0, 1), "affine": (2, 3, 4)}, variadic=True, check_values=_check_values,
-    domain_end=scaramuzza_rho_limit)
+    domain_end=scaramuzza_rho_limit, radial=True)

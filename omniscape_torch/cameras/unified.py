@@ -29,7 +29,7 @@ import math
 import torch
 from torch import Tensor
 
-from ._base import (CameraModel, check_inputs, check_positive, check_range, safe_div,
+from ._base import (CameraModel, FisheyeDraw, check_inputs, check_positive, check_range, safe_div,
                     safe_sqrt, smallest_positive_root)
 
 #: Default maximum number of Newton iterations when undistorting the unified model's
@@ -273,7 +273,8 @@ def _check_unified(params: Tensor) -> None:
 UNIFIED = CameraModel(
     "unified", _UNIFIED_NAMES, unified_project, unified_unproject, unified_max_angle,
     {"focal": (0, 1), "center": (2, 3), "distortion": (4, 5, 6, 7, 8), "skew": (9,)},
-    check_values=_check_unified, optional=("s",))
+    check_values=_check_unified, optional=("s",), radial=True,
+    fisheye_draw=FisheyeDraw(ranges=(("unified_xi_range", (0.5, 1.0)),), zeros=4))
 
 
 def unified_from_mirror(mirror: str, *, p: float = 0.0, d: float = 0.0, focal: float,
@@ -399,7 +400,9 @@ def _check_eucm(params: Tensor) -> None:
 
 EUCM = CameraModel(
     "eucm", _EUCM_NAMES, eucm_project, eucm_unproject, eucm_max_angle,
-    {"focal": (0, 1), "center": (2, 3), "distortion": (4, 5)}, check_values=_check_eucm)
+    {"focal": (0, 1), "center": (2, 3), "distortion": (4, 5)}, check_values=_check_eucm,
+    radial=True, fisheye_draw=FisheyeDraw(ranges=(("eucm_alpha_range", (0.55, 0.7)),
+                                                  ("eucm_beta_range", (0.9, 1.2)))))
 
 
 # --------------------------------------------------------------------------------------------
@@ -475,4 +478,5 @@ def _check_ds(params: Tensor) -> None:
 DOUBLE_SPHERE = CameraModel(
     "double_sphere", _DS_NAMES, double_sphere_project, double_sphere_unproject,
     double_sphere_max_angle, {"focal": (0, 1), "center": (2, 3), "distortion": (4, 5)},
-    check_values=_check_ds)
+    check_values=_check_ds, radial=True,
+    fisheye_draw=FisheyeDraw(ranges=(("ds_xi_range", (-0.3, 0.0)), ("ds_alpha_range", (0.5, 0.7)))))

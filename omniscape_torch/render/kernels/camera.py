@@ -24,7 +24,7 @@ from torch import Tensor
 from ...cameras import Camera
 from ...cameras.radial import (kannala_brandt_angles, kannala_brandt_tabulate,
                                kannala_brandt_unproject_table_xyz)
-from ...cameras.registry import get_model
+from ...cameras.registry import MODELS, get_model
 from ...cameras.unified import unified_unproject_undistorted_xyz
 from ...cubemap.faces import _check_face_size, _check_pad
 from ...cubemap.grid import compiled_kernel, fail, rotated_grid_xy, rotated_rays_to_grid
@@ -52,8 +52,7 @@ _TABULATED: dict[str, Callable] = {"kannala_brandt": kannala_brandt_tabulate}
 #: point in normalised coordinates (``(u - cx) / fx, (v - cy) / fy``; scaramuzza: through its
 #: affine map) alone, so one table per camera holds every pixel's ray. ``unified`` only without
 #: tangential distortion (``p1 = p2 = 0``).
-RADIAL = ("pinhole", "equidistant", "equisolid", "stereographic", "orthographic",
-          "kannala_brandt", "unified", "eucm", "double_sphere", "scaramuzza")
+RADIAL = tuple(name for name, model in MODELS.items() if model.radial)
 #: Entries of a table of :func:`radial_table` (``tests/test_camera_grid.py`` bounds the error
 #: of linear interpolation between them).
 RADIAL_ENTRIES = 2048

@@ -19,10 +19,10 @@ source (a turn larger than the source's half field of view) the directions away 
 nothing, so the share is underestimated and the focal comes out larger (more zoom).
 
 The arrays are float64 NumPy (tensors are read as such): ``RandomReproject`` frames each call's
-draws here. :func:`reach` and :func:`focal_for_coverage` run as the C++ ops ``framing_reach``
-and ``framing_focal`` (:mod:`~omniscape_torch.render.extension`: the same arithmetic, per
-sample in one loop; within float rounding of the NumPy below, which runs where the extension
-cannot be built): on a few samples NumPy's two dozen calls cost about ten times the loops.
+draws here. `reach` and `focal_for_coverage` run as the C++ ops `framing_reach` and
+`framing_focal` or as their NumPy twins below, by their `backend` (`kernels._backend`: the
+same arithmetic, per sample in one loop; the C++ within float rounding of the NumPy): on a
+few samples NumPy's two dozen calls cost about ten times the loops.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ import math
 import numpy as np
 import torch
 
-from . import build as extension
+from ._backend import choose
 
 __all__ = ["COS_SIN", "DIRECTIONS", "PHI", "focal_for_coverage", "reach", "to_edge"]
 
@@ -76,7 +76,7 @@ def _normals(intrinsics: np.ndarray, source_size: tuple[int, int]) -> np.ndarray
 
 
 def reach(rotation: np.ndarray, intrinsics: np.ndarray, source_size: tuple[int, int],
-          half: np.ndarray) -> np.ndarray:
+          half: np.ndarray, *, backend: str = "auto") -> np.ndarray:
     """``theta_max (n, D)``: along each image direction :data:`PHI` about the fisheye's
     centre, the angle from its axis out to which its rays (``ray_src = R @ ray``,
     ``rotation (n, 3, 3)``) reach the pinhole image (``intrinsics (n, 4)``, ``source_size``),
@@ -84,8 +84,9 @@ def reach(rotation: np.ndarray, intrinsics: np.ndarray, source_size: tuple[int, 
 
     Each plane's crossing ``t = atan2(-A, B)`` (``A < 0``: the axis inside) decreases with
     ``B / -A``, so the nearest plane is the one of the largest ratio: one ``atan2`` per
-    direction, not one per plane."""
-    ops = extension.ops()
+    direction, not one per plane. `backend`: the C++ op `framing_reach` or this NumPy
+    (`kernels._backend`)."""
+    ops = choose(backend, what="framing.reach")
     if ops is not None:
         theta = np.empty((len(half), DIRECTIONS))
         ops.framing_reach(*_as_tensors(rotation, intrinsics, half), COS_SIN[0], COS_SIN[1],
@@ -118,7 +119,7 @@ def to_edge(centre: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
 
 
 def focal_for_coverage(radius: np.ndarray, to_edge: np.ndarray, coverage: np.ndarray,
-                       image_size: tuple[int, int]) -> np.ndarray:
+                       image_size: tuple[int, int], *, backend: str = "auto") -> np.ndarray:
     """The focal ``f (n,)`` at which ``sum_d min(f radius, to_edge)^2 * pi / (D H W)`` (the
     valid share, module docstring) equals ``coverage (n,)``.
 
@@ -129,8 +130,9 @@ def focal_for_coverage(radius: np.ndarray, to_edge: np.ndarray, coverage: np.nda
         coverage: ``(n,)`` targets in ``(0, 1]``; one beyond what the source can fill
             (a source that does not surround the centre) gives the focal that fills it most.
         image_size: ``(H, W)`` of the output.
+        backend: the C++ op `framing_focal` or the NumPy below (`kernels._backend`).
     """
-    ops = extension.ops()
+    ops = choose(backend, what="framing.focal_for_coverage")
     if ops is not None:
         focal = np.empty(len(coverage))
         ops.framing_focal(*_as_tensors(radius, to_edge, coverage), int(image_size[0]),
