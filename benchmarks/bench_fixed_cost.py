@@ -47,7 +47,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import (begin_run, loadavg, measure, positive_int, results_path,  # noqa: E402
                     run_main, run_record)
-from omniscape_torch.render.kernels import camera as kernels, sample as fast  # noqa: E402
+from omniscape_torch.render.kernels import camera as kernels, image as fast  # noqa: E402
 from omniscape_torch.augment import RandomReproject  # noqa: E402
 
 SEED = 36

@@ -118,7 +118,8 @@ import omniscape_torch as ot  # noqa: E402
 from common import begin_run, loadavg, measure, results_path, run_main, run_record  # noqa: E402
 from omniscape_torch import cubemap as cm  # noqa: E402
 from omniscape_torch.cubemap import grid as fastgrid  # noqa: E402
-from omniscape_torch.render.kernels import sample as fastsample  # noqa: E402
+from omniscape_torch.render.kernels import cube as fastsample  # noqa: E402
+from omniscape_torch.render.kernels import compile_failures  # noqa: E402
 
 try:
     import cv2
@@ -462,7 +463,7 @@ def run(args: argparse.Namespace) -> dict:
         print(f"# batch {batch}: done", file=sys.stderr, flush=True)
 
     failures = {str(k): v for k, v in {**fastgrid.compile_failures(),
-                                        **fastsample.compile_failures()}.items()}
+                                        **compile_failures()}.items()}
     return {
         **run_record("projection", device, args.threads, cv2),
         "dtype": "float32",

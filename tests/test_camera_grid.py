@@ -15,7 +15,7 @@ import torch
 
 import omniscape_torch as ot
 from omniscape_torch.cubemap import grid as cgrid
-from omniscape_torch.render.kernels import camera as fg, sample as fast
+from omniscape_torch.render.kernels import camera as fg, image as fast
 
 from conftest import CASES
 from test_fastgrid import random_rotations

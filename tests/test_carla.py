@@ -227,7 +227,7 @@ def test_convert_samples_8bit_faces_as_they_are(tmp_path, monkeypatch):
     into the 8-bit image it writes: within a level of the float path (faces / 255 rendered in
     floats, then rounded), with EXR depth faces, and the other files identical."""
     from omniscape_torch.data.captures import build_cameras, render_capture
-    from omniscape_torch.render.kernels.sample import is_channels_last
+    from omniscape_torch.render.kernels.cube import is_channels_last
     from omniscape_torch.render.layer import OmniProjection
 
     _, depth, tags = _scene()

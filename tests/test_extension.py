@@ -22,7 +22,9 @@ import pytest
 import torch
 
 import omniscape_torch as ot
-from omniscape_torch.render.kernels import build as extension, camera as kernels, sample as fastsample
+from omniscape_torch.render.kernels import build as extension, camera as kernels, cube as fastsample
+from omniscape_torch.render.kernels import image as kimage
+from omniscape_torch.render.kernels._backend import available, compile_failures
 from omniscape_torch.scenes import Town
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -90,7 +92,7 @@ def test_ops_are_registered_after_a_render():
                        fov=math.radians(190))
     with torch.no_grad():
         ot.OmniProjection(camera, 8)(torch.rand(1, 6, 3, 8, 8))
-    assert fastsample.available() and fastsample.compile_failures() == {}
+    assert available() and compile_failures() == {}
     for name in extension.OPS:
         assert hasattr(torch.ops.omniscape_torch, name), name
     # every op the sources define is listed and has a fake implementation (torch.compile)
@@ -175,8 +177,8 @@ def test_opcheck_camera_grid_and_camera_rays(dtype):
     rays, valid_shared = (torch.empty(2, 5, 7, 3, dtype=dtype),
                           torch.empty(2, 5, 7, dtype=torch.bool))
     torch.library.opcheck(ops().camera_rays, (*one, rays, valid_shared))
-    want, want_valid = fastsample.camera_rays(*cameras[:2], shared.to(dtype), (5, 7), dtype)
-    got, got_valid = fastsample.camera_rays(*one, (5, 7), dtype)
+    want, want_valid = kimage.camera_rays(*cameras[:2], shared.to(dtype), (5, 7), dtype)
+    got, got_valid = kimage.camera_rays(*one, (5, 7), dtype)
     assert torch.equal(got, want) and torch.equal(got_valid, want_valid)
 
 
@@ -666,12 +668,13 @@ CHILD = textwrap.dedent("""
     import os, sys, warnings
     warnings.simplefilter("error")
     import torch
-    from omniscape_torch.render.kernels import sample as fast
+    from omniscape_torch.render.kernels import cube as fast
+    from omniscape_torch.render.kernels import available
     path = os.environ.get("PATH")
     cube = torch.rand(2, 6, 3, 8, 8, generator=torch.Generator().manual_seed(0))
     grid = torch.rand(1, 5, 7, 2, generator=torch.Generator().manual_seed(1)) * 2.2 - 1.1
     image = fast.sample_cube(cube, grid, pad=1)
-    print(float(image.double().sum()), os.environ.get("PATH") == path, fast.available())
+    print(float(image.double().sum()), os.environ.get("PATH") == path, available())
     from omniscape_torch.render.kernels import build as extension
     print(extension._LOADED[0])
 """)
@@ -776,7 +779,7 @@ def test_without_a_compiler_one_warning_for_the_sampler_and_the_town(monkeypatch
     monkeypatch.setenv("CXX", "no-such-compiler-here")
     with pytest.warns(UserWarning, match="C\\+\\+ kernels could not be built") as caught:
         slow = town.render_cubemap(pose, face_size=16)
-        assert not fastsample.available()
+        assert not available()
         slow_again = town.render_cubemap(pose, face_size=16)
     messages = [str(w.message) for w in caught if "omniscape_torch" in str(w.message)]
     assert len(messages) == 1 and "no-such-compiler-here" in messages[0], messages

@@ -18,7 +18,8 @@ import torch.nn.functional as F_nn
 import omniscape_torch as ot
 from omniscape_torch import cubemap as cm
 from omniscape_torch.cubemap import grid as fastgrid
-from omniscape_torch.render.kernels import build as extension, sample as fastsample
+from omniscape_torch.render import kernels
+from omniscape_torch.render.kernels import build as extension, cube as fastsample
 
 f32, f64 = torch.float32, torch.float64
 #: Rounding of a blend of 4 texels in [0, 1]. float32: the weights are grid_sample's bit for bit,
@@ -235,7 +236,7 @@ def test_reference_path_without_a_compiler(monkeypatch, tmp_path, mode):
                     layer.render(rgb=cube, depth=depth, labels=labels, rotation=rotation)]
 
     compiled = run(True)
-    assert fastsample.compile_failures() == {} and fastsample.available()
+    assert kernels.compile_failures() == {} and kernels.available()
     build = extension._build
 
     def build_without_a_compiler():
@@ -254,9 +255,9 @@ def test_reference_path_without_a_compiler(monkeypatch, tmp_path, mode):
         without = run(True)
         without += run(True)   # warned once, not per call
     assert sum("fast sampler is unavailable" in str(w.message) for w in caught) == 1
-    (key, why), = fastsample.compile_failures().items()
+    (key, why), = kernels.compile_failures().items()
     assert key == ("extension", "fastsample") and "no-such-compiler-here" in why
-    assert not fastsample.available() and fastsample.unavailable_reason() == why
+    assert not kernels.available() and kernels.unavailable_reason() == why
     assert not fastsample.reads_rays(f32, f32)
     with pytest.raises(RuntimeError, match="fast sampler is unavailable"):
         fastsample.sample_cube(cube, make_grid(1), mode, pad=1)
@@ -335,7 +336,8 @@ class _Samples(torch.utils.data.Dataset):
 @pytest.mark.parametrize("kwargs,error,match", [
     (dict(grid=torch.zeros(3, 4, 4, 2)), ValueError, "grid: expected shape"),
     (dict(grid=torch.zeros(1, 4, 4, 2, dtype=torch.int64)), TypeError, "grid: expected a float"),
-    (dict(mode="bicubic"), ValueError, "mode: expected one of"),
+    (dict(mode="cubic"), ValueError, "mode: expected one of"),
+    (dict(mode="bicubic", backend="cpp"), ValueError, "mode: 'bicubic' has no C.. op"),
     (dict(border="none"), ValueError, "border: expected one of"),
     (dict(cubemap=torch.zeros(2, 6, 3, 8, 8, dtype=torch.int64)), TypeError, "bilinear"),
     (dict(cubemap=torch.zeros(2, 5, 3, 8, 8)), ValueError, "cubemap must have shape"),
@@ -505,7 +507,8 @@ def test_kernel_face_table_is_cubemap_faces(monkeypatch):
     (dict(rotation=torch.zeros(2, 3, 4)), ValueError, "rotation must have shape"),
     (dict(rays=torch.zeros(1, 4, 4, 3, dtype=torch.int64)), TypeError, "rays"),
     (dict(valid=torch.ones(1, 4, 5, dtype=torch.bool)), ValueError, "valid: expected"),
-    (dict(mode="bicubic"), ValueError, "mode: expected one of"),
+    (dict(mode="cubic"), ValueError, "mode: expected one of"),
+    (dict(mode="bicubic", backend="cpp"), ValueError, "mode: 'bicubic' has no C.. op"),
 ])
 def test_sample_rays_bad_input(kwargs, error, match):
     args = dict(rays=make_rays(1, h=4, w=4), rotation=None)

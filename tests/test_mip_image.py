@@ -13,9 +13,11 @@ import torch.nn.functional as F
 
 import omniscape_torch as ot
 from omniscape_torch.render import antialias
-from omniscape_torch.render.kernels import sample as fast
+from omniscape_torch.render.kernels import available
+from omniscape_torch.render.kernels import image as fast
+from omniscape_torch.render.kernels.cube import work_dtype
 
-pytestmark = pytest.mark.skipif(not fast.available(), reason="C++ kernels unavailable")
+pytestmark = pytest.mark.skipif(not available(), reason="C++ kernels unavailable")
 
 
 def _bilinear(level: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -69,7 +71,7 @@ def _fisheye_case(dtype: torch.dtype, channels_last: bool, chans: int, focal: fl
     image = (src * 255).round().to(torch.uint8) if dtype == torch.uint8 else src.to(dtype)
     if channels_last:
         image = image.permute(0, 2, 3, 1).contiguous().permute(0, 3, 1, 2)
-    work = fast.work_dtype(image.dtype)
+    work = work_dtype(image.dtype)
     rays, ok = ot.Camera("equidistant", torch.tensor([focal, focal, 23.5, 23.5]),
                          (48, 48)).ray_grid()
     rot = torch.tensor([[math.cos(angle), 0, math.sin(angle)], [0, 1, 0],
@@ -138,7 +140,7 @@ def test_uniform_minification_is_the_box_average(channels_last):
         image = (src * 255).round().to(torch.uint8) if dtype == torch.uint8 else src
         if channels_last:
             image = image.permute(0, 2, 3, 1).contiguous().permute(0, 3, 1, 2)
-        work = fast.work_dtype(dtype)
+        work = work_dtype(dtype)
         out, seen = fast.sample_image(image, rays.to(work), None, k.to(work))
         fast.mip_image(image, rays.to(work), None, k.to(work), seen, out)
         ref = F.avg_pool2d(image.double(), 4)
@@ -198,7 +200,7 @@ def test_reproject_image_is_the_ops_in_turn(dtype, channels_last, labels_dtype):
         image = image.permute(0, 2, 3, 1).contiguous().permute(0, 3, 1, 2)
     labels = (None if labels_dtype is None else
               torch.randint(0, 19, (2, 96, 160), generator=gen).to(labels_dtype))
-    work = fast.work_dtype(image.dtype)
+    work = work_dtype(image.dtype)
     cams = torch.tensor([[14.0, 14.0, 23.5, 23.5], [110.0, 110.0, 20.0, 26.0]],
                         dtype=torch.float64)
     affine, limits, table = ot.render.kernels.camera.radial_table("equidistant", cams, (48, 48))

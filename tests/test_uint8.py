@@ -21,7 +21,7 @@ import torch
 import omniscape_torch as ot
 from omniscape_torch import cubemap as cm
 from omniscape_torch.cameras import presets
-from omniscape_torch.render.kernels import sample as fastsample
+from omniscape_torch.render.kernels import cube as fastsample
 from omniscape_torch.render import layer as projection
 
 from test_fastpath import assert_rounded, make_grid, reference

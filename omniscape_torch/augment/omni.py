@@ -345,14 +345,15 @@ class RandomOmniCamera(_RandomCameras):
                 projection.pad_for(self.interpolation),
                 rotation=params["rotation"][idx].to(dtype=dtype, device=device),
                 fov=params["fov"][idx].to(dtype=dtype, device=device),
-                blind_fov=params["blind_fov"][idx].to(dtype=dtype, device=device), lazy=True)
+                blind_fov=params["blind_fov"][idx].to(dtype=dtype, device=device), lazy=True,
+                backend=self.backend)
             for start in range(0, len(idx), chunk):
                 part = slice(start, start + chunk)
                 cam = camera if len(idx) <= chunk else Camera(name, camera.params[part],
                                                               self.image_size)
                 sel = idx[part]
                 proj = OmniProjection(cam, self.face_size, interpolation=self.interpolation,
-                                      ignore_index=self.ignore_index)
+                                      ignore_index=self.ignore_index, backend=self.backend)
                 grid = _grid_rows(whole, start, start + chunk)
                 if not result:   # one part, the whole batch: the layer allocates
                     result = proj.render(rgb=cubemap, labels=labels, depth=depth,
@@ -367,7 +368,8 @@ class RandomOmniCamera(_RandomCameras):
                               (("rgb", cubemap), ("labels", labels), ("depth", depth))}
                     layer = proj if b - a == len(sel) else OmniProjection(
                         Camera(name, cam.params[a:b], self.image_size), self.face_size,
-                        interpolation=self.interpolation, ignore_index=self.ignore_index)
+                        interpolation=self.interpolation, ignore_index=self.ignore_index,
+                        backend=self.backend)
                     layer.render(**inputs, depth_output=self.depth_output,
                                  grid=_grid_rows(grid, a, b),
                                  **rgb_options,

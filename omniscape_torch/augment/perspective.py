@@ -13,7 +13,8 @@ from ..cameras import Camera
 from ..cubemap.rotation import check_rotation
 from ..render import detection
 from ..render import layer as projection
-from ..render.kernels import sample as fast
+from ..render.kernels import resolve
+from ..render.kernels.cube import MODES
 from ..render.reference import check_out_dtype, warn_if_label_map
 from ..render.reproject import INTERPOLATIONS, intrinsics_from_matrix
 from . import containers
@@ -418,10 +419,9 @@ class RandomReproject(_Routes, _RandomCameras):
             result["labels"] = torch.empty(batch, h, w, dtype=torch.int64, device=device)
         if depth is not None:
             result["depth"] = torch.empty(batch, 1, h, w, dtype=depth.dtype, device=device)
-        fast_path = (device.type == "cpu" and fast.available() and
-                     self.interpolation in fast.MODES and not (
-                         torch.is_grad_enabled() and any(
-                             t is not None and t.requires_grad for t in (image, depth, k))))
+        # the C++ ops for the whole call where they run (kernels.resolve), and samplable
+        fast_path = (self.interpolation in MODES and resolve(
+            self.backend, image, labels, depth, k, what="RandomReproject") == "cpp")
         given = source
         if source is not None:   # projected in the drawn cameras' dtype, as a pinhole's rays
             source = Camera(source.model, source.params.to(device, dtype), source.image_size,

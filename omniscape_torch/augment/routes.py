@@ -10,7 +10,8 @@ import torch
 from torch import Tensor
 
 from ..cameras import Camera
-from ..render.kernels import sample as fast
+from ..render.antialias import MINIFIES
+from ..render.kernels import image as fast
 from ..render.kernels.camera import camera_rays
 from ..render.reproject import sample_camera
 from .targets import _Part, _slices
@@ -25,7 +26,8 @@ class _Routes:
         of view ``fov (n,)``: :func:`~omniscape_torch.render.kernels.camera_rays`, through
         the table of :meth:`_unit_lens` where the model has one."""
         if self._unit_lens(name) is None:
-            return camera_rays(name, params, self.image_size, fov=fov, dtype=params.dtype)
+            return camera_rays(name, params, self.image_size, fov=fov, dtype=params.dtype,
+                               backend=self.backend)
         return fast.camera_rays(*self._tables(name, params, fov), self.image_size, params.dtype)
 
     def _tables(self, name: str, params: Tensor, fov: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -118,20 +120,21 @@ class _Routes:
         consecutive samples."""
         affine, limits, table = self._tables(name, part.params, part.fov)
         k = part.intrinsics.to(part.params.dtype)
-        minifies = (fast.MINIFIES if image is not None and self.antialias and
+        minifies = (MINIFIES if image is not None and self.antialias and
                     self.interpolation != "nearest" else 0.0)
         rgb, ids, valid = result.get("rgb"), result.get("labels"), result["valid"][:, 0]
-        op = fast._require().reproject_image     # (the inputs are the module's own: checked)
         for at, (a, b) in _slices(part.index):   # runs of consecutive samples
             whole = b - a == len(valid)          # the batch: the tensors, not views of them
 
             def rows(t: Tensor | None, index: slice) -> Tensor | None:
                 return t if t is None or whole else t[index]
 
-            op(rows(image, at), rows(labels, at), rows(affine, slice(a, b)),
-               rows(limits, slice(a, b)), table, rows(part.rotation, slice(a, b)),
-               rows(k, slice(a, b)), self.interpolation == "bilinear", minifies,
-               self.ignore_index, rows(rgb, at), rows(ids, at), rows(valid, at))
+            fast.reproject_image(
+                rows(image, at), rows(labels, at), rows(affine, slice(a, b)),
+                rows(limits, slice(a, b)), table, rows(part.rotation, slice(a, b)),
+                rows(k, slice(a, b)), self.interpolation == "bilinear", minifies,
+                self.ignore_index, rows(rgb, at), rows(ids, at), rows(valid, at),
+                trusted=True)   # (the inputs are the module's own: checked)
 
     @staticmethod
     def _antialias(image: Tensor, rays: Tensor, rotation: Tensor | None, k: Tensor,

@@ -9,7 +9,7 @@ import torch
 from torch import Tensor
 
 from ..cameras import Camera
-from ..render.kernels.sample import CameraGrid
+from ..render.kernels.image import CameraGrid
 
 #: The detection keys of the modules' dicts (beside rgb, labels, depth and the declared label
 #: keys); a cubemap takes no boxes (its boxes come from its instance ids).

@@ -47,7 +47,8 @@ from torch import Tensor
 from ..cameras import Camera
 from ..cameras.registry import get_model
 from ..cubemap.faces import face_rotations
-from .kernels import sample as fast
+from .kernels import boxes as boxes_kernels
+from .kernels.boxes import extent
 
 __all__ = ["instance_boxes", "reproject_boxes", "reproject_keypoints", "OUTLINE_STEP",
            "FIRST_STEP"]
@@ -324,39 +325,6 @@ def map_keypoints(change: Change, keypoints: Tensor, source_size: tuple[int, int
 # -------------------------------------------------------------------------------------------
 # Boxes from outlines
 # -------------------------------------------------------------------------------------------
-def _outline(rects: Tensor, counts: Tensor) -> tuple[Tensor, Tensor]:
-    """Points on the outlines of ``rects (R, 4)`` (pixel-centre x0, y0, x1, y1), ``counts
-    (R,)`` per edge -> ``(T, 2)`` points and their rectangle index ``(T,)``."""
-    x0, y0, x1, y1 = rects.unbind(-1)
-    corners = torch.stack((torch.stack((x0, y0), -1), torch.stack((x1, y0), -1),
-                           torch.stack((x1, y1), -1), torch.stack((x0, y1), -1)), 1)  # (R, 4, 2)
-    start, end = corners, corners.roll(-1, dims=1)
-    per_edge = counts.repeat_interleave(4)                                   # (R * 4,)
-    edge = torch.arange(len(per_edge)).repeat_interleave(per_edge)
-    first = torch.cumsum(per_edge, 0) - per_edge
-    t = ((torch.arange(len(edge)) - first[edge]).to(rects.dtype)
-         / per_edge[edge].to(rects.dtype))[:, None]
-    start, end = start.reshape(-1, 2)[edge], end.reshape(-1, 2)[edge]
-    return start + t * (end - start), torch.arange(len(rects)).repeat_interleave(4 * counts)
-
-
-def _extent(points: Tensor, ok: Tensor, owner: Tensor, count: int) -> Tensor:
-    """``(count, 4)`` min x, min y, max x, max y of the ``ok`` points per ``owner`` (inf where
-    none)."""
-    inf = torch.full((count, 2), math.inf, dtype=points.dtype)
-    big = torch.where(ok[:, None], points, torch.full_like(points, math.inf))
-    small = torch.where(ok[:, None], points, torch.full_like(points, -math.inf))
-    lo = inf.scatter_reduce(0, owner[:, None].expand(-1, 2), big, "amin")
-    hi = (-inf).scatter_reduce(0, owner[:, None].expand(-1, 2), small, "amax")
-    return torch.cat((lo, hi), -1)
-
-
-def _on_centres(pixels: Tensor, w: int, h: int) -> Tensor:
-    """Where ``pixels`` lie within the outer pixel centres ``[0, W - 1] x [0, H - 1]``."""
-    u, v = pixels[..., 0], pixels[..., 1]
-    return (u >= -1e-9) & (u <= w - 1 + 1e-9) & (v >= -1e-9) & (v <= h - 1 + 1e-9)
-
-
 def _in_rects(points: Tensor, rects: Tensor) -> Tensor:
     """Where source pixel centres ``points (T, 2)`` lie in their ``rects (T, 4)``."""
     return (points[:, 0] >= rects[:, 0]) & (points[:, 0] <= rects[:, 2]) & \
@@ -389,14 +357,14 @@ def _scan_back(change: Change, sample: Tensor, windows: Tensor, rects: Tensor) -
         pixels = torch.cat(grids)
         src, ok = change.backward(pixels.to(torch.float64), sample[box])
         ok = ok & _in_rects(src, rects[box])
-        found = _extent(pixels.to(torch.float64), ok, box - first, last - first)
+        found = extent(pixels.to(torch.float64), ok, box - first, last - first)
         out[first:last] = torch.where(torch.isfinite(found), found, -1.0).long()
         first = last
     return out
 
 
 def _outlines(change: Change, rects: Tensor, counts: Tensor, owner: Tensor,
-              extra: Tensor | None) -> tuple:
+              extra: Tensor | None, backend: str = "auto") -> tuple:
     """The outlines of ``rects (m, 4)`` (pixel centres) of samples ``owner (m,)`` (sorted),
     ``counts (m,)`` points per edge, mapped by ``change`` in one call, each sample's points a
     row after its points ``extra (n, K, 2)`` (or None) -> per box ``extents (m, 8)``: the
@@ -405,48 +373,22 @@ def _outlines(change: Change, rects: Tensor, counts: Tensor, owner: Tensor,
     step between consecutive mapped points of its closed outline of which one lies within
     :data:`OUTLINE_STEP` pixels of those centres; ``flags (m,)``: 1 where a point is not seen
     within them, 2 where one is not mapped; and ``extra``'s output pixels and where seen
-    ``(n K, 2), (n K,)`` (None without). The C++ ops ``outline_points`` and
-    ``outline_reduce``, else their torch equivalent."""
+    ``(n K, 2), (n K,)`` (None without). ``kernels.boxes.outlines``: the C++ ops or their
+    torch twin, by ``backend``."""
     n = len(change.rotation)
     k = 0 if extra is None else extra.shape[1]
     sizes = torch.zeros(n, dtype=torch.long).index_add_(0, owner, 4 * counts)
     columns = k + int(sizes.max()) if len(rects) else k
     m = len(rects)
-    extents = torch.full((m, 8), math.inf, dtype=torch.float64)
-    longest = torch.zeros(m, dtype=torch.float64)
-    flags = torch.zeros(m, dtype=torch.long)
     if columns == 0:
-        return extents, longest, flags, None
+        return (torch.full((m, 8), math.inf, dtype=torch.float64),
+                torch.zeros(m, dtype=torch.float64), torch.zeros(m, dtype=torch.long), None)
     padded = torch.zeros(n, columns, 2, dtype=torch.float64)
     if k:
         padded[:, :k] = extra
-    h, w = change.output.image_size
-    ops = fast._require() if fast.available() else None
-    if ops is not None:
-        ops.outline_points(rects.contiguous(), counts, owner, k, padded)
-        pix, ok, through = change.forward(padded, None, domain=True)
-        ops.outline_reduce(pix.contiguous(), ok.contiguous(), through.contiguous(), counts,
-                           owner, k, w, h, OUTLINE_STEP, extents, longest, flags)
-    else:
-        slots = torch.arange(columns)[None]
-        slots = (slots >= k) & (slots < k + sizes[:, None])
-        points, which = _outline(rects, counts)
-        padded[slots] = points
-        pix, ok, through = change.forward(padded, None, domain=True)
-        line, seen, mapped = pix[slots], ok[slots], through[slots]
-        seen = seen & _on_centres(line, w, h)
-        extents = torch.cat((_extent(line, seen, which, m), _extent(line, mapped, which, m)), -1)
-        near = mapped & (line[:, 0] > -OUTLINE_STEP) & (line[:, 0] < w - 1 + OUTLINE_STEP) & \
-            (line[:, 1] > -OUTLINE_STEP) & (line[:, 1] < h - 1 + OUTLINE_STEP)
-        nxt, near_nxt, mapped_nxt = line.roll(-1, 0), near.roll(-1, 0), mapped.roll(-1, 0)
-        last = torch.cumsum(4 * counts, 0) - 1
-        first = last - 4 * counts + 1
-        nxt[last], near_nxt[last], mapped_nxt[last] = line[first], near[first], mapped[first]
-        step = torch.where(mapped & mapped_nxt & (near | near_nxt),
-                           (nxt - line).norm(dim=-1), 0.0)
-        longest = torch.zeros(m, dtype=step.dtype).scatter_reduce(0, which, step, "amax")
-        flags = ((torch.bincount(which[~seen], minlength=m) > 0).long() +
-                 2 * (torch.bincount(which[~mapped], minlength=m) > 0).long())
+    extents, longest, flags, pix, ok = boxes_kernels.outlines(
+        rects, counts, owner, padded, k, lambda points: change.forward(points, None, domain=True),
+        change.output.image_size, OUTLINE_STEP, backend=backend)
     mapped_extra = None if not k else (pix[:, :k].reshape(-1, 2), ok[:, :k].reshape(-1))
     return extents, longest, flags, mapped_extra
 
@@ -463,8 +405,8 @@ class Outline:
     seen, ``(n K, 2), (n K,)``; None without)."""
 
     def __init__(self, change: Change, boxes: list[Tensor], source_size: tuple[int, int],
-                 extra: Tensor | None = None):
-        self.change, self.n = change, len(boxes)
+                 extra: Tensor | None = None, backend: str = "auto"):
+        self.change, self.n, self.backend = change, len(boxes), backend
         h, w = source_size
         counts = torch.tensor([len(b) for b in boxes])
         flat = torch.cat(boxes)
@@ -485,7 +427,8 @@ class Outline:
         # again that much finer (a few boxes, where the camera magnifies)
         src_len = (rects[:, 2:] - rects[:, :2]).amax(-1)
         counts = (src_len / FIRST_STEP).ceil().clamp(_FEWEST, _MAX_PER_EDGE).long()
-        extents, longest, flags, self.mapped = _outlines(change, rects, counts, owner, extra)
+        extents, longest, flags, self.mapped = _outlines(change, rects, counts, owner, extra,
+                                                         backend)
         for _ in range(3):
             redo = (longest > OUTLINE_STEP) & (counts < _MAX_PER_EDGE)
             if not bool(redo.any()):
@@ -493,8 +436,8 @@ class Outline:
             sub = redo.nonzero()[:, 0]
             counts[sub] = (counts[sub] * longest[sub] / OUTLINE_STEP).ceil().clamp(
                 max=_MAX_PER_EDGE).long()
-            extents[sub], longest[sub], flags[sub], _ = _outlines(change, rects[sub],
-                                                                  counts[sub], owner[sub], None)
+            extents[sub], longest[sub], flags[sub], _ = _outlines(
+                change, rects[sub], counts[sub], owner[sub], None, backend)
         self.box, span = extents[:, :4], extents[:, 4:]
         if r == 0:
             self.cut, self.windows = torch.zeros(0, dtype=torch.bool), self.pixels
@@ -523,20 +466,17 @@ class Outline:
              valid: Tensor | None) -> None:
         """Read the pixels of the cut boxes of the samples ``index`` (m, of this change) from
         the rays ``(m, h, w, 3)`` a renderer samples the source along: the C++ op
-        ``box_pixels``, as ``fast.sample_image`` projects them (``rotation (m, 3, 3)`` or
+        ``box_pixels`` or its twin (``kernels.boxes``), as ``sample_image`` projects them (``rotation (m, 3, 3)`` or
         None, the pinhole ``k (1 or m, 4)``, ``valid (m, h, w)``)."""
         at = {sample: i for i, sample in enumerate(index)}
         todo = [(j, at[sample]) for j, sample in self.waiting if sample in at]
-        if not todo or not fast.available():
+        if not todo:
             return
         self.waiting = [(j, sample) for j, sample in self.waiting if sample not in at]
         rows, samples = (torch.tensor(t) for t in zip(*todo))
-        out = torch.empty(len(todo), 4, dtype=torch.long)
-        fast._require().box_pixels(
-            rays.contiguous(), None if rotation is None else rotation.to(rays.dtype).contiguous(),
-            k.to(rays.dtype).contiguous(), None if valid is None else valid.contiguous(),
-            samples, self.windows[rows], self.rects[rows], out)
-        self.pixels[rows] = out
+        self.pixels[rows] = boxes_kernels.box_pixels(
+            rays, rotation, k, valid, samples, self.windows[rows], self.rects[rows],
+            backend=self.backend)
 
     def result(self, dtype: torch.dtype = torch.float64) -> tuple[list[Tensor], list[Tensor]]:
         """Per sample the output boxes in ``dtype`` and ``box_index (M_i,)``, the cut boxes
@@ -587,9 +527,9 @@ def _instance_extent(instances: Tensor, ids: Tensor) -> Tensor:
     w = instances.shape[1]
     where, which, _ = _hits(instances, ids)
     points = torch.stack((where % w, where // w), -1).to(torch.float64)
-    extent = _extent(points, torch.ones(len(where), dtype=torch.bool), which, len(ids))
-    extent[:, 2:] += 1                       # the last pixel's far edge
-    return extent
+    box = extent(points, torch.ones(len(where), dtype=torch.bool), which, len(ids))
+    box[:, 2:] += 1                          # the last pixel's far edge
+    return box
 
 
 def instance_boxes(instances: Tensor, ids: Sequence[Tensor]) -> tuple[list[Tensor], list[Tensor]]:
@@ -634,7 +574,7 @@ class Targets:
 
     def __init__(self, changes: Sequence[tuple[Tensor, Change]], batch: int, *,
                  keypoints: Tensor | None = None, boxes: list[Tensor] | None = None,
-                 source_size: tuple[int, int] | None = None):
+                 source_size: tuple[int, int] | None = None, backend: str = "auto"):
         self.batch, self.keypoints = batch, keypoints
         self.parts = []   # (sample indices, Outline or None, keypoints or None)
         for index, change in changes:
@@ -644,7 +584,7 @@ class Targets:
             rows = None if points is None else points.reshape(len(index), -1, points.shape[-1])
             if boxes is not None:   # the keypoints mapped with the boxes' outlines
                 outline = Outline(change, [boxes[i] for i in index.tolist()], source_size,
-                                  extra=rows)
+                                  extra=rows, backend=backend)
                 mapped = outline.mapped
             kp = None
             if points is not None:

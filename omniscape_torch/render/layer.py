@@ -10,12 +10,14 @@ borders resampled from their neighbours, so sampling is continuous across seams 
 Depth is converted from the cube's planar depth to range (view-independent) before sampling,
 labels are sampled nearest and never blended.
 
-When no gradient is needed (grad disabled, or neither the cubemaps, the camera parameters nor
-the rotation require it) and the cube is on the CPU, nearest and bilinear sampling take the
-fast path of :mod:`omniscape_torch.render.fast` (same output to float32 rounding, no atlas
-built; a frozen camera's lookup table is cached with its grid; under a rotation the grid is
-computed from the rays in the sampling pass and never stored); ``fast=False`` forces
-``grid_sample`` everywhere.
+Every sampling goes through the kernel boundary (`omniscape_torch.render.kernels.cube`): the
+C++ ops where no gradient is needed (grad disabled, or neither the cubemaps, the camera
+parameters nor the rotation require it) and the cube is on the CPU (same output to float32
+rounding, no atlas built; a frozen camera's lookup table is cached with its grid; under a
+rotation the grid is computed from the rays in the sampling pass and never stored), else their
+torch twin, `grid_sample` on the padded atlas (any device, gradients). The layer's `backend`
+(`"auto"`, `"cpp"`, `"torch"`; `fast=False` is `"torch"`) is resolved once per call
+(`kernels.resolve`) and passed to every kernel. On a GPU every call takes the torch route.
 """
 
 from __future__ import annotations
@@ -28,11 +30,12 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .. import cubemap as cm
-from .kernels import sample as fastsample
+from .kernels import cube as fastsample
+from .kernels import image as kimage
+from .kernels._backend import check_backend, resolve
 from ..cameras import Camera
 from ..cubemap.grid import rotated_rays_to_grid
-from .reference import (check_out_dtype, from_float, grid_sample, nearest_gather,
-                        warn_if_label_map)
+from .reference import check_out_dtype, from_float, warn_if_label_map
 
 INTERPOLATIONS = ("nearest", "bilinear", "bicubic")
 DEPTH_INTERPOLATIONS = ("nearest", "bilinear", "edge_aware")
@@ -89,13 +92,15 @@ class OmniProjection(nn.Module):
             ``torch.compile`` kernel of ``omniscape_torch.cubemap.grid`` (2x faster per call; the
             first call compiles for a few seconds; falls back to eager torch, with a warning,
             where compilation is unavailable). The output is the same either way.
-        fast: sample nearest and bilinear with :mod:`omniscape_torch.render.fast` (lookup
-            table on the cube, no atlas; CPU) whenever no gradient is needed: a cached grid's
-            table is built once and kept; under a rotation each pixel's grid point is computed
-            from the camera's rays in the sampling pass, no grid stored
-            (``fastsample.sample_rays``; ``benchmarks/bench_projection.py``). False forces
-            the reference ``grid_sample`` path. Same output to float32 rounding either way, and
-            gradients are unchanged (they always come from the reference path).
+        fast: False is ``backend="torch"`` (kept for code written before ``backend``).
+        backend: ``"auto"`` (default): nearest and bilinear sampling by the C++ ops
+            (``kernels.cube``: a lookup table on the cube, no atlas; CPU) whenever no
+            gradient is needed: a cached grid's table is built once and kept; under a rotation
+            each pixel's grid point is computed from the camera's rays in the sampling pass,
+            no grid stored (``benchmarks/bench_projection.py``); else their torch twin,
+            ``grid_sample`` on the padded atlas. ``"torch"``: the twin always; ``"cpp"``: the
+            ops always (an error where they cannot run). Same output to float32 rounding
+            either way, and gradients come from the twin.
 
     Shapes:
         cubemap ``(B, 6, C, F, F)``; rotation ``(B, 3, 3)`` or ``(3, 3)`` mapping camera rays into
@@ -106,7 +111,7 @@ class OmniProjection(nn.Module):
                  supersample: int = 1, depth_interpolation: str = "nearest",
                  depth_edge_threshold: float = 0.05, ignore_index: int = 255,
                  border: str = "resampled", fused_grid: bool = True,
-                 fast: bool = True) -> None:
+                 fast: bool = True, backend: str = "auto") -> None:
         super().__init__()
         if not isinstance(camera, Camera):
             raise TypeError(f"camera: expected an ot.Camera, got {type(camera).__name__}")
@@ -134,6 +139,7 @@ class OmniProjection(nn.Module):
         self.border = border
         self.fused_grid = bool(fused_grid)
         self.fast = bool(fast)
+        self.backend = check_backend(backend) if self.fast else "torch"
         self.pad = pad_for(interpolation, border)
         self._rays_cache: tuple | None = None
         self._grid_cache: tuple | None = None
@@ -142,7 +148,7 @@ class OmniProjection(nn.Module):
     def extra_repr(self) -> str:
         return (f"face_size={self.face_size}, interpolation={self.interpolation!r}, "
                 f"supersample={self.supersample}, depth={self.depth_interpolation!r}, "
-                f"border={self.border!r}, fast={self.fast}")
+                f"border={self.border!r}, backend={self.backend!r}")
 
     # ---------------------------------------------------------------------------------------
     # Rays and grids
@@ -230,41 +236,29 @@ class OmniProjection(nn.Module):
     # ---------------------------------------------------------------------------------------
     # Sampling
     # ---------------------------------------------------------------------------------------
-    def _atlas(self, cube: Tensor, mode: str) -> Tensor:
-        if self.border == "resampled" or self.pad == 0:
-            return cm.cubemap_to_atlas(cube, self.pad, mode)
-        # "copied": every face padded with its own edge texels (the naive atlas)
-        b, _, c, f, _ = cube.shape
-        p = self.pad
-        # replicate by indexing (exact for any dtype): padded texel i reads clamp(i - p, 0, F-1)
-        idx = (torch.arange(f + 2 * p, device=cube.device) - p).clamp(0, f - 1)
-        padded = cube.reshape(b * 6, c, f, f)[:, :, idx][:, :, :, idx]
-        return cm.faces_to_atlas(padded.reshape(b, 6, c, f + 2 * self.pad, f + 2 * self.pad))
-
-    def _fast_sample(self, cube: Tensor, grid: Tensor, mode: str, pad_mode: str,
-                     valid: Tensor | None, *, fill: int = 0, out: Tensor | None = None,
-                     out_dtype: torch.dtype | None = None) -> Tensor | None:
-        """:func:`fastsample.sample_cube` of ``cube`` where the fast sampler applies (a call
-        on the fast path: see ``render``), else None. The lookup table of a cached grid is kept
-        with it. ``valid``: the mask of a grid whose invalid pixels were not moved outside the
-        atlas, else None; ``fill``: the value of the pixels outside; ``out``: where to write the
-        image; ``out_dtype``: its dtype."""
-        if not (mode in fastsample.MODES and cube.device.type == "cpu"
-                and fastsample.available()):   # no C++ extension here: the reference path
-            return None
+    def _sample_cube(self, cube: Tensor, grid: Tensor, mode: str, pad_mode: str,
+                     valid: Tensor | None, route: str, *, fill: int = 0,
+                     out: Tensor | None = None, out_dtype: torch.dtype | None = None) -> Tensor:
+        """`kernels.cube.sample_cube` of ``cube`` (or `sample_rays` of a grid of rays that the
+        C++ op reads), by the call's ``route`` (`render`). The lookup table of a cached grid
+        is kept with it. ``valid``: the mask of a grid whose invalid pixels were not moved
+        outside the atlas, else None; ``fill``: the value of the pixels outside; ``out``:
+        where to write the image; ``out_dtype``: its dtype."""
         border = "copied" if self.border == "copied" else pad_mode
-        if isinstance(grid, fastsample.CameraGrid):   # per-sample rays and rotations
-            if fastsample.reads_rays(cube.dtype, grid.dtype):
-                return fastsample.sample_rays(cube, grid.rays, grid.rotation, mode, pad=self.pad,
-                                              border=border, valid=grid.valid, fill=fill,
-                                              out=out, out_dtype=out_dtype)
+        kw = dict(pad=self.pad, border=border, fill=fill, out=out, out_dtype=out_dtype,
+                  edge_threshold=self.depth_edge_threshold, backend=self.backend)
+        if isinstance(grid, kimage.CameraGrid):   # per-sample rays and rotations
+            if mode in fastsample.MODES and fastsample.reads_rays(cube.dtype, grid.dtype):
+                return fastsample.sample_rays(cube, grid.rays, grid.rotation, mode,
+                                              valid=grid.valid, **kw)
             grid = grid.tensor()
         if isinstance(grid, _RayGrid):
-            if fastsample.reads_rays(cube.dtype, grid.rays.dtype):
+            if mode in fastsample.MODES and fastsample.reads_rays(cube.dtype, grid.rays.dtype):
                 return fastsample.sample_rays(cube, grid.rays, grid.rotation, mode,
-                                              pad=self.pad, border=border, valid=valid,
-                                              fill=fill, out=out, out_dtype=out_dtype)
+                                              valid=valid, **kw)
             grid = grid.tensor()   # built once for every modality, as the layer builds grids
+        if route != "cpp" or mode not in fastsample.MODES:
+            return fastsample.sample_cube(cube, grid, mode, valid=valid, **kw)
         cache = self._grid_cache
         cached = cache is not None and any(grid is g for g in cache[1])
         # the layouts the lookup tables are built for: contiguous, or contiguous channels-last
@@ -284,38 +278,23 @@ class OmniProjection(nn.Module):
                 lut = self._lut_cache[key] = fastsample.build_lut(
                     lut_grid, self.face_size, self.pad, mode, channels=cube.shape[2],
                     channels_last=last)
-        return fastsample.sample_cube(cube, grid, mode, pad=self.pad, border=border, lut=lut,
-                                      valid=valid, fill=fill, out=out, out_dtype=out_dtype)
-
-    def _sample(self, atlas: Tensor, grid: Tensor, mode: str) -> Tensor:
-        """``grid_sample`` with zero padding: 0 at the invalid pixels (see ``_outside``);
-        every valid sample lies inside its padded face, where the padding mode plays no part."""
-        batch = atlas.shape[0]
-        if grid.shape[0] != batch:
-            grid = grid.expand(batch, *grid.shape[1:])
-        return grid_sample(atlas, grid, mode, padding_mode="zeros")
+        return fastsample.sample_cube(cube, grid, mode, lut=lut, valid=valid, **kw)
 
     def _sample_image(self, cube: Tensor, grid: Tensor, mode: str, pad_mode: str,
-                      valid: Tensor | None, fast: bool, out: Tensor | None = None,
+                      valid: Tensor | None, route: str, out: Tensor | None = None,
                       out_dtype: torch.dtype | None = None) -> Tensor:
         """Sample a floating or ``uint8`` cube into ``out_dtype`` (default: the cube's). Half
         precision and ``uint8`` are blended in float32 (the grid stays float32: a bfloat16 grid
         is off by pixels on a 512 face) and rounded once; a ``uint8`` cube into a floating
-        ``out_dtype`` is scaled to [0, 1]. ``fast``: the call may take the fast sampler;
-        ``out``: where it may write the image."""
+        ``out_dtype`` is scaled to [0, 1]. ``route``: the call's (`render`); ``out``: where
+        it may write the image."""
         out_dtype = cube.dtype if out_dtype is None else out_dtype
         written = fastsample.output_dtypes(cube.dtype)   # by the kernels, in the same pass
         kernel_dtype = out_dtype if out_dtype in written else written[-1]
-        image = self._fast_sample(cube, grid, mode, pad_mode, valid, out_dtype=kernel_dtype,
-                                  out=out if kernel_dtype == out_dtype else None
-                                  ) if fast else None
-        if image is None:   # grid_sample on the padded atlas, in float32 (or float64)
-            work = cube if cube.dtype in (torch.float32, torch.float64) else cube.float()
-            atlas = self._atlas(work, pad_mode)
-            image = from_float(self._sample(atlas, _outside(grid, valid).to(atlas.dtype), mode),
-                             cube.dtype, out_dtype)
-        else:
-            image = image.to(out_dtype)   # another floating dtype: converted after
+        image = self._sample_cube(cube, grid, mode, pad_mode, valid, route,
+                                  out_dtype=kernel_dtype,
+                                  out=out if kernel_dtype == out_dtype else None)
+        image = image.to(out_dtype)   # another floating dtype: converted after
         if out is not None and image.data_ptr() != out.data_ptr():
             out.copy_(image)
         return image
@@ -432,17 +411,16 @@ class OmniProjection(nn.Module):
         points = None   # a given grid's tensor, which may carry a gradient
         if grid is not None:
             grid = self._check_given_grid(grid, batch, ref.device, rotation)
-            points = None if isinstance(grid, fastsample.CameraGrid) else grid[0]
+            points = None if isinstance(grid, kimage.CameraGrid) else grid[0]
         if rgb is not None and not rgb.is_floating_point() and torch.is_grad_enabled() and any(
                 t is not None and t.requires_grad
                 for t in (rotation, self.camera.params, points)):
             raise TypeError(f"rgb: a {rgb.dtype} cubemap has no gradient; convert it to float "
                             "(ot.io.to_float) to differentiate through the rotation or camera")
-        # the fast path only where no gradient is asked for: gradients come from grid_sample
-        fast = self.fast and not (torch.is_grad_enabled() and any(
-            t is not None and t.requires_grad
-            for t in (rgb, depth, labels, rotation, self.camera.params, points)))
-        call = _Call(fast, depth_output, soft_labels, grid, out_dtype, channels_last)
+        # the C++ route only where no gradient is asked for: gradients come from the twin
+        route = resolve(self.backend, rgb, depth, labels, rotation, self.camera.params, points,
+                        what="OmniProjection")
+        call = _Call(route, depth_output, soft_labels, grid, out_dtype, channels_last)
         if soft_labels is not None:
             if labels is None:
                 raise ValueError("soft_labels: needs labels")
@@ -463,7 +441,7 @@ class OmniProjection(nn.Module):
                                  f"{sorted(out) if isinstance(out, dict) else type(out).__name__}")
         pixels = math.prod(self.camera.image_size) * self.supersample ** 2
         step = max(1, CHUNK_PIXELS // pixels)
-        if (fast and ref.device.type == "cpu" and rotation is not None
+        if (route == "cpp" and rotation is not None
                 and rotation.shape[0] > step and cams == ()
                 and not self._grid_free(rgb, depth, labels, soft_labels)):
             # a grid per sample: a few samples at a time (see CHUNK_PIXELS), written into
@@ -481,13 +459,13 @@ class OmniProjection(nn.Module):
 
     def _check_given_grid(self, grid: object, batch: int, device: torch.device,
                           rotation: Tensor | None
-                          ) -> tuple[Tensor, Tensor] | fastsample.CameraGrid:
+                          ) -> tuple[Tensor, Tensor] | kimage.CameraGrid:
         """``render``'s ``grid`` argument, checked."""
         h, w = self.camera.image_size
         if rotation is not None or self.supersample != 1:
             raise ValueError("grid: a given grid already holds the attitude and one sample per "
                              "pixel: pass no rotation, use supersample=1")
-        if isinstance(grid, fastsample.CameraGrid):
+        if isinstance(grid, kimage.CameraGrid):
             if (len(grid) not in (1, batch) or grid.image_size != (h, w)
                     or (grid.face_size, grid.pad) != (self.face_size, self.pad)):
                 raise ValueError(f"grid: expected cameras (1 or {batch}) of {h} x {w} pixels "
@@ -515,13 +493,12 @@ class OmniProjection(nn.Module):
 
     def _grid_free(self, rgb: Tensor | None, depth: Tensor | None, labels: Tensor | None,
                    soft_labels: int | None) -> bool:
-        """Whether the CPU's fast path renders these inputs under a rotation without building a
-        grid: every sampler reads the rays (``fastsample.sample_rays`` with its C++ kernel;
-        never where the fast sampler is unavailable)."""
+        """Whether the C++ route renders these inputs under a rotation without building a
+        grid: every sampler reads the rays (``kernels.cube.sample_rays``)."""
         rays = self.camera_rays()[0]
         wanted = ((rgb, self.interpolation), (depth, self.depth_interpolation),
                   (labels, "nearest"))
-        return soft_labels is None and fastsample.available() and all(
+        return soft_labels is None and all(
             t is None or (mode in fastsample.MODES and fastsample.reads_rays(t.dtype, rays.dtype))
             for t, mode in wanted)
 
@@ -533,8 +510,8 @@ class OmniProjection(nn.Module):
         ref = next(t for t in (rgb, depth, labels) if t is not None)
         batch = ref.shape[0]
         grid_dtype = torch.float64 if ref.dtype == torch.float64 else torch.float32
-        depth_output, soft_labels, fast = call.depth_output, call.soft_labels, call.fast
-        if isinstance(call.grid, fastsample.CameraGrid):
+        depth_output, soft_labels, route = call.depth_output, call.soft_labels, call.route
+        if isinstance(call.grid, kimage.CameraGrid):
             grid_s = grid_c = call.grid
             valid_s = valid_c = call.grid.valid
             mask_s = mask_c = None
@@ -543,7 +520,7 @@ class OmniProjection(nn.Module):
             grid_s = grid_c = points.to(grid_dtype)
             valid_s = valid_c
             mask_s = mask_c = None
-        elif fast and ref.device.type == "cpu" and rotation is not None:
+        elif route == "cpp" and rotation is not None:
             # a grid used once: the fast samplers compute it from the rays as they go, and take
             # the valid mask (any other sampler builds it, see _RayGrid)
             rays_s, valid_s, rays_c, valid_c = self.camera_rays()
@@ -583,11 +560,11 @@ class OmniProjection(nn.Module):
                 if rows is not None and call.channels_last:
                     rows = rows.permute(0, 3, 1, 2)
                 image = self._sample_image(rgb, grid_s, self.interpolation, "bilinear", mask_s,
-                                           fast, rows, call.out_dtype)
+                                           route, rows, call.out_dtype)
             else:   # averaged in floats: a pixel whose centre is invalid may have valid samples
                 work = torch.float64 if rgb.dtype == torch.float64 else torch.float32
                 image = self._sample_image(rgb, grid_s, self.interpolation, "bilinear", mask_s,
-                                           fast, None, work)
+                                           route, None, work)
                 image = self._average(image, valid_s.expand(batch, *valid_s.shape[1:]))
                 image = torch.where(valid, image, torch.zeros_like(image))
                 image = from_float(image, work, call.out_dtype)
@@ -597,7 +574,7 @@ class OmniProjection(nn.Module):
 
         if depth is not None:
             rng = cm.depth_to_range(depth.squeeze(2)).unsqueeze(2)
-            sampled = self._sample_depth(rng, grid_c, mask_c, fast)
+            sampled = self._sample_depth(rng, grid_c, mask_c, route)
             if depth_output == "z":
                 rays_c = self.camera_rays()[2]
                 z = rays_c[..., 2] if rays_c.dim() == 4 else rays_c[..., 2].unsqueeze(0)
@@ -612,14 +589,11 @@ class OmniProjection(nn.Module):
             # the kernels write int64 ids from 8-bit ones (label images) in their pass
             wide = labels.dtype == torch.uint8 or labels.dtype == torch.int64
             filled = wide or fastsample.holds(labels.dtype, ignore)
-            ids = self._fast_sample(
-                labels, grid_c, "nearest", "nearest", mask_c, fill=ignore if filled else 0,
+            ids = self._sample_cube(
+                labels, grid_c, "nearest", "nearest", mask_c, route,
+                fill=ignore if filled else 0,
                 out=None if rows is None or not wide else rows.unsqueeze(1),
-                out_dtype=torch.int64 if wide else None) if fast else None
-            if ids is None:
-                filled = False
-                ids = nearest_gather(self._atlas(labels, "nearest"), _outside(grid_c, mask_c))
-            ids = ids[:, 0]
+                out_dtype=torch.int64 if wide else None)[:, 0]
             if rows is None:
                 rows = ids if ids.dtype == torch.int64 else torch.empty(
                     ids.shape, dtype=torch.int64, device=ids.device)
@@ -631,7 +605,7 @@ class OmniProjection(nn.Module):
             if soft_labels is not None:
                 onehot = F.one_hot(labels[:, :, 0], soft_labels).permute(0, 1, 4, 2, 3)
                 probs = self._sample_image(onehot.to(grid_dtype), grid_s, "bilinear", "bilinear",
-                                           mask_s, fast)
+                                           mask_s, route)
                 probs = self._average(probs, valid_s.expand(batch, *valid_s.shape[1:]))
                 out["soft_labels"] = torch.where(valid, probs, torch.zeros_like(probs))
         if into is not None:   # the other outputs: copied into their rows
@@ -642,63 +616,22 @@ class OmniProjection(nn.Module):
         return out
 
     def _sample_depth(self, rng: Tensor, grid: Tensor, valid: Tensor | None,
-                      fast: bool) -> Tensor:
+                      route: str) -> Tensor:
         """Sample range ``(B, 6, 1, F, F)``. For nearest and edge-aware sampling the border is
         padded nearest, so that no depth is blended across a seam either; plain bilinear pads
         bilinear (smooth across seams, blends across depth edges like everywhere else)."""
         work = rng if rng.dtype in (torch.float32, torch.float64) else rng.float()
         mode = self.depth_interpolation
         pad_mode = "bilinear" if mode == "bilinear" else "nearest"
-        out = self._fast_sample(work, grid, mode, pad_mode, valid) if fast else None
-        if out is not None:
-            return out.to(rng.dtype)
-        atlas = self._atlas(work, pad_mode)
-        grid = _outside(grid, valid).to(atlas.dtype)
-        if mode == "nearest":
-            out = self._sample(atlas, grid, "nearest")
-        elif mode == "bilinear":
-            out = self._sample(atlas, grid, "bilinear")
-        else:
-            out = _edge_aware(atlas, grid.expand(atlas.shape[0], *grid.shape[1:]),
-                              self.depth_edge_threshold)
-        return out.to(rng.dtype)
-
-
-def _edge_aware(atlas: Tensor, grid: Tensor, threshold: float) -> Tensor:
-    """Bilinear interpolation of ``atlas (B, 1, Ha, Wa)`` at ``grid (B, h, w, 2)`` that returns the
-    nearest tap where the four taps spread by more than ``threshold`` relative to their minimum."""
-    b, _, ha, wa = atlas.shape
-    # pixel coordinates of align_corners=False: x = ((gx + 1) W - 1) / 2
-    x = ((grid[..., 0] + 1) * wa - 1) / 2
-    y = ((grid[..., 1] + 1) * ha - 1) / 2
-    x0 = torch.floor(x.detach()).clamp(0, wa - 2)
-    y0 = torch.floor(y.detach()).clamp(0, ha - 2)
-    fx, fy = (x - x0).clamp(0, 1), (y - y0).clamp(0, 1)
-    x0, y0 = x0.long(), y0.long()
-    flat = atlas.reshape(b, ha * wa)
-    idx = (y0 * wa + x0).reshape(b, -1)
-
-    def tap(dy: int, dx: int) -> Tensor:
-        return flat.gather(1, idx + dy * wa + dx).reshape(x.shape)
-
-    t00, t01, t10, t11 = tap(0, 0), tap(0, 1), tap(1, 0), tap(1, 1)
-    w00, w01 = (1 - fx) * (1 - fy), fx * (1 - fy)
-    w10, w11 = (1 - fx) * fy, fx * fy
-    blend = t00 * w00 + t01 * w01 + t10 * w10 + t11 * w11
-    taps = torch.stack((t00, t01, t10, t11), -1)
-    weights = torch.stack((w00, w01, w10, w11), -1)
-    lo, hi = taps.detach().amin(-1), taps.detach().amax(-1)
-    edge = (hi - lo) > threshold * lo.abs()
-    nearest = taps.gather(-1, weights.detach().argmax(-1, keepdim=True)).squeeze(-1)
-    return torch.where(edge, nearest, blend).unsqueeze(1)
+        return self._sample_cube(work, grid, mode, pad_mode, valid, route).to(rng.dtype)
 
 
 @dataclass(frozen=True)
 class _Call:
-    """What one ``render`` call decided: the fast path or not, the depth output, soft labels,
-    a given grid, the rgb image's dtype and layout."""
+    """What one ``render`` call decided: its route (`"cpp"` or `"torch"`, `kernels.resolve`),
+    the depth output, soft labels, a given grid, the rgb image's dtype and layout."""
 
-    fast: bool
+    route: str
     depth_output: str
     soft_labels: int | None
     grid: tuple[Tensor, Tensor] | None
@@ -740,10 +673,10 @@ class _RayGrid:
         return self._grid
 
 
-def _outside(grid: Tensor | _RayGrid | fastsample.CameraGrid, valid: Tensor | None) -> Tensor:
+def _outside(grid: Tensor | _RayGrid | kimage.CameraGrid, valid: Tensor | None) -> Tensor:
     """``grid (B, h, w, 2)`` with the invalid entries moved outside the atlas (-2, -2); the
     grid itself where ``valid`` is None (already moved)."""
-    if isinstance(grid, (_RayGrid, fastsample.CameraGrid)):
+    if isinstance(grid, (_RayGrid, kimage.CameraGrid)):
         grid = grid.tensor()
     if valid is None:
         return grid

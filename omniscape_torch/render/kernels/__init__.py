@@ -8,18 +8,23 @@ never ask whether the C++ ops exist.
 
 - `build`: the one C++ library (`render/csrc/`), built on first use, its ops' fake
   implementations for `torch.compile`.
-- `sample`: sampling a cube through a grid, a lookup table or rays; sampling an image along
-  rays, with or without the antialiasing prefilter, with labels (`reproject_image`).
+- `cube`: sampling a cube through a grid, a lookup table or rays (the C++ ops and their twin,
+  `grid_sample` on the padded atlas).
+- `image`: sampling an image along rays, with or without the antialiasing prefilter, with
+  labels (`reproject_image`); the rays of whole cameras from their radius tables.
 - `camera`: pixel centres -> rays -> atlas grid of whole cameras (`camera_grid`,
-  `camera_rays`, `radial_table`).
+  `camera_rays`, `radial_table`: the C++ tables or compiled torch).
 - `framing`: the focal at which a perspective source fills a share of a fisheye.
+- `draw`: the augmentation's draw of cameras and attitudes (one stream layout) and its C++ twin.
 
 On a GPU (or any device but the CPU) every function takes its torch route: the C++ ops are
 CPU-only and forward-only.
 """
 
-from . import build, camera, framing, sample
-from ._backend import BACKENDS, available, check_backend, choose
+from . import build, camera, cube, draw, framing, image
+from ._backend import (BACKENDS, available, check_backend, choose, compile_failures, resolve,
+                       unavailable_reason)
 
-__all__ = ["BACKENDS", "available", "build", "camera", "check_backend", "choose", "framing",
-           "sample"]
+__all__ = ["BACKENDS", "available", "build", "camera", "check_backend", "choose",
+           "compile_failures", "cube", "draw", "framing", "image", "resolve",
+           "unavailable_reason"]

@@ -22,7 +22,8 @@ import torch
 
 from . import build
 
-__all__ = ["BACKENDS", "check_backend", "choose"]
+__all__ = ["BACKENDS", "available", "check_backend", "choose", "compile_failures", "resolve",
+           "unavailable_reason"]
 
 #: The values of every kernel's `backend` argument.
 BACKENDS = ("auto", "cpp", "torch")
@@ -78,6 +79,26 @@ def choose(backend: str, *tensors: object, what: str = "kernel"):
     return ops
 
 
+def resolve(backend: str, *tensors: object, what: str = "kernel") -> str:
+    """`"cpp"` or `"torch"`: `choose`'s route for a call on `tensors`, decided once for a caller
+    that runs several kernels on them (the layer: one route for every modality of a call)."""
+    return "cpp" if choose(backend, *tensors, what=what) is not None else "torch"
+
+
 def available() -> bool:
-    """Whether the C++ ops run in this process (built on the first call)."""
+    """Whether the C++ ops run in this process: built (on the first call, once per machine) and
+    loaded. False, after one `UserWarning` that says why (`unavailable_reason`), where they
+    cannot be built (no C++ compiler, no ninja)."""
     return build.ops() is not None
+
+
+def unavailable_reason() -> str | None:
+    """Why `available` is False (`"Error: message"`), else None."""
+    return build.unavailable_reason()
+
+
+def compile_failures() -> dict[tuple, str]:
+    """`{("extension", "fastsample"): "Error: message"}` when the C++ library could not be built
+    in this process (`available` is False); empty when it works (or was not needed yet)."""
+    why = unavailable_reason()
+    return {} if why is None else {("extension", "fastsample"): why}

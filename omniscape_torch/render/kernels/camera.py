@@ -28,7 +28,8 @@ from ...cameras.registry import MODELS, get_model
 from ...cameras.unified import unified_unproject_undistorted_xyz
 from ...cubemap.faces import _check_face_size, _check_pad
 from ...cubemap.grid import compiled_kernel, fail, rotated_grid_xy, rotated_rays_to_grid
-from . import sample as fast
+from . import image as fast
+from ._backend import choose
 
 __all__ = ["camera_grid", "camera_rays", "radial_table", "RADIAL", "RADIAL_ENTRIES"]
 
@@ -211,7 +212,7 @@ def _camera_kernel(model: str) -> Callable:
 def camera_grid(model: str, params: Tensor, image_size: tuple[int, int], face_size: int,
                 pad: int, *, rotation: Tensor | None = None, fov: Tensor | None = None,
                 blind_fov: Tensor | None = None, dtype: torch.dtype | None = None,
-                compiled: bool = True, lazy: bool = False
+                compiled: bool = True, lazy: bool = False, backend: str = "auto"
                 ) -> tuple[Tensor, Tensor] | fast.CameraGrid:
     """Atlas grid of every pixel centre of ``B`` cameras of one model, each with its own
     rotation and field-of-view cone: the whole chain in one compiled kernel, without gradient.
@@ -248,6 +249,9 @@ def camera_grid(model: str, params: Tensor, image_size: tuple[int, int], face_si
             not built: the fast sampler computes it inside its sampling pass,
             ``OmniProjection.render(grid=...)`` takes it); elsewhere the tuple below all the
             same.
+        backend: the tables and the C++ op (``"cpp"``; float32 or float64 grids of a model of
+            :data:`RADIAL`), or the torch kernels (``"torch"``), or the C++ op where it runs
+            (``"auto"``).
 
     Returns:
         ``grid (B, H, W, 2)`` in ``dtype`` and ``valid (B, H, W)`` bool (or, ``lazy``, a
@@ -292,14 +296,15 @@ def camera_grid(model: str, params: Tensor, image_size: tuple[int, int], face_si
         fused = None   # lens distortion: Newton undistortion, eagerly
     else:
         fused = _CLOSED_FORM.get(model)
-    if (compiled and params.device.type == "cpu" and dtype in (torch.float32, torch.float64)
-            and fast.available()):
+    tables = None
+    if compiled and dtype in (torch.float32, torch.float64) and choose(
+            backend, params.detach(), what="camera_grid") is not None:
         tables = radial_table(model, params, (h, w))
-        if tables is not None:
-            affine, limits, table = tables
-            limits[:, 3:] = cones
-            make = fast.CameraGrid if lazy else fast.camera_grid
-            return make(affine, limits, table, rotation.detach(), face_size, pad, (h, w), dtype)
+    if tables is not None:
+        affine, limits, table = tables
+        limits[:, 3:] = cones
+        make = fast.CameraGrid if lazy else fast.camera_grid
+        return make(affine, limits, table, rotation.detach(), face_size, pad, (h, w), dtype)
     with torch.no_grad():
         if compiled and fused is not None:
             key = ("camera", model, params.dtype, dtype, params.device.type, True)
@@ -327,8 +332,8 @@ def camera_grid(model: str, params: Tensor, image_size: tuple[int, int], face_si
 
 
 def camera_rays(model: str, params: Tensor, image_size: tuple[int, int], *,
-                fov: Tensor | None = None, dtype: torch.dtype | None = None
-                ) -> tuple[Tensor, Tensor]:
+                fov: Tensor | None = None, dtype: torch.dtype | None = None,
+                backend: str = "auto") -> tuple[Tensor, Tensor]:
     """Unit rays ``(B, H, W, 3)`` and validity ``(B, H, W)`` of every pixel centre of ``B``
     cameras of one model, each within its own field of view ``fov (B,)`` (radians; None: the
     model's domain), without gradient: on the CPU through the cameras' tables
@@ -342,6 +347,7 @@ def camera_rays(model: str, params: Tensor, image_size: tuple[int, int], *,
         image_size: ``(H, W)``.
         fov: ``(B,)`` full fields of view, or None.
         dtype: floating dtype of the rays (default: that of ``params``).
+        backend: the tables and the C++ op, or ``Camera.ray_grid`` (``_backend``).
     """
     if not isinstance(params, Tensor) or not params.is_floating_point() or params.dim() != 2:
         raise ValueError(f"params: expected a floating tensor (B, P), got "
@@ -355,8 +361,8 @@ def camera_rays(model: str, params: Tensor, image_size: tuple[int, int], *,
     cosine = (torch.full((batch,), -2.0, dtype=torch.float64) if fov is None
               else torch.cos(0.5 * fov.detach().to("cpu", torch.float64)))
     with torch.no_grad():
-        tables = (radial_table(model, params, (h, w)) if params.device.type == "cpu"
-                  and dtype in (torch.float32, torch.float64) and fast.available() else None)
+        tables = (radial_table(model, params, (h, w)) if dtype in (torch.float32, torch.float64)
+                  and choose(backend, params.detach(), what="camera_rays") is not None else None)
         if tables is not None:
             affine, limits, table = tables
             limits[:, 3] = cosine

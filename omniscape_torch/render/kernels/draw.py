@@ -31,7 +31,6 @@ offsets generated from `STREAM` into the build (`layout_header`), and computes w
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Mapping, NamedTuple
 
