@@ -84,10 +84,14 @@ from ..io.atomic import atomic_path
 __all__ = ["load", "ops", "unavailable_reason", "name", "face_case_flags", "CFLAGS", "LDFLAGS",
            "NAMESPACE", "OPS", "SOURCES"]
 
-#: The sources of the one library: the samplers' kernels (a header), their ops (the cube's,
-#: which define the namespace, and the image's) and the town's.
+#: The sources of the one library: the samplers' kernels (headers, one an idea, in the order
+#: they include each other; their map in ``sample_base.h``), their ops (the cube's, which
+#: define the namespace, and the image's) and the town's. Every file is in the name's hash and
+#: copied into the build folder, where the ``.cpp`` files are compiled.
 SOURCES = tuple(Path(__file__).with_name("csrc") / file for file in (
-    "fastsample.h", "fastsample.cpp", "fastimage.cpp", "town_shade.cpp"))
+    "sample_base.h", "sample_taps.h", "sample_simd.h", "sample_cube.h", "sample_rays.h",
+    "sample_image.h", "sample_mip.h", "camera_grid.h", "op_checks.h",
+    "fastsample.cpp", "fastimage.cpp", "town_shade.cpp"))
 NAMESPACE = "omniscape_torch"
 OPS = ("build_lut", "sample_lut", "sample_grid", "sample_rays", "camera_grid", "camera_rays",
        "sample_image", "mip_image", "reproject_image", "framing_reach", "framing_focal",

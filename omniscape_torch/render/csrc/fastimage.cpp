@@ -1,12 +1,16 @@
 // The image ops of the library that fastsample.cpp defines: sample_image, mip_image, the
 // radial cameras (camera_grid, camera_rays), the detection ops (box_pixels, outline_*)
-// and the framing's (framing_reach, framing_focal); the kernels are in fastsample.h.
+// and the framing's (framing_reach, framing_focal); the kernels are in the sample_*.h headers
+// and camera_grid.h (their map in sample_base.h), the checks the ops share in op_checks.h.
 
-// (before fastsample.h, whose Layout would shadow c10's in them)
+// (before the kernels' headers, whose Layout would shadow c10's in them)
 #include <ATen/ops/empty.h>
 #include <ATen/ops/empty_like.h>
 
-#include "fastsample.h"
+#include "sample_image.h"
+#include "sample_mip.h"
+#include "camera_grid.h"
+#include "op_checks.h"
 
 namespace {
 
@@ -35,6 +39,11 @@ Layout check_image_rays(const char* op, const at::Tensor& image, const at::Tenso
     return image_layout(height, width, image.stride(2), image.stride(3));
 }
 
+// sample_image: a perspective image (B, C, H, W), any strides, along rays (1 or B, h, w, 3)
+// rotated by rotation (1 or B, 3, 3, or none) into its pinhole camera, intrinsics (1 or B, 4)
+// fx, fy, cx, cy, all in the dtype the image is sampled with; where valid (1 or B, h, w) is
+// false, or the ray misses the image: fill; into out (B, C, h, w) and the validity into
+// valid_out (B, h, w).
 void sample_image_op(const at::Tensor& image, const at::Tensor& rays,
                      const std::optional<at::Tensor>& rotation, const at::Tensor& intrinsics,
                      const std::optional<at::Tensor>& valid, bool bilinear, int64_t fill,
