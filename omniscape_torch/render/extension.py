@@ -29,8 +29,8 @@ call (ninja and the C++ compiler torch uses, ``$CXX`` else ``c++``; once per mac
 2 cores depending on load: about 40 s idle, 85-141 s under load, 217 s on a busy machine; the
 sources compiled side by side, most of it the instantiations of the samplers per element, output
 and grid type, which is why the samplers' ops are two translation units, the cube's and the
-image's, of about the same cost: 35 and 32 s of the 37 s on 2 idle cores (63 s of CPU), the
-town's 13 s; the one source of 2,900 lines before them took 65 s; the torch headers take 5 s a
+image's, of about the same cost: 35 and 32 s of a 35 s build on 2 idle cores (63 s of CPU),
+the town's 13 s; the one source of 2,900 lines before them took 65 s; the torch headers take 5 s a
 source, against 30 s with ``torch/extension.h``) into torch's extension cache
 (``$TORCH_EXTENSIONS_DIR``, default ``~/.cache/torch_extensions/<python>_<device>/``) and loads
 the library. A build says on stderr what it does as it goes: one line as it starts

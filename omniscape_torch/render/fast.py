@@ -35,8 +35,8 @@ the weights are then identical and the blend differs from ``grid_sample`` by flo
 gathers one texel, exact for any dtype (integer labels).
 
 The per-pixel loops are C++ custom ops, ``torch.ops.omniscape_torch.*``
-(``csrc/fastsample.h``, the ops in ``fastsample.cpp`` and ``fastimage.cpp``, built on first
-use by :mod:`.extension`, one library with the town's
+(the headers ``csrc/sample_*.h``, the ops in ``fastsample.cpp`` and ``fastimage.cpp``, built
+on first use by [extension][omniscape_torch.render.extension], one library with the town's
 shading): one pass per call computes
 every pixel's taps (or reads them from the table), blends the interior pixels and reads the
 edge pixels' taps through the ring, straight into the output. ``torch.compile`` traces through
