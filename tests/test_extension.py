@@ -2,8 +2,8 @@
 town's kernels, one library): custom ops that pass ``torch.library.opcheck``, check their
 arguments, trace under ``torch.compile``, and a build that is cached where torch caches
 extensions, keyed on the CPU and the sources' content (not their path), says when it builds
-and what it compiles as it goes, is safe under concurrent first uses, found without ninja on the PATH, and whose failure is one
-warning for the sampler and the town together.
+and what it compiles as it goes, is safe under concurrent first uses, found without ninja on
+the PATH, and whose failure is one warning for the sampler and the town together.
 """
 
 from __future__ import annotations
