@@ -1,14 +1,16 @@
-"""The package's C++ extension (``omniscape_torch.render.extension``: the fast sampler's and the
+"""The package's C++ extension (``omniscape_torch.render.kernels.build``: the fast sampler's and the
 town's kernels, one library): custom ops that pass ``torch.library.opcheck``, check their
 arguments, trace under ``torch.compile``, and a build that is cached where torch caches
-extensions, keyed on the CPU and the sources' content (not their path), says when it builds,
-is safe under concurrent first uses, found without ninja on the PATH, and whose failure is one
-warning for the sampler and the town together.
+extensions, keyed on the CPU and the sources' content (not their path), says when it builds
+and what it compiles as it goes, is safe under concurrent first uses, found without ninja on
+the PATH, and whose failure is one warning for the sampler and the town together.
 """
 
 from __future__ import annotations
 
 import ast
+import contextlib
+import io
 import math
 import os
 import re
@@ -16,6 +18,8 @@ import shutil
 import subprocess
 import sys
 import textwrap
+import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -607,6 +611,84 @@ def test_built_in_torchs_extension_cache_from_copies_of_the_sources():
     assert str(extension.SOURCES[0].parent) not in build
 
 
+def test_every_file_of_the_sources_folder_is_a_source_and_every_include_one_of_them():
+    """Every header and ``.cpp`` in ``csrc/`` is in SOURCES (the name's hash, the copies in the
+    build folder, package_data's globs), and a quoted include names one of them: a header left
+    out would be missing from the build folder, or changed without a rebuild."""
+    folder = extension.SOURCES[0].parent
+    on_disk = {p.name for p in folder.iterdir() if p.suffix in (".h", ".cpp")}
+    names = [p.name for p in extension.SOURCES]
+    assert sorted(names) == sorted(on_disk) and len(set(names)) == len(names)
+    included = {m for path in extension.SOURCES
+                for m in re.findall(r'^#include "([^"]+)"', path.read_text(), re.M)}
+    built = extension._sources()   # the sources and the headers generated from Python
+    assert set(built) - set(names) == {"os_layout.h"}
+    assert included and included <= {n for n in built if n.endswith(".h")}
+    for path in extension.SOURCES:   # each under the 1,200 lines of a C++ file
+        assert path.read_text().count("\n") <= 1200, path.name
+    package_data = (ROOT / "setup.cfg").read_text()
+    assert "render/csrc/*.cpp, render/csrc/*.h" in package_data
+
+
+def test_a_build_says_what_it_compiles_as_it_goes(monkeypatch, tmp_path):
+    """A build names the sources it compiles (not one compiled before the build was
+    interrupted), says as each is compiled, as ninja's log in the build folder records it, and
+    between those, every heartbeat, the time so far and what is still compiling, then linking;
+    the first line gives the measured range. cpp_extension.load stands in for ninja here (the
+    slow tier's builds run the real one)."""
+    from torch.utils import cpp_extension
+    monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path / "cache"))
+    monkeypatch.setattr(extension, "_HEARTBEAT_S", 0.05)
+    monkeypatch.setattr(extension, "_check_compiler", lambda: None)
+    monkeypatch.setattr(extension, "_ninja_on_path", contextlib.nullcontext)
+    err = io.StringIO()
+    monkeypatch.setattr(sys, "stderr", err)
+    folder = Path(cpp_extension._get_build_directory(extension.name(), False))
+    # an interrupted build: the town's object is there, newer than the sources
+    extension._copy_sources(extension._sources(), folder)
+    later = time.time() + 10
+    (folder / "town_shade.o").write_bytes(b"")
+    os.utime(folder / "town_shade.o", (later, later))
+    log = folder / ".ninja_log"
+    log.write_text("# ninja log v7\n0\t13000\t1\ttown_shade.o\t71fa9267aff165b0\n")
+
+    def shown(text):
+        deadline = time.monotonic() + 20
+        while text not in err.getvalue():
+            assert time.monotonic() < deadline, (text, err.getvalue())
+            time.sleep(0.005)
+
+    def ninja(name, sources, build_directory, **kwargs):
+        assert sorted(Path(s).name for s in sources) == [
+            "fastimage.cpp", "fastsample.cpp", "town_shade.cpp"]
+        assert Path(build_directory) == folder
+        shown(" s: still compiling fastsample.cpp, fastimage.cpp ...\n")
+        with open(log, "a") as file:   # as ninja records a finished edge
+            file.write("0\t32288\t2\tfastimage.o\tbadfe68571662616\n")
+        shown("compiled fastimage.cpp in 32 s (1 of 2)\n")
+        shown(" s: still compiling fastsample.cpp ...\n")
+        with open(log, "a") as file:
+            file.write("0\t34842\t3\tfastsample.o\t91c58560ecce2428\n0\t1")   # and a part
+        shown("compiled fastsample.cpp in 35 s (2 of 2)\n")
+        shown(" s: linking ...\n")
+        (folder / f"{name}.so").write_bytes(b"")
+        return str(folder / f"{name}.so")
+
+    monkeypatch.setattr(cpp_extension, "load", ninja)
+    assert extension._build() == str(folder / f"{extension.name()}.so")
+    lines = err.getvalue().splitlines()
+    assert lines[0].startswith(BUILDING) and "40-220 s on 2 cores" in lines[0], lines
+    assert lines[1] == "omniscape_torch: compiling fastsample.cpp, fastimage.cpp", lines
+    assert lines[-1].startswith(BUILT) and "town_shade" not in err.getvalue()
+    assert all(re.fullmatch(r"omniscape_torch: (compiled \w+\.cpp in \d+ s \(\d of 2\)|"
+                            r"\d+ s: (still compiling [\w., ]+|linking) \.\.\.)", line)
+               for line in lines[2:-1]), lines
+    assert [line for line in lines if "compiled" in line] == [
+        "omniscape_torch: compiled fastimage.cpp in 32 s (1 of 2)",
+        "omniscape_torch: compiled fastsample.cpp in 35 s (2 of 2)"]
+    assert not any(t.name == "omniscape_torch build progress" for t in threading.enumerate())
+
+
 def test_no_module_of_the_package_imports_ctypes():
     """The package's native code is the one torch extension: no ctypes (nor a second build)."""
     package = ROOT / "omniscape_torch"
@@ -728,6 +810,11 @@ def test_concurrent_first_uses_build_once(tmp_path):
         assert stderr.count(BUILDING) == stderr.count(BUILT) <= 1, stderr[-3000:]
     assert outputs[0][0] == outputs[1][0] and outputs[0][0].split()[1:3] == ["True", "True"]
     assert any(BUILT in stderr for _, stderr in outputs)
+    # and what it compiles as it goes, from ninja's log: each source once as it is compiled
+    # (the waiting process follows the same log)
+    built = next(stderr for _, stderr in outputs if "omniscape_torch: compiling" in stderr)
+    for source in ("fastsample.cpp", "fastimage.cpp", "town_shade.cpp"):
+        assert len(re.findall(rf"omniscape_torch: compiled {source} in \d+ s", built)) == 1, built
     (folder,) = (tmp_path / "cache").iterdir()
     assert folder.name == extension.name() and not (folder / "lock").exists()
     (library,) = folder.glob("*.so")

@@ -132,7 +132,7 @@ class RandomReproject(_Routes, _RandomCameras):
         antialias: prefilter ``rgb`` where the fisheye minifies the source (an output pixel
             covering more than one source pixel): the mean of taps over each pixel's
             footprint through a mip pyramid. On the CPU fast path (``uint8``, float32 and
-            float64 images, no gradient) the C++ op :func:`~omniscape_torch.render.fast.
+            float64 images, no gradient) the C++ op :func:`~omniscape_torch.render.kernels.image.
             mip_image`; elsewhere :mod:`~omniscape_torch.render.antialias` (the same rule,
             differentiable). Pixels that do not minify are as with
             ``antialias=False`` (point samples), bit for bit; ``labels``, ``depth`` and

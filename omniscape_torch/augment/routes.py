@@ -33,7 +33,7 @@ class _Routes:
     def _tables(self, name: str, params: Tensor, fov: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """``affine (n, 6)``, ``limits (n, 5)`` and ``table (1, 2, K)`` of ``n`` cameras of a
         model with a :meth:`_unit_lens` table, in the dtype of ``params (n, P)``, as
-        :func:`~omniscape_torch.render.fast.camera_rays` takes them: ``cx, cy`` and ``M =
+        :func:`~omniscape_torch.render.kernels.image.camera_rays` takes them: ``cx, cy`` and ``M =
         diag(1 / fx, 1 / fy)``, the table's limits with ``cos(fov / 2)`` and no blind cone."""
         unit = self._unit_lens(name)
         cams = params.numpy()[:, :4].astype(np.float64)   # (NumPy's slicing: cheaper)
@@ -140,7 +140,7 @@ class _Routes:
     def _antialias(image: Tensor, rays: Tensor, rotation: Tensor | None, k: Tensor,
                    seen: Tensor, out: Tensor) -> None:
         """Overwrite the pixels of ``out`` (the fast op's samples) whose footprint minifies the
-        source with its mip filter, :func:`~omniscape_torch.render.fast.mip_image`; float16
+        source with its mip filter, :func:`~omniscape_torch.render.kernels.image.mip_image`; float16
         and bfloat16 images through float32, in which the op blends them."""
         if image.dtype in fast.MIPMAPPED:
             fast.mip_image(image, rays, rotation, k, seen, out)

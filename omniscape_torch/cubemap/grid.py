@@ -8,7 +8,7 @@ with a rotation folded in. Run eagerly, ``rays_to_grid(einsum(R, rays), F, pad)`
 elementwise ops, each one a full pass through memory over every ray (30 ms for 1M rays on 2
 cores, more than the bilinear sampling it serves); compiled, one loop (1.5 ms;
 ``benchmarks/bench_projection.py``). The fast sampler's C++ kernel computes the same grid
-point inside its sampling pass (``render/csrc/fastsample.h``: bit for bit for nearest
+point inside its sampling pass (``render/csrc/sample_rays.h``: bit for bit for nearest
 sampling; bilinear taps come from the face pixel ``(u, v)`` below without the normalised grid,
 to float rounding of the same point):
 

@@ -27,7 +27,7 @@ Rules:
 
 Used by :func:`~omniscape_torch.render.reproject.sample_camera` (and so ``ot.reproject``) and
 :class:`~omniscape_torch.augment.RandomReproject`'s exact path (gradients, other devices). Its
-CPU fast path runs the same rule in C++, :func:`~omniscape_torch.render.fast.mip_image` (16
+CPU fast path runs the same rule in C++, :func:`~omniscape_torch.render.kernels.image.mip_image` (16
 texels a pixel; on the line grid of ``benchmarks/bench_antialias.py`` 26.7 dB at worst,
 ``docs/augmentation.md``), so that a module gives the same image on every device and path, to
 the rounding of the 8-bit pyramid levels the C++ keeps (a level or two).

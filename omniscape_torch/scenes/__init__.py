@@ -2,7 +2,7 @@
 
 ``Town`` is a small procedural town of triangle meshes traced by Embree (:mod:`.mesh`) and
 shaded in C++ (the ops ``torch.ops.omniscape_torch.town_*``, built with the fast sampler by
-:mod:`omniscape_torch.render.extension`, with a torch reference); it renders cubemaps (RGB,
+:mod:`omniscape_torch.render.kernels.build`, with a torch reference); it renders cubemaps (RGB,
 planar depth, CARLA's 13 labels) at any pose, only the faces and texels asked for, and any
 camera's rays directly (the exact ground truth), under CARLA's 14 weather presets and a few of
 its own, in three street layouts (:data:`LAYOUTS`), each with its ride (:mod:`.routes`). See

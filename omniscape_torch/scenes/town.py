@@ -38,7 +38,7 @@ the weather preset (:data:`WEATHERS`) changes light, colour, wetness and fog, ne
 labels.
 
 Shading runs in C++ (the ops ``torch.ops.omniscape_torch.town_*``, ``render/csrc/town_shade.cpp``,
-built with the fast sampler into one library by :mod:`omniscape_torch.render.extension`) where a
+built with the fast sampler into one library by :mod:`omniscape_torch.render.kernels.build`) where a
 compiler builds it, else in torch (:meth:`Town._shade_reference`, the same operations in the
 same order: the same labels and depths, colours within a few float32 roundings, torch's
 ``sqrt`` not being correctly rounded on every CPU).

@@ -1,12 +1,16 @@
 // The cube samplers' ops (build_lut, sample_lut, sample_grid, sample_rays) and the
-// library's namespace with every op's schema; the kernels and the checks they share are in
-// fastsample.h, the image ops in fastimage.cpp (two translation units: the build compiles
-// them side by side).
+// library's namespace with every op's schema; the kernels are in the sample_*.h headers (their
+// map in sample_base.h), the checks the ops share in op_checks.h, the image ops in
+// fastimage.cpp (two translation units: the build compiles them side by side).
 
-#include "fastsample.h"
+#include "sample_rays.h"
+#include "op_checks.h"
 
 namespace {
 
+// build_lut: the entries (code, fraction bits) of grid (B', P, 2) into table (B', P, 3), int32
+// for a float32 grid, int64 for a float64 one, for cubes of faces `face` with the strides
+// (face, row, texel) of one channel.
 void build_lut_op(const at::Tensor& grid, int64_t face, int64_t pad, at::IntArrayRef strides,
                   bool bilinear, const at::Tensor& table) {
     const char* op = "omniscape_torch::build_lut";
@@ -120,13 +124,6 @@ void sample_rays_op(const at::Tensor& cube, const at::Tensor& rays,
                              planes(cube, out), static_cast<O*>(out.mutable_data_ptr()));
     });
 }
-
-
-// sample_image: a perspective image (B, C, H, W), any strides, along rays (1 or B, h, w, 3)
-// rotated by rotation (1 or B, 3, 3, or none) into its pinhole camera, intrinsics (1 or B, 4)
-// fx, fy, cx, cy, all in the dtype the image is sampled with; where valid (1 or B, h, w) is
-// false, or the ray misses the image: fill; into out (B, C, h, w) and the validity into
-// valid_out (B, h, w).
 
 }  // namespace
 

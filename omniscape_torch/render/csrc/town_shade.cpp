@@ -1,7 +1,7 @@
 // Shading of the built-in town's ray hits: the loops of omniscape_torch/scenes/town.py's
 // Town._shade_reference (torch), one ray at a time, as PyTorch custom ops
 // torch.ops.omniscape_torch.{town_backfaces, town_prepare, town_shade, town_store}, built with
-// the fast sampler (fastsample.cpp) by omniscape_torch/render/extension.py into one library.
+// the fast sampler (fastsample.cpp) by omniscape_torch/render/kernels/build.py into one library.
 // A call through torch.ops releases the GIL while the op runs (torch's invokeOperatorFromPython),
 // so the town's worker threads shade in parallel; each call is one serial loop over its rays
 // (the town splits the work into tasks itself).

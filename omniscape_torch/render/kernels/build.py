@@ -1,6 +1,7 @@
 """The package's C++ kernels as PyTorch custom ops, one library built on first use: the fast
-sampler's per-pixel loops (``csrc/fastsample.h``, their ops in ``csrc/fastsample.cpp``, the
-cube samplers', and ``csrc/fastimage.cpp``, the others) and the town's shading loops
+sampler's per-pixel loops (the headers ``csrc/sample_*.h``, ``camera_grid.h`` and ``op_checks.h``,
+one an idea, their map in ``sample_base.h``; their ops in ``csrc/fastsample.cpp``, the cube
+samplers', and ``csrc/fastimage.cpp``, the others) and the town's shading loops
 (``csrc/town_shade.cpp``).
 
 Why hand-written: a bilinear tap is four loads a texel apart, which a C loop does in a few
@@ -12,10 +13,10 @@ at batch 8 (``cv2.remap`` of the same images: 5.9 and 34-47 ms). Shading a town 
 own dispatch, about 0.5 microseconds a ray in all (2 cores, batches of 16 to 64 thousand rays),
 more than Embree's tracing (0.25); one C++ loop over the rays does it in registers, about 0.03.
 
-The ops, ``torch.ops.omniscape_torch.*`` (:data:`OPS`; schemas in the sources): the samplers
+The ops, ``torch.ops.omniscape_torch.*`` (`OPS`; schemas in the sources): the samplers
 ``build_lut, sample_lut, sample_grid, sample_rays, camera_grid, camera_rays, sample_image``,
 its antialiasing ``mip_image``, the framing's ``framing_reach, framing_focal``
-(:mod:`~omniscape_torch.render.framing`), the detection boxes' ``box_pixels, outline_points,
+([framing][omniscape_torch.render.framing]), the detection boxes' ``box_pixels, outline_points,
 outline_reduce`` (``detection``) and the town's ``town_backfaces, town_prepare, town_shade,
 town_store``. Each checks its arguments
 (device, dtype, shape, contiguity, index ranges) before it reads any, raising a RuntimeError
@@ -23,25 +24,29 @@ that names the op and the argument; their fake implementations for ``torch.compi
 registered here. A call through ``torch.ops`` releases the GIL while the op runs, so the town's
 worker threads shade in parallel.
 
-Build: :func:`load` builds the three sources with one ``torch.utils.cpp_extension.load`` call
-(ninja and the C++ compiler torch uses, ``$CXX`` else ``c++``; about 45 s once per machine on 2
-cores, the sources compiled side by side, most of it the instantiations of the samplers per
-element, output and grid type, which is why the samplers' ops are two translation units, the
-cube's and the image's, of about the same cost: the whole build took 40 s on 2 idle cores
-(76 s of CPU), the one source of 2,900 lines before it 65 s; the torch headers take 5 s a source,
-against 30 s with ``torch/extension.h``) into torch's extension cache (``$TORCH_EXTENSIONS_DIR``, default
-``~/.cache/torch_extensions/<python>_<device>/``) and loads the library. A build prints one line
-to stderr as it starts (``omniscape_torch: building the C++ kernels ...``) and one when it is
-done, with its time. A process that finds the library built (the ``.so`` of its name in its
-folder, and no build under way there: no ``lock``; the name is a hash of the content, so the
-file is what this install would build) loads it directly, with no compiler, ninja or build
-file involved, and prints nothing (on 2 cores 0.15 s at rest, 0.25 s at a load of 3; most
-of it the import of ``cpp_extension``, whose function names the folder). Concurrent first uses (processes,
-``DataLoader`` workers) are serialised by ``cpp_extension``'s lock file in the build folder: one
-builds, the others wait and load. (A build killed outright, SIGKILL, leaves that file behind,
-and later loads wait for it forever: delete the folder's ``lock``.)
+Build: `load` compiles the three ``.cpp`` sources with one ``torch.utils.cpp_extension.load``
+call (ninja and the C++ compiler torch uses, ``$CXX`` else ``c++``; once per machine, 40-220 s on
+2 cores depending on load: about 40 s idle, 85-141 s under load, 217 s on a busy machine; the
+sources compiled side by side, most of it the instantiations of the samplers per element, output
+and grid type, which is why the samplers' ops are two translation units, the cube's and the
+image's, of about the same cost: 35 and 32 s of a 35 s build on 2 idle cores (63 s of CPU),
+the town's 13 s; the one source of 2,900 lines before them took 65 s; the torch headers take 5 s a
+source, against 30 s with ``torch/extension.h``) into torch's extension cache
+(``$TORCH_EXTENSIONS_DIR``, default ``~/.cache/torch_extensions/<python>_<device>/``) and loads
+the library. A build says on stderr what it does as it goes: one line as it starts
+(``omniscape_torch: building the C++ kernels ...``), the sources it compiles, one line as each is
+compiled (read from ninja's log in the build folder), every 15 s the time so far and what is
+still compiling, and one line when it is done, with its time. A process that finds the library
+built (the ``.so`` of its name in its folder, and no build under way there: no ``lock``; the
+name is a hash of the content, so the file is what this install would build) loads it
+directly, with no compiler, ninja or build file involved, and prints nothing (on 2 cores 0.15 s
+at rest, 0.25 s at a load of 3; most of it the import of ``cpp_extension``, whose function names
+the folder). Concurrent first uses (processes, ``DataLoader`` workers) are serialised by
+``cpp_extension``'s lock file in the build folder: one builds, the others wait (saying how the
+build goes) and load. (A build killed outright, SIGKILL, leaves that file behind, and later
+loads wait for it forever: delete the folder's ``lock``.)
 
-The cache is keyed by content: the extension's name (:func:`name`) holds a hash of the CPU's
+The cache is keyed by content: the extension's name (`name`) holds a hash of the CPU's
 feature flags (``-march=native`` code must not be loaded on another CPU that shares the home
 directory, e.g. over NFS), of the torch version and Python ABI it links against, of the flags
 and of the sources' names and bytes, never of where they lie. The sources are copied into the
@@ -56,9 +61,9 @@ The face table is generated from ``cubemap/faces.py`` (the only one) and passed 
 The library is built with OpenMP, the runtime PyTorch has already loaded (``libgomp.so.1``), and
 the samplers' loops run on PyTorch's intra-op threads (``at::parallel_for``); the town's ops run
 on the calling thread (the town splits its rays into tasks on threads of its own). Where the
-library cannot be built (no compiler, no ninja, a read-only cache), :func:`load` raises and
-:func:`ops` warns once and returns None: the fast sampler (:mod:`.fast`) is then unavailable and
-``OmniProjection`` samples with ``grid_sample``, and the town shades with torch
+library cannot be built (no compiler, no ninja, a read-only cache), `load` raises and `ops`
+warns once and returns None: the fast sampler ([cube][omniscape_torch.render.kernels.cube]) is then
+unavailable and ``OmniProjection`` samples with ``grid_sample``, and the town shades with torch
 (``Town._shade_reference``: the same labels and depths, colours within float32 roundings,
 several times slower).
 """
@@ -84,10 +89,14 @@ from ...io.atomic import atomic_path
 __all__ = ["load", "ops", "unavailable_reason", "name", "face_case_flags", "CFLAGS", "LDFLAGS",
            "NAMESPACE", "OPS", "SOURCES"]
 
-#: The sources of the one library: the samplers' kernels (a header), their ops (the cube's,
-#: which define the namespace, and the image's) and the town's.
+#: The sources of the one library: the samplers' kernels (headers, one an idea, in the order
+#: they include each other; their map in ``sample_base.h``), their ops (the cube's, which
+#: define the namespace, and the image's) and the town's. Every file is in the name's hash and
+#: copied into the build folder, where the ``.cpp`` files are compiled.
 SOURCES = tuple(Path(__file__).parent.parent / "csrc" / file for file in (
-    "fastsample.h", "fastsample.cpp", "fastimage.cpp", "town_shade.cpp"))
+    "sample_base.h", "sample_taps.h", "sample_simd.h", "sample_cube.h", "sample_rays.h",
+    "sample_image.h", "sample_mip.h", "camera_grid.h", "op_checks.h",
+    "fastsample.cpp", "fastimage.cpp", "town_shade.cpp"))
 NAMESPACE = "omniscape_torch"
 OPS = ("build_lut", "sample_lut", "sample_grid", "sample_rays", "camera_grid", "camera_rays",
        "sample_image", "mip_image", "reproject_image", "framing_reach", "framing_focal",
@@ -107,6 +116,8 @@ _LOADED: list[str] = []   # the path of the library once loaded in this process
 _STATE: dict = {}   # "ops": torch.ops.omniscape_torch, or None once they could not be built;
 #                     "error": why
 _LIB_EXT = ".pyd" if sys.platform == "win32" else ".so"   # cpp_extension's
+#: Seconds between two of a build's lines on stderr saying what is still compiling.
+_HEARTBEAT_S = 15.0
 
 
 def _cpu() -> str:
@@ -217,6 +228,73 @@ def _check_compiler() -> None:
         raise RuntimeError(f"no C++ compiler: {compiler!r} is not on the PATH (set $CXX)")
 
 
+def _say(message: str) -> None:
+    print(f"omniscape_torch: {message}", file=sys.stderr, flush=True)
+
+
+def _log_entries(log: Path) -> set[str]:
+    """The whole lines of ninja's log (``start end mtime output hash``, times in ms), none
+    where there is no log yet."""
+    try:
+        text = log.read_text(errors="replace")
+    except FileNotFoundError:
+        return set()
+    return set(text.split("\n")[:-1])   # the last: empty, or a line being written
+
+
+def _report(folder: Path, pending: dict[str, str], start: float, stop: threading.Event) -> None:
+    """Say on stderr what the build in ``folder`` compiles as it goes, until ``stop``: a line
+    as each source of ``pending`` (``{object: source}``) is compiled, as ninja's log records it
+    (the log is the build's, also where another process builds and this one waits for it), and
+    every `_HEARTBEAT_S` the time so far and what is still compiling (or linking)."""
+    log = folder / ".ninja_log"
+    seen, total = _log_entries(log), len(pending)
+    beat = start + _HEARTBEAT_S
+    while not stop.wait(min(1.0, _HEARTBEAT_S / 4)):
+        for entry in sorted(_log_entries(log) - seen):
+            seen.add(entry)
+            fields = entry.split("\t")
+            if len(fields) >= 4 and fields[3] in pending:
+                took = ""
+                with contextlib.suppress(ValueError):
+                    took = f" in {(int(fields[1]) - int(fields[0])) / 1000:.0f} s"
+                _say(f"compiled {pending.pop(fields[3])}{took} ({total - len(pending)} of "
+                     f"{total})")
+        now = time.perf_counter()
+        if now >= beat:
+            beat = now + _HEARTBEAT_S
+            doing = f"still compiling {', '.join(pending.values())}" if pending else "linking"
+            _say(f"{now - start:.0f} s: {doing} ...")
+
+
+@contextlib.contextmanager
+def _progress(folder: Path, sources: list[str], paths: list[str], start: float):
+    """`_report` on a thread of its own while the block builds the ``.cpp`` files ``paths``
+    in ``folder`` (where the files ``sources`` lie), after a line naming those to compile: not
+    those whose object is newer than every source (compiled before a build was interrupted),
+    which ninja does not compile again."""
+    newest = max(os.stat(folder / file).st_mtime_ns for file in sources)
+    pending = {}
+    for path in map(Path, paths):
+        try:
+            done = (folder / f"{path.stem}.o").stat().st_mtime_ns > newest
+        except FileNotFoundError:
+            done = False
+        if not done:
+            pending[f"{path.stem}.o"] = path.name
+    if pending:
+        _say(f"compiling {', '.join(pending.values())}")
+    stop = threading.Event()
+    thread = threading.Thread(target=_report, args=(folder, pending, start, stop),
+                              name="omniscape_torch build progress", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join()
+
+
 def _build() -> str:
     """Load the library, built first where its folder holds none; its path."""
     from torch.utils import cpp_extension
@@ -232,14 +310,14 @@ def _build() -> str:
     _check_compiler()
     paths = [p for p in _copy_sources(sources, folder) if p.endswith(".cpp")]   # not the .h
     with _ninja_on_path():
-        print("omniscape_torch: building the C++ kernels for this install (about 40 s, once) "
-              f"in {folder} ...", file=sys.stderr, flush=True)
+        _say("building the C++ kernels for this install (once; 40-220 s on 2 cores, depending "
+             f"on load) in {folder} ...")
         start = time.perf_counter()
-        path = cpp_extension.load(ext, paths, extra_cflags=[*CFLAGS, *face_case_flags()],
-                                  extra_ldflags=list(LDFLAGS), build_directory=str(folder),
-                                  is_python_module=False)
-        print(f"omniscape_torch: the C++ kernels built in {time.perf_counter() - start:.1f} s",
-              file=sys.stderr, flush=True)
+        with _progress(folder, list(sources), paths, start):
+            path = cpp_extension.load(ext, paths, extra_cflags=[*CFLAGS, *face_case_flags()],
+                                      extra_ldflags=list(LDFLAGS), build_directory=str(folder),
+                                      is_python_module=False)
+        _say(f"the C++ kernels built in {time.perf_counter() - start:.1f} s")
     return path
 
 

@@ -245,7 +245,7 @@ def camera_grid(model: str, params: Tensor, image_size: tuple[int, int], face_si
         dtype: floating dtype of the grid (default: that of ``params``).
         compiled: False runs the exact chain eagerly (no table, no compiled kernel).
         lazy: where the cameras go through their tables, return them as a
-            :class:`~omniscape_torch.render.fast.CameraGrid` (its ``valid`` computed, the grid
+            :class:`~omniscape_torch.render.kernels.image.CameraGrid` (its ``valid`` computed, the grid
             not built: the fast sampler computes it inside its sampling pass,
             ``OmniProjection.render(grid=...)`` takes it); elsewhere the tuple below all the
             same.
