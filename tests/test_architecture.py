@@ -8,6 +8,8 @@ dependency, and a cycle through one is still a cycle).
 from __future__ import annotations
 
 import ast
+import re
+import tokenize
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / "omniscape_torch"
@@ -99,3 +101,36 @@ def test_the_root_holds_at_most_six_modules_and_io_is_a_leaf():
     graph = _graph()
     io = {t for m, ts in graph.items() if m.startswith("omniscape_torch.io") for t in ts}
     assert all(t.startswith("omniscape_torch.io") for t in io), io
+
+
+def test_the_cpp_ops_are_called_from_the_kernel_boundary_only():
+    """One kernel boundary (`render/kernels/`): no other module of the package reaches the C++
+    library (its build, `torch.ops.omniscape_torch`, the ops handle) or asks whether it runs;
+    they pass a `backend` to the boundary's functions, which choose."""
+    boundary = PACKAGE / "render" / "kernels"
+    reach = re.compile(r"torch\.ops\.omniscape_torch|\bbuild\.(ops|load)\(|\bextension\b"
+                       r"|import build\b|\bavailable\(\)|\b_require\(\)|\bchoose\(")
+    offenders = []
+    for path in PACKAGE.rglob("*.py"):
+        if boundary in path.parents:
+            continue
+        for number, code in _code_lines(path):
+            if reach.search(code):
+                offenders.append(f"{path.relative_to(PACKAGE)}:{number}: {code.strip()}")
+    assert not offenders, "\n".join(offenders)
+    assert (boundary / "_backend.py").is_file()
+
+
+def _code_lines(path: Path) -> list[tuple[int, str]]:
+    """The lines of a module with its strings (docstrings too) and comments blanked out."""
+    lines = path.read_text(encoding="utf-8").splitlines()
+    blank = [list(line) for line in lines]
+    with path.open("rb") as source:
+        for tok in tokenize.tokenize(source.readline):
+            if tok.type in (tokenize.STRING, tokenize.COMMENT):
+                (r0, c0), (r1, c1) = tok.start, tok.end
+                for r in range(r0, r1 + 1):
+                    row = blank[r - 1]
+                    lo, hi = (c0 if r == r0 else 0), (c1 if r == r1 else len(row))
+                    row[lo:hi] = " " * (hi - lo)
+    return [(i, "".join(row)) for i, row in enumerate(blank, 1)]

@@ -10,7 +10,7 @@ import torch
 
 import omniscape_torch as ot
 from omniscape_torch.augment import RandomOmniCamera, RandomReproject
-from omniscape_torch.render.kernels import draw
+from omniscape_torch.render.kernels import draw, layout
 
 DEG = math.pi / 180
 KEYS = ("camera_params", "num_params", "fov", "blind_fov", "yaw", "pitch", "roll", "applied",
@@ -83,7 +83,7 @@ def test_the_generated_header_holds_the_stream_and_the_rotation():
     """The C++ build reads the stream's rows and the rotation's entries from `layout_header`
     (generated from `STREAM` and `presets.rotation_rows`): evaluating the generated entries
     gives `yaw_pitch_roll_to_matrix`."""
-    text = draw.layout_header().decode()
+    text = layout.layout_header().decode()
     for family, macro in (("fov", "FOV"), ("attitude", "ATTITUDE"), ("applied", "APPLIED"),
                           ("coverage", "COVERAGE"), ("jitter", "JITTER")):
         assert f"#define OS_DRAW_{macro} {draw.STREAM[family][0]}\n" in text

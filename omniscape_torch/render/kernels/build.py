@@ -85,6 +85,7 @@ from pathlib import Path
 import torch
 
 from ...io.atomic import atomic_path
+from . import layout
 
 __all__ = ["load", "ops", "unavailable_reason", "name", "face_case_flags", "CFLAGS", "LDFLAGS",
            "NAMESPACE", "OPS", "SOURCES"]
@@ -146,9 +147,8 @@ def name(sources: dict[str, bytes] | None = None) -> str:
 def _sources() -> dict[str, bytes]:
     """``{file name: bytes}`` of :data:`SOURCES`, read once for the name and the copies, and
     of the generated header ``os_layout.h`` (the draw's stream layout and the attitude's
-    rotation entries, from ``draw.layout_header``: defined once, in Python)."""
-    from .draw import layout_header
-    return {**{path.name: path.read_bytes() for path in SOURCES}, "os_layout.h": layout_header()}
+    rotation entries, from ``layout.layout_header``: defined once, in Python)."""
+    return {**{path.name: path.read_bytes() for path in SOURCES}, "os_layout.h": layout.layout_header()}
 
 
 def _copy_sources(sources: dict[str, bytes], folder: Path) -> list[str]:
@@ -469,8 +469,7 @@ def _fake_frame_lens(u, spec, intrinsics, centre, cos, sin, src_height, src_widt
                      slope, per_angle, to_edge, height, width, params, fov, attitude, applied,
                      rotation, coverage) -> None:
     n = fov.shape[0]
-    from .draw import STREAM_WIDTH
-    _check(u.shape == (STREAM_WIDTH * n,) and params.shape[0] == n and attitude.shape == (3, n)
+    _check(u.shape == (layout.STREAM_WIDTH * n,) and params.shape[0] == n and attitude.shape == (3, n)
            and applied.shape == coverage.shape == (n,) and rotation.shape == (n, 3, 3),
            "frame_lens: expected u (STREAM_WIDTH n,), params (n, P), fov, applied, coverage (n,), "
            "attitude (3, n), rotation (n, 3, 3)")
