@@ -26,6 +26,7 @@ division                  fx, fy, cx, cy, k
 opencv                    fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4
 thin_prism_fisheye        fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, sx1, sy1
 fisheye624                fx, fy, cx, cy, k0, k1, k2, k3, k4, k5, p0, p1, s0, s1, s2, s3
+woodscape                 cx, cy, aspect_ratio, k1, k2, k3, k4
 ========================= ==============================================================
 """
 
