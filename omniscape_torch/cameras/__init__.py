@@ -38,6 +38,7 @@ from .export import FORMATS, write_camera
 from .readers import READ_FORMATS
 from .registry import MODELS, get_model
 from .unified import unified_from_mirror
+from .woodscape_files import read_woodscape, write_woodscape
 
 __all__ = ["Camera", "CameraModel", "FORMATS", "MODELS", "READ_FORMATS", "get_model", "load_all",
-           "unified_from_mirror", "write_camera"]
+           "read_woodscape", "unified_from_mirror", "write_camera", "write_woodscape"]
