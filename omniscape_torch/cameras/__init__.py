@@ -33,12 +33,12 @@ woodscape                 cx, cy, aspect_ratio, k1, k2, k3, k4
 from __future__ import annotations
 
 from ._base import CameraModel
-from .camera import Camera, load_all
+from .camera import Camera, load_all, read_woodscape
 from .export import FORMATS, write_camera
 from .readers import READ_FORMATS
 from .registry import MODELS, get_model
 from .unified import unified_from_mirror
-from .woodscape_files import read_woodscape, write_woodscape
+from .woodscape_files import write_woodscape
 
 __all__ = ["Camera", "CameraModel", "FORMATS", "MODELS", "READ_FORMATS", "get_model", "load_all",
            "read_woodscape", "unified_from_mirror", "write_camera", "write_woodscape"]

@@ -29,7 +29,7 @@ gives every image a JSON file::
   looks to. The origin stays CARLA's (the vehicle's centre on the ground, not WoodScape's rear
   axle: the offset is the car's, which the file does not give); the rotation is read as
   WoodScape's (its axes are already the vehicle frame's: ``FV`` looks forward, ``MVL`` left).
-  :func:`write_woodscape` writes WoodScape's key, in the vehicle frame.
+  ``write_woodscape`` writes WoodScape's key, in the vehicle frame.
 * The imaged area: ``fov_deg`` / ``blind_fov_deg`` after ``name`` (full angles; where
   WoodScape's readers never look), as the package's other writers keep a camera's ``fov``.
 
@@ -175,10 +175,13 @@ def matrix_to_quaternion(r: np.ndarray) -> np.ndarray:
     return -q if q[3] < 0 else q
 
 
-def read_woodscape(path: str | Path, *, dtype: torch.dtype = torch.float64, **kwargs):
-    """Read a WoodScape (or SynWoodScape) calibration file (module docstring).
+def read(cls, path: str | Path, *, dtype: torch.dtype = torch.float64, **kwargs):
+    """Read a WoodScape (or SynWoodScape) calibration file (module docstring): the function
+    behind ``ot.cameras.read_woodscape``, with the camera class to build (this module imports
+    no ``camera.py``, which imports the readers, which import it).
 
     Args:
+        cls: ``ot.Camera``.
         path: the JSON file (``calibration_data/{frame}_{CAM}.json``, ``front.json``).
         dtype: the camera's parameter dtype.
         **kwargs: for ``ot.Camera`` (``fov``, ``blind_fov``, ``learnable``), above the file's.
@@ -192,7 +195,6 @@ def read_woodscape(path: str | Path, *, dtype: torch.dtype = torch.float64, **kw
         FileNotFoundError: no such file.
         ValueError: not valid JSON, a key missing or of the wrong kind (named).
     """
-    from .camera import Camera   # camera.py imports the readers, which import this module
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such WoodScape calibration file")
@@ -204,8 +206,8 @@ def read_woodscape(path: str | Path, *, dtype: torch.dtype = torch.float64, **kw
     w, h = found["size_wh"]
     options = {**found["area"], **kwargs}
     try:
-        camera = Camera("woodscape", torch.tensor(found["params"], dtype=dtype), (h, w),
-                        **options)
+        camera = cls("woodscape", torch.tensor(found["params"], dtype=dtype), (h, w),
+                     **options)
     except (ValueError, TypeError) as err:
         raise ValueError(f"{path}: intrinsic: {err}") from None
     return camera, torch.from_numpy(found["T"]), found["name"]
