@@ -104,7 +104,6 @@ DEFAULT_DISTORTION = {"kannala_brandt": (0.0, 0.0, 0.0, 0.0), "unified": (1.0, 0
                       "thin_prism_fisheye": (0.0,) * 8, "fisheye624": (0.0,) * 12}
 
 
-
 def unit_intrinsics(model: CameraModel) -> Tensor:
     """``(P,)`` float64: the camera of focal length 1 at the origin with the undistorted defaults
     (``DEFAULT_DISTORTION``); ``woodscape``: ``cx = cy = 0``, ``aspect_ratio = k1 = 1``, the
@@ -116,7 +115,7 @@ def unit_intrinsics(model: CameraModel) -> Tensor:
 
 
 def with_focal(model: CameraModel, unit: Tensor, focal: float, centre: Tensor) -> Tensor:
-    """``unit`` (:func:`unit_intrinsics`) at the focal length ``focal`` (pixels) and the
+    """``unit`` (``unit_intrinsics``) at the focal length ``focal`` (pixels) and the
     principal point ``centre (2,)``; ``woodscape``'s polynomial is in pixels: every
     coefficient scales."""
     centre = torch.as_tensor(centre, dtype=torch.float64)
@@ -540,7 +539,8 @@ def default_intrinsics(model: str | CameraModel, image_size: tuple[int, int],
     ray = torch.tensor([math.sin(theta), 0.0, math.cos(theta)], dtype=torch.float64)
     radius = float(model.project(ray, unit)[0][0])
     focal = 0.5 * min(h, w) / radius
-    return with_focal(model, unit, focal, torch.tensor([(w - 1) / 2, (h - 1) / 2]))
+    return with_focal(model, unit, focal,
+                      torch.tensor([(w - 1) / 2, (h - 1) / 2], dtype=torch.float64))
 
 
 def _initial_poses(model: CameraModel, params: Tensor, points: list[Tensor],

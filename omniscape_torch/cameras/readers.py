@@ -244,8 +244,8 @@ def _contents(path: Path) -> tuple[bytes, str | None]:
 def _detect(path: Path, raw: bytes, text: str | None) -> str:
     looked = ("looked for: a COLMAP cameras.bin/cameras.txt, OCamCalib's calib_results.txt, "
               "JSON (this package's, basalt's value0, Aria's CameraCalibrations, WoodScape's "
-              "intrinsic/extrinsic), YAML (OpenCV "
-              "K/camera_matrix, a Kalibr camchain, ORB-SLAM3 Camera.* settings)")
+              "intrinsic/extrinsic), YAML (OpenCV K/camera_matrix, a Kalibr camchain, "
+              "ORB-SLAM3 Camera.* settings)")
     if text is None or path.suffix == ".bin":
         if path.suffix == ".bin" or _looks_colmap_binary(raw):
             return "colmap"
