@@ -113,6 +113,13 @@ CASES = {
         ([200.0, 200.0, 319.5, 319.5, -0.12, 0.005, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
           0.0], (640, 640)),
     ],
+    "woodscape": [
+        # WoodScape's front.json (valeoai/WoodScape, scripts/calibration, MIT): cx = 1280 / 2
+        # - 0.5 + cx_offset 3.942, cy = 966 / 2 - 0.5 + cy_offset -3.093; valid to 180 degrees
+        ([643.442, 479.407, 1.0, 339.749, -31.988, 48.275, -7.201], (966, 1280)),
+        # aspect ratio 1.02 and a fold at 95.3 degrees (346 px), inside the image corners
+        ([320.2, 239.4, 1.02, 310.0, 8.0, -45.0, 2.0], (480, 640)),
+    ],
 }
 
 

@@ -69,6 +69,12 @@ NESTED = [
     # a degree-3 polynomial is a degree-5 one with a4 = a5 = 0
     pytest.param(("scaramuzza", POLY3), "scaramuzza", POLY3 + [0.0, 0.0],
                  id="scaramuzza(3)->scaramuzza(5)"),
+    # WoodScape's rho = k1 t + k3 t^3 is Kannala-Brandt's f t (1 + k t^2): f = k1, k = k3 / k1,
+    # fy = aspect_ratio k1
+    pytest.param(("kannala_brandt", [200.0, 201.0, 319.5, 318.5, -0.02, 0, 0, 0]), "woodscape",
+                 [319.5, 318.5, 1.005, 200.0, 0.0, -4.0, 0.0], id="kannala_brandt->woodscape"),
+    pytest.param(("woodscape", [319.5, 318.5, 1.005, 200.0, 0.0, -4.0, 0.0]), "kannala_brandt",
+                 [200.0, 201.0, 319.5, 318.5, -0.02, 0, 0, 0], id="woodscape->kannala_brandt"),
 ]
 
 
@@ -161,6 +167,7 @@ REAL_BOUNDS = {
     # 0.506 px, 0.361 px); test_real_camera_without_affine_to_the_issue_34_fisheyes
     "thin_prism_fisheye": (0.61, 0.44, 0.067),  # measured 0.506 px, 0.361 px, 0.0556 deg
     "fisheye624": (0.60, 0.42, 0.066),       # measured 0.494 px, 0.346 px, 0.0550 deg
+    "woodscape": (0.83, 0.51, 0.096),        # measured 0.690 px, 0.421 px, 0.0799 deg (no skew)
 }
 
 
@@ -198,7 +205,8 @@ def test_real_ocamcalib_camera_to_other_models(model, real_circle):
     assert abs(math.degrees(result.max_field) - math.degrees(fov / 2)) < 0.5
     # the fitted centre stays near OCamCalib's (column, row) = (798.18, 794.31): the rotation
     # fitted with it is a few hundredths of a degree
-    assert torch.allclose(result.fit.params[2:4], real.params[:2].double(), atol=1.0)
+    centre = list(result.camera.model.groups["center"])
+    assert torch.allclose(result.fit.params[centre], real.params[:2].double(), atol=1.0)
 
 
 @pytest.mark.slow

@@ -290,6 +290,7 @@ SAMPLE_PARAMS = {
                            0.0089, 5e-4, -3e-4],
     "fisheye624": [240.0, 241.0, 320.2, 239.6, -0.02, 0.003, -2e-4, 1e-5, 0.0, 0.0, 4e-4, -3e-4,
                    2e-4, 1e-5, -3e-4, 2e-5],
+    "woodscape": [321.4, 236.9, 1.0002, 339.7, -32.0, 48.3, -7.2],
 }
 
 
@@ -297,7 +298,7 @@ def _camera(name, batch, fov):
     base = torch.tensor(SAMPLE_PARAMS[name], dtype=torch.float64)
     if batch is None:
         params = base
-    else:  # distinct cameras: scale the first two parameters (focal, or scaramuzza's centre)
+    else:  # distinct cameras: scale the first two parameters (focal, or the centre)
         n = math.prod(batch)
         scale = 1 + torch.arange(n, dtype=torch.float64) / 7
         params = base.expand(n, -1).clone()

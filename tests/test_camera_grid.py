@@ -30,6 +30,8 @@ def scaled(params: list[float], size: tuple[int, int], model: str) -> list[float
     p = list(params)
     if model == "scaramuzza":   # cx, cy in pixels; the polynomial maps pixels -> z
         return p   # not closed form, not scaled: used at its own size below
+    if model == "woodscape":   # cx, cy first; the polynomial's coefficients in pixels
+        return [(p[0] + 0.5) * s - 0.5, (p[1] + 0.5) * s - 0.5, p[2], *(k * s for k in p[3:])]
     p[0:4] = [p[0] * s, p[1] * s, (p[2] + 0.5) * s - 0.5, (p[3] + 0.5) * s - 0.5]
     return p
 
@@ -62,7 +64,7 @@ def batch_of(model: str, dtype):
         params, size = scaled(params, size, model), SIZE
     batch = 3
     p = torch.tensor(params, dtype=torch.float64).repeat(batch, 1)
-    cx = 0 if model == "scaramuzza" else 2
+    cx = 0 if model in ("scaramuzza", "woodscape") else 2
     p[:, cx] += torch.tensor([0.0, 0.7, -1.3])   # a different camera per sample
     return p.to(dtype), size
 

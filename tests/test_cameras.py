@@ -67,6 +67,7 @@ def test_registry_matches_design_table():
         "opencv": "fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6 s1 s2 s3 s4",
         "thin_prism_fisheye": "fx fy cx cy k1 k2 p1 p2 k3 k4 sx1 sy1",
         "fisheye624": "fx fy cx cy k0 k1 k2 k3 k4 k5 p0 p1 s0 s1 s2 s3",
+        "woodscape": "cx cy aspect_ratio k1 k2 k3 k4",
     }
     assert list(ot.cameras.MODELS) == list(design)
     for name, names in design.items():
@@ -192,6 +193,7 @@ def test_no_folding_radius_grows_with_angle(name, params, size):
                             5e-5, -3e-5]),
     ("fisheye624", [200.0, 200.0, 0.0, 0.0, -0.02, 0.003, -2e-4, 1e-5, 0.0, 0.0, 4e-4, -3e-4,
                     2e-4, 1e-5, -3e-4, 2e-5]),
+    ("woodscape", [0.0, 0.0, 1.0, 339.749, -31.988, 48.275, -7.201]),   # front.json's lens
 ])
 def test_beyond_180_degrees(name, params):
     """Models whose domain passes 90 degrees keep points behind the camera (z < 0) valid up to
@@ -266,6 +268,7 @@ def test_limits_match_published_formulas():
     pytest.param("fisheye624", CASES["fisheye624"][1][0], None, id="fisheye624"),
     pytest.param("thin_prism_fisheye", CASES["thin_prism_fisheye"][1][0], None,
                  id="thin_prism_fisheye"),
+    pytest.param("woodscape", CASES["woodscape"][1][0], None, id="woodscape"),
 ])
 def test_fold_iterative_inverse_converges_up_to_the_fold(name, params, size):
     """The iterative inverses reach the float64 tolerance up to 1e-6 rad before the fold; past
@@ -347,8 +350,8 @@ def test_values_and_gradients_finite_everywhere(name, params, size):
     assert bool(torch.isfinite(gp).all()) and bool(torch.isfinite(gq).all())
 
     h, w = size
-    pix = torch.tensor([[p[2] if name != "scaramuzza" else p[0],
-                         p[3] if name != "scaramuzza" else p[1]],
+    centre = name in ("scaramuzza", "woodscape")   # the models with cx, cy first
+    pix = torch.tensor([[p[0] if centre else p[2], p[1] if centre else p[3]],
                         [-0.5, -0.5], [w - 0.5, h - 0.5], [1e5, -1e5], [0.0, h / 2]],
                        dtype=F64).requires_grad_(True)
     rays, valid = model.unproject(pix, pp)
@@ -625,6 +628,8 @@ def test_bad_input_messages():
     ("opencv", [1.0, -1.0, 0.0, 0.0] + [0.0] * 12, "fy of the opencv model must be > 0"),
     ("fisheye624", [1.0, 1.0, 0.0, 0.0] + [0.0] * 11, "takes 16 parameters"),
     ("thin_prism_fisheye", [1.0, 1.0, 0.0, 0.0] + [math.nan] + [0.0] * 7, "k1 .* must be finite"),
+    ("woodscape", [0.0, 0.0, 0.0, 300.0, 0.0, 0.0, 0.0], "aspect_ratio of the woodscape model"),
+    ("woodscape", [0.0, 0.0, 1.0, -300.0, 0.0, 0.0, 0.0], "k1 of the woodscape model must be"),
 ])
 def test_camera_rejects_bad_params(name, params, match):
     with pytest.raises(ValueError, match=match):

@@ -59,7 +59,7 @@ import torch
 from torch import Tensor
 
 from ..cameras import Camera, CameraModel, get_model
-from .fit import DEFAULT_DISTORTION, FitResult, Problem, solve
+from .fit import FitResult, Problem, solve, unit_intrinsics, with_focal
 from .params import IntrinsicsMap, axis_angle_to_matrix, frozen_indices
 
 #: Parameters held in a first fit, released in a second from its solution: the unified model's
@@ -288,7 +288,7 @@ def _source_center(camera: Camera) -> tuple[Tensor, Tensor]:
     if camera.model.name == "scaramuzza":
         cx, cy, c, d, e = p[:5].tolist()
         return p[:2], torch.tensor([[1.0, e], [d, c]], dtype=torch.float64)
-    return p[2:4], torch.eye(2, dtype=torch.float64)
+    return p[list(camera.model.groups["center"])], torch.eye(2, dtype=torch.float64)
 
 
 def _initial_params(target: CameraModel, source: Camera, degree: int, pixels: Tensor,
@@ -308,8 +308,7 @@ def _initial_params(target: CameraModel, source: Camera, degree: int, pixels: Te
         for j, i in enumerate(powers):
             poly[i] = sol[j] * s ** (1 - i)
         return torch.cat((center, affine[1, 1:], affine[1, :1], affine[0, 1:], poly))
-    unit = torch.tensor([1.0, 1.0, 0.0, 0.0, *DEFAULT_DISTORTION.get(target.name, ())],
-                        dtype=torch.float64)
+    unit = unit_intrinsics(target)
     theta = torch.atan2(rxy, rays[:, 2])
     limit = min(math.radians(60), 0.9 * float(target.max_angle(unit)))
     use = off_axis & (theta > math.radians(2)) & (theta < limit)
@@ -318,8 +317,7 @@ def _initial_params(target: CameraModel, source: Camera, degree: int, pixels: Te
                          "the conversion from")
     unit_px, _ = target.project(rays[use], unit)
     ratio = (pixels[use] - center).norm(dim=-1) / unit_px.norm(dim=-1)
-    focal = float(ratio.median())
-    return torch.cat((torch.tensor([focal, focal], dtype=torch.float64), center, unit[4:]))
+    return with_focal(target, unit, float(ratio.median()), center)
 
 
 def convert(camera: Camera, to_model: str | CameraModel, *, degree: int = 4, grid: int = 48,

@@ -103,6 +103,27 @@ DEFAULT_DISTORTION = {"kannala_brandt": (0.0, 0.0, 0.0, 0.0), "unified": (1.0, 0
                       "fov": (1e-2,), "division": (0.0,), "opencv": (0.0,) * 12,
                       "thin_prism_fisheye": (0.0,) * 8, "fisheye624": (0.0,) * 12}
 
+
+def unit_intrinsics(model: CameraModel) -> Tensor:
+    """``(P,)`` float64: the camera of focal length 1 at the origin with the undistorted defaults
+    (``DEFAULT_DISTORTION``); ``woodscape``: ``cx = cy = 0``, ``aspect_ratio = k1 = 1``, the
+    rest 0 (its focal length is ``k1``)."""
+    if model.name == "woodscape":
+        return torch.tensor([0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+    return torch.tensor([1.0, 1.0, 0.0, 0.0, *DEFAULT_DISTORTION.get(model.name, ())],
+                        dtype=torch.float64)
+
+
+def with_focal(model: CameraModel, unit: Tensor, focal: float, centre: Tensor) -> Tensor:
+    """``unit`` (``unit_intrinsics``) at the focal length ``focal`` (pixels) and the
+    principal point ``centre (2,)``; ``woodscape``'s polynomial is in pixels: every
+    coefficient scales."""
+    centre = torch.as_tensor(centre, dtype=torch.float64)
+    if model.name == "woodscape":
+        return torch.cat((centre, unit[2:3], focal * unit[3:]))
+    return torch.cat((torch.tensor([focal, focal], dtype=torch.float64), centre, unit[4:]))
+
+
 #: Cost per observation (pixels squared) below which residuals are at rounding level: relative
 #: convergence tests are then skipped (exact data, as in a conversion between nested models).
 COST_FLOOR = 0.5e-18
@@ -513,14 +534,13 @@ def default_intrinsics(model: str | CameraModel, image_size: tuple[int, int],
     fov = DEFAULT_FOV.get(model.name, math.pi) if fov is None else fov
     if not (isinstance(fov, (int, float)) and 0 < fov <= 2 * math.pi):
         raise ValueError(f"fov: expected a full angle in (0, 2 pi] radians, got {fov!r}")
-    unit = torch.tensor([1.0, 1.0, 0.0, 0.0, *DEFAULT_DISTORTION.get(model.name, ())],
-                        dtype=torch.float64)
+    unit = unit_intrinsics(model)
     theta = min(0.5 * fov, 0.999 * float(model.max_angle(unit)))
     ray = torch.tensor([math.sin(theta), 0.0, math.cos(theta)], dtype=torch.float64)
     radius = float(model.project(ray, unit)[0][0])
     focal = 0.5 * min(h, w) / radius
-    return torch.cat((torch.tensor([focal, focal, (w - 1) / 2, (h - 1) / 2],
-                                   dtype=torch.float64), unit[4:]))
+    return with_focal(model, unit, focal,
+                      torch.tensor([(w - 1) / 2, (h - 1) / 2], dtype=torch.float64))
 
 
 def _initial_poses(model: CameraModel, params: Tensor, points: list[Tensor],
@@ -754,16 +774,15 @@ def _linear_start(model: CameraModel, image_size: tuple[int, int], points: list[
     rays, pix = rays[valid], pix[valid]
     theta = torch.atan2(rays[:, :2].norm(dim=-1), rays[:, 2])
     start = default_intrinsics(model, image_size, min(2 * float(theta.max()), 2 * math.pi))
-    unit = start.clone()
-    unit[:2] = 1.0
-    unit[2:4] = 0.0
+    unit = unit_intrinsics(model)   # start's, at focal 1 about the origin
     near, ok = model.project(rays, unit)
-    radius = (pix - start[2:4]).norm(dim=-1)
+    centre = start[list(model.groups["center"])]
+    radius = (pix - centre).norm(dim=-1)
     ratio = radius / near.norm(dim=-1).clamp(min=1e-12)
     ok = ok & torch.isfinite(ratio) & (near.norm(dim=-1) > 1e-6)
     if int(ok.sum()) < 8:
         return None
-    start[:2] = ratio[ok].median()
+    start = with_focal(model, unit, float(ratio[ok].median()), centre)
     names = model.names_for(start.shape[-1])
     hold = set(frozen) | set(model.groups["center"])
     if model.name == "unified":

@@ -7,7 +7,8 @@ step in ``z`` moves the image by a comparable amount for every parameter:
 =================================== ================================ ========================
 parameter                           natural value from z             keeps
 =================================== ================================ ========================
-fx, fy                              f0 exp(z)                        f > 0
+fx, fy (woodscape: k1,              f0 exp(z)                        f > 0
+aspect_ratio)
 cx, cy                              c0 + s z (s: half the larger     --
                                     image side)
 xi (unified), omega (fov)           softplus(z)                      xi >= 0, omega >= 0
@@ -48,6 +49,7 @@ _KINDS = {
     "fx": "log", "fy": "log", "cx": "center", "cy": "center",
     ("unified", "xi"): "softplus", ("fov", "omega"): "softplus", ("double_sphere", "xi"): "tanh",
     ("eucm", "alpha"): "sigmoid", ("double_sphere", "alpha"): "sigmoid", ("eucm", "beta"): "log",
+    ("woodscape", "aspect_ratio"): "log", ("woodscape", "k1"): "log",
 }
 
 #: How far inside an open range a bounded parameter starts when its initial value is on the edge.

@@ -26,17 +26,19 @@ division                  fx, fy, cx, cy, k
 opencv                    fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4
 thin_prism_fisheye        fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, sx1, sy1
 fisheye624                fx, fy, cx, cy, k0, k1, k2, k3, k4, k5, p0, p1, s0, s1, s2, s3
+woodscape                 cx, cy, aspect_ratio, k1, k2, k3, k4
 ========================= ==============================================================
 """
 
 from __future__ import annotations
 
 from ._base import CameraModel
-from .camera import Camera, load_all
+from .camera import Camera, load_all, read_woodscape
 from .export import FORMATS, write_camera
 from .readers import READ_FORMATS
 from .registry import MODELS, get_model
 from .unified import unified_from_mirror
+from .woodscape_files import write_woodscape
 
 __all__ = ["Camera", "CameraModel", "FORMATS", "MODELS", "READ_FORMATS", "get_model", "load_all",
-           "unified_from_mirror", "write_camera"]
+           "read_woodscape", "unified_from_mirror", "write_camera", "write_woodscape"]

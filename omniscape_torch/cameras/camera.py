@@ -9,7 +9,7 @@ from typing import Sequence
 import torch
 from torch import Tensor, nn
 
-from . import export, formats, readers
+from . import export, formats, readers, woodscape_files
 from ._base import CameraModel
 from .registry import get_model
 
@@ -389,3 +389,27 @@ def _check_fov(fov, name: str = "fov") -> float | None:
         hint = f"; in radians, did you mean math.radians({fov})?" if fov > 2 * math.pi else ""
         raise ValueError(f"{name}: expected a full angle in (0, 2 pi] radians, got {fov}{hint}")
     return float(fov)
+
+
+def read_woodscape(path: str | Path, *, dtype: torch.dtype = torch.float64, **kwargs
+                   ) -> tuple[Camera, Tensor, str]:
+    """A WoodScape (or SynWoodScape) calibration file: its camera, extrinsic and name
+    (``cameras/woodscape_files.py`` describes the file and its conventions).
+
+    Args:
+        path: the JSON file (``calibration_data/{frame}_{CAM}.json``, WoodScape's
+            ``front.json``).
+        dtype: dtype of the camera's parameters.
+        **kwargs: passed to ``Camera`` (``fov``, ``blind_fov``, ``learnable``), above the
+            file's ``fov_deg`` / ``blind_fov_deg``.
+
+    Returns:
+        ``(camera, T, name)``: the ``woodscape`` camera, ``T (4, 4)`` float64, the transform
+        from the camera frame (OpenCV axes) to the vehicle frame (ISO 8855, metres), and the
+        file's camera name (``FV``, ``MVL``, ``MVR``, ``RV``).
+
+    Raises:
+        ValueError: not valid JSON, or a key missing or of the wrong kind (named).
+        FileNotFoundError: no such file.
+    """
+    return woodscape_files.read(Camera, path, dtype=dtype, **kwargs)

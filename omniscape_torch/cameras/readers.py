@@ -39,6 +39,9 @@ aria        Project Aria device            FisheyeRadTanThinPrism (15 values, on
             ``online_calibration.jsonl``   KannalaBrandtK3 -> kannala_brandt. Size: the
             (its first record); names:     camera's ``ImageSize``, the record's ``ImageSizes``,
             the labels (``camera-rgb``...) else the label's (projectaria_tools)
+woodscape   WoodScape / SynWoodScape       radial_poly -> woodscape (the intrinsic part;
+            calibration JSON (name: its    ``ot.cameras.read_woodscape`` gives the extrinsic,
+            ``name``, ``FV``...)           ``woodscape_files.py``)
 =========== ============================== =====================================================
 
 Conventions, converted here and nowhere else (as ``export.py`` does for writing):
@@ -82,11 +85,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from . import formats
+from . import formats, woodscape_files
 from .registry import MODELS
 
 #: The formats ``Camera.load`` and ``load_all`` read (``FORMATS`` and Project Aria's).
-READ_FORMATS = ("json", "ocamcalib", "opencv", "kalibr", "basalt", "orbslam3", "colmap", "aria")
+READ_FORMATS = ("json", "ocamcalib", "opencv", "kalibr", "basalt", "orbslam3", "colmap", "aria",
+                "woodscape")
 
 # COLMAP's models: id -> (name, parameter names), as colmap/sensor/models.h lists them.
 _COLMAP_MODELS = {
@@ -219,7 +223,7 @@ def _load_all(cls, source, format, image_size, dtype, kwargs) -> dict:
                 raise ValueError(f"{path}: {err}") from None
             build.add("camera", camera)
         else:
-            {"basalt": _basalt, "aria": _aria}[fmt](build, data)
+            {"basalt": _basalt, "aria": _aria, "woodscape": _woodscape}[fmt](build, data)
     return _nonempty(build, "cameras")
 
 
@@ -239,8 +243,9 @@ def _contents(path: Path) -> tuple[bytes, str | None]:
 
 def _detect(path: Path, raw: bytes, text: str | None) -> str:
     looked = ("looked for: a COLMAP cameras.bin/cameras.txt, OCamCalib's calib_results.txt, "
-              "JSON (this package's, basalt's value0, Aria's CameraCalibrations), YAML (OpenCV "
-              "K/camera_matrix, a Kalibr camchain, ORB-SLAM3 Camera.* settings)")
+              "JSON (this package's, basalt's value0, Aria's CameraCalibrations, WoodScape's "
+              "intrinsic/extrinsic), YAML (OpenCV K/camera_matrix, a Kalibr camchain, "
+              "ORB-SLAM3 Camera.* settings)")
     if text is None or path.suffix == ".bin":
         if path.suffix == ".bin" or _looks_colmap_binary(raw):
             return "colmap"
@@ -257,6 +262,8 @@ def _detect(path: Path, raw: bytes, text: str | None) -> str:
                 return "aria"
             if "model" in data and "params" in data:
                 return "json"
+            if woodscape_files.is_woodscape(data):
+                return "woodscape"
         raise ValueError(f"{path}: a JSON file of no camera format known here ({looked})")
     lines = [ln.split() for ln in text.splitlines() if ln.strip() and
              not ln.lstrip().startswith("#")]
@@ -808,3 +815,14 @@ def _aria(build, data) -> None:
         else:
             size = _ARIA_SIZES.get(label)
         build.make(label, pkey, model, values, size)
+
+
+# --------------------------------------------------------------------------------------------
+# WoodScape
+# --------------------------------------------------------------------------------------------
+
+def _woodscape(build, data) -> None:
+    """The intrinsic part of a WoodScape calibration file (``woodscape_files.parse``)."""
+    found = woodscape_files.parse(data, build.where)
+    build.make(found["name"], "intrinsic", "woodscape", found["params"], found["size_wh"],
+               area=found["area"])

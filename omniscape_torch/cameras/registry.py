@@ -10,12 +10,13 @@ from .pinhole import PINHOLE
 from .radial import EQUIDISTANT, EQUISOLID, KANNALA_BRANDT, ORTHOGRAPHIC, STEREOGRAPHIC
 from .scaramuzza import SCARAMUZZA
 from .unified import DOUBLE_SPHERE, EUCM, UNIFIED
+from .woodscape import WOODSCAPE
 
 #: The registry: model name -> ``CameraModel``, in DESIGN.md's order.
 MODELS: dict[str, CameraModel] = {m.name: m for m in (
     PINHOLE, EQUIDISTANT, EQUISOLID, STEREOGRAPHIC, ORTHOGRAPHIC, KANNALA_BRANDT, UNIFIED, EUCM,
     DOUBLE_SPHERE, SCARAMUZZA, EQUIRECTANGULAR, FOV, DIVISION, OPENCV, THIN_PRISM_FISHEYE,
-    FISHEYE624)}
+    FISHEYE624, WOODSCAPE)}
 
 
 def get_model(name: str | CameraModel) -> CameraModel:

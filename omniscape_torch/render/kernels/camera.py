@@ -51,8 +51,9 @@ _TABULATED: dict[str, Callable] = {"kannala_brandt": kannala_brandt_tabulate}
 
 #: The radially symmetric models: the ray of a pixel depends on its distance from the principal
 #: point in normalised coordinates (``(u - cx) / fx, (v - cy) / fy``; scaramuzza: through its
-#: affine map) alone, so one table per camera holds every pixel's ray. ``unified`` only without
-#: tangential distortion (``p1 = p2 = 0``).
+#: affine map; woodscape: ``(u - cx, (v - cy) / aspect_ratio)``, pixels) alone, so one table per
+#: camera holds every pixel's ray (``CameraModel.radial``). ``unified`` only without tangential
+#: distortion (``p1 = p2 = 0``).
 RADIAL = tuple(name for name, model in MODELS.items() if model.radial)
 #: Entries of a table of :func:`radial_table` (``tests/test_camera_grid.py`` bounds the error
 #: of linear interpolation between them).
@@ -67,6 +68,10 @@ def _affine(model: str, params: Tensor) -> Tensor:
         cx, cy, c, d, e = params[:, :5].unbind(-1)
         det = c - d * e   # scaramuzza_unproject: pu = (c du - e dv) / det, pv = (dv - d du) / det
         return torch.stack((cx, cy, c / det, -e / det, -d / det, 1 / det), -1)
+    if model == "woodscape":   # u = cx + rho x / chi, v = cy + aspect_ratio rho y / chi
+        cx, cy, aspect = params[:, :3].unbind(-1)
+        zero = torch.zeros_like(cx)
+        return torch.stack((cx, cy, torch.ones_like(cx), zero, zero, 1 / aspect), -1)
     fx, fy, cx, cy = params[:, :4].unbind(-1)
     zero = torch.zeros_like(fx)
     # the optional skew s (u = fx mx + s my + cx): mx = (du - s dv / fy) / fx
