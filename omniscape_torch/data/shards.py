@@ -49,7 +49,7 @@ from ..io.atomic import atomic_path, atomic_write_text, folder_lock
 from ..io.labels import colorize
 from . import format as fmt
 from .objects import decode_instances, decode_objects, instance_npy
-from .readers import (has_modality, list_frames, read_camera_dict, read_dynamics,
+from .readers import (list_frames, read_camera_dict, read_dynamics,
                       read_extrinsics, read_manifest)
 
 __all__ = ["FRAMES_PER_SHARD", "OPTIONAL_SAMPLE_MODALITIES", "SAMPLE_MODALITIES",
@@ -108,17 +108,23 @@ def shard_groups(frames: int, frames_per_shard: int) -> list[list[int]]:
 
 def sample_modalities(root: str | Path, cameras: Sequence[str]) -> tuple[str, ...]:
     """The modalities a sample of the dataset in ``root`` holds: :data:`SAMPLE_MODALITIES`,
-    and each optional one (instances, objects) that the folder has for every camera or that
-    its manifest's layout lists (a run about to write them)."""
+    and each optional one (instances, objects) that the folder has for every camera, or,
+    for a camera with no frame written yet (a run about to write them), that the manifest's
+    layout lists."""
     root = Path(root)
     try:
         layout = read_manifest(root).get("layout", {})
     except FileNotFoundError:
         layout = {}
-    return SAMPLE_MODALITIES + tuple(
-        m for m in OPTIONAL_SAMPLE_MODALITIES
-        if has_modality(root, m, cameras)
-        or f"<camera>/{m}/NNNNNN.{fmt.MODALITIES[m]}" in layout)
+
+    def holds(m: str, camera: str) -> bool:
+        if (root / camera / m).is_dir():
+            return True
+        return not (root / camera / "rgb").is_dir() and \
+            f"<camera>/{m}/NNNNNN.{fmt.MODALITIES[m]}" in layout
+
+    return SAMPLE_MODALITIES + tuple(m for m in OPTIONAL_SAMPLE_MODALITIES
+                                     if cameras and all(holds(m, c) for c in cameras))
 
 
 def write_index(root: str | Path, frames: int, cameras: Sequence[str],

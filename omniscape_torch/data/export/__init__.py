@@ -155,7 +155,7 @@ def export_dataset(format: str, root: str | Path, out: str | Path, *,
     if format in ("coco", "yolo"):
         stuff = [names[i] for i in ids if names[i] not in INSTANCE_CLASSES]
         if stuff:
-            raise ValueError(f"classes: {', '.join(stuff)} have no objects (the objects are "
+            raise ValueError(f"classes: {', '.join(stuff)}: no objects (the objects are "
                              f"those of the instance classes: {', '.join(INSTANCE_CLASSES)})")
     frames = list_frames(root, cameras, modalities=modalities)
     if not frames:
