@@ -140,13 +140,20 @@ def stream_split(frame: int, val_fraction: float, seed: int) -> str:
 def dataset_samples(root: Path, cameras: Sequence[str], frames: Sequence[int],
                     modalities: Sequence[str]) -> Iterator[Sample]:
     """The dataset's images, frame-major, with the maps ``modalities`` asks for (some of
-    ``labels``, ``instances``) and, with ``instances``, the objects of the map."""
+    ``labels``, ``instances``) and, with ``instances``, the objects its objects file lists.
+
+    Raises:
+        ValueError: an objects file naming an id its instance map lacks.
+    """
     from ..readers import read_frame
 
     for k in frames:
         for c in cameras:
             rgb = (root / fmt.frame_file(c, "rgb", k)).read_bytes()
-            item = read_frame(root, c, k, tuple(modalities))
+            # the objects as objects/NNNNNN.json lists them (checked when read): the tight
+            # boxes and classes of the instance map, written beside it
+            item = read_frame(root, c, k, tuple(modalities)
+                              + (("objects",) if "instances" in modalities else ()))
             labels = item["labels"].numpy() if "labels" in item else None
             instances = item["instances"].numpy() if "instances" in item else None
             size = next((a.shape for a in (labels, instances) if a is not None), None)
@@ -157,7 +164,16 @@ def dataset_samples(root: Path, cameras: Sequence[str], frames: Sequence[int],
             s = Sample(name=f"{fmt.frame_name(k)}_{c}", number=k, size=tuple(size), frame=k, camera=c,
                        rgb_png=rgb, labels=labels, instances=instances)
             if instances is not None:
-                s.objects = _map_objects(item["instances"], item["labels"], {})
+                ids, counts = np.unique(instances[instances > 0], return_counts=True)
+                pixels = dict(zip(ids.tolist(), counts.tolist()))
+                for box, label, i in zip(item["boxes"].tolist(), item["box_labels"].tolist(),
+                                         item["box_instance_ids"].tolist()):
+                    if i not in pixels:
+                        raise ValueError(f"{root / fmt.frame_file(c, 'objects', k)}: instance "
+                                         f"{i} is not in {fmt.frame_file(c, 'instances', k)}")
+                    s.objects.append({"instance_id": i, "label": label,
+                                      "box": [int(v) for v in box], "pixels": pixels[i],
+                                      "keypoints": None})
             yield s
 
 
