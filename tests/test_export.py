@@ -10,6 +10,7 @@ import io
 import json
 import math
 import shutil
+import sys
 
 import numpy as np
 import pytest
@@ -22,6 +23,9 @@ from omniscape_torch.data.export import FORMATS, coco_rle, export_dataset, expor
     split_frames
 from omniscape_torch.data.generate import DatasetConfig, generate
 from omniscape_torch.io.labels import CLASSES
+
+# pycocotools' decode on numpy 2
+pytestmark = pytest.mark.filterwarnings("ignore:__array__ implementation:DeprecationWarning")
 
 SIZE = (48, 48)
 CAMERAS = ("fisheye_left", "catadioptric_right")
@@ -333,6 +337,19 @@ def test_export_samples_from_the_augmentation(tmp_path):
         export_samples("mmseg", [{"rgb": images[0]}], tmp_path / "m")
     with pytest.raises(ValueError, match="box_labels"):
         export_samples("yolo", [{"rgb": images[0], "boxes": boxes[0]}], tmp_path / "y2")
+
+
+def test_without_opencv_only_cityscapes_needs_it(root, tmp_path, capsys, monkeypatch):
+    """Without OpenCV: ``export cityscapes`` is one line naming the install, exit 1, nothing
+    written; the other exports run."""
+    monkeypatch.setitem(sys.modules, "cv2", None)
+    assert cli.main(["export", "cityscapes", str(root), "--out", str(tmp_path / "cs")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "pip install opencv" in err[0]
+    assert not (tmp_path / "cs").exists()
+    for f in ("coco", "mmseg", "yolo"):
+        assert cli.main(["export", f, str(root), "--out", str(tmp_path / f),
+                         "--no-progress"]) == 0
 
 
 def test_cli_export(root, tmp_path, capsys):

@@ -20,7 +20,7 @@ int64, the keys the augmentation takes.
 
 Instance maps travel in two encodings: the folder's 16-bit grey PNG (:func:`instance_image`;
 read it with ``cv2.IMREAD_UNCHANGED`` or Pillow, mode ``I;16``: OpenCV's default and grey
-flags read 8 bits) and, in WebDataset shards, a ``uint16`` ``.npy`` array
+flags keep the high byte) and, in WebDataset shards, a ``uint16`` ``.npy`` array
 (:func:`instance_npy`), which ``webdataset``'s default ``decode()`` reads losslessly (its
 image decoders clip a 16-bit PNG to 8 bits). :func:`decode_instances` reads both.
 """

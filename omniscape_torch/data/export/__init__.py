@@ -78,10 +78,10 @@ def _run(format, out, settings, ids, names, palette, items, total, progress, log
     from tqdm import tqdm
 
     out = Path(out)
+    writer = _writer(format, out, ids, names, palette)   # its checks, before any file
     check_writable(out)
     with folder_lock(out):
         check_settings(out, settings)
-        writer = _writer(format, out, ids, names, palette)
         if progress is None:
             progress = sys.stderr.isatty()
         for sample, split in tqdm(items, total=total, disable=not progress, file=sys.stderr,
