@@ -55,6 +55,15 @@ def _quiet(fn, *args):
         return fn(*args)
 
 
+def _ap(evaluator) -> float:
+    """AP at IoU 0.50:0.95 of a COCOeval (pycocotools' or faster-coco-eval's), quietly."""
+    with contextlib.redirect_stdout(io.StringIO()):
+        evaluator.evaluate()
+        evaluator.accumulate()
+        evaluator.summarize()
+    return evaluator.stats[0]
+
+
 def test_coco_rle_is_pycocotools_encoding():
     """The RLE written without pycocotools equals ``pycocotools.mask.encode`` of the
     Fortran-order uint8 mask (counts decoded), on random masks, full, empty and one-pixel
@@ -98,12 +107,10 @@ def test_coco_scores_ap_1_against_itself_and_masks_decode_to_the_instance_maps(r
         dets = [dict(a, score=1.0) for a in anns]
         for kind in ("bbox", "segm"):
             ev = COCOeval(gt, _quiet(gt.loadRes, [dict(d) for d in dets]), kind)
-            _quiet(lambda: (ev.evaluate(), ev.accumulate(), ev.summarize()))
-            assert ev.stats[0] == pytest.approx(1.0) and ev.stats[1] == pytest.approx(1.0)
+            assert _ap(ev) == pytest.approx(1.0) and ev.stats[1] == pytest.approx(1.0)
             fgt = _quiet(FastCOCO, path)
             fev = COCOeval_faster(fgt, _quiet(fgt.loadRes, [dict(d) for d in dets]), kind)
-            _quiet(lambda: (fev.evaluate(), fev.accumulate(), fev.summarize()))
-            assert fev.stats[0] == pytest.approx(1.0)
+            assert _ap(fev) == pytest.approx(1.0)
         for image in gt.dataset["images"]:
             assert (out / split / image["file_name"]).read_bytes() == (
                 root / image["camera"] / "rgb" / f"{image['frame']:06d}.png").read_bytes()
@@ -235,7 +242,7 @@ def test_yolo_format(root, tmp_path):
             got = [(int(r[0]), *map(float, r[1:])) for r in rows]
             want = [o for o in _objects(root, camera, frame) if o["class"] in ("Vehicle", "Pole")]
             assert len(got) == len(want)
-            for (c, cx, cy, bw, bh), o in zip(got, want):
+            for (c, cx, cy, bw, bh), o in zip(got, want, strict=True):
                 assert data["names"][c] == o["class"]
                 box = [(cx - bw / 2) * w, (cy - bh / 2) * h, (cx + bw / 2) * w, (cy + bh / 2) * h]
                 assert max(abs(a - b) for a, b in zip(box, o["box"])) < 1e-6
@@ -329,7 +336,7 @@ def test_export_samples_from_the_augmentation(tmp_path):
         kept = outline["box_index"][b].tolist()
         # the instance classes' positions: Pedestrian 0, Pole 1, Vehicle 2, TrafficSign 3
         assert [int(r[0]) for r in rows] == [[2, 0][i] for i in kept]
-        for r, box in zip(rows, outline["boxes"][b].tolist()):
+        for r, box in zip(rows, outline["boxes"][b].tolist(), strict=True):
             got = [(r[1] - r[3] / 2) * 40, (r[2] - r[4] / 2) * 40, (r[1] + r[3] / 2) * 40,
                    (r[2] + r[4] / 2) * 40]
             assert max(abs(x - y) for x, y in zip(got, box)) < 1e-6

@@ -9,7 +9,7 @@
 
 All hold only plain data (paths, tensors, dicts): they pickle, so they work with
 ``DataLoader(num_workers=N)``; items with objects (boxes) or of several camera models need
-``collate_fn=``:func:`collate`.
+``collate_fn=collate``.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ __all__ = ["CubemapCaptureDataset", "OmniDataset", "OmniShardDataset", "PER_SAMP
 _DEFAULT = ("rgb", "depth", "labels", "valid")
 
 
-#: Item keys with one value per object (a sample's own number of them): :func:`collate` keeps
+#: Item keys with one value per object (a sample's own number of them): `collate` keeps
 #: them as a list of B tensors, the structure the augmentation takes and returns.
 PER_SAMPLE_KEYS = ("boxes", "box_labels", "box_instance_ids", "box_index", "box_visible",
                    "polygons", "polygon_box", "polygon_index")
@@ -41,7 +41,7 @@ PER_SAMPLE_KEYS = ("boxes", "box_labels", "box_instance_ids", "box_index", "box_
 def collate(batch: list[dict]) -> dict:
     """Collate items of these datasets (or augmented samples) into a batch:
     ``default_collate`` key by key, except that the per-object keys
-    (:data:`PER_SAMPLE_KEYS`: ``boxes``, ``box_labels``, ``box_instance_ids``, ...) stay a
+    (`PER_SAMPLE_KEYS`: ``boxes``, ``box_labels``, ``box_instance_ids``, ...) stay a
     list of B tensors, whatever their sizes (``default_collate`` stacks equal sizes into one
     tensor and stops on different ones with torch's ``stack expects each tensor to be equal
     size``), and a key whose values do not stack (``intrinsics`` of cameras of different
@@ -88,7 +88,7 @@ class OmniDataset(Dataset):
         frame          int
         camera         str
         rgb, depth, labels, labels_color, valid, instances
-                       as in :func:`omniscape_torch.data.readers.read_frame` (those of
+                       as in `omniscape_torch.data.readers.read_frame` (those of
                        ``modalities``; ``valid`` is ``(1, H, W)``, as the augmentation's)
         boxes, box_labels, box_instance_ids
                        with ``"objects"`` in ``modalities``: the objects' tight boxes
@@ -105,7 +105,7 @@ class OmniDataset(Dataset):
     :meth:`camera` gives the :class:`omniscape_torch.Camera` of a camera name. Batches of
     cameras of different models (or sizes) need ``collate_fn=``:func:`collate`: their
     ``intrinsics`` differ in length; so do batches with ``objects``: each item has its own
-    number of boxes (:func:`collate` keeps them as lists of B, as the augmentation takes
+    number of boxes (`collate` keeps them as lists of B, as the augmentation takes
     them).
 
     Args:

@@ -13,16 +13,16 @@ The file is a JSON list, one object a line, sorted by instance id::
     [{"instance_id": 3, "label": 10, "class": "Vehicle", "box": [12, 30, 41, 52], "pixels": 517},
      ...]
 
-Read back (:func:`decode_objects`, which checks every object: a box with ``x1 <= x0``, a
+Read back (`decode_objects`, which checks every object: a box with ``x1 <= x0``, a
 negative count or a value of the wrong type is a ValueError naming the file and the object)
 as tensors: ``boxes (N, 4)`` float32, ``box_labels (N,)`` int64 and ``box_instance_ids (N,)``
 int64, the keys the augmentation takes.
 
-Instance maps travel in two encodings: the folder's 16-bit grey PNG (:func:`instance_image`;
+Instance maps travel in two encodings: the folder's 16-bit grey PNG (`instance_image`;
 read it with ``cv2.IMREAD_UNCHANGED`` or Pillow, mode ``I;16``: OpenCV's default and grey
 flags keep the high byte) and, in WebDataset shards, a ``uint16`` ``.npy`` array
-(:func:`instance_npy`), which ``webdataset``'s default ``decode()`` reads losslessly (its
-image decoders clip a 16-bit PNG to 8 bits). :func:`decode_instances` reads both.
+(`instance_npy`), which ``webdataset``'s default ``decode()`` reads losslessly (its
+image decoders clip a 16-bit PNG to 8 bits). `decode_instances` reads both.
 """
 
 from __future__ import annotations

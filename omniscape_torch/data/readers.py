@@ -21,10 +21,11 @@ Returned types::
 (:data:`~omniscape_torch.data.format.OPTIONAL_MODALITIES`): ask for them where a dataset has
 them (:func:`has_modality`).
 
-Reading the 16-bit instance maps outside this package: :func:`read_instances`, or
+Reading the 16-bit instance maps outside this package: `read_instances`, or
 ``cv2.imread(path, cv2.IMREAD_UNCHANGED)`` (uint16; OpenCV's default and grey flags keep the
-high byte: ids below 256 read 0), or Pillow's ``numpy.asarray(Image.open(path))`` (mode ``I;16``, uint16); never through
-a conversion to ``"L"`` or ``"RGB"``, which clips the ids to 8 bits.
+high byte: ids below 256 read 0), or Pillow's ``numpy.asarray(Image.open(path))`` (mode
+``I;16``, uint16); never through a conversion to ``"L"`` or ``"RGB"``, which clips the ids to
+8 bits.
 """
 
 from __future__ import annotations

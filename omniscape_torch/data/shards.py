@@ -49,8 +49,7 @@ from ..io.atomic import atomic_path, atomic_write_text, folder_lock
 from ..io.labels import colorize
 from . import format as fmt
 from .objects import decode_instances, decode_objects, instance_npy
-from .readers import (list_frames, read_camera_dict, read_dynamics,
-                      read_extrinsics, read_manifest)
+from .readers import list_frames, read_camera_dict, read_dynamics, read_extrinsics, read_manifest
 
 __all__ = ["FRAMES_PER_SHARD", "OPTIONAL_SAMPLE_MODALITIES", "SAMPLE_MODALITIES",
            "SHARD_FILES", "check_frames_per_shard", "decode_sample", "pack",
@@ -64,7 +63,7 @@ FRAMES_PER_SHARD = 16
 #: The images a sample holds, from the folder's files (``labels_color`` is left out: it is
 #: the labels in the palette, :func:`decode_sample` draws it when asked).
 SAMPLE_MODALITIES = ("rgb", "depth", "labels", "valid")
-#: The images a sample holds besides, where the dataset has them (:func:`sample_modalities`):
+#: The images a sample holds besides, where the dataset has them (`sample_modalities`):
 #: not in a dataset written before ``generate`` wrote instances.
 OPTIONAL_SAMPLE_MODALITIES = fmt.OPTIONAL_MODALITIES
 #: The extension of each modality's member in a sample, where it is not the folder's:
@@ -107,7 +106,7 @@ def shard_groups(frames: int, frames_per_shard: int) -> list[list[int]]:
 
 
 def sample_modalities(root: str | Path, cameras: Sequence[str]) -> tuple[str, ...]:
-    """The modalities a sample of the dataset in ``root`` holds: :data:`SAMPLE_MODALITIES`,
+    """The modalities a sample of the dataset in ``root`` holds: `SAMPLE_MODALITIES`,
     and each optional one (instances, objects) that the folder has for every camera, or,
     for a camera with no frame written yet (a run about to write them), that the manifest's
     layout lists."""
@@ -130,7 +129,7 @@ def sample_modalities(root: str | Path, cameras: Sequence[str]) -> tuple[str, ..
 def write_index(root: str | Path, frames: int, cameras: Sequence[str],
                 frames_per_shard: int) -> dict:
     """Write ``shards/index.json`` (unless it holds the same already) and return it: frames
-    per shard, the cameras, the files of a sample (:func:`sample_modalities`) and each
+    per shard, the cameras, the files of a sample (`sample_modalities`) and each
     shard's frames.
 
     Raises:

@@ -32,9 +32,10 @@ class Sample:
 
     ``name``: the file stem (without extension); ``number``: the image's number in names
     that take one (a dataset's frame, a stream's position); ``frame``, ``camera``: where it
-    comes from (None where a stream does not say); ``rgb``: ``(H, W, 3)`` uint8, or ``rgb_png``: the PNG's bytes
-    (copied as they are); ``labels`` ``(H, W)`` int64 class ids (255 not valid);
-    ``instances`` ``(H, W)`` int64 ids (0 none); ``objects``: the objects to export, each
+    comes from (None where a stream does not say); ``rgb``: ``(H, W, 3)`` uint8, or
+    ``rgb_png``: the PNG's bytes (copied as they are); ``labels`` ``(H, W)`` int64 class
+    ids (255 not valid); ``instances`` ``(H, W)`` int64 ids (0 none); ``objects``: the
+    objects to export, each
     ``{"instance_id" (or None), "label", "box": [x0, y0, x1, y1], "pixels" (or None),
     "keypoints": (K, 3) [x, y, v] or None}``, boxes in XYXY corners.
     """
@@ -161,8 +162,8 @@ def dataset_samples(root: Path, cameras: Sequence[str], frames: Sequence[int],
                 from ...io.images import decode_image
 
                 size = decode_image(rgb).shape[:2]
-            s = Sample(name=f"{fmt.frame_name(k)}_{c}", number=k, size=tuple(size), frame=k, camera=c,
-                       rgb_png=rgb, labels=labels, instances=instances)
+            s = Sample(name=f"{fmt.frame_name(k)}_{c}", number=k, size=tuple(size), frame=k,
+                       camera=c, rgb_png=rgb, labels=labels, instances=instances)
             if instances is not None:
                 ids, counts = np.unique(instances[instances > 0], return_counts=True)
                 pixels = dict(zip(ids.tolist(), counts.tolist()))

@@ -13,7 +13,7 @@ split file names at ``_``; ``SEQ`` 000000; ``FRAME`` the frame number, or a stre
 Label ids are those of Cityscapes' table (``cityscapesscripts.helpers.labels``), so that its
 scripts and the loaders built on them (evaluation, ``createTrainIdLabelImgs``, detectron2's and
 mmseg's Cityscapes datasets) read the export: CARLA's 13 classes map onto them by
-:data:`CITYSCAPES_IDS` (CARLA's palette is Cityscapes' colours); ``RoadLine`` becomes ``road``
+`CITYSCAPES_IDS` (CARLA's palette is Cityscapes' colours); ``RoadLine`` becomes ``road``
 (Cityscapes has no lane markings), ``Other`` ``static``; the area outside the camera's valid
 area is ``out of roi`` (3), and a class left out of the user's subset ``unlabeled`` (0).
 ``instanceIds``: ``labelId * 1000 + k`` on the pixels of an object of an instance class

@@ -75,7 +75,7 @@ def coco_rle(mask: np.ndarray) -> dict:
 
 
 class CocoWriter:
-    """Writes one COCO export (module docstring): :meth:`add` each sample, then :meth:`finish`.
+    """Writes one COCO export (module docstring): `add` each sample, then `finish`.
 
     Args:
         out: the export folder.
