@@ -198,9 +198,6 @@ def _map_objects(instances: Tensor, labels: Tensor | None, label_of: dict) -> li
 # A stream of samples (the augmentation's outputs, a dataset's items)
 # --------------------------------------------------------------------------------------------
 
-_BATCHED = {"rgb": 4, "labels": 3, "instances": 3}
-
-
 def _plain(t) -> Tensor:
     return t.as_subclass(Tensor) if isinstance(t, Tensor) and type(t) is not Tensor else t
 
@@ -228,9 +225,12 @@ def _unbatch(sample: dict, where: str) -> list[dict]:
                 one[key] = value[i]
             elif isinstance(value, (list, tuple)) and len(value) == b:
                 one[key] = value[i]
-            elif key in ("frame", "camera") and isinstance(value, (list, tuple, Tensor)):
-                raise ValueError(f"{where}: {key}: expected one per sample ({b}), got "
-                                 f"{len(value)}")
+            elif key in ("frame", "camera", "split"):
+                if isinstance(value, (list, tuple, Tensor)) and \
+                        not (isinstance(value, Tensor) and value.dim() == 0):
+                    raise ValueError(f"{where}: {key}: expected one per sample ({b}), got "
+                                     f"{len(value)}")
+                one[key] = value   # one for the whole batch
         out.append(one)
     return out
 
@@ -369,12 +369,6 @@ def _stream_objects(sample: dict, s: Sample, where: str) -> list[dict]:
         out.append({"instance_id": None, "label": int(label), "box": box, "pixels": None,
                     "keypoints": None if kp is None else kp[r]})
     return out
-
-
-def select(objects: list[dict], ids: Sequence[int]) -> list[dict]:
-    """The objects whose class is one of ``ids``."""
-    keep = set(ids)
-    return [o for o in objects if o["label"] in keep]
 
 
 def remap(labels: np.ndarray, table: np.ndarray) -> np.ndarray:
