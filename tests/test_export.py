@@ -340,6 +340,9 @@ def test_export_samples_from_the_augmentation(tmp_path):
             got = [(r[1] - r[3] / 2) * 40, (r[2] - r[4] / 2) * 40, (r[1] + r[3] / 2) * 40,
                    (r[2] + r[4] / 2) * 40]
             assert max(abs(x - y) for x, y in zip(got, box)) < 1e-6
+    # a batch-wide split (or frame) applies to each of its images
+    seg = export_samples("mmseg", [dict(exact, split="val")], tmp_path / "mv")
+    assert seg["images"] == {"train": 0, "val": 2}
     with pytest.raises(ValueError, match="labels"):
         export_samples("mmseg", [{"rgb": images[0]}], tmp_path / "m")
     with pytest.raises(ValueError, match="box_labels"):
