@@ -28,8 +28,8 @@ import numpy as np
 from ...io.atomic import check_writable, folder_lock
 from ...io.labels import CLASSES, PALETTE
 from ..format import INSTANCE_CLASSES
-from ._samples import (SETTINGS, SPLITS, check_fraction, check_settings, class_ids,
-                       dataset_samples, split_frames, stream_samples, write_settings)
+from ._samples import (SETTINGS, SPLITS, check_fraction, check_seed, check_settings,
+                       class_ids, dataset_samples, split_frames, stream_samples, write_settings)
 from .coco import coco_rle
 
 __all__ = ["FORMATS", "SETTINGS", "SPLITS", "coco_rle", "export_dataset", "export_samples",
@@ -66,12 +66,6 @@ def _default_classes(format: str, names: Sequence[str]) -> Sequence[str]:
         default = [n for n in names if n in INSTANCE_CLASSES]
         return default or [n for i, n in enumerate(names) if i > 0]
     return list(names)
-
-
-def _check_seed(seed) -> int:
-    if isinstance(seed, bool) or not isinstance(seed, int):
-        raise ValueError(f"seed: expected an integer, got {seed!r}")
-    return seed
 
 
 def _run(format, out, settings, ids, names, palette, items, total, progress, log) -> dict:
@@ -132,7 +126,7 @@ def export_dataset(format: str, root: str | Path, out: str | Path, *,
     from ..readers import has_modality, list_cameras, list_frames, read_manifest
 
     format = _check_format(format)
-    val_fraction, seed = check_fraction(val_fraction), _check_seed(seed)
+    val_fraction, seed = check_fraction(val_fraction), check_seed(seed)
     root = Path(root)
     manifest = read_manifest(root)
     names = list(manifest.get("classes", CLASSES))
@@ -195,7 +189,9 @@ def export_samples(format: str, samples: Iterable[dict], out: str | Path, *,
 
     Images are named by their position in the stream (``000000``, ...). Without ``split``,
     a sample is in ``val`` with probability ``val_fraction``, decided by ``(seed, frame)``
-    (its position where it has no ``frame``): a stream's length is not known ahead.
+    (its position where it has no ``frame``): a stream's length is not known ahead. A rerun
+    into the same folder rewrites the images of the same positions (a shorter stream leaves
+    the later ones there): export another stream into another folder.
 
     Args:
         format: ``coco``, ``mmseg``, ``cityscapes`` or ``yolo``.
@@ -216,7 +212,7 @@ def export_samples(format: str, samples: Iterable[dict], out: str | Path, *,
             (names the sample and the key); an unknown format or class.
     """
     format = _check_format(format)
-    val_fraction, seed = check_fraction(val_fraction), _check_seed(seed)
+    val_fraction, seed = check_fraction(val_fraction), check_seed(seed)
     names = [str(n) for n in class_names]
     ids = class_ids(classes, names, _default_classes(format, names))
     settings = {"export": format, "source": "samples", "classes": [names[i] for i in ids],

@@ -103,6 +103,17 @@ def check_fraction(val_fraction) -> float:
     return float(val_fraction)
 
 
+def check_seed(seed) -> int:
+    """``seed`` as an int.
+
+    Raises:
+        ValueError: anything else, naming ``seed``.
+    """
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise ValueError(f"seed: expected an integer, got {seed!r}")
+    return seed
+
+
 def split_frames(frames: Sequence[int], val_fraction: float = 0.1, seed: int = 0) -> set[int]:
     """The frames of the validation split: ``round(val_fraction * len(frames))`` of them, at
     least one when ``val_fraction > 0`` and there are two frames or more, and never all,
@@ -113,9 +124,7 @@ def split_frames(frames: Sequence[int], val_fraction: float = 0.1, seed: int = 0
     Raises:
         ValueError: ``val_fraction`` outside [0, 1), a seed that is not an integer.
     """
-    val_fraction = check_fraction(val_fraction)
-    if isinstance(seed, bool) or not isinstance(seed, int):
-        raise ValueError(f"seed: expected an integer, got {seed!r}")
+    val_fraction, seed = check_fraction(val_fraction), check_seed(seed)
     frames = sorted(set(int(k) for k in frames))
     n = len(frames)
     if val_fraction == 0.0 or n < 2:
