@@ -160,6 +160,7 @@ _INTERRUPTED = {
     "convert": "the captures converted so far are complete; the same command converts them "
                "all again",
     "pack": "the shards written so far are whole; the same command writes the rest",
+    "export": "the files written so far are whole; the same command completes the export",
 }
 
 
@@ -217,6 +218,54 @@ def cmd_pack(args: argparse.Namespace) -> int:
               "then pack", file=sys.stderr)
         return 1
     return 0
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from .data.export import export_dataset
+
+    result = export_dataset(args.format, args.dataset, args.out, classes=args.classes,
+                            val_fraction=args.val_fraction, seed=args.seed,
+                            cameras=args.cameras, progress=None if not args.no_progress
+                            else False)
+    images, objects = result["images"], result.get("annotations")
+    print(f"wrote {images['train']} train and {images['val']} val image(s)"
+          + (f", {objects['train']} + {objects['val']} object(s)" if objects else "")
+          + f" as {args.format} to {args.out}")
+    return 0
+
+
+#: ``data.export.FORMATS``, written out so that the parser is built without importing torch
+#: (a test checks that they agree).
+EXPORT_FORMATS = ("coco", "mmseg", "cityscapes", "yolo")
+
+
+def _add_export_parser(sub) -> None:
+    ex = sub.add_parser(
+        "export", help="write a generated dataset in a training tool's format (COCO, "
+                       "mmsegmentation, Cityscapes, YOLO)",
+        description="Export a generated dataset's finished frames: coco (instances JSON with "
+                    "RLE masks), mmseg (img_dir/ann_dir, metainfo.json), cityscapes "
+                    "(leftImg8bit/gtFine in Cityscapes' label ids) or yolo (images/labels, "
+                    "data.yaml), split into train and val by frame. A rerun completes an "
+                    "interrupted export (layouts: docs/datasets.md).")
+    ex.add_argument("format", choices=EXPORT_FORMATS, help="the format to write")
+    ex.add_argument("dataset", type=Path, help="dataset folder (written by generate)")
+    ex.add_argument("--out", type=Path, required=True, help="export folder (created)")
+    ex.add_argument("--classes", type=lambda t: [n.strip() for n in t.split(",") if n.strip()],
+                    default=None, metavar="NAME[,NAME]",
+                    help="the classes to export, names or ids (default: the instance classes "
+                         "Pedestrian, Pole, Vehicle, TrafficSign for coco and yolo; all 13 "
+                         "for mmseg and cityscapes); the others are left out (mmseg: 255, "
+                         "cityscapes: unlabeled)")
+    ex.add_argument("--val-fraction", type=float, default=0.1, metavar="F",
+                    help="share of the frames in the val split, in [0, 1) (default 0.1; at "
+                         "least one frame when above 0 and the dataset has two)")
+    ex.add_argument("--seed", type=int, default=0, help="seed of the split (default 0)")
+    ex.add_argument("--cameras", type=lambda t: [n.strip() for n in t.split(",") if n.strip()],
+                    default=None, metavar="NAME[,NAME]",
+                    help="the cameras to export (default all)")
+    ex.add_argument("--no-progress", action="store_true", help="no progress bar")
+    ex.set_defaults(func=cmd_export)
 
 
 def cmd_stats(args: argparse.Namespace) -> int:
@@ -786,6 +835,7 @@ def build_parser() -> argparse.ArgumentParser:
     st.set_defaults(func=cmd_stats)
 
     _add_convert_parser(sub)
+    _add_export_parser(sub)
 
     from .calibration.fit import METHODS
     from .calibration.lm import LOSSES

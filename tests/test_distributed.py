@@ -5,6 +5,7 @@ one process with the same arguments, and the shard reader against the folder rea
 from __future__ import annotations
 
 import hashlib
+import json
 import shutil
 import sys
 import tarfile
@@ -128,7 +129,12 @@ def test_pack_writes_the_same_shards_and_they_read_as_the_folder(reference, tmp_
     with tarfile.open(root / "shards" / "shard-000001.tar") as tar:
         assert tar.getnames() == [f"000002_{c}.{f}" for c in CAMERAS for f in (
             "camera.json", "dynamics.json", "rgb.png", "depth.exr", "labels.png", "valid.png",
-            "instances.png", "objects.json")]
+            "instances.npy", "objects.json")]
+    # the index lists them (written by generate before any frame, and by pack)
+    index = json.loads((root / "shards" / "index.json").read_text())
+    assert index["sample"]["files"] == ["camera.json", "dynamics.json", "rgb.png", "depth.exr",
+                                        "labels.png", "valid.png", "instances.npy",
+                                        "objects.json"]
 
     modalities = ("rgb", "depth", "labels", "labels_color", "valid", "instances", "objects")
     folder = OmniDataset(root, modalities=modalities)

@@ -74,9 +74,10 @@ def test_read_frame_matches_files_decoded_directly(root):
             assert item["labels"].dtype == torch.int64
             assert np.array_equal(item["labels"].numpy(), labels.astype(np.int64))
             valid = cv2.imread(str(root / cam / "valid" / f"{n}.png"), cv2.IMREAD_UNCHANGED)
-            assert item["valid"].dtype == torch.bool
-            assert np.array_equal(item["valid"].numpy(), valid == 255)
-            assert torch.equal(item["valid"], item["labels"] != 255)
+            # (1, H, W): the augmentation's shape of one sample
+            assert item["valid"].dtype == torch.bool and item["valid"].shape == (1,) + SIZE
+            assert np.array_equal(item["valid"][0].numpy(), valid == 255)
+            assert torch.equal(item["valid"][0], item["labels"] != 255)
             assert item["valid"].any() and (~item["valid"]).any()
             depth = _exr_direct(root / cam / "depth" / f"{n}.exr")
             assert item["depth"].dtype == torch.float32 and depth.dtype == np.float32
@@ -120,7 +121,10 @@ def test_instances_and_objects_read_back(root, tmp_path):
         assert item["box_instance_ids"].tolist() == [o["instance_id"] for o in objects]
     batch = collate([ds[0], ds[1]])
     assert batch["instances"].shape == (2,) + SIZE
-    assert len(batch["boxes"]) == 2 or batch["boxes"].shape[0] == 2
+    for key in ("boxes", "box_labels", "box_instance_ids"):   # per sample, as the augmentation
+        assert isinstance(batch[key], list) and _same(batch[key], [ds[0][key], ds[1][key]])
+    same = collate([ds[0], ds[0]])       # equal numbers of boxes: still a list, not (B, N, 4)
+    assert isinstance(same["boxes"], list) and len(same["boxes"]) == 2
     # a WebDataset sample holds them too, and decodes into the same item
     copy = tmp_path / "copy"
     shutil.copytree(root, copy)
@@ -139,9 +143,88 @@ def test_instances_and_objects_read_back(root, tmp_path):
         OmniDataset(copy, modalities=("rgb", "instances"))
     old = write_shard(copy, 0, [1], CAMERAS)
     sample = _tar_sample(old, f"000001_{CAMERAS[0]}")
-    assert "instances.png" not in sample and "labels.png" in sample
+    assert "instances.npy" not in sample and "instances.png" not in sample
+    assert "labels.png" in sample
     with pytest.raises(ValueError, match="instances"):
         decode_sample(sample, ("instances",))
+
+
+def test_instance_ids_up_to_65535_survive_plain_webdataset_decoding(root, tmp_path):
+    """Ids past 8 bits (256, 1000, 65535) through a shard: ``wds.WebDataset(url).decode()``
+    with its defaults (and with an image decoder asked for) gives the map exactly, as
+    ``instances.npy``; ``OmniShardDataset`` too; a shard packed before (``instances.png``)
+    still reads; the index lists the files; the folder's PNG reads exactly with
+    ``read_instances`` and the documented recipes (OpenCV ``IMREAD_UNCHANGED``, Pillow)."""
+    import shutil
+
+    from PIL import Image
+    import webdataset as wds
+
+    from omniscape_torch.data.datasets import OmniShardDataset
+    from omniscape_torch.data.readers import read_instances
+    from omniscape_torch.data.shards import decode_sample, pack
+
+    copy = tmp_path / "copy"
+    shutil.copytree(root, copy)
+    for p in (copy / "shards").glob("*"):
+        p.unlink()
+    ids = np.zeros(SIZE, np.uint16)
+    ids[0, :6] = [1, 255, 256, 1000, 65534, 65535]
+    ids[5:9, 3:7] = 65535
+    path = copy / CAMERAS[0] / "instances" / "000001.png"
+    assert cv2.imwrite(str(path), ids)                 # written by OpenCV, not the package
+    with Image.open(path) as im:
+        assert im.mode == "I;16" and np.array_equal(np.asarray(im), ids)
+    assert np.array_equal(cv2.imread(str(path), cv2.IMREAD_UNCHANGED), ids)
+    assert torch.equal(read_instances(path), torch.from_numpy(ids.astype(np.int64)))
+    pack(copy, 2, progress=False)
+    index = json.loads((copy / "shards" / "index.json").read_text())
+    assert index["sample"]["files"][-2:] == ["instances.npy", "objects.json"]
+    url = str(copy / "shards" / "shard-000000.tar")
+    key = f"000001_{CAMERAS[0]}"
+    for decoded in (wds.WebDataset(url, shardshuffle=False).decode(),
+                    wds.WebDataset(url, shardshuffle=False).decode("torchrgb")):
+        sample = next(s for s in decoded if s["__key__"] == key)
+        assert sample["instances.npy"].dtype == np.uint16
+        assert np.array_equal(sample["instances.npy"], ids)
+    item = next(i for i in OmniShardDataset(copy, modalities=("instances",))
+                if (i["frame"], i["camera"]) == (1, CAMERAS[0]))
+    assert torch.equal(item["instances"], torch.from_numpy(ids.astype(np.int64)))
+    # a shard of before: instances.png, read all the same
+    old = _tar_sample(url, key)
+    old["instances.png"] = path.read_bytes()
+    del old["instances.npy"]
+    back = decode_sample(old, ("instances", "valid"))
+    assert torch.equal(back["instances"], item["instances"])
+    assert back["valid"].shape == (1,) + SIZE
+
+
+def test_objects_file_checked_when_read(root, tmp_path):
+    """A hand-edited ``objects.json`` with x1 < x0, a negative count or values of the wrong
+    type: a ValueError naming the file, the object and what is wrong."""
+    import shutil
+
+    copy = tmp_path / "copy"
+    shutil.copytree(root, copy)
+    path = copy / CAMERAS[0] / "objects" / "000000.json"
+    objects = json.loads(path.read_text())
+    assert objects, "the frame has objects"
+    good = dict(objects[0])
+    x0, y0, x1, y1 = good["box"]
+    for edit, message in ((dict(box=[x1, y0, x0, y1]), "x0 < x1"),
+                          (dict(pixels=-3), "pixels: expected an integer >= 1"),
+                          (dict(box=[str(x0), y0, x1, y1]), "box: expected"),
+                          (dict(label="10"), "label: expected"),
+                          (dict(instance_id=True), "instance_id: expected"),
+                          (dict(box=[x0, y0, x1]), "box: expected")):
+        path.write_text(json.dumps([good, dict(good, **edit)]))
+        with pytest.raises(ValueError) as err:
+            read_frame(copy, CAMERAS[0], 0, ("objects",))
+        text = str(err.value)
+        assert str(path) in text and "object 1" in text and message in text, text
+    path.write_text('{"box": [0, 0, 1, 1]}')
+    with pytest.raises(ValueError, match="expected a JSON list"):
+        read_frame(copy, CAMERAS[0], 0, ("objects",))
 
 
 def test_read_frame_errors(root):
@@ -178,7 +261,7 @@ def test_reader_equals_a_rerender(root):
         item = read_frame(root, cam, k)
         assert torch.equal(item["depth"], res["depth"][0, 0].float())
         assert torch.equal(item["labels"], res["labels"][0])
-        assert torch.equal(item["valid"], res["valid"][0, 0].bool())
+        assert torch.equal(item["valid"], res["valid"][0].bool())
 
 
 def test_camera_extrinsics_dynamics(root):
@@ -370,7 +453,7 @@ def test_objects_of_an_instance_map_and_bad_input():
         instance_objects(ids, labels[:2])
     with pytest.raises(ValueError, match=">= 0"):
         instance_objects(-ids, labels)
-    with pytest.raises(ValueError, match="x.json: not an objects file"):
+    with pytest.raises(ValueError, match="x.json: object 0: no instance_id, label"):
         decode_objects('[{"box": [1, 2]}]', "x.json")
     from omniscape_torch.data.objects import pack_instances, unpack_instances
     packed = pack_instances(torch.tensor([[3, 255]]), torch.tensor([[70000, 0]]))

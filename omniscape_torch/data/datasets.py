@@ -8,7 +8,8 @@
   :mod:`omniscape_torch.data.captures`), one item per capture folder.
 
 All hold only plain data (paths, tensors, dicts): they pickle, so they work with
-``DataLoader(num_workers=N)`` and the default collate function.
+``DataLoader(num_workers=N)``; items with objects (boxes) or of several camera models need
+``collate_fn=collate``.
 """
 
 from __future__ import annotations
@@ -25,19 +26,46 @@ from .format import MODALITIES, OPTIONAL_MODALITIES
 from .readers import (has_modality, list_cameras, list_frames, read_camera_dict, read_dynamics,
                       read_extrinsics, read_frame, read_manifest)
 
-__all__ = ["CubemapCaptureDataset", "OmniDataset", "OmniShardDataset", "collate"]
+__all__ = ["CubemapCaptureDataset", "OmniDataset", "OmniShardDataset", "PER_SAMPLE_KEYS",
+           "collate"]
 
 _DEFAULT = ("rgb", "depth", "labels", "valid")
 
 
+#: Item keys with one value per object (a sample's own number of them): `collate` keeps
+#: them as a list of B tensors, the structure the augmentation takes and returns.
+PER_SAMPLE_KEYS = ("boxes", "box_labels", "box_instance_ids", "box_index", "box_visible",
+                   "polygons", "polygon_box", "polygon_index")
+
+
 def collate(batch: list[dict]) -> dict:
-    """``default_collate`` key by key, keeping a plain list for a key whose values do not
-    stack (``intrinsics`` of cameras of different models, images of different sizes). Use as
-    ``DataLoader(..., collate_fn=collate)`` when a batch mixes cameras."""
+    """Collate items of these datasets (or augmented samples) into a batch:
+    ``default_collate`` key by key, except that the per-object keys
+    (`PER_SAMPLE_KEYS`: ``boxes``, ``box_labels``, ``box_instance_ids``, ...) stay a
+    list of B tensors, whatever their sizes (``default_collate`` stacks equal sizes into one
+    tensor and stops on different ones with torch's ``stack expects each tensor to be equal
+    size``), and a key whose values do not stack (``intrinsics`` of cameras of different
+    models, images of different sizes) becomes a plain list. Use as
+    ``DataLoader(..., collate_fn=collate)`` for items with ``objects`` or a mix of cameras.
+
+    Raises:
+        ValueError: an empty batch, or items with different keys (names the key).
+    """
     from torch.utils.data import default_collate
+
+    if not batch:
+        raise ValueError("batch: expected at least one item")
+    keys = list(batch[0])
+    for i, b in enumerate(batch):
+        if set(b) != set(keys):
+            odd = sorted(set(b) ^ set(keys))
+            raise ValueError(f"batch: item {i} has other keys than item 0 ({', '.join(odd)})")
     out = {}
-    for key in batch[0]:
+    for key in keys:
         values = [b[key] for b in batch]
+        if key in PER_SAMPLE_KEYS:
+            out[key] = values
+            continue
         try:
             out[key] = default_collate(values)
         except (RuntimeError, TypeError):
@@ -60,7 +88,8 @@ class OmniDataset(Dataset):
         frame          int
         camera         str
         rgb, depth, labels, labels_color, valid, instances
-                       as in :func:`omniscape_torch.io.read_frame` (those of ``modalities``)
+                       as in `omniscape_torch.data.readers.read_frame` (those of
+                       ``modalities``; ``valid`` is ``(1, H, W)``, as the augmentation's)
         boxes, box_labels, box_instance_ids
                        with ``"objects"`` in ``modalities``: the objects' tight boxes
                        ``(N, 4)`` float32 (XYXY corners), class ids and instance ids
@@ -76,7 +105,8 @@ class OmniDataset(Dataset):
     :meth:`camera` gives the :class:`omniscape_torch.Camera` of a camera name. Batches of
     cameras of different models (or sizes) need ``collate_fn=``:func:`collate`: their
     ``intrinsics`` differ in length; so do batches with ``objects``: each item has its own
-    number of boxes (:func:`collate` keeps them as lists).
+    number of boxes (`collate` keeps them as lists of B, as the augmentation takes
+    them).
 
     Args:
         root: the dataset folder.

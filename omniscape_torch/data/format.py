@@ -61,7 +61,8 @@ Layout of ``DIR``
                                    run into the folder stops
       stats.json, stats.png        written by ``omniscape-torch stats``
       shards/                      only with ``generate --format webdataset`` or ``pack``:
-        index.json                 frames per shard, and the frames of each shard
+        index.json                 frames per shard, the files of a sample (instance ids
+                                   as a uint16 .npy array), the frames of each shard
         shard-NNNNNN.tar           WebDataset shard NNNNNN: frames NNNNNN * S to
                                    (NNNNNN + 1) * S - 1 (S: frames per shard), one sample
                                    per camera and frame (:mod:`.shards`)

@@ -13,12 +13,21 @@ The file is a JSON list, one object a line, sorted by instance id::
     [{"instance_id": 3, "label": 10, "class": "Vehicle", "box": [12, 30, 41, 52], "pixels": 517},
      ...]
 
-Read back (:func:`decode_objects`) as tensors: ``boxes (N, 4)`` float32, ``box_labels (N,)``
-int64 and ``box_instance_ids (N,)`` int64, the keys the augmentation takes.
+Read back (`decode_objects`, which checks every object: a box with ``x1 <= x0``, a
+negative count or a value of the wrong type is a ValueError naming the file and the object)
+as tensors: ``boxes (N, 4)`` float32, ``box_labels (N,)`` int64 and ``box_instance_ids (N,)``
+int64, the keys the augmentation takes.
+
+Instance maps travel in two encodings: the folder's 16-bit grey PNG (`instance_image`;
+read it with ``cv2.IMREAD_UNCHANGED`` or Pillow, mode ``I;16``: OpenCV's default and grey
+flags keep the high byte) and, in WebDataset shards, a ``uint16`` ``.npy`` array
+(`instance_npy`), which ``webdataset``'s default ``decode()`` reads losslessly (its
+image decoders clip a 16-bit PNG to 8 bits). `decode_instances` reads both.
 """
 
 from __future__ import annotations
 
+import io as _io
 import json
 import math
 
@@ -29,8 +38,9 @@ from torch import Tensor
 from ..io.labels import CLASSES
 from ..render.detection import instance_boxes
 
-__all__ = ["INSTANCE_SHIFT", "decode_objects", "encode_objects", "instance_image",
-           "instance_objects", "pack_instances", "unpack_instances"]
+__all__ = ["INSTANCE_SHIFT", "decode_instances", "decode_objects", "encode_objects",
+           "instance_image", "instance_npy", "instance_objects", "pack_instances",
+           "unpack_instances"]
 
 #: The writers sample labels and instance ids in one nearest pass of the layer, as one integer
 #: map ``labels + INSTANCE_SHIFT * instances`` (labels 0..255): never blended, and the ignore
@@ -143,24 +153,106 @@ def encode_objects(objects: list[dict]) -> str:
     return "[" + ",\n ".join(json.dumps(o) for o in objects) + "]\n"
 
 
+def instance_npy(instances: Tensor | np.ndarray) -> bytes:
+    """``(H, W)`` instance ids as the bytes of a ``uint16`` ``.npy`` file: what the shards
+    hold (``numpy.load``, and ``webdataset``'s default ``decode()``, read it back exactly).
+    The bytes depend on the ids only.
+
+    Raises:
+        ValueError: an id outside 0..65535, or not one ``(H, W)`` map.
+    """
+    ids = instance_image(torch.as_tensor(instances))
+    if ids.ndim != 2:
+        raise ValueError(f"instances: expected an (H, W) map, got shape {tuple(ids.shape)}")
+    buf = _io.BytesIO()
+    np.save(buf, np.ascontiguousarray(ids), allow_pickle=False)
+    return buf.getvalue()
+
+
+def decode_instances(data: bytes, name: str = "instances") -> Tensor:
+    """An instance map's bytes, a ``.npy`` array (shards) or a grey PNG (the folder's 16-bit
+    file; an 8-bit one reads as it is), as ``(H, W)`` int64 ids.
+
+    Raises:
+        ValueError: neither, a colour image, or an array that is not ``(H, W)`` integer ids
+            (``name``, the file, in the message).
+    """
+    if data[:6] == b"\x93NUMPY":
+        try:
+            ids = np.load(_io.BytesIO(data), allow_pickle=False)
+        except ValueError as err:
+            raise ValueError(f"{name}: not a readable .npy array ({err})") from None
+        if ids.ndim != 2 or ids.dtype.kind not in "iu":
+            raise ValueError(f"{name}: expected (H, W) integer instance ids, got "
+                             f"{ids.dtype} {tuple(ids.shape)}")
+    else:
+        from ..io.images import decode_image
+
+        ids = decode_image(data, name)
+        if ids.ndim != 2:
+            raise ValueError(f"{name}: expected a one-channel instance map, got shape "
+                             f"{tuple(ids.shape)}")
+    return torch.from_numpy(ids.astype(np.int64))
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v) -> bool:
+    return (isinstance(v, (int, float)) and not isinstance(v, bool)) and math.isfinite(v)
+
+
+def _object_error(o) -> str | None:
+    """What is wrong with one object of an objects file, or None."""
+    if not isinstance(o, dict):
+        return f"expected a JSON object, got {type(o).__name__}"
+    missing = [k for k in ("instance_id", "label", "box") if k not in o]
+    if missing:
+        return f"no {', '.join(missing)}"
+    if not _is_int(o["instance_id"]) or o["instance_id"] < 1:
+        return f"instance_id: expected an integer >= 1, got {o['instance_id']!r}"
+    if not _is_int(o["label"]) or not 0 <= o["label"] < _LABEL_RANGE:
+        return f"label: expected a class id in 0..{_LABEL_RANGE - 1}, got {o['label']!r}"
+    box = o["box"]
+    if not isinstance(box, list) or len(box) != 4 or not all(_is_number(x) for x in box):
+        return f"box: expected [x0, y0, x1, y1] of 4 finite numbers, got {box!r}"
+    if not (box[0] < box[2] and box[1] < box[3]):
+        return f"box: expected x0 < x1 and y0 < y1 (XYXY corners), got {box!r}"
+    if "pixels" in o and (not _is_int(o["pixels"]) or o["pixels"] < 1):
+        return f"pixels: expected an integer >= 1, got {o['pixels']!r}"
+    if "class" in o and not isinstance(o["class"], str):
+        return f"class: expected a name, got {o['class']!r}"
+    return None
+
+
 def decode_objects(text: str | bytes, name: str = "objects") -> dict[str, Tensor]:
     """An objects file's text (or bytes) as tensors: ``boxes (N, 4)`` float32 (XYXY corners),
     ``box_labels (N,)`` int64 class ids and ``box_instance_ids (N,)`` int64.
 
+    Every object is checked: ``instance_id`` an integer >= 1, ``label`` a class id in 0..255,
+    ``box`` four finite numbers with ``x0 < x1`` and ``y0 < y1``, ``pixels`` (where given) an
+    integer >= 1, ``class`` a string.
+
     Raises:
-        ValueError: not such a list (``name``, the file, in the message).
+        ValueError: not such a list (``name``, the file, and the object's position and id in
+            the message).
     """
     try:
         objects = json.loads(text)
-        if not isinstance(objects, list):
-            raise ValueError("expected a JSON list of objects")
-        boxes = [[float(x) for x in o["box"]] for o in objects]
-        labels = [int(o["label"]) for o in objects]
-        ids = [int(o["instance_id"]) for o in objects]
-        if any(len(b) != 4 for b in boxes):
-            raise ValueError("a box is not [x0, y0, x1, y1]")
-    except (ValueError, KeyError, TypeError) as err:
-        raise ValueError(f"{name}: not an objects file ({err})") from None
-    return {"boxes": torch.tensor(boxes, dtype=torch.float32).reshape(-1, 4),
-            "box_labels": torch.tensor(labels, dtype=torch.int64),
-            "box_instance_ids": torch.tensor(ids, dtype=torch.int64)}
+    except ValueError as err:
+        raise ValueError(f"{name}: not an objects file (not valid JSON: {err})") from None
+    if not isinstance(objects, list):
+        raise ValueError(f"{name}: not an objects file (expected a JSON list of objects, got "
+                         f"{type(objects).__name__})")
+    for i, o in enumerate(objects):
+        problem = _object_error(o)
+        if problem is not None:
+            which = f"object {i}" + (f" (instance_id {o['instance_id']!r})"
+                                     if isinstance(o, dict) and "instance_id" in o else "")
+            raise ValueError(f"{name}: {which}: {problem}")
+    return {"boxes": torch.tensor([o["box"] for o in objects],
+                                  dtype=torch.float32).reshape(-1, 4),
+            "box_labels": torch.tensor([o["label"] for o in objects], dtype=torch.int64),
+            "box_instance_ids": torch.tensor([o["instance_id"] for o in objects],
+                                             dtype=torch.int64)}

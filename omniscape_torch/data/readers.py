@@ -10,7 +10,8 @@ Returned types::
     depth         (H, W) float32, range in metres, 0 where not valid, 1000 m for the sky
     labels        (H, W) int64 class ids 0..12, 255 (IGNORE_INDEX) where not valid
     labels_color  (3, H, W) uint8, the labels in CARLA's palette
-    valid         (H, W) bool
+    valid         (1, H, W) bool, the shape the augmentation returns per sample (its
+                  ``(B, 1, H, W)`` batched), so a read frame and an augmented one match
     instances     (H, W) int64 instance ids, 0 for none and where not valid
     objects       three keys (:func:`omniscape_torch.data.objects.decode_objects`):
                   boxes (N, 4) float32, the objects' tight boxes (XYXY corners),
@@ -19,6 +20,12 @@ Returned types::
 ``instances`` and ``objects`` are only in datasets written since ``generate`` writes them
 (:data:`~omniscape_torch.data.format.OPTIONAL_MODALITIES`): ask for them where a dataset has
 them (:func:`has_modality`).
+
+Reading the 16-bit instance maps outside this package: `read_instances`, or
+``cv2.imread(path, cv2.IMREAD_UNCHANGED)`` (uint16; OpenCV's default and grey flags keep the
+high byte: ids below 256 read 0), or Pillow's ``numpy.asarray(Image.open(path))`` (mode
+``I;16``, uint16); never through a conversion to ``"L"`` or ``"RGB"``, which clips the ids to
+8 bits.
 """
 
 from __future__ import annotations
@@ -35,11 +42,12 @@ from ..io.exr import read_exr
 from ..io.images import read_image
 from .format import (CAMERA, CORE_MODALITIES, DYNAMICS, MANIFEST, MODALITIES, OCAMCALIB,
                      finished_frames, frame_file)
-from .objects import decode_objects
+from .objects import decode_instances, decode_objects
 from .ocamcalib import polynomial_camera
 
 __all__ = ["has_modality", "list_cameras", "list_frames", "read_camera", "read_camera_dict",
-           "read_dynamics", "read_extrinsics", "read_frame", "read_manifest", "read_ocamcalib"]
+           "read_dynamics", "read_extrinsics", "read_frame", "read_instances", "read_manifest",
+           "read_ocamcalib"]
 
 _DEFAULT = ("rgb", "depth", "labels", "valid")
 
@@ -115,8 +123,21 @@ def read_frame(root: str | Path, camera: str, frame: int | str,
         elif m in ("labels", "instances"):
             out[m] = _grey(image, path).long()
         else:  # valid
-            out[m] = _grey(image, path) > 0
+            out[m] = (_grey(image, path) > 0).unsqueeze(0)
     return out
+
+
+def read_instances(path: str | Path) -> Tensor:
+    """An instance map file, exactly: the dataset's 16-bit grey PNG (``instances/NNNNNN.png``,
+    ``convert``'s ``<camera>_instances.png``) or a ``.npy`` array, as ``(H, W)`` int64 ids.
+
+    Raises:
+        FileNotFoundError: no such file. ValueError: not a one-channel image or integer array.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file")
+    return decode_instances(path.read_bytes(), str(path))
 
 
 def has_modality(root: str | Path, modality: str, cameras: Sequence[str] | None = None

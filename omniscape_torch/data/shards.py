@@ -15,8 +15,14 @@ sample ``KEY = NNNNNN_<camera>`` (frame number and camera name) is the files::
                          "T_rig_camera": 4 x 4, "T_world_camera": 4 x 4 at this frame}
     KEY.dynamics.json   the frame's record of dynamics.json (CARLA names and units)
     KEY.rgb.png  KEY.depth.exr  KEY.labels.png  KEY.valid.png   the folder's files, byte for byte
-    KEY.instances.png  KEY.objects.json      the same, where the dataset has them (written
-                                             since generate writes instances)
+    KEY.instances.npy   where the dataset has instances: the ids of instances/NNNNNN.png as
+                        a uint16 .npy array, which webdataset's default decode() reads
+                        exactly (its image decoders clip a 16-bit PNG to 8 bits); shards
+                        packed before hold KEY.instances.png, read all the same
+    KEY.objects.json    where the dataset has it, byte for byte
+
+``index.json`` lists the files of a sample (``sample.files``), those of the optional
+modalities included where the shards hold them.
 
 A shard is written to a temporary name and renamed (a retried or resumed task never leaves a
 partial shard), with fixed tar headers (time 0, owner 0, mode 0644): its bytes depend on the
@@ -42,13 +48,13 @@ from torch import Tensor
 from ..io.atomic import atomic_path, atomic_write_text, folder_lock
 from ..io.labels import colorize
 from . import format as fmt
-from .objects import decode_objects
-from .readers import (has_modality, list_frames, read_camera_dict, read_dynamics,
-                      read_extrinsics, read_manifest)
+from .objects import decode_instances, decode_objects, instance_npy
+from .readers import list_frames, read_camera_dict, read_dynamics, read_extrinsics, read_manifest
 
 __all__ = ["FRAMES_PER_SHARD", "OPTIONAL_SAMPLE_MODALITIES", "SAMPLE_MODALITIES",
-           "check_frames_per_shard", "decode_sample", "pack", "resolve_frames_per_shard",
-           "shard_groups", "shard_urls", "write_index", "write_shard"]
+           "SHARD_FILES", "check_frames_per_shard", "decode_sample", "pack",
+           "resolve_frames_per_shard", "sample_modalities", "shard_groups", "shard_urls",
+           "write_index", "write_shard"]
 
 #: Frames per shard by default: 64 samples with the rig's four cameras (about 40 MB at
 #: 512 x 512), within WebDataset's advice of shards from tens of MB up.
@@ -57,11 +63,12 @@ FRAMES_PER_SHARD = 16
 #: The images a sample holds, from the folder's files (``labels_color`` is left out: it is
 #: the labels in the palette, :func:`decode_sample` draws it when asked).
 SAMPLE_MODALITIES = ("rgb", "depth", "labels", "valid")
-#: The images a sample holds besides, where the dataset has them (``has_modality``): not in
-#: a dataset written before ``generate`` wrote instances (``index.json`` lists
-#: :data:`SAMPLE_MODALITIES` only, so that the index of such a dataset's shards stays as it
-#: was).
+#: The images a sample holds besides, where the dataset has them (`sample_modalities`):
+#: not in a dataset written before ``generate`` wrote instances.
 OPTIONAL_SAMPLE_MODALITIES = fmt.OPTIONAL_MODALITIES
+#: The extension of each modality's member in a sample, where it is not the folder's:
+#: instance ids as a ``.npy`` array (module docstring).
+SHARD_FILES = {**fmt.MODALITIES, "instances": "npy"}
 
 INDEX_FORMAT = "omniscape_torch webdataset shards"
 
@@ -98,9 +105,32 @@ def shard_groups(frames: int, frames_per_shard: int) -> list[list[int]]:
     return [list(range(i, min(i + s, frames))) for i in range(0, frames, s)]
 
 
+def sample_modalities(root: str | Path, cameras: Sequence[str]) -> tuple[str, ...]:
+    """The modalities a sample of the dataset in ``root`` holds: `SAMPLE_MODALITIES`,
+    and each optional one (instances, objects) that the folder has for every camera, or,
+    for a camera with no frame written yet (a run about to write them), that the manifest's
+    layout lists."""
+    root = Path(root)
+    try:
+        layout = read_manifest(root).get("layout", {})
+    except FileNotFoundError:
+        layout = {}
+
+    def holds(m: str, camera: str) -> bool:
+        if (root / camera / m).is_dir():
+            return True
+        return not (root / camera / "rgb").is_dir() and \
+            f"<camera>/{m}/NNNNNN.{fmt.MODALITIES[m]}" in layout
+
+    return SAMPLE_MODALITIES + tuple(m for m in OPTIONAL_SAMPLE_MODALITIES
+                                     if cameras and all(holds(m, c) for c in cameras))
+
+
 def write_index(root: str | Path, frames: int, cameras: Sequence[str],
                 frames_per_shard: int) -> dict:
-    """Write ``shards/index.json`` (unless it holds the same already) and return it.
+    """Write ``shards/index.json`` (unless it holds the same already) and return it: frames
+    per shard, the cameras, the files of a sample (`sample_modalities`) and each
+    shard's frames.
 
     Raises:
         ValueError: the folder holds shards of another ``frames_per_shard`` (or frames, or
@@ -112,7 +142,7 @@ def write_index(root: str | Path, frames: int, cameras: Sequence[str],
              "cameras": list(cameras),
              "sample": {"key": "NNNNNN_<camera>",
                         "files": ["camera.json", "dynamics.json"]
-                        + [f"{m}.{fmt.MODALITIES[m]}" for m in SAMPLE_MODALITIES]},
+                        + [f"{m}.{SHARD_FILES[m]}" for m in sample_modalities(root, cameras)]},
              "shards": [{"file": Path(fmt.shard_file(i)).name, "frames": [g[0], g[-1]],
                          "samples": len(g) * len(cameras)} for i, g in enumerate(groups)]}
     text = json.dumps(index, indent=2) + "\n"
@@ -128,7 +158,10 @@ def write_index(root: str | Path, frames: int, cameras: Sequence[str],
             was = json.loads(old)
         except ValueError:
             was = {}
-        if any((root / fmt.SHARDS).glob("shard-*.tar")):
+        same = all(was.get(k) == index[k] for k in ("frames_per_shard", "frames", "cameras"))
+        # only the sample's files differ (shards packed before the index listed instances):
+        # the index is rewritten, and the reader reads the shards of both
+        if not same and any((root / fmt.SHARDS).glob("shard-*.tar")):
             raise ValueError(
                 f"frames_per_shard: {path} holds shards of {was.get('frames_per_shard')} "
                 f"frames (of {was.get('frames')} frames, cameras {was.get('cameras')}), not "
@@ -167,8 +200,7 @@ def write_shard(root: str | Path, index: int, frames: Sequence[int],
     dynamics = read_dynamics(root)
     intrinsics = {c: read_camera_dict(root, c) for c in cameras}
     extrinsics = {c: read_extrinsics(root, c) for c in cameras}
-    modalities = SAMPLE_MODALITIES + tuple(m for m in OPTIONAL_SAMPLE_MODALITIES
-                                           if has_modality(root, m, cameras))
+    modalities = sample_modalities(root, cameras)
     path = root / fmt.shard_file(index)
     with atomic_path(path, suffix=".tar") as tmp:
         with tarfile.open(tmp, "w", format=tarfile.USTAR_FORMAT) as tar:
@@ -188,7 +220,10 @@ def write_shard(root: str | Path, index: int, frames: Sequence[int],
                         if not file.is_file():
                             raise FileNotFoundError(f"{file}: missing (frame {k} is not "
                                                     "finished)")
-                        _tar_member(tar, f"{key}.{m}.{fmt.MODALITIES[m]}", file.read_bytes())
+                        data = file.read_bytes()
+                        if m == "instances":
+                            data = instance_npy(decode_instances(data, str(file)))
+                        _tar_member(tar, f"{key}.{m}.{SHARD_FILES[m]}", data)
     return path
 
 
@@ -315,13 +350,15 @@ def decode_sample(sample: dict, modalities: Sequence[str] = SAMPLE_MODALITIES, *
     for m in modalities:
         if m not in fmt.MODALITIES:
             raise ValueError(f"modalities: expected some of {tuple(fmt.MODALITIES)}, got {m!r}")
-        name = f"{key}.{m}.{fmt.MODALITIES[m]}"
+        name = f"{key}.{m}.{SHARD_FILES[m]}"
         if m == "labels_color":
             if labels is None:
                 labels = _png(sample[f"labels.{fmt.MODALITIES['labels']}"], name).long()
             item[m] = torch.from_numpy(colorize(labels)).permute(2, 0, 1).contiguous()
             continue
-        data = sample.get(f"{m}.{fmt.MODALITIES[m]}")
+        data = sample.get(f"{m}.{SHARD_FILES[m]}")
+        if data is None:
+            data = sample.get(f"{m}.{fmt.MODALITIES[m]}")   # instances.png: older shards
         if data is None:
             raise ValueError(f"{name}: not in the sample (shards of a dataset written before "
                              f"generate wrote {m}?)")
@@ -335,9 +372,9 @@ def decode_sample(sample: dict, modalities: Sequence[str] = SAMPLE_MODALITIES, *
         elif m == "labels":
             labels = item[m] = _png(data, name).long()
         elif m == "instances":
-            item[m] = _png(data, name).long()
-        else:   # valid
-            item[m] = _png(data, name) > 0
+            item[m] = decode_instances(data, name)
+        else:   # valid: (1, H, W), as the folder's reader
+            item[m] = (_png(data, name) > 0).unsqueeze(0)
     intr = meta["intrinsics"]
     item["model"] = intr["model"]
     item["intrinsics"] = torch.tensor(list(intr["params"].values()), dtype=torch.float64)
