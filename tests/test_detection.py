@@ -9,7 +9,6 @@ of its output). Sizes are small (64-96 px); the sweep over many boxes is in the 
 from __future__ import annotations
 
 import math
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -160,23 +159,22 @@ def test_boxes_crossing_the_field_of_view_keep_their_valid_part():
 
 
 @pytest.mark.parametrize("ops", [True, False])
-def test_outline_boxes_at_the_valid_areas_border_under_strong_distortion(ops, monkeypatch):
+def test_outline_boxes_at_the_valid_areas_border_under_strong_distortion(ops):
     """The outline's sampling (OUTLINE_STEP apart in the output) against the object's pixels
     where it is hardest: strongly distorting lenses (Kannala-Brandt, double sphere, unified)
     whose drawn cone (120-170 deg, about the 130 deg source's) and cropped image circle cut
     the objects, boxes reaching the source's edges turned towards the cone's edge; every
     box within a pixel of its object's tight pixel box, with the C++ ops (``ops``) and with
-    the torch code the box mapping falls back to without them."""
-    if not ops:
-        monkeypatch.setattr(detection, "fast", SimpleNamespace(available=lambda: False))
-    elif not ot.render.kernels.available():
+    their torch twins (``backend="torch"``)."""
+    if ops and not ot.render.kernels.available():
         pytest.skip("the C++ ops cannot be built here")
     size = (48, 64)
     aug = ot.augment.RandomReproject(
         (64, 64), source_fov=130 * DEG, interpolation="nearest", seed=3,
         fisheye_models=("kannala_brandt", "double_sphere", "unified"),
         fov_range=(120 * DEG, 170 * DEG), focal_scale_range=(1.0, 1.4),
-        yaw_range=(-35 * DEG, 35 * DEG), pitch_range=(-25 * DEG, 25 * DEG))
+        yaw_range=(-35 * DEG, 35 * DEG), pitch_range=(-25 * DEG, 25 * DEG),
+        backend="cpp" if ops else "torch")
     gen = torch.Generator().manual_seed(4)
     compared = cut = 0
     for _ in range(2):
@@ -349,3 +347,34 @@ def test_outline_boxes_sweep():
             compared += check_boxes_against_pixels(
                 aug, {"rgb": torch.zeros(1, 1, *size)}, random_boxes(12, size, gen), size)
     assert compared >= 150
+
+
+def test_the_box_kernels_and_their_twins_agree():
+    """`kernels.boxes`: the C++ ops `box_pixels`, `outline_points` + `outline_reduce` against
+    their torch twins on the same inputs (rays of a drawn camera, boxes through a change)."""
+    if not ot.render.kernels.available():
+        pytest.skip("the C++ ops cannot be built here")
+    from omniscape_torch.render.kernels import boxes as kb
+    g = torch.Generator().manual_seed(7)
+    rays = torch.nn.functional.normalize(torch.randn(3, 20, 24, 3, generator=g, dtype=torch.float64)
+                                         + torch.tensor([0.0, 0.0, 1.5], dtype=torch.float64), dim=-1)
+    rotation = ot.presets.yaw_pitch_roll_to_matrix(*(torch.rand(3, 3, generator=g,
+                                                                dtype=torch.float64) - 0.5).T)
+    k = torch.tensor([[18.0, 18.0, 11.5, 9.5]], dtype=torch.float64)
+    valid = torch.rand(3, 20, 24, generator=g) > 0.1
+    sample = torch.tensor([0, 1, 2, 2])
+    windows = torch.tensor([[0, 0, 23, 19], [3, 2, 15, 12], [0, 5, 20, 19], [10, 10, 12, 12]])
+    rects = torch.tensor([[2.0, 3.0, 9.0, 12.0], [0.0, 0.0, 23.0, 19.0], [5.0, 1.0, 15.0, 12.0],
+                          [30.0, 30.0, 31.0, 31.0]], dtype=torch.float64)
+    got = [kb.box_pixels(rays, rotation, k, valid, sample, windows, rects, backend=b)
+           for b in ("cpp", "torch")]
+    assert torch.equal(got[0], got[1]) and bool((got[0][:3] >= 0).all()) and bool(
+        (got[0][3] == -1).all())
+    src = ot.Camera("pinhole", [20.0, 20.0, 15.5, 11.5], (24, 32))
+    dst = ot.presets.fisheye((40, 40))
+    change, size = detection._change(src, dst, None, 1, None)
+    boxes = torch.tensor([[2.0, 2.0, 20.0, 14.0], [10.0, 5.0, 30.0, 22.0]], dtype=torch.float64)
+    outs = [detection.Outline(change, [boxes], size, backend=b).result() for b in
+            ("cpp", "torch")]
+    for a, b in zip(*outs):
+        torch.testing.assert_close(a[0], b[0], atol=1e-9, rtol=0)

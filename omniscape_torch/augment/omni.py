@@ -274,7 +274,8 @@ class RandomOmniCamera(_RandomCameras):
         Returns:
             the dict of ``forward``.
         """
-        maps = _label_maps(self.label_keys, instances, label_maps, cube=True)
+        maps = _label_maps(self.label_keys, instances, label_maps, cube=True,
+                           size=(self.face_size, self.face_size))
         _check_batches(params, **dict(
             (key, t) for key, (t, _) in maps.items()), box_instance_ids=box_instance_ids,
             keypoints=keypoints)
@@ -437,9 +438,12 @@ class RandomOmniCamera(_RandomCameras):
             cubemap, labels, depth, params, batch_dims=_CUBE_DIMS, owner=self)
         targets = _targets(cubemap, self.label_keys, cube=True)
         if isinstance(cubemap, dict):
-            unknown = set(cubemap) - {"rgb", "labels", "depth"} - _target_keys(self.label_keys)
+            accepted = {"rgb", "labels", "depth"} | _target_keys(self.label_keys)
+            unknown = set(cubemap) - accepted
             if unknown:
-                raise ValueError(f"cubemap: unknown keys {sorted(unknown)}")
+                raise ValueError(f"cubemap: unknown keys {sorted(unknown)}; the keys taken are "
+                                 f"{sorted(accepted - {'boxes'})} (declare more label maps "
+                                 f"with label_keys)")
             labels = cubemap.get("labels", labels)
             depth = cubemap.get("depth", depth)
             cubemap = cubemap.get("rgb")

@@ -40,6 +40,7 @@ from .targets import (
     _render_label_maps,
     _rows,
     _source_size,
+    _warn_if_normalised,
     _target_keys,
     _targets,
 )
@@ -340,7 +341,10 @@ class RandomReproject(_Routes, _RandomCameras):
         that it drew them for, else None. Drawn params are not checked again (their rotations,
         cameras and batch are the module's own) nor is their source made again (for inputs of
         that size)."""
-        maps = _label_maps(self.label_keys, instances, label_maps, cube=False)
+        size = _source_size(image, labels, depth, self.channels_last)
+        maps = _label_maps(self.label_keys, instances, label_maps, cube=False, size=size)
+        if size is None and maps:   # label maps alone: the first one's size
+            size = tuple(next(iter(maps.values()))[0].shape[-2:])
         batch = _check_batches(params, **dict(
             (key, t) for key, (t, _) in maps.items()), box_instance_ids=box_instance_ids,
             keypoints=keypoints, boxes=boxes)
@@ -352,6 +356,7 @@ class RandomReproject(_Routes, _RandomCameras):
         if boxes is not None:
             box_dtype = next((_float(torch.as_tensor(b).dtype) for b in boxes), box_dtype)
             boxes = detection.check_boxes(boxes, batch)
+            _warn_if_normalised(boxes, size)
         ids = None
         if box_instance_ids is not None:
             if instances is None:
@@ -363,7 +368,6 @@ class RandomReproject(_Routes, _RandomCameras):
         if keypoints is not None or (boxes is not None and ids is None):
             # mapped before the maps are rendered: the boxes that the valid area cuts read
             # their pixels from the rays the maps are sampled along (Targets.scan)
-            size = _source_size(image, labels, depth, maps, self.channels_last)
             k, camera = (drawn[:2] if drawn is not None and drawn[2] == size else
                          self._source(intrinsics, source_camera, size, batch))
             source = (detection.Side("pinhole", k, size) if k is not None
@@ -609,10 +613,13 @@ class RandomReproject(_Routes, _RandomCameras):
             image, labels, depth, params, batch_dims=_IMAGE_DIMS, owner=self)
         targets = _targets(image, self.label_keys, cube=False)
         if isinstance(image, dict):
-            unknown = set(image) - {"rgb", "labels", "depth", "intrinsics", "source_camera"} - \
-                _target_keys(self.label_keys)
+            accepted = ({"rgb", "labels", "depth", "intrinsics", "source_camera"}
+                        | _target_keys(self.label_keys))
+            unknown = set(image) - accepted
             if unknown:
-                raise ValueError(f"image: unknown keys {sorted(unknown)}")
+                raise ValueError(f"image: unknown keys {sorted(unknown)}; the keys taken are "
+                                 f"{sorted(accepted)} (declare more label maps with "
+                                 f"label_keys)")
             labels = image.get("labels", labels)
             depth = image.get("depth", depth)
             intrinsics = image.get("intrinsics", intrinsics)

@@ -3,6 +3,7 @@ modules share to walk a batch in parts."""
 
 from __future__ import annotations
 
+import warnings
 from typing import Mapping, NamedTuple
 
 import torch
@@ -57,17 +58,19 @@ def _targets(inputs: object, label_keys: Mapping[str, int], cube: bool) -> dict:
 
 
 def _label_maps(label_keys: Mapping[str, int], instances: Tensor | None,
-                label_maps: Mapping[str, Tensor] | None, cube: bool
-                ) -> dict[str, tuple[Tensor, int]]:
+                label_maps: Mapping[str, Tensor] | None, cube: bool,
+                size: tuple[int, int] | None = None) -> dict[str, tuple[Tensor, int]]:
     """``{key: (ids, ignore value)}`` of ``instances`` (ignore 0) and the declared label keys'
     maps, checked: integer ids ``(B, H, W)`` (a cube ``(B, 6, F, F)``), a channel of 1
-    dropped, ``bool`` masks as ``uint8``."""
+    dropped, ``bool`` masks as ``uint8``; each of the images' ``size (H, W)`` (the first map's
+    where None: the others must match it); instance ids ``>= 0``."""
     given = {} if label_maps is None else dict(label_maps)
     unknown = set(given) - set(label_keys)
     if unknown:
         raise ValueError(f"label_maps: keys {sorted(unknown)} are not declared (label_keys="
                          f"{dict(label_keys)})")
     maps = {}
+    reference = "the cube's faces" if cube else "the images'"
     items = [("instances", instances, 0)] + [(k, given[k], label_keys[k]) for k in given]
     layout = "(B, 6, F, F)" if cube else "(B, H, W)"
     for key, ids, ignore in items:
@@ -87,6 +90,17 @@ def _label_maps(label_keys: Mapping[str, int], instances: Tensor | None,
                              f"stacked masks{stacked} are not taken: merge them into one id "
                              f"map, e.g. (masks * torch.arange(1, N + 1).view(N, 1, 1)).amax(-3)"
                              f" (where masks overlap the larger id wins)")
+        found = tuple(ids.shape[-2:])
+        if size is None:   # no image: the first map sets the size
+            size, reference = found, f"{key}'s"
+        elif found != tuple(size):
+            raise ValueError(f"{key}: {found[0]} x {found[1]} pixels per sample, expected "
+                             f"{size[0]} x {size[1]} ({reference}, every sample); a label map "
+                             f"is carried pixel for pixel with the image")
+        if key == "instances" and ids.numel() and bool((ids < 0).any()):
+            sample = int((ids < 0).flatten(1).any(-1).nonzero()[0, 0])
+            raise ValueError(f"instances: negative ids (sample {sample}, min "
+                             f"{int(ids[sample].min())}); instance ids are >= 0 (0: none)")
         maps[key] = (ids.to(torch.uint8) if ids.dtype == torch.bool else ids, ignore)
     return maps
 
@@ -116,12 +130,28 @@ def _render_label_maps(result: dict, maps: dict[str, tuple[Tensor, int]], render
 
 
 def _source_size(image: Tensor | None, labels: Tensor | None, depth: Tensor | None,
-                 maps: dict, channels_last: bool) -> tuple[int, int]:
-    """``(Hs, Ws)`` of a perspective batch."""
-    for t in (labels, depth, *(ids for ids, _ in maps.values())):
-        if t is not None:
+                 channels_last: bool) -> tuple[int, int] | None:
+    """``(Hs, Ws)`` of a perspective batch: its image's, labels' or depth's (the maps must
+    match it: `_label_maps`), None without any of them."""
+    if image is not None and isinstance(image, Tensor) and image.dim() >= 3:
+        return tuple(image.shape[1:3] if channels_last else image.shape[-2:])
+    for t in (labels, depth):
+        if isinstance(t, Tensor) and t.dim() >= 2:
             return tuple(t.shape[-2:])
-    return tuple(image.shape[1:3] if channels_last else image.shape[-2:])
+    return None
+
+
+def _warn_if_normalised(boxes: list[Tensor], size: tuple[int, int] | None) -> None:
+    """One warning where every box of the batch lies within [0, 1] on images of more than a
+    few pixels: boxes normalised to the image (YOLO's, albumentations' "albumentations"
+    format), which this package reads as pixel corners (a box 0.2 pixels wide)."""
+    if size is None or min(size) <= 4:
+        return
+    flat = torch.cat(boxes) if boxes else torch.zeros(0, 4)
+    if len(flat) and bool((flat >= 0).all()) and bool((flat <= 1).all()):
+        warnings.warn(f"boxes: every box lies within [0, 1] on images of {size[1]} x {size[0]} "
+                      f"pixels: normalised boxes? The boxes are XYXY pixel corner coordinates; "
+                      f"multiply by (W, H, W, H) first", UserWarning, stacklevel=4)
 
 
 def _float(dtype: torch.dtype) -> torch.dtype:
