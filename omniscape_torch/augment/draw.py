@@ -89,6 +89,25 @@ def _check_range(value, name: str, low: float = -math.inf, high: float = math.in
 
 
 
+def _target_camera(camera: object) -> Camera | None:
+    """The modules' `camera`: one `ot.Camera` (a batch shape of `()`), a calibration file that
+    `Camera.load` reads, or None."""
+    if camera is None:
+        return None
+    if isinstance(camera, (str, os.PathLike)):
+        camera = Camera.load(camera)
+    if isinstance(camera, tuple) and camera and isinstance(camera[0], Camera):
+        raise TypeError("camera: expected an ot.Camera, got a tuple (ot.presets.catadioptric "
+                        "returns (camera, rotation): pass its camera)")
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera: expected an ot.Camera or a calibration file's path, got "
+                        f"{type(camera).__name__}")
+    if len(camera.batch_shape) != 0:
+        raise ValueError(f"camera: expected one camera, got a batch "
+                         f"{tuple(camera.batch_shape)}")
+    return camera
+
+
 class _RandomCameras(nn.Module):
     """What :class:`RandomOmniCamera` and :class:`RandomReproject` share: the module's
     generator (its seeding across epochs and ``DataLoader`` workers), the fisheye lenses and
@@ -103,8 +122,19 @@ class _RandomCameras(nn.Module):
                  pitch_range: tuple[float, float], yaw_range: tuple[float, float], p: float,
                  same_on_batch: bool, interpolation: str, depth_output: str, ignore_index: int,
                  seed: int | None, channels_last: bool, out_dtype: torch.dtype | None,
-                 backend: str) -> None:
+                 backend: str, camera: object = None, focal_jitter: float = 0.0) -> None:
         super().__init__()
+        camera = _target_camera(camera)
+        if camera is not None:
+            if image_size is None:
+                image_size = camera.image_size
+            elif tuple(int(v) for v in image_size) != camera.image_size:
+                raise ValueError(f"image_size: {tuple(image_size)} differs from the camera's "
+                                 f"{camera.image_size} (pass image_size=None to take it)")
+        if (isinstance(focal_jitter, bool) or not isinstance(focal_jitter, (int, float))
+                or not 0 <= focal_jitter < 1):
+            raise ValueError(f"focal_jitter: expected a relative focal change in [0, 1), got "
+                             f"{focal_jitter!r}")
         try:
             h, w = (int(v) for v in image_size)
         except (TypeError, ValueError):
@@ -155,6 +185,8 @@ class _RandomCameras(nn.Module):
         self.channels_last = channels_last
         self.out_dtype = out_dtype
         self.backend = check_backend(backend)
+        self.camera = camera   # the fixed target camera, or None: a drawn lens
+        self.focal_jitter = float(focal_jitter)
         # what depends on the arguments above alone, made on first use (keyed by the values it
         # depends on): the lenses' tables, the framing's distances to the edges
         self._cached: dict[tuple, object] = {}
@@ -228,6 +260,7 @@ class _RandomCameras(nn.Module):
         # pickled before these existed: their defaults
         for key, default in (("_generator_key", None), ("channels_last", False),
                              ("out_dtype", None), ("label_keys", {}), ("backend", "auto"),
+                             ("focal_jitter", 0.0),
                              ("_cached", {}),
                              *_LENS_DEFAULTS.items()):
             state.setdefault(key, default)
@@ -245,7 +278,16 @@ class _RandomCameras(nn.Module):
             self.roll_range, self.p, getattr(self, "coverage_range", None),
             getattr(self, "mode", "fisheye"), getattr(self, "cata_fov_range", (0.0, 0.0)),
             getattr(self, "xi_range", (0.0, 0.0)), getattr(self, "blind_fov", None),
-            getattr(self, "looking", "down"), getattr(self, "catadioptric_prob", 0.0))
+            getattr(self, "looking", "down"), getattr(self, "catadioptric_prob", 0.0),
+            self._camera_spec(), getattr(self, "focal_jitter", 0.0))
+
+    def _camera_spec(self) -> tuple | None:
+        """The fixed target camera as `DrawSpec.camera` reads it, or None."""
+        camera = getattr(self, "camera", None)
+        if camera is None:
+            return None
+        fov = None if camera.fov is None else float(torch.as_tensor(camera.fov))
+        return (camera.model.name, tuple(camera.params.detach().double().tolist()), fov)
 
     def _draw_params(self, batch_size: int, generator: torch.Generator | None,
                      source: Tensor | None = None, source_size: tuple[int, int] | None = None

@@ -140,6 +140,18 @@ class RandomOmniCamera(_RandomCameras):
         label_keys: ``{key: ignore value}``: more label-like keys the dicts may hold (e.g.
             ``{"parts": 255}``), each carried as ``labels`` are (nearest, int64 ids of any
             range) with its own value outside the valid area (``docs/detection.md``).
+        backend: the kernels' route (``render.kernels``): ``"auto"`` (the C++ ops on the CPU
+            without gradients, else torch), ``"cpp"`` or ``"torch"``.
+        camera: a fixed target camera (an ``ot.Camera``, or a calibration file's path that
+            ``Camera.load`` reads, e.g. WoodScape's ``front.json``) instead of a drawn lens:
+            ``image_size`` may then be None (the camera's); ``focal_jitter`` and
+            ``center_jitter`` perturb its parameters, the attitude ranges its attitude; the
+            lens arguments and ``mode`` are not used. Without jitter (every range 0) its image
+            is ``OmniProjection(camera, face_size)``'s, to the float32 rounding of the grid
+            (the camera's rays come from its radius table here, within 0.005 texel).
+        focal_jitter: with ``camera``: its focal (``fx, fy``; the pixel polynomial of
+            ``woodscape`` and ``scaramuzza``) scaled by a factor drawn in
+            ``[1 - focal_jitter, 1 + focal_jitter]``.
 
     Shapes:
         cubemap ``(B, 6, C, F, F)`` (``channels_last``: ``(B, 6, F, F, C)``) floating or
@@ -155,7 +167,8 @@ class RandomOmniCamera(_RandomCameras):
         (torch.Size([2, 3, 32, 32]), torch.Size([2, 9]))
     """
 
-    def __init__(self, image_size: tuple[int, int], face_size: int, *, mode: str = "fisheye",
+    def __init__(self, image_size: tuple[int, int] | None, face_size: int, *,
+                 mode: str = "fisheye",
                  fisheye_models: Sequence[str] = ("equidistant",),
                  fov_range: tuple[float, float] = (160 * _DEG, 200 * _DEG),
                  kb_distortion: float = 0.02,
@@ -177,7 +190,8 @@ class RandomOmniCamera(_RandomCameras):
                  interpolation: str = "bilinear", depth_output: str = "range",
                  ignore_index: int = 255, seed: int | None = None,
                  channels_last: bool = False, out_dtype: torch.dtype | None = None,
-                 label_keys: Mapping[str, int] | None = None, backend: str = "auto") -> None:
+                 label_keys: Mapping[str, int] | None = None, backend: str = "auto",
+                 camera: object = None, focal_jitter: float = 0.0) -> None:
         super().__init__(
             image_size, fisheye_models=fisheye_models, fov_range=fov_range,
             kb_distortion=kb_distortion, unified_xi_range=unified_xi_range,
@@ -187,7 +201,7 @@ class RandomOmniCamera(_RandomCameras):
             roll_range=roll_range, pitch_range=pitch_range, yaw_range=yaw_range, p=p,
             same_on_batch=same_on_batch, interpolation=interpolation, depth_output=depth_output,
             ignore_index=ignore_index, seed=seed, channels_last=channels_last,
-            out_dtype=out_dtype, backend=backend)
+            out_dtype=out_dtype, backend=backend, camera=camera, focal_jitter=focal_jitter)
         if isinstance(face_size, bool) or not isinstance(face_size, int) or face_size < 1:
             raise ValueError(f"face_size: expected a positive int, got {face_size!r}")
         if mode not in MODES:
@@ -210,6 +224,8 @@ class RandomOmniCamera(_RandomCameras):
 
     def _check_ranges(self) -> None:
         """Fail at construction, not mid-training, if a range leaves a model's domain."""
+        if self.camera is not None:   # a fixed camera: no lens drawn
+            return
         if self.mode != "catadioptric":
             self._check_fisheye_ranges()
         if self.mode != "fisheye":

@@ -140,6 +140,19 @@ class RandomReproject(_Routes, _RandomCameras):
             ``valid`` are the same either way (nearest texel at the pixel centre, never
             blended). Not for ``interpolation="nearest"``. On by default (as in
             ``ot.reproject``): its cost is in ``docs/augmentation.md`` (Antialiasing).
+        backend: the kernels' route (``render.kernels``): ``"auto"`` (the C++ ops on the CPU
+            without gradients, else torch), ``"cpp"`` or ``"torch"``.
+        camera: a fixed target camera (an ``ot.Camera``, or a calibration file's path that
+            ``Camera.load`` reads, e.g. WoodScape's ``front.json``) instead of a drawn lens,
+            "make my perspective data look as if taken by this camera": ``image_size`` may
+            then be None (the camera's); ``focal_jitter`` and ``center_jitter`` perturb its
+            parameters, the attitude ranges its attitude; the lens arguments, ``coverage_range``
+            and ``focal_scale_range`` are not used. Without jitter (``roll_range``,
+            ``pitch_range``, ``yaw_range`` at ``(0, 0)``) its image is ``ot.reproject``'s into
+            that camera, bit for bit.
+        focal_jitter: with ``camera``: its focal (``fx, fy``; the pixel polynomial of
+            ``woodscape`` and ``scaramuzza``) scaled by a factor drawn in
+            ``[1 - focal_jitter, 1 + focal_jitter]``.
 
     Shapes:
         ``rgb (B, C, Hs, Ws)`` (``channels_last``: ``(B, Hs, Ws, C)``) floating or ``uint8``,
@@ -157,7 +170,7 @@ class RandomReproject(_Routes, _RandomCameras):
         (torch.Size([2, 3, 64, 64]), torch.Size([2, 64, 64]), torch.Size([2, 1, 64, 64]))
     """
 
-    def __init__(self, image_size: tuple[int, int], *, source_fov: float | None = None,
+    def __init__(self, image_size: tuple[int, int] | None, *, source_fov: float | None = None,
                  source_camera: Camera | None = None,
                  fisheye_models: Sequence[str] = ("equidistant",),
                  fov_range: tuple[float, float] = (160 * _DEG, 200 * _DEG),
@@ -178,7 +191,8 @@ class RandomReproject(_Routes, _RandomCameras):
                  ignore_index: int = 255, seed: int | None = None,
                  channels_last: bool = False, out_dtype: torch.dtype | None = None,
                  label_keys: Mapping[str, int] | None = None,
-                 antialias: bool = True, backend: str = "auto") -> None:
+                 antialias: bool = True, backend: str = "auto", camera: object = None,
+                 focal_jitter: float = 0.0) -> None:
         if focal_scale_range is not None and coverage_range is not None:
             raise ValueError("coverage_range: pass coverage_range or focal_scale_range, not both")
         if focal_scale_range is None and coverage_range is None:
@@ -197,7 +211,7 @@ class RandomReproject(_Routes, _RandomCameras):
             roll_range=roll_range, pitch_range=pitch_range, yaw_range=yaw_range, p=p,
             same_on_batch=same_on_batch, interpolation=interpolation, depth_output=depth_output,
             ignore_index=ignore_index, seed=seed, channels_last=channels_last,
-            out_dtype=out_dtype, backend=backend)
+            out_dtype=out_dtype, backend=backend, camera=camera, focal_jitter=focal_jitter)
         if source_fov is not None and not (isinstance(source_fov, (int, float)) and not
                                            isinstance(source_fov, bool) and
                                            0 < source_fov < math.pi):
@@ -221,7 +235,8 @@ class RandomReproject(_Routes, _RandomCameras):
         self.label_keys = _check_label_keys(label_keys)
         self.coverage_range = coverage_range
         self.antialias = antialias
-        self._check_fisheye_ranges()
+        if self.camera is None:
+            self._check_fisheye_ranges()
 
     def __setstate__(self, state: dict) -> None:
         state = dict(state)

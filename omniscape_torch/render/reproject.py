@@ -229,8 +229,8 @@ def sample_camera(image: Tensor, camera: Camera, rays: Tensor, *,
 def reproject(image: Tensor, src_camera: Camera | Tensor, dst_camera: Camera, *,
               rotation: Tensor | None = None, interpolation: str = "bilinear",
               labels: bool | None = None, ignore_index: int = IGNORE_INDEX,
-              out_dtype: torch.dtype | None = None, antialias: bool = True
-              ) -> tuple[Tensor, Tensor]:
+              out_dtype: torch.dtype | None = None, antialias: bool = True,
+              backend: str = "auto") -> tuple[Tensor, Tensor]:
     """Resample ``image`` taken by ``src_camera`` into ``dst_camera`` (same centre).
 
     ``out[b, :, v, u] = image[b]`` sampled at ``src.project(R @ dst.unproject(u, v))``.
@@ -260,6 +260,14 @@ def reproject(image: Tensor, src_camera: Camera | Tensor, dst_camera: Camera, *,
             more than one source pixel): mip lookups over each pixel's footprint
             (:func:`sample_camera`); False: one point sample per pixel. Pixels that do not
             minify are the same either way, bit for bit.
+        backend: ``"auto"`` (default): on the CPU without gradients, a pinhole source into a
+            radially symmetric destination (``kernels.camera.RADIAL``; nearest or bilinear)
+            takes the C++ path of ``RandomReproject``: the destination's rays from its radius
+            table (``kernels.camera.camera_rays``), the image sampled along them
+            (``kernels.image.sample_image``, then ``mip_image`` where it minifies), the same
+            kernels in the same order, so a ``RandomReproject`` with a fixed ``camera`` and no
+            jitter gives this image bit for bit; everything else (and ``"torch"``) the torch
+            path below; ``"cpp"`` the C++ path or an error.
 
     Returns:
         ``image (B, C, H_dst, W_dst)`` in ``out_dtype`` (labels: int64, ``(B, H_dst, W_dst)``
@@ -294,15 +302,23 @@ def reproject(image: Tensor, src_camera: Camera | Tensor, dst_camera: Camera, *,
         if len(dst_camera.batch_shape) == 1 and dst_camera.batch_shape[0] != n:
             raise ValueError(f"batch sizes disagree: src_camera {n}, dst_camera "
                              f"{dst_camera.batch_shape[0]}")
-    rays, valid_dst = dst_camera.ray_grid()  # [(B,) h, w, 3]
     if rotation is not None:
         cm.check_rotation(rotation)
         if rotation.dim() not in (2, 3):
             raise ValueError(f"rotation: expected (3, 3) or (B, 3, 3), got "
                              f"{tuple(rotation.shape)}")
-        if rotation.dim() == 3 and rays.dim() == 4 and len(rotation) != len(rays):
+        cams = dst_camera.batch_shape
+        if rotation.dim() == 3 and len(cams) == 1 and len(rotation) != cams[0]:
             raise ValueError(f"batch sizes disagree: rotation {len(rotation)}, dst_camera "
-                             f"{len(rays)}")
+                             f"{cams[0]}")
+    _image_dtype(image, labels, out_dtype)   # (both paths: checked once here)
+    fast = _fast_path(image, labels, src_camera, dst_camera, rotation, interpolation,
+                      antialias, backend)
+    if fast is not None:
+        return _reproject_fast(image, labels, src_camera, dst_camera, rotation, interpolation,
+                               ignore_index, out_dtype, antialias, *fast)
+    rays, valid_dst = dst_camera.ray_grid()  # [(B,) h, w, 3]
+    if rotation is not None:
         rot = rotation.to(rays.dtype)
         rays = (torch.einsum("ij,...hwj->...hwi", rot, rays) if rot.dim() == 2
                 else torch.einsum("bij,bhwj->bhwi", rot, rays.expand(len(rot), *rays.shape[-3:])))
@@ -356,3 +372,83 @@ def equirect_to_cubemap(panorama: Tensor, face_size: int, *, interpolation: str 
         return values.reshape(-1, 6, face_size, face_size)
     return values.reshape(values.shape[0], values.shape[1], 6, face_size, face_size) \
         .transpose(1, 2)
+
+
+def _fast_path(image: Tensor, labels: bool, src: Camera, dst: Camera, rotation: Tensor | None,
+               interpolation: str, antialias: bool, backend: str
+               ) -> tuple[torch.dtype, str] | None:
+    """`reproject`'s C++ case (its `backend` docstring): `(the rays' dtype, the dst model)`, or
+    None for the torch path (`"cpp"` where it is not the case: an error)."""
+    from .kernels import resolve
+    from .kernels.camera import RADIAL
+    from .kernels.cube import BLENDED, work_dtype
+    from .kernels.image import MIPMAPPED
+    route = resolve(backend, image, src.params, dst.params, rotation, what="reproject")
+    if route != "cpp":
+        return None
+    model = dst.model.name
+    dtype = torch.float64 if image.dtype == torch.float64 else torch.float32
+    blended = labels or (image.dtype in BLENDED and (
+        not antialias or interpolation == "nearest" or image.dtype in MIPMAPPED))
+    unified_lens = model == "unified" and bool(dst.params.detach()[..., 7:9].ne(0).any())
+    case = (src.model.name == "pinhole" and src.fov is None and src.blind_fov is None
+            and model in RADIAL and not unified_lens and len(dst.batch_shape) <= 1
+            and len(src.batch_shape) <= 1 and interpolation in ("nearest", "bilinear")
+            and blended and (labels or work_dtype(image.dtype) == dtype))
+    if case:
+        return dtype, model
+    if backend == "cpp":
+        raise ValueError("backend: 'cpp' reprojects a pinhole source into a radially "
+                         f"symmetric camera ({', '.join(RADIAL)}), nearest or bilinear; got "
+                         f"{src.model.name} -> {model}, {interpolation}")
+    return None
+
+
+def _reproject_fast(image: Tensor, labels: bool, src: Camera, dst: Camera,
+                    rotation: Tensor | None, interpolation: str, ignore_index: int,
+                    out_dtype: torch.dtype | None, antialias: bool, dtype: torch.dtype,
+                    model: str) -> tuple[Tensor, Tensor]:
+    """`reproject`'s C++ path (`_fast_path`): the kernels `RandomReproject` runs op by op."""
+    from .kernels import camera as kcamera
+    from .kernels import image as kimage
+    from .kernels.cube import output_dtypes
+    squeeze = labels and image.dim() == 3
+    work = image.unsqueeze(1) if squeeze else image
+    if work.dim() != 4:
+        raise ValueError(f"image: expected (B, C, H, W) (labels: (B, H, W)), got "
+                         f"{tuple(image.shape)}")
+    if tuple(work.shape[-2:]) != src.image_size:
+        raise ValueError(f"image: size {tuple(work.shape[-2:])} does not match the camera's "
+                         f"image_size {src.image_size}")
+    # (in the rays' dtype, as RandomReproject hands its cameras to the same kernels)
+    params = dst.params.detach().reshape(-1, dst.params.shape[-1]).to(dtype)
+    fov = None if dst.fov is None else torch.as_tensor(dst.fov).reshape(-1).expand(len(params))
+    rays, valid = kcamera.camera_rays(model, params, dst.image_size, fov=fov, dtype=dtype,
+                                      backend="cpp")
+    if dst.blind_fov is not None:   # the central blind cone of the destination
+        cos = torch.cos(0.5 * torch.as_tensor(dst.blind_fov, dtype=torch.float64))
+        valid = valid & (rays[..., 2] < cos.reshape(-1, 1, 1).to(rays.dtype))
+    k = src.params.detach().reshape(-1, 4).to(dtype)
+    rot = None if rotation is None else rotation.detach().reshape(-1, 3, 3).to(dtype)
+    batch = max(len(work), len(rays), len(k), 1 if rot is None else len(rot))
+    if len(work) not in (1, batch):
+        raise ValueError(f"batch sizes disagree: image {len(work)}, cameras {batch}")
+    work = work.expand(batch, *work.shape[1:])
+    if labels:
+        wide = work.dtype in (torch.uint8, torch.int64)
+        ids, seen = kimage.sample_image(work, rays, rot, k, "nearest", valid=valid,
+                                        fill=ignore_index if wide else 0,
+                                        out_dtype=torch.int64 if wide else None)
+        ids = ids.long()
+        if not wide:
+            ids = torch.where(seen.unsqueeze(1), ids, torch.full_like(ids, ignore_index))
+        mask = seen.unsqueeze(1)
+        return (ids[:, 0] if squeeze else ids), mask
+    out_dtype = check_out_dtype(image.dtype, out_dtype)
+    written = output_dtypes(image.dtype, interpolation)   # by the kernels, in the same pass
+    kernel_dtype = out_dtype if out_dtype in written else written[-1]
+    values, seen = kimage.sample_image(work, rays, rot, k, interpolation, valid=valid,
+                                       out_dtype=kernel_dtype)
+    if antialias and interpolation == "bilinear":
+        kimage.mip_image(work, rays, rot, k, seen, values)
+    return values.to(out_dtype), seen.unsqueeze(1)

@@ -73,6 +73,10 @@ class DrawSpec:
     `lens_ranges`: per fisheye model with lens parameters, their `(min, max)` ranges in the
     order of `CameraModel.fisheye_draw.ranges`. `coverage_range`: framing to a pinhole source
     (`RandomReproject`); None: the image circle inscribed, times `focal_scale_range`.
+    `camera`: a fixed target camera `(model, params, fov or None)` (the modules' `camera`):
+    every sample is that camera, its focal scaled by `1 + focal_jitter (2 u - 1)` (`u`: the
+    `scale` row) and its centre moved by the `jitter` rows, the attitude drawn as for the
+    others; no lens is drawn and no framing applied.
     """
 
     image_size: tuple[int, int]
@@ -93,6 +97,8 @@ class DrawSpec:
     blind_fov: float | None = None
     looking: str = "down"
     catadioptric_prob: float = 0.0
+    camera: tuple[str, tuple[float, ...], float | None] | None = None
+    focal_jitter: float = 0.0
 
 
 def unit_radius(model: str, extra: Tensor, theta: Tensor) -> tuple[Tensor, Tensor]:
@@ -283,6 +289,44 @@ def _draw_one_lens(spec: DrawSpec, ops, u: Tensor, n: int, source: Tensor,
             "coverage": coverage}
 
 
+def scaled_params(model: str) -> tuple[int, ...]:
+    """The parameters of `model` that scale with the image (a focal jitter): `fx, fy`, or the
+    polynomial in pixels of `woodscape` (`k1..k4`) and `scaramuzza` (`a0..`: its image
+    radius); `()` where there are none."""
+    names = get_model(model).param_names
+    focal = tuple(i for i, n in enumerate(names) if n in ("fx", "fy"))
+    if focal or model not in ("woodscape", "scaramuzza"):
+        return focal
+    return tuple(i for i, n in enumerate(names) if n[0] in "ka" and n[1:].isdigit())
+
+
+def _fixed_camera(spec: DrawSpec, u: np.ndarray, n: int) -> dict:
+    """`draw_cameras` of a fixed target camera (`DrawSpec.camera`): its parameters per sample
+    with the focal and centre jitter, its field of view (or its model's reach)."""
+    name, base, fov = spec.camera
+    p = len(base)
+    rows = np.tile(np.asarray(base, dtype=np.float64), (n, 1))
+    if spec.focal_jitter:
+        scale = 1 + spec.focal_jitter * (2 * _rows(u, n, "scale")[:, 0] - 1)
+        index = list(scaled_params(name))
+        rows[:, index] *= scale[:, None]
+    if spec.center_jitter:   # the camera's own centre, moved
+        names = get_model(name).param_names
+        jitter = (2 * _rows(u, n, "jitter") - 1) * spec.center_jitter
+        rows[:, [names.index("cx"), names.index("cy")]] += jitter
+    if fov is None:
+        reach = get_model(name).max_angle(torch.from_numpy(rows)).numpy()
+        fovs = np.minimum(2 * reach, 2 * np.pi)
+    else:
+        fovs = np.full(n, float(fov))
+    params = np.zeros((n, max(MAX_PARAMS, p)))
+    params[:, :p] = rows
+    return {"camera_params": torch.from_numpy(params),
+            "num_params": torch.full((n,), p, dtype=torch.int64),
+            "fov": torch.from_numpy(fovs), "blind_fov": torch.zeros(n, dtype=torch.float64),
+            "model": (name,) * n}
+
+
 def draw_cameras(spec: DrawSpec, u: Tensor, n: int, *, source: Tensor | None = None,
                  source_size: tuple[int, int] | None = None, cache: dict | None = None,
                  backend: str = "auto") -> dict:
@@ -314,7 +358,8 @@ def draw_cameras(spec: DrawSpec, u: Tensor, n: int, *, source: Tensor | None = N
         raise ValueError(f"source: expected (n, 4) = ({n}, 4) intrinsics with source_size, got "
                          f"{tuple(source.shape)} and {source_size}")
     cache = {} if cache is None else cache
-    one_table = (framed and spec.mode == "fisheye" and len(spec.fisheye_models) == 1
+    one_table = (framed and spec.camera is None and spec.mode == "fisheye"
+                 and len(spec.fisheye_models) == 1
                  and unit_lens(spec.fisheye_models[0], spec.fov_range[1], spec.image_size,
                                cache) is not None)
     ops = choose(backend, u, what="draw_cameras") if one_table else None
@@ -336,6 +381,12 @@ def draw_cameras(spec: DrawSpec, u: Tensor, n: int, *, source: Tensor | None = N
     rotation = np.stack([entry for row in rotation_rows(
         cos[0], sin[0], cos[1], sin[1], cos[2], sin[2]) for entry in row], -1).reshape(n, 3, 3)
     centre = np.broadcast_to(_centres(spec, u, n, cache), (n, 2))
+    if spec.camera is not None:
+        out = _fixed_camera(spec, u, n)
+        out.update({key: torch.from_numpy(np.ascontiguousarray(value)) for key, value in (
+            ("yaw", yaw), ("pitch", pitch), ("roll", roll), ("applied", applied),
+            ("rotation", rotation))})
+        return out
 
     # catadioptric or fisheye; the same uniform picks the fisheye model, rescaled to [0, 1)
     # on the fisheye branch
