@@ -13,6 +13,7 @@ import torch
 from torch import Tensor, nn
 
 from ..cameras import Camera
+from ..cameras.camera import _check_image_size
 from ..cameras.registry import get_model
 from ..render import detection
 from ..render.kernels import draw as kdraw
@@ -135,10 +136,7 @@ class _RandomCameras(nn.Module):
                 or not 0 <= focal_jitter < 1):
             raise ValueError(f"focal_jitter: expected a relative focal change in [0, 1), got "
                              f"{focal_jitter!r}")
-        try:
-            h, w = (int(v) for v in image_size)
-        except (TypeError, ValueError):
-            raise ValueError(f"image_size: expected (H, W), got {image_size!r}") from None
+        h, w = _check_image_size(image_size)
         if min(h, w) < 2:
             raise ValueError(f"image_size: needs at least 2 x 2 pixels, got {(h, w)}")
         if isinstance(fisheye_models, str):

@@ -32,10 +32,11 @@ from .targets import (
     _grid_rows,
     _label_maps,
     _plain,
+    _reference,
     _render_label_maps,
     _runs,
-    _target_keys,
     _targets,
+    _unpack,
 )
 
 
@@ -454,20 +455,9 @@ class RandomOmniCamera(_RandomCameras):
             cubemap, labels, depth, params, batch_dims=_CUBE_DIMS, owner=self)
         targets = _targets(cubemap, self.label_keys, cube=True)
         if isinstance(cubemap, dict):
-            accepted = {"rgb", "labels", "depth"} | _target_keys(self.label_keys)
-            unknown = set(cubemap) - accepted
-            if unknown:
-                raise ValueError(f"cubemap: unknown keys {sorted(unknown)}; the keys taken are "
-                                 f"{sorted(accepted - {'boxes'})} (declare more label maps "
-                                 f"with label_keys)")
-            labels = cubemap.get("labels", labels)
-            depth = cubemap.get("depth", depth)
-            cubemap = cubemap.get("rgb")
-        given = {"rgb": cubemap, "labels": labels, "depth": depth}
-        ref = next((t for t in (*given.values(), *targets.get("label_maps", {}).values(),
-                                targets.get("instances")) if t is not None), None)
-        if ref is None:
-            raise ValueError("forward: pass at least one of cubemap, labels, depth, instances")
+            cubemap, labels, depth = _unpack(cubemap, "cubemap", ("rgb", "labels", "depth"),
+                                             self.label_keys, (None, labels, depth), cube=True)
+        ref = _reference((cubemap, labels, depth), targets, "cubemap")
         if params is None:
             params = self.forward_parameters(ref.shape[0], generator=generator)
         out = self.render(cubemap, params, labels=labels, depth=depth, **targets)

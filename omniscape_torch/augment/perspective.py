@@ -37,12 +37,13 @@ from .targets import (
     _Part,
     _plain,
     _recorded_camera,
+    _reference,
     _render_label_maps,
     _rows,
     _source_size,
-    _warn_if_normalised,
-    _target_keys,
     _targets,
+    _unpack,
+    _warn_if_normalised,
 )
 
 
@@ -628,23 +629,10 @@ class RandomReproject(_Routes, _RandomCameras):
             image, labels, depth, params, batch_dims=_IMAGE_DIMS, owner=self)
         targets = _targets(image, self.label_keys, cube=False)
         if isinstance(image, dict):
-            accepted = ({"rgb", "labels", "depth", "intrinsics", "source_camera"}
-                        | _target_keys(self.label_keys))
-            unknown = set(image) - accepted
-            if unknown:
-                raise ValueError(f"image: unknown keys {sorted(unknown)}; the keys taken are "
-                                 f"{sorted(accepted)} (declare more label maps with "
-                                 f"label_keys)")
-            labels = image.get("labels", labels)
-            depth = image.get("depth", depth)
-            intrinsics = image.get("intrinsics", intrinsics)
-            source_camera = image.get("source_camera", source_camera)
-            image = image.get("rgb")
-        given = {"rgb": image, "labels": labels, "depth": depth}
-        ref = next((t for t in (*given.values(), *targets.get("label_maps", {}).values(),
-                                targets.get("instances")) if t is not None), None)
-        if ref is None:
-            raise ValueError("forward: pass at least one of image, labels, depth, instances")
+            image, labels, depth, intrinsics, source_camera = _unpack(
+                image, "image", ("rgb", "labels", "depth", "intrinsics", "source_camera"),
+                self.label_keys, (None, labels, depth, intrinsics, source_camera), cube=False)
+        ref = _reference((image, labels, depth), targets, "image")
         drawn = None
         if params is None:
             params, drawn = self._draw(ref, image is None or ref is not image, intrinsics,

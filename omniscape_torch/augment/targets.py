@@ -57,6 +57,28 @@ def _targets(inputs: object, label_keys: Mapping[str, int], cube: bool) -> dict:
     return out
 
 
+def _unpack(inputs: dict, name: str, keys: tuple[str, ...], label_keys: Mapping[str, int],
+            defaults: tuple, cube: bool) -> tuple:
+    """The values of a forward's dict for ``keys`` (each else its default), refusing the keys
+    neither those, the detection keys nor the declared label keys (listing the ones taken)."""
+    accepted = set(keys) | _target_keys(label_keys)
+    unknown = set(inputs) - accepted
+    if unknown:
+        taken = sorted(accepted - {"boxes"} if cube else accepted)
+        raise ValueError(f"{name}: unknown keys {sorted(unknown)}; the keys taken are {taken} "
+                         f"(declare more label maps with label_keys)")
+    return tuple(inputs.get(key, default) for key, default in zip(keys, defaults))
+
+
+def _reference(given: tuple, targets: dict, name: str) -> Tensor:
+    """The first input of a forward (its batch and size), a ValueError where there is none."""
+    maps = targets.get("label_maps", {}).values()
+    ref = next((t for t in (*given, *maps, targets.get("instances")) if t is not None), None)
+    if ref is None:
+        raise ValueError(f"forward: pass at least one of {name}, labels, depth, instances")
+    return ref
+
+
 def _label_maps(label_keys: Mapping[str, int], instances: Tensor | None,
                 label_maps: Mapping[str, Tensor] | None, cube: bool,
                 size: tuple[int, int] | None = None) -> dict[str, tuple[Tensor, int]]:

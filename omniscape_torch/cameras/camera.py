@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import operator
 from pathlib import Path
 from typing import Sequence
 
@@ -370,14 +371,21 @@ def load_all(path, format: str | None = None, *, image_size: tuple[int, int] | N
 
 
 def _check_image_size(image_size) -> tuple[int, int]:
+    """`(H, W)` as two positive ints (any integral numbers: NumPy's, a 0-d tensor's)."""
     try:
         h, w = image_size
     except (TypeError, ValueError):
         raise ValueError(f"image_size: expected (H, W), got {image_size!r}") from None
+    out = []
     for name, value in (("H", h), ("W", w)):
-        if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+        try:
+            number = operator.index(value) if not isinstance(value, bool) else 0
+        except TypeError:
+            number = 0
+        if number <= 0:
             raise ValueError(f"image_size: {name} must be a positive int, got {value!r}")
-    return int(h), int(w)
+        out.append(number)
+    return out[0], out[1]
 
 
 def _check_fov(fov, name: str = "fov") -> float | None:

@@ -22,6 +22,7 @@ import torch
 from torch import Tensor
 
 from ...cameras import Camera
+from ...cameras.camera import _check_image_size
 from ...cameras.radial import (kannala_brandt_angles, kannala_brandt_tabulate,
                                kannala_brandt_unproject_table_xyz)
 from ...cameras.registry import MODELS, get_model
@@ -268,12 +269,7 @@ def camera_grid(model: str, params: Tensor, image_size: tuple[int, int], face_si
                          f"{getattr(params, 'shape', type(params).__name__)}")
     batch = params.shape[0]
     kw = dict(dtype=params.dtype, device=params.device)
-    try:
-        h, w = (int(s) for s in image_size)
-    except (TypeError, ValueError):
-        raise ValueError(f"image_size: expected (H, W), got {image_size!r}") from None
-    if min(h, w) < 1:
-        raise ValueError(f"image_size: expected positive sizes, got {(h, w)}")
+    h, w = _check_image_size(image_size)
     _check_face_size(face_size)
     _check_pad(pad)
     dtype = params.dtype if dtype is None else dtype
