@@ -92,3 +92,17 @@ def test_reproject_refuses_labels_of_another_size_than_their_camera():
                                          r"image_size \(48, 64\)"):
         ot.reproject(labels, ot.Camera("pinhole", K, (48, 64)),
                      ot.presets.fisheye((32, 32)), labels=True)
+
+
+def test_an_unbatched_cube_of_the_wrong_size_is_reported_as_passed():
+    aug = RandomOmniCamera((16, 16), 8, seed=0)
+    with pytest.raises(ValueError, match=r"expected shape \(6, C, F, F\) or \(B, 6, C, F, F\) "
+                                         r".*got \(6, 3, 4, 4\)"):
+        aug(torch.rand(6, 3, 4, 4))
+
+
+def test_a_panorama_that_is_not_2_to_1_is_refused():
+    with pytest.raises(ValueError, match=r"panorama: expected a full equirectangular panorama, "
+                                         r"W = 2 H .* 300 x 300"):
+        ot.equirect_to_cubemap(torch.rand(1, 3, 300, 300), 16)
+    assert ot.equirect_to_cubemap(torch.rand(1, 3, 16, 32), 8).shape == (1, 6, 3, 8, 8)

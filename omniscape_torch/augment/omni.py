@@ -395,10 +395,11 @@ class RandomOmniCamera(_RandomCameras):
         result["params"] = params
         return result
 
-    def _check_cubemap(self, cubemap: object) -> torch.dtype | None:
+    def _check_cubemap(self, cubemap: object, unbatched: bool = False) -> torch.dtype | None:
         """The dtype of the ``rgb`` image of ``cubemap`` (None without one). Raises for a cube
         not laid out as ``channels_last`` says (naming the flag that fits), or of a dtype the
-        layer refuses."""
+        layer refuses. ``unbatched``: ``forward`` was given one sample, batched since: the
+        message shows the shape as passed."""
         if cubemap is None:
             return None
         if not isinstance(cubemap, Tensor):
@@ -409,17 +410,18 @@ class RandomOmniCamera(_RandomCameras):
         f = self.face_size
         layout = "(B, 6, F, F, C)" if self.channels_last else "(B, 6, C, F, F)"
         face_dims = (2, 3) if self.channels_last else (3, 4)
-        if cubemap.dim() != 5 or cubemap.shape[1] != 6 or \
-                tuple(cubemap.shape[d] for d in face_dims) != (f, f):
+        shape = tuple(cubemap.shape)
+        if (len(shape) != 5 or shape[1] != 6
+                or tuple(shape[d] for d in face_dims) != (f, f)):
             other = (3, 4) if self.channels_last else (2, 3)   # the other layout's face dims
             hint = ""
-            if cubemap.dim() == 5 and cubemap.shape[1] == 6 and \
-                    tuple(cubemap.shape[d] for d in other) == (f, f):
+            if len(shape) == 5 and shape[1] == 6 and tuple(shape[d] for d in other) == (f, f):
                 hint = (f"; it looks {'channels-first' if self.channels_last else 'channels-last'}"
                         f": construct with channels_last={not self.channels_last}")
+            if unbatched:   # the shape as passed: one sample, (6, C, F, F)
+                layout, shape = "(6, C, F, F) or " + layout, shape[1:]
             raise ValueError(f"cubemap: expected shape {layout} with F = face_size = {f} "
-                             f"(channels_last={self.channels_last}), got "
-                             f"{tuple(cubemap.shape)}{hint}")
+                             f"(channels_last={self.channels_last}), got {shape}{hint}")
         return check_out_dtype(cubemap.dtype, self.out_dtype)   # the layer checks for ids
 
     def forward(self, cubemap: Tensor | dict | None, labels: Tensor | None = None,
@@ -458,6 +460,8 @@ class RandomOmniCamera(_RandomCameras):
             cubemap, labels, depth = _unpack(cubemap, "cubemap", ("rgb", "labels", "depth"),
                                              self.label_keys, (None, labels, depth), cube=True)
         ref = _reference((cubemap, labels, depth), targets, "cubemap")
+        if wrapping.unbatched:   # checked here, where the shape passed is known
+            self._check_cubemap(cubemap, unbatched=True)
         if params is None:
             params = self.forward_parameters(ref.shape[0], generator=generator)
         out = self.render(cubemap, params, labels=labels, depth=depth, **targets)

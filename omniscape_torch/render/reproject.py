@@ -362,7 +362,14 @@ def equirect_to_cubemap(panorama: Tensor, face_size: int, *, interpolation: str 
     """
     if not isinstance(face_size, int) or isinstance(face_size, bool) or face_size < 1:
         raise ValueError(f"face_size: expected a positive int, got {face_size!r}")
+    if not isinstance(panorama, Tensor) or panorama.dim() < 3:
+        raise ValueError(f"panorama: expected (B, C, H, W) (labels: (B, H, W)), got "
+                         f"{tuple(getattr(panorama, 'shape', ())) or type(panorama).__name__}")
     height, width = panorama.shape[-2:]
+    if width != 2 * height:
+        raise ValueError(f"panorama: expected a full equirectangular panorama, W = 2 H (360 x "
+                         f"180 degrees), got H x W = {height} x {width}; for part of the "
+                         f"sphere, reproject from its camera with ot.reproject")
     camera = equirectangular_camera(width, height, dtype=torch.float64).to(panorama.device)
     rays = cm.face_rays(face_size, dtype=torch.float64, device=panorama.device, normalize=True)
     values, _ = sample_camera(panorama, camera, rays.reshape(6 * face_size, face_size, 3),
@@ -370,8 +377,8 @@ def equirect_to_cubemap(panorama: Tensor, face_size: int, *, interpolation: str 
                               ignore_index=ignore_index, out_dtype=out_dtype, antialias=False)
     if values.dim() == 3:  # labels (B, 6F, F)
         return values.reshape(-1, 6, face_size, face_size)
-    return values.reshape(values.shape[0], values.shape[1], 6, face_size, face_size) \
-        .transpose(1, 2)
+    faces = values.reshape(values.shape[0], values.shape[1], 6, face_size, face_size)
+    return faces.transpose(1, 2)
 
 
 def _fast_path(image: Tensor, labels: bool, src: Camera, dst: Camera, rotation: Tensor | None,
