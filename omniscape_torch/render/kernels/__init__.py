@@ -13,13 +13,15 @@ never ask whether the C++ ops exist.
 - `camera`: pixel centres -> rays -> atlas grid of whole cameras (`camera_grid`,
   `camera_rays`, `radial_table`).
 - `framing`: the focal at which a perspective source fills a share of a fisheye.
+- `town`: the built-in town's shading (`omniscape_torch.scenes.Town`): back faces, shading
+  with shadow rays, storing a cube face's rays.
 
 On a GPU (or any device but the CPU) every function takes its torch route: the C++ ops are
 CPU-only and forward-only.
 """
 
-from . import build, camera, framing, sample
+from . import build, camera, framing, sample, town
 from ._backend import BACKENDS, available, check_backend, choose
 
 __all__ = ["BACKENDS", "available", "build", "camera", "check_backend", "choose", "framing",
-           "sample"]
+           "sample", "town"]
