@@ -75,10 +75,9 @@ from ..cubemap.faces import face_axes, face_pixel_to_ray, face_rays
 from ..render.kernels import check_backend
 from ..render.kernels import town as _kernels
 from ..render.kernels.town import BOX as _BOX, CYLINDER as _CYLINDER, GROUND as _GROUND
-from ..render.kernels.town import SHADOW_BIAS, SHADOW_BIAS_PER_M, SPHERE as _SPHERE
+from ..render.kernels.town import SPHERE as _SPHERE
 from . import mesh as _mesh
-from .layout import (CLASS_IDS, CROSSING_BAND, LANE_EDGE, LAYOUTS, LINE_HALF, ROAD_HALF,
-                     SIDEWALK_HALF, Street, layout_streets, place_objects)
+from .layout import CLASS_IDS, LAYOUTS, Street, layout_streets, place_objects
 from .weather import (CARLA_PRESETS, CARLA_WEATHERS, WEATHERS, Weather, _get_weather,
                       _kernel_weather, carla_weather)
 
