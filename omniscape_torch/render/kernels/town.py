@@ -27,7 +27,7 @@ Layouts (shared with the C++ loops, which name them in enums of the same order):
   outward face normal, class id, part kind, albedo, road paint, a box's centre, the index in
   its kind, smooth normals);
 - `tris (T, 3)` int32 corners and `vn (V, 3)` float32 vertex normals; `lamps (L, 3)` float32;
-- `weather (len(WEATHER), )` float32: the entries `WEATHER` (`weather_vector`).
+- `weather (len(WEATHER),)` float32: the entries `WEATHER` (`weather_vector`).
 
 The schemas are defined here (the C++ source only implements them for the CPU), so that each
 op's schema, fake implementation (for `torch.compile`) and wrapper live together.
@@ -54,7 +54,7 @@ _C = {name: i for i, name in enumerate(CLASSES)}
 #: The rows of the triangles' attribute table ``attr`` (``A_*`` in the C++ source).
 ATTRIBUTES = ("nx", "ny", "nz", "label", "kind", "r", "g", "b", "paint", "off", "cx", "cy",
               "index", "smooth")
-#: The entries of the weather vector (``W_*`` in the C++ source): :func:`weather_vector`.
+#: The entries of the weather vector (``W_*`` in the C++ source): `weather_vector`.
 WEATHER = ("sun_x", "sun_y", "sun_z", "sun_r", "sun_g", "sun_b", "ambient_r", "ambient_g",
            "ambient_b", "zenith_r", "zenith_g", "zenith_b", "horizon_r", "horizon_g",
            "horizon_b", "fog_r", "fog_g", "fog_b", "fog_per_256", "lamps", "windows", "puddles",
@@ -98,9 +98,14 @@ def weather_vector(*, sun_direction, sun_colour, ambient, sky_zenith, sky_horizo
 
     Args:
         sun_direction: unit vector towards the sun (world frame, y down).
-        sun_colour, ambient, sky_zenith, sky_horizon, fog_colour: linear RGB triples.
+        sun_colour: the sun's linear RGB.
+        ambient: the ambient light's linear RGB.
+        sky_zenith: the sky's linear RGB straight up.
+        sky_horizon: the sky's linear RGB at the horizon.
+        fog_colour: the fog's linear RGB.
         fog_density: per metre (the fog weight is about ``1 - exp(-fog_density * range)``).
-        lamps: street-lamp intensity (0: off); windows: emission of lit windows (0: none).
+        lamps: street-lamp intensity (0: off).
+        windows: emission of lit windows (0: none).
         wetness: 0..1, the share of the road and sidewalk that puddles (mirroring the sky)
             cover.
         darken: the albedo factor of wet surfaces (1: dry).
@@ -174,7 +179,7 @@ def _fake_town_store(d, index, start, rgb, range_, labels, hit, axis, far, rgb_o
 
 
 #: The ops' fake implementations (for ``torch.compile``), registered with their schemas.
-FAKES = {"town_backfaces": _fake_town_backfaces, "town_prepare": _fake_town_prepare,
+_FAKES = {"town_backfaces": _fake_town_backfaces, "town_prepare": _fake_town_prepare,
          "town_shade": _fake_town_shade, "town_store": _fake_town_store}
 
 
@@ -184,7 +189,7 @@ def _define() -> torch.library.Library:
     lib = torch.library.Library(build.NAMESPACE, "FRAGMENT")
     for name, schema in OPS.items():
         lib.define(name + schema)
-        torch.library.register_fake(f"{build.NAMESPACE}::{name}", FAKES[name], lib=lib)
+        torch.library.register_fake(f"{build.NAMESPACE}::{name}", _FAKES[name], lib=lib)
     return lib
 
 
@@ -282,7 +287,8 @@ def shade(o: Tensor, d: Tensor, t: Tensor, tri: Tensor, u: Tensor, v: Tensor,
         d: ``(n, 3)`` float32 unit directions.
         t: ``(n,)`` float32 range of each hit (any value where none).
         tri: ``(n,)`` int64 triangle hit, -1 for none.
-        u, v: ``(n,)`` float32 barycentric coordinates of the hits.
+        u: ``(n,)`` float32 first barycentric coordinate of the hits.
+        v: ``(n,)`` float32 second barycentric coordinate of the hits.
         tables: the town's `TownTables`.
         weather: ``(len(WEATHER),)`` float32, `weather_vector`.
         occluded: ``occluded(origins (m, 3), directions (m, 3)) -> (m,)`` bool, float32 numpy
@@ -548,8 +554,11 @@ def store(d: Tensor, index: Tensor | None, start: int, shaded: dict[str, Tensor]
         shaded: `shade`'s ``rgb (n, 3)``, ``range``, ``labels`` and ``hit (n,)`` of the rays.
         axis: ``(3,)`` float32 the face's axis (world frame).
         far: planar depth of the sky, metres.
-        rgb_out: ``(3, P)`` float32; depth_out, range_out: ``(P,)`` float32; labels_out:
-            ``(P,)`` int64: the face's planes (contiguous where ``backend`` is ``"cpp"``).
+        rgb_out: ``(3, P)`` float32, the face's RGB planes (the four planes contiguous where
+            ``backend`` is ``"cpp"``).
+        depth_out: ``(P,)`` float32, its planar depth.
+        range_out: ``(P,)`` float32, its range.
+        labels_out: ``(P,)`` int64, its labels.
         backend: ``"auto"``, ``"cpp"`` or ``"torch"`` (module docstring).
     """
     n = _expect("d", d, torch.float32, (-1, 3)).shape[0]
@@ -579,5 +588,9 @@ def store(d: Tensor, index: Tensor | None, start: int, shaded: dict[str, Tensor]
         rgb_out[:, at] = rgb.T
         depth_out[at], range_out[at], labels_out[at] = depth, rng, labels
         return
+    for name, x in zip(("rgb_out", "depth_out", "range_out", "labels_out"), outs):
+        if not x.is_contiguous():
+            raise ValueError(f"{name}: backend='cpp' writes contiguous planes only, got strides "
+                             f"{x.stride()}")
     ops.town_store(d.contiguous(), None if index is None else index.contiguous(), start,
                    *(x.contiguous() for x in (rgb, rng, labels, hit, axis)), far, *outs)
