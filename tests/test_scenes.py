@@ -14,9 +14,11 @@ import torch
 
 from omniscape_torch.cubemap import FACES
 from omniscape_torch.cubemap.faces import face_pixel_to_ray, face_rays
+from omniscape_torch.render import kernels
+from omniscape_torch.render.kernels import town as town_kernels
 from omniscape_torch.scenes import CLASS_IDS, WEATHERS, Town, mesh, routes
-from omniscape_torch.scenes import town as town_module
-from omniscape_torch.scenes.town import CARLA_WEATHERS, LAYOUTS, _get_weather, edge_texels
+from omniscape_torch.scenes.town import CARLA_WEATHERS, LAYOUTS, edge_texels
+from omniscape_torch.scenes.weather import _get_weather, _kernel_weather
 
 POSE = torch.tensor([0.0, -1.2, 0.0])  # on the centre line, eye height, looking north
 
@@ -255,26 +257,69 @@ def test_shadows_where_a_ray_to_the_sun_meets_something(town):
 
 # -------------------------------------------------------------------- the C shading
 
+def _needs_cpp():
+    if not kernels.available():
+        pytest.skip("no C++ compiler: the town shades with its torch twins")
+
+
 @pytest.mark.parametrize("weather", ["clear_noon", "night", "wet_cloudy_sunset"])
-def test_c_shading_matches_the_torch_reference(town, weather):
-    """The C loops and the torch reference give the same labels, ranges and hits, and colours
-    and normals within a few float32 roundings (torch's sqrt is not correctly rounded on
-    every CPU: one unit in the last place, here and there)."""
-    if town_module._ops() is None:
-        pytest.skip("no C++ compiler: the town shades with the torch reference")
+def test_c_shading_matches_the_torch_twin(town, weather):
+    """The C++ ops and their torch twins (``render.kernels.town``) give the same back faces,
+    labels, ranges and hits, and colours and normals within a few float32 roundings (torch's
+    sqrt is not correctly rounded on every CPU: one unit in the last place, here and there)."""
+    _needs_cpp()
     rot = _rotation(0.1, 0.5, -0.05)
     pos = torch.tensor([[2.0, -1.6, -7.5]])
     d = town.cubemap_rays(40, rot).reshape(-1, 3).contiguous()
     scene = town.scene(3.0)
-    w = _get_weather(weather)
-    hits = town._trace(scene, pos.numpy(), d.numpy())
-    fast = town._shade(pos.numpy(), d.numpy(), *hits, w, scene)
-    ref = town._shade_reference(pos, d, *(torch.from_numpy(h) for h in hits), w, scene)
+    w = _kernel_weather(_get_weather(weather), town.far)
+    hits = [torch.from_numpy(h) for h in town._trace(scene, pos.numpy(), d.numpy(), "torch")]
+    tri = hits[1].clone()
+    tri[::7] = torch.randint(0, town._tri_attr.shape[1], tri[::7].shape,
+                             generator=torch.Generator().manual_seed(0))   # some back faces
+    back = [town_kernels.backfaces(d, tri, town._tri_attr, backend=b) for b in ("cpp", "torch")]
+    assert torch.equal(*back) and back[0].any() and not back[0].all()
+    fast, ref = (town_kernels.shade(pos, d, *hits, town._tables, w, scene.occluded, backend=b)
+                 for b in ("cpp", "torch"))
     for key in ("labels", "range", "hit"):
         assert torch.equal(fast[key], ref[key]), key
     for key in ("rgb", "normal"):
         torch.testing.assert_close(fast[key], ref[key], rtol=0, atol=1e-6)
     assert fast["hit"].any() and (~fast["hit"]).any()
+
+
+def test_the_town_kernels_check_their_arguments(town):
+    """Bad arguments are refused the same on both routes, naming the argument; so is a
+    backend that is not one."""
+    d = torch.nn.functional.normalize(torch.randn(5, 3), dim=-1)
+    tri = torch.tensor([0, -1, 3, 2, 1])
+    P = 8
+    planes = (torch.zeros(3, P), torch.zeros(P), torch.zeros(P),
+              torch.zeros(P, dtype=torch.int64))
+    shaded = {"rgb": torch.rand(5, 3), "range": torch.rand(5),
+              "labels": torch.zeros(5, dtype=torch.int64), "hit": tri >= 0}
+    axis = torch.tensor([0.0, 0.0, 1.0])
+    backends = ("torch", "cpp") if kernels.available() else ("torch",)
+    for backend in backends:
+        with pytest.raises(ValueError, match="tri: expected"):
+            town_kernels.backfaces(d, tri.int(), town._tri_attr, backend=backend)
+        with pytest.raises(ValueError, match="tri: expected triangle indices in \\[-1, "):
+            town_kernels.backfaces(d, tri - 2, town._tri_attr, backend=backend)
+        with pytest.raises(ValueError, match="index: expected texels in \\[0, 8\\)"):
+            town_kernels.store(d, torch.arange(5) + 4, 0, shaded, axis, 1000.0, *planes,
+                               backend=backend)
+        with pytest.raises(ValueError, match="start: expected 0 <= start <= 3"):
+            town_kernels.store(d, None, 4, shaded, axis, 1000.0, *planes, backend=backend)
+        with pytest.raises(ValueError, match="axis: expected \\(3\\) torch.float32"):
+            town_kernels.store(d, None, 0, shaded, axis.double(), 1000.0, *planes,
+                               backend=backend)
+    with pytest.raises(ValueError, match="backend: expected one of"):
+        town_kernels.backfaces(d, tri, town._tri_attr, backend="gpu")
+    for bad in ("gpu", None, "CPP"):
+        with pytest.raises(ValueError, match="backend"):
+            town.render_cubemap(POSE, face_size=4, backend=bad)
+        with pytest.raises(ValueError, match="backend"):
+            town.render_rays(POSE, torch.tensor([0.0, 0.0, 1.0]), backend=bad)
 
 
 # -------------------------------------------------------------------- meshes and primitives
@@ -428,14 +473,17 @@ def test_layouts_and_their_routes(layout):
             CLASS_IDS["Road"]
 
 
-def test_without_a_c_compiler_the_town_renders_the_same_with_torch(town, cube, monkeypatch):
-    """Where the C loops cannot be built, the town traces and shades with torch: the same
-    labels and depths, colours within float32 roundings."""
-    monkeypatch.setattr(town_module, "_ops", lambda: None)
-    slow = town.render_cubemap(POSE, face_size=48)
-    for key in ("labels", "depth", "range"):
-        assert torch.equal(slow[key], cube[key]), key
-    torch.testing.assert_close(slow["rgb"], cube["rgb"], rtol=0, atol=1e-6)
+def test_the_town_renders_the_same_with_its_torch_twins(town, cube):
+    """``backend="torch"`` (what the town does where the C++ ops cannot be built) traces and
+    shades with the ops' torch twins: against ``backend="cpp"``, the same labels, depths,
+    ranges and instances, colours within float32 roundings."""
+    _needs_cpp()
+    fast = town.render_cubemap(POSE, face_size=48, backend="cpp")
+    slow = town.render_cubemap(POSE, face_size=48, backend="torch")
+    for key in ("labels", "depth", "range", "instances"):
+        assert torch.equal(slow[key], fast[key]), key
+    torch.testing.assert_close(slow["rgb"], fast["rgb"], rtol=0, atol=1e-6)
+    assert (slow["labels"] == CLASS_IDS["Road"]).any() and (slow["depth"] < town.far).any()
 
 
 # -------------------------------------------------------------------- anti-aliasing
@@ -518,13 +566,12 @@ def test_bad_antialias(town):
             town.render_cubemap(POSE, face_size=8, antialias=bad)
 
 
-def test_texel_subset_without_a_c_compiler(town, cube, monkeypatch):
-    """The torch fallback writes a texel subset's colours too (and anti-aliases them)."""
-    monkeypatch.setattr(town_module, "_ops", lambda: None)
+def test_texel_subset_with_the_torch_twins(town, cube):
+    """The torch twins write a texel subset's colours too (and anti-alias them)."""
     mask = torch.zeros(6, 48, 48, dtype=torch.bool)
     mask[:, 10:30, 5:25] = True
-    part = town.render_cubemap(POSE, face_size=48, texels=mask)
+    part = town.render_cubemap(POSE, face_size=48, texels=mask, backend="torch")
     torch.testing.assert_close(part["rgb"][0].movedim(1, -1)[mask],
                                cube["rgb"][0].movedim(1, -1)[mask], rtol=0, atol=1e-6)
-    aa = town.render_cubemap(POSE, face_size=48, texels=mask, antialias=2)
+    aa = town.render_cubemap(POSE, face_size=48, texels=mask, antialias=2, backend="torch")
     assert torch.equal(aa["labels"], part["labels"])

@@ -253,8 +253,8 @@ class MeshScene:
             ``(1 - u - v) p0 + u p1 + v p2``).
         """
         n = origins.shape[0]
-        dists = np.full(n, tfar, np.float32) if np.ndim(tfar) == 0 else \
-            np.array(tfar, np.float32)  # a copy: embreex writes the hits' distances into it
+        # a copy: embreex writes the hits' distances into it
+        dists = np.full(n, tfar, np.float32) if np.ndim(tfar) == 0 else np.array(tfar, np.float32)
         res = self._scene.run(np.ascontiguousarray(origins, np.float32),
                               np.ascontiguousarray(directions, np.float32),
                               dists=dists, output=True)
@@ -267,8 +267,7 @@ class MeshScene:
         """``(N,)`` bool: whether anything lies on each ray ``origins + t directions``,
         ``0 <= t < tfar`` (a scalar or ``(N,)``)."""
         n = origins.shape[0]
-        dists = np.full(n, tfar, np.float32) if np.ndim(tfar) == 0 else \
-            np.array(tfar, np.float32)
+        dists = np.full(n, tfar, np.float32) if np.ndim(tfar) == 0 else np.array(tfar, np.float32)
         res = self._scene.run(np.ascontiguousarray(origins, np.float32),
                               np.ascontiguousarray(directions, np.float32),
                               dists=dists, query="OCCLUDED")

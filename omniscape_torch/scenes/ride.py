@@ -114,8 +114,8 @@ class Segment:
     def __post_init__(self):
         for name in ("length", "curvature", "grade"):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) \
-                    or not math.isfinite(value):
+            if (isinstance(value, bool) or not isinstance(value, (int, float))
+                    or not math.isfinite(value)):
                 raise ValueError(f"{name}: expected a finite number, got {value!r}")
         if not self.length > 0:
             raise ValueError(f"length: expected > 0 metres, got {self.length}")
@@ -399,8 +399,8 @@ def _noise(white: np.ndarray, h: float, std_rad: float, correlation: float) -> n
 
 def _check_positive(**values):
     for name, value in values.items():
-        if isinstance(value, bool) or not isinstance(value, (int, float)) \
-                or not math.isfinite(value) or not value > 0:
+        if (isinstance(value, bool) or not isinstance(value, (int, float))
+                or not math.isfinite(value) or not value > 0):
             raise ValueError(f"{name}: expected a positive finite number, got {value!r}")
 
 
@@ -523,8 +523,8 @@ def simulate(route: Route, fps: float = 10.0, duration: float | None = None, *,
     velocity = v[:, None] * tangent
     cg, sg = np.cos(grade), np.sin(grade)
     cy, sy = np.cos(yaw), np.sin(yaw)
-    d_tangent = (kappa * cg)[:, None] * np.stack([cy, 0 * cy, -sy], -1) \
-        + route.grade_rate_at(s)[:, None] * np.stack([-sg * sy, -cg, -sg * cy], -1)
+    d_tangent = ((kappa * cg)[:, None] * np.stack([cy, 0 * cy, -sy], -1)
+                 + route.grade_rate_at(s)[:, None] * np.stack([-sg * sy, -cg, -sg * cy], -1))
     accel = a_long[:, None] * tangent + (v * v)[:, None] * d_tangent
 
     # Angular velocity in the world frame (right-handed, formal): w = yaw' e_y

@@ -37,11 +37,16 @@ where ``lit`` is 0 when a shadow ray towards the sun (traced by Embree as well) 
 the weather preset (:data:`WEATHERS`) changes light, colour, wetness and fog, never geometry or
 labels.
 
-Shading runs in C++ (the ops ``torch.ops.omniscape_torch.town_*``, ``render/csrc/town_shade.cpp``,
-built with the fast sampler into one library by :mod:`omniscape_torch.render.kernels.build`) where a
-compiler builds it, else in torch (:meth:`Town._shade_reference`, the same operations in the
-same order: the same labels and depths, colours within a few float32 roundings, torch's
+Shading runs through `omniscape_torch.render.kernels.town`: its C++ ops
+(``torch.ops.omniscape_torch.town_*``, ``render/csrc/town_shade.cpp``, built with the fast
+sampler into one library) or their torch twins beside them, as the rendering methods'
+``backend`` says (``"auto"``: the C++ ops where a compiler builds them; the same operations in
+the same order: the same labels and depths, colours within a few float32 roundings, torch's
 ``sqrt`` not being correctly rounded on every CPU).
+
+The module's parts: the weather presets (`omniscape_torch.scenes.weather`), the streets and the
+placement of the objects (`omniscape_torch.scenes.layout`), the meshes and Embree
+(`omniscape_torch.scenes.mesh`); here the `Town`, which builds its mesh, traces and renders.
 
 Exactness: every ray is traced and shaded on its own (Embree's closest hit, which does not
 depend on the batch; then ``+ - * /``, ``sqrt``, comparisons and integer hashing, no
@@ -60,7 +65,6 @@ from __future__ import annotations
 import math
 import threading
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -68,32 +72,23 @@ from torch import Tensor
 
 from ..cameras._base import broadcast_shapes
 from ..cubemap.faces import face_axes, face_pixel_to_ray, face_rays
-from ..render.kernels import build as _extension
+from ..render.kernels import check_backend
+from ..render.kernels import town as _kernels
+from ..render.kernels.town import BOX as _BOX, CYLINDER as _CYLINDER, GROUND as _GROUND
+from ..render.kernels.town import SPHERE as _SPHERE
 from . import mesh as _mesh
+from .layout import CLASS_IDS, LAYOUTS, Street, layout_streets, place_objects
+from .weather import (CARLA_PRESETS, CARLA_WEATHERS, WEATHERS, Weather, _get_weather,
+                      _kernel_weather, carla_weather)
 
 __all__ = ["CARLA_PRESETS", "CARLA_WEATHERS", "CLASS_IDS", "LAYOUTS", "Street", "Town", "Weather",
            "WEATHERS", "carla_weather", "edge_texels"]
 
-CLASS_IDS = {name: i for i, name in enumerate(
-    ("Unlabeled", "Building", "Fence", "Other", "Pedestrian", "Pole", "RoadLine", "Road",
-     "Sidewalk", "Vegetation", "Vehicle", "Wall", "TrafficSign"))}
 _C = CLASS_IDS
-
-# Street cross-section (|across|, metres).
-LANE_EDGE = 3.5
-ROAD_HALF = 5.25
-SIDEWALK_HALF = 8.5
-LINE_HALF = 0.08
-#: Half-width of the band around a crossing street kept free of a street's buildings, metres.
-CROSSING_BAND = SIDEWALK_HALF + 1.0
 
 #: Tessellation: sides of a cylinder, subdivisions of an icosphere (1280 triangles).
 CYLINDER_SEGMENTS = 32
 SPHERE_SUBDIVISIONS = 3
-
-#: A shadow ray starts ``SHADOW_BIAS + SHADOW_BIAS_PER_M * range`` metres off the surface,
-#: along its normal: far above the rounding of the hit point (about ``1e-7 * range``).
-SHADOW_BIAS, SHADOW_BIAS_PER_M = 1e-3, 1e-5
 #: A ray that meets a triangle from behind goes on from this far past it (metres), at most
 #: ``MAX_PASSES`` times.
 PASS_STEP, MAX_PASSES = 1e-4, 4
@@ -111,324 +106,6 @@ CHUNK = 65536
 AA_RANGE_STEP, AA_RGB_STEP = 0.05, 10.0 / 255
 
 
-# --------------------------------------------------------------------------------------------
-# Weather
-# --------------------------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class Weather:
-    """Light, sky, wetness and fog of a weather / time-of-day preset. Colours are linear RGB in
-    [0, 1] (emission and sun may exceed 1; the result is clamped).
-
-    ``sun_elevation`` and ``sun_azimuth`` are in degrees (azimuth from north, z, towards east,
-    x). ``fog_density`` is per metre: the fog weight is ``1 - exp(-fog_density * range)``.
-    ``lamps``: street-lamp intensity (0: off). ``windows``: emission of lit windows.
-    ``wetness`` (0..1): puddles on the ground (the share of the road and sidewalk they cover,
-    mirroring the sky) and darker, wet surfaces; ``rain`` (0..1): falling rain, which darkens
-    and greys the scene (its haze is in ``fog_density``)."""
-
-    sun_elevation: float
-    sun_azimuth: float
-    sun_colour: tuple[float, float, float]
-    ambient: tuple[float, float, float]
-    sky_zenith: tuple[float, float, float]
-    sky_horizon: tuple[float, float, float]
-    fog_colour: tuple[float, float, float]
-    fog_density: float
-    lamps: float = 0.0
-    windows: float = 0.0
-    wetness: float = 0.0
-    rain: float = 0.0
-
-    def sun_direction(self) -> tuple[float, float, float]:
-        """Unit vector towards the sun in the world frame (y down, so up is -y)."""
-        e, a = math.radians(self.sun_elevation), math.radians(self.sun_azimuth)
-        return (math.sin(a) * math.cos(e), -math.sin(e), math.cos(a) * math.cos(e))
-
-    def surface_factor(self) -> float:
-        """Albedo factor of wet surfaces: ``1 - 0.35 rain - 0.3 wetness``."""
-        return 1.0 - 0.35 * self.rain - 0.3 * self.wetness
-
-    def sky_factor(self) -> float:
-        """Brightness of the sky under rain: ``1 - 0.45 rain``."""
-        return 1.0 - 0.45 * self.rain
-
-
-#: CARLA's 14 weather presets (``carla.WeatherParameters.ClearNoon`` etc., CARLA 0.9.x), with
-#: the parameters this town uses: cloudiness, precipitation, precipitation_deposits and
-#: fog_density in percent, sun_altitude_angle in degrees (sun_azimuth_angle is -1 in all of
-#: them: the map's default, here 150 deg).
-CARLA_WEATHERS: dict[str, dict[str, float]] = {
-    name: dict(zip(("cloudiness", "precipitation", "precipitation_deposits",
-                    "sun_altitude_angle", "fog_density"), values))
-    for name, values in {
-        "ClearNoon": (5, 0, 0, 45, 2), "CloudyNoon": (60, 0, 0, 45, 3),
-        "WetNoon": (5, 0, 50, 45, 3), "WetCloudyNoon": (60, 0, 50, 45, 3),
-        "MidRainyNoon": (60, 60, 60, 45, 3), "HardRainNoon": (100, 100, 90, 45, 7),
-        "SoftRainNoon": (20, 30, 50, 45, 3),
-        "ClearSunset": (5, 0, 0, 15, 2), "CloudySunset": (60, 0, 0, 15, 3),
-        "WetSunset": (5, 0, 50, 15, 2), "WetCloudySunset": (60, 0, 50, 15, 2),
-        "MidRainSunset": (60, 60, 60, 15, 3), "HardRainSunset": (100, 100, 90, 15, 7),
-        "SoftRainSunset": (20, 30, 50, 15, 2),
-    }.items()}
-
-
-def _mix(a, b, w: float) -> tuple[float, float, float]:
-    return tuple(float(x + (y - x) * w) for x, y in zip(a, b))
-
-
-def _scale(a, s: float) -> tuple[float, float, float]:
-    return tuple(float(x * s) for x in a)
-
-
-def carla_weather(cloudiness: float, precipitation: float, precipitation_deposits: float,
-                  sun_altitude_angle: float, fog_density: float, *,
-                  sun_azimuth_angle: float = 150.0) -> Weather:
-    """The town's :class:`Weather` for CARLA's weather parameters (percent and degrees, as
-    ``carla.WeatherParameters``): the sun's colour reddens towards the horizon (noon white at
-    45 deg and above, orange at 15 deg) and dims under clouds (by up to 85 %) and rain; the
-    ambient light and the sky grey with clouds; fog is ``0.00075 * fog_density`` per metre plus
-    ``0.012`` at full rain (the rain's haze); ``wetness`` is the deposits' share, ``rain`` the
-    precipitation's (:meth:`Weather.surface_factor`, :meth:`Weather.sky_factor`)."""
-    c, p, q = cloudiness / 100.0, precipitation / 100.0, precipitation_deposits / 100.0
-    low = min(1.0, max(0.0, (45.0 - sun_altitude_angle) / 30.0))  # 0 at noon, 1 at 15 deg
-    sun = _mix((1.0, 0.96, 0.88), (1.0, 0.55, 0.25), low)
-    sun = _scale(sun, (1.0 - 0.85 * c) * (1.0 - 0.5 * p))
-    ambient = _mix((0.30, 0.34, 0.42), (0.26, 0.22, 0.26), low)
-    ambient = _scale(_mix(ambient, (0.42, 0.43, 0.46), 0.8 * c), 1.0 + 0.5 * c - 0.35 * p)
-    zenith = _mix((0.22, 0.42, 0.85), (0.18, 0.24, 0.52), low)
-    horizon = _mix((0.68, 0.80, 0.95), (1.0, 0.58, 0.32), low)
-    grey = _scale((0.62, 0.63, 0.66), 1.0 - 0.35 * p - 0.2 * low)
-    zenith, horizon = _mix(zenith, grey, 0.9 * c), _mix(horizon, grey, 0.85 * c)
-    fog = _mix(_mix((0.72, 0.80, 0.92), (0.88, 0.62, 0.46), low), grey, max(c, p))
-    return Weather(float(max(sun_altitude_angle, 1.0)), float(sun_azimuth_angle), sun, ambient,
-                   zenith, horizon, fog, 0.00075 * fog_density + 0.012 * p,
-                   wetness=float(q), rain=float(p))
-
-
-def _snake(name: str) -> str:
-    return "".join("_" + ch.lower() if ch.isupper() and i else ch.lower()
-                   for i, ch in enumerate(name))
-
-
-#: CARLA's 14 presets by their names here, in CARLA's order (``generate``'s default weathers).
-CARLA_PRESETS: tuple[str, ...] = tuple(_snake(name) for name in CARLA_WEATHERS)
-
-#: The weather presets: CARLA's 14 (:data:`CARLA_WEATHERS`, in snake case: ``clear_noon``,
-#: ``cloudy_noon``, ..., ``soft_rain_sunset``) and four of this town's own: ``overcast``,
-#: ``sunset`` (a low, red sun, 6 deg), ``night`` (street lamps and lit windows) and ``fog``.
-WEATHERS: dict[str, Weather] = {
-    **{_snake(name): carla_weather(**p) for name, p in CARLA_WEATHERS.items()},
-    "overcast": Weather(50.0, 150.0, (0.18, 0.18, 0.19), (0.62, 0.63, 0.66),
-                        (0.52, 0.54, 0.58), (0.74, 0.75, 0.77), (0.70, 0.71, 0.73), 0.010),
-    "sunset": Weather(6.0, 260.0, (1.0, 0.52, 0.22), (0.28, 0.22, 0.26),
-                      (0.18, 0.24, 0.52), (1.0, 0.56, 0.30), (0.88, 0.60, 0.45), 0.004),
-    "night": Weather(40.0, 120.0, (0.07, 0.08, 0.12), (0.03, 0.035, 0.06),
-                     (0.005, 0.008, 0.025), (0.03, 0.04, 0.08), (0.04, 0.05, 0.08), 0.008,
-                     lamps=1.0, windows=0.9),
-    "fog": Weather(40.0, 150.0, (0.12, 0.12, 0.12), (0.66, 0.67, 0.69),
-                   (0.72, 0.73, 0.75), (0.78, 0.79, 0.80), (0.76, 0.77, 0.78), 0.05),
-}
-
-
-def _get_weather(weather: str | Weather) -> Weather:
-    if isinstance(weather, Weather):
-        return weather
-    try:
-        return WEATHERS[weather]
-    except (KeyError, TypeError):
-        raise ValueError(f"weather: unknown preset {weather!r}; presets: "
-                         f"{', '.join(WEATHERS)}") from None
-
-
-# --------------------------------------------------------------------------------------------
-# Layouts
-# --------------------------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class Street:
-    """A straight street of the town's cross-section, endless on the ground.
-
-    ``axis``: ``"z"`` (it runs north-south, its centre line at ``x = offset``) or ``"x"``
-    (east-west, at ``z = offset``). ``frontage``: the interval along the street (metres) lined
-    with buildings, lamps, trees and parked vehicles (less the crossing streets' bands)."""
-
-    axis: str
-    offset: float
-    frontage: tuple[float, float]
-
-    def world(self, across, along) -> tuple:
-        """World ``(x, z)`` of a point ``across`` metres from the centre line (towards +x for
-        a z street, +z for an x street) and ``along`` metres along it."""
-        if self.axis == "z":
-            return self.offset + across, along
-        return along, self.offset + across
-
-
-#: The town layouts, by number: a name and a description.
-LAYOUTS = {1: "main street", 2: "crossroads", 3: "blocks"}
-
-
-def layout_streets(layout: int, length: float) -> tuple[Street, ...]:
-    """The streets of ``layout`` (:data:`LAYOUTS`) for a town of ``length`` metres."""
-    h = length / 2
-    if layout == 1:
-        return (Street("z", 0.0, (-h, h)),)
-    if layout == 2:
-        return (Street("z", 0.0, (-h, h)), Street("x", 0.0, (-h, h)))
-    if layout == 3:
-        return (Street("z", 0.0, (-h, h)), Street("z", 70.0, (-h, h)),
-                Street("x", -40.0, (-h / 2, 70.0 + h / 2)),
-                Street("x", 40.0, (-h / 2, 70.0 + h / 2)))
-    raise ValueError(f"layout: expected one of {sorted(LAYOUTS)}, got {layout!r}")
-
-
-def _bands(street: Street, streets) -> list[tuple[float, float]]:
-    """Intervals along ``street`` crossed by the other streets (with their sidewalks)."""
-    return [(s.offset - CROSSING_BAND, s.offset + CROSSING_BAND) for s in streets
-            if s.axis != street.axis]
-
-
-def _free(a: float, b: float, bands) -> list[tuple[float, float]]:
-    """``[a, b]`` less the bands, as a list of intervals (in order)."""
-    out = [(a, b)]
-    for lo, hi in sorted(bands):
-        nxt = []
-        for x, y in out:
-            if hi <= x or lo >= y:
-                nxt.append((x, y))
-                continue
-            if lo > x:
-                nxt.append((x, lo))
-            if hi < y:
-                nxt.append((hi, y))
-        out = nxt
-    return out
-
-
-def _in_bands(x: float, bands, margin: float = 0.0) -> bool:
-    return any(lo - margin < x < hi + margin for lo, hi in bands)
-
-
-def _ground_cells(streets, extent: float):
-    """The ground as axis-aligned rectangles of one class each: ``(x0, x1, z0, z1, label,
-    paint axis, paint offset)``, the paint axis ``"z"`` or ``"x"`` on a single street's road
-    (where its markings are painted), ``""`` elsewhere (sidewalks, lots, crossings)."""
-    xs, zs = {-extent, extent}, {-extent, extent}
-    for s in streets:
-        cuts = {s.offset + k * w for k in (-1, 1) for w in (ROAD_HALF, SIDEWALK_HALF)}
-        (xs if s.axis == "z" else zs).update(cuts)
-    xs, zs = sorted(xs), sorted(zs)
-    cells = []
-    for x0, x1 in zip(xs[:-1], xs[1:]):
-        # merge the runs of equal cells along z
-        run = None
-        for z0, z1 in zip(zs[:-1], zs[1:]):
-            cx, cz = (x0 + x1) / 2, (z0 + z1) / 2
-            roads = [s for s in streets
-                     if abs((cx if s.axis == "z" else cz) - s.offset) < ROAD_HALF]
-            walks = [s for s in streets
-                     if abs((cx if s.axis == "z" else cz) - s.offset) < SIDEWALK_HALF]
-            if roads:
-                label = _C["Road"]
-                axis, off = (roads[0].axis, roads[0].offset) if len(roads) == 1 else ("", 0.0)
-            else:
-                label, axis, off = (_C["Sidewalk"] if walks else _C["Other"]), "", 0.0
-            key = (label, axis, off)
-            if run is not None and run[1] == key:
-                run = (run[0], key, z1)
-            else:
-                if run is not None:
-                    cells.append((x0, x1, run[0], run[2]) + run[1])
-                run = (z0, key, z1)
-        cells.append((x0, x1, run[0], run[2]) + run[1])
-    return cells
-
-
-# --------------------------------------------------------------------------------------------
-# Procedural texture helpers (integer hashing and floor only: exact on every code path)
-# --------------------------------------------------------------------------------------------
-
-def _hash(*ints: Tensor, salt: int = 0) -> Tensor:
-    """Integer hash of int64 tensors -> float in [0, 1)."""
-    h = torch.full_like(ints[0], 0x9E3779B9 + salt * 0x632BE5AB)
-    for k, v in zip((73856093, 19349663, 83492791), ints):
-        h = (h ^ (v * k)) & 0xFFFFFFFF
-        h = (h * 0x45D9F3B) & 0xFFFFFFFF
-        h = h ^ (h >> 16)
-    return (h & 0xFFFF).to(torch.float32) / 65536.0
-
-
-def _cell(x: Tensor, scale: float) -> Tensor:
-    return torch.floor(x * scale).to(torch.int64)
-
-
-def _frac(x: Tensor) -> Tensor:
-    return x - torch.floor(x)
-
-
-def _noise(x: Tensor, y: Tensor, z: Tensor, scale: float, salt: int) -> Tensor:
-    """Value noise in [0, 1): a hash of the cell of ``(x, y, z)`` on a grid of ``1 / scale``
-    metres."""
-    h = (_cell(x, scale) * 73856093) ^ (_cell(y, scale) * 19349663) ^ \
-        (_cell(z, scale) * 83492791) ^ (0x9E3779B9 + salt * 0x632BE5AB)
-    h = (h * 0x45D9F3B) & 0xFFFFFFFF
-    h = h ^ (h >> 16)
-    h = (h * 0x45D9F3B) & 0xFFFFFFFF
-    h = h ^ (h >> 16)
-    return (h & 0xFFFF).to(torch.float32) * (1.0 / 65536.0)
-
-
-def _smooth_noise(x: Tensor, z: Tensor, scale: float, salt: int) -> Tensor:
-    """Smooth value noise in [0, 1) over the ground: the hashes of the four corners of the cell
-    of ``(x, z)`` on a grid of ``1 / scale`` metres, blended with smoothstep weights."""
-    sx, sz = x * scale, z * scale
-    ix, iz = torch.floor(sx), torch.floor(sz)
-    fx, fz = sx - ix, sz - iz
-    wx, wz = fx * fx * (3.0 - 2.0 * fx), fz * fz * (3.0 - 2.0 * fz)
-    ix, iz = ix.to(torch.int64), iz.to(torch.int64)
-    zero = torch.zeros_like(ix)
-    h00, h10 = _hash(ix, zero, iz, salt=salt), _hash(ix + 1, zero, iz, salt=salt)
-    h01, h11 = _hash(ix, zero, iz + 1, salt=salt), _hash(ix + 1, zero, iz + 1, salt=salt)
-    a = h00 + (h10 - h00) * wx
-    b = h01 + (h11 - h01) * wx
-    return a + (b - a) * wz
-
-
-def _column(*values: float) -> Tensor:
-    """A colour as a ``(3, 1)`` column, to broadcast over ``(3, N)`` rows."""
-    return torch.tensor(values, dtype=torch.float32).reshape(-1, 1)
-
-
-def _dot(a: Tensor, b) -> Tensor:
-    """Row-wise dot product of ``(N, 3)`` with ``(N, 3)`` or ``(3,)``, as explicit sums (the
-    same rounding whatever the batch)."""
-    return a[:, 0] * b[..., 0] + a[:, 1] * b[..., 1] + a[:, 2] * b[..., 2]
-
-
-def _ops():
-    """The C++ shading ops (``torch.ops.omniscape_torch``), built on the first call; None where
-    they cannot be built (after the extension's one warning): the town shades with torch."""
-    return _extension.ops()
-
-
-def _t(a: np.ndarray) -> Tensor:
-    """A numpy array as a tensor on its memory (no copy), for the ops."""
-    return torch.from_numpy(a)
-
-
-def _native_weather(w: Weather, far: float) -> np.ndarray:
-    """The weather's numbers as the C++ loops read them (``W_*`` in
-    ``render/csrc/town_shade.cpp``), float32 as torch rounds Python numbers in
-    :meth:`Town._shade_reference`."""
-    values = [*w.sun_direction(), *w.sun_colour, *w.ambient, *w.sky_zenith, *w.sky_horizon,
-              *w.fog_colour, w.fog_density / 256.0, w.lamps * 30.0, w.windows,
-              0.75 * w.wetness,
-              w.surface_factor() if (w.rain > 0 or w.wetness > 0) else 1.0,
-              w.sky_factor() if w.rain > 0 else 1.0, min(1.0, w.fog_density * 40.0), far]
-    return np.array(values, dtype=np.float32)
-
-
 def edge_texels(labels: Tensor, rng: Tensor, rgb: Tensor, rendered: Tensor | None = None
                 ) -> Tensor:
     """``(F, F)`` bool: the texels of one cube face that :meth:`Town.render_cubemap`'s
@@ -442,25 +119,15 @@ def edge_texels(labels: Tensor, rng: Tensor, rgb: Tensor, rendered: Tensor | Non
     for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):   # each pair of neighbours once
         a = (slice(0, F - dy), slice(max(0, -dx), F - max(0, dx)))
         b = (slice(dy, F), slice(max(0, dx), F + min(0, dx)))
-        step = (labels[a] != labels[b]) | \
-            ((rng[a] - rng[b]).abs() > AA_RANGE_STEP * torch.minimum(rng[a], rng[b])) | \
-            ((rgb[(slice(None),) + a] - rgb[(slice(None),) + b]).abs().amax(0) > AA_RGB_STEP)
+        step = ((labels[a] != labels[b])
+                | ((rng[a] - rng[b]).abs() > AA_RANGE_STEP * torch.minimum(rng[a], rng[b]))
+                | ((rgb[(slice(None),) + a] - rgb[(slice(None),) + b]).abs().amax(0)
+                   > AA_RGB_STEP))
         if rendered is not None:
             step &= rendered[a] & rendered[b]
         edge[a] |= step
         edge[b] |= step
     return edge
-
-
-# Ground colours by class (the road markings' RoadLine, the lots' Other).
-_GROUND_COLOUR = torch.zeros(13, 3)
-_GROUND_COLOUR[_C["Road"]] = torch.tensor([0.26, 0.26, 0.27])
-_GROUND_COLOUR[_C["RoadLine"]] = torch.tensor([0.85, 0.85, 0.8])
-_GROUND_COLOUR[_C["Sidewalk"]] = torch.tensor([0.62, 0.60, 0.56])
-_GROUND_COLOUR[_C["Other"]] = torch.tensor([0.42, 0.38, 0.28])
-
-# Part kinds.
-_GROUND, _BOX, _CYLINDER, _SPHERE = 0, 1, 2, 3
 
 
 class Town:
@@ -474,6 +141,9 @@ class Town:
         far: range (and planar depth) reported for the sky, metres; nothing farther is seen.
         threads: threads that trace and shade (default: ``torch.get_num_threads()``); the
             result does not depend on it.
+
+    Rendering (`render_rays`, `render_cubemap`) takes ``backend="auto" | "cpp" | "torch"``: the
+    shading's C++ ops or their torch twins (`omniscape_torch.render.kernels.town`).
 
     Attributes hold the primitives as float32 tensors: ``boxes_lo/boxes_hi (Nb, 3)``,
     ``cyl (Nc, 5)`` = (cx, cz, r, ytop, ybot), ``sph (Ns, 4)`` = (cx, cy, cz, r), each with
@@ -511,7 +181,9 @@ class Town:
         self.threads = threads
         self.streets = layout_streets(self.layout, self.length)
         g = torch.Generator().manual_seed(self.seed)
-        self._build(g)
+        # the objects' tables (boxes_*, cyl_*, sph_*, movers, instance_label, lamps, ground)
+        for name, value in place_objects(self.streets, self.length, self.far, g).items():
+            setattr(self, name, value)
         self._build_mesh()
         self._lock = threading.Lock()
         self._scene_cache: tuple[float, _mesh.MeshScene] | None = None
@@ -526,178 +198,7 @@ class Town:
         self.__dict__.update(state)
         self._lock = threading.Lock()
 
-    # ---------------------------------------------------------------- layout
-    def _build(self, g: torch.Generator) -> None:
-        def U(a: float, b: float) -> float:
-            return a + (b - a) * float(torch.rand((), generator=g, dtype=torch.float64))
-
-        boxes, cyls, sphs, movers, lamps = [], [], [], [], []
-        instances = [0]   # the objects so far: the last instance id given (0: none)
-
-        def new_instance() -> int:
-            instances[0] += 1
-            return instances[0]
-
-        def place_box(st, a0, a1, y0, y1, l0, l1, label, colour, mover=-1, instance=0):
-            (x0, z0), (x1, z1) = st.world(a0, l0), st.world(a1, l1)
-            xa, xb = sorted((x0, x1))
-            za, zb = sorted((z0, z1))
-            boxes.append(((xa, y0, za), (xb, y1, zb), label, colour, mover, instance))
-
-        def place_cyl(st, a, l, r, ytop, label, colour, mover=-1, instance=0):
-            x, z = st.world(a, l)
-            cyls.append((x, z, r, ytop, 0.0, label, colour, mover, instance))
-
-        def place_sph(st, a, y, l, r, label, colour, mover=-1, instance=0):
-            x, z = st.world(a, l)
-            sphs.append((x, y, z, r, label, colour, mover, instance))
-
-        def vehicle(st, ac, lc, colour, mover=-1, flip=1.0):
-            instance = new_instance()   # body and cabin: one object
-            place_box(st, ac - 0.85, ac + 0.85, -1.05, -0.32, lc - 2.15, lc + 2.15,
-                      _C["Vehicle"], colour, mover, instance)
-            l0, l1 = sorted((lc - 1.2 * flip, lc + 0.9 * flip))
-            place_box(st, ac - 0.75, ac + 0.75, -1.5, -1.05, l0, l1, _C["Vehicle"],
-                      (0.10, 0.12, 0.15), mover, instance)
-
-        for si, st in enumerate(self.streets):
-            bands = _bands(st, self.streets)
-            lo_f, hi_f = st.frontage
-            for s in (-1.0, 1.0):
-                # buildings along the block, gaps filled with walls, fences or left open;
-                # the first gap ahead of the origin on the main street is a wall (east) or a
-                # fence (west), so that every class shows from the default pose
-                near_done = si > 0
-                for a, b in _free(lo_f, hi_f, bands):
-                    z = a
-                    while z < b - 6:
-                        ln = min(U(8, 20), b - z)
-                        x0, depth, h = 9.0 + U(0, 1.5), U(8, 16), U(6, 28)
-                        grey = U(0.35, 0.75)
-                        col = (grey * U(0.9, 1.1), grey * U(0.85, 1.0), grey * U(0.75, 0.95))
-                        place_box(st, s * x0, s * (x0 + depth), -h, 0.0, z, z + ln,
-                                  _C["Building"], col)
-                        z += ln
-                        gap = U(2, 7)
-                        kind = U(0, 1)
-                        if not near_done and z > -4.0:
-                            near_done, gap, kind = True, max(gap, 4.0), (0.0 if s > 0 else 0.5)
-                        if z + gap < b:
-                            if kind < 0.4:
-                                place_box(st, s * 9.0, s * 9.35, -U(1.8, 3.0), 0.0, z, z + gap,
-                                          _C["Wall"], (U(0.45, 0.6), U(0.25, 0.35),
-                                                       U(0.2, 0.28)))
-                            elif kind < 0.8:
-                                place_box(st, s * 8.9, s * 8.96, -1.5, 0.0, z, z + gap,
-                                          _C["Fence"], (U(0.5, 0.7), U(0.45, 0.6),
-                                                        U(0.35, 0.45)))
-                        z += gap
-                # street lamps (poles), staggered
-                zl = lo_f + 5 + (5 if s > 0 else 0)
-                while zl < hi_f:
-                    if not _in_bands(zl, bands):
-                        place_cyl(st, s * 7.9, zl, 0.11, -6.5, _C["Pole"], (0.45, 0.46, 0.48),
-                                  instance=new_instance())
-                        x, z = st.world(s * 7.9, zl)
-                        lamps.append((x, -6.6, z))
-                    zl += 20
-                # trees on the sidewalk
-                zt = lo_f + 3
-                while zt < hi_f - 2:
-                    if U(0, 1) < 0.7:
-                        r = U(1.1, 1.9)
-                        crown = (0.16 * U(0.8, 1.2), 0.36 * U(0.8, 1.2), 0.10)
-                        if not _in_bands(zt, bands, r):
-                            place_cyl(st, s * 6.4, zt, 0.18, -2.8, _C["Vegetation"],
-                                      (0.30, 0.20, 0.12))
-                            place_sph(st, s * 6.4, -(2.8 + 0.7 * r), zt, r, _C["Vegetation"],
-                                      crown)
-                    zt += 12
-                # bins (Other) on the sidewalk
-                for _ in range(4):
-                    zb = U(lo_f + 4, hi_f - 4)
-                    colour = (0.15, U(0.25, 0.4), 0.18)
-                    if not _in_bands(zb, bands, 0.6):
-                        place_box(st, s * 7.3, s * 7.9, -1.0, 0.0, zb, zb + 0.6, _C["Other"],
-                                  colour)
-                # parked vehicles on the parking strip
-                zp = lo_f + 3
-                while zp < hi_f - 3:
-                    if U(0, 1) < 0.45:
-                        colour = (U(0.1, 0.9), U(0.1, 0.9), U(0.1, 0.9))
-                        if not _in_bands(zp, bands, 2.5):
-                            vehicle(st, s * 4.4, zp, colour)
-                    zp += 6.0
-        # traffic signs on the main street: pole + plate facing the traffic; the first is near
-        # the origin (moved out of a crossing street's band)
-        main = self.streets[0]
-        bands = _bands(main, self.streets)
-        for i, (s, zs) in enumerate([(1.0, 14.0), (-1.0, -22.0), (1.0, U(30, 70)),
-                                     (-1.0, U(-70, -30))]):
-            for lo, hi in bands:
-                if lo - 1 < zs < hi + 1:
-                    zs = hi + 2 if zs > (lo + hi) / 2 else lo - 2
-            x = s * 5.6
-            # the pole is a Pole instance and the plate a TrafficSign one (an instance has
-            # one class)
-            place_cyl(main, x, zs, 0.05, -2.9, _C["Pole"], (0.55, 0.55, 0.57),
-                      instance=new_instance())
-            col = [(0.1, 0.25, 0.7), (0.75, 0.1, 0.1), (0.9, 0.75, 0.1)][i % 3]
-            zf = zs - 0.06 if s > 0 else zs + 0.02
-            place_box(main, x - 0.35, x + 0.35, -2.95, -2.25, zf, zf + 0.04,
-                      _C["TrafficSign"], col, instance=new_instance())
-        # movers on every north-south street: vehicles northbound in the east lane,
-        # southbound in the west lane; pedestrians on the sidewalks (the first near the origin)
-        L2 = self.length / 2
-        for st in self.streets:
-            if st.axis != "z":
-                continue
-            for i in range(6):
-                s = 1.0 if i % 2 == 0 else -1.0
-                z0 = (-30.0 if i == 0 else U(-L2, L2))
-                speed = s * U(6, 12)
-                movers.append((z0, speed, 0.0))
-                vehicle(st, s * 1.75, z0, (U(0.1, 0.9), U(0.1, 0.9), U(0.1, 0.9)),
-                        len(movers) - 1, s)
-            for i in range(8):
-                s = 1.0 if i % 2 == 0 else -1.0
-                z0 = 7.0 if i == 0 else U(-L2, L2)
-                speed = U(-1.6, 1.6)
-                movers.append((z0, speed, 1.0))
-                a = s * U(6.9, 7.5)
-                instance = new_instance()   # body and head: one object
-                place_cyl(st, a, z0, 0.22, -1.45, _C["Pedestrian"],
-                          (U(0.1, 0.8), U(0.1, 0.8), U(0.1, 0.8)), len(movers) - 1, instance)
-                place_sph(st, a, -1.6, z0, 0.14, _C["Pedestrian"], (0.8, 0.6, 0.48),
-                          len(movers) - 1, instance)
-
-        f32 = torch.float32
-        self.boxes_lo = torch.tensor([b[0] for b in boxes], dtype=f32)
-        self.boxes_hi = torch.tensor([b[1] for b in boxes], dtype=f32)
-        self.boxes_label = torch.tensor([b[2] for b in boxes], dtype=torch.int64)
-        self.boxes_colour = torch.tensor([b[3] for b in boxes], dtype=f32)
-        self.boxes_mover = torch.tensor([b[4] for b in boxes], dtype=torch.int64)
-        self.boxes_instance = torch.tensor([b[5] for b in boxes], dtype=torch.int64)
-        self.cyl = torch.tensor([c[:5] for c in cyls], dtype=f32)
-        self.cyl_label = torch.tensor([c[5] for c in cyls], dtype=torch.int64)
-        self.cyl_colour = torch.tensor([c[6] for c in cyls], dtype=f32)
-        self.cyl_mover = torch.tensor([c[7] for c in cyls], dtype=torch.int64)
-        self.cyl_instance = torch.tensor([c[8] for c in cyls], dtype=torch.int64)
-        self.sph = torch.tensor([c[:4] for c in sphs], dtype=f32)
-        self.sph_label = torch.tensor([c[4] for c in sphs], dtype=torch.int64)
-        self.sph_colour = torch.tensor([c[5] for c in sphs], dtype=f32)
-        self.sph_mover = torch.tensor([c[6] for c in sphs], dtype=torch.int64)
-        self.sph_instance = torch.tensor([c[7] for c in sphs], dtype=torch.int64)
-        self.movers = torch.tensor(movers, dtype=torch.float64).reshape(-1, 3)
-        # the class of each instance id (0: none, Unlabeled)
-        self.instance_label = torch.zeros(instances[0] + 1, dtype=torch.int64)
-        for table, label in ((self.boxes_instance, self.boxes_label),
-                             (self.cyl_instance, self.cyl_label),
-                             (self.sph_instance, self.sph_label)):
-            self.instance_label[table[table > 0]] = label[table > 0]
-        self.lamps = torch.tensor(lamps, dtype=f32)
-        self.ground = _ground_cells(self.streets, self.far + self.length)
-
+    # ---------------------------------------------------------------- mesh
     def _build_mesh(self) -> None:
         """The triangle mesh at ``t = 0`` and the parts' tables: parts are the ground cells,
         then the boxes, the cylinders and the spheres, in their tables' order."""
@@ -742,16 +243,15 @@ class Town:
             index[part].to(torch.float32)[None],                   # 12 index in its kind
             smooth[part].to(torch.float32)[None],                  # 13 smooth normals
         ]).contiguous()
-        self._triangles = torch.from_numpy(m.triangles.astype(np.int64))
-        self._vertex_normal = torch.from_numpy(m.normals)
         self._vertex_mover = mover[torch.from_numpy(m.vertex_part)]
         # a hit's instance id, one gather by triangle; a miss (triangle -1) reads the last, 0
         instance = torch.cat([torch.zeros(ng, dtype=i64), self.boxes_instance, self.cyl_instance,
                               self.sph_instance])
         self._tri_instance = np.append(instance[part].numpy(), 0).astype(np.int32)
-        # what the C++ loops read: attributes (K, T), corners (T, 3) int32, vertex normals, lamps
-        self._tables = (self._tri_attr, torch.from_numpy(m.triangles),
-                        torch.from_numpy(m.normals), self.lamps.reshape(-1, 3).contiguous())
+        # what the shading reads: attributes (K, T), corners (T, 3) int32, vertex normals, lamps
+        self._tables = _kernels.TownTables(self._tri_attr, torch.from_numpy(m.triangles),
+                                           torch.from_numpy(m.normals),
+                                           self.lamps.reshape(-1, 3).contiguous())
 
     @property
     def classes_present(self) -> set[int]:
@@ -805,19 +305,27 @@ class Town:
             return self._scene_cache[1]
 
     # ---------------------------------------------------------------- tracing
-    def _trace(self, scene: _mesh.MeshScene, o: np.ndarray, d: np.ndarray):
+    def _trace(self, scene: _mesh.MeshScene, o: np.ndarray, d: np.ndarray, backend: str):
         """Closest front-facing hits of rays ``o (N, 3) or (1, 3)``, ``d (N, 3)`` (numpy
         float32) within ``far``: ``t (N,)`` (inf: none), triangle ``(N,)`` (-1: none),
         barycentric ``u, v (N,)``. A ray that meets a triangle from behind (it started inside a
         primitive) goes on from ``PASS_STEP`` past it, up to ``MAX_PASSES`` times (then it sees
         nothing)."""
+
+        def backfaces(d: np.ndarray, tri: np.ndarray) -> np.ndarray:
+            return _kernels.backfaces(torch.from_numpy(np.ascontiguousarray(d)),
+                                      torch.from_numpy(tri), self._tri_attr,
+                                      backend=backend).numpy()
+
         n = d.shape[0]
         o = np.broadcast_to(o, (n, 3))
         t, tri, u, v = scene.intersect(o, d, self.far)
         todo = None   # every ray (not gathered)
         for rest in range(MAX_PASSES, -1, -1):
-            todo = np.flatnonzero(self._backfaces(d, tri)) if todo is None else \
-                todo[self._backfaces(d[todo], tri[todo])]
+            if todo is None:
+                todo = np.flatnonzero(backfaces(d, tri))
+            else:
+                todo = todo[backfaces(d[todo], tri[todo])]
             if todo.size == 0:
                 break
             if rest == 0:
@@ -830,205 +338,25 @@ class Town:
             tri[todo], u[todo], v[todo] = tri2, u2, v2
         return t, tri, u, v
 
-    def _backfaces(self, d: np.ndarray, tri: np.ndarray) -> np.ndarray:
-        """``(N,)`` bool: the hits ``tri`` that rays ``d`` meet from behind their face."""
-        ops = _ops()
-        if ops is None:
-            fn = self.mesh.face_normals[np.maximum(tri, 0)]
-            return (tri >= 0) & (fn[:, 0] * d[:, 0] + fn[:, 1] * d[:, 1] + fn[:, 2] * d[:, 2]
-                                 > 0)
-        d = np.ascontiguousarray(d, np.float32)
-        tri = np.ascontiguousarray(tri, np.int64)
-        out = np.empty(d.shape[0], bool)
-        ops.town_backfaces(_t(d), _t(tri), self._tables[0], _t(out))
-        return out
-
-    # ---------------------------------------------------------------- shading
     def _shade(self, o: np.ndarray, d: np.ndarray, t: np.ndarray, tri: np.ndarray,
-               u: np.ndarray, v: np.ndarray, w: Weather, scene: _mesh.MeshScene
-               ) -> dict[str, Tensor]:
+               u: np.ndarray, v: np.ndarray, weather: Tensor, scene: _mesh.MeshScene,
+               backend: str) -> dict[str, Tensor]:
         """Labels, range, normal and colour of rays ``o (N, 3) or (1, 3)``, ``d (N, 3)`` (numpy
-        float32) from their closest hits (:meth:`_trace`), with shadow rays towards the sun
-        through ``scene``: the C++ ops (``town_prepare``, ``town_shade``) where they are built,
-        else :meth:`_shade_reference` (the same result)."""
-        ops = _ops()
-        if ops is None:
-            return self._shade_reference(*(torch.from_numpy(np.ascontiguousarray(x))
-                                           for x in (o, d, t, tri, u, v)), w, scene)
-        n = d.shape[0]
-        o = np.ascontiguousarray(o, np.float32)
-        d = np.ascontiguousarray(d, np.float32)
-        tri = np.ascontiguousarray(tri, np.int64)
-        tables = self._tables
-        common = [_t(o), _t(d), _t(t), _t(tri), _t(u), _t(v), *tables[:3],
-                  _t(_native_weather(w, self.far))]
-        need = np.empty(n, bool)
-        origin = np.empty((n, 3), np.float32)
-        shadow = np.empty(n, bool)
-        ops.town_prepare(*common, SHADOW_BIAS, SHADOW_BIAS_PER_M, _t(need), _t(origin),
-                         _t(shadow))
-        lit = np.flatnonzero(need)
-        if lit.size:
-            towards = np.broadcast_to(np.array(w.sun_direction(), np.float32), (lit.size, 3))
-            shadow[lit] = scene.occluded(origin[lit], towards)
-        rgb = np.empty((n, 3), np.float32)
-        rng = np.empty(n, np.float32)
-        labels = np.empty(n, np.int64)
-        normal = np.empty((n, 3), np.float32)
-        lamps = tables[3] if w.lamps > 0 else tables[3][:0]
-        ops.town_shade(*common, _t(shadow), lamps, _t(rgb), _t(rng), _t(labels), _t(normal))
-        return {"rgb": torch.from_numpy(rgb), "range": torch.from_numpy(rng),
-                "labels": torch.from_numpy(labels), "normal": torch.from_numpy(normal),
-                "hit": torch.from_numpy(tri >= 0)}
+        float32) from their closest hits (`_trace`), with shadow rays towards the sun
+        through ``scene``: `omniscape_torch.render.kernels.town.shade` of the town's tables
+        under ``weather`` (`_kernel_weather`)."""
+        o, d, t, tri, u, v = (torch.from_numpy(np.ascontiguousarray(x))
+                              for x in (o, d, t, tri, u, v))
+        return _kernels.shade(o, d, t, tri, u, v, self._tables, weather, scene.occluded,
+                              backend=backend)
 
-    def _shade_reference(self, o: Tensor, d: Tensor, t: Tensor, tri: Tensor, u: Tensor,
-                         v: Tensor, w: Weather, scene: _mesh.MeshScene) -> dict[str, Tensor]:
-        """:meth:`_shade` in torch: the same operations in the same order, over rows of rays
-        (``x (N,)``, colours ``(3, N)``)."""
-        hit = tri >= 0
-        tri0 = torch.where(hit, tri, 0)
-        tt = torch.where(hit, t, 0.0)
-        dx, dy, dz = d.T.contiguous()
-        ox, oy, oz = o.T.contiguous()
-        px, py, pz = ox + tt * dx, oy + tt * dy, oz + tt * dz
-        a = self._tri_attr.index_select(1, tri0)  # (K, N)
-        nfx, nfy, nfz = a[0], a[1], a[2]  # flat, outward (towards the ray)
-        label, kind, col = a[3], torch.where(hit, a[4], -1.0), a[5:8]
-        nx, ny, nz = nfx.clone(), nfy.clone(), nfz.clone()
-        # smooth normals on cylinders and spheres: the vertex normals, interpolated
-        sm = torch.nonzero(hit & (a[13] > 0)).flatten()
-        if sm.numel():
-            corners = self._triangles.index_select(0, tri0[sm])
-            us, vs = u[sm].unsqueeze(-1), v[sm].unsqueeze(-1)
-            vn = self._vertex_normal
-            ns = (1.0 - us - vs) * vn.index_select(0, corners[:, 0]) + \
-                us * vn.index_select(0, corners[:, 1]) + vs * vn.index_select(0, corners[:, 2])
-            ns = ns / torch.sqrt(_dot(ns, ns)).unsqueeze(-1)
-            nx[sm], ny[sm], nz[sm] = ns.T
-
-        # ground: the cell's class, road markings painted on a street's road
-        g = kind == _GROUND
-        paint, off = a[8], a[9]
-        along = torch.where(paint == 2, px, pz)
-        across = torch.where(paint == 2, pz, px) - off
-        aa = across.abs()
-        centre = (aa < LINE_HALF) & (_frac(along / 6.0) < 0.5)
-        edge = (aa - LANE_EDGE).abs() < LINE_HALF
-        cross = (_frac((along - 20.0) / 60.0) < 4.0 / 60.0) & (aa < LANE_EDGE) & \
-            (_frac(across) < 0.5)
-        line = g & (paint > 0) & (centre | edge | cross)
-        label = torch.where(line, float(_C["RoadLine"]), label)
-        walk = g & (label == _C["Sidewalk"])
-        tiles = walk & ((_frac(px / 0.6) < 0.06) | (_frac(pz / 0.6) < 0.06))
-        gcol = _GROUND_COLOUR.T.index_select(1, torch.where(g, label, 0.0).to(torch.int64))
-        col = torch.where(g, gcol * torch.where(tiles, 0.75, 1.0), col)
-
-        # textures: noise everywhere, patterns per class on the boxes' faces
-        fine = _noise(px, py, pz, 6.0, 1)
-        coarse = _noise(px, py, pz, 0.7, 2)
-        col = col * (0.8 + 0.25 * fine + 0.15 * coarse)
-        b = kind == _BOX
-        facade_u = torch.where(nfx.abs() > 0.5, pz, px)
-        side = b & (nfy == 0)
-        fu, fy = _frac(facade_u / 2.5), _frac(py / 3.0)
-        win = side & (label == _C["Building"]) & (fu > 0.25) & (fu < 0.75) & (fy > 0.3) & \
-            (fy < 0.8) & (py < -1.0)
-        col = torch.where(win, _column(0.12, 0.16, 0.22) * (0.7 + 0.6 * fine), col)
-        roof = b & (nfy < 0) & (label == _C["Building"])
-        col = torch.where(roof, col * 0.45, col)
-        row = torch.floor(py / 0.25)
-        brick_u = facade_u / 0.5 + 0.5 * (row - 2 * torch.floor(row / 2))
-        mortar = side & (label == _C["Wall"]) & ((_frac(py / 0.25) < 0.12) |
-                                                 (_frac(brick_u) < 0.06))
-        col = torch.where(mortar, _column(0.7, 0.68, 0.62), col)
-        slat = side & (label == _C["Fence"]) & (_frac(facade_u / 0.15) > 0.75)
-        col = torch.where(slat, col * 0.5, col)
-        sign = b & (label == _C["TrafficSign"])
-        border = torch.maximum((px - a[10]).abs(), (py - a[11]).abs()) > 0.27
-        col = torch.where(sign & (border | (nfz > 0)), _column(0.85, 0.85, 0.85), col)
-
-        # wet weather: darker surfaces; puddles on the road and sidewalk mirror the sky
-        if w.rain > 0 or w.wetness > 0:
-            col = col * w.surface_factor()
-
-        # light: ambient, the sun unless a shadow ray meets something, street lamps
-        sx, sy, sz = w.sun_direction()
-        lam = torch.clamp(nx * sx + ny * sy + nz * sz, min=0.0)
-        shadow = hit & (lam > 0)
-        lit = torch.nonzero(shadow & (nfx * sx + nfy * sy + nfz * sz > 0)).flatten()
-        if lit.numel():
-            bias = SHADOW_BIAS + SHADOW_BIAS_PER_M * tt[lit]
-            origin = torch.stack([px[lit] + nfx[lit] * bias, py[lit] + nfy[lit] * bias,
-                                  pz[lit] + nfz[lit] * bias], -1)
-            towards = torch.tensor([[sx, sy, sz]], dtype=torch.float32).expand(lit.numel(), 3)
-            shadow[lit] = torch.from_numpy(scene.occluded(origin.numpy(), towards.numpy()))
-        lam = torch.where(shadow, 0.0, lam)
-        light = _column(*w.ambient) * (0.75 - 0.25 * ny) + _column(*w.sun_colour) * lam
-        if w.lamps > 0:
-            acc = torch.zeros_like(px)
-            for lx, ly, lz in self.lamps.tolist():
-                vx, vy, vz = lx - px, ly - py, lz - pz
-                d2 = vx * vx + vy * vy + vz * vz + 0.25
-                ndv = torch.clamp(nx * vx + ny * vy + nz * vz, min=0.0)
-                acc = acc + ndv / (d2 * torch.sqrt(d2))
-            light = light + (w.lamps * 30.0) * acc * _column(1.0, 0.8, 0.5)
-        rgb = col * light
-        if w.windows > 0:
-            lit_win = win & (_hash(_cell(facade_u, 0.4), _cell(py, 1 / 3.0),
-                                   a[12].to(torch.int64), salt=3) > 0.55)
-            rgb = torch.where(lit_win, _column(1.0, 0.82, 0.5) * w.windows, rgb)
-
-        # the sky of a direction
-        fog = _column(*w.fog_colour)
-        sky_h, sky_z = _column(*w.sky_horizon), _column(*w.sky_zenith)
-        sun_c = _column(*w.sun_colour)
-        hf_scale = min(1.0, w.fog_density * 40.0)
-
-        def sky_of(ex: Tensor, ey: Tensor, ez: Tensor) -> Tensor:
-            up = torch.clamp(-ey, min=0.0)
-            h = 1.0 - up
-            h = 1.0 - h * h * h
-            sky = sky_h + (sky_z - sky_h) * h
-            cs = torch.clamp(ex * sx + ey * sy + ez * sz, min=0.0)
-            g8 = cs * cs
-            g8 = g8 * g8
-            g8 = g8 * g8
-            g256 = g8
-            for _ in range(5):
-                g256 = g256 * g256
-            sky = sky + sun_c * (0.15 * g8 + 0.8 * g256)
-            sky = torch.where(cs > 0.99995, sun_c * 4.0, sky)
-            # the sky takes the fog colour near the horizon, more so in thicker fog
-            hf = torch.clamp(1.0 - up * 8.0, min=0.0) * hf_scale
-            sky = sky + (fog - sky) * hf
-            return sky * w.sky_factor() if w.rain > 0 else sky
-
-        if w.wetness > 0:
-            blot = _smooth_noise(px, pz, 0.35, 4) * 0.65 + _smooth_noise(px, pz, 1.3, 5) * 0.35
-            puddle = g & ((label == _C["Road"]) | (label == _C["Sidewalk"]) |
-                          (label == _C["RoadLine"])) & (blot < 0.75 * w.wetness)
-            q = torch.nonzero(puddle).flatten()
-            if q.numel():  # the mirror direction of a horizontal puddle: d with y flipped
-                rgb[:, q] = rgb[:, q] * 0.35 + sky_of(dx[q], -dy[q], dz[q]) * 0.55
-
-        # fog: exp(-x) as (1 + x / 256)^-256 (no transcendental, exact across code paths)
-        qf = 1.0 / (1.0 + (w.fog_density / 256.0) * tt)
-        for _ in range(8):
-            qf = qf * qf
-        rgb = rgb * qf + fog * (1.0 - qf)
-        rgb = torch.where(hit, rgb, sky_of(dx, dy, dz)).clamp_(0.0, 1.0)
-        rng = torch.where(hit, t, self.far)
-        labels = torch.where(hit, label, 0.0).to(torch.int64)
-        normal = torch.where(hit, torch.stack([nx, ny, nz]), -d.T)
-        return {"rgb": rgb.T, "range": rng, "labels": labels, "normal": normal.T, "hit": hit}
-
-    def _trace_shade(self, o: Tensor, d: Tensor, scene: _mesh.MeshScene, w: Weather
-                     ) -> dict[str, Tensor]:
+    def _trace_shade(self, o: Tensor, d: Tensor, scene: _mesh.MeshScene, weather: Tensor,
+                     backend: str) -> dict[str, Tensor]:
         """:meth:`_trace` then :meth:`_shade` of one batch (``o (N, 3) or (1, 3)``), and the
         hits' instance ids."""
         o, d = o.numpy(), d.numpy()
-        hits = self._trace(scene, o, d)
-        out = self._shade(o, d, *hits, w, scene)
+        hits = self._trace(scene, o, d, backend)
+        out = self._shade(o, d, *hits, weather, scene, backend)
         out["instances"] = torch.from_numpy(self._tri_instance[hits[1]].astype(np.int64))
         return out
 
@@ -1044,8 +372,8 @@ class Town:
 
     # ---------------------------------------------------------------- public API
     def render_rays(self, origins: Tensor, directions: Tensor, *, t: float = 0.0,
-                    weather: str | Weather = "clear_noon", chunk: int = CHUNK
-                    ) -> dict[str, Tensor]:
+                    weather: str | Weather = "clear_noon", chunk: int = CHUNK,
+                    backend: str = "auto") -> dict[str, Tensor]:
         """Trace arbitrary rays: the exact ground truth.
 
         Args:
@@ -1055,6 +383,11 @@ class Town:
             t: time (s) for the moving objects.
             weather: a :data:`WEATHERS` name or a :class:`Weather`.
             chunk: rays per task (results do not depend on it).
+            backend: ``"auto"`` (default), ``"cpp"`` or ``"torch"``: the town's shading
+                through its C++ ops or their torch twins
+                (`omniscape_torch.render.kernels.town`; ``"auto"``: the C++ ops where they
+                are built). The two give the same labels, ranges and depths, colours within a
+                few float32 roundings.
 
         Returns:
             dict with ``rgb (..., 3)`` float32 in [0, 1], ``range (...)`` metres along the ray
@@ -1063,7 +396,8 @@ class Town:
             ``instances (...)`` int64: the instance id of the object hit (0: none; the
             class of id ``i`` is ``instance_label[i]``).
         """
-        w = _get_weather(weather)
+        w = _kernel_weather(_get_weather(weather), self.far)
+        check_backend(backend)
         if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
             raise ValueError(f"chunk: expected a positive integer, got {chunk!r}")
         d = torch.as_tensor(directions).to(torch.float32)
@@ -1091,7 +425,7 @@ class Town:
 
         def job(s: int) -> None:
             e = min(s + chunk, n)
-            res = self._trace_shade(o[s:e] if o.shape[0] > 1 else o, d[s:e], scene, w)
+            res = self._trace_shade(o[s:e] if o.shape[0] > 1 else o, d[s:e], scene, w, backend)
             for k, v in res.items():
                 out[k][s:e] = v
 
@@ -1124,7 +458,7 @@ class Town:
                        faces: Tensor | None = None, texels: Tensor | None = None,
                        t: float = 0.0, weather: str | Weather = "clear_noon",
                        chunk: int = CHUNK, out: dict[str, Tensor] | None = None,
-                       antialias: int = 1) -> dict[str, Tensor]:
+                       antialias: int = 1, backend: str = "auto") -> dict[str, Tensor]:
         """Render a cubemap at ``position`` (world, metres).
 
         Args:
@@ -1150,6 +484,7 @@ class Town:
                 that differ from a rendered neighbour on their face (label, range, colour:
                 ``AA_RANGE_STEP``, ``AA_RGB_STEP``) are supersampled. Depth, range and labels
                 stay those of the centre ray, whatever ``k``.
+            backend: ``"auto"`` (default), ``"cpp"`` or ``"torch"``, as in `render_rays`.
 
         Returns:
             dict with ``rgb (1, 6, 3, F, F)`` float32, ``depth (1, 6, F, F)`` planar depth in
@@ -1157,7 +492,8 @@ class Town:
             int64, ``range (1, 6, F, F)`` (``self.far`` for the sky) and
             ``instances (1, 6, F, F)`` int32, the centre ray's instance id (0: none).
         """
-        w = _get_weather(weather)
+        w = _kernel_weather(_get_weather(weather), self.far)
+        check_backend(backend)
         if isinstance(face_size, bool) or not isinstance(face_size, int) or face_size < 1:
             raise ValueError(f"face_size: expected a positive integer, got {face_size!r}")
         if isinstance(antialias, bool) or not isinstance(antialias, int) or antialias < 1:
@@ -1169,8 +505,10 @@ class Town:
         if rot is not None:
             axes = axes @ rot.T
         rays = self._cube_rays(F, rot).reshape(6, F * F, 3)
-        sel = torch.ones(6, dtype=torch.bool) if faces is None else \
-            torch.as_tensor(faces).to(torch.bool).reshape(6)
+        if faces is None:
+            sel = torch.ones(6, dtype=torch.bool)
+        else:
+            sel = torch.as_tensor(faces).to(torch.bool).reshape(6)
         if texels is not None:
             texels = torch.as_tensor(texels).to(torch.bool)
             if texels.shape != (6, F, F):
@@ -1187,8 +525,8 @@ class Town:
             if buf is None:
                 buffers[key] = torch.full(shape, fill, dtype=dtype)
                 continue
-            if tuple(buf.shape) != shape or buf.dtype != dtype or not buf.is_contiguous() \
-                    or buf.device.type != "cpu":
+            if (tuple(buf.shape) != shape or buf.dtype != dtype or not buf.is_contiguous()
+                    or buf.device.type != "cpu"):
                 raise ValueError(f"out[{key!r}]: expected a contiguous CPU {dtype} tensor of "
                                  f"shape {shape}, got {buf.dtype} {tuple(buf.shape)}")
             buffers[key] = buf.fill_(fill)
@@ -1203,39 +541,29 @@ class Town:
                 tasks += [(f, idx[s:s + chunk]) for s in range(0, idx.size, chunk)]
         scene = self.scene(t)
         rays_np, origin_np = rays.numpy(), origin.numpy()
-        rgb_np, dep_np, rng_np, lab_np = (x.numpy() for x in (rgb, dep, rng, lab))
         inst_np = buffers["instances"].view(6, F * F).numpy()
-        axes_np = axes.numpy()
-        ops = _ops()
 
         def job(task) -> None:
             f, q = task
             d = rays_np[f, q]
-            hits = self._trace(scene, origin_np, d)
+            hits = self._trace(scene, origin_np, d, backend)
             inst_np[f, q] = self._tri_instance[hits[1]]
-            res = {k: v.numpy() for k, v in self._shade(origin_np, d, *hits, w, scene).items()}
-            a = axes_np[f]
-            if ops is None:
-                depth = np.where(res["hit"], res["range"] * (d[:, 0] * a[0] + d[:, 1] * a[1]
-                                                             + d[:, 2] * a[2]), self.far)
-                rgb_np[0, f][:, q] = res["rgb"].T   # (3, n): not rgb_np[0, f, :, q], (n, 3)
-                dep_np[0, f, q], rng_np[0, f, q], lab_np[0, f, q] = \
-                    depth, res["range"], res["labels"]
-                return
-            index, start = (None, q.start) if isinstance(q, slice) else (_t(q), 0)
-            ops.town_store(_t(np.ascontiguousarray(d)), index, start,
-                           *(_t(res[k]) for k in ("rgb", "range", "labels", "hit")),
-                           _t(np.ascontiguousarray(a)), self.far, rgb[0, f], dep[0, f],
-                           rng[0, f], lab[0, f])
+            shaded = self._shade(origin_np, d, *hits, w, scene, backend)
+            index, start = (None, q.start) if isinstance(q, slice) else (torch.from_numpy(q), 0)
+            _kernels.store(torch.from_numpy(np.ascontiguousarray(d)), index, start, shaded,
+                           axes[f], self.far, rgb[0, f], dep[0, f], rng[0, f], lab[0, f],
+                           backend=backend)
 
         self._run(tasks, job)
         if antialias > 1:
-            self._antialias(antialias, sel, texels, buffers, origin_np, rot, scene, w, chunk)
+            self._antialias(antialias, sel, texels, buffers, origin_np, rot, scene, w, chunk,
+                            backend)
         return buffers
 
     def _antialias(self, k: int, sel: Tensor, texels: Tensor | None,
                    buffers: dict[str, Tensor], origin: np.ndarray, rot: Tensor | None,
-                   scene: _mesh.MeshScene, w: Weather, chunk: int) -> None:
+                   scene: _mesh.MeshScene, weather: Tensor, chunk: int, backend: str
+                   ) -> None:
         """:meth:`render_cubemap`'s ``antialias=k``, on the cube of centre rays in
         ``buffers``: the RGB of every texel on an edge becomes the mean of ``k x k`` sub-texel
         rays (for odd ``k`` the middle one is the centre ray, already traced).
@@ -1276,7 +604,8 @@ class Town:
             if rot is not None:
                 d = d[:, :1] * rot[:, 0] + d[:, 1:2] * rot[:, 1] + d[:, 2:] * rot[:, 2]
             d = np.ascontiguousarray(d.numpy())
-            sub = self._shade(origin, d, *self._trace(scene, origin, d), w, scene)["rgb"]
+            hits = self._trace(scene, origin, d, backend)
+            sub = self._shade(origin, d, *hits, weather, scene, backend)["rgb"]
             sub = sub.numpy().reshape(q.size, m, 3)
             total = sub[:, 0].copy()
             for n in range(1, m):   # summed in order: the same whatever the batch

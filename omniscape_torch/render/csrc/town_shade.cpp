@@ -1,5 +1,5 @@
-// Shading of the built-in town's ray hits: the loops of omniscape_torch/scenes/town.py's
-// Town._shade_reference (torch), one ray at a time, as PyTorch custom ops
+// Shading of the built-in town's ray hits: the loops of omniscape_torch/render/kernels/town.py's
+// torch twins (_shade_torch, ...), one ray at a time, as PyTorch custom ops
 // torch.ops.omniscape_torch.{town_backfaces, town_prepare, town_shade, town_store}, built with
 // the fast sampler (fastsample.cpp) by omniscape_torch/render/kernels/build.py into one library.
 // A call through torch.ops releases the GIL while the op runs (torch's invokeOperatorFromPython),
@@ -16,7 +16,7 @@
 // Layouts (checked by the ops before any read): rays o (n or 1, 3), d (n, 3), hits t, tri (-1:
 // none, else < T), barycentric u, v (n,); the triangles' attributes attr (A_ROWS, T) row-major;
 // triangle corners tris (T, 3) int32 (< V), vertex normals vn (V, 3); weather and constants w
-// (W_COUNT,), see town.py's _native_weather; lamps (L, 3). All contiguous CPU tensors. Shapes,
+// (W_COUNT,), kernels/town.py's WEATHER; lamps (L, 3). All contiguous CPU tensors. Shapes,
 // dtypes and the hits' and texels' indices are checked before the loop; a triangle's corners
 // and a ground triangle's class id (which index vn and the ground's colours) as they are met,
 // before they are read, the op raising after the loop (its outputs then not to be used): a
@@ -32,6 +32,7 @@
 
 namespace {
 
+// the rows of attr and the entries of w: kernels/town.py's ATTRIBUTES and WEATHER, in order
 enum { A_NX, A_NY, A_NZ, A_LABEL, A_KIND, A_R, A_G, A_B, A_PAINT, A_OFF, A_CX, A_CY, A_INDEX,
        A_SMOOTH, A_ROWS };
 enum { W_SX, W_SY, W_SZ, W_SUN, W_AMB = W_SUN + 3, W_ZEN = W_AMB + 3, W_HOR = W_ZEN + 3,
@@ -554,20 +555,8 @@ void town_store_op(const at::Tensor& d, const std::optional<at::Tensor>& index, 
 
 }  // namespace
 
-// The namespace is defined (TORCH_LIBRARY) in fastsample.cpp, of the same library.
-TORCH_LIBRARY_FRAGMENT(omniscape_torch, m) {
-    m.def("town_backfaces(Tensor d, Tensor tri, Tensor attr, Tensor(a!) out) -> ()");
-    m.def("town_prepare(Tensor o, Tensor d, Tensor t, Tensor tri, Tensor u, Tensor v, "
-          "Tensor attr, Tensor tris, Tensor vn, Tensor weather, float bias0, float bias_per_m, "
-          "Tensor(a!) need, Tensor(b!) origin, Tensor(c!) shadow) -> ()");
-    m.def("town_shade(Tensor o, Tensor d, Tensor t, Tensor tri, Tensor u, Tensor v, "
-          "Tensor attr, Tensor tris, Tensor vn, Tensor weather, Tensor shadow, Tensor lamps, "
-          "Tensor(a!) rgb, Tensor(b!) range, Tensor(c!) labels, Tensor(d!) normal) -> ()");
-    m.def("town_store(Tensor d, Tensor? index, int start, Tensor rgb, Tensor range, "
-          "Tensor labels, Tensor hit, Tensor axis, float far, Tensor(a!) rgb_out, "
-          "Tensor(b!) depth_out, Tensor(c!) range_out, Tensor(d!) labels_out) -> ()");
-}
-
+// The ops' schemas (and their fakes) are defined in Python, beside their wrappers and torch
+// twins: omniscape_torch/render/kernels/town.py (OPS). Here only their CPU kernels.
 TORCH_LIBRARY_IMPL(omniscape_torch, CPU, m) {
     m.impl("town_backfaces", &town_backfaces_op);
     m.impl("town_prepare", &town_prepare_op);

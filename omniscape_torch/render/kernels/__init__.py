@@ -16,15 +16,17 @@ never ask whether the C++ ops exist.
   `camera_rays`, `radial_table`: the C++ tables or compiled torch).
 - `framing`: the focal at which a perspective source fills a share of a fisheye.
 - `draw`: the augmentation's draw of cameras and attitudes (one stream layout) and its C++ twin.
+- `town`: the built-in town's shading (`omniscape_torch.scenes.Town`): back faces, shading
+  with shadow rays, storing a cube face's rays.
 
 On a GPU (or any device but the CPU) every function takes its torch route: the C++ ops are
 CPU-only and forward-only.
 """
 
-from . import build, camera, cube, draw, framing, image
+from . import build, camera, cube, draw, framing, image, town
 from ._backend import (BACKENDS, available, check_backend, choose, compile_failures, resolve,
                        unavailable_reason)
 
 __all__ = ["BACKENDS", "available", "build", "camera", "check_backend", "choose",
-           "compile_failures", "cube", "draw", "framing", "image", "resolve",
+           "compile_failures", "cube", "draw", "framing", "image", "resolve", "town",
            "unavailable_reason"]

@@ -18,10 +18,11 @@ The ops, ``torch.ops.omniscape_torch.*`` (`OPS`; schemas in the sources): the sa
 its antialiasing ``mip_image``, the framing's ``framing_reach, framing_focal``
 ([framing][omniscape_torch.render.framing]), the detection boxes' ``box_pixels, outline_points,
 outline_reduce`` (``detection``) and the town's ``town_backfaces, town_prepare, town_shade,
-town_store``. Each checks its arguments
+town_store`` (their schemas, fakes and wrappers in `omniscape_torch.render.kernels.town`; the
+C++ source only implements them). Each checks its arguments
 (device, dtype, shape, contiguity, index ranges) before it reads any, raising a RuntimeError
-that names the op and the argument; their fake implementations for ``torch.compile`` are
-registered here. A call through ``torch.ops`` releases the GIL while the op runs, so the town's
+that names the op and the argument; the other ops' fake implementations for ``torch.compile``
+are registered here. A call through ``torch.ops`` releases the GIL while the op runs, so the town's
 worker threads shade in parallel.
 
 Build: `load` compiles the three ``.cpp`` sources with one ``torch.utils.cpp_extension.load``
@@ -62,10 +63,10 @@ The library is built with OpenMP, the runtime PyTorch has already loaded (``libg
 the samplers' loops run on PyTorch's intra-op threads (``at::parallel_for``); the town's ops run
 on the calling thread (the town splits its rays into tasks on threads of its own). Where the
 library cannot be built (no compiler, no ninja, a read-only cache), `load` raises and `ops`
-warns once and returns None: the fast sampler ([cube][omniscape_torch.render.kernels.cube]) is then
-unavailable and ``OmniProjection`` samples with ``grid_sample``, and the town shades with torch
-(``Town._shade_reference``: the same labels and depths, colours within float32 roundings,
-several times slower).
+warns once and returns None: the cube samplers ([cube][omniscape_torch.render.kernels.cube])
+then take their torch twin (``grid_sample`` on the padded atlas) and the town shades with
+torch (the twins in `omniscape_torch.render.kernels.town`: the same labels and depths,
+colours within float32 roundings, several times slower).
 """
 
 from __future__ import annotations
@@ -475,41 +476,6 @@ def _fake_frame_lens(u, spec, intrinsics, centre, cos, sin, src_height, src_widt
            "attitude (3, n), rotation (n, 3, 3)")
 
 
-def _fake_rays(o, d, t, tri, u, v, what: str) -> None:
-    n = d.shape[0]
-    _check(d.dim() == 2 and d.shape[1] == 3 and o.dim() == 2 and o.shape[1] == 3
-           and o.shape[0] in (1, n) and t.shape == tri.shape == u.shape == v.shape == (n,),
-           f"{what}: expected o (n or 1, 3), d (n, 3), t, tri, u, v (n,)")
-
-
-def _fake_town_backfaces(d, tri, attr, out) -> None:
-    _check(d.dim() == 2 and d.shape[1] == 3 and tri.shape == out.shape == (d.shape[0],),
-           "town_backfaces: expected d (n, 3), tri and out (n,)")
-
-
-def _fake_town_prepare(o, d, t, tri, u, v, attr, tris, vn, weather, bias0, bias_per_m, need,
-                       origin, shadow) -> None:
-    _fake_rays(o, d, t, tri, u, v, "town_prepare")
-    _check(need.shape == shadow.shape == (d.shape[0],) and origin.shape == d.shape,
-           "town_prepare: expected need, shadow (n,) and origin (n, 3)")
-
-
-def _fake_town_shade(o, d, t, tri, u, v, attr, tris, vn, weather, shadow, lamps, rgb, range_,
-                     labels, normal) -> None:
-    _fake_rays(o, d, t, tri, u, v, "town_shade")
-    _check(rgb.shape == normal.shape == d.shape and range_.shape == labels.shape
-           == shadow.shape == (d.shape[0],),
-           "town_shade: expected rgb, normal (n, 3), shadow, range, labels (n,)")
-
-
-def _fake_town_store(d, index, start, rgb, range_, labels, hit, axis, far, rgb_out, depth_out,
-                     range_out, labels_out) -> None:
-    _check(rgb.shape == d.shape and rgb_out.dim() == 2 and rgb_out.shape[0] == 3
-           and depth_out.shape == range_out.shape == labels_out.shape == (rgb_out.shape[1],),
-           "town_store: expected d, rgb (n, 3), rgb_out (3, P), depth_out, range_out and "
-           "labels_out (P,)")
-
-
 _FAKES = {"build_lut": _fake_build_lut, "sample_lut": _fake_sample_lut,
           "sample_grid": _fake_sample_grid, "sample_rays": _fake_sample_rays,
           "camera_grid": _fake_camera_grid, "camera_rays": _fake_camera_rays,
@@ -517,10 +483,7 @@ _FAKES = {"build_lut": _fake_build_lut, "sample_lut": _fake_sample_lut,
           "reproject_image": _fake_reproject_image, "frame_lens": _fake_frame_lens,
           "framing_reach": _fake_framing_reach, "framing_focal": _fake_framing_focal,
           "box_pixels": _fake_box_pixels, "outline_points": _fake_outline_points,
-          "outline_reduce": _fake_outline_reduce,
-          "town_backfaces": _fake_town_backfaces,
-          "town_prepare": _fake_town_prepare, "town_shade": _fake_town_shade,
-          "town_store": _fake_town_store}
+          "outline_reduce": _fake_outline_reduce}
 
 
 def _register_fakes() -> None:
