@@ -119,6 +119,7 @@ from common import begin_run, loadavg, measure, results_path, run_main, run_reco
 from omniscape_torch import cubemap as cm  # noqa: E402
 from omniscape_torch.cubemap import grid as fastgrid  # noqa: E402
 from omniscape_torch.render.kernels import cube as fastsample  # noqa: E402
+from omniscape_torch.render.reference import grid_sample as reference_grid_sample  # noqa: E402
 from omniscape_torch.render.kernels import compile_failures  # noqa: E402
 
 try:
@@ -348,7 +349,9 @@ def run(args: argparse.Namespace) -> dict:
             ("bf16_cached", "ours", lambda: fused(cube_bf16)),
             ("copy", "bandwidth", lambda: copy_dst.copy_(copy_src)),
             ("atlas", "part", lambda: cm.cubemap_to_atlas(cube, pad, "bilinear")),
-            ("sample", "part", lambda: eager._sample(atlas, grid_b, "bilinear")),
+            ("sample", "part", lambda: reference_grid_sample(
+                atlas, grid_b.expand(atlas.shape[0], *grid_b.shape[1:]), "bilinear",
+                padding_mode="zeros")),
             ("sample_lut", "part",
              lambda: fastsample.sample_cube(cube, grid_b, pad=pad, lut=lut)),
             ("grid_eager", "part",

@@ -7,7 +7,7 @@ from torch import Tensor, nn
 
 
 def _check_pixelwise(module: nn.Module) -> None:
-    """Refuse a kornia augmentation that moves pixels (see :class:`ApplyToKey`)."""
+    """Refuse a kornia augmentation that moves pixels (see `ApplyToKey`)."""
     from kornia.augmentation import GeometricAugmentationBase2D
     moving = [m for m in module.modules() if isinstance(m, GeometricAugmentationBase2D)]
     if moving:
@@ -19,7 +19,7 @@ def _check_pixelwise(module: nn.Module) -> None:
 
 class ApplyToKey(nn.Module):
     """Apply an image augmentation (e.g. kornia's ``ColorJitter``) to one entry of the dict that
-    :class:`RandomOmniCamera` returns, so both compose in an ``nn.Sequential``::
+    `RandomOmniCamera` returns, so both compose in an ``nn.Sequential``::
 
         nn.Sequential(RandomOmniCamera(...), ApplyToKey(kornia.augmentation.ColorJitter(...)))
 
@@ -30,7 +30,7 @@ class ApplyToKey(nn.Module):
     Only augmentations that leave every pixel where it is (colour, noise, blur): a geometric
     one (kornia's ``GeometricAugmentationBase2D``: flips, crops, affine warps) would move the
     RGB and not the labels, depth and valid mask, so it is refused with a ``TypeError``. Apply
-    those to the cubes before :class:`RandomOmniCamera` (a new attitude is the geometric
+    those to the cubes before `RandomOmniCamera` (a new attitude is the geometric
     augmentation here), or to every key at once with kornia's ``AugmentationSequential``
     (``data_keys=["input", "mask", ...]``).
 

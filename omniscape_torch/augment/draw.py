@@ -110,7 +110,7 @@ def _target_camera(camera: object) -> Camera | None:
 
 
 class _RandomCameras(nn.Module):
-    """What :class:`RandomOmniCamera` and :class:`RandomReproject` share: the module's
+    """What `RandomOmniCamera` and `RandomReproject` share: the module's
     generator (its seeding across epochs and ``DataLoader`` workers), the fisheye lenses and
     attitudes they draw, and their checks. Not a public class: see those two."""
 
@@ -194,7 +194,7 @@ class _RandomCameras(nn.Module):
     def _check_fisheye_ranges(self) -> None:
         """Fail at construction, not mid-training, if ``fov_range`` leaves the domain of a
         model whose reach is fixed (the drawn lenses of the others are fitted to each drawn
-        field of view: :meth:`_lens`)."""
+        field of view: `_lens`)."""
         half = torch.tensor([0.5 * self.fov_range[1]], dtype=torch.float64)
         for name in self.fisheye_models:
             if name not in _FIXED_REACH:
@@ -311,7 +311,7 @@ class _RandomCameras(nn.Module):
 
     def cameras(self, params: dict, dtype: torch.dtype = torch.float32,
                 device: torch.device | str | None = None) -> dict[str, tuple[Tensor, Camera]]:
-        """One batched :class:`~omniscape_torch.Camera` per model in ``params``:
+        """One batched `Camera` per model in ``params``:
         ``{model: (sample indices (n,), camera with params (n, P))}``, without ``fov`` (the
         per-sample cones are applied by ``render``)."""
         out = {}
@@ -325,7 +325,7 @@ class _RandomCameras(nn.Module):
 
     def _camera_params(self, params: dict, dtype: torch.dtype, device: torch.device,
                        checked: bool = False) -> dict[str, tuple[Tensor, Tensor]]:
-        """What :meth:`cameras` holds, checked as ``Camera`` checks it, without making the
+        """What `cameras` holds, checked as ``Camera`` checks it, without making the
         cameras: ``{model: (sample indices (n,), params (n, P) in dtype on device)}``. The
         lenses without parameters (``fx, fy, cx, cy``: finite, ``fx, fy > 0``) are checked
         in one operation for the batch; ``checked``: the module's own draws of this call,

@@ -44,13 +44,13 @@ class RandomOmniCamera(_RandomCameras):
     """Per sample, a random omnidirectional camera and attitude; renders the cubemap through it.
 
     Cameras: the image circle of the drawn field of view ``fov`` is inscribed in the image (as in
-    :func:`~omniscape_torch.cameras.presets.fisheye` and :func:`~omniscape_torch.cameras.presets.catadioptric`):
+    `fisheye` and `catadioptric`):
     ``f = s (min(H, W) / 2 - 0.5) / r1(fov / 2)`` with ``r1`` the model's radius at focal 1 and
     ``s`` drawn in ``focal_scale_range`` (``s > 1`` zooms in and crops the circle); the centre is
     the image centre plus a uniform jitter of at most ``center_jitter`` pixels on each axis.
 
     * ``mode="fisheye"``: a model drawn uniformly among ``fisheye_models``
-      (:data:`FISHEYE_MODELS`: ``equidistant``, ``equisolid``, ``stereographic``,
+      (`FISHEYE_MODELS`: ``equidistant``, ``equisolid``, ``stereographic``,
       ``kannala_brandt``, ``unified``, ``eucm``, ``double_sphere``). Kannala-Brandt draws
       ``k1..k4`` uniformly in ``[-kb_distortion, kb_distortion]`` and halves them until the
       model stays monotonic past ``fov / 2`` (its ``max_angle``; zero, i.e. equidistant, at
@@ -73,7 +73,7 @@ class RandomOmniCamera(_RandomCameras):
     different image from the input in any case). ``same_on_batch``: one draw for the batch.
 
     Randomness: the ``generator`` passed to a call wins; else the module's own CPU generator
-    (:attr:`generator`), which follows PyTorch's own seeding of ``DataLoader`` workers (each
+    (`generator`), which follows PyTorch's own seeding of ``DataLoader`` workers (each
     worker's ``torch.initial_seed()`` is ``base_seed + worker_id``, ``base_seed`` drawn afresh
     for every iterator, i.e. every epoch, from ``DataLoader(generator=...)`` or else from the
     global RNG):
@@ -87,7 +87,7 @@ class RandomOmniCamera(_RandomCameras):
       from a hash of ``seed`` and ``torch.initial_seed()`` (``numpy.random.SeedSequence``). So
       workers draw different streams, each epoch of non-persistent workers draws new ones, and
       persistent workers continue theirs across epochs.
-    * :meth:`reseed` (e.g. in a ``worker_init_fn``) pins the stream to a seed in the process
+    * `reseed` (e.g. in a ``worker_init_fn``) pins the stream to a seed in the process
       and worker it is called in.
 
     A run is reproduced by the same ``seed`` and the same
@@ -320,7 +320,7 @@ class RandomOmniCamera(_RandomCameras):
 
     def _render_maps(self, cubemap: Tensor | None, params: dict, *,
                      labels: Tensor | None = None, depth: Tensor | None = None) -> dict:
-        """:meth:`render` of the modalities alone (``valid``, ``rgb``, ``labels``, ``depth``,
+        """`render` of the modalities alone (``valid``, ``rgb``, ``labels``, ``depth``,
         ``params``)."""
         rgb_dtype = self._check_cubemap(cubemap)
         ref = next((t for t in (cubemap, depth, labels) if t is not None), None)
@@ -439,7 +439,7 @@ class RandomOmniCamera(_RandomCameras):
                 (torchvision's ``tv_tensors.Image``, ``Mask``) are read as the tensors they
                 hold, and their outputs come back in their classes (``valid`` as a ``Mask``);
                 an unbatched sample ``(6, C, F, F)``, ``(6, F, F)`` comes back unbatched
-                (:mod:`~omniscape_torch.augment.containers`).
+                (`containers`).
             labels: ``(B, 6, F, F)`` integer class ids.
             depth: ``(B, 6, F, F)`` planar depth, metres.
             params: parameters from ``forward_parameters`` or a previous output, to replay.

@@ -23,8 +23,8 @@ class _Routes:
     def _rays(self, name: str, params: Tensor, fov: Tensor) -> tuple[Tensor, Tensor]:
         """The unit rays ``(n, H, W, 3)`` and validity ``(n, H, W)`` of ``n`` cameras of model
         ``name`` (``params (n, P)`` in the rays' dtype, float32 or float64) within their fields
-        of view ``fov (n,)``: :func:`~omniscape_torch.render.kernels.camera_rays`, through
-        the table of :meth:`_unit_lens` where the model has one."""
+        of view ``fov (n,)``: `camera_rays`, through
+        the table of `_unit_lens` where the model has one."""
         if self._unit_lens(name) is None:
             return camera_rays(name, params, self.image_size, fov=fov, dtype=params.dtype,
                                backend=self.backend)
@@ -32,8 +32,8 @@ class _Routes:
 
     def _tables(self, name: str, params: Tensor, fov: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """``affine (n, 6)``, ``limits (n, 5)`` and ``table (1, 2, K)`` of ``n`` cameras of a
-        model with a :meth:`_unit_lens` table, in the dtype of ``params (n, P)``, as
-        :func:`~omniscape_torch.render.kernels.image.camera_rays` takes them: ``cx, cy`` and ``M =
+        model with a `_unit_lens` table, in the dtype of ``params (n, P)``, as
+        `camera_rays` takes them: ``cx, cy`` and ``M =
         diag(1 / fx, 1 / fy)``, the table's limits with ``cos(fov / 2)`` and no blind cone."""
         unit = self._unit_lens(name)
         cams = params.numpy()[:, :4].astype(np.float64)   # (NumPy's slicing: cheaper)
@@ -116,7 +116,7 @@ class _Routes:
 
     def _render_fused(self, name: str, part: "_Part", image: Tensor | None,
                       labels: Tensor | None, result: dict) -> None:
-        """:meth:`_render_fast` of the common case, one ``reproject_image`` call per run of
+        """`_render_fast` of the common case, one ``reproject_image`` call per run of
         consecutive samples."""
         affine, limits, table = self._tables(name, part.params, part.fov)
         k = part.intrinsics.to(part.params.dtype)
@@ -140,7 +140,7 @@ class _Routes:
     def _antialias(image: Tensor, rays: Tensor, rotation: Tensor | None, k: Tensor,
                    seen: Tensor, out: Tensor) -> None:
         """Overwrite the pixels of ``out`` (the fast op's samples) whose footprint minifies the
-        source with its mip filter, :func:`~omniscape_torch.render.kernels.image.mip_image`; float16
+        source with its mip filter, `mip_image`; float16
         and bfloat16 images through float32, in which the op blends them."""
         if image.dtype in fast.MIPMAPPED:
             fast.mip_image(image, rays, rotation, k, seen, out)

@@ -416,7 +416,7 @@ def undistort_2d(xd: Tensor, yd: Tensor, coeffs: Tensor, distort: Callable, radi
 
     The start is the inverse of the radial part alone (``radial(r, coeffs) -> (g(r), g'(r))``,
     increasing on ``[0, sqrt(t_limit))``) at ``|(xd, yd)|``, by the safeguarded 1-D Newton of
-    :func:`invert_monotone`, so that strong radial distortion does not lead Newton astray; a
+    `invert_monotone`, so that strong radial distortion does not lead Newton astray; a
     2-D step that would cross the fold (``mx^2 + my^2 >= t_limit``) is shortened to land halfway
     to it. At most ``iterations`` steps, ending early once every lane has converged to
     ``8 eps (1 + |xd| + |yd|)``, or two steps after every lane is within ``64 eps (1 + |xd| +

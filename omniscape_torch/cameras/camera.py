@@ -166,7 +166,7 @@ class Camera(nn.Module):
             within ``fov``. Differentiable with respect to ``params``.
 
         Raises:
-            ValueError: the parameters left the model's domain (:meth:`check_params`).
+            ValueError: the parameters left the model's domain (`check_params`).
         """
         self.check_params()
         grid = self.pixel_grid().expand(self.batch_shape + self.pixel_grid().shape)

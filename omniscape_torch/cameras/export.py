@@ -1,6 +1,6 @@
 """Camera files that other tools read: OpenCV, Kalibr, basalt, ORB-SLAM3 and COLMAP.
 
-One entry point, :func:`write_camera` (``Camera.save``), writes one camera in one of ``FORMATS``
+One entry point, `write_camera` (``Camera.save``), writes one camera in one of ``FORMATS``
 (atomically); ``json`` and ``ocamcalib`` are this package's JSON and OCamCalib's
 ``calib_results.txt`` (``formats.py``). Each format holds a few models:
 
@@ -97,7 +97,7 @@ from ..io.atomic import atomic_write_text
 from . import formats
 from .registry import MODELS
 
-#: The formats :func:`write_camera` writes.
+#: The formats `write_camera` writes.
 FORMATS = ("json", "ocamcalib", "opencv", "kalibr", "basalt", "orbslam3", "colmap")
 
 # Targets that cannot represent a ray at or past 90 degrees off the axis: (format, model) -> why.

@@ -86,7 +86,7 @@ def _f624_distort(a: Tensor, b: Tensor, c: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def _tpf_jacobian(a: Tensor, b: Tensor, c: Tensor):
-    """:func:`_tpf_distort` and its Jacobian ``d(xd, yd) / d(a, b)``, written out."""
+    """`_tpf_distort` and its Jacobian ``d(xd, yd) / d(a, b)``, written out."""
     k1, k2, p1, p2, k3, k4, sx1, sy1 = c.unbind(-1)
     t = a * a + b * b
     radial = 1 + t * (k1 + t * (k2 + t * (k3 + t * k4)))
@@ -102,7 +102,7 @@ def _tpf_jacobian(a: Tensor, b: Tensor, c: Tensor):
 
 
 def _f624_jacobian(a: Tensor, b: Tensor, c: Tensor):
-    """:func:`_f624_distort` and its Jacobian ``d(xd, yd) / d(a, b)``: the tangential and
+    """`_f624_distort` and its Jacobian ``d(xd, yd) / d(a, b)``: the tangential and
     thin-prism map's Jacobian times the radial map's."""
     k0, k1, k2, k3, k4, k5, p0, p1, s0, s1, s2, s3 = c.unbind(-1)
     t = a * a + b * b

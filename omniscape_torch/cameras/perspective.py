@@ -220,7 +220,7 @@ def division_project(points: Tensor, params: Tensor) -> tuple[Tensor, Tensor]:
 
     Returns:
         ``pixels (..., 2)`` and ``valid (...)``: ``theta < max_angle`` (see
-        :func:`division_max_angle`).
+        `division_max_angle`).
     """
     check_inputs("division", points, params, 3, 5, "points")
     k = params[..., 4]
@@ -282,7 +282,7 @@ def _opencv_distort(mx: Tensor, my: Tensor, c: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def _opencv_jacobian(mx: Tensor, my: Tensor, c: Tensor):
-    """:func:`_opencv_distort` and its Jacobian ``d(xd, yd) / d(mx, my)``, written out."""
+    """`_opencv_distort` and its Jacobian ``d(xd, yd) / d(mx, my)``, written out."""
     k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = c.unbind(-1)
     t = mx * mx + my * my
     n = 1 + t * (k1 + t * (k2 + t * k3))
@@ -333,7 +333,7 @@ def opencv_radial_limit(params: Tensor) -> Tensor:
 
 
 def opencv_max_angle(params: Tensor) -> Tensor:
-    """``atan(sqrt(t_limit))`` (:func:`opencv_radial_limit`), pi / 2 without a limit."""
+    """``atan(sqrt(t_limit))`` (`opencv_radial_limit`), pi / 2 without a limit."""
     t = opencv_radial_limit(params)
     return torch.where(torch.isfinite(t), torch.atan(torch.sqrt(t)),
                        torch.full_like(t, math.pi / 2))
@@ -349,7 +349,7 @@ def opencv_project(points: Tensor, params: Tensor) -> tuple[Tensor, Tensor]:
 
     Returns:
         ``pixels (..., 2)`` and ``valid (...)``: z > 0 and ``r^2`` below the radial fold and
-        the pole (:func:`opencv_radial_limit`).
+        the pole (`opencv_radial_limit`).
     """
     check_inputs("opencv", points, params, 3, 16, "points")
     mx, my, valid = _plane(points)

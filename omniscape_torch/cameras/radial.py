@@ -245,7 +245,7 @@ def kannala_brandt_unproject(pixels: Tensor, params: Tensor, *,
     return _unproject_radial(pixels, params, theta_of_r, _skew(params, 8))
 
 
-#: Entries of the radius -> angle table of :func:`kannala_brandt_tabulate`, and the safeguarded
+#: Entries of the radius -> angle table of `kannala_brandt_tabulate`, and the safeguarded
 #: Newton steps that polish its interpolation per pixel (quadratic away from the fold; next to
 #: it, where the inverse has a square-root singularity, at least a halving of the bracket).
 KB_TABLE, KB_TABLE_STEPS = 256, 4
@@ -254,8 +254,8 @@ KB_TABLE, KB_TABLE_STEPS = 256, 4
 def kannala_brandt_tabulate(params: Tensor, image_size: tuple[int, int],
                             entries: int = KB_TABLE) -> Tensor:
     """The parameters of ``B`` Kannala-Brandt cameras with their radius -> angle tables, for
-    :func:`kannala_brandt_unproject_table_xyz`: the inverse solved once per camera at
-    ``entries + 1`` radii (the safeguarded Newton of :func:`kannala_brandt_unproject`) instead
+    `kannala_brandt_unproject_table_xyz`: the inverse solved once per camera at
+    ``entries + 1`` radii (the safeguarded Newton of `kannala_brandt_unproject`) instead
     of at every pixel. The table spans the radii of the image (its farthest corner), up to the
     model's limit (the fold, or pi).
 
@@ -304,7 +304,7 @@ def _bracketed_newton(theta: Tensor, target: Tensor, lo: Tensor, hi: Tensor, coe
     return theta
 
 
-#: Angles of the forward sweep of :func:`kannala_brandt_angles`, and its polishing steps.
+#: Angles of the forward sweep of `kannala_brandt_angles`, and its polishing steps.
 KB_SWEEP, KB_SWEEP_STEPS = 256, 2
 
 
@@ -317,7 +317,7 @@ def kannala_brandt_angles(params: Tensor, radii: Tensor, *, samples: int = KB_SW
     them (``searchsorted``) and its angle interpolated linearly in ``w = sqrt(r_end - r)``, in
     which ``theta`` is smooth up to the fold (in ``r`` it has a square-root singularity there),
     then polished by ``steps`` Newton steps kept inside the bracket (bisection where a step
-    leaves it). The roots of the safeguarded Newton of :func:`kannala_brandt_unproject` to
+    leaves it). The roots of the safeguarded Newton of `kannala_brandt_unproject` to
     1e-9 rad (tests/test_camera_grid.py), without its 60 iterations over every radius; no
     gradient.
     """
@@ -341,7 +341,7 @@ def kannala_brandt_angles(params: Tensor, radii: Tensor, *, samples: int = KB_SW
 def kannala_brandt_unproject_table_xyz(u: Tensor, v: Tensor, table: Tensor
                                        ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Kannala-Brandt unprojection of pixel ``(u, v)`` through a radius -> angle table of
-    :func:`kannala_brandt_tabulate` (broadcasting ``table (..., 9 + 2 + T + 1)`` against the
+    `kannala_brandt_tabulate` (broadcasting ``table (..., 9 + 2 + T + 1)`` against the
     pixels): the angle interpolated linearly between the two entries around the pixel's
     radius, then polished by ``KB_TABLE_STEPS`` Newton steps on the polynomial, kept within the
     bracket of the two entries (bisection where a step leaves it); tests/test_camera_grid.py

@@ -326,7 +326,7 @@ class _Builder:
 
     def make(self, name: str, key: str, model: str, params, size_wh, *, area=None) -> None:
         """``size_wh``: (W, H) from the file, or None; ``area``: ``fov`` / ``blind_fov`` from
-        the file (:meth:`area`), below the caller's."""
+        the file (`area`), below the caller's."""
         if self.image_size is not None:
             size = tuple(self.image_size)
         elif size_wh is None:

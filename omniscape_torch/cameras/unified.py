@@ -71,7 +71,7 @@ def _normalised(pixels: Tensor, params: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def _normalised_uv(u: Tensor, v: Tensor, params: Tensor) -> tuple[Tensor, Tensor]:
-    """The inverse of :func:`_pixels`."""
+    """The inverse of `_pixels`."""
     my = (v - params[..., 3]) / params[..., 1]
     if params.shape[-1] == 10:
         return (u - params[..., 2] - params[..., 9] * my) / params[..., 0], my
@@ -214,7 +214,7 @@ def unified_unproject(pixels: Tensor, params: Tensor, *,
 
 
 def unified_unproject_undistorted(pixels: Tensor, params: Tensor) -> tuple[Tensor, Tensor]:
-    """:func:`unified_unproject` of a camera without lens distortion (k = p = 0, which this does
+    """`unified_unproject` of a camera without lens distortion (k = p = 0, which this does
     not check): the closed form alone, without the data-dependent branch, so ``torch.compile``
     traces it whole (``render.kernels.camera_grid``)."""
     check_inputs("unified", pixels, params, 2, (9, 10), "pixels")
@@ -224,7 +224,7 @@ def unified_unproject_undistorted(pixels: Tensor, params: Tensor) -> tuple[Tenso
 
 def unified_unproject_undistorted_xyz(u: Tensor, v: Tensor, params: Tensor
                                       ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """:func:`unified_unproject_undistorted` as components ``x, y, z, valid`` of pixel
+    """`unified_unproject_undistorted` as components ``x, y, z, valid`` of pixel
     ``(u, v)``, without input checks (``CameraModel.unproject_xyz``)."""
     mx, my = _normalised_uv(u, v, params)
     return _lift_xyz(mx, my, params[..., 4], torch.ones_like(mx, dtype=torch.bool))
@@ -238,7 +238,7 @@ def _lift(mx: Tensor, my: Tensor, xi: Tensor, valid: Tensor) -> tuple[Tensor, Te
 
 def _lift_xyz(mx: Tensor, my: Tensor, xi: Tensor, valid: Tensor
               ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """:func:`_lift` as components; invalid pixels get the optical axis (0, 0, 1)."""
+    """`_lift` as components; invalid pixels get the optical axis (0, 0, 1)."""
     r2 = mx * mx + my * my
     rad = 1 + (1 - xi * xi) * r2
     valid = valid & (rad > 0)

@@ -1,6 +1,6 @@
 """Cube maps: face order and orientation, padded cube, atlas and its sampling grid.
 
-The only place in the package that knows the face order (:data:`FACES`) and orientation.
+The only place in the package that knows the face order (`FACES`) and orientation.
 Conventions (``DESIGN.md``): OpenCV frame (x right, y down, z forward); pixel ``(u, v)`` =
 (column, row), integer coordinates at texel centres; cubemaps are ``(B, 6, C, F, F)``.
 

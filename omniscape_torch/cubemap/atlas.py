@@ -2,10 +2,10 @@
 
 Atlas of border ``p``: ``(B, C, 6 n, n)`` with ``n = F + 2p``; face ``k`` (in ``FACES`` order)
 occupies rows ``[k n, (k + 1) n)``, and face pixel ``(u, v)`` is atlas pixel
-``(x, y) = (u + p, v + p + k n)``. :func:`face_uv_to_grid` defines how face coordinates become
+``(x, y) = (u + p, v + p + k n)``. `face_uv_to_grid` defines how face coordinates become
 ``grid_sample`` coordinates; ``cubemap.grid`` computes the same map from rays.
 
-Because every face carries its resampled border (:func:`~omniscape_torch.cubemap.pad_faces`),
+Because every face carries its resampled border (`pad_faces`),
 bilinear sampling (``p >= 1``) or bicubic sampling (``p >= 2``) at any ``uv`` in
 ``[-0.5, F - 0.5]`` reads texels of one padded face only, and is continuous across seams.
 """
@@ -41,7 +41,7 @@ def faces_to_atlas(faces: Tensor) -> Tensor:
 
 
 def atlas_to_faces(atlas: Tensor) -> Tensor:
-    """Inverse of :func:`faces_to_atlas`.
+    """Inverse of `faces_to_atlas`.
 
     Args:
         atlas: ``(B, C, 6 n, n)``.

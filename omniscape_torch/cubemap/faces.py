@@ -204,7 +204,7 @@ def face_rays(
 
     Texel ``[k, i, j]`` is face ``k`` pixel ``(u, v) = (j - pad, i - pad)``: with ``pad > 0``
     the border texels are the face's own pinhole extended beyond its edge (as in
-    :func:`~omniscape_torch.cubemap.pad_faces`).
+    `pad_faces`).
 
     Args:
         face_size: ``F``, texels per face side.

@@ -1,9 +1,9 @@
 """The one map from rays to the atlas grid, eager or compiled from the same source.
 
-:func:`grid_xy` is the maths: ``ray_to_face`` followed by ``face_uv_to_grid``, the same
+`grid_xy` is the maths: ``ray_to_face`` followed by ``face_uv_to_grid``, the same
 operations in the same order, with the face table's gathers written as selections so that
-``torch.compile`` fuses it into one loop. :func:`rays_to_grid` runs it eagerly (every caller
-of the package that needs a grid of cube-frame rays), :func:`rotated_rays_to_grid` compiled,
+``torch.compile`` fuses it into one loop. `rays_to_grid` runs it eagerly (every caller
+of the package that needs a grid of cube-frame rays), `rotated_rays_to_grid` compiled,
 with a rotation folded in. Run eagerly, ``rays_to_grid(einsum(R, rays), F, pad)`` is about 25
 elementwise ops, each one a full pass through memory over every ray (30 ms for 1M rays on 2
 cores, more than the bilinear sampling it serves); compiled, one loop (1.5 ms;
@@ -34,7 +34,7 @@ double backward (``create_graph=True``) goes through the eager reference.
 
 Compiled functions are cached per (forward or backward, rotation or not, input dtype, grid
 dtype, device type, dynamic shapes), each with its own recompilation budget. Inside
-``DataLoader`` worker processes nothing is compiled (:func:`in_dataloader_worker`). When
+``DataLoader`` worker processes nothing is compiled (`in_dataloader_worker`). When
 ``torch.compile`` is unavailable or fails, the failure is remembered for that key, warned about
 once, and the eager reference is used from then on; ``compiled=False`` forces the eager
 reference.
@@ -75,7 +75,7 @@ _ZERO_CASE = (0, *_R_B_AXES[0])
 def rays_to_grid(rays: Tensor, face_size: int, pad: int) -> Tensor:
     """``grid_sample`` coordinates (``align_corners=False``) in the atlas of cube-frame rays.
 
-    ``ray_to_face`` followed by ``face_uv_to_grid`` (:func:`grid_xy`, eagerly). Zero rays map
+    ``ray_to_face`` followed by ``face_uv_to_grid`` (`grid_xy`, eagerly). Zero rays map
     to the centre of face 0; mask them.
 
     Args:
@@ -145,7 +145,7 @@ def _fused_rotated(rays: Tensor, rotation: Tensor, face_size, pad, dtype: torch.
 
 def rotated_grid_xy(x: Tensor, y: Tensor, z: Tensor, rotation: Tensor, face_size, pad,
                     dtype: torch.dtype) -> tuple[Tensor, Tensor]:
-    """:func:`grid_xy` of camera-frame ray components ``(Br, H, W)`` rotated by ``rotation
+    """`grid_xy` of camera-frame ray components ``(Br, H, W)`` rotated by ``rotation
     (Bq, 3, 3)`` (in the rays' dtype, summed in ``einsum``'s order, then cast to ``dtype``)."""
     r = rotation.to(x.dtype)[:, None, None]  # [Bq, 1, 1, 3, 3]
     # in the rays' dtype, summed in einsum's order, then cast (as ``_grid`` does)
@@ -209,8 +209,8 @@ def in_dataloader_worker() -> bool:
 
 def compiled_kernel(key: tuple, target: Callable, stacklevel: int = 1) -> Callable | None:
     """``torch.compile(target)`` (full graph, ``dynamic=key[-1]``), once per ``key``; None
-    inside ``DataLoader`` workers (:func:`in_dataloader_worker`) and after a failure, which is
-    remembered and warned about once (:func:`fail`). ``key``: ``(kind, variant, input dtype,
+    inside ``DataLoader`` workers (`in_dataloader_worker`) and after a failure, which is
+    remembered and warned about once (`fail`). ``key``: ``(kind, variant, input dtype,
     output dtype, device type, dynamic)``."""
     if in_dataloader_worker():
         return None   # the eager path, without a warning (see in_dataloader_worker)
@@ -350,7 +350,7 @@ def rotated_rays_to_grid_reference(rays: Tensor, rotation: Tensor | None, face_s
                                    pad: int, *, dtype: torch.dtype | None = None) -> Tensor:
     """The eager definition: ``cubemap.rays_to_grid(einsum(R, rays).to(dtype), F, pad)``.
 
-    Same arguments and result as :func:`rotated_rays_to_grid`; this is its fallback and its
+    Same arguments and result as `rotated_rays_to_grid`; this is its fallback and its
     test oracle.
     """
     rays, rotation, dtype = _check_inputs(rays, rotation, face_size, pad, dtype)
@@ -382,7 +382,7 @@ def rotated_rays_to_grid(rays: Tensor, rotation: Tensor | None, face_size: int, 
         face_size: ``F``, texels per cube face side.
         pad: atlas border ``p``.
         dtype: floating dtype of the grid (default: the rays' dtype).
-        compiled: False forces the eager reference (:func:`rotated_rays_to_grid_reference`).
+        compiled: False forces the eager reference (`rotated_rays_to_grid_reference`).
         dynamic: compile for dynamic shapes (one kernel for all sizes); False specialises on
             each shape (recompiles when it changes).
 

@@ -8,7 +8,7 @@ bicubic for ``p >= 2``) reads only texels of that padded face and is continuous 
 and corners.
 
 The border is linear in the cube, so it is precomputed once per ``(F, p, mode)`` as a
-:class:`BorderPlan` (source indices and weights into the unpadded cube) and applied with one
+`BorderPlan` (source indices and weights into the unpadded cube) and applied with one
 gather.
 
 Self-reference near edges and corners: a border texel's ray lands on its source face at
@@ -105,7 +105,7 @@ def border_plan(
     """Source indices and weights of the border of a padded cube.
 
     Computed once in float64 on the CPU and cached per ``(face_size, pad, mode, tol,
-    max_iter)``; move it with :meth:`BorderPlan.to` (a layer keeps the result as buffers). The
+    max_iter)``; move it with `BorderPlan.to` (a layer keeps the result as buffers). The
     returned tensors are shared by every caller: do not modify them in place.
 
     Args:
@@ -118,7 +118,7 @@ def border_plan(
         max_iter: bound on the solve's expansion steps; ``RuntimeError`` if not converged.
 
     Returns:
-        The :class:`BorderPlan`, CPU, float64 weights.
+        The `BorderPlan`, CPU, float64 weights.
     """
     _check_face_size(face_size)
     _check_pad(pad)
@@ -327,7 +327,7 @@ def pad_faces(
         pad: border width ``p >= 0`` in texels; bilinear sampling needs ``p >= 1``, bicubic
             ``p >= 2``. ``p = 0`` returns the input.
         mode: ``"bilinear"`` or ``"nearest"``.
-        plan: a precomputed :func:`border_plan` for ``(F, pad, mode)``, e.g. a layer's buffer;
+        plan: a precomputed `border_plan` for ``(F, pad, mode)``, e.g. a layer's buffer;
             default: the cached plan, moved to the cubemap's device and dtype.
 
     Returns:

@@ -2,7 +2,7 @@
 
 Every path that takes an attitude (the layer, its fast and reference samplers, the
 augmentation's replayed parameters, the stereo rig, ``reproject``, the sizing functions) calls
-:func:`check_rotation` at its entry, so a bad matrix gets the same error everywhere instead of
+`check_rotation` at its entry, so a bad matrix gets the same error everywhere instead of
 a black, mirrored or silently rescaled image (the cube projection is scale invariant, so a
 scaled matrix would otherwise render as its rotation).
 """
@@ -49,7 +49,7 @@ def check_rotation(rotation: object, name: str = "rotation", *,
     Args:
         rotation: a floating-point tensor of shape ``(..., 3, 3)``.
         name: the argument's name, for the error message.
-        atol: the orthonormality tolerance (:data:`ROTATION_ATOL`).
+        atol: the orthonormality tolerance (`ROTATION_ATOL`).
 
     Raises:
         TypeError: not a floating-point tensor.

@@ -14,16 +14,16 @@ right yaw +90, up pitch +90, down pitch -90). Per face and modality:
 
 * ``<face>_rgb.png``: 8-bit colour (grey is repeated to three channels).
 * ``<face>_depth.png``: CARLA's depth camera saved with the ``Raw`` converter: planar depth
-  packed in 24 bits of R, G, B (:func:`omniscape_torch.io.carla.decode_depth`); or
+  packed in 24 bits of R, G, B (`omniscape_torch.io.carla.decode_depth`); or
   ``<face>_depth.exr``: planar depth in metres, one float channel (the PNG wins if both exist).
 * ``<face>_labels.png``: CARLA's semantic camera saved with the ``Raw`` converter: the tag in
   the red channel (a one-channel PNG is read as the tags themselves), mapped to the 13 classes
-  of the paper from ``label_set`` (:func:`omniscape_torch.io.carla.to_13`).
+  of the paper from ``label_set`` (`omniscape_torch.io.carla.to_13`).
 * ``<face>_instances.png`` (optional): CARLA's instance-segmentation camera
   (``sensor.camera.instance_segmentation``) saved as it comes: the tag in red, the object's
-  id in green and blue, ``G + 256 B`` (:func:`omniscape_torch.io.carla.decode_instances`). An
+  id in green and blue, ``G + 256 B`` (`omniscape_torch.io.carla.decode_instances`). An
   object's id is kept where its tag maps to a class of
-  :data:`omniscape_torch.data.format.INSTANCE_CLASSES` (vehicles, pedestrians, poles, traffic
+  `omniscape_torch.data.format.INSTANCE_CLASSES` (vehicles, pedestrians, poles, traffic
   signs; CARLA numbers every mesh, roads and buildings too), 0 elsewhere; a capture without
   label faces takes its labels from the instance faces' red channel (the same tags).
 
@@ -31,10 +31,10 @@ A modality may be absent (no face file of it), but a modality with some faces an
 faces of different sizes, an unreadable (corrupt) image or an unknown tag is an error that
 names the file.
 
-Bad captures do not stop a conversion: :func:`convert_captures` converts every capture it can,
+Bad captures do not stop a conversion: `convert_captures` converts every capture it can,
 writes nothing for a capture that fails (its files are rendered into a hidden staging folder
 and moved into place only once all of them are written), and at the end raises
-:class:`ConvertError` listing the failures (``omniscape-torch convert`` prints them and exits
+`ConvertError` listing the failures (``omniscape-torch convert`` prints them and exits
 with status 1).
 
 Written per capture and camera (``fisheye``, ``catadioptric``)::
@@ -48,11 +48,11 @@ Written per capture and camera (``fisheye``, ``catadioptric``)::
                                                and outside the valid area
     OUT/<capture_id>/<camera>_objects.json     with instance faces: the objects' classes,
                                                tight boxes (XYXY corners) and pixel counts
-                                               (:mod:`.objects`)
+                                               (`objects`)
     OUT/cameras.json                           the cameras (Camera JSON), their rotations
                                                and, under "ocamcalib", the record of their
                                                OCamCalib file (degree, errors, fov_deg,
-                                               blind_fov_deg: :mod:`.ocamcalib`)
+                                               blind_fov_deg: `ocamcalib`)
     OUT/<camera>_calib_results.txt             the camera as OCamCalib's polynomial model
 
 The polynomial models are fitted once per run, before the captures are read, and not at all
@@ -325,10 +325,10 @@ def render_capture(cube: dict, cameras: dict[str, tuple], out_dir: str | Path, *
                    depth_output: str = "range", interpolation: str = "bilinear",
                    device: str | torch.device = "cpu",
                    _layers: dict | None = None) -> list[Path]:
-    """Render the cubemaps of :func:`load_capture` through each camera and write the files
+    """Render the cubemaps of `load_capture` through each camera and write the files
     (layout in the module docstring) into ``out_dir``. Returns the paths written.
 
-    A ``uint8`` RGB cube (``load_capture(rgb_uint8=True)``, what :func:`convert_captures`
+    A ``uint8`` RGB cube (``load_capture(rgb_uint8=True)``, what `convert_captures`
     reads) is sampled as it is into the 8-bit image written (blended in float32, rounded to
     nearest, half up); a float cube in [0, 1] is rendered in floats and rounded after.
 
@@ -424,16 +424,16 @@ def convert_captures(cubemaps_dir: str | Path, out_dir: str | Path, *, label_set
                      progress: bool | None = None) -> dict[str, list[Path]]:
     """Convert every capture under ``cubemaps_dir`` into omni images under ``out_dir``.
 
-    Angles are radians. Cameras come from :func:`omniscape_torch.cameras.presets.fisheye` (optical
-    axis forward) and :func:`~omniscape_torch.cameras.presets.catadioptric` (axis down or up); their
+    Angles are radians. Cameras come from `omniscape_torch.cameras.presets.fisheye` (optical
+    axis forward) and `catadioptric` (axis down or up); their
     JSON and rotations go to ``out_dir/cameras.json``.
 
     A capture that fails (missing, corrupt or mismatched face, unknown tag, an error while
     rendering or writing) is skipped with nothing written for it, and the others are still
     converted; the failures are raised together at the end.
 
-    ``ray``: convert chunks of captures as Ray tasks (:func:`.distributed.run_on_ray`: the
-    address of a cluster, or True for the one :func:`.distributed.ray_cluster` finds or
+    ``ray``: convert chunks of captures as Ray tasks (`distributed.run_on_ray`: the
+    address of a cluster, or True for the one `distributed.ray_cluster` finds or
     starts; on CPUs, ``device="cpu"``), with the same files as without; ``cubemaps_dir`` and
     ``out_dir`` must be at the same path on every node. ``progress``: a tqdm bar over the
     captures on stderr (default: when stderr is a terminal).
@@ -521,11 +521,11 @@ def convert_chunk(out_dir: str | Path, cameras: dict[str, tuple], options: dict,
                   layers: dict | None = None) -> tuple[dict, dict]:
     """Convert ``captures`` (capture folders) into ``out_dir``, each on its own: a plain
     function of its arguments, which a local run and a Ray task
-    (:func:`.distributed.run_on_ray`) call alike.
+    (`distributed.run_on_ray`) call alike.
 
     Args:
-        cameras: :func:`build_cameras`' dict. options: ``label_set``, ``unknown_label``,
-            ``depth_output``, ``interpolation`` (as for :func:`convert_captures`).
+        cameras: `build_cameras`' dict. options: ``label_set``, ``unknown_label``,
+            ``depth_output``, ``interpolation`` (as for `convert_captures`).
         layers: a dict that keeps the layers across calls (default: this call's).
 
     Returns:

@@ -1,11 +1,11 @@
 """PyTorch datasets over what this package writes and reads.
 
-* :class:`OmniDataset`: a dataset written by ``omniscape-torch generate`` (layout in
-  :mod:`omniscape_torch.data.generate`), one item per (finished frame, camera).
-* :class:`OmniShardDataset`: the same items streamed from WebDataset shards
-  (:mod:`omniscape_torch.data.shards`; local files or URLs), an iterable dataset.
-* :class:`CubemapCaptureDataset`: simulator cubemap captures (layout in
-  :mod:`omniscape_torch.data.captures`), one item per capture folder.
+* `OmniDataset`: a dataset written by ``omniscape-torch generate`` (layout in
+  `omniscape_torch.data.generate`), one item per (finished frame, camera).
+* `OmniShardDataset`: the same items streamed from WebDataset shards
+  (`omniscape_torch.data.shards`; local files or URLs), an iterable dataset.
+* `CubemapCaptureDataset`: simulator cubemap captures (layout in
+  `omniscape_torch.data.captures`), one item per capture folder.
 
 All hold only plain data (paths, tensors, dicts): they pickle, so they work with
 ``DataLoader(num_workers=N)``; items with objects (boxes) or of several camera models need
@@ -83,7 +83,7 @@ class OmniDataset(Dataset):
     """The finished frames of a generated dataset, one item per (frame, camera).
 
     Items are ordered frame-major: ``(frame 0, camera 0), (frame 0, camera 1), ...``
-    (:attr:`items` lists them). Each item is a dict::
+    (`items` lists them). Each item is a dict::
 
         frame          int
         camera         str
@@ -93,7 +93,7 @@ class OmniDataset(Dataset):
         boxes, box_labels, box_instance_ids
                        with ``"objects"`` in ``modalities``: the objects' tight boxes
                        ``(N, 4)`` float32 (XYXY corners), class ids and instance ids
-                       ``(N,)`` int64 (:mod:`omniscape_torch.data.objects`)
+                       ``(N,)`` int64 (`omniscape_torch.data.objects`)
         model          str, the camera model's name
         intrinsics     (P,) float64, the model's parameters (``camera.json``'s params)
         image_size     (2,) int64, (H, W)
@@ -102,8 +102,8 @@ class OmniDataset(Dataset):
         dynamics       the frame's record of ``dynamics.json`` (nested dict of floats)
         weather        str (when ``dataset.json`` names it)
 
-    :meth:`camera` gives the :class:`omniscape_torch.Camera` of a camera name. Batches of
-    cameras of different models (or sizes) need ``collate_fn=``:func:`collate`: their
+    `camera` gives the `omniscape_torch.Camera` of a camera name. Batches of
+    cameras of different models (or sizes) need ``collate_fn=```collate`: their
     ``intrinsics`` differ in length; so do batches with ``objects``: each item has its own
     number of boxes (`collate` keeps them as lists of B, as the augmentation takes
     them).
@@ -113,7 +113,7 @@ class OmniDataset(Dataset):
         cameras: the cameras to serve (default: all, in the writer's order).
         modalities: the images to read, some of ``rgb, depth, labels, labels_color, valid,
             instances, objects`` (the last two where the dataset has them:
-            :func:`~omniscape_torch.data.readers.has_modality`).
+            `has_modality`).
         frames: the frames to serve (default: all the finished ones, listed once here).
         rgb_uint8: rgb as ``(3, H, W)`` uint8 rather than float in [0, 1].
     """
@@ -158,7 +158,7 @@ class OmniDataset(Dataset):
         return len(self.items)
 
     def camera(self, name: str, **kwargs):
-        """The :class:`omniscape_torch.Camera` of ``name`` (float64 unless ``dtype=``)."""
+        """The `omniscape_torch.Camera` of ``name`` (float64 unless ``dtype=``)."""
         return Camera.from_dict(self._intrinsics[name], **kwargs)
 
     def __getitem__(self, index: int) -> dict:
@@ -183,11 +183,11 @@ class OmniDataset(Dataset):
 
 
 class OmniShardDataset(IterableDataset):
-    """The items of :class:`OmniDataset`, streamed from WebDataset shards with ``webdataset``
+    """The items of `OmniDataset`, streamed from WebDataset shards with ``webdataset``
     (``pip install -e ".[webdataset]"``): for training where the dataset's folder is not, from
     shards on a shared disk, a web server or an object store.
 
-    Each item is the dict :class:`OmniDataset` gives for the same frame and camera (same keys,
+    Each item is the dict `OmniDataset` gives for the same frame and camera (same keys,
     types and values). Shards are split between ``torch.distributed`` ranks and then between
     ``DataLoader`` workers (each reads whole shards: use at least as many shards as ranks times
     workers), so ``DataLoader(OmniShardDataset(...), batch_size=B, num_workers=N)`` reads each
@@ -196,7 +196,7 @@ class OmniShardDataset(IterableDataset):
     Args:
         source: a dataset folder (its ``shards/``), a shard folder, a list of shard paths or
             URLs, or one WebDataset URL (``".../shard-{000000..000063}.tar"``, ``"pipe:curl -s
-            URL"``, ...): :func:`omniscape_torch.data.shards.shard_urls`.
+            URL"``, ...): `omniscape_torch.data.shards.shard_urls`.
         cameras: the cameras to serve (default: all).
         modalities: the images to read, some of ``rgb, depth, labels, labels_color, valid,
             instances, objects`` (the last two where the shards hold them: a sample without
@@ -204,7 +204,7 @@ class OmniShardDataset(IterableDataset):
         rgb_uint8: rgb as ``(3, H, W)`` uint8 rather than float in [0, 1].
         shuffle: 0 (default) reads shards and samples in order; ``n > 0`` shuffles the shards,
             and the samples in a buffer of ``n``, from ``seed`` and the epoch
-            (:meth:`set_epoch`): the same order for the same seed, epoch and worker count.
+            (`set_epoch`): the same order for the same seed, epoch and worker count.
         seed: the shuffle's seed.
     """
 
@@ -254,7 +254,7 @@ class OmniShardDataset(IterableDataset):
 class CubemapCaptureDataset(Dataset):
     """Simulator cubemap captures (``convert`` layout), one item per capture folder.
 
-    Each item is :func:`omniscape_torch.data.captures.load_capture`'s dict without its batch
+    Each item is `omniscape_torch.data.captures.load_capture`'s dict without its batch
     dimension (``rgb (6, 3, F, F)`` float32 in [0, 1], ``depth (6, F, F)`` float32 planar
     metres, ``labels (6, F, F)`` int64, ``instances (6, F, F)`` int64 object ids, those
     present), plus ``face_size`` (int) and

@@ -1,7 +1,7 @@
 """The dataset format, defined once: file names, folders, modalities, when a frame is finished.
 
-The writer (:mod:`omniscape_torch.data.generate`), the readers (:mod:`~.readers`), the torch
-datasets (:mod:`~.datasets`) and the statistics (:mod:`~.stats`) all name files through this
+The writer (`omniscape_torch.data.generate`), the readers (`readers`), the torch
+datasets (`datasets`) and the statistics (`stats`) all name files through this
 module.
 
 Layout of ``DIR``
@@ -16,7 +16,7 @@ Layout of ``DIR``
       <camera>/                    fisheye_left, fisheye_right, catadioptric_left, ...
         camera.json                intrinsics (Camera.save_json), and under "ocamcalib" the
                                    record of calib_results.txt (degree, rms_px, max_px,
-                                   fov_deg, blind_fov_deg: :mod:`.ocamcalib`)
+                                   fov_deg, blind_fov_deg: `ocamcalib`)
         calib_results.txt          the camera as OCamCalib's polynomial model (Scaramuzza),
                                    fitted within 0.04 px over its valid area (the file holds
                                    no field of view: camera.json's record does)
@@ -39,7 +39,7 @@ Layout of ``DIR``
                                    the box is the tight box of the instance's pixels in
                                    torchvision's XYXY corner convention (pixel columns u0..u1
                                    and rows v0..v1 give x0 = u0, x1 = u1 + 1, y0 = v0,
-                                   y1 = v1 + 1), ``pixels`` their count (:mod:`.objects`)
+                                   y1 = v1 + 1), ``pixels`` their count (`objects`)
         cubemap/                   only with --save-cubemaps, only the faces rendered (to
                                    inspect a frame; not a training source: full cubemaps
                                    come from Town.render_cubemap):
@@ -65,13 +65,13 @@ Layout of ``DIR``
                                    as a uint16 .npy array), the frames of each shard
         shard-NNNNNN.tar           WebDataset shard NNNNNN: frames NNNNNN * S to
                                    (NNNNNN + 1) * S - 1 (S: frames per shard), one sample
-                                   per camera and frame (:mod:`.shards`)
+                                   per camera and frame (`shards`)
 
 NNNNNN is the frame number (zero-padded to 6 digits). Every file is written atomically
 (temporary file + rename). A frame is finished when its marker and all its files exist.
 A dataset written before ``generate`` wrote instances has no ``instances`` or ``objects``
-(:data:`OPTIONAL_MODALITIES`): the readers read it all the same, its frames finished without
-them (:data:`CORE_MODALITIES`), and a rerun of ``generate`` renders its frames anew to add
+(`OPTIONAL_MODALITIES`): the readers read it all the same, its frames finished without
+them (`CORE_MODALITIES`), and a rerun of ``generate`` renders its frames anew to add
 them.
 """
 
@@ -95,7 +95,7 @@ CONTACT_SHEET = "contact_sheet.png"
 STATS, STATS_PLOT = "stats.json", "stats.png"
 #: The folder of the finished-frame markers.
 DONE = ".done"
-#: The folder of the WebDataset shards, and their index (:mod:`.shards`).
+#: The folder of the WebDataset shards, and their index (`shards`).
 SHARDS = "shards"
 SHARD_INDEX = f"{SHARDS}/index.json"
 #: Per-camera files: the intrinsics (Camera JSON), and the camera as OCamCalib's model.

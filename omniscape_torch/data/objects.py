@@ -128,7 +128,7 @@ def pack_instances(labels: Tensor, instances: Tensor, out: Tensor | None = None)
 
 
 def unpack_instances(packed: Tensor) -> tuple[Tensor, Tensor]:
-    """``(labels, instances)`` of a map of :func:`pack_instances` (as sampled)."""
+    """``(labels, instances)`` of a map of `pack_instances` (as sampled)."""
     if packed.device.type == "cpu":   # numpy, on one thread (as pack_instances)
         p = packed.numpy()
         return torch.from_numpy(p % INSTANCE_SHIFT), torch.from_numpy(p // INSTANCE_SHIFT)

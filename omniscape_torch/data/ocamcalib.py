@@ -2,11 +2,11 @@
 
 The OmniScape dataset gives each camera's intrinsics as OCamCalib's polynomial model
 (Scaramuzza et al., IROS 2006). Ours are equidistant fisheyes and unified catadioptric cameras
-(any registered model), so each is converted: :func:`fit_polynomial` fits a ``scaramuzza``
-camera to it over its valid area (:func:`omniscape_torch.calibration.convert`, least squares on
+(any registered model), so each is converted: `fit_polynomial` fits a ``scaramuzza``
+camera to it over its valid area (`omniscape_torch.calibration.convert`, least squares on
 one pixel grid, errors measured on a second grid offset by half a step) for each degree of
 ``DEGREES`` in turn, and keeps the first whose held-out largest error is within
-``TOLERANCE_PX``; :func:`write_calib_results` writes it with ``Camera.to_ocamcalib``, whose
+``TOLERANCE_PX``; `write_calib_results` writes it with ``Camera.to_ocamcalib``, whose
 inverse polynomial (OCamCalib's ``world2cam``) is fitted within ``INVPOL_PX``. So both of
 OCamCalib's functions stay within 0.05 px of the camera: ``cam2world`` (the direct polynomial)
 within ``TOLERANCE_PX`` and ``world2cam`` within ``TOLERANCE_PX + INVPOL_PX``.
@@ -14,7 +14,7 @@ within ``TOLERANCE_PX`` and ``world2cam`` within ``TOLERANCE_PX + INVPOL_PX``.
 The file holds no field of view: a catadioptric camera's blind central disc and the edge of a
 fisheye's image circle are in the record written beside it (``fov_deg``, ``blind_fov_deg``), and
 the polynomial camera stands for the camera within that area only (outside it the polynomial
-was not fitted). :func:`polynomial_camera` reads the file back with that area.
+was not fitted). `polynomial_camera` reads the file back with that area.
 
 The record (``"ocamcalib"`` in the camera's JSON)::
 
@@ -25,12 +25,12 @@ The record (``"ocamcalib"`` in the camera's JSON)::
      "fit": {"degrees": [4, 5, 6, 7, 8], "tolerance_px": 0.04, "grid": 32}}
 
 A camera that is radially symmetric about its principal point (equal focal lengths, no
-tangential distortion: every preset; checked numerically by :func:`radially_symmetric`) keeps
+tangential distortion: every preset; checked numerically by `radially_symmetric`) keeps
 its centre and no affine term (``c = 1, d = e = 0``) in the file, as it has them; only the
 polynomial is fitted. Otherwise OCamCalib's centre and affine term are fitted too.
 
 The conversion starts from its own linear least-squares polynomial (the module docstring of
-:mod:`omniscape_torch.calibration.convert`), solved by the ``gelsd`` driver: torch's default CPU
+`omniscape_torch.calibration.convert`), solved by the ``gelsd`` driver: torch's default CPU
 driver depends on the memory alignment of its inputs, and the fit would then end a few ulps
 apart from run to run, and so would the file's digits. For the same reason, and for speed, the
 fit runs on one thread (the previous thread count is restored after):
@@ -70,7 +70,7 @@ GRID = 32
 
 @dataclass
 class PolynomialFit:
-    """Outcome of :func:`fit_polynomial`.
+    """Outcome of `fit_polynomial`.
 
     Attributes:
         camera: the ``scaramuzza`` camera, with the source's ``fov`` and ``blind_fov``.
@@ -161,7 +161,7 @@ def fit_polynomial(camera: Camera, *, degrees: Sequence[int] = DEGREES,
         grid: samples per image side of the fitted and the held-out grids.
 
     Returns:
-        A :class:`PolynomialFit`; check ``within_tolerance``. Runs on one thread (module
+        A `PolynomialFit`; check ``within_tolerance``. Runs on one thread (module
         docstring).
 
     Raises:
@@ -187,7 +187,7 @@ def fit_polynomial(camera: Camera, *, degrees: Sequence[int] = DEGREES,
 
 def _fit_polynomial(camera: Camera, degrees: tuple[int, ...], tolerance_px: float,
                     grid: int) -> PolynomialFit:
-    """:func:`fit_polynomial` once its arguments are checked."""
+    """`fit_polynomial` once its arguments are checked."""
     settings = _settings(degrees, tolerance_px, grid)
     # a1 = 0 as in OCamCalib; a symmetric camera keeps its centre and no affine term
     freeze = ("a1", "center", "affine") if radially_symmetric(camera) else ("a1",)

@@ -1,4 +1,4 @@
-"""Read a dataset written by ``omniscape-torch generate`` (layout: :mod:`.format`).
+"""Read a dataset written by ``omniscape-torch generate`` (layout: `format`).
 
 Everything is read from the files alone (nothing is re-rendered): frames, intrinsics,
 extrinsics and the vehicle dynamics. A frame counts as written only when it is *finished*: its
@@ -13,13 +13,13 @@ Returned types::
     valid         (1, H, W) bool, the shape the augmentation returns per sample (its
                   ``(B, 1, H, W)`` batched), so a read frame and an augmented one match
     instances     (H, W) int64 instance ids, 0 for none and where not valid
-    objects       three keys (:func:`omniscape_torch.data.objects.decode_objects`):
+    objects       three keys (`omniscape_torch.data.objects.decode_objects`):
                   boxes (N, 4) float32, the objects' tight boxes (XYXY corners),
                   box_labels (N,) int64 class ids, box_instance_ids (N,) int64
 
 ``instances`` and ``objects`` are only in datasets written since ``generate`` writes them
-(:data:`~omniscape_torch.data.format.OPTIONAL_MODALITIES`): ask for them where a dataset has
-them (:func:`has_modality`).
+(`OPTIONAL_MODALITIES`): ask for them where a dataset has
+them (`has_modality`).
 
 Reading the 16-bit instance maps outside this package: `read_instances`, or
 ``cv2.imread(path, cv2.IMREAD_UNCHANGED)`` (uint16; OpenCV's default and grey flags keep the
@@ -164,7 +164,7 @@ def read_camera_dict(root: str | Path, camera: str) -> dict:
 
 
 def read_camera(root: str | Path, camera: str, **kwargs):
-    """The intrinsics of ``camera``: a :class:`omniscape_torch.Camera` (float64 by default;
+    """The intrinsics of ``camera``: a `omniscape_torch.Camera` (float64 by default;
     ``kwargs`` go to ``Camera.from_dict``)."""
     path = _root(root) / camera / "camera.json"
     try:
@@ -175,7 +175,7 @@ def read_camera(root: str | Path, camera: str, **kwargs):
 
 def read_ocamcalib(root: str | Path, camera: str, **kwargs):
     """``<camera>/calib_results.txt``, the camera as OCamCalib's polynomial model: a
-    ``scaramuzza`` :class:`omniscape_torch.Camera` with the valid area (``fov``, ``blind_fov``)
+    ``scaramuzza`` `omniscape_torch.Camera` with the valid area (``fov``, ``blind_fov``)
     that ``camera.json``'s ``"ocamcalib"`` record gives (``kwargs`` go to
     ``Camera.from_ocamcalib``). The record's ``max_px`` is its held-out error.
 

@@ -27,8 +27,8 @@ modalities included where the shards hold them.
 A shard is written to a temporary name and renamed (a retried or resumed task never leaves a
 partial shard), with fixed tar headers (time 0, owner 0, mode 0644): its bytes depend on the
 dataset's files only, so a shard packed by a Ray task equals one packed by ``pack``.
-:class:`omniscape_torch.data.datasets.OmniShardDataset` reads shards (with ``webdataset``)
-into the items :class:`~omniscape_torch.data.datasets.OmniDataset` reads from the folder.
+`omniscape_torch.data.datasets.OmniShardDataset` reads shards (with ``webdataset``)
+into the items `OmniDataset` reads from the folder.
 """
 
 from __future__ import annotations
@@ -61,7 +61,7 @@ __all__ = ["FRAMES_PER_SHARD", "OPTIONAL_SAMPLE_MODALITIES", "SAMPLE_MODALITIES"
 FRAMES_PER_SHARD = 16
 
 #: The images a sample holds, from the folder's files (``labels_color`` is left out: it is
-#: the labels in the palette, :func:`decode_sample` draws it when asked).
+#: the labels in the palette, `decode_sample` draws it when asked).
 SAMPLE_MODALITIES = ("rgb", "depth", "labels", "valid")
 #: The images a sample holds besides, where the dataset has them (`sample_modalities`):
 #: not in a dataset written before ``generate`` wrote instances.
@@ -88,7 +88,7 @@ def check_frames_per_shard(frames_per_shard) -> int:
 
 def resolve_frames_per_shard(root: str | Path, frames_per_shard: int | None) -> int:
     """``frames_per_shard``, or for None the one of the shards in ``root`` (its index), else
-    :data:`FRAMES_PER_SHARD`."""
+    `FRAMES_PER_SHARD`."""
     if frames_per_shard is not None:
         return check_frames_per_shard(frames_per_shard)
     try:
@@ -233,7 +233,7 @@ def pack(root: str | Path, frames_per_shard: int | None = None, *,
 
     Writes ``shards/index.json`` and every shard whose frames are all finished and which is
     not written yet (a rerun after ``generate`` finished more frames writes the rest).
-    ``frames_per_shard``: default, that of the shards there, else :data:`FRAMES_PER_SHARD`.
+    ``frames_per_shard``: default, that of the shards there, else `FRAMES_PER_SHARD`.
 
     Returns:
         ``{"written": [shard files], "skipped": [already there], "incomplete": [shards with
@@ -336,7 +336,7 @@ def _exr_depth(data: bytes, name: str) -> Tensor:
 def decode_sample(sample: dict, modalities: Sequence[str] = SAMPLE_MODALITIES, *,
                   rgb_uint8: bool = False) -> dict:
     """One WebDataset sample (``{"__key__": ..., "camera.json": bytes, ...}``) as the item
-    :class:`~omniscape_torch.data.datasets.OmniDataset` gives for that frame and camera: the
+    `OmniDataset` gives for that frame and camera: the
     same keys, types and values (``labels_color`` drawn from the labels).
 
     Raises:

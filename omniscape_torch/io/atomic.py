@@ -3,8 +3,8 @@
 A file is written to a hidden temporary in the target's folder, then renamed onto it
 (``os.replace``): an interrupted run leaves either the old file or the new one, never half of
 one. A temporary's name carries its owner's process id, ``.<name>.<pid>.<random><suffix>``, so
-that :func:`remove_stale_temporaries` removes only those whose process is gone, never a file
-another live run is writing. :func:`folder_lock` keeps a second run out of a folder that a run
+that `remove_stale_temporaries` removes only those whose process is gone, never a file
+another live run is writing. `folder_lock` keeps a second run out of a folder that a run
 is writing (``fcntl.flock`` on ``<folder>/.lock``; released by the kernel when the process
 ends, however it ends).
 """
@@ -25,7 +25,7 @@ try:
 except ImportError:  # pragma: no cover - not on Windows: no locking there
     fcntl = None
 
-#: The lock file :func:`folder_lock` holds in a folder.
+#: The lock file `folder_lock` holds in a folder.
 LOCK_NAME = ".lock"
 
 # .<name>.<pid>.<8 random characters of mkstemp/mkdtemp><suffix>
@@ -33,7 +33,7 @@ _TEMPORARY = re.compile(r"^\.(?P<name>.+)\.(?P<pid>\d+)\.[a-z0-9_]{8}(?P<suffix>
 
 
 class FolderBusyError(RuntimeError):
-    """Another process holds the folder's lock (:func:`folder_lock`)."""
+    """Another process holds the folder's lock (`folder_lock`)."""
 
 
 def temporary_prefix(path: str | os.PathLike) -> str:
@@ -54,7 +54,7 @@ def _alive(pid: int) -> bool:
 
 
 def remove_stale_temporaries(root: str | os.PathLike) -> list[Path]:
-    """Remove the temporaries (files and staging folders, named by :func:`temporary_prefix`)
+    """Remove the temporaries (files and staging folders, named by `temporary_prefix`)
     under ``root`` whose owner process no longer runs; a live run's are left alone. Returns
     the paths removed."""
     removed = []

@@ -16,27 +16,27 @@ What CARLA's cameras give (CARLA "Sensors reference", ``ref_sensors.md``):
 * **Instance segmentation camera** (``sensor.camera.instance_segmentation``, CARLA 0.9.14 and
   later): the class tag in the red channel, as the semantic camera's, and the object's id in
   green (low byte) and blue (high byte): ``id = G + 256 B``
-  (:func:`decode_instances`).
+  (`decode_instances`).
 
 The server hands images over as ``BGRA`` bytes (``np.frombuffer(image.raw_data, np.uint8)
 .reshape(H, W, 4)``); ``image.save_to_disk`` writes a PNG whose channels are in their proper
-places, which :func:`omniscape_torch.io.read_image` returns in ``RGB`` order. Both orders are
+places, which `omniscape_torch.io.read_image` returns in ``RGB`` order. Both orders are
 accepted here through ``channel_order``.
 
 Label sets, by CARLA version:
 
 * ``"13"``: ids 0..12 of CARLA 0.9.0 to 0.9.9, the OmniScape paper's classes
-  (:data:`omniscape_torch.io.labels.CLASSES`): the package's own classes, identity.
+  (`omniscape_torch.io.labels.CLASSES`): the package's own classes, identity.
 * ``"23"``: CARLA 0.9.10 to 0.9.13 kept ids 0..12 and appended 13 Sky, 14 Ground, 15 Bridge,
   16 RailTrack, 17 GuardRail, 18 TrafficLight, 19 Static, 20 Dynamic, 21 Water, 22 Terrain
-  (the tag table of those versions' sensor docs): :data:`EXT23_TO_13`.
+  (the tag table of those versions' sensor docs): `EXT23_TO_13`.
 * ``"new"``: later CARLA reordered the tags to Cityscapes' ids,
   ``LibCarla/source/carla/rpc/ObjectLabel.h`` (``enum class CityObjectLabel``): 0 None, 1 Roads,
   2 Sidewalks, 3 Buildings, 4 Walls, 5 Fences, 6 Poles, 7 TrafficLight, 8 TrafficSigns,
   9 Vegetation, 10 Terrain, 11 Sky, 12 Pedestrians, 13 Rider, 14 Car, 15 Truck, 16 Bus,
   17 Train, 18 Motorcycle, 19 Bicycle, 20 Static, 21 Dynamic, 22 Other, 23 Water,
   24 RoadLines, 25 Ground, 26 Bridge, 27 RailTrack, 28 GuardRail (255 = Any, a query value,
-  never a pixel): :data:`NEW_TO_13`.
+  never a pixel): `NEW_TO_13`.
 """
 
 from __future__ import annotations
@@ -164,7 +164,7 @@ def decode_depth(image: Tensor | np.ndarray, channel_order: str = "BGRA") -> Ten
 
     Args:
         image: ``(H, W, 3)`` or ``(H, W, 4)`` uint8, as CARLA sends it (``"BGRA"``, the
-            default: ``raw_data``) or as :func:`~omniscape_torch.io.read_image` reads a saved
+            default: ``raw_data``) or as `read_image` reads a saved
             PNG (``"RGB"``).
         channel_order: ``"BGRA"``, ``"BGR"``, ``"RGB"`` or ``"RGBA"``.
 
@@ -180,7 +180,7 @@ def decode_depth(image: Tensor | np.ndarray, channel_order: str = "BGRA") -> Ten
 
 
 def encode_depth(depth: Tensor | np.ndarray, channel_order: str = "RGB") -> np.ndarray:
-    """Inverse of :func:`decode_depth` (nearest code): ``(H, W)`` metres -> ``(H, W, 3)``
+    """Inverse of `decode_depth` (nearest code): ``(H, W)`` metres -> ``(H, W, 3)``
     uint8 (``(H, W, 4)`` with alpha 255 for a 4-channel order). Depth is clipped to
     ``[0, 1000]`` m. For writing CARLA-like test data."""
     ri, gi, bi = _rgb_index(channel_order)
@@ -209,7 +209,7 @@ def decode_labels(image: Tensor | np.ndarray, channel_order: str = "BGRA") -> Te
             ``"RGBA"`` (index 0).
 
     Returns:
-        ``(H, W)`` int64 tensor of the simulator's tags (map them with :func:`to_13`).
+        ``(H, W)`` int64 tensor of the simulator's tags (map them with `to_13`).
     """
     ri = _rgb_index(channel_order)[0]
     image = _as_uint8_image(image, "image")
@@ -227,7 +227,7 @@ def decode_instances(image: Tensor | np.ndarray, channel_order: str = "BGRA"
 
     Returns:
         ``(tags, ids)``, two ``(H, W)`` int64 tensors: the red channel (the tag, as
-        :func:`decode_labels`) and ``G + 256 B`` (the object's id, 0..65535).
+        `decode_labels`) and ``G + 256 B`` (the object's id, 0..65535).
     """
     ri, gi, bi = _rgb_index(channel_order)
     image = _as_uint8_image(image, "image")
@@ -257,7 +257,7 @@ def map_labels(ids: Tensor | np.ndarray, mapping: Mapping[int, int], *,
 
     Args:
         ids: integer tensor or array of any shape.
-        mapping: the mapping, e.g. :data:`NEW_TO_13`.
+        mapping: the mapping, e.g. `NEW_TO_13`.
         unknown: the id given to ids absent from ``mapping``; None (default) raises.
 
     Returns:

@@ -25,7 +25,7 @@ __all__ = ["read_exr", "write_exr", "DEFAULT_CHANNEL"]
 #: Channel written by default: ``Z``, the OpenEXR name for depth.
 DEFAULT_CHANNEL = "Z"
 
-#: Channels tried, in order, by :func:`read_exr` when the file has several and none is named.
+#: Channels tried, in order, by `read_exr` when the file has several and none is named.
 _PREFERRED = ("Z", "depth", "Y", "R")
 
 

@@ -83,7 +83,7 @@ def _decode_png48(data: bytes, name: str) -> np.ndarray:
 
 def read_image(path: str | Path) -> Tensor:
     """``(H, W, 3)`` uint8 RGB (or ``(H, W)`` for a grey image; uint16 for a 16-bit PNG) of a
-    PNG or JPEG file (:func:`decode_image`)."""
+    PNG or JPEG file (`decode_image`)."""
     path = Path(path)
     require_pillow()
     if not path.is_file():
@@ -123,7 +123,7 @@ def encode_image(image: Tensor | np.ndarray, suffix: str = ".png") -> bytes:
 
 def write_image(path: str | Path, image: Tensor | np.ndarray) -> Path:
     """Write ``(H, W, 3)`` RGB or ``(H, W)`` grey uint8 (or grey uint16 PNG) atomically, in the
-    format of the file's suffix (:func:`encode_image`)."""
+    format of the file's suffix (`encode_image`)."""
     path = Path(path)
     return atomic_write_bytes(path, encode_image(image, path.suffix or ".png"))
 

@@ -8,7 +8,7 @@ dataset. CARLA 0.9.10 and later renumbered the tags and recoloured Fence (100, 4
 ``IGNORE_INDEX``.
 
 The OmniScape demo frames draw the ego motorcycle in (0, 0, 228), outside this palette (close
-to Cityscapes' motorcycle, (0, 0, 230)): :func:`palette_to_labels` maps it to its nearest colour,
+to Cityscapes' motorcycle, (0, 0, 230)): `palette_to_labels` maps it to its nearest colour,
 Vehicle (0, 0, 142), at distance 86, or to ``IGNORE_INDEX`` with ``max_distance`` below that.
 """
 

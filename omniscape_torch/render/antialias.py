@@ -7,13 +7,13 @@ a 180 degree fisheye of a 48 degree frame: 10-12 dB against the area average). H
 pixel's footprint is measured from the sampling grid itself: the Jacobian of ``pixels`` by
 finite differences to the next output pixel (forward, else backward beside invalid pixels), two
 columns ``du, dv`` in source pixels, the longer of length ``rho``. A pixel with ``rho > 1``
-(:data:`MINIFIES`) is the mean of :data:`TAPS` x :data:`TAPS` (2 x 2) taps spread over the
+(`MINIFIES`) is the mean of `TAPS` x `TAPS` (2 x 2) taps spread over the
 parallelogram ``du, dv`` about its centre (at ``+-du / 4 +- dv / 4``: the area average's
 quadrature), each a bilinear lookup of the source's mip pyramid (level ``k``: the
 ``2**k x 2**k`` box average, by 2 x 2 averages) at the level ``floor(log2(rho / TAPS))``: the
 image itself up to ``2 TAPS`` source pixels across, the pyramid beyond, so that each tap
 averages about its share of the footprint. All taps of a call are one ``grid_sample`` of an
-atlas of the pyramid (:func:`_atlas`).
+atlas of the pyramid (`_atlas`).
 
 Rules:
 
@@ -25,9 +25,9 @@ Rules:
   pixel centre, unchanged (a class id is not blended, a depth edge is not smeared);
 * validity is the caller's (the pixel centre's), unchanged.
 
-Used by :func:`~omniscape_torch.render.reproject.sample_camera` (and so ``ot.reproject``) and
-:class:`~omniscape_torch.augment.RandomReproject`'s exact path (gradients, other devices). Its
-CPU fast path runs the same rule in C++, :func:`~omniscape_torch.render.kernels.image.mip_image` (16
+Used by `sample_camera` (and so ``ot.reproject``) and
+`RandomReproject`'s exact path (gradients, other devices). Its
+CPU fast path runs the same rule in C++, `mip_image` (16
 texels a pixel; on the line grid of ``benchmarks/bench_antialias.py`` 26.7 dB at worst,
 ``docs/augmentation.md``), so that a module gives the same image on every device and path, to
 the rounding of the 8-bit pyramid levels the C++ keeps (a level or two).
@@ -42,7 +42,7 @@ from torch import Tensor
 
 __all__ = ["footprint", "mip_sample", "minified", "TAPS", "MINIFIES"]
 
-#: Taps per axis of a footprint (:func:`mip_sample`): up to ``2 TAPS`` source pixels across, the
+#: Taps per axis of a footprint (`mip_sample`): up to ``2 TAPS`` source pixels across, the
 #: taps read the image itself; beyond, the mip level ``floor(log2(rho / TAPS))``. 2, the C++
 #: rule (``fast.mip_image``): >= 26 dB on the line grid of ``benchmarks/bench_antialias.py``
 #: (3 x 3 trilinear taps: 29 dB, at 4.5 times the texels).
@@ -50,7 +50,7 @@ TAPS = 2
 #: A pixel minifies where a Jacobian column is longer than this many source pixels: 1, with a
 #: margin for the rounding of the grid (a pinhole into the same pinhole is 1 +- 1e-6).
 MINIFIES = 1.001
-#: Pixels are sampled in runs of a multiple of this many (:func:`mip_sample`).
+#: Pixels are sampled in runs of a multiple of this many (`mip_sample`).
 _VECTOR = 64
 
 
@@ -155,7 +155,7 @@ def mip_sample(image: Tensor, pixels: Tensor, valid: Tensor, du: Tensor, dv: Ten
             batch of 1 is shared by every sample.
         pixels: ``(B, h, w, 2)`` source pixels (centres at integers).
         valid: ``(B, h, w)`` bool: the pixels to read (the others come back 0).
-        du: ``(B, h, w, 2)`` the Jacobian column across (:func:`footprint`).
+        du: ``(B, h, w, 2)`` the Jacobian column across (`footprint`).
         dv: ``(B, h, w, 2)`` the Jacobian column down.
         taps: taps per axis.
         dtype: the floating dtype of the work and the result (default: the image's).
@@ -218,7 +218,7 @@ def minified(image: Tensor, pixels: Tensor, valid: Tensor, period: float | None 
         image: ``(B or 1, C, H, W)`` floating or ``uint8`` (read as float32 levels).
         pixels: ``(B, h, w, 2)`` source pixels of the output pixel centres.
         valid: ``(B, h, w)`` bool.
-        period: as for :func:`footprint`.
+        period: as for `footprint`.
 
     Returns:
         None where no valid pixel's footprint exceeds one source pixel (nothing to change),

@@ -315,7 +315,7 @@ class OmniProjection(nn.Module):
                 out_dtype: torch.dtype | None = None, channels_last: bool = False
                 ) -> tuple[Tensor, Tensor]:
         """Render ``cubemap (B, 6, C, F, F)`` (RGB or any float channels; ``channels_last``:
-        ``(B, 6, F, F, C)``), floating or ``uint8``; ``out_dtype`` as for :meth:`render`.
+        ``(B, 6, F, F, C)``), floating or ``uint8``; ``out_dtype`` as for `render`.
 
         Returns:
             ``image (B, C, H, W)`` (``channels_last``: ``(B, H, W, C)``; 0 outside the valid

@@ -57,7 +57,7 @@ def grid_sample(image: Tensor, grid: Tensor, mode: str, padding_mode: str = "bor
 def nearest_gather(image: Tensor, grid: Tensor) -> Tensor:
     """``grid_sample(mode="nearest", align_corners=False, padding_mode="border")`` as a gather,
     exact for any dtype (integer labels of any size): ``x = ((gx + 1) W - 1) / 2``
-    (:func:`unnormalize`) rounded half to even, as ``grid_sample`` rounds.
+    (`unnormalize`) rounded half to even, as ``grid_sample`` rounds.
 
     Args:
         image: ``(B, C, Hi, Wi)``; grid ``(B' in {1, B}, H, W, 2)``.
@@ -74,7 +74,7 @@ def nearest_gather(image: Tensor, grid: Tensor) -> Tensor:
 
 def check_out_dtype(dtype: torch.dtype, out_dtype: object) -> torch.dtype:
     """The dtype an image of ``dtype`` is sampled into: ``out_dtype`` (None: ``dtype``), which
-    must be ``dtype`` or floating (a ``uint8`` image is then scaled to [0, 1]: :func:`from_float`)."""
+    must be ``dtype`` or floating (a ``uint8`` image is then scaled to [0, 1]: `from_float`)."""
     if out_dtype is None:
         return dtype
     if not isinstance(out_dtype, torch.dtype) or not (
@@ -102,9 +102,9 @@ class LabelMapWarning(UserWarning):
 
 
 #: At most this many distinct values (and at least 2) in a one-channel (or grey) ``uint8``
-#: image make it look like a label map (:func:`warn_if_label_map`).
+#: image make it look like a label map (`warn_if_label_map`).
 LABEL_MAP_MAX_VALUES = 32
-#: Rows of the first images that :func:`warn_if_label_map` reads.
+#: Rows of the first images that `warn_if_label_map` reads.
 _SAMPLED_ROWS = 8
 
 _LABEL_MAP_MESSAGE = (
@@ -117,9 +117,9 @@ _LABEL_MAP_MESSAGE = (
 
 
 def warn_if_label_map(image: Tensor, channel_dim: int) -> None:
-    """Warn (:class:`LabelMapWarning`, once: one message from one place) when ``image``, a
+    """Warn (`LabelMapWarning`, once: one message from one place) when ``image``, a
     ``uint8`` image whose channels are on ``channel_dim``, looks like a label map: one channel,
-    or three channels equal to each other, with 2 to :data:`LABEL_MAP_MAX_VALUES` distinct
+    or three channels equal to each other, with 2 to `LABEL_MAP_MAX_VALUES` distinct
     values, not only 0 and 255 (a mask). Cheap: a few rows of the first images are read. CPU
     images only: off the CPU, reading them back would wait for the device on every call."""
     if image.dtype != torch.uint8 or image.dim() < 3 or image.shape[channel_dim] not in (1, 3) \

@@ -142,7 +142,7 @@ def sample_camera(image: Tensor, camera: Camera, rays: Tensor, *,
             scaled to [0, 1]). Not for labels.
         antialias: where an output pixel covers more than one source pixel (the rays' grid
             minifies), read the image through its mip pyramid, 2 x 2 taps over the pixel's
-            footprint (:mod:`~omniscape_torch.render.antialias`), instead of one point sample
+            footprint (`antialias`), instead of one point sample
             (bilinear and bicubic; ``"nearest"`` and labels are point samples). Pixels that do
             not minify are sampled as without it, bit for bit.
 
@@ -258,7 +258,7 @@ def reproject(image: Tensor, src_camera: Camera | Tensor, dst_camera: Camera, *,
             up, and saturated), or a floating dtype (a ``uint8`` image scaled to [0, 1]).
         antialias: prefilter the image where the destination minifies it (a pixel covering
             more than one source pixel): mip lookups over each pixel's footprint
-            (:func:`sample_camera`); False: one point sample per pixel. Pixels that do not
+            (`sample_camera`); False: one point sample per pixel. Pixels that do not
             minify are the same either way, bit for bit.
         backend: ``"auto"`` (default): on the CPU without gradients, a pinhole source into a
             radially symmetric destination (``kernels.camera.RADIAL``; nearest or bilinear)
@@ -353,7 +353,7 @@ def equirect_to_cubemap(panorama: Tensor, face_size: int, *, interpolation: str 
         interpolation: ``"nearest"``, ``"bilinear"`` or ``"bicubic"``.
         labels: treat ``panorama`` as integer class ids; ``None`` decides by its dtype (integer
             dtypes other than ``uint8``; pass ``labels=True`` for ``uint8`` class ids).
-        out_dtype: the faces' dtype (:func:`sample_camera`): the panorama's (default; ``uint8``
+        out_dtype: the faces' dtype (`sample_camera`): the panorama's (default; ``uint8``
             rounded to nearest, half up), or a floating dtype (``uint8`` scaled to [0, 1]).
 
     Returns:

@@ -58,7 +58,7 @@ LAYOUTS = {1: "main street", 2: "crossroads", 3: "blocks"}
 
 
 def layout_streets(layout: int, length: float) -> tuple[Street, ...]:
-    """The streets of ``layout`` (:data:`LAYOUTS`) for a town of ``length`` metres."""
+    """The streets of ``layout`` (`LAYOUTS`) for a town of ``length`` metres."""
     h = length / 2
     if layout == 1:
         return (Street("z", 0.0, (-h, h)),)

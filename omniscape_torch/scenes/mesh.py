@@ -1,11 +1,11 @@
 """Triangle meshes of the town's primitives, and the Embree scene that traces them.
 
-The town (:mod:`.town`) describes its objects as primitives: axis-aligned boxes, vertical
+The town (`town`) describes its objects as primitives: axis-aligned boxes, vertical
 cylinders with a top cap, spheres, and ground rectangles. This module turns them into one
-triangle soup (:class:`Mesh`) in which every triangle knows its *part*, the primitive it comes
+triangle soup (`Mesh`) in which every triangle knows its *part*, the primitive it comes
 from (the town keeps a table of the parts' class, colour and motion), its outward face normal,
 and its vertices' normals (smooth on cylinders and spheres, flat elsewhere), and traces rays
-through it with Embree (:class:`MeshScene`, through the ``embreex`` bindings).
+through it with Embree (`MeshScene`, through the ``embreex`` bindings).
 
 Tessellation: a cylinder is a prism of ``segments`` sides (vertices on the circle), a sphere a
 subdivided icosahedron (vertices on the sphere; ``4 ** k * 20`` triangles), a box 12 triangles,
@@ -55,7 +55,7 @@ class Mesh:
 
 
 def _finish(vertices, triangles, normals, part_of_vertex) -> Mesh:
-    """A :class:`Mesh` from per-primitive arrays, each triangle wound outward (its face normal
+    """A `Mesh` from per-primitive arrays, each triangle wound outward (its face normal
     ``(p1 - p0) x (p2 - p0)`` along its vertex normals)."""
     vertices = np.ascontiguousarray(vertices, dtype=np.float32).reshape(-1, 3)
     triangles = np.ascontiguousarray(triangles, dtype=np.int32).reshape(-1, 3)

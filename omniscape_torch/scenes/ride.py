@@ -4,7 +4,7 @@ The OmniScape dataset mounts its cameras on a motorcycle and reports, per frame,
 location, rotation, velocity, angular velocity and acceleration, with the statistics of yaw,
 pitch and roll in the paper's Table I. This module makes such a ride without a simulator:
 
-* :class:`Route`: a smooth path of straights and circular arcs joined by clothoid transitions
+* `Route`: a smooth path of straights and circular arcs joined by clothoid transitions
   (curvature ramps linearly over ``transition`` metres, so heading, lean and yaw rate stay
   continuous), with an optional road grade per segment (also ramped).
 * a speed profile along it: accelerate to ``max_speed``, slow down before curves so that the
@@ -12,7 +12,7 @@ pitch and roll in the paper's Table I. This module makes such a ride without a s
   ``g tan(max_lean)``), brake to a stop at the end of the route (forward-backward passes with
   the ``acceleration`` and ``deceleration`` limits; piecewise-constant acceleration, so location,
   speed and acceleration are exact, not integrated numerically).
-* :func:`simulate`: per-frame state at ``fps``. Yaw is the path's heading. Roll (lean) tracks
+* `simulate`: per-frame state at ``fps``. Yaw is the path's heading. Roll (lean) tracks
   the steady-turn lean ``atan(a_lat / g)`` (``a_lat = v^2 kappa cos(grade)``, the horizontal
   centripetal acceleration; an ideal thin-tyre motorcycle) through a critically damped
   second-order lag (natural frequency ``roll_frequency`` Hz): a motorcycle cannot change lean
@@ -25,14 +25,14 @@ pitch and roll in the paper's Table I. This module makes such a ride without a s
 
 Frames and units
 ----------------
-World frame (inside this module and :func:`camera_rotation`): ``x`` east, ``y`` down, ``z``
+World frame (inside this module and `camera_rotation`): ``x`` east, ``y`` down, ``z``
 north, metres; the rig convention of ``DESIGN.md``/``presets.py`` (x right, y down, z forward)
 for a vehicle heading north. Angles are radians inside the code.
 
-Outputs of :func:`simulate` are in **CARLA's API** frame and units: Unreal's left-handed
+Outputs of `simulate` are in **CARLA's API** frame and units: Unreal's left-handed
 ``x`` forward (north here), ``y`` right (east), ``z`` up, in **metres** (the Python API's
 ``carla.Location``; Unreal itself uses centimetres), so ``(x, y, z)_world = (y, -z, x)_carla``
-(:func:`carla_to_world`, :func:`world_to_carla`). Rotations are **degrees**, CARLA's
+(`carla_to_world`, `world_to_carla`). Rotations are **degrees**, CARLA's
 ``carla.Rotation``: roll positive = right side down (leaning right), pitch positive = nose up,
 yaw positive = turning right (clockwise seen from above; yaw 0 faces north, CARLA +x, yaw 90
 east), yaw wrapped to ``[-180, 180)`` like ``get_transform()``. Velocity (m/s) and
@@ -92,7 +92,7 @@ def carla_to_world(v: Tensor | np.ndarray) -> Tensor:
 
 
 def world_to_carla(v: Tensor | np.ndarray) -> Tensor:
-    """Inverse of :func:`carla_to_world`."""
+    """Inverse of `carla_to_world`."""
     v = torch.as_tensor(v)
     return torch.stack([v[..., 2], v[..., 0], -v[..., 1]], dim=-1)
 
@@ -160,7 +160,7 @@ class Route:
     """A planar-heading route with grades, sampled every ``ds`` metres of path length.
 
     Args:
-        segments: the :class:`Segment` list, in order.
+        segments: the `Segment` list, in order.
         transition: length in metres of the linear curvature (and grade) ramps centred on each
             joint (clothoids); clipped to the shorter neighbour segment. 0 for none.
         ds: sampling step of the path, metres.
@@ -374,7 +374,7 @@ NOISE_BLOCK = 4096
 
 def _white_noise(n: int, generator: torch.Generator) -> np.ndarray:
     """``(n, 2)`` standard normal samples (roll, pitch), a prefix of the same stream for
-    every ``n`` (see :data:`NOISE_BLOCK`)."""
+    every ``n`` (see `NOISE_BLOCK`)."""
     blocks = [torch.randn(NOISE_BLOCK, 2, generator=generator, dtype=torch.float64)
               for _ in range(-(-n // NOISE_BLOCK))]
     return torch.cat(blocks)[:n].numpy()
@@ -418,7 +418,7 @@ def simulate(route: Route, fps: float = 10.0, duration: float | None = None, *,
     """Ride ``route`` and return the per-frame state, in CARLA's API frame and units.
 
     Args:
-        route: the :class:`Route`.
+        route: the `Route`.
         fps: frames per second.
         duration: seconds to simulate (``frames = floor(duration * fps) + 1``, frame 0 at
             t = 0); or give ``frames``. Default: until the motorcycle stops at the route's end.
@@ -450,7 +450,7 @@ def simulate(route: Route, fps: float = 10.0, duration: float | None = None, *,
         * ``frame`` (N,) int64, ``time`` (N,) seconds;
         * ``location`` (N, 3) m, ``velocity`` (N, 3) m/s, ``acceleration`` (N, 3) m/s^2:
             CARLA axes (x north, y east, z up);
-        * ``rotation`` (N, 3) degrees, ``(roll, pitch, yaw)`` (:data:`ROTATION_ORDER`), yaw in
+        * ``rotation`` (N, 3) degrees, ``(roll, pitch, yaw)`` (`ROTATION_ORDER`), yaw in
             ``[-180, 180)``; ``rotation_rate`` (N, 3) deg/s, their time derivatives;
         * ``angular_velocity`` (N, 3) deg/s, CARLA axes (module docstring);
         * ``distance`` (N,) m along the route, ``speed`` (N,) m/s, ``curvature`` (N,) 1/m,

@@ -1,4 +1,4 @@
-"""Rides through the town's layouts (:data:`.town.LAYOUTS`): a :class:`.ride.Route` that stays
+"""Rides through the town's layouts (`town.LAYOUTS`): a `ride.Route` that stays
 in the right-hand lanes of the layout's streets, for ``omniscape-torch generate --town N``.
 
 * 1, main street: from the south end in the right-hand lane, heading north, weaving between

@@ -5,7 +5,7 @@ ground is the plane ``y = 0``; things above the ground have ``y < 0``. Streets s
 cross-section, ``across`` metres from their centre line: two driving lanes (``|across| < 3.5``,
 centre line dashed, lane edges solid, zebra crossings every 60 m), a parking strip on each side
 (``3.5 < |across| < 5.25``), sidewalks (``5.25 < |across| < 8.5``), and beyond them buildings,
-walls, fences and open lots (ground labelled ``Other``). Layouts (:data:`LAYOUTS`, ``layout=``):
+walls, fences and open lots (ground labelled ``Other``). Layouts (`LAYOUTS`, ``layout=``):
 
 1. main street: one street along z, centred on ``x = 0`` (the default);
 2. crossroads: the main street and a cross street along x, centred on ``z = 0``;
@@ -20,21 +20,21 @@ looks north, along the road.
 Geometry: the objects are primitives (axis-aligned boxes: buildings, walls, fences, vehicles,
 sign plates, bins; vertical cylinders with a top cap: poles, tree trunks, pedestrians' bodies;
 spheres: tree crowns, pedestrians' heads; ground rectangles: road, sidewalk, lots), turned into
-one triangle mesh (:mod:`.mesh`: 32-sided prisms, icospheres of 1280 triangles) in which every
+one triangle mesh (`mesh`: 32-sided prisms, icospheres of 1280 triangles) in which every
 triangle knows its primitive, so its class and colour. Primitives are seen from outside: a ray
 that meets a triangle from behind (it started inside) goes on through it. Moving vehicles and
 pedestrians go straight along z at constant speed and wrap around the town's length
-(:meth:`Town.moving_objects`); the mesh at time ``t`` is traced by an Embree scene built for
+(`Town.moving_objects`); the mesh at time ``t`` is traced by an Embree scene built for
 ``t`` (the last one is kept).
 
-Outputs (:meth:`Town.render_rays`, :meth:`Town.render_cubemap`): RGB in ``[0, 1]``, the range
+Outputs (`Town.render_rays`, `Town.render_cubemap`): RGB in ``[0, 1]``, the range
 (Euclidean distance along the ray; for the sky: ``town.far``, default 1000 m) or the cubemap's
 planar depth (along each face's axis; for the sky: ``town.far``, the far plane of a simulator's
 depth camera), and CARLA's 13 class ids (sky is ``Unlabeled``; road markings are ``RoadLine``,
 painted on the road by world coordinates). Colour is
 ``albedo(class, world point) * (ambient + sun * lambert * lit) + emission``, then distance fog,
 where ``lit`` is 0 when a shadow ray towards the sun (traced by Embree as well) meets anything;
-the weather preset (:data:`WEATHERS`) changes light, colour, wetness and fog, never geometry or
+the weather preset (`WEATHERS`) changes light, colour, wetness and fog, never geometry or
 labels.
 
 Shading runs through `omniscape_torch.render.kernels.town`: its C++ ops
@@ -52,8 +52,8 @@ Exactness: every ray is traced and shaded on its own (Embree's closest hit, whic
 depend on the batch; then ``+ - * /``, ``sqrt``, comparisons and integer hashing, no
 transcendental functions and no reductions), so the result of a ray does not depend on the batch
 it is in, the chunking or the threads: ``render_rays`` of the cube's own texel rays
-(:meth:`Town.cubemap_rays`) equals ``render_cubemap`` bit for bit, and so do any two runs.
-With ``antialias=k`` (:meth:`Town.render_cubemap`) a texel on an edge (:func:`edge_texels`) is
+(`Town.cubemap_rays`) equals ``render_cubemap`` bit for bit, and so do any two runs.
+With ``antialias=k`` (`Town.render_cubemap`) a texel on an edge (`edge_texels`) is
 the mean of ``k x k`` sub-texel rays, built and summed the same way whatever the batch; its
 labels and depth stay the centre ray's. A ray's last bit can matter: a hit point on a surface
 that lies on a texture cell's boundary (the ground, ``y = 0``, for the noise cells) falls on
@@ -94,7 +94,7 @@ SPHERE_SUBDIVISIONS = 3
 PASS_STEP, MAX_PASSES = 1e-4, 4
 #: Rays traced and shaded per task (the tasks run on ``threads`` threads).
 CHUNK = 65536
-#: Anti-aliased cubemaps (``render_cubemap(antialias=k)``, :func:`edge_texels`): two
+#: Anti-aliased cubemaps (``render_cubemap(antialias=k)``, `edge_texels`): two
 #: neighbouring texels on a face straddle an edge, and both are supersampled, where their labels
 #: differ, their ranges by more than ``AA_RANGE_STEP`` of the nearer, or a colour channel by more
 #: than ``AA_RGB_STEP``. Measured (benchmarks/bench_town.py's cameras at 256 x 256, their
@@ -108,7 +108,7 @@ AA_RANGE_STEP, AA_RGB_STEP = 0.05, 10.0 / 255
 
 def edge_texels(labels: Tensor, rng: Tensor, rgb: Tensor, rendered: Tensor | None = None
                 ) -> Tensor:
-    """``(F, F)`` bool: the texels of one cube face that :meth:`Town.render_cubemap`'s
+    """``(F, F)`` bool: the texels of one cube face that `Town.render_cubemap`'s
     ``antialias`` supersamples. Two neighbouring texels (each of the 8 neighbours), both
     ``rendered`` (default: all), straddle an edge where their ``labels (F, F)`` differ, their
     ``rng (F, F)`` differ by more than ``AA_RANGE_STEP`` of the nearer, or a channel of their
@@ -135,7 +135,7 @@ class Town:
 
     Args:
         seed: the random layout (buildings, gaps, parked cars, trees, colours, movers).
-        layout: the street plan, a key of :data:`LAYOUTS` (1: main street, 2: crossroads,
+        layout: the street plan, a key of `LAYOUTS` (1: main street, 2: crossroads,
             3: blocks).
         length: extent of the town along z (metres), centred on ``z = 0``.
         far: range (and planar depth) reported for the sky, metres; nothing farther is seen.
@@ -150,8 +150,8 @@ class Town:
     ``*_label`` (int64 class ids), ``*_colour (N, 3)`` albedo and ``*_mover`` (index into the
     movers, -1 for static) and ``*_instance`` (int64 instance id, 0 for none).
     ``movers`` is ``(M, 3)`` = (z0, speed m/s, kind 0 vehicle / 1 pedestrian). ``streets``
-    the layout's :class:`Street` list; ``mesh`` the triangles at ``t = 0``
-    (:class:`.mesh.Mesh`).
+    the layout's `Street` list; ``mesh`` the triangles at ``t = 0``
+    (`mesh.Mesh`).
 
     Instances: every vehicle (body and cabin), pedestrian (body and head), pole (a street
     lamp's, a traffic sign's) and traffic sign plate is an object with its own instance id,
@@ -352,7 +352,7 @@ class Town:
 
     def _trace_shade(self, o: Tensor, d: Tensor, scene: _mesh.MeshScene, weather: Tensor,
                      backend: str) -> dict[str, Tensor]:
-        """:meth:`_trace` then :meth:`_shade` of one batch (``o (N, 3) or (1, 3)``), and the
+        """`_trace` then `_shade` of one batch (``o (N, 3) or (1, 3)``), and the
         hits' instance ids."""
         o, d = o.numpy(), d.numpy()
         hits = self._trace(scene, o, d, backend)
@@ -381,7 +381,7 @@ class Town:
             directions: ``(..., 3)`` unit directions, world frame (not renormalised); the
                 leading dimensions of the two broadcast.
             t: time (s) for the moving objects.
-            weather: a :data:`WEATHERS` name or a :class:`Weather`.
+            weather: a `WEATHERS` name or a `Weather`.
             chunk: rays per task (results do not depend on it).
             backend: ``"auto"`` (default), ``"cpp"`` or ``"torch"``: the town's shading
                 through its C++ ops or their torch twins
@@ -435,14 +435,14 @@ class Town:
     @staticmethod
     def cubemap_rays(face_size: int, rotation: Tensor | None = None) -> Tensor:
         """``(6, F, F, 3)`` unit world-frame rays of the cube's texels, the rays that
-        :meth:`render_cubemap` traces (``rotation`` maps cube frame to world)."""
+        `render_cubemap` traces (``rotation`` maps cube frame to world)."""
         r = face_rays(face_size, normalize=True, dtype=torch.float32)
         if rotation is not None:
             r = r @ torch.as_tensor(rotation).to(torch.float32).T
         return r
 
     def _cube_rays(self, face_size: int, rotation: Tensor | None) -> Tensor:
-        """:meth:`cubemap_rays`, kept for the last two face sizes when ``rotation`` is None."""
+        """`cubemap_rays`, kept for the last two face sizes when ``rotation`` is None."""
         if rotation is not None:
             return self.cubemap_rays(face_size, rotation)
         with self._lock:
@@ -471,7 +471,7 @@ class Town:
             texels: optional ``(6, F, F)`` bool mask of the texels to render (within
                 ``faces``), the others left as the faces not rendered.
             t: time (s) for the moving objects.
-            weather: a :data:`WEATHERS` name or a :class:`Weather`.
+            weather: a `WEATHERS` name or a `Weather`.
             chunk: texels per task (results do not depend on it).
             out: contiguous tensors to write the outputs into (some or all of the keys below,
                 each of its shape and dtype), reused from call to call instead of new memory;
@@ -480,7 +480,7 @@ class Town:
                 stratified over its footprint on the face (sub-texel ``(u, v)`` at
                 ``(i + 0.5) / k - 0.5`` of a texel from its centre, then normalised), where a
                 texel's centre ray is a point sample of a hard edge or texture cell (1: the
-                centre ray alone, the default). Adaptive (:meth:`_antialias`): only the texels
+                centre ray alone, the default). Adaptive (`_antialias`): only the texels
                 that differ from a rendered neighbour on their face (label, range, colour:
                 ``AA_RANGE_STEP``, ``AA_RGB_STEP``) are supersampled. Depth, range and labels
                 stay those of the centre ray, whatever ``k``.
@@ -564,11 +564,11 @@ class Town:
                    buffers: dict[str, Tensor], origin: np.ndarray, rot: Tensor | None,
                    scene: _mesh.MeshScene, weather: Tensor, chunk: int, backend: str
                    ) -> None:
-        """:meth:`render_cubemap`'s ``antialias=k``, on the cube of centre rays in
+        """`render_cubemap`'s ``antialias=k``, on the cube of centre rays in
         ``buffers``: the RGB of every texel on an edge becomes the mean of ``k x k`` sub-texel
         rays (for odd ``k`` the middle one is the centre ray, already traced).
 
-        The texels on an edge: :func:`edge_texels` of each face, among its rendered texels
+        The texels on an edge: `edge_texels` of each face, among its rendered texels
         (``texels``). A texel whose neighbours all look like it keeps its centre ray's colour:
         the sky, the insides of surfaces and of texture cells."""
         F = buffers["rgb"].shape[-1]

@@ -84,12 +84,12 @@ def _scale(a, s: float) -> tuple[float, float, float]:
 def carla_weather(cloudiness: float, precipitation: float, precipitation_deposits: float,
                   sun_altitude_angle: float, fog_density: float, *,
                   sun_azimuth_angle: float = 150.0) -> Weather:
-    """The town's :class:`Weather` for CARLA's weather parameters (percent and degrees, as
+    """The town's `Weather` for CARLA's weather parameters (percent and degrees, as
     ``carla.WeatherParameters``): the sun's colour reddens towards the horizon (noon white at
     45 deg and above, orange at 15 deg) and dims under clouds (by up to 85 %) and rain; the
     ambient light and the sky grey with clouds; fog is ``0.00075 * fog_density`` per metre plus
     ``0.012`` at full rain (the rain's haze); ``wetness`` is the deposits' share, ``rain`` the
-    precipitation's (:meth:`Weather.surface_factor`, :meth:`Weather.sky_factor`)."""
+    precipitation's (`Weather.surface_factor`, `Weather.sky_factor`)."""
     c, p, q = cloudiness / 100.0, precipitation / 100.0, precipitation_deposits / 100.0
     low = min(1.0, max(0.0, (45.0 - sun_altitude_angle) / 30.0))  # 0 at noon, 1 at 15 deg
     sun = _mix((1.0, 0.96, 0.88), (1.0, 0.55, 0.25), low)
@@ -114,7 +114,7 @@ def _snake(name: str) -> str:
 #: CARLA's 14 presets by their names here, in CARLA's order (``generate``'s default weathers).
 CARLA_PRESETS: tuple[str, ...] = tuple(_snake(name) for name in CARLA_WEATHERS)
 
-#: The weather presets: CARLA's 14 (:data:`CARLA_WEATHERS`, in snake case: ``clear_noon``,
+#: The weather presets: CARLA's 14 (`CARLA_WEATHERS`, in snake case: ``clear_noon``,
 #: ``cloudy_noon``, ..., ``soft_rain_sunset``) and four of this town's own: ``overcast``,
 #: ``sunset`` (a low, red sun, 6 deg), ``night`` (street lamps and lit windows) and ``fog``.
 WEATHERS: dict[str, Weather] = {

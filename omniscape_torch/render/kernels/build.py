@@ -136,7 +136,7 @@ def name(sources: dict[str, bytes] | None = None) -> str:
     """The extension's name: ``omniscape_torch_kernels_`` and a hash of what the library is
     built for and from: this CPU's feature flags, the torch version and Python ABI it links
     against, the flags (the face table among them), and the sources' file names and bytes
-    (``sources``, default :func:`_sources`), not where they lie."""
+    (``sources``, default `_sources`), not where they lie."""
     parts = [_cpu().strip(), torch.__version__, sys.implementation.cache_tag or "",
              getattr(sys, "abiflags", ""), *CFLAGS, *LDFLAGS, *face_case_flags()]
     digest = hashlib.sha256("\0".join(parts).encode())
@@ -146,7 +146,7 @@ def name(sources: dict[str, bytes] | None = None) -> str:
 
 
 def _sources() -> dict[str, bytes]:
-    """``{file name: bytes}`` of :data:`SOURCES`, read once for the name and the copies, and
+    """``{file name: bytes}`` of `SOURCES`, read once for the name and the copies, and
     of the generated header ``os_layout.h`` (the draw's stream layout and the attitude's
     rotation entries, from ``layout.layout_header``: defined once, in Python)."""
     return {**{path.name: path.read_bytes() for path in SOURCES}, "os_layout.h": layout.layout_header()}
@@ -198,7 +198,7 @@ def _ninja_on_path():
     """``cpp_extension`` runs ``ninja`` from the PATH. The ninja installed with this Python goes
     first, whether or not its folder is on the PATH (``.venv/bin/python -m pytest`` without
     activating the virtualenv), and the PATH is restored afterwards: this is the only way to
-    reach ``cpp_extension``'s subprocesses, and the lock of :func:`load` keeps this process's
+    reach ``cpp_extension``'s subprocesses, and the lock of `load` keeps this process's
     other builds out meanwhile. Always the same ninja for one Python, even where another is on
     the PATH: ninja versions keep their build logs differently (1.11 and 1.13 each took the
     other's build for out of date, a rebuild whenever they alternated). Without one installed
@@ -338,8 +338,8 @@ def load() -> torch._ops._OpNamespace:
 
 
 def ops() -> torch._ops._OpNamespace | None:
-    """The ops (:func:`load`), or None where they cannot be built, after one ``UserWarning`` in
-    the process that says why (:func:`unavailable_reason`): the fast sampler and the town both
+    """The ops (`load`), or None where they cannot be built, after one ``UserWarning`` in
+    the process that says why (`unavailable_reason`): the fast sampler and the town both
     take their torch paths then, and the one build is tried once."""
     if "ops" in _STATE:
         return _STATE["ops"]
@@ -361,7 +361,7 @@ def ops() -> torch._ops._OpNamespace | None:
 
 
 def unavailable_reason() -> str | None:
-    """Why :func:`ops` is None (``"Error: message"``), else None."""
+    """Why `ops` is None (``"Error: message"``), else None."""
     return _STATE.get("error")
 
 

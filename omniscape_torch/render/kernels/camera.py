@@ -1,17 +1,17 @@
 """Cameras straight to the atlas grid: pixel centres -> rays -> rotated grid in one kernel.
 
 For per-sample random cameras (``augment.RandomOmniCamera``) building the rays and the grid
-eagerly costs more than sampling the images; :func:`camera_grid` runs the whole chain as one
-loop. On the CPU, the radially symmetric models (:data:`RADIAL`) go through the C++ op
-``torch.ops.omniscape_torch.camera_grid`` (built with the fast sampler, :mod:`.extension`):
+eagerly costs more than sampling the images; `camera_grid` runs the whole chain as one
+loop. On the CPU, the radially symmetric models (`RADIAL`) go through the C++ op
+``torch.ops.omniscape_torch.camera_grid`` (built with the fast sampler, `extension`):
 per camera a table of the ray against the distance from the principal point, made from the
 model's own unprojection (so the iterative inverses of Kannala-Brandt, Scaramuzza and
 distorted unified cost a few thousand Newton solves per camera, not one per pixel), read with
 linear interpolation. Nothing compiles at run time, so it is as fast in ``DataLoader`` workers as
 in the main process and the same for every mix of models. Elsewhere (another device, or no C++
 compiler) the closed-form models compile whole with ``torch.compile``
-(:func:`omniscape_torch.cubemap.grid.compiled_kernel`, the grid maths of
-:func:`~omniscape_torch.cubemap.grid.rotated_grid_xy`).
+(`omniscape_torch.cubemap.grid.compiled_kernel`, the grid maths of
+`rotated_grid_xy`).
 """
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ _TABULATED: dict[str, Callable] = {"kannala_brandt": kannala_brandt_tabulate}
 #: camera holds every pixel's ray (``CameraModel.radial``). ``unified`` only without tangential
 #: distortion (``p1 = p2 = 0``).
 RADIAL = tuple(name for name, model in MODELS.items() if model.radial)
-#: Entries of a table of :func:`radial_table` (``tests/test_camera_grid.py`` bounds the error
+#: Entries of a table of `radial_table` (``tests/test_camera_grid.py`` bounds the error
 #: of linear interpolation between them).
 RADIAL_ENTRIES = 2048
 _SEARCH = 1024   # radii per round of the search for the end of a domain
@@ -98,7 +98,7 @@ def radial_table(model: str, params: Tensor, image_size: tuple[int, int],
     cells) they are evenly spaced in ``w = sqrt(root^2 - rho)``, in which ``theta`` is smooth,
     ``root^2`` the last valid radius. ``limits (B, 5)``: ``scale`` (entries per unit of
     ``rho`` or ``w``), ``root`` (0 for even spacing in ``rho``), ``end`` (``inf`` without one),
-    and ``cos(fov / 2) = -2``, ``cos(blind_fov / 2) = 2`` (no cones: :func:`camera_grid` sets
+    and ``cos(fov / 2) = -2``, ``cos(blind_fov / 2) = 2`` (no cones: `camera_grid` sets
     them). ``reach``: tabulate out to this normalised radius instead of the image's farthest
     corner (``image_size`` unused; the pixels beyond read the last entry: a caller that reads
     such pixels bounds them with ``end``).
@@ -181,7 +181,7 @@ def _x_step(m: Tensor) -> Tensor:
 def _on_axis(unproject: Callable, affine: Tensor, step: Tensor, params: Tensor, rho: Tensor
              ) -> tuple[Tensor, Tensor]:
     """The model's rays ``(E, N, 3)`` and validity ``(E, N)`` at radii ``rho (E, N)`` on the
-    ``+x`` axis of each camera's normalised coordinates (``step``: :func:`_x_step`)."""
+    ``+x`` axis of each camera's normalised coordinates (``step``: `_x_step`)."""
     pixels = affine[:, None, :2] + rho[..., None] * step[:, None]
     return unproject(pixels, params[:, None])
 
@@ -191,7 +191,7 @@ def _camera_grid_math(params: Tensor, rotation: Tensor, cone: Tensor, face_size,
                       ) -> tuple[Tensor, Tensor]:
     """``params (B, P)``, ``rotation (B, 3, 3)``, ``cone (B, 2)`` (cosines of the half fov
     and of the half blind fov) -> ``grid (B, H, W, 2)`` (invalid pixels at (-2, -2)) and
-    ``valid (B, H, W)``: the operations of ``Camera.ray_grid`` and :func:`rotated_rays_to_grid`;
+    ``valid (B, H, W)``: the operations of ``Camera.ray_grid`` and `rotated_rays_to_grid`;
     the cones of ``Camera.within_fov`` (``theta <= fov / 2``, ``theta > blind_fov / 2``) as
     ``z >= cos(fov / 2)``, ``z < cos(blind_fov / 2)`` on the unit rays (no ``atan2``: a third
     of the kernel's time). Ray and grid components stay apart until the end: compiled, the
@@ -224,19 +224,19 @@ def camera_grid(model: str, params: Tensor, image_size: tuple[int, int], face_si
     rotation and field-of-view cone: the whole chain in one compiled kernel, without gradient.
 
     The same result as ``Camera(model, params, image_size, fov=..., blind_fov=...).ray_grid()``
-    followed by :func:`rotated_rays_to_grid` and moving the invalid pixels to (-2, -2) (outside
+    followed by `rotated_rays_to_grid` and moving the invalid pixels to (-2, -2) (outside
     the atlas, so that ``grid_sample`` with zero padding reads 0 there), to float32 rounding;
     for per-sample random cameras (``augment.RandomOmniCamera``), where building the rays and
     the grid eagerly costs more than sampling the images. On the CPU (float32 or float64 grids,
-    the fast sampler built) the models of :data:`RADIAL` go through their tables
-    (:func:`radial_table`, within 0.005 texel of the exact chain at 1024 px), one C++ pass,
+    the fast sampler built) the models of `RADIAL` go through their tables
+    (`radial_table`, within 0.005 texel of the exact chain at 1024 px), one C++ pass,
     nothing compiled at run time. Elsewhere the models of ``_CLOSED_FORM`` compile whole (a
     kernel per model, dtypes and device type, any shapes); the others unproject eagerly and go
-    through the compiled :func:`rotated_rays_to_grid`. A compilation failure is warned about
+    through the compiled `rotated_rays_to_grid`. A compilation failure is warned about
     once and the eager path used from then on, as there.
 
     Forward only: the result carries no gradient to ``params`` or ``rotation`` (for learnable
-    intrinsics use :class:`~omniscape_torch.OmniProjection`, whose grid is differentiable);
+    intrinsics use `OmniProjection`, whose grid is differentiable);
     images sampled with it still pass gradients to the cubemap.
 
     Args:
@@ -251,12 +251,12 @@ def camera_grid(model: str, params: Tensor, image_size: tuple[int, int], face_si
         dtype: floating dtype of the grid (default: that of ``params``).
         compiled: False runs the exact chain eagerly (no table, no compiled kernel).
         lazy: where the cameras go through their tables, return them as a
-            :class:`~omniscape_torch.render.kernels.image.CameraGrid` (its ``valid`` computed, the grid
+            `CameraGrid` (its ``valid`` computed, the grid
             not built: the fast sampler computes it inside its sampling pass,
             ``OmniProjection.render(grid=...)`` takes it); elsewhere the tuple below all the
             same.
         backend: the tables and the C++ op (``"cpp"``; float32 or float64 grids of a model of
-            :data:`RADIAL`), or the torch kernels (``"torch"``), or the C++ op where it runs
+            `RADIAL`), or the torch kernels (``"torch"``), or the C++ op where it runs
             (``"auto"``).
 
     Returns:
@@ -338,7 +338,7 @@ def camera_rays(model: str, params: Tensor, image_size: tuple[int, int], *,
     """Unit rays ``(B, H, W, 3)`` and validity ``(B, H, W)`` of every pixel centre of ``B``
     cameras of one model, each within its own field of view ``fov (B,)`` (radians; None: the
     model's domain), without gradient: on the CPU through the cameras' tables
-    (:func:`radial_table`, the C++ op ``camera_rays``; as :func:`camera_grid` reads them),
+    (`radial_table`, the C++ op ``camera_rays``; as `camera_grid` reads them),
     elsewhere (another device, no table, no fast sampler) ``Camera.ray_grid`` and the cones
     ``z >= cos(fov / 2)``.
 

@@ -75,7 +75,7 @@ _ENTRY = {torch.float32: torch.int32, torch.float64: torch.int64}
 
 @dataclass(frozen=True)
 class CubeLUT:
-    """Lookup table of a grid for one cube layout (see :func:`build_lut`).
+    """Lookup table of a grid for one cube layout (see `build_lut`).
 
     Attributes:
         mode: ``"nearest"`` or ``"bilinear"``.
@@ -112,7 +112,7 @@ class CubeLUT:
 
 
 def _table(base: Tensor, fx: Tensor, fy: Tensor) -> Tensor:
-    """The entries ``(B', P, 3)`` of :class:`CubeLUT` from codes and fractions (float32 or
+    """The entries ``(B', P, 3)`` of `CubeLUT` from codes and fractions (float32 or
     float64)."""
     entry = _ENTRY[fx.dtype]
     return torch.stack((base.to(entry), fx.view(entry), fy.view(entry)), -1)
@@ -144,9 +144,9 @@ def _ring_plan(face_size: int, pad: int, border: str, dtype: torch.dtype
 @functools.lru_cache(maxsize=16)
 def _ring_offsets(face_size: int, pad: int, border: str, dtype: torch.dtype,
                   strides: tuple[int, int, int]) -> tuple[Tensor, Tensor | None]:
-    """:func:`_ring_plan` as offsets within one sample and channel of a cube of ``strides``
+    """`_ring_plan` as offsets within one sample and channel of a cube of ``strides``
     (faces, rows, texels); no ring (one dummy texel) without a border. Weights in
-    :func:`work_dtype`; None for one-tap plans and for cubes whose elements are copied."""
+    `work_dtype`; None for one-tap plans and for cubes whose elements are copied."""
     if pad == 0:
         return torch.zeros(1, 1, dtype=torch.long), None
     src, weight = _ring_plan(face_size, pad, border, work_dtype(dtype))
@@ -165,7 +165,7 @@ def _ring_offsets(face_size: int, pad: int, border: str, dtype: torch.dtype,
 # ------------------------------------------------------------------------------------------
 
 #: Cube dtypes the kernels blend (bilinear sampling; ring texels are weighted sums), in
-#: :func:`work_dtype`; the others are sampled nearest, their elements copied (exact).
+#: `work_dtype`; the others are sampled nearest, their elements copied (exact).
 BLENDED = (torch.float32, torch.float64, torch.float16, torch.bfloat16, torch.uint8)
 
 
@@ -190,7 +190,7 @@ def _strides(cube: Tensor) -> tuple[int, int, int]:
 
 
 def _layout_strides(channels: int, face_size: int, channels_last: bool) -> tuple[int, int, int]:
-    """:func:`_strides` of a contiguous cube ``(B, 6, C, F, F)``, or ``(B, 6, F, F, C)``."""
+    """`_strides` of a contiguous cube ``(B, 6, C, F, F)``, or ``(B, 6, F, F, C)``."""
     if channels_last:
         return face_size * face_size * channels, face_size * channels, channels
     return channels * face_size * face_size, face_size, 1
@@ -224,11 +224,11 @@ def build_lut(grid: Tensor, face_size: int, pad: int, mode: str = "bilinear", *,
     """Lookup table of an atlas ``grid`` for contiguous cubes ``(B, 6, channels, F, F)`` (or
     channels-last ones, ``(B, 6, F, F, channels)`` in memory).
 
-    Build it once for a frozen camera and pass it to :func:`sample_cube` on every call.
+    Build it once for a frozen camera and pass it to `sample_cube` on every call.
 
     Args:
         grid: ``(B', H, W, 2)`` atlas grid (``cubemap.rays_to_grid``, ``align_corners=False``),
-            float32 or float64 (the dtype the cube is sampled with: :func:`work_dtype`).
+            float32 or float64 (the dtype the cube is sampled with: `work_dtype`).
         face_size: ``F``.
         pad: the atlas border ``p`` of the grid.
         mode: ``"nearest"`` or ``"bilinear"``.
@@ -236,7 +236,7 @@ def build_lut(grid: Tensor, face_size: int, pad: int, mode: str = "bilinear", *,
         channels_last: the cubes hold their channels innermost.
 
     Returns:
-        The :class:`CubeLUT`.
+        The `CubeLUT`.
     """
     _check_grid(grid)
     _check_mode(mode, "bilinear")
@@ -253,7 +253,7 @@ def build_lut(grid: Tensor, face_size: int, pad: int, mode: str = "bilinear", *,
 
 
 def grid_dtype(dtype: torch.dtype, mode: str, given: torch.dtype) -> torch.dtype:
-    """The dtype the kernels read a grid in for a cube of ``dtype``: :func:`work_dtype` where
+    """The dtype the kernels read a grid in for a cube of ``dtype``: `work_dtype` where
     they blend, the ``given`` grid's (float32 or float64) where they copy."""
     blends = dtype.is_floating_point or (mode == "bilinear" and dtype in BLENDED)
     return work_dtype(dtype) if blends else given
@@ -287,23 +287,23 @@ def _sample(ops, faces: Tensor, grid: Tensor, mode: str, pad: int, border: str,
 
 
 def _samples(dtype: torch.dtype, mode: str) -> bool:
-    """Whether the kernels sample a cube of ``dtype`` in ``mode``: the :data:`BLENDED` dtypes in
+    """Whether the kernels sample a cube of ``dtype`` in ``mode``: the `BLENDED` dtypes in
     both modes, any dtype of 1, 2, 4 or 8 bytes nearest (its elements copied)."""
     return dtype in BLENDED or (mode == "nearest" and torch.empty(
         (), dtype=dtype).element_size() in (1, 2, 4, 8))
 
 
 def reads_rays(dtype: torch.dtype, rays_dtype: torch.dtype) -> bool:
-    """Whether :func:`sample_rays` samples a cube of ``dtype`` through rays of ``rays_dtype``
+    """Whether `sample_rays` samples a cube of ``dtype`` through rays of ``rays_dtype``
     without building their grid first: the C++ op computes the grid in the rays' dtype, which
-    must be :func:`work_dtype`."""
+    must be `work_dtype`."""
     return rays_dtype == work_dtype(dtype) and _samples(dtype, "nearest")
 
 
 def _sample_rays(ops, faces: Tensor, rays: Tensor, rotation: Tensor | None, mode: str,
                  pad: int, border: str, out: Tensor, valid: Tensor | None, fill: int) -> None:
-    """:func:`_sample` of the grid of ``rays (Br, H, W, 3)`` rotated by ``rotation (Bq, 3, 3)``:
-    computed in the sampling pass where the C++ op reads these rays (:func:`reads_rays`), else
+    """`_sample` of the grid of ``rays (Br, H, W, 3)`` rotated by ``rotation (Bq, 3, 3)``:
+    computed in the sampling pass where the C++ op reads these rays (`reads_rays`), else
     built first."""
     grid_dtype = work_dtype(faces.dtype)
     if rays.dtype != grid_dtype:   # the op would compute the grid in another dtype
@@ -345,7 +345,7 @@ def sample_cube(cubemap: Tensor, grid: Tensor, mode: str = "bilinear", *, pad: i
         border: ``"bilinear"`` or ``"nearest"`` (the border resampled from the neighbouring
             faces with that ``cubemap.border_plan``), or ``"copied"``. ``uint8`` labels:
             ``"nearest"`` (a ``uint8`` cube is an image: its border texels are blended).
-        lut: a :func:`build_lut` of ``grid`` for this layout (a frozen camera), else built here.
+        lut: a `build_lut` of ``grid`` for this layout (a frozen camera), else built here.
         out: ``(B, C, H, W)`` in ``out_dtype`` to write the image into (any batch strides; each
             ``H x W`` plane contiguous, or channels-last pixels), e.g. part of a larger batch.
         valid: ``(1 or B', H, W)`` bool, without ``lut``: the pixels where it is False read
@@ -354,7 +354,7 @@ def sample_cube(cubemap: Tensor, grid: Tensor, mode: str = "bilinear", *, pad: i
         fill: the value of the pixels whose taps all lie outside the atlas (``grid_sample``'s
             zero padding: 0), e.g. the ignore index of labels; an int that the output's dtype
             holds.
-        out_dtype: the image's dtype (:func:`output_dtypes`): the cube's (default), or float32
+        out_dtype: the image's dtype (`output_dtypes`): the cube's (default), or float32
             for a ``uint8`` cube (scaled to [0, 1]) or a half-precision one, or int64 for a
             ``uint8`` cube sampled nearest (class ids).
         edge_threshold: for ``mode="edge_aware"`` (torch only), `reference_sample`'s.
@@ -388,7 +388,7 @@ def sample_rays(cubemap: Tensor, rays: Tensor, rotation: Tensor | None = None,
                 out: Tensor | None = None, valid: Tensor | None = None, fill: int = 0,
                 out_dtype: torch.dtype | None = None, edge_threshold: float = 0.05,
                 backend: str = "auto") -> Tensor:
-    """:func:`sample_cube` through the grid of camera-frame ``rays`` rotated into the cube
+    """`sample_cube` through the grid of camera-frame ``rays`` rotated into the cube
     frame, without storing the grid.
 
     The image of ``sample_cube(cubemap, cubemap.grid.rotated_rays_to_grid(rays, rotation, F,
@@ -402,20 +402,20 @@ def sample_rays(cubemap: Tensor, rays: Tensor, rotation: Tensor | None = None,
     unnormalisation fewer per pixel: 0.6x the time of a 1024 x 1024 ``uint8`` frame), so they
     differ from the grid's image by the grid's own rounding (an ulp of a grid coordinate is up
     to ``3 n`` eps atlas rows) and lie closer to the exact image. For rays in another dtype than
-    :func:`work_dtype` the grid is built first.
+    `work_dtype` the grid is built first.
 
     Args:
-        cubemap: ``(B, 6, C, F, F)`` on the CPU, as for :func:`sample_cube`.
+        cubemap: ``(B, 6, C, F, F)`` on the CPU, as for `sample_cube`.
         rays: ``(Br, H, W, 3)`` (``Br`` 1 or ``B``) or ``(H, W, 3)`` camera-frame directions.
         rotation: ``(Bq, 3, 3)`` (``Bq`` 1 or ``B``) or ``(3, 3)`` camera -> cube frame, or None.
-        mode: as for :func:`sample_cube`.
-        pad: as for :func:`sample_cube`.
-        border: as for :func:`sample_cube`.
-        out: as for :func:`sample_cube`.
-        fill: as for :func:`sample_cube`.
-        out_dtype: as for :func:`sample_cube`.
+        mode: as for `sample_cube`.
+        pad: as for `sample_cube`.
+        border: as for `sample_cube`.
+        out: as for `sample_cube`.
+        fill: as for `sample_cube`.
+        out_dtype: as for `sample_cube`.
         valid: ``(1 or max(Br, Bq), H, W)`` bool: the pixels where it is False read ``fill``.
-        edge_threshold: as for :func:`sample_cube`.
+        edge_threshold: as for `sample_cube`.
         backend: the C++ op or the grid built and `reference_sample` (`_backend`).
 
     Returns:
@@ -452,7 +452,7 @@ def is_channels_last(t: Tensor) -> bool:
 def _run(cubemap: Tensor, points: int, size: tuple[int, int], mode: str, border: str,
          out: Tensor | None, valid: Tensor | None, fill: int, out_dtype: torch.dtype | None,
          sample) -> Tensor:
-    """What :func:`sample_cube` and :func:`sample_rays` share, after their ``check_cubemap``:
+    """What `sample_cube` and `sample_rays` share, after their ``check_cubemap``:
     the checks of the cube's device and dtype, of ``out_dtype``, ``out``, ``valid``
     (``points``: the grid's batch) and ``fill``; the output allocated in the cube's layout;
     then ``sample(cube, into (B, C, H, W), valid (1 or B', H, W) or None)``."""
@@ -492,7 +492,7 @@ def _run(cubemap: Tensor, points: int, size: tuple[int, int], mode: str, border:
 
 
 def holds(dtype: torch.dtype, value: int) -> bool:
-    """Whether ``dtype`` holds the int ``value`` (a ``fill`` of :func:`sample_cube`)."""
+    """Whether ``dtype`` holds the int ``value`` (a ``fill`` of `sample_cube`)."""
     if dtype.is_complex:
         return value == 0   # complex elements are copied as bits: only 0 is a fill
     if dtype == torch.bool:
@@ -504,7 +504,7 @@ def holds(dtype: torch.dtype, value: int) -> bool:
 def _out_dtype(dtype: torch.dtype, out_dtype: torch.dtype | None, mode: str, what: str
                ) -> torch.dtype:
     """The dtype of the samples of a ``what`` of ``dtype``: ``out_dtype``, by default
-    ``dtype``; a ``TypeError`` where the kernels write no such samples (:func:`output_dtypes`)."""
+    ``dtype``; a ``TypeError`` where the kernels write no such samples (`output_dtypes`)."""
     out_dtype = dtype if out_dtype is None else out_dtype
     if out_dtype not in output_dtypes(dtype, mode):
         raise TypeError(f"out_dtype: expected one of "

@@ -2,7 +2,7 @@
 
 A perspective image seen through a fisheye of 160-200 degrees fills a few percent of it at the
 focal that inscribes the image circle (a 48 degree Cityscapes frame: 3-4 % of a 512 x 512
-output). :func:`focal_for_coverage` solves, per sample and batched, the focal at which the rays
+output). `focal_for_coverage` solves, per sample and batched, the focal at which the rays
 that reach the source (its image rectangle, in front of it, within the fisheye's field of view)
 cover a share ``coverage`` of the output's pixels, as a fisheye on a cropped sensor sees.
 
@@ -13,7 +13,7 @@ in closed form per plane (``A cos t + B sin t = 0``: ``t = atan2(-A, B)``) when 
 source. A radially symmetric lens of focal ``f`` draws them out to the radius
 ``f r(theta_max(phi))`` (``r``: the model's radius at focal 1), clipped by the output rectangle
 at ``rho(phi)``, so the valid share is ``sum_phi min(f r, rho)^2 dphi / (2 H W)`` over
-:data:`DIRECTIONS` directions: piecewise ``a + b f^2`` between the focals where a direction
+`DIRECTIONS` directions: piecewise ``a + b f^2`` between the focals where a direction
 reaches the rectangle, solved exactly after sorting them. Where the fisheye's axis misses the
 source (a turn larger than the source's half field of view) the directions away from it count
 nothing, so the share is underestimated and the focal comes out larger (more zoom).
@@ -42,7 +42,7 @@ DIRECTIONS = 256
 PHI = np.arange(DIRECTIONS) * (2 * math.pi / DIRECTIONS)
 _COS, _SIN = np.cos(PHI), np.sin(PHI)
 #: The ``x, y`` components of the normals of the planes bounding a pinhole's rays: its image's
-#: right, left, bottom and top edges, then ``z > 0`` (:func:`reach`).
+#: right, left, bottom and top edges, then ``z > 0`` (`reach`).
 _NORMALS_XY = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0], [0.0, 0.0]])
 #: Per edge plane ``m_z = (sign * c - offset) / f`` with ``(f, c)`` the focal and principal
 #: point of its axis: ``sign``, the intrinsics' columns of ``f`` and ``c``, and ``offset`` as
@@ -51,7 +51,7 @@ _SIGN = np.array([1.0, -1.0, 1.0, -1.0])
 _FOCAL_COLUMN, _CENTRE_COLUMN = [0, 0, 1, 1], [2, 2, 3, 3]
 for _table in (PHI, _COS, _SIN, _NORMALS_XY, _SIGN):
     _table.flags.writeable = False
-#: ``cos, sin (2, D)`` float64 tensor of :data:`PHI`, as the C++ ops read them (never
+#: ``cos, sin (2, D)`` float64 tensor of `PHI`, as the C++ ops read them (never
 #: written).
 COS_SIN = torch.from_numpy(np.stack((_COS, _SIN)))
 
@@ -77,7 +77,7 @@ def _normals(intrinsics: np.ndarray, source_size: tuple[int, int]) -> np.ndarray
 
 def reach(rotation: np.ndarray, intrinsics: np.ndarray, source_size: tuple[int, int],
           half: np.ndarray, *, backend: str = "auto") -> np.ndarray:
-    """``theta_max (n, D)``: along each image direction :data:`PHI` about the fisheye's
+    """``theta_max (n, D)``: along each image direction `PHI` about the fisheye's
     centre, the angle from its axis out to which its rays (``ray_src = R @ ray``,
     ``rotation (n, 3, 3)``) reach the pinhole image (``intrinsics (n, 4)``, ``source_size``),
     at most the half field of view ``half (n,)``; 0 where the axis itself misses it.
@@ -105,7 +105,7 @@ def reach(rotation: np.ndarray, intrinsics: np.ndarray, source_size: tuple[int, 
 
 def to_edge(centre: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
     """``(n, D)`` distance from ``centre (n, 2)`` to the output rectangle's edge (pixel edges
-    ``-0.5`` and ``W - 0.5``) along each direction :data:`PHI`."""
+    ``-0.5`` and ``W - 0.5``) along each direction `PHI`."""
     height, width = image_size
     centre = np.asarray(centre, np.float64)
     out = np.full((len(centre), DIRECTIONS), math.inf)

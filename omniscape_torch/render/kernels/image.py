@@ -55,17 +55,17 @@ def camera_rays(affine: Tensor, limits: Tensor, table: Tensor, image_size: tuple
 class CameraGrid:
     """The atlas grid of ``B`` radially symmetric cameras, each with its rotation and cones,
     as their tables (``kernels.radial_table``) until it is read: its rays and validity are
-    made on first use in one pass of the C++ op over the pixels (:func:`camera_rays`), then
-    read by :func:`sample_rays`, which computes the grid inside its sampling pass (one table
+    made on first use in one pass of the C++ op over the pixels (`camera_rays`), then
+    read by `sample_rays`, which computes the grid inside its sampling pass (one table
     pass for every modality sampled, and no grid in memory); other samplers read
-    :meth:`tensor`, built on first use. ``rows`` takes a part of the cameras without computing
+    `tensor`, built on first use. ``rows`` takes a part of the cameras without computing
     anything (a batch's tables made at once, its rays a few samples at a time).
     ``OmniProjection.render(grid=...)`` takes it (``kernels.camera_grid(..., lazy=True)`` makes
     it).
 
     Attributes:
         rays: ``(B, H, W, 3)`` camera-frame unit rays, in ``dtype`` (float32 or float64, the
-            :func:`work_dtype` of the cubes it samples).
+            `work_dtype` of the cubes it samples).
         valid: ``(B, H, W)`` bool: the pixels within the camera's domain and cones.
         rotation: ``(B, 3, 3)`` camera -> cube frame, in ``dtype``.
         face_size: the face size of the atlas the grid is made for.
@@ -127,21 +127,21 @@ def sample_image(image: Tensor, rays: Tensor, rotation: Tensor | None, intrinsic
 
     The image is read through its strides (a channels-last ``(B, H, W, C)`` tensor permuted to
     ``(B, C, H, W)`` costs no copy and its samples come back channels-last) and in the dtypes
-    of :func:`sample_cube`: ``uint8`` blended in float32 and rounded half up (or scaled to
-    [0, 1], or, nearest, widened to int64 ids: :func:`output_dtypes`).
+    of `sample_cube`: ``uint8`` blended in float32 and rounded half up (or scaled to
+    [0, 1], or, nearest, widened to int64 ids: `output_dtypes`).
 
     Args:
         image: ``(B, C, H, W)`` on the CPU.
-        rays: ``(1 or B, h, w, 3)`` directions (any norm) in :func:`work_dtype` of the image
+        rays: ``(1 or B, h, w, 3)`` directions (any norm) in `work_dtype` of the image
             (float32 or float64 for an image sampled nearest).
         rotation: ``(1 or B, 3, 3)`` rays -> the image's camera frame, or None.
         intrinsics: ``(1 or B, 4)`` the image's pinhole ``fx, fy, cx, cy`` (pixel centres at
             integers), in the rays' dtype.
         mode: ``"nearest"`` or ``"bilinear"``.
         valid: ``(1 or B, h, w)`` bool: the rays to sample (else ``fill``).
-        fill: as for :func:`sample_cube`.
-        out: as for :func:`sample_cube`.
-        out_dtype: as for :func:`sample_cube`.
+        fill: as for `sample_cube`.
+        out: as for `sample_cube`.
+        out_dtype: as for `sample_cube`.
 
     Returns:
         ``(B, C, h, w)`` in ``out_dtype`` (``out`` when given) and ``valid (B, h, w)``: the rays
@@ -201,21 +201,21 @@ def sample_image(image: Tensor, rays: Tensor, rotation: Tensor | None, intrinsic
     return out, seen
 
 
-#: Image dtypes :func:`mip_image` filters (the others: ``antialias.minified``).
+#: Image dtypes `mip_image` filters (the others: ``antialias.minified``).
 MIPMAPPED = (torch.uint8, torch.float32, torch.float64)
 
 
 def mip_image(image: Tensor, rays: Tensor, rotation: Tensor | None, intrinsics: Tensor,
               valid: Tensor, out: Tensor) -> Tensor:
-    """Antialias :func:`sample_image`'s bilinear samples in place: the pixels of ``out`` whose
+    """Antialias `sample_image`'s bilinear samples in place: the pixels of ``out`` whose
     footprint minifies the image are overwritten by a filter of its mip pyramid, in one C++
     pass; the others are left as they are, bit for bit.
 
-    The footprint is :func:`~omniscape_torch.render.antialias.footprint`'s: the Jacobian
-    columns ``du, dv`` of the rays' image pixels (as :func:`sample_image` projects them) by
+    The footprint is `footprint`'s: the Jacobian
+    columns ``du, dv`` of the rays' image pixels (as `sample_image` projects them) by
     finite differences to the next output pixel, forward where both pixels are ``valid``,
     else backward, else 0; a pixel minifies where a column is longer than
-    :data:`~omniscape_torch.render.antialias.MINIFIES` source pixels. Its value is the mean of
+    `MINIFIES` source pixels. Its value is the mean of
     4 bilinear lookups at ``(u, v) +- du / 4 +- dv / 4`` (the centres of the footprint's
     quarters) in the mip level ``k = floor(log2(rho / 2))`` (``rho``: the longer column's
     length; 0 below ``rho = 4``), whose texels (``2**k`` source pixels) are at most a
@@ -223,18 +223,18 @@ def mip_image(image: Tensor, rays: Tensor, rotation: Tensor | None, intrinsics: 
     2 x 2 average of level ``k``, an odd last row or column averaged over the texels it holds;
     ``uint8`` levels rounded half up) is built per call, only to the deepest level a pixel
     reads (whole for an image of at most 4 source pixels an output pixel, where finding that
-    level costs more than the levels). :func:`~omniscape_torch.render.antialias.mip_sample` is
+    level costs more than the levels). `mip_sample` is
     the same rule in PyTorch, the filter off the CPU or with gradients (``docs/augmentation.md``,
     Antialiasing).
 
     Args:
         image: ``(B, C, H, W)`` ``uint8``, float32 or float64 on the CPU, any strides.
-        rays: as given to :func:`sample_image`.
-        rotation: as given to :func:`sample_image`.
-        intrinsics: as given to :func:`sample_image`.
-        valid: ``(B, h, w)`` bool: the pixels :func:`sample_image` found valid (its second
+        rays: as given to `sample_image`.
+        rotation: as given to `sample_image`.
+        intrinsics: as given to `sample_image`.
+        valid: ``(B, h, w)`` bool: the pixels `sample_image` found valid (its second
             result); the footprint's differences are taken between valid pixels only.
-        out: ``(B, C, h, w)`` :func:`sample_image`'s samples (``uint8`` or float32 for a
+        out: ``(B, C, h, w)`` `sample_image`'s samples (``uint8`` or float32 for a
             ``uint8`` image, else the image's dtype), overwritten where the pixels minify.
 
     Returns:
@@ -256,24 +256,24 @@ def reproject_image(image: Tensor | None, labels: Tensor | None, affine: Tensor,
                     table: Tensor, rotation: Tensor, intrinsics: Tensor, bilinear: bool,
                     minifies: float, fill: int, out: Tensor | None, out_labels: Tensor | None,
                     valid: Tensor, *, trusted: bool = False) -> None:
-    """In one call of the C++ op: :func:`camera_rays` of ``B`` radially symmetric cameras,
-    :func:`sample_image` of ``image`` along them into ``out`` (its validity into ``valid``),
-    :func:`mip_image` of the pixels that minify where ``minifies > 0``, and ``labels``
+    """In one call of the C++ op: `camera_rays` of ``B`` radially symmetric cameras,
+    `sample_image` of ``image`` along them into ``out`` (its validity into ``valid``),
+    `mip_image` of the pixels that minify where ``minifies > 0``, and ``labels``
     sampled nearest into ``out_labels``: those functions' results in turn, bit for bit
     (``RandomReproject``'s fast path; the rays stay inside the call).
 
     Args:
         image: ``(B, C, H, W)`` ``uint8``, float32 or float64 on the CPU (any strides), or None.
         labels: ``(B, H, W)`` ``uint8`` or int64 ids, or None (one of ``image``, ``labels``).
-        affine: ``(B, 6)``, as :func:`camera_rays` takes it (``kernels.radial_table``), in the
-            rays' dtype: :func:`work_dtype` of ``image`` (float32 or float64 for labels alone).
+        affine: ``(B, 6)``, as `camera_rays` takes it (``kernels.radial_table``), in the
+            rays' dtype: `work_dtype` of ``image`` (float32 or float64 for labels alone).
         limits: ``(B, 5)``, likewise.
         table: ``(1 or B, 2, K)``, likewise.
         rotation: ``(1 or B, 3, 3)`` rays -> the image's camera frame, in the rays' dtype.
         intrinsics: ``(1 or B, 4)`` the image's pinhole ``fx, fy, cx, cy``, in the rays' dtype.
         bilinear: the image's samples bilinear (else nearest).
         minifies: the prefilter's threshold
-            (:data:`~omniscape_torch.render.antialias.MINIFIES`), or 0: no prefilter.
+            (`MINIFIES`), or 0: no prefilter.
         fill: the label of the pixels outside (an int).
         out: ``(B, C, h, w)`` with ``image`` (its dtype, or float32 for ``uint8``), else None.
         out_labels: ``(B, h, w)`` int64 with ``labels``, else None.
