@@ -117,11 +117,14 @@ def cmd_info(args: argparse.Namespace) -> int:
     print(f"model       {camera.model.name}")
     print("params      " + ", ".join(f"{n}={v:.6g}" for n, v in zip(names, values)))
     print(f"image       {w} x {h} pixels (W x H)")
-    print("field of view (valid pixels, degrees):")
-    print(f"  whole image  {math.degrees(float(camera.field_of_view())):8.2f}")
-    print(f"  horizontal   {2 * _edge_angle(camera, centre_row):8.2f}   (through the image centre)")
+    print("field of view (degrees: twice the largest angle off the optical axis of a valid pixel):")
+    print(f"  whole image  {math.degrees(float(camera.field_of_view())):8.2f}   (any pixel, "
+          f"corners included: past the lens's image circle, the calibration extrapolated)")
+    print(f"  horizontal   {2 * _edge_angle(camera, centre_row):8.2f}   (across the image "
+          f"through its centre: a circular fisheye's field of view)")
     print(f"  vertical     {2 * _edge_angle(camera, centre_col):8.2f}")
-    print(f"  model limit  {2 * math.degrees(float(camera.max_angle())):8.2f}")
+    print(f"  model limit  {2 * math.degrees(float(camera.max_angle())):8.2f}   (where the "
+          f"model, or the camera's fov, ends)")
     print("angular resolution (pixels per degree):")
     print(f"  optical axis {per_deg['center']:8.3f}")
     print(f"  edge         {per_deg['edge_coarsest']:8.3f} to {per_deg['edge_finest']:.3f} (coarsest "
@@ -548,6 +551,7 @@ def cmd_convert_model(args: argparse.Namespace) -> int:
     _check_format_options(args)
     camera, source = _load_camera(args)
     area = _conversion_area(args, camera)
+    _check_fold_limit(args, camera, area)
     twin = None
     if args.split:
         if camera.model.name != "scaramuzza":
@@ -632,6 +636,27 @@ def _check_format_options(args: argparse.Namespace) -> None:
     if args.to[0] not in supported_models(args.format):
         raise ValueError(f"--to {args.to[0]}: the {args.format} format holds "
                          f"{', '.join(supported_models(args.format))}")
+
+
+def _check_fold_limit(args: argparse.Namespace, camera, area: dict) -> None:
+    """`--format F --to M` where F's M cannot hold rays at or past 90 deg: refused before the
+    fit when the converted area reaches that far (the converted camera is valid over the
+    source's pixels within the area), unless `--accept-fov`."""
+    from .cameras.export import fold_limit
+    from .cameras.formats import farthest_angle
+
+    why = None if args.format is None else fold_limit(args.format, args.to[0])
+    if why is None or args.accept_fov:
+        return
+    reach = farthest_angle(camera)
+    if "fov" in area or camera.fov is not None:
+        reach = min(reach, area.get("fov", camera.fov) / 2)
+    if math.degrees(reach) >= 90.0:
+        raise ValueError(f"--format {args.format}: the {args.to[0]} camera sees up to "
+                         f"{math.degrees(reach):.2f} deg off its optical axis (the source's "
+                         f"pixels within the converted area), but {why}; convert within less "
+                         f"(--fov 178), or pass --accept-fov to write it with valid_angle_deg: "
+                         f"90")
 
 
 def _write_format(result, args: argparse.Namespace) -> None:

@@ -169,7 +169,8 @@ class FitResult:
             ``sigma^2 (J^T J)^-1`` over all ``n`` free variables (the poses marginalised) with
             ``sigma^2 = sum r^2 / (2 M - n)``, mapped to the natural parameters by the Jacobian
             of the reparametrisation (delta method); zero rows for frozen parameters.
-        std: ``(P,)`` square root of its diagonal.
+        std: ``(P,)`` square root of its diagonal, in the order of ``param_names``
+            (``std_by_name`` names them).
         residuals: per view ``(N_i, 2)`` projected minus observed pixels.
         num_invalid: observations projecting outside the model's domain.
         gauss_newton_gain: cost reduction a Gauss-Newton step would still give, relative to
@@ -225,6 +226,17 @@ class FitResult:
     near_degenerate: list[tuple[str, str | None, float]] = field(default_factory=list)
 
     @property
+    def params_by_name(self) -> dict[str, float]:
+        """``{name: value}`` of the fitted parameters (``params``, named), e.g. ``["fx"]``."""
+        return dict(zip(self.param_names, self.params.tolist()))
+
+    @property
+    def std_by_name(self) -> dict[str, float]:
+        """``{name: standard deviation}`` (``std``, named; 0 for a frozen parameter), e.g.
+        ``result.std_by_name["k1"]``."""
+        return dict(zip(self.param_names, self.std.tolist()))
+
+    @property
     def only_near_degenerate(self) -> bool:
         """The near-degenerate check is the only one that failed (see ``near_degenerate``)."""
         return self.failed_checks == ("near_degenerate",)
@@ -237,8 +249,7 @@ class FitResult:
             "num_observations": self.num_observations, "num_free": self.num_free,
             "num_invalid": self.num_invalid, "gauss_newton_gain": self.gauss_newton_gain,
             "condition": self.condition,
-            "params": dict(zip(self.param_names, self.params.tolist())),
-            "std": dict(zip(self.param_names, self.std.tolist())),
+            "params": self.params_by_name, "std": self.std_by_name,
             "free": list(self.free_names), "poses": self.poses.tolist(),
             "start": self.start, "outliers": [o.tolist() for o in self.outliers],
             "failed_checks": list(self.failed_checks),
