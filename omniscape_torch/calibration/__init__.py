@@ -31,10 +31,11 @@ Examples:
 
 from .convert import ConversionResult, convert, image_circle, without_affine
 from .files import Correspondences, read_correspondences, save_result, write_correspondences
-from .fit import FitResult, METHODS, default_intrinsics, fit
+from .fit import FitResult, METHODS, fit
 from .linear import planar_pose, scaramuzza_linear
 from .lm import LOSSES
 from .select import Candidate, Selection, select_model
+from .starts import default_intrinsics
 from .synthetic import checkerboard, random_views
 
 from .photometric import PHOTOMETRIC_LOSSES, PhotometricResult, fit_photometric, photometric_error

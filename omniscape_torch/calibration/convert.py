@@ -60,8 +60,10 @@ from torch import Tensor
 
 from ..cameras import Camera, CameraModel, get_model
 from ..cameras._checks import not_a_camera
-from .fit import DEFAULT_DISTORTION, FitResult, Problem, solve
+from .fit import FitResult, solve
 from .params import IntrinsicsMap, axis_angle_to_matrix, frozen_indices
+from .problem import Problem
+from .starts import DEFAULT_DISTORTION
 
 #: Parameters held in a first fit, released in a second from its solution: the unified model's
 #: distortion trades off against xi, and from the undistorted start the joint fit can settle in a

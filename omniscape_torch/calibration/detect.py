@@ -26,7 +26,6 @@ are; the tests check it on rendered boards against the truth's projections.
 from __future__ import annotations
 
 import contextlib
-import math
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
