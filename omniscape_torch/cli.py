@@ -22,9 +22,7 @@ from __future__ import annotations
 import argparse
 import errno
 import math
-import shutil
 import sys
-import tempfile
 import traceback
 from pathlib import Path
 
@@ -290,10 +288,9 @@ EXIT_POORLY_CONSTRAINED = 3
 
 
 def _fit_data(args: argparse.Namespace):
-    """The correspondences of ``fit``: the points file, or the corners detected in
-    ``--images``; and what to tell the report about them."""
-    from .calibration import read_correspondences
-
+    """The correspondences of `fit`: the points file, or the corners detected in `--images`
+    (one line of what was found, one per reason an image was skipped); where they came from;
+    the board."""
     if (args.correspondences is None) == (args.images is None):
         raise ValueError("give a correspondence file or --images DIR (with --board), not "
                          + ("both" if args.images is not None else "neither"))
@@ -301,214 +298,100 @@ def _fit_data(args: argparse.Namespace):
         if args.board is not None:
             raise ValueError("--board: only with --images (a correspondence file holds its "
                              "target points)")
-        return read_correspondences(args.correspondences), str(args.correspondences), None, {}
-    from .calibration.detect import detect_corners, image_files, summarize_skipped
-    from .calibration.targets import Board
+        from .calibration import read_correspondences
 
+        return read_correspondences(args.correspondences), str(args.correspondences), None
     if args.board is None:
         raise ValueError("--images: also give --board, e.g. checkerboard:9x6:0.03 (inner "
                          "corners cols x rows : square side in metres)")
+    from .calibration.detect import detect_corners, image_files, summarize_skipped
+    from .calibration.targets import Board
+
     board = Board.parse(args.board)
     files = image_files(args.images)
     data = detect_corners(files, board)
     print(f"{board}: found in {len(data.names)} of {len(files)} images of {args.images}")
     for line in summarize_skipped(data.skipped):   # one line per reason
         print(f"  skipped {line}")
-    return data, str(args.images), str(board), data.skipped
-
-
-def _fit_area(args: argparse.Namespace, camera, data, views
-              ) -> tuple[float | None, str, str | None]:
-    """The full field of view (radians) over which coverage is judged, where it came from, and
-    why the image circle was not used: ``--fov``; else the image circle of the images; else
-    (not measurable: 0, NaN or an error) the corners' reach (twice the largest angle off axis
-    of the detected corners' rays through the fitted camera), or the whole sensor where the
-    images are lit to its edges (None: the whole valid image), from ``views``
-    (:func:`_view_images`). Measuring the area never turns a finished fit into an error
-    (issue 33)."""
-    if args.fov is not None:
-        return math.radians(args.fov), "--fov", None
-    if args.images is None:
-        return None, "whole sensor", None
-    try:
-        from .calibration.convert import image_circle
-
-        if isinstance(views, Exception):
-            raise views
-        fov = float(image_circle(views.mean(0), camera))
-        why = f"it measured {fov:g} rad"
-    except Exception as err:   # noqa: BLE001 (any failure of the measurement: fall back)
-        fov, why = math.nan, f"{type(err).__name__}: {err}"
-    if math.isfinite(fov) and fov >= 2 * math.pi:
-        return None, "whole sensor", ("the images are lit to the sensor's edges (the image "
-                                      "circle lies beyond the sensor)")
-    if math.isfinite(fov) and fov > 0:
-        return fov, "image circle", None
-    reach = _corners_reach(camera, data) / 2
-    if not math.isfinite(reach) or reach <= 0:
-        return None, "whole sensor", f"the image circle could not be measured ({why}), nor " \
-            "the corners' reach"
-    return min(2 * reach, 2 * math.pi), "corners' reach", \
-        f"the image circle could not be measured ({why}: a dark centre or border?)"
-
-
-def _view_images(args: argparse.Namespace, data, camera):
-    """``(V, H, W)`` grey levels of up to 8 of the images where the board was found (not a
-    corrupt file the detection skipped); None without ``--images``, the error where they
-    cannot be read (the measurements that need them fall back)."""
-    if args.images is None:
-        return None
-    try:
-        import numpy as np
-
-        from .calibration.detect import image_files
-        from .io.images import read_image
-
-        files = [f for f in image_files(args.images)
-                 if "_".join(f.stem.split()) in set(data.names)][:8]
-        return np.stack([read_image(f).double().numpy().reshape(camera.image_size + (-1,))
-                         .mean(-1) for f in files])
-    except Exception as err:   # noqa: BLE001 (never lose the fit for a measurement)
-        return err
-
-
-def _fit_blind_cone(camera, data, views) -> float | None:
-    """The blind cone (full angle, radians) of the images: the disc about the axis dark in
-    every view (``calibration.convert.blind_cone`` of their per-pixel maximum), kept below the
-    corners' nearest angle to the axis; None where there is none or it cannot be measured."""
-    if views is None or isinstance(views, Exception):
-        return None
-    try:
-        from .calibration.convert import blind_cone
-
-        blind = blind_cone(views.max(0), camera)
-    except Exception:   # noqa: BLE001 (a measurement that fails leaves the cone out)
-        return None
-    angle = _corner_angles(camera, data)
-    if angle.numel():
-        blind = min(blind, 2 * float(angle.min()))
-    return blind if blind > 0 and blind < (camera.fov or 2 * math.pi) else None
-
-
-def _corner_angles(camera, data):
-    """The angles off axis (radians) of the corners' valid rays through ``camera``."""
-    import torch
-
-    with torch.no_grad():
-        rays, valid = camera.unproject(torch.cat(list(data.image_points)).to(
-            camera.params.dtype))
-        return torch.atan2(rays[..., :2].norm(dim=-1), rays[..., 2])[valid]
-
-
-def _corners_reach(camera, data) -> float:
-    """Twice the largest angle off axis of the corners' rays through ``camera`` (radians; NaN
-    where none is valid)."""
-    angle = _corner_angles(camera, data)
-    return 2 * float(angle.max()) if angle.numel() else math.nan
+    return data, str(args.images), str(board)
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
-    from .calibration import fit
-    from .calibration.coverage import assess_coverage
-    from .calibration.report import write_fit_files
-    from .io.atomic import check_writable, publish
+    from .calibration.calibrate import FitNotWritten, calibrate
+    from .io.atomic import check_writable
 
-    data, source, board, skipped = _fit_data(args)
+    data, source, board = _fit_data(args)
     check_writable(args.out)
     options = {}
     if args.reject_outliers:   # only where fit has the option (issue 19)
         options = {"reject_outliers": True, "outlier_threshold": args.outlier_threshold}
-    result = fit(data.object_points, data.image_points, args.model, data.image_size,
-                 method=args.method, degree=args.degree, freeze=args.freeze,
-                 fov=None if args.fov is None else math.radians(args.fov), loss=args.loss,
-                 loss_scale=args.loss_scale, max_iterations=args.max_iterations,
-                 progress=False if args.no_progress else None, **options)
-    outliers = getattr(result, "outliers", None) or []
-    dropped = sum(len(o) for o in outliers)
+    run = calibrate(data, args.model, images=args.images,
+                    fov=None if args.fov is None else math.radians(args.fov),
+                    leave_one_out=args.leave_one_out, strict=args.strict, source=source,
+                    board=board, method=args.method, degree=args.degree, freeze=args.freeze,
+                    loss=args.loss, loss_scale=args.loss_scale,
+                    max_iterations=args.max_iterations,
+                    progress=False if args.no_progress else None, **options)
+    result, coverage = run.result, run.coverage
+    dropped = sum(len(o) for o in result.outliers)
     print(f"{args.model} ({args.method}): rms {result.rms:.4f} px over "
           f"{result.num_observations} points in {len(data.names)} views, "
           f"{result.iterations} iterations" + (f", {dropped} outliers dropped" if dropped
                                                else "") + f"; {result.reason}")
-    for name, value, std in zip(result.param_names, result.params.tolist(),
-                                result.std.tolist()):
-        print(f"  {name:6s} {value:16.9g} +- {std:.3g}")
-    near_degenerate = not result.converged and result.only_near_degenerate
-    if not result.converged and (args.strict or not near_degenerate):
+    for name, value in result.params_by_name.items():
+        print(f"  {name:6s} {value:16.9g} +- {result.std_by_name[name]:.3g}")
+    if run.failed:
         print(f"omniscape-torch fit: did not converge ({result.reason}); nothing written",
               file=sys.stderr)
         return 1
-    views = _view_images(args, data, result.camera)
-    fov, fov_source, fov_note = _fit_area(args, result.camera, data, views)
-    if fov_note is not None:
-        area = "the whole sensor" if fov is None else \
-            f"the corners' reach, {math.degrees(fov):.1f} deg"
-        print(f"omniscape-torch fit: field of view for coverage: {area}, as {fov_note}; set it "
-              f"with --fov DEG", file=sys.stderr)
-    coverage = assess_coverage(result.camera, result.covariance, data.image_points, fov=fov)
-    if fov is not None:   # camera.json keeps the area judged, for later conversions and exports
-        result.camera.fov = max(fov, min(_corners_reach(result.camera, data), 2 * math.pi))
-    blind = _fit_blind_cone(result.camera, data, views)
-    if blind is not None:
-        result.camera.blind_fov = blind
-        print(f"blind cone: {math.degrees(blind):.1f} deg about the optical axis, dark in every "
-              f"image (a catadioptric camera's own reflection); camera.json keeps it")
-    area = "the whole image" if fov is None else f"a {math.degrees(fov):.1f} deg field of view"
+    if run.fov_note is not None:
+        area = ("the whole sensor" if run.fov is None
+                else f"the corners' reach, {math.degrees(run.fov):.1f} deg")
+        print(f"omniscape-torch fit: field of view for coverage: {area}, as {run.fov_note}; "
+              f"set it with --fov DEG", file=sys.stderr)
+    if run.blind_fov is not None:
+        print(f"blind cone: {math.degrees(run.blind_fov):.1f} deg about the optical axis, dark "
+              f"in every image (a catadioptric camera's own reflection); camera.json keeps it")
+    area = ("the whole image" if run.fov is None
+            else f"a {math.degrees(run.fov):.1f} deg field of view")
     print(f"coverage over {area}: corners in {100 * coverage.cells:.0f}% of the cells, up to "
           f"{math.degrees(coverage.angle):.1f} of {math.degrees(coverage.half_fov):.1f} deg off "
           f"axis; predicted pixel error {coverage.pixel_error:.3g} px (RMS where the corners "
           f"reach, median of its distribution; root mean square {coverage.pixel_rms:.3g}, "
           f"largest per pixel {coverage.max_pixel_std:.3g})")
-    resampling = None
-    if args.leave_one_out:
-        from .calibration.coverage import leave_one_out
-        resampling = leave_one_out(result, data.object_points, data.image_points, fov=fov)
-        print(f"leave-one-view-out: {resampling.pixel_error:.3g} px (jackknife RMS where the "
-              f"corners reach; predicted {coverage.pixel_rms:.3g})")
-    # every file into a temporary folder first: a failed writer leaves nothing half-written,
-    # and an output that cannot be written (disk full, removed) does not lose the fit
-    staging = Path(tempfile.mkdtemp(prefix="omniscape-fit-"))
+    if run.resampling is not None:
+        print(f"leave-one-view-out: {run.resampling.pixel_error:.3g} px (jackknife RMS where "
+              f"the corners reach; predicted {coverage.pixel_rms:.3g})")
     try:
-        files, report = write_fit_files(staging, result, data, coverage=coverage,
-                                        source=source, board=board, skipped=skipped,
-                                        write_points=args.images is not None,
-                                        fov_source=fov_source, fov_note=fov_note,
-                                        resampling=resampling)
-        written = publish(files, args.out)
-    except OSError as err:
+        written, warnings = run.write(args.out)
+    except FitNotWritten as err:
         print(f"omniscape-torch fit: error: {describe_os_error(err)}; the fitted camera is "
-              f"kept in {staging}", file=sys.stderr)
+              f"kept in {err.kept}", file=sys.stderr)
         return 1
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
-    shutil.rmtree(staging, ignore_errors=True)
     print("wrote " + ", ".join(map(str, written)))
-    for line in report["warnings"]:
+    for line in warnings:
         print(f"omniscape-torch fit: warning: {line}", file=sys.stderr)
-    if near_degenerate:
-        from .calibration.fit import correlated_pairs
-
-        print(f"omniscape-torch fit: near-degenerate: "
-              f"{correlated_pairs(result.near_degenerate)}: these views leave a "
-              f"combination of them undetermined (see {Path(args.out) / 'report.md'}); add "
-              f"views, freeze one (--freeze), or pass --strict to refuse such a fit",
-              file=sys.stderr)
+    report = Path(args.out) / "report.md"
+    if run.near_degenerate:
+        print(f"omniscape-torch fit: near-degenerate: {run.correlated}: these views leave a "
+              f"combination of them undetermined (see {report}); add views, freeze one "
+              f"(--freeze), or pass --strict to refuse such a fit", file=sys.stderr)
         return EXIT_POORLY_CONSTRAINED
-    if not coverage.ok and not args.accept_coverage:
+    if args.accept_coverage:
+        return 0
+    if run.poorly_covered:
         print(f"omniscape-torch fit: poorly constrained: the views do not pin the camera down "
-              f"over the image (see {Path(args.out) / 'report.md'} and uncertainty.png); add "
-              f"views, or pass --accept-coverage to accept it", file=sys.stderr)
+              f"over the image (see {report} and uncertainty.png); add views, or pass "
+              f"--accept-coverage to accept it", file=sys.stderr)
         return EXIT_POORLY_CONSTRAINED
-    limit = coverage.thresholds["max_pixel_error"]
-    if resampling is not None and not resampling.pixel_error <= limit \
-            and not args.accept_coverage:
+    if run.poorly_resampled:
         # the views judged by their refits, not the noise model alone (on real photographs the
         # refits move 2 to 5 times more than the residuals predict)
         print(f"omniscape-torch fit: poorly constrained: refits without each view move the "
-              f"projections by {resampling.pixel_error:.3g} px (jackknife RMS where the "
-              f"corners reach), above {limit:g} px, though the residuals predict "
-              f"{coverage.pixel_rms:.3g} px; add views, or pass --accept-coverage to accept "
-              f"it", file=sys.stderr)
+              f"projections by {run.resampling.pixel_error:.3g} px (jackknife RMS where the "
+              f"corners reach), above {run.resampling_limit:g} px, though the residuals "
+              f"predict {coverage.pixel_rms:.3g} px; add views, or pass --accept-coverage to "
+              f"accept it", file=sys.stderr)
         return EXIT_POORLY_CONSTRAINED
     return 0
 
@@ -791,9 +674,8 @@ class _Parser(argparse.ArgumentParser):
 
 
 #: The top-level help: what the command does, three examples, the guides.
-DESCRIPTION = """\
-Fisheye and catadioptric images from cubemaps: datasets from a built-in town or simulator
-captures, camera calibration, conversion between camera models.
+DESCRIPTION = """Fisheye and catadioptric images from cubemaps: datasets from a built-in
+town or simulator captures, camera calibration, conversion between camera models.
 
 examples:
   omniscape-torch generate --out out/demo --frames 8

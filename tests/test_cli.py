@@ -311,8 +311,6 @@ def test_a_fit_whose_output_cannot_be_written_keeps_its_result(tmp_path, capsys,
     """The output fails after the fit (a full disk, simulated in the writer that installs the
     files): the camera is kept in a temporary folder whose path is printed, exit 1, and the
     output folder holds nothing half-written."""
-    import omniscape_torch.io.atomic as atomic
-
     truth, _, path = _write(tmp_path, model="scaramuzza", n_views=5, rows=6, cols=8)
     out = tmp_path / "out"
 
@@ -320,7 +318,8 @@ def test_a_fit_whose_output_cannot_be_written_keeps_its_result(tmp_path, capsys,
         Path(folder).mkdir(parents=True, exist_ok=True)
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(Path(folder) / "camera.json"))
 
-    monkeypatch.setattr(atomic, "publish", full)
+    # the installer of the fit's files, where Calibration.write calls it
+    monkeypatch.setattr(sys.modules["omniscape_torch.calibration.calibrate"], "publish", full)
     assert cli.main(["fit", str(path), "--model", "scaramuzza", "--out", str(out),
                      "--no-progress"]) == 1
     line = _line(capsys.readouterr().err)

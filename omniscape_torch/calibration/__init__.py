@@ -16,6 +16,9 @@
 * :func:`assess_coverage`: where the corners lie and the predicted error over the image;
   :func:`leave_one_out` the same error by refitting without each view;
   :func:`write_fit_files`: everything ``omniscape-torch fit`` writes (report, plots).
+* `calibrate`: all of ``omniscape-torch fit`` as one function (the fit, the area the lens sees,
+  the coverage and predicted error over it, the blind cone, the verdict), a `Calibration`
+  whose `write` writes the files.
 
 Examples:
     >>> import torch, omniscape_torch as ot
@@ -29,6 +32,7 @@ Examples:
     (True, 0.0)
 """
 
+from .calibrate import Calibration, FitNotWritten, calibrate
 from .convert import ConversionResult, convert, image_circle, without_affine
 from .files import Correspondences, read_correspondences, save_result, write_correspondences
 from .fit import FitResult, METHODS, fit
@@ -44,11 +48,11 @@ from .detect import Detection, detect_corners
 from .report import fit_report, write_fit_files
 from .targets import Board, render_board
 
-__all__ = ["Board", "Candidate", "ConversionResult", "Correspondences", "Coverage", "Detection",
-           "FitResult", "LOSSES", "METHODS", "Resampling", "assess_coverage", "covered_rays",
+__all__ = ["Board", "Calibration", "Candidate", "ConversionResult", "Correspondences", "Coverage", "Detection",
+           "FitNotWritten", "FitResult", "LOSSES", "METHODS", "Resampling", "assess_coverage", "covered_rays",
            "leave_one_out", "detect_corners", "fit_report",
            "render_board", "write_fit_files",
            "PHOTOMETRIC_LOSSES", "PhotometricResult", "Selection", "fit_photometric",
-           "photometric_error", "checkerboard", "convert", "default_intrinsics", "fit", "image_circle",
+           "photometric_error", "calibrate", "checkerboard", "convert", "default_intrinsics", "fit", "image_circle",
            "planar_pose", "random_views", "read_correspondences", "save_result", "scaramuzza_linear",
            "select_model", "without_affine", "write_correspondences"]

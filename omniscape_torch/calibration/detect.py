@@ -261,8 +261,8 @@ def detect_corners(images: str | Path | Sequence, board: Board | str, *,
             found = _checkerboard(cv2, grey, board)
         else:
             found = _charuco(cv2, grey, board, detector)
-        if isinstance(found, tuple) and board.kind != "checkerboard" and \
-                len(found[1]) < min_corners:
+        if (isinstance(found, tuple) and board.kind != "checkerboard"
+                and len(found[1]) < min_corners):
             found = f"only {len(found[1])} corners found, fewer than min_corners {min_corners}"
         if isinstance(found, tuple) and refine:
             found = (_refine(cv2, grey, found[0], found[1], board), found[1])

@@ -356,8 +356,8 @@ def _adam(problem: Problem, z0: Tensor, loss: str, scale: float, max_iterations:
             bar.update(1)
             if opt.param_groups[0]["lr"] < min_lr:
                 return best_z, True, "learning rate decayed below min_lr", iteration, history
-    return best_z, False, f"{max_iterations} iterations without converging", max_iterations, \
-        history
+    return (best_z, False, f"{max_iterations} iterations without converging", max_iterations,
+            history)
 
 
 # --------------------------------------------------------------------------------------------
@@ -450,8 +450,8 @@ def fit(object_points, image_points, model: str | CameraModel, image_size: tuple
         raise ValueError(f"max_iterations: expected a positive integer, got {max_iterations!r}")
     if not isinstance(reject_outliers, bool):
         raise TypeError(f"reject_outliers: expected True or False, got {reject_outliers!r}")
-    if isinstance(outlier_threshold, bool) or not isinstance(outlier_threshold, (int, float)) \
-            or not (math.isfinite(outlier_threshold) and outlier_threshold > 0):
+    if (isinstance(outlier_threshold, bool) or not isinstance(outlier_threshold, (int, float))
+            or not (math.isfinite(outlier_threshold) and outlier_threshold > 0)):
         raise ValueError(f"outlier_threshold: expected a positive number of sigmas, got "
                          f"{outlier_threshold!r}")
     if reject_outliers and method == "linear":
@@ -661,8 +661,8 @@ def _solve(problem: Problem, method: str, *, loss: str, loss_scale: float,
 
     z0 = problem.z0()
     if method == "linear":
-        z, ok, reason, iterations, history = z0, True, "closed-form linear solution (not " \
-            "refined; not a least-squares minimum)", 0, []
+        z, ok, iterations, history = z0, True, 0, []
+        reason = "closed-form linear solution (not refined; not a least-squares minimum)"
     elif method == "lm":
         z, ok, reason, iterations, history = _levenberg_marquardt(
             problem, z0, loss, loss_scale, max_iterations, progress, determined)
@@ -695,8 +695,8 @@ def _solve(problem: Problem, method: str, *, loss: str, loss_scale: float,
     except ValueError as err:
         failures["range"] = f"the parameters left the model's range: {err}"
     if num_invalid:
-        failures["domain"] = f"{num_invalid} of {m} observations project outside the model's " \
-            "domain"
+        failures["domain"] = (f"{num_invalid} of {m} observations project outside the model's "
+                              "domain")
     if method != "linear" and not at_minimum:
         failures["minimum"] = (f"not at a minimum: a Gauss-Newton step would lower the cost by "
                                f"{gain:.2e} (relative), above optimality_tol {optimality_tol:g}")

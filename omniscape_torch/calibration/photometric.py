@@ -102,8 +102,8 @@ def _loss(image: Tensor, target: Tensor, mask: Tensor, kind: str) -> Tensor:
     if kind == "zncc":
         return photometric_error(image, target, mask)
     r = (image - target) * mask
-    per_pixel = r * r if kind == "l2" else torch.sqrt(r * r + CHARBONNIER_EPS ** 2) - \
-        CHARBONNIER_EPS
+    per_pixel = (r * r if kind == "l2"
+                 else torch.sqrt(r * r + CHARBONNIER_EPS ** 2) - CHARBONNIER_EPS)
     return per_pixel.sum() / (mask.sum() * image.shape[1]).clamp(min=1)
 
 
