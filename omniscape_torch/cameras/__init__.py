@@ -40,3 +40,14 @@ from .unified import unified_from_mirror
 
 __all__ = ["Camera", "CameraModel", "FORMATS", "MODELS", "READ_FORMATS", "get_model", "load_all",
            "unified_from_mirror", "write_camera"]
+
+
+def __getattr__(name: str):
+    """A submodule on first use (``ot.cameras.presets`` without importing it first: the
+    package's top level loads lazily, so nothing else may have imported it)."""
+    import importlib
+    import importlib.util
+
+    if not name.startswith("_") and importlib.util.find_spec(f"{__name__}.{name}"):
+        return importlib.import_module(f".{name}", __name__)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
