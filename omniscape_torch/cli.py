@@ -354,6 +354,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
               f"in every image (a catadioptric camera's own reflection); camera.json keeps it")
     area = ("the whole image" if run.fov is None
             else f"a {math.degrees(run.fov):.1f} deg field of view")
+    if run.fov_source == "corners' reach" and run.fov_note is None:
+        area += " (the corners' reach: a correspondence file gives no image circle; --fov DEG)"
     print(f"coverage over {area}: corners in {100 * coverage.cells:.0f}% of the cells, up to "
           f"{math.degrees(coverage.angle):.1f} of {math.degrees(coverage.half_fov):.1f} deg off "
           f"axis; predicted pixel error {coverage.pixel_error:.3g} px (RMS where the corners "

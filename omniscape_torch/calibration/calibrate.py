@@ -8,12 +8,17 @@ command line does, and writes the files (`Calibration.write`):
    and flagged, unless `strict`);
 2. the area the lens sees (`Calibration.fov`): `fov` if given; else the image circle of the
    views' `images` (`image_circle` of their mean); else, where it cannot be measured (a dark
-   centre or border, no images), the corners' reach (twice the largest angle off axis of the
-   corners' rays through the fitted camera); or the whole sensor where the images are lit to
-   its edges. Correspondences alone give no image circle, and a sensor's corners may lie far
-   past what the lens sees (137.6 degrees off axis for a 190-degree lens on a 4:3 sensor), so
-   the coverage and the predicted error are judged over that area, never the whole sensor
-   unless the images show it lit;
+   centre or border) or there are no images (correspondences alone give no image circle),
+   the corners' reach (twice the largest angle off axis of the corners' rays through the
+   fitted camera); or the whole sensor where the images are lit to its edges. A sensor's
+   corners may lie far past what the lens sees (the fitted polynomial of a 190-degree lens
+   on a 1280 x 1024 sensor puts them 130 to 150 degrees off axis), so the coverage and the
+   predicted error are judged over that area, never over the whole sensor unless the images
+   show it lit (before issue 44, correspondences were judged over the whole sensor: a
+   well-covered 21-view fit could count fewer than half of its cells). Over the corners' reach
+   the angle check passes by construction: give `fov` to judge how far short of the lens's
+   edge the corners stop. `camera.json` keeps the area as the camera's `fov`, except the
+   corners' reach of bare correspondences (the lens may see past it);
 3. the coverage and the predicted pixel error over that area (`assess_coverage`), and with
    `leave_one_out` the same error measured by refitting without each view;
 4. the blind cone of a catadioptric camera (`blind_cone` of the views' maximum), kept in
@@ -204,8 +209,8 @@ def calibrate(data: Correspondences, model: str, *, images: str | Path | Sequenc
         >>> data = calibration.Correspondences([board] * 6, pixels, (480, 640),
         ...                                    [f"view{i}" for i in range(6)])
         >>> run = calibration.calibrate(data, "equidistant")
-        >>> run.failed, run.fov_source
-        (False, 'whole sensor')
+        >>> run.failed, run.fov_source, run.result.camera.fov is None
+        (False, "corners' reach", True)
     """
     result = fit(data.object_points, data.image_points, model, data.image_size, fov=fov,
                  **fit_options)
@@ -216,7 +221,9 @@ def calibrate(data: Correspondences, model: str, *, images: str | Path | Sequenc
     views = _view_images(images, data, camera.image_size)
     run.fov, run.fov_source, run.fov_note = _area(camera, data, views, fov)
     run.coverage = assess_coverage(camera, result.covariance, data.image_points, fov=run.fov)
-    if run.fov is not None:   # camera.json keeps the area judged, for conversions and exports
+    if run.fov is not None and (views is not None or fov is not None):
+        # camera.json keeps the area the images (or fov) show, for conversions and exports;
+        # not the corners' reach of bare correspondences: the lens may see past it
         camera.fov = max(run.fov, min(_corners_reach(camera, data), 2 * math.pi))
     run.blind_fov = _blind_cone(camera, data, views)
     if run.blind_fov is not None:
@@ -232,8 +239,11 @@ def _area(camera, data: Correspondences, views, fov: float | None
     """`Calibration.fov`, `fov_source`, `fov_note` (module docstring)."""
     if fov is not None:
         return fov, "--fov", None
-    if views is None:
-        return None, "whole sensor", None
+    if views is None:   # correspondences alone: no image circle, the corners tell the area
+        reach = _corners_reach(camera, data)
+        if math.isfinite(reach) and reach > 0:
+            return min(reach, 2 * math.pi), "corners' reach", None
+        return None, "whole sensor", "no corner's ray is valid through the fitted camera"
     try:
         if isinstance(views, Exception):
             raise views
