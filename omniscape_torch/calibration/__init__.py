@@ -48,11 +48,11 @@ from .detect import Detection, detect_corners
 from .report import fit_report, write_fit_files
 from .targets import Board, render_board
 
-__all__ = ["Board", "Calibration", "Candidate", "ConversionResult", "Correspondences", "Coverage", "Detection",
-           "FitNotWritten", "FitResult", "LOSSES", "METHODS", "Resampling", "assess_coverage", "covered_rays",
-           "leave_one_out", "detect_corners", "fit_report",
-           "render_board", "write_fit_files",
-           "PHOTOMETRIC_LOSSES", "PhotometricResult", "Selection", "fit_photometric",
-           "photometric_error", "calibrate", "checkerboard", "convert", "default_intrinsics", "fit", "image_circle",
-           "planar_pose", "random_views", "read_correspondences", "save_result", "scaramuzza_linear",
-           "select_model", "without_affine", "write_correspondences"]
+__all__ = ["assess_coverage", "Board", "calibrate", "Calibration", "Candidate", "checkerboard",
+           "ConversionResult", "convert", "Correspondences", "Coverage", "covered_rays",
+           "default_intrinsics", "detect_corners", "Detection", "fit", "fit_photometric",
+           "fit_report", "FitNotWritten", "FitResult", "image_circle", "leave_one_out", "LOSSES",
+           "METHODS", "photometric_error", "PHOTOMETRIC_LOSSES", "PhotometricResult",
+           "planar_pose", "random_views", "read_correspondences", "render_board", "Resampling",
+           "save_result", "scaramuzza_linear", "select_model", "Selection", "without_affine",
+           "write_correspondences", "write_fit_files"]
