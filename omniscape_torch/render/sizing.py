@@ -52,8 +52,8 @@ import torch
 from torch import Tensor
 
 from ..cameras._base import broadcast_shapes
-from ..cameras.camera import Camera
 from ..cameras._checks import not_a_camera
+from ..cameras.camera import Camera
 from ..cubemap.faces import FACES, _check_face_size, _check_pad, face_axes, ray_to_face
 from ..cubemap.padding import border_taps
 from ..cubemap.rotation import check_rotation
