@@ -1,15 +1,20 @@
-"""The ``omniscape-torch`` command line (thin: parsing and printing; the work is in the package).
+"""The `omniscape-torch` command line (thin: parsing and printing; the work is in the package).
 
 Angles are printed in degrees (the only place besides file formats where degrees appear).
 
-Every error ends the command with one line on stderr and an exit code (``--traceback`` shows
-the Python traceback instead): 2 for bad input (options, files that are missing or malformed),
-1 for a run that could not be done (an output that cannot be written, memory, another run in
-the same folder, a failed fit), 3 for a fit whose views leave the camera poorly constrained
-(``fit``: its files are written; ``--accept-coverage`` makes it 0 for poor coverage) or
-near-degenerate (``fit``: written, with a line naming the correlated parameters; ``--strict``
-refuses it instead: exit 1, nothing written), 130 for Ctrl-C, whose line says what was kept
-and whether the same command resumes.
+Every error ends the command with one line on stderr and an exit code (`--traceback` shows
+the Python traceback instead, with the same exit code): 2 for bad input (options, files that
+are missing or malformed), 1 for a run that could not be done (an output that cannot be
+written, memory, another run in the same folder, a failed fit), 3 for a fit whose views leave
+the camera poorly constrained (`fit`: its files are written; `--accept-coverage` makes it 0
+for poor coverage) or near-degenerate (`fit`: written, with a line naming the correlated
+parameters; `--strict` refuses it instead: exit 1, nothing written), 130 for Ctrl-C, whose
+line says what was kept and whether the same command resumes.
+
+The parser is built and the arguments parsed before torch or any module of the package that
+needs it is imported (each command imports what it uses), so `--help` and a usage error answer
+at once; the names it offers are the tables below, which `tests/test_cli.py` checks against the
+package's own.
 """
 
 from __future__ import annotations
@@ -17,16 +22,55 @@ from __future__ import annotations
 import argparse
 import errno
 import math
-import shutil
 import sys
-import tempfile
+import traceback
 from pathlib import Path
-
-import torch
 
 #: The real OCamCalib calibration shipped beside the project (see ../shared/data/README.md).
 DEFAULT_OCAMCALIB = Path("../shared/data/ocamcalib_real/calib_results_0.txt")
 
+# The names the parser offers, written here rather than imported so that parsing needs no
+# torch. tests/test_cli.py compares each with the package's table (named in its comment): a name
+# added there fails that test until it is added here.
+#: `cameras.MODELS` without `equirectangular` (not a lens).
+LENS_MODELS = ("pinhole", "equidistant", "equisolid", "stereographic", "orthographic",
+               "kannala_brandt", "unified", "eucm", "double_sphere", "scaramuzza", "fov",
+               "division", "opencv", "thin_prism_fisheye", "fisheye624", "woodscape")
+#: `cameras.READ_FORMATS`.
+READ_FORMATS = ("json", "ocamcalib", "opencv", "kalibr", "basalt", "orbslam3", "colmap", "aria",
+                "woodscape")
+#: `cameras.export.FORMATS` and `supported_models(format)` (json: every model).
+WRITE_FORMATS = {
+    "json": ("any",),
+    "ocamcalib": ("scaramuzza",),
+    "opencv": ("kannala_brandt", "unified", "opencv"),
+    "kalibr": ("pinhole", "kannala_brandt", "unified", "double_sphere", "eucm", "fov", "opencv"),
+    "basalt": ("pinhole", "kannala_brandt", "unified", "double_sphere", "eucm", "fov"),
+    "orbslam3": ("pinhole", "kannala_brandt"),
+    "colmap": ("pinhole", "kannala_brandt", "fov", "division", "opencv", "thin_prism_fisheye",
+               "fisheye624"),
+}
+#: `calibration.METHODS`.
+FIT_METHODS = ("lm", "lbfgs", "adam", "linear")
+#: `calibration.LOSSES`.
+FIT_LOSSES = ("linear", "huber", "cauchy")
+#: `data.generate.CAMERAS`.
+RIG_CAMERAS = ("fisheye_left", "fisheye_right", "catadioptric_left", "catadioptric_right")
+#: `data.generate.FORMATS`.
+DATASET_FORMATS = ("folder", "webdataset")
+#: `data.captures.CAMERAS`.
+CAPTURE_CAMERAS = ("fisheye", "catadioptric")
+#: `scenes.town.CARLA_PRESETS`: CARLA's 14 weathers, the default of `generate --weather`.
+CARLA_PRESETS = ("clear_noon", "cloudy_noon", "wet_noon", "wet_cloudy_noon", "mid_rainy_noon",
+                 "hard_rain_noon", "soft_rain_noon", "clear_sunset", "cloudy_sunset",
+                 "wet_sunset", "wet_cloudy_sunset", "mid_rain_sunset", "hard_rain_sunset",
+                 "soft_rain_sunset")
+#: `scenes.town.WEATHERS`: CARLA's and the town's own.
+WEATHERS = CARLA_PRESETS + ("overcast", "sunset", "night", "fog")
+#: `scenes.town.LAYOUTS`.
+LAYOUTS = {1: "main street", 2: "crossroads", 3: "blocks"}
+#: `io.carla.LABEL_SETS`.
+LABEL_SETS = ("13", "23", "new")
 
 def _load_camera(args: argparse.Namespace):
     from .cameras import Camera
@@ -44,14 +88,18 @@ def _load_camera(args: argparse.Namespace):
     return Camera.from_ocamcalib(path), str(path)
 
 
-def _edge_angle(camera, pixels: torch.Tensor) -> float:
-    """Largest angle to the optical axis among valid ``pixels``, degrees."""
+def _edge_angle(camera, pixels) -> float:
+    """Largest angle to the optical axis among valid `pixels` `(N, 2)`, degrees."""
+    import torch
+
     rays, valid = camera.unproject(pixels)
     theta = torch.atan2(torch.linalg.vector_norm(rays[..., :2], dim=-1), rays[..., 2])
     return math.degrees(float(theta[valid].max())) if bool(valid.any()) else float("nan")
 
 
 def cmd_info(args: argparse.Namespace) -> int:
+    import torch
+
     camera, source = _load_camera(args)
     if camera.batch_shape != ():
         raise ValueError(f"{source}: expected one camera, got a batch of "
@@ -68,11 +116,14 @@ def cmd_info(args: argparse.Namespace) -> int:
     print(f"model       {camera.model.name}")
     print("params      " + ", ".join(f"{n}={v:.6g}" for n, v in zip(names, values)))
     print(f"image       {w} x {h} pixels (W x H)")
-    print("field of view (valid pixels, degrees):")
-    print(f"  whole image  {math.degrees(float(camera.field_of_view())):8.2f}")
-    print(f"  horizontal   {2 * _edge_angle(camera, centre_row):8.2f}   (through the image centre)")
+    print("field of view (degrees: twice the largest angle off the optical axis of a valid pixel):")
+    print(f"  whole image  {math.degrees(float(camera.field_of_view())):8.2f}   (any pixel, "
+          f"corners included: past the lens's image circle, the calibration extrapolated)")
+    print(f"  horizontal   {2 * _edge_angle(camera, centre_row):8.2f}   (across the image "
+          f"through its centre: a circular fisheye's field of view)")
     print(f"  vertical     {2 * _edge_angle(camera, centre_col):8.2f}")
-    print(f"  model limit  {2 * math.degrees(float(camera.max_angle())):8.2f}")
+    print(f"  model limit  {2 * math.degrees(float(camera.max_angle())):8.2f}   (where the "
+          f"model, or the camera's fov, ends)")
     print("angular resolution (pixels per degree):")
     print(f"  optical axis {per_deg['center']:8.3f}")
     print(f"  edge         {per_deg['edge_coarsest']:8.3f} to {per_deg['edge_finest']:.3f} (coarsest "
@@ -287,10 +338,9 @@ EXIT_POORLY_CONSTRAINED = 3
 
 
 def _fit_data(args: argparse.Namespace):
-    """The correspondences of ``fit``: the points file, or the corners detected in
-    ``--images``; and what to tell the report about them."""
-    from .calibration import read_correspondences
-
+    """The correspondences of `fit`: the points file, or the corners detected in `--images`
+    (one line of what was found, one per reason an image was skipped); where they came from;
+    the board."""
     if (args.correspondences is None) == (args.images is None):
         raise ValueError("give a correspondence file or --images DIR (with --board), not "
                          + ("both" if args.images is not None else "neither"))
@@ -298,212 +348,102 @@ def _fit_data(args: argparse.Namespace):
         if args.board is not None:
             raise ValueError("--board: only with --images (a correspondence file holds its "
                              "target points)")
-        return read_correspondences(args.correspondences), str(args.correspondences), None, {}
-    from .calibration.detect import detect_corners, image_files, summarize_skipped
-    from .calibration.targets import Board
+        from .calibration import read_correspondences
 
+        return read_correspondences(args.correspondences), str(args.correspondences), None
     if args.board is None:
         raise ValueError("--images: also give --board, e.g. checkerboard:9x6:0.03 (inner "
                          "corners cols x rows : square side in metres)")
+    from .calibration.detect import detect_corners, image_files, summarize_skipped
+    from .calibration.targets import Board
+
     board = Board.parse(args.board)
     files = image_files(args.images)
     data = detect_corners(files, board)
     print(f"{board}: found in {len(data.names)} of {len(files)} images of {args.images}")
     for line in summarize_skipped(data.skipped):   # one line per reason
         print(f"  skipped {line}")
-    return data, str(args.images), str(board), data.skipped
-
-
-def _fit_area(args: argparse.Namespace, camera, data, views
-              ) -> tuple[float | None, str, str | None]:
-    """The full field of view (radians) over which coverage is judged, where it came from, and
-    why the image circle was not used: ``--fov``; else the image circle of the images; else
-    (not measurable: 0, NaN or an error) the corners' reach (twice the largest angle off axis
-    of the detected corners' rays through the fitted camera), or the whole sensor where the
-    images are lit to its edges (None: the whole valid image), from ``views``
-    (:func:`_view_images`). Measuring the area never turns a finished fit into an error
-    (issue 33)."""
-    if args.fov is not None:
-        return math.radians(args.fov), "--fov", None
-    if args.images is None:
-        return None, "whole sensor", None
-    try:
-        from .calibration.convert import image_circle
-
-        if isinstance(views, Exception):
-            raise views
-        fov = float(image_circle(views.mean(0), camera))
-        why = f"it measured {fov:g} rad"
-    except Exception as err:   # noqa: BLE001 (any failure of the measurement: fall back)
-        fov, why = math.nan, f"{type(err).__name__}: {err}"
-    if math.isfinite(fov) and fov >= 2 * math.pi:
-        return None, "whole sensor", ("the images are lit to the sensor's edges (the image "
-                                      "circle lies beyond the sensor)")
-    if math.isfinite(fov) and fov > 0:
-        return fov, "image circle", None
-    reach = _corners_reach(camera, data) / 2
-    if not math.isfinite(reach) or reach <= 0:
-        return None, "whole sensor", f"the image circle could not be measured ({why}), nor " \
-            "the corners' reach"
-    return min(2 * reach, 2 * math.pi), "corners' reach", \
-        f"the image circle could not be measured ({why}: a dark centre or border?)"
-
-
-def _view_images(args: argparse.Namespace, data, camera):
-    """``(V, H, W)`` grey levels of up to 8 of the images where the board was found (not a
-    corrupt file the detection skipped); None without ``--images``, the error where they
-    cannot be read (the measurements that need them fall back)."""
-    if args.images is None:
-        return None
-    try:
-        import numpy as np
-
-        from .calibration.detect import image_files
-        from .io.images import read_image
-
-        files = [f for f in image_files(args.images)
-                 if "_".join(f.stem.split()) in set(data.names)][:8]
-        return np.stack([read_image(f).double().numpy().reshape(camera.image_size + (-1,))
-                         .mean(-1) for f in files])
-    except Exception as err:   # noqa: BLE001 (never lose the fit for a measurement)
-        return err
-
-
-def _fit_blind_cone(camera, data, views) -> float | None:
-    """The blind cone (full angle, radians) of the images: the disc about the axis dark in
-    every view (``calibration.convert.blind_cone`` of their per-pixel maximum), kept below the
-    corners' nearest angle to the axis; None where there is none or it cannot be measured."""
-    if views is None or isinstance(views, Exception):
-        return None
-    try:
-        from .calibration.convert import blind_cone
-
-        blind = blind_cone(views.max(0), camera)
-    except Exception:   # noqa: BLE001 (a measurement that fails leaves the cone out)
-        return None
-    angle = _corner_angles(camera, data)
-    if angle.numel():
-        blind = min(blind, 2 * float(angle.min()))
-    return blind if blind > 0 and blind < (camera.fov or 2 * math.pi) else None
-
-
-def _corner_angles(camera, data) -> torch.Tensor:
-    """The angles off axis (radians) of the corners' valid rays through ``camera``."""
-    with torch.no_grad():
-        rays, valid = camera.unproject(torch.cat(list(data.image_points)).to(
-            camera.params.dtype))
-        return torch.atan2(rays[..., :2].norm(dim=-1), rays[..., 2])[valid]
-
-
-def _corners_reach(camera, data) -> float:
-    """Twice the largest angle off axis of the corners' rays through ``camera`` (radians; NaN
-    where none is valid)."""
-    angle = _corner_angles(camera, data)
-    return 2 * float(angle.max()) if angle.numel() else math.nan
+    return data, str(args.images), str(board)
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
-    from .calibration import fit
-    from .calibration.coverage import assess_coverage
-    from .calibration.report import write_fit_files
-    from .io.atomic import check_writable, publish
+    from .calibration.calibrate import FitNotWritten, calibrate
+    from .io.atomic import check_writable
 
-    data, source, board, skipped = _fit_data(args)
+    data, source, board = _fit_data(args)
     check_writable(args.out)
     options = {}
     if args.reject_outliers:   # only where fit has the option (issue 19)
         options = {"reject_outliers": True, "outlier_threshold": args.outlier_threshold}
-    result = fit(data.object_points, data.image_points, args.model, data.image_size,
-                 method=args.method, degree=args.degree, freeze=args.freeze,
-                 fov=None if args.fov is None else math.radians(args.fov), loss=args.loss,
-                 loss_scale=args.loss_scale, max_iterations=args.max_iterations,
-                 progress=False if args.no_progress else None, **options)
-    outliers = getattr(result, "outliers", None) or []
-    dropped = sum(len(o) for o in outliers)
+    run = calibrate(data, args.model, images=args.images,
+                    fov=None if args.fov is None else math.radians(args.fov),
+                    leave_one_out=args.leave_one_out, strict=args.strict, source=source,
+                    board=board, method=args.method, degree=args.degree, freeze=args.freeze,
+                    loss=args.loss, loss_scale=args.loss_scale,
+                    max_iterations=args.max_iterations,
+                    progress=False if args.no_progress else None, **options)
+    result, coverage = run.result, run.coverage
+    dropped = sum(len(o) for o in result.outliers)
     print(f"{args.model} ({args.method}): rms {result.rms:.4f} px over "
           f"{result.num_observations} points in {len(data.names)} views, "
           f"{result.iterations} iterations" + (f", {dropped} outliers dropped" if dropped
                                                else "") + f"; {result.reason}")
-    for name, value, std in zip(result.param_names, result.params.tolist(),
-                                result.std.tolist()):
-        print(f"  {name:6s} {value:16.9g} +- {std:.3g}")
-    near_degenerate = not result.converged and result.only_near_degenerate
-    if not result.converged and (args.strict or not near_degenerate):
+    for name, value in result.params_by_name.items():
+        print(f"  {name:6s} {value:16.9g} +- {result.std_by_name[name]:.3g}")
+    if run.failed:
         print(f"omniscape-torch fit: did not converge ({result.reason}); nothing written",
               file=sys.stderr)
         return 1
-    views = _view_images(args, data, result.camera)
-    fov, fov_source, fov_note = _fit_area(args, result.camera, data, views)
-    if fov_note is not None:
-        area = "the whole sensor" if fov is None else \
-            f"the corners' reach, {math.degrees(fov):.1f} deg"
-        print(f"omniscape-torch fit: field of view for coverage: {area}, as {fov_note}; set it "
-              f"with --fov DEG", file=sys.stderr)
-    coverage = assess_coverage(result.camera, result.covariance, data.image_points, fov=fov)
-    if fov is not None:   # camera.json keeps the area judged, for later conversions and exports
-        result.camera.fov = max(fov, min(_corners_reach(result.camera, data), 2 * math.pi))
-    blind = _fit_blind_cone(result.camera, data, views)
-    if blind is not None:
-        result.camera.blind_fov = blind
-        print(f"blind cone: {math.degrees(blind):.1f} deg about the optical axis, dark in every "
-              f"image (a catadioptric camera's own reflection); camera.json keeps it")
-    area = "the whole image" if fov is None else f"a {math.degrees(fov):.1f} deg field of view"
+    if run.fov_note is not None:
+        area = ("the whole sensor" if run.fov is None
+                else f"the corners' reach, {math.degrees(run.fov):.1f} deg")
+        print(f"omniscape-torch fit: field of view for coverage: {area}, as {run.fov_note}; "
+              f"set it with --fov DEG", file=sys.stderr)
+    if run.blind_fov is not None:
+        print(f"blind cone: {math.degrees(run.blind_fov):.1f} deg about the optical axis, dark "
+              f"in every image (a catadioptric camera's own reflection); camera.json keeps it")
+    area = ("the whole image" if run.fov is None
+            else f"a {math.degrees(run.fov):.1f} deg field of view")
+    if run.fov_source == "corners' reach" and run.fov_note is None:
+        area += " (the corners' reach: a correspondence file gives no image circle; --fov DEG)"
     print(f"coverage over {area}: corners in {100 * coverage.cells:.0f}% of the cells, up to "
           f"{math.degrees(coverage.angle):.1f} of {math.degrees(coverage.half_fov):.1f} deg off "
           f"axis; predicted pixel error {coverage.pixel_error:.3g} px (RMS where the corners "
           f"reach, median of its distribution; root mean square {coverage.pixel_rms:.3g}, "
           f"largest per pixel {coverage.max_pixel_std:.3g})")
-    resampling = None
-    if args.leave_one_out:
-        from .calibration.coverage import leave_one_out
-        resampling = leave_one_out(result, data.object_points, data.image_points, fov=fov)
-        print(f"leave-one-view-out: {resampling.pixel_error:.3g} px (jackknife RMS where the "
-              f"corners reach; predicted {coverage.pixel_rms:.3g})")
-    # every file into a temporary folder first: a failed writer leaves nothing half-written,
-    # and an output that cannot be written (disk full, removed) does not lose the fit
-    staging = Path(tempfile.mkdtemp(prefix="omniscape-fit-"))
+    if run.resampling is not None:
+        print(f"leave-one-view-out: {run.resampling.pixel_error:.3g} px (jackknife RMS where "
+              f"the corners reach; predicted {coverage.pixel_rms:.3g})")
     try:
-        files, report = write_fit_files(staging, result, data, coverage=coverage,
-                                        source=source, board=board, skipped=skipped,
-                                        write_points=args.images is not None,
-                                        fov_source=fov_source, fov_note=fov_note,
-                                        resampling=resampling)
-        written = publish(files, args.out)
-    except OSError as err:
+        written, warnings = run.write(args.out)
+    except FitNotWritten as err:
         print(f"omniscape-torch fit: error: {describe_os_error(err)}; the fitted camera is "
-              f"kept in {staging}", file=sys.stderr)
+              f"kept in {err.kept}", file=sys.stderr)
         return 1
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
-    shutil.rmtree(staging, ignore_errors=True)
     print("wrote " + ", ".join(map(str, written)))
-    for line in report["warnings"]:
+    for line in warnings:
         print(f"omniscape-torch fit: warning: {line}", file=sys.stderr)
-    if near_degenerate:
-        from .calibration.fit import correlated_pairs
-
-        print(f"omniscape-torch fit: near-degenerate: "
-              f"{correlated_pairs(result.near_degenerate)}: these views leave a "
-              f"combination of them undetermined (see {Path(args.out) / 'report.md'}); add "
-              f"views, freeze one (--freeze), or pass --strict to refuse such a fit",
-              file=sys.stderr)
+    report = Path(args.out) / "report.md"
+    if run.near_degenerate:
+        print(f"omniscape-torch fit: near-degenerate: {run.correlated}: these views leave a "
+              f"combination of them undetermined (see {report}); add views, freeze one "
+              f"(--freeze), or pass --strict to refuse such a fit", file=sys.stderr)
         return EXIT_POORLY_CONSTRAINED
-    if not coverage.ok and not args.accept_coverage:
+    if args.accept_coverage:
+        return 0
+    if run.poorly_covered:
         print(f"omniscape-torch fit: poorly constrained: the views do not pin the camera down "
-              f"over the image (see {Path(args.out) / 'report.md'} and uncertainty.png); add "
-              f"views, or pass --accept-coverage to accept it", file=sys.stderr)
+              f"over the image (see {report} and uncertainty.png); add views, or pass "
+              f"--accept-coverage to accept it", file=sys.stderr)
         return EXIT_POORLY_CONSTRAINED
-    limit = coverage.thresholds["max_pixel_error"]
-    if resampling is not None and not resampling.pixel_error <= limit \
-            and not args.accept_coverage:
+    if run.poorly_resampled:
         # the views judged by their refits, not the noise model alone (on real photographs the
         # refits move 2 to 5 times more than the residuals predict)
         print(f"omniscape-torch fit: poorly constrained: refits without each view move the "
-              f"projections by {resampling.pixel_error:.3g} px (jackknife RMS where the "
-              f"corners reach), above {limit:g} px, though the residuals predict "
-              f"{coverage.pixel_rms:.3g} px; add views, or pass --accept-coverage to accept "
-              f"it", file=sys.stderr)
+              f"projections by {run.resampling.pixel_error:.3g} px (jackknife RMS where the "
+              f"corners reach), above {run.resampling_limit:g} px, though the residuals "
+              f"predict {coverage.pixel_rms:.3g} px; add views, or pass --accept-coverage to "
+              f"accept it", file=sys.stderr)
         return EXIT_POORLY_CONSTRAINED
     return 0
 
@@ -525,7 +465,7 @@ def _conversion_area(args: argparse.Namespace, camera) -> dict:
     return {} if args.fov is None else {"fov": math.radians(args.fov)}
 
 
-def _rotation_line(rotation: torch.Tensor) -> str:
+def _rotation_line(rotation) -> str:
     """The fitted rotation as an angle about an axis, for the table."""
     from .calibration.params import matrix_to_axis_angle
 
@@ -538,12 +478,15 @@ def _rotation_line(rotation: torch.Tensor) -> str:
 
 
 def cmd_convert_model(args: argparse.Namespace) -> int:
+    import torch
+
     from .calibration import convert, save_result
     from .calibration.convert import without_affine
 
     _check_format_options(args)
     camera, source = _load_camera(args)
     area = _conversion_area(args, camera)
+    _check_fold_limit(args, camera, area)
     twin = None
     if args.split:
         if camera.model.name != "scaramuzza":
@@ -630,6 +573,27 @@ def _check_format_options(args: argparse.Namespace) -> None:
                          f"{', '.join(supported_models(args.format))}")
 
 
+def _check_fold_limit(args: argparse.Namespace, camera, area: dict) -> None:
+    """`--format F --to M` where F's M cannot hold rays at or past 90 deg: refused before the
+    fit when the converted area reaches that far (the converted camera is valid over the
+    source's pixels within the area), unless `--accept-fov`."""
+    from .cameras.export import fold_limit
+    from .cameras.formats import farthest_angle
+
+    why = None if args.format is None else fold_limit(args.format, args.to[0])
+    if why is None or args.accept_fov:
+        return
+    reach = farthest_angle(camera)
+    if "fov" in area or camera.fov is not None:
+        reach = min(reach, area.get("fov", camera.fov) / 2)
+    if math.degrees(reach) >= 90.0:
+        raise ValueError(f"--format {args.format}: the {args.to[0]} camera sees up to "
+                         f"{math.degrees(reach):.2f} deg off its optical axis (the source's "
+                         f"pixels within the converted area), but {why}; convert within less "
+                         f"(--fov 178), or pass --accept-fov to write it with valid_angle_deg: "
+                         f"90")
+
+
 def _write_format(result, args: argparse.Namespace) -> None:
     """The converted camera as ``--format``'s file; an accepted limit is printed as a warning."""
     import warnings
@@ -649,23 +613,23 @@ def _write_format(result, args: argparse.Namespace) -> None:
 
 
 def _add_convert_parser(sub) -> None:
-    """``convert`` (angles in degrees)."""
-    from .data.captures import CAMERAS
-    from .io.carla import LABEL_SETS
-
+    """`convert` (angles in degrees)."""
     p = sub.add_parser(
         "convert", help="render simulator cubemap captures into fisheye / catadioptric images",
         description="Read DIR/<capture>/{front,back,left,right,up,down}_{rgb,depth,labels}.png "
                     "(CARLA raw depth and semantic images) and write fisheye and catadioptric "
-                    "renderings (rgb png, depth exr, labels png) per capture.")
+                    "renderings (rgb png, depth exr, labels png) per capture. Guide: "
+                    "docs/datasets.md.")
     p.add_argument("--cubemaps", type=Path, required=True, help="folder of capture folders")
     p.add_argument("--out", type=Path, required=True, help="output folder")
-    p.add_argument("--label-set", choices=tuple(LABEL_SETS), default="13",
+    p.add_argument("--label-set", choices=LABEL_SETS, default="13",
                    help="the simulator's tag set: 13 (CARLA <= 0.9.9), 23 (0.9.10-0.9.13), "
                         "new (Cityscapes-ordered tags of later versions); default 13")
     p.add_argument("--unknown-label", type=int, default=None,
                    help="class id for tags outside the label set (default: error)")
-    p.add_argument("--cameras", nargs="+", choices=CAMERAS, default=list(CAMERAS))
+    p.add_argument("--cameras", nargs="+", choices=CAPTURE_CAMERAS, default=list(CAPTURE_CAMERAS),
+                   help="the cameras to render each capture into: a forward fisheye, a "
+                        "catadioptric camera, or both (default both)")
     p.add_argument("--size", type=int, nargs=2, default=(1024, 1024), metavar=("H", "W"),
                    help="output image size (default 1024 1024)")
     p.add_argument("--fisheye-model", default="equidistant",
@@ -675,11 +639,17 @@ def _add_convert_parser(sub) -> None:
     p.add_argument("--cata-fov", type=float, default=220.0, help="degrees (default 220)")
     p.add_argument("--cata-blind-fov", type=float, default=40.0,
                    help="degrees, 0 for none (default 40)")
-    p.add_argument("--cata-looking", choices=("down", "up"), default="down")
-    p.add_argument("--depth-output", choices=("range", "z"), default="range")
+    p.add_argument("--cata-looking", choices=("down", "up"), default="down",
+                   help="where the catadioptric camera's axis points: down (the camera under "
+                        "its mirror, seeing the ground and the horizon) or up (default down)")
+    p.add_argument("--depth-output", choices=("range", "z"), default="range",
+                   help="depth written: range, the distance along each pixel's ray, or z, "
+                        "along the camera's optical axis; metres (default range)")
     p.add_argument("--interpolation", choices=("nearest", "bilinear", "bicubic"),
-                   default="bilinear", help="for rgb")
-    p.add_argument("--device", default="cpu")
+                   default="bilinear", help="for rgb (labels are always nearest; default "
+                                            "bilinear)")
+    p.add_argument("--device", default="cpu",
+                   help="torch device to render on, e.g. cpu, cuda, cuda:1 (default cpu)")
     _add_ray_option(p, "captures")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_convert)
@@ -726,10 +696,14 @@ def cmd_convert(args: argparse.Namespace) -> int:
     return 0
 
 
-def _add_camera_source(group, parser) -> None:
-    """``--camera FILE [--camera-format F] [--name N]``: any file ``Camera.load`` reads."""
-    from .cameras import READ_FORMATS
-
+def _add_camera_source(parser) -> None:
+    """The camera of `info`, `convert-model` and `select-model`: `--ocamcalib`, `--json` or
+    `--camera FILE [--camera-format F] [--name N]` (any file `Camera.load` reads)."""
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument("--ocamcalib", type=Path, default=None,
+                       help=f"OCamCalib calib_results.txt (default: {DEFAULT_OCAMCALIB})")
+    group.add_argument("--json", type=Path, default=None,
+                       help="camera JSON (Camera.save_json, fit's camera.json)")
     group.add_argument("--camera", type=Path, default=None, metavar="FILE",
                        help="a camera file of another tool, recognised from its content: "
                             "OpenCV / Kalibr / ORB-SLAM3 YAML, basalt or Project Aria JSON, "
@@ -751,23 +725,59 @@ class _Parser(argparse.ArgumentParser):
                      f"--help\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="omniscape-torch", description=__doc__.splitlines()[0])
-    parser.add_argument("--traceback", action="store_true",
-                        help="on an error, show the Python traceback instead of one line")
-    sub = parser.add_subparsers(dest="command", required=True)
-    info = sub.add_parser("info", help="field of view and angular resolution of a camera")
-    source = info.add_mutually_exclusive_group()
-    source.add_argument("--ocamcalib", type=Path, default=None,
-                        help=f"OCamCalib calib_results.txt (default: {DEFAULT_OCAMCALIB})")
-    source.add_argument("--json", type=Path, default=None, help="camera JSON (Camera.save_json)")
-    _add_camera_source(source, info)
-    info.set_defaults(func=cmd_info)
+#: The top-level help: what the command does, three examples, the guides.
+DESCRIPTION = """Fisheye and catadioptric images from cubemaps: datasets from a built-in
+town or simulator captures, camera calibration, conversion between camera models.
 
-    from .data.generate import CAMERAS
-    from .scenes.town import CARLA_PRESETS, LAYOUTS, WEATHERS
-    gen = sub.add_parser("generate", help="write an OmniScape-like dataset (see "
-                                          "omniscape_torch/data/format.py for the layout)")
+examples:
+  omniscape-torch generate --out out/demo --frames 8
+      a small dataset (four cameras, 256 x 256) from the built-in town
+  omniscape-torch fit --images photos --board checkerboard:9x6:0.03 --model kannala_brandt --out calib
+      calibrate a camera from photographs of a checkerboard
+  omniscape-torch convert-model --json calib/camera.json --to unified,double_sphere --out models/
+      fit other camera models to that camera
+
+guides (in the repository and on the documentation site):
+  docs/getting-started.md   installation and a first dataset
+  docs/datasets.md          generate, stats, pack, convert
+  docs/calibration.md       fit, convert-model, select-model, info
+  docs/troubleshooting.md   every error message and exit code
+
+exit codes: 0 done; 2 bad input; 1 a run that could not be done; 3 a fit the views leave
+poorly constrained (files written); 130 interrupted (Ctrl-C)."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line's parser; it imports nothing heavy (module docstring)."""
+    parser = _Parser(prog="omniscape-torch", description=DESCRIPTION,
+                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--traceback", action="store_true",
+                        help="on an error, also show the Python traceback (same exit code)")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND",
+                                title="commands (omniscape-torch COMMAND --help for each)")
+    info = sub.add_parser("info", help="field of view and angular resolution of a camera",
+                          description="Print a camera's model, parameters, field of view and "
+                                      "angular resolution. Guide: docs/cameras.md.")
+    _add_camera_source(info)
+    info.set_defaults(func=cmd_info)
+    _add_generate_parser(sub)
+    _add_pack_parser(sub)
+    _add_stats_parser(sub)
+    _add_convert_parser(sub)
+    _add_export_parser(sub)
+    _add_fit_parser(sub)
+    _add_convert_model_parser(sub)
+    _add_select_model_parser(sub)
+    return parser
+
+
+def _add_generate_parser(sub) -> None:
+    gen = sub.add_parser("generate", help="write an OmniScape-like dataset from the built-in "
+                                          "town",
+                         description="Render an OmniScape-like dataset (fisheye and "
+                                     "catadioptric images with depth, labels, instances and "
+                                     "the vehicle's dynamics) from the built-in town. Its "
+                                     "layout and options: docs/datasets.md.")
     gen.add_argument("--out", type=Path, required=True, help="dataset folder (created; a "
                      "rerun completes an interrupted run)")
     gen.add_argument("--frames", type=positive_int, default=8, help="frames (default 8)")
@@ -779,10 +789,10 @@ def build_parser() -> argparse.ArgumentParser:
                      "for every camera (default: each camera's required_face_size)")
     gen.add_argument("--max-face-size", type=positive_int, default=1024,
                      help="cap on the default face sizes (default 1024)")
-    gen.add_argument("--cameras", type=_names(CAMERAS, "camera"), nargs="+",
-                     default=[list(CAMERAS)], metavar="NAME[,NAME]",
-                     help=f"cameras to render (default all: {', '.join(CAMERAS)})")
-    gen.add_argument("--weather", type=_names(tuple(WEATHERS), "weather"), nargs="+",
+    gen.add_argument("--cameras", type=_names(RIG_CAMERAS, "camera"), nargs="+",
+                     default=[list(RIG_CAMERAS)], metavar="NAME[,NAME]",
+                     help=f"cameras to render (default all: {', '.join(RIG_CAMERAS)})")
+    gen.add_argument("--weather", type=_names(WEATHERS, "weather"), nargs="+",
                      default=[list(CARLA_PRESETS)], metavar="NAME[,NAME]",
                      help=f"weather preset(s), one drawn per frame when several "
                           f"({', '.join(WEATHERS)}; default CARLA's 14: "
@@ -794,7 +804,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="render only run K of N's share of the frames (K from 0; e.g. "
                           "$SLURM_ARRAY_TASK_ID/N): N such runs, at once on any machines, "
                           "write the dataset one run writes")
-    gen.add_argument("--format", choices=("folder", "webdataset"), default="folder",
+    gen.add_argument("--format", choices=DATASET_FORMATS, default="folder",
                      help="webdataset: also pack the frames into WebDataset tar shards, "
                           "DIR/shards/shard-NNNNNN.tar (default folder)")
     gen.add_argument("--frames-per-shard", type=positive_int, default=None, metavar="N",
@@ -821,39 +831,44 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--no-progress", action="store_true", help="no progress bar")
     gen.set_defaults(func=cmd_generate)
 
+
+def _add_pack_parser(sub) -> None:
     pk = sub.add_parser("pack", help="pack a generated dataset into WebDataset tar shards "
-                                     "(DIR/shards/shard-NNNNNN.tar) for streaming into training")
+                                     "(DIR/shards/shard-NNNNNN.tar) for streaming into training",
+                        description="Pack a generated dataset into WebDataset tar shards. "
+                                    "Guide: docs/distributed.md.")
     pk.add_argument("dir", type=Path, help="dataset folder")
     pk.add_argument("--frames-per-shard", type=positive_int, default=None, metavar="N",
                     help="frames per shard (default 16)")
     pk.add_argument("--no-progress", action="store_true", help="no progress bar")
     pk.set_defaults(func=cmd_pack)
 
-    st = sub.add_parser("stats", help="Table I and class shares of a generated dataset")
+
+def _add_stats_parser(sub) -> None:
+    st = sub.add_parser("stats", help="Table I and class shares of a generated dataset",
+                        description="The paper's Table I (the vehicle's attitude) and the "
+                                    "class shares of a generated dataset, written to "
+                                    "DIR/stats.json and DIR/stats.png. Guide: "
+                                    "docs/datasets.md.")
     st.add_argument("dir", type=Path, help="dataset folder")
     st.add_argument("--no-plot", action="store_true", help="do not write stats.png")
     st.set_defaults(func=cmd_stats)
 
-    _add_convert_parser(sub)
-    _add_export_parser(sub)
 
-    from .calibration.fit import METHODS
-    from .calibration.lm import LOSSES
-    from .cameras import MODELS
-    from .cameras.export import FORMATS, supported_models
-    lenses = [m for m in MODELS if m != "equirectangular"]
+def _add_fit_parser(sub) -> None:
     fit = sub.add_parser(
         "fit", help="calibrate a camera from images of a board, or from target points and "
-                    "their pixels (file format: omniscape_torch/calibration/files.py)",
+                    "their pixels",
         description="Fit a camera model to a board's corners: detected in --images (OpenCV) or "
-                    "read from a correspondence file. Writes camera.json, report.json, "
-                    "report.md, residuals.png, uncertainty.png (and calib_results.txt for "
-                    "scaramuzza, correspondences.txt for --images) into --out, all or none. "
+                    "read from a correspondence file (its format: docs/calibration.md). Writes "
+                    "camera.json, report.json, report.md, residuals.png, uncertainty.png (and "
+                    "calib_results.txt for scaramuzza, correspondences.txt for --images) into "
+                    "--out, all or none. "
                     f"Exits {EXIT_POORLY_CONSTRAINED} (files written) when the views leave the "
-                    "camera poorly constrained (omniscape_torch/calibration/coverage.py), "
-                    "unless --accept-coverage, or near-degenerate (parameters that trade "
-                    "off, named with their correlation), unless --strict (exit 1, nothing "
-                    "written); 1 (nothing written) when the fit failed.")
+                    "camera poorly constrained, unless --accept-coverage, or near-degenerate "
+                    "(parameters that trade off, named with their correlation), unless "
+                    "--strict (exit 1, nothing written); 1 (nothing written) when the fit "
+                    "failed. Guide: docs/calibration.md.")
     fit.add_argument("correspondences", type=Path, nargs="?", default=None,
                      help="correspondence file (or give --images)")
     fit.add_argument("--images", type=Path, default=None, metavar="DIR",
@@ -862,11 +877,15 @@ def build_parser() -> argparse.ArgumentParser:
                      help="the board in --images: checkerboard:COLSxROWS:SQUARE (inner corners, "
                           "metres), charuco:COLSxROWS:SQUARE:MARKER[:DICT] (squares, metres, "
                           "ArUco dictionary, default 6X6_250); e.g. checkerboard:9x6:0.03")
-    fit.add_argument("--model", choices=lenses, required=True, help="camera model")
+    fit.add_argument("--model", choices=LENS_MODELS, required=True, help="camera model")
     fit.add_argument("--degree", type=positive_int, default=4,
                      help="scaramuzza polynomial degree (default 4)")
-    fit.add_argument("--method", choices=METHODS, default="lm", help="default lm")
-    fit.add_argument("--loss", choices=tuple(LOSSES), default="linear", help="default linear")
+    fit.add_argument("--method", choices=FIT_METHODS, default="lm",
+                     help="lm (Levenberg-Marquardt), lbfgs, adam, or linear (OCamCalib's "
+                          "closed form, scaramuzza only); default lm")
+    fit.add_argument("--loss", choices=FIT_LOSSES, default="linear",
+                     help="linear (least squares), or huber or cauchy to weigh down outlying "
+                          "corners; default linear")
     fit.add_argument("--loss-scale", type=_positive_float, default=1.0,
                      help="robust loss scale, pixels (default 1)")
     fit.add_argument("--reject-outliers", action="store_true",
@@ -879,8 +898,8 @@ def build_parser() -> argparse.ArgumentParser:
                      "distortion, affine) or names to hold at their start")
     fit.add_argument("--fov", type=_positive_float, default=None,
                      help="full field of view in degrees: a start for non-polynomial models, "
-                          "and the area whose coverage is judged (default: the image circle "
-                          "of --images, else the whole image)")
+                          "and the area whose coverage and predicted error are judged "
+                          "(default: the image circle of --images, else the corners' reach)")
     fit.add_argument("--accept-coverage", action="store_true",
                      help=f"exit 0, not {EXIT_POORLY_CONSTRAINED}, when the views leave the "
                           f"camera poorly constrained (the warnings are still printed)")
@@ -892,19 +911,24 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--strict", action="store_true",
                      help="refuse a near-degenerate fit (exit 1, nothing written) instead of "
                           f"writing it with exit {EXIT_POORLY_CONSTRAINED}")
-    fit.add_argument("--max-iterations", type=positive_int, default=None)
+    fit.add_argument("--max-iterations", type=positive_int, default=None, metavar="N",
+                     help="a hard limit on the optimiser's iterations (default: lm runs "
+                          "rounds of 100 while the cost still falls, at most 1000; lbfgs 500, "
+                          "adam 3000); a fit stopped there has not converged: exit 1")
     fit.add_argument("--out", type=Path, required=True, help="output folder")
     fit.add_argument("--no-progress", action="store_true", help="no progress bar")
     fit.set_defaults(func=cmd_fit)
 
-    conv = sub.add_parser("convert-model", help="fit cameras of other models to a camera")
-    source = conv.add_mutually_exclusive_group()
-    source.add_argument("--ocamcalib", type=Path, default=None,
-                        help=f"OCamCalib calib_results.txt (default: {DEFAULT_OCAMCALIB})")
-    source.add_argument("--json", type=Path, default=None, help="camera JSON (Camera.save_json)")
-    _add_camera_source(source, conv)
-    conv.add_argument("--to", type=_names(lenses, "model"), required=True,
-                      metavar="MODEL[,MODEL]", help=f"target models ({', '.join(lenses)})")
+
+def _add_convert_model_parser(sub) -> None:
+    conv = sub.add_parser("convert-model", help="fit cameras of other models to a camera",
+                          description="Fit cameras of other models to a camera over its valid "
+                                      "area and print their held-out errors; write them as "
+                                      "JSON or as another tool's file (--format). Guide: "
+                                      "docs/calibration.md.")
+    _add_camera_source(conv)
+    conv.add_argument("--to", type=_names(LENS_MODELS, "model"), required=True,
+                      metavar="MODEL[,MODEL]", help=f"target models ({', '.join(LENS_MODELS)})")
     conv.add_argument("--degree", type=positive_int, default=4,
                       help="scaramuzza target degree (default 4)")
     conv.add_argument("--grid", type=positive_int, default=48,
@@ -921,24 +945,24 @@ def build_parser() -> argparse.ArgumentParser:
                            "affine term's")
     conv.add_argument("--out", type=Path, default=None, help="folder for <model>.json; with "
                       "--format, the file to write")
-    conv.add_argument("--format", choices=FORMATS, default=None,
+    conv.add_argument("--format", choices=tuple(WRITE_FORMATS), default=None,
                       help="write the one model of --to as this tool's file (--out FILE): "
-                           + "; ".join(f"{f}: {', '.join(supported_models(f))}"
-                                       for f in FORMATS if f != "json") + "; json: any")
+                           + "; ".join(f"{f}: {', '.join(m)}" for f, m in WRITE_FORMATS.items()))
     conv.add_argument("--accept-fov", action="store_true", help="write a camera that sees at or "
                       "past 90 deg into a format that folds there (the file records it)")
     conv.add_argument("--accept-skew", action="store_true", help="write a camera with a skew "
                       "into a format without one, dropping it (the error is printed)")
     conv.set_defaults(func=cmd_convert_model)
 
+
+def _add_select_model_parser(sub) -> None:
     sel = sub.add_parser("select-model", help="the model with the fewest parameters that "
-                                              "reproduces a camera within tolerances")
-    source = sel.add_mutually_exclusive_group()
-    source.add_argument("--ocamcalib", type=Path, default=None,
-                        help=f"OCamCalib calib_results.txt (default: {DEFAULT_OCAMCALIB})")
-    source.add_argument("--json", type=Path, default=None, help="camera JSON (Camera.save_json)")
-    _add_camera_source(source, sel)
-    sel.add_argument("--models", type=_names(lenses, "model"), default=None,
+                                              "reproduces a camera within tolerances",
+                         description="Convert a camera to each candidate model and select the "
+                                     "one with the fewest parameters whose held-out error is "
+                                     "within the tolerances. Guide: docs/calibration.md.")
+    _add_camera_source(sel)
+    sel.add_argument("--models", type=_names(LENS_MODELS, "model"), default=None,
                      metavar="MODEL[,MODEL]", help="candidates (default: all lens models; "
                      "scaramuzza of degrees 2-6)")
     sel.add_argument("--rms", type=_positive_float, required=True,
@@ -954,7 +978,6 @@ def build_parser() -> argparse.ArgumentParser:
     sel.add_argument("--out", type=Path, default=None, help="write the selected camera as JSON")
     sel.add_argument("--no-progress", action="store_true", help="no progress bar")
     sel.set_defaults(func=cmd_select_model)
-    return parser
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -965,27 +988,33 @@ def main(argv: list[str] | None = None) -> int:
         return args.func(args)
     except KeyboardInterrupt:
         if args.traceback:
-            raise
+            traceback.print_exc()
         print(f"\n{prefix}: interrupted; "
               f"{_INTERRUPTED.get(args.command, 'nothing was written')}", file=sys.stderr)
         return 130
     except Exception as err:   # noqa: BLE001 - every error becomes one line and a code
-        if args.traceback:
-            raise
-        if isinstance(err, FileNotFoundError):   # a missing input
-            message, code = describe_os_error(err) if err.errno else str(err), 2
-        elif isinstance(err, OSError):
-            message, code = describe_os_error(err), 1
-        elif isinstance(err, (ValueError, TypeError)):
-            message, code = str(err), 2
-        elif isinstance(err, MemoryError):
-            message, code = str(err) or "out of memory", 1
-        elif isinstance(err, ImportError):   # an optional dependency; the message says which
-            message, code = str(err), 1
-        else:
-            message, code = f"{type(err).__name__}: {err}", 1
+        if args.traceback:   # the traceback, then the same line and code as without
+            traceback.print_exc()
+        message, code = describe_error(err)
         print(f"{prefix}: error: {' '.join(message.split())}", file=sys.stderr)
         return code
+
+
+def describe_error(err: Exception) -> tuple[str, int]:
+    """The message and exit code of an error that ended a command (module docstring)."""
+    atomic = sys.modules.get(f"{__package__}.io.atomic")   # not loaded: not its error
+    busy = atomic is not None and isinstance(err, atomic.FolderBusyError)
+    if isinstance(err, FileNotFoundError):   # a missing input
+        return (describe_os_error(err) if err.errno else str(err)), 2
+    if isinstance(err, OSError):
+        return describe_os_error(err), 1
+    if isinstance(err, (ValueError, TypeError)):
+        return str(err), 2
+    if isinstance(err, MemoryError):
+        return str(err) or "out of memory", 1
+    if busy or isinstance(err, ImportError):   # their messages say what to do
+        return str(err), 1
+    return f"{type(err).__name__}: {err}", 1   # unexpected: its class helps a bug report
 
 
 if __name__ == "__main__":

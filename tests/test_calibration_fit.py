@@ -172,6 +172,10 @@ def test_frozen_groups_stay_put_with_zero_std():
     assert torch.equal(result.params[2:], start[2:])
     assert torch.equal(result.std[2:], torch.zeros(6, dtype=D))
     assert bool((result.std[:2] > 0).all())
+    # the same, by name (issue 46: std was an unnamed tensor)
+    assert list(result.std_by_name) == ["fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4"]
+    assert result.std_by_name["fx"] == float(result.std[0]) > 0 == result.std_by_name["k4"]
+    assert result.params_by_name["cx"] == float(start[2])
     with pytest.raises(ValueError, match="freeze: 'lens'"):
         fit(board, pixels, "kannala_brandt", size, freeze=("lens",))
 

@@ -554,9 +554,9 @@ def test_fit_images_never_loses_a_fit(rendered, unmeasurable, tmp_path, capsys, 
     on stderr naming ``--fov DEG``, and the reports name the fallback (``fov_source``): the
     corners' reach (twice their largest angle off axis through the fitted camera), or the whole
     sensor."""
-    if patch is not None:   # the module, not calibration.convert (a function of that name)
-        monkeypatch.setattr(sys.modules["omniscape_torch.calibration.convert"], "image_circle",
-                            patch)
+    if patch is not None:   # where calibrate looks it up (calibration.calibrate: a function)
+        monkeypatch.setattr(sys.modules["omniscape_torch.calibration.calibrate"],
+                            "image_circle", patch)
     folder = rendered[0] if kind == "rendered" else unmeasurable[kind]
     out = tmp_path / "out"
     code = cli.main(["fit", "--images", str(folder), "--board", BOARD, "--model",

@@ -7,6 +7,8 @@ import math
 import pytest
 import torch
 
+import omniscape_torch as ot
+
 from omniscape_torch.cubemap import FACES, face_axes, face_rotations
 from omniscape_torch.cameras.presets import (FISHEYE_DEFAULTS, catadioptric, fisheye,
                                      matrix_to_yaw_pitch_roll, yaw_pitch_roll_to_matrix)
@@ -249,3 +251,39 @@ def test_catadioptric_from_a_mirror():
         catadioptric((64, 64), looking="sideways")
     with pytest.raises(ValueError, match="blind_fov"):
         catadioptric((64, 64), blind_fov=math.radians(230))
+
+
+def _catadioptric_pair_calls():
+    import omniscape_torch.calibration as calibration
+    from omniscape_torch.cameras.export import write_camera
+    from omniscape_torch.data.ocamcalib import fit_polynomial
+
+    image = torch.rand(1, 3, 16, 16)
+    fisheye = ot.presets.fisheye((16, 16))
+    return {
+        "OmniProjection": lambda pair: ot.OmniProjection(pair, face_size=8),
+        "reproject (dst)": lambda pair: ot.reproject(image, fisheye, pair),
+        "reproject (src)": lambda pair: ot.reproject(image, pair, fisheye),
+        "visible_faces": lambda pair: ot.visible_faces(pair),
+        "required_face_size": lambda pair: ot.required_face_size(pair),
+        "convert": lambda pair: calibration.convert(pair, "eucm"),
+        "select_model": lambda pair: calibration.select_model(pair, 1.0),
+        "fit_photometric": lambda pair: calibration.fit_photometric(
+            torch.rand(1, 6, 3, 8, 8), image, pair),
+        "write_camera": lambda pair: write_camera(pair, "unused.json", "json"),
+        "fit_polynomial": lambda pair: fit_polynomial(pair),
+        "RandomReproject": lambda pair: ot.augment.RandomReproject((16, 16), source_camera=pair),
+    }
+
+
+@pytest.mark.parametrize("call", sorted(_catadioptric_pair_calls()))
+def test_a_catadioptric_pair_where_a_camera_is_expected_says_what_to_pass(call):
+    """`ot.presets.catadioptric` returns `(camera, rotation)`, unlike `fisheye`: passing the
+    pair by analogy is refused with a hint, wherever a camera is checked (issue 46)."""
+    pair = ot.presets.catadioptric((16, 16))
+    with pytest.raises(TypeError, match=r"expected an ot\.Camera.*got tuple; "
+                                        r"ot\.presets\.catadioptric returns \(camera, rotation\): "
+                                        r"pass the camera"):
+        _catadioptric_pair_calls()[call](pair)
+    with pytest.raises(TypeError, match=r"got list$"):   # no hint for what it does not fit
+        ot.OmniProjection([1, 2], face_size=8)

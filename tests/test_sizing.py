@@ -267,3 +267,34 @@ def test_visible_faces_entry_checks():
         visible_faces(cam, face_size=16.0)
     with pytest.raises(ValueError, match="eps"):
         visible_faces(cam, eps=0.0)
+
+
+def test_an_image_too_large_for_memory_is_a_memory_error_naming_its_size():
+    """2^24 x 2^24 pixels: more than any address space holds, so the refusal is certain on
+    every machine; before issue 46, torch's raw `can't allocate ... bytes`."""
+    camera = fisheye((2 ** 24, 2 ** 24))
+    for call in (camera.pixel_grid, camera.ray_grid, camera.field_of_view,
+                 lambda: ot.OmniProjection(camera, face_size=8)(torch.rand(1, 6, 3, 8, 8))):
+        with pytest.raises(MemoryError, match=r"image_size \(16777216, 16777216\): the ray grid "
+                                              r"of 281,474,976,710,656 pixels needs at least "):
+            call()
+    for call in (required_face_size, visible_faces, face_size_map):
+        with pytest.raises(MemoryError, match=r"image_size \(16777216, 16777216\): planning "
+                                              r"its cube faces needs about [\d,.]+ GB"):
+            call(camera)
+
+
+@pytest.mark.parametrize("face_size, pad", [(1, 1), (2, 2), (5, 1), (16, 2), (64, 1)])
+def test_the_border_faces_are_the_border_plans(face_size, pad):
+    """`visible_faces` reads the faces of each border texel from the plan's own system solved
+    per face (fast); they must be the faces the border plan itself weighs above eps."""
+    from omniscape_torch.cubemap.padding import border_plan
+    from omniscape_torch.render.sizing import _border_faces
+
+    plan = border_plan(face_size, pad)
+    per_face = torch.zeros(len(plan.dst_index), 6, dtype=torch.float64).scatter_add_(
+        1, plan.src_index // face_size ** 2, plan.weight)
+    for eps in (1e-6, 1e-3, 0.2):
+        dst, faces = _border_faces(face_size, pad, eps)
+        assert torch.equal(dst, plan.dst_index)
+        assert torch.equal(faces, per_face > eps), eps

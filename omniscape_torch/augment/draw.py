@@ -13,6 +13,7 @@ import torch
 from torch import Tensor, nn
 
 from ..cameras import Camera
+from ..cameras._checks import not_a_camera
 from ..cameras.camera import _check_image_size
 from ..cameras.registry import get_model
 from ..render import detection
@@ -97,12 +98,8 @@ def _target_camera(camera: object) -> Camera | None:
         return None
     if isinstance(camera, (str, os.PathLike)):
         camera = Camera.load(camera)
-    if isinstance(camera, tuple) and camera and isinstance(camera[0], Camera):
-        raise TypeError("camera: expected an ot.Camera, got a tuple (ot.presets.catadioptric "
-                        "returns (camera, rotation): pass its camera)")
     if not isinstance(camera, Camera):
-        raise TypeError(f"camera: expected an ot.Camera or a calibration file's path, got "
-                        f"{type(camera).__name__}")
+        raise not_a_camera("camera", camera)
     if len(camera.batch_shape) != 0:
         raise ValueError(f"camera: expected one camera, got a batch "
                          f"{tuple(camera.batch_shape)}")

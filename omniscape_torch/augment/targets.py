@@ -10,6 +10,7 @@ import torch
 from torch import Tensor
 
 from ..cameras import Camera
+from ..cameras._checks import not_a_camera
 from ..render.kernels.image import CameraGrid
 
 #: The detection keys of the modules' dicts (beside rgb, labels, depth and the declared label
@@ -218,12 +219,13 @@ def _recorded_camera(record: dict, size: tuple[int, int]) -> Camera:
 
 def _check_source_camera(camera: object) -> None:
     """Refuse what is not one :class:`Camera` (a batch of one model) naming ``source_camera``."""
-    if isinstance(camera, (list, tuple)):
+    pair = isinstance(camera, tuple) and len(camera) == 2 and isinstance(camera[1], Tensor)
+    if isinstance(camera, (list, tuple)) and not pair:   # a pair: not_a_camera's hint
         raise TypeError("source_camera: expected one ot.Camera (shared, or a batch (B,) of one "
                         "model), got a sequence; samples of different source models: one call "
                         "per model (split the batch)")
     if not isinstance(camera, Camera):
-        raise TypeError(f"source_camera: expected an ot.Camera, got {type(camera).__name__}")
+        raise not_a_camera("source_camera", camera)
     if len(camera.batch_shape) > 1:
         raise ValueError(f"source_camera: expected one camera or a batch (B,), got a batch "
                          f"{tuple(camera.batch_shape)}")

@@ -16,6 +16,9 @@
 * :func:`assess_coverage`: where the corners lie and the predicted error over the image;
   :func:`leave_one_out` the same error by refitting without each view;
   :func:`write_fit_files`: everything ``omniscape-torch fit`` writes (report, plots).
+* `calibrate`: all of ``omniscape-torch fit`` as one function (the fit, the area the lens sees,
+  the coverage and predicted error over it, the blind cone, the verdict), a `Calibration`
+  whose `write` writes the files.
 
 Examples:
     >>> import torch, omniscape_torch as ot
@@ -29,12 +32,14 @@ Examples:
     (True, 0.0)
 """
 
+from .calibrate import Calibration, FitNotWritten, calibrate
 from .convert import ConversionResult, convert, image_circle, without_affine
 from .files import Correspondences, read_correspondences, save_result, write_correspondences
-from .fit import FitResult, METHODS, default_intrinsics, fit
+from .fit import FitResult, METHODS, fit
 from .linear import planar_pose, scaramuzza_linear
 from .lm import LOSSES
 from .select import Candidate, Selection, select_model
+from .starts import default_intrinsics
 from .synthetic import checkerboard, random_views
 
 from .photometric import PHOTOMETRIC_LOSSES, PhotometricResult, fit_photometric, photometric_error
@@ -43,11 +48,11 @@ from .detect import Detection, detect_corners
 from .report import fit_report, write_fit_files
 from .targets import Board, render_board
 
-__all__ = ["Board", "Candidate", "ConversionResult", "Correspondences", "Coverage", "Detection",
-           "FitResult", "LOSSES", "METHODS", "Resampling", "assess_coverage", "covered_rays",
-           "leave_one_out", "detect_corners", "fit_report",
-           "render_board", "write_fit_files",
-           "PHOTOMETRIC_LOSSES", "PhotometricResult", "Selection", "fit_photometric",
-           "photometric_error", "checkerboard", "convert", "default_intrinsics", "fit", "image_circle",
-           "planar_pose", "random_views", "read_correspondences", "save_result", "scaramuzza_linear",
-           "select_model", "without_affine", "write_correspondences"]
+__all__ = ["assess_coverage", "Board", "calibrate", "Calibration", "Candidate", "checkerboard",
+           "ConversionResult", "convert", "Correspondences", "Coverage", "covered_rays",
+           "default_intrinsics", "detect_corners", "Detection", "fit", "fit_photometric",
+           "fit_report", "FitNotWritten", "FitResult", "image_circle", "leave_one_out", "LOSSES",
+           "METHODS", "photometric_error", "PHOTOMETRIC_LOSSES", "PhotometricResult",
+           "planar_pose", "random_views", "read_correspondences", "render_board", "Resampling",
+           "save_result", "scaramuzza_linear", "select_model", "Selection", "without_affine",
+           "write_correspondences", "write_fit_files"]

@@ -59,8 +59,11 @@ import torch
 from torch import Tensor
 
 from ..cameras import Camera, CameraModel, get_model
-from .fit import FitResult, Problem, solve, unit_intrinsics, with_focal
+from ..cameras._checks import not_a_camera
+from .fit import FitResult, solve
 from .params import IntrinsicsMap, axis_angle_to_matrix, frozen_indices
+from .problem import Problem
+from .starts import unit_intrinsics, with_focal
 
 #: Parameters held in a first fit, released in a second from its solution: the unified model's
 #: distortion trades off against xi, and from the undistorted start the joint fit can settle in a
@@ -353,7 +356,7 @@ def convert(camera: Camera, to_model: str | CameraModel, *, degree: int = 4, gri
         ValueError, TypeError: not one camera, unknown model, too few valid samples.
     """
     if not isinstance(camera, Camera):
-        raise TypeError(f"camera: expected an ot.Camera, got {type(camera).__name__}")
+        raise not_a_camera("camera", camera)
     if camera.batch_shape != ():
         raise ValueError(f"camera: expected one camera, got a batch of shape "
                          f"{tuple(camera.batch_shape)}")

@@ -25,7 +25,7 @@ are; the tests check it on rendered boards against the truth's projections.
 
 from __future__ import annotations
 
-import math
+import contextlib
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -76,6 +76,27 @@ def image_files(folder: str | Path) -> list[Path]:
     return files
 
 
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_END = b"IEND"
+
+
+@contextlib.contextmanager
+def _quiet(cv2):
+    """OpenCV's log silenced (its `[ WARN:0@0.043] ...` and `[ERROR:0@...]` lines on stderr
+    for a file it cannot decode): every skipped image's reason is in the `Detection`. The level
+    is OpenCV's process-wide setting, restored on leaving."""
+    log = getattr(getattr(cv2, "utils", None), "logging", None)
+    if log is None:
+        yield
+        return
+    level = log.getLogLevel()
+    log.setLogLevel(log.LOG_LEVEL_SILENT)
+    try:
+        yield
+    finally:
+        log.setLogLevel(level)
+
+
 def _read(cv2, path: Path) -> np.ndarray | str:
     """The grey image of a file, or why it cannot be used: unreadable, empty, or not
     decodable (``cv2.imdecode`` refuses a truncated JPEG, whose top part ``cv2.imread``
@@ -86,6 +107,9 @@ def _read(cv2, path: Path) -> np.ndarray | str:
         return f"cannot be read ({err.strerror or err})"
     if raw.size == 0:
         return "an empty file (0 bytes)"
+    if raw[:8].tobytes() == _PNG_SIGNATURE and _PNG_END not in raw[-4096:].tobytes():
+        # libpng would print its own error on stderr before OpenCV returns None
+        return "a truncated PNG (its end is missing)"
     grey = cv2.imdecode(raw, cv2.IMREAD_GRAYSCALE)
     return "not an image OpenCV can decode (corrupt or truncated?)" if grey is None else grey
 
@@ -237,8 +261,8 @@ def detect_corners(images: str | Path | Sequence, board: Board | str, *,
             found = _checkerboard(cv2, grey, board)
         else:
             found = _charuco(cv2, grey, board, detector)
-        if isinstance(found, tuple) and board.kind != "checkerboard" and \
-                len(found[1]) < min_corners:
+        if (isinstance(found, tuple) and board.kind != "checkerboard"
+                and len(found[1]) < min_corners):
             found = f"only {len(found[1])} corners found, fewer than min_corners {min_corners}"
         if isinstance(found, tuple) and refine:
             found = (_refine(cv2, grey, found[0], found[1], board), found[1])
@@ -246,11 +270,12 @@ def detect_corners(images: str | Path | Sequence, board: Board | str, *,
 
     workers = workers or min(4, os.cpu_count() or 1)
     # detector objects are not documented as thread-safe: one thread for the aruco boards
-    if workers > 1 and board.kind == "checkerboard" and len(images) > 1:
-        with ThreadPoolExecutor(workers) as pool:
-            results = list(pool.map(one, range(len(images))))
-    else:
-        results = [one(k) for k in range(len(images))]
+    with _quiet(cv2):
+        if workers > 1 and board.kind == "checkerboard" and len(images) > 1:
+            with ThreadPoolExecutor(workers) as pool:
+                results = list(pool.map(one, range(len(images))))
+        else:
+            results = [one(k) for k in range(len(images))]
 
     read = [(n, shape) for n, (shape, _) in zip(names, results) if shape is not None]
     if not read:

@@ -13,17 +13,9 @@ passes (one per pixel coordinate) give the whole ``(M, 2, n)`` Jacobian, whateve
 normalised polynomial radius are described in :mod:`omniscape_torch.calibration.params`, the
 damping in :mod:`omniscape_torch.calibration.lm`.
 
-Initialisation: OCamCalib's linear solution for ``scaramuzza``
-(:func:`omniscape_torch.calibration.linear.scaramuzza_linear`). The other models try several
-starts and keep the best (``method="lm"``, no ``init``): the linear solution converted to the
-model (its rays at the observed pixels fitted by the model, centre held at the image centre,
-the unified model's ``k1, k2, p1, p2`` at 0), and the undistorted defaults whose focal length
-puts a ray at ``fov / 2`` on the inscribed image circle (:func:`default_intrinsics`) for the
-model's default field of view, ``START_FOVS`` (120, 180 and 230 degrees, those the model can
-see) and the caller's ``fov``; each view's pose comes from a planar homography on the
-unprojected rays (:func:`omniscape_torch.calibration.linear.planar_pose`). A short
-Levenberg-Marquardt run (``START_ITERATIONS``, on at most ``START_POINTS`` points of each view)
-from every start ranks them by cost (fewest observations outside the model's domain first);
+Initialisation (`omniscape_torch.calibration.starts`): OCamCalib's linear solution for
+``scaramuzza``; for the other models several starts (the linear solution converted, and
+undistorted defaults for several fields of view), ranked by a short Levenberg-Marquardt run;
 the fit goes on from the best one (``FitResult.start`` names it). Where Levenberg-Marquardt
 stops on its own test at a point the checks below reject, the next starts are finished in turn
 (at most ``RETRY_STARTS``) and the first that passes is kept (where none does, one that fails
@@ -80,10 +72,12 @@ from torch import Tensor
 
 from ..cameras import Camera, CameraModel, get_model
 from ..cameras.camera import _check_image_size
-from .linear import planar_pose, scaramuzza_linear
-from .lm import (MAX_LAMBDA, check_loss, gauss_newton_gain, levenberg_marquardt,
-                 normal_equations, robust_cost, scaled_condition)
+from .linear import scaramuzza_linear
+from .lm import (check_loss, gauss_newton_gain, levenberg_marquardt, normal_equations,
+                 robust_cost, scaled_condition)
 from .params import IntrinsicsMap, frozen_indices, transform
+from .problem import COST_FLOOR, Problem, view_index
+from .starts import default_fov, default_intrinsics, default_starts, initial_poses, rank_starts
 
 #: Optimisation methods of :func:`fit`.
 METHODS = ("lm", "lbfgs", "adam", "linear")
@@ -94,54 +88,6 @@ METHODS = ("lm", "lbfgs", "adam", "linear")
 #: nearly redundant: a board's views leave J^T J singular to 1e13).
 DEFAULT_FREEZE = {"scaramuzza": ("a1", "e"),
                   "opencv": ("k4", "k5", "k6", "s1", "s2", "s3", "s4")}
-
-#: Undistorted starting values of the models' non-focal parameters (unified xi = 1 and its
-#: equivalents: a parabolic mirror, the middle of the fisheye range).
-DEFAULT_DISTORTION = {"kannala_brandt": (0.0, 0.0, 0.0, 0.0), "unified": (1.0, 0.0, 0.0, 0.0, 0.0),
-                      "eucm": (0.5, 1.0), "double_sphere": (0.0, 0.5),
-                      # fov: COLMAP's start (omega = 0 is a pinhole, where d/d omega vanishes)
-                      "fov": (1e-2,), "division": (0.0,), "opencv": (0.0,) * 12,
-                      "thin_prism_fisheye": (0.0,) * 8, "fisheye624": (0.0,) * 12}
-
-
-def unit_intrinsics(model: CameraModel) -> Tensor:
-    """``(P,)`` float64: the camera of focal length 1 at the origin with the undistorted defaults
-    (``DEFAULT_DISTORTION``); ``woodscape``: ``cx = cy = 0``, ``aspect_ratio = k1 = 1``, the
-    rest 0 (its focal length is ``k1``)."""
-    if model.name == "woodscape":
-        return torch.tensor([0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
-    return torch.tensor([1.0, 1.0, 0.0, 0.0, *DEFAULT_DISTORTION.get(model.name, ())],
-                        dtype=torch.float64)
-
-
-def with_focal(model: CameraModel, unit: Tensor, focal: float, centre: Tensor) -> Tensor:
-    """``unit`` (``unit_intrinsics``) at the focal length ``focal`` (pixels) and the
-    principal point ``centre (2,)``; ``woodscape``'s polynomial is in pixels: every
-    coefficient scales."""
-    centre = torch.as_tensor(centre, dtype=torch.float64)
-    if model.name == "woodscape":
-        return torch.cat((centre, unit[2:3], focal * unit[3:]))
-    return torch.cat((torch.tensor([focal, focal], dtype=torch.float64), centre, unit[4:]))
-
-
-#: Cost per observation (pixels squared) below which residuals are at rounding level: relative
-#: convergence tests are then skipped (exact data, as in a conversion between nested models).
-COST_FLOOR = 0.5e-18
-
-#: Default full field of view of :func:`default_intrinsics`, radians.
-DEFAULT_FOV = {"pinhole": math.radians(90), "fov": math.radians(90),
-               "division": math.radians(90), "opencv": math.radians(90)}
-
-#: Full fields of view (radians) of the default starts of :func:`fit`, besides the model's
-#: ``DEFAULT_FOV`` (else pi) and the caller's ``fov``; those the model cannot see are skipped.
-START_FOVS = (math.radians(120), math.radians(180), math.radians(230))
-
-#: Levenberg-Marquardt iterations of the short run that ranks each start.
-START_ITERATIONS = 4
-
-#: Points per view (evenly spaced in the view's order) of that short run: it ranks basins, it
-#: does not need every point.
-START_POINTS = 24
 
 #: Where the fit from the best start fails a check, the next starts (in their order) finished
 #: at most: along the unified model's xi-focal-k1 valley LM can stop where ``J^T J`` is nearly
@@ -190,7 +136,8 @@ class FitResult:
             ``sigma^2 (J^T J)^-1`` over all ``n`` free variables (the poses marginalised) with
             ``sigma^2 = sum r^2 / (2 M - n)``, mapped to the natural parameters by the Jacobian
             of the reparametrisation (delta method); zero rows for frozen parameters.
-        std: ``(P,)`` square root of its diagonal.
+        std: ``(P,)`` square root of its diagonal, in the order of ``param_names``
+            (``std_by_name`` names them).
         residuals: per view ``(N_i, 2)`` projected minus observed pixels.
         num_invalid: observations projecting outside the model's domain.
         gauss_newton_gain: cost reduction a Gauss-Newton step would still give, relative to
@@ -246,6 +193,17 @@ class FitResult:
     near_degenerate: list[tuple[str, str | None, float]] = field(default_factory=list)
 
     @property
+    def params_by_name(self) -> dict[str, float]:
+        """``{name: value}`` of the fitted parameters (``params``, named), e.g. ``["fx"]``."""
+        return dict(zip(self.param_names, self.params.tolist()))
+
+    @property
+    def std_by_name(self) -> dict[str, float]:
+        """``{name: standard deviation}`` (``std``, named; 0 for a frozen parameter), e.g.
+        ``result.std_by_name["k1"]``."""
+        return dict(zip(self.param_names, self.std.tolist()))
+
+    @property
     def only_near_degenerate(self) -> bool:
         """The near-degenerate check is the only one that failed (see ``near_degenerate``)."""
         return self.failed_checks == ("near_degenerate",)
@@ -258,8 +216,7 @@ class FitResult:
             "num_observations": self.num_observations, "num_free": self.num_free,
             "num_invalid": self.num_invalid, "gauss_newton_gain": self.gauss_newton_gain,
             "condition": self.condition,
-            "params": dict(zip(self.param_names, self.params.tolist())),
-            "std": dict(zip(self.param_names, self.std.tolist())),
+            "params": self.params_by_name, "std": self.std_by_name,
             "free": list(self.free_names), "poses": self.poses.tolist(),
             "start": self.start, "outliers": [o.tolist() for o in self.outliers],
             "failed_checks": list(self.failed_checks),
@@ -332,111 +289,6 @@ def prepare_views(object_points, image_points) -> tuple[list[Tensor], list[Tenso
 
 
 # --------------------------------------------------------------------------------------------
-# The least-squares problem
-# --------------------------------------------------------------------------------------------
-
-class Problem:
-    """Residuals ``project(R_v X + t_v, params) - pixels`` and their Jacobian in free variables.
-
-    With no views (``poses0`` of shape ``(0, 6)``) the points are already in the camera frame
-    (a model conversion fits rays to pixels); with ``rotation_only`` the views' translations
-    stay at ``poses0``'s (a conversion that fits the rotation between two camera frames).
-    ``weights`` ``(M,)`` scale each observation's squared residual (its residual by their
-    square root).
-
-    Args:
-        intrinsics: the :class:`IntrinsicsMap` of the model.
-        points: ``(M, 3)`` target points of every observation.
-        pixels: ``(M, 2)`` observed pixels.
-        view: ``(M,)`` view index of each observation.
-        poses0: ``(V, 6)`` initial poses.
-        rotation_only: free rotations, held translations.
-        weights: ``(M,)`` positive weights (None: all 1).
-    """
-
-    def __init__(self, intrinsics: IntrinsicsMap, points: Tensor, pixels: Tensor, view: Tensor,
-                 poses0: Tensor, *, rotation_only: bool = False,
-                 weights: Tensor | None = None) -> None:
-        self.intrinsics = intrinsics
-        self.model = intrinsics.model
-        self.points, self.pixels, self.view = points, pixels, view
-        self.scale = None if weights is None else weights.sqrt()[:, None]
-        self.poses0 = poses0.detach().clone()
-        self.num_views = poses0.shape[0]
-        self.pose_dofs = 3 if rotation_only else 6
-        self.pose_scale = float(poses0[:, 3:].norm(dim=-1).mean()) if self.num_views else 1.0
-        self.num_intrinsics = len(intrinsics.free)
-        self.num_free = self.num_intrinsics + self.pose_dofs * self.num_views
-
-    def z0(self) -> Tensor:
-        return torch.cat((self.intrinsics.z0(),
-                          torch.zeros(self.pose_dofs * self.num_views, dtype=torch.float64)))
-
-    def poses(self, z: Tensor) -> Tensor:
-        dz = z[self.num_intrinsics:].reshape(self.num_views, self.pose_dofs)
-        dz = torch.cat((dz, dz.new_zeros(self.num_views, 6 - self.pose_dofs)), -1)
-        return self.poses0 + dz * torch.tensor([1.0] * 3 + [self.pose_scale] * 3,
-                                               dtype=z.dtype)
-
-    def _weighted(self, residuals: Tensor) -> Tensor:
-        return residuals if self.scale is None else residuals * self.scale
-
-    def project(self, params: Tensor, poses: Tensor | None) -> tuple[Tensor, Tensor]:
-        """``(M, 2)`` pixels and ``(M,)`` model validity; ``params`` ``(P,)`` or ``(M, P)``,
-        ``poses`` per observation ``(M, 6)`` (None without views)."""
-        points = self.points if poses is None else transform(poses, self.points)
-        return self.model.project(points, params)
-
-    def residuals(self, z: Tensor) -> tuple[Tensor, Tensor]:
-        """``(M, 2)`` residuals (differentiable in ``z``) and ``(M,)`` validity."""
-        poses = self.poses(z)[self.view] if self.num_views else None
-        pixels, valid = self.project(self.intrinsics.natural(z[:self.num_intrinsics]), poses)
-        return self._weighted(pixels - self.pixels), valid
-
-    def evaluate(self, z: Tensor, jacobian: bool) -> tuple[Tensor, Tensor | None]:
-        """Residuals ``(M, 2)`` and, if asked, the Jacobian ``(M, 2, n)`` (module docstring)."""
-        if not jacobian:
-            with torch.no_grad():
-                return self.residuals(z)[0], None
-        p_obs, pose_obs = self.leaves(z)
-        res = self._weighted(self.project(p_obs, pose_obs)[0] - self.pixels)
-        inputs = [p_obs] if pose_obs is None else [p_obs, pose_obs]
-        grads = [torch.autograd.grad(res[:, k].sum(), inputs, retain_graph=k == 0)
-                 for k in range(2)]
-        return res.detach(), self.assemble(z, grads)
-
-    def leaves(self, z: Tensor) -> tuple[Tensor, Tensor | None]:
-        """Per-observation copies of the intrinsics ``(M, P)`` and poses ``(M, 6)`` (None
-        without views) at ``z``, requiring grad: each residual depends on its own copies."""
-        m = self.points.shape[0]
-        params = self.intrinsics.natural(z[:self.num_intrinsics]).detach()
-        p_obs = params.expand(m, -1).clone().requires_grad_(True)
-        pose_obs = None
-        if self.num_views:
-            pose_obs = self.poses(z).detach()[self.view].clone().requires_grad_(True)
-        return p_obs, pose_obs
-
-    def assemble(self, z: Tensor, grads: list[tuple[Tensor, ...]]) -> Tensor:
-        """The Jacobian ``(M, 2, n)`` in free variables from the gradients of the sum of each
-        pixel coordinate's residuals (``grads[k]``: ``(M, P)`` and, with views, ``(M, 6)``) with
-        respect to the :meth:`leaves`."""
-        m = self.points.shape[0]
-        jac = torch.zeros(m, 2, self.num_free, dtype=torch.float64)
-        d_natural = self.intrinsics.jacobian(z[:self.num_intrinsics])  # [P, n_i]
-        jac[:, :, :self.num_intrinsics] = torch.stack([g[0] for g in grads], 1) @ d_natural
-        if self.num_views:
-            k = self.pose_dofs
-            d_pose = torch.stack([g[1] for g in grads], 1)[..., :k]  # [M, 2, k]
-            d_pose = d_pose * torch.tensor([1.0] * 3 + [self.pose_scale] * 3,
-                                           dtype=z.dtype)[:k]
-            cols = self.num_intrinsics + k * self.view[:, None] + torch.arange(k)  # [M, k]
-            rows = torch.arange(m)[:, None].expand(m, k)
-            for k in range(2):
-                jac[:, k][rows, cols] = d_pose[:, k]
-        return jac
-
-
-# --------------------------------------------------------------------------------------------
 # Gradient methods
 # --------------------------------------------------------------------------------------------
 
@@ -504,64 +356,13 @@ def _adam(problem: Problem, z0: Tensor, loss: str, scale: float, max_iterations:
             bar.update(1)
             if opt.param_groups[0]["lr"] < min_lr:
                 return best_z, True, "learning rate decayed below min_lr", iteration, history
-    return best_z, False, f"{max_iterations} iterations without converging", max_iterations, \
-        history
+    return (best_z, False, f"{max_iterations} iterations without converging", max_iterations,
+            history)
 
 
 # --------------------------------------------------------------------------------------------
 # fit
 # --------------------------------------------------------------------------------------------
-
-def default_intrinsics(model: str | CameraModel, image_size: tuple[int, int],
-                       fov: float | None = None) -> Tensor:
-    """Starting intrinsics from the field of view: centre at the image centre, undistorted
-    defaults (``DEFAULT_DISTORTION``), focal such that a ray at ``fov / 2`` from the axis lands
-    on the inscribed image circle.
-
-    Args:
-        model: any model but ``scaramuzza`` (whose start is the linear solution).
-        image_size: ``(H, W)``.
-        fov: full field of view, radians (default: ``DEFAULT_FOV``, else pi).
-
-    Returns:
-        ``(P,)`` float64 parameters.
-    """
-    model = get_model(model)
-    if model.name == "scaramuzza":
-        raise ValueError("model: the scaramuzza model starts from its linear solution "
-                         "(scaramuzza_linear), not from a field of view")
-    h, w = _check_image_size(image_size)
-    fov = DEFAULT_FOV.get(model.name, math.pi) if fov is None else fov
-    if not (isinstance(fov, (int, float)) and 0 < fov <= 2 * math.pi):
-        raise ValueError(f"fov: expected a full angle in (0, 2 pi] radians, got {fov!r}")
-    unit = unit_intrinsics(model)
-    theta = min(0.5 * fov, 0.999 * float(model.max_angle(unit)))
-    ray = torch.tensor([math.sin(theta), 0.0, math.cos(theta)], dtype=torch.float64)
-    radius = float(model.project(ray, unit)[0][0])
-    focal = 0.5 * min(h, w) / radius
-    return with_focal(model, unit, focal,
-                      torch.tensor([(w - 1) / 2, (h - 1) / 2], dtype=torch.float64))
-
-
-def _initial_poses(model: CameraModel, params: Tensor, points: list[Tensor],
-                   pixels: list[Tensor]) -> Tensor:
-    """``(V, 6)`` poses from a planar homography on the rays of ``params`` (one unprojection,
-    one batched solve per group of views of the same size)."""
-    rays, valid = model.unproject(torch.cat(pixels), params)
-    sizes = [len(p) for p in pixels]
-    rays, valid = rays.split(sizes), valid.split(sizes)
-    for i, ok in enumerate(valid):
-        if int(ok.sum()) < 4:
-            raise ValueError(f"view {i}: fewer than 4 pixels are inside the initial camera's "
-                             f"domain; pass init (or fov) closer to the camera")
-    poses = torch.zeros(len(points), 6, dtype=torch.float64)
-    for size in set(sizes):
-        group = [i for i, n in enumerate(sizes) if n == size]
-        poses[group] = planar_pose(torch.stack([points[i] for i in group]),
-                                   torch.stack([rays[i] for i in group]),
-                                   torch.stack([valid[i] for i in group]))
-    return poses
-
 
 def _check_choice(value, name: str, choices) -> None:
     if value not in choices:
@@ -649,8 +450,8 @@ def fit(object_points, image_points, model: str | CameraModel, image_size: tuple
         raise ValueError(f"max_iterations: expected a positive integer, got {max_iterations!r}")
     if not isinstance(reject_outliers, bool):
         raise TypeError(f"reject_outliers: expected True or False, got {reject_outliers!r}")
-    if isinstance(outlier_threshold, bool) or not isinstance(outlier_threshold, (int, float)) \
-            or not (math.isfinite(outlier_threshold) and outlier_threshold > 0):
+    if (isinstance(outlier_threshold, bool) or not isinstance(outlier_threshold, (int, float))
+            or not (math.isfinite(outlier_threshold) and outlier_threshold > 0)):
         raise ValueError(f"outlier_threshold: expected a positive number of sigmas, got "
                          f"{outlier_threshold!r}")
     if reject_outliers and method == "linear":
@@ -662,7 +463,7 @@ def fit(object_points, image_points, model: str | CameraModel, image_size: tuple
         params0, start_poses = scaramuzza_linear(points, pixels, image_size, degree)
         starts = [("linear", params0)]
     elif init is None:
-        starts = [(f"fov {math.degrees(fov if fov is not None else _default_fov(model)):g}",
+        starts = [(f"fov {math.degrees(fov if fov is not None else default_fov(model)):g}",
                    default_intrinsics(model, image_size, fov))]
     else:
         params0 = (init.params if isinstance(init, Camera) else _as_float64(init, "init"))
@@ -689,15 +490,15 @@ def fit(object_points, image_points, model: str | CameraModel, image_size: tuple
                          f"intrinsics + 6 per view)")
     first_loss = "cauchy" if reject_outliers and loss == "linear" else loss
     if method == "lm" and init is None and model.name != "scaramuzza":
-        starts = _default_starts(model, image_size, fov, points, pixels, frozen)
-        ranked = _rank_starts(model, starts, image_size, frozen, points, pixels, start_poses,
+        starts = default_starts(model, image_size, fov, points, pixels, frozen)
+        ranked = rank_starts(model, starts, image_size, frozen, points, pixels, start_poses,
                               first_loss, loss_scale)[:1 + RETRY_STARTS]
     else:
         label, params0 = starts[0]
         ranked = [(label, params0, start_poses if start_poses is not None
-                   else _initial_poses(model, params0, points, pixels))]
+                   else initial_poses(model, params0, points, pixels))]
 
-    view = _view_index(points)
+    view = view_index(points)
     settings = dict(max_iterations=max_iterations, optimality_tol=optimality_tol,
                     max_condition=max_condition, max_std=max_std, progress=progress,
                     image_size=image_size)
@@ -728,197 +529,6 @@ def _rank(result: FitResult) -> tuple[bool, bool, float]:
     return result.converged, result.only_near_degenerate, -result.cost
 
 
-def _default_fov(model: CameraModel) -> float:
-    return DEFAULT_FOV.get(model.name, math.pi)
-
-
-def _view_index(points: list[Tensor]) -> Tensor:
-    return torch.cat([torch.full((len(p),), i) for i, p in enumerate(points)])
-
-
-def _default_starts(model: CameraModel, image_size: tuple[int, int], fov: float | None,
-                    points: list[Tensor], pixels: list[Tensor], frozen: list[int]
-                    ) -> list[tuple[str, Tensor]]:
-    """``(label, params)`` of every start of a non-polynomial model (module docstring)."""
-    starts = []
-    linear = _linear_start(model, image_size, points, pixels, frozen)
-    if linear is not None:
-        starts.append(("linear", linear))
-    unit = default_intrinsics(model, (2, 2), math.radians(90))
-    limit = 2 * float(model.max_angle(unit))
-    fovs: list[float] = []
-    for f in [_default_fov(model)] + ([] if fov is None else [fov]) + [
-            f for f in START_FOVS if f < limit]:
-        if all(abs(f - g) > 1e-9 for g in fovs):
-            fovs.append(f)
-            starts.append((f"fov {math.degrees(f):g}", default_intrinsics(model, image_size, f)))
-    return starts
-
-
-def _linear_start(model: CameraModel, image_size: tuple[int, int], points: list[Tensor],
-                  pixels: list[Tensor], frozen: list[int]) -> Tensor | None:
-    """OCamCalib's linear solution converted to ``model``: its rays at (at most 200 of) the
-    observed pixels, fitted by the model with the centre at the image centre, the focal length
-    from the median ratio of radii, the unified model's ``k1, k2, p1, p2`` and ``frozen`` held
-    at their defaults. None where the linear solution fails or is not a camera."""
-    try:
-        linear, _ = scaramuzza_linear(points, pixels, image_size, 4)
-    except (ValueError, RuntimeError):  # not planar, not a camera, a singular system
-        return None
-    pix = torch.cat(pixels)
-    pix = pix[torch.linspace(0, len(pix) - 1, min(len(pix), 200)).round().long()]
-    poly = get_model("scaramuzza")
-    rays, valid = poly.unproject(pix, linear)
-    if int(valid.sum()) < 8:
-        return None
-    rays, pix = rays[valid], pix[valid]
-    theta = torch.atan2(rays[:, :2].norm(dim=-1), rays[:, 2])
-    start = default_intrinsics(model, image_size, min(2 * float(theta.max()), 2 * math.pi))
-    unit = unit_intrinsics(model)   # start's, at focal 1 about the origin
-    near, ok = model.project(rays, unit)
-    centre = start[list(model.groups["center"])]
-    radius = (pix - centre).norm(dim=-1)
-    ratio = radius / near.norm(dim=-1).clamp(min=1e-12)
-    ok = ok & torch.isfinite(ratio) & (near.norm(dim=-1) > 1e-6)
-    if int(ok.sum()) < 8:
-        return None
-    start = with_focal(model, unit, float(ratio[ok].median()), centre)
-    names = model.names_for(start.shape[-1])
-    hold = set(frozen) | set(model.groups["center"])
-    if model.name == "unified":
-        hold |= {names.index(n) for n in ("k1", "k2", "p1", "p2")}
-    intrinsics = IntrinsicsMap(model, start, image_size, sorted(hold))
-    if not intrinsics.free:
-        return start
-    problem = Problem(intrinsics, rays, pix, torch.zeros(len(pix), dtype=torch.long),
-                      torch.zeros(0, 6, dtype=torch.float64))
-    state = levenberg_marquardt(problem.evaluate, problem.z0(), max_iterations=10,
-                                cost_floor=COST_FLOOR * len(pix))
-    params = intrinsics.natural(state.z).detach()
-    try:
-        model.validate_params(params)
-    except ValueError:
-        return None
-    return params if math.isfinite(state.cost) else None
-
-
-def _rank_starts(model: CameraModel, starts: list[tuple[str, Tensor]],
-                 image_size: tuple[int, int], frozen: list[int], points: list[Tensor],
-                 pixels: list[Tensor], poses: Tensor | None, loss: str, loss_scale: float
-                 ) -> list[tuple[str, Tensor, Tensor]]:
-    """``(label, params, poses)`` at the end of a short Levenberg-Marquardt run
-    (``START_ITERATIONS`` on at most ``START_POINTS`` points per view) from every start, the
-    fewest invalid observations first, then the lowest cost."""
-    picks = [torch.linspace(0, len(p) - 1, min(len(p), START_POINTS)).round().long()
-             for p in points]
-    sub_points = [p[i] for p, i in zip(points, picks)]
-    sub_pixels = [q[i] for q, i in zip(pixels, picks)]
-    if 2 * sum(len(p) for p in sub_points) <= (len(starts[0][1]) - len(frozen)
-                                               + 6 * len(points)):
-        sub_points, sub_pixels = points, pixels
-    view = _view_index(sub_points)
-    problems, labels, errors = [], [], []
-    for label, params0 in starts:
-        try:
-            poses0 = poses if poses is not None else _initial_poses(model, params0, sub_points,
-                                                                     sub_pixels)
-        except ValueError as err:
-            errors.append(f"{label}: {err}")
-            continue
-        problems.append(Problem(IntrinsicsMap(model, params0, image_size, frozen),
-                                torch.cat(sub_points), torch.cat(sub_pixels), view, poses0))
-        labels.append(label)
-    ranked = []
-    for label, problem, (z, cost) in zip(labels, problems, _short_runs(
-            problems, loss, loss_scale, START_ITERATIONS)):
-        if not math.isfinite(cost):
-            errors.append(f"{label}: the cost is not finite")
-            continue
-        key = (int((~problem.residuals(z)[1]).sum()), cost)
-        params = problem.intrinsics.natural(z[:problem.num_intrinsics]).detach()
-        ranked.append((key, label, params, problem.poses(z).detach()))
-    if not ranked:
-        raise ValueError("no start sees 4 points of every view (" + "; ".join(errors) + "); pass "
-                         "init (or fov) closer to the camera")
-    ranked.sort(key=lambda item: item[0])
-    return [item[1:] for item in ranked]
-
-
-def _evaluate_stack(problems: list[Problem], zs: list[Tensor], jacobian: bool
-                    ) -> list[tuple[Tensor, Tensor | None]]:
-    """:meth:`Problem.evaluate` of several problems of one model (with views) in one call of
-    its projection and two backward passes: the fixed cost of a call dominates small ones."""
-    model = problems[0].model
-    if not jacobian:
-        with torch.no_grad():
-            params = torch.cat([pr.intrinsics.natural(z[:pr.num_intrinsics]).expand(
-                len(pr.points), -1) for pr, z in zip(problems, zs)])
-            poses = torch.cat([pr.poses(z)[pr.view] for pr, z in zip(problems, zs)])
-            points = torch.cat([pr.points for pr in problems])
-            res = model.project(transform(poses, points), params)[0]
-        return [(pr._weighted(r - pr.pixels), None) for pr, r in zip(
-            problems, res.split([len(pr.points) for pr in problems]))]
-    leaves = [pr.leaves(z) for pr, z in zip(problems, zs)]
-    points = torch.cat([pr.points for pr in problems])
-    projected = model.project(transform(torch.cat([lv[1] for lv in leaves]), points),
-                              torch.cat([lv[0] for lv in leaves]))[0]
-    res = [pr._weighted(r - pr.pixels) for pr, r in zip(
-        problems, projected.split([len(pr.points) for pr in problems]))]
-    inputs = [x for lv in leaves for x in lv]
-    stacked = torch.cat(res)
-    grads = [torch.autograd.grad(stacked[:, k].sum(), inputs, retain_graph=k == 0)
-             for k in range(2)]
-    return [(r.detach(), pr.assemble(z, [g[2 * i:2 * i + 2] for g in grads]))
-            for i, (pr, z, r) in enumerate(zip(problems, zs, res))]
-
-
-def _short_runs(problems: list[Problem], loss: str, loss_scale: float, iterations: int
-                ) -> list[tuple[Tensor, float]]:
-    """Levenberg-Marquardt from the start of every problem, all evaluated together
-    (:func:`_evaluate_stack`): ``iterations`` accepted steps each at most, Marquardt's damping
-    as in :mod:`omniscape_torch.calibration.lm` (divided by 10 after an accepted step,
-    multiplied by 10 after a rejected one). Returns ``(z, cost)`` per problem."""
-    if not problems:
-        return []
-    zs = [pr.z0() for pr in problems]
-    systems = [normal_equations(r, j, loss, loss_scale)
-               for r, j in _evaluate_stack(problems, zs, True)]
-    lam = [1e-3] * len(problems)
-    steps = [0] * len(problems)
-    active = list(range(len(problems)))
-    for _ in range(3 * iterations):
-        trials = {}
-        for i in active:
-            a, g, _ = systems[i]
-            diag = torch.diagonal(a).clamp(min=1e-300 + 1e-12 * float(torch.diagonal(a).max()))
-            factor, info = torch.linalg.cholesky_ex(a + lam[i] * torch.diag(diag))
-            delta = torch.cholesky_solve(-g[:, None], factor)[:, 0] if int(info) == 0 else None
-            if delta is None or not bool(torch.isfinite(delta).all()):
-                lam[i] *= 10
-            else:
-                trials[i] = zs[i] + delta
-        moved = []
-        if trials:
-            keys = list(trials)
-            for i, (r, _) in zip(keys, _evaluate_stack([problems[i] for i in keys],
-                                                       [trials[i] for i in keys], False)):
-                cost = float(robust_cost(r, loss, loss_scale)[0])
-                if math.isfinite(cost) and cost < float(systems[i][2]):
-                    zs[i], lam[i] = trials[i], max(lam[i] / 10, 1e-15)
-                    steps[i] += 1
-                    moved.append(i)
-                else:
-                    lam[i] *= 10
-        if moved:
-            for i, (r, j) in zip(moved, _evaluate_stack([problems[i] for i in moved],
-                                                        [zs[i] for i in moved], True)):
-                systems[i] = normal_equations(r, j, loss, loss_scale)
-        active = [i for i in active if steps[i] < iterations and lam[i] <= MAX_LAMBDA]
-        if not active:
-            break
-    return [(z, float(system[2])) for z, system in zip(zs, systems)]
-
-
 def _outlier_distance(residuals: Tensor, threshold: float) -> float:
     """The residual distance beyond which an observation is an outlier (``fit``'s
     ``outlier_threshold``), from the residuals ``(M, 2)`` of the kept observations."""
@@ -939,7 +549,7 @@ def _reject_outliers(result: FitResult, model: CameraModel, frozen: list[int],
     The set is found anew each round rather than grown, so that a point dropped while the
     solution was still pulled by the gross errors comes back, and the inliers are not eroded
     a tail at a time."""
-    view = _view_index(points)
+    view = view_index(points)
     all_points, all_pixels = torch.cat(points), torch.cat(pixels)
     keep = torch.ones(len(view), dtype=torch.bool)
     previous = None
@@ -1051,8 +661,8 @@ def _solve(problem: Problem, method: str, *, loss: str, loss_scale: float,
 
     z0 = problem.z0()
     if method == "linear":
-        z, ok, reason, iterations, history = z0, True, "closed-form linear solution (not " \
-            "refined; not a least-squares minimum)", 0, []
+        z, ok, iterations, history = z0, True, 0, []
+        reason = "closed-form linear solution (not refined; not a least-squares minimum)"
     elif method == "lm":
         z, ok, reason, iterations, history = _levenberg_marquardt(
             problem, z0, loss, loss_scale, max_iterations, progress, determined)
@@ -1085,8 +695,8 @@ def _solve(problem: Problem, method: str, *, loss: str, loss_scale: float,
     except ValueError as err:
         failures["range"] = f"the parameters left the model's range: {err}"
     if num_invalid:
-        failures["domain"] = f"{num_invalid} of {m} observations project outside the model's " \
-            "domain"
+        failures["domain"] = (f"{num_invalid} of {m} observations project outside the model's "
+                              "domain")
     if method != "linear" and not at_minimum:
         failures["minimum"] = (f"not at a minimum: a Gauss-Newton step would lower the cost by "
                                f"{gain:.2e} (relative), above optimality_tol {optimality_tol:g}")

@@ -22,6 +22,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ..cameras import Camera
+from ..cameras._checks import not_a_camera
 from ..cubemap import check_cubemap
 from ..render.layer import OmniProjection
 
@@ -101,8 +102,8 @@ def _loss(image: Tensor, target: Tensor, mask: Tensor, kind: str) -> Tensor:
     if kind == "zncc":
         return photometric_error(image, target, mask)
     r = (image - target) * mask
-    per_pixel = r * r if kind == "l2" else torch.sqrt(r * r + CHARBONNIER_EPS ** 2) - \
-        CHARBONNIER_EPS
+    per_pixel = (r * r if kind == "l2"
+                 else torch.sqrt(r * r + CHARBONNIER_EPS ** 2) - CHARBONNIER_EPS)
     return per_pixel.sum() / (mask.sum() * image.shape[1]).clamp(min=1)
 
 
@@ -347,7 +348,7 @@ def _evaluate(camera_init: Camera, cube: Tensor, target: Tensor, mask: Tensor,
 def _check_inputs(cubemap, target, camera, rotation, mask, levels):
     """Validate and normalise the inputs of :func:`fit_photometric`."""
     if not isinstance(camera, Camera):
-        raise TypeError(f"camera_init: expected an ot.Camera, got {type(camera).__name__}")
+        raise not_a_camera("camera_init", camera)
     if camera.batch_shape != ():
         raise ValueError(f"camera_init: expected one camera, got a batch of shape "
                          f"{tuple(camera.batch_shape)}")

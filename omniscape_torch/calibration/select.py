@@ -30,6 +30,7 @@ from typing import Sequence
 import torch
 
 from ..cameras import Camera
+from ..cameras._checks import not_a_camera
 from .convert import convert
 from .fit import fit, prepare_views
 from .params import transform
@@ -130,6 +131,9 @@ def select_model(source, tolerance: float, *, max_tolerance: float | None = None
     if not candidates:
         raise ValueError("candidates: expected at least one (model, degree) pair")
     from_camera = isinstance(source, Camera)
+    if not from_camera and isinstance(source, tuple) and source and isinstance(source[0], Camera):
+        raise not_a_camera("source", source, "an ot.Camera or a pair (object_points, "
+                                             "image_points)")
     if not from_camera:
         try:
             object_points, image_points = source

@@ -42,3 +42,14 @@ from .woodscape_files import write_woodscape
 
 __all__ = ["Camera", "CameraModel", "FORMATS", "MODELS", "READ_FORMATS", "get_model", "load_all",
            "read_woodscape", "unified_from_mirror", "write_camera", "write_woodscape"]
+
+
+def __getattr__(name: str):
+    """A submodule on first use (``ot.cameras.presets`` without importing it first: the
+    package's top level loads lazily, so nothing else may have imported it)."""
+    import importlib
+    import importlib.util
+
+    if not name.startswith("_") and importlib.util.find_spec(f"{__name__}.{name}"):
+        return importlib.import_module(f".{name}", __name__)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

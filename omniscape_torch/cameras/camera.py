@@ -152,11 +152,18 @@ class Camera(nn.Module):
         return rays, valid & self.in_image(pixels) & self.within_fov(rays)
 
     def pixel_grid(self) -> Tensor:
-        """``(H, W, 2)`` pixel centres (u, v), in the dtype and device of ``params``."""
+        """``(H, W, 2)`` pixel centres (u, v), in the dtype and device of ``params``.
+
+        Raises:
+            MemoryError: the grid cannot be allocated (as `ray_grid`).
+        """
         h, w = self.image_size
         kw = dict(dtype=self.params.dtype, device=self.params.device)
-        v, u = torch.meshgrid(torch.arange(h, **kw), torch.arange(w, **kw), indexing="ij")
-        return torch.stack((u, v), dim=-1)
+        try:
+            v, u = torch.meshgrid(torch.arange(h, **kw), torch.arange(w, **kw), indexing="ij")
+            return torch.stack((u, v), dim=-1)
+        except RuntimeError as err:
+            raise self._grid_memory_error(err) from None
 
     def ray_grid(self) -> tuple[Tensor, Tensor]:
         """Unit ray of every pixel centre and its validity.
@@ -167,10 +174,28 @@ class Camera(nn.Module):
 
         Raises:
             ValueError: the parameters left the model's domain (`check_params`).
+            MemoryError: the grid cannot be allocated (the message gives ``image_size`` and
+                the memory it needs), rather than torch's raw allocator error.
         """
         self.check_params()
-        grid = self.pixel_grid().expand(self.batch_shape + self.pixel_grid().shape)
-        return self.unproject(grid)
+        grid = self.pixel_grid()
+        try:
+            return self.unproject(grid.expand(self.batch_shape + grid.shape))
+        except RuntimeError as err:
+            raise self._grid_memory_error(err) from None
+
+    def _grid_memory_error(self, err: RuntimeError) -> Exception:
+        """`err` itself, or where torch could not allocate (its CPU allocator, or a GPU's
+        `torch.OutOfMemoryError`) a `MemoryError` naming ``image_size`` and the memory needed."""
+        if not (isinstance(err, torch.OutOfMemoryError) or "can't allocate" in str(err)):
+            return err
+        h, w = self.image_size
+        count = math.prod(self.batch_shape) * h * w
+        need = count * (5 * self.params.element_size() + 1)   # (u, v), the ray, valid
+        return MemoryError(
+            f"image_size {tuple(self.image_size)}: the ray grid of {count:,} pixels needs at "
+            f"least {need / 1e9:,.1f} GB ({self.params.dtype} pixel centres and rays on "
+            f"{self.params.device}), more than can be allocated; use a smaller image_size")
 
     # ---------------------------------------------------------------------------------------
     def max_angle(self) -> Tensor:

@@ -95,6 +95,7 @@ import torch
 
 from ..io.atomic import atomic_write_text
 from . import formats
+from ._checks import not_a_camera
 from .registry import MODELS
 
 #: The formats `write_camera` writes.
@@ -146,6 +147,14 @@ def supported_models(format: str) -> tuple[str, ...]:
     }[fmt]
 
 
+def fold_limit(format: str, model: str) -> str | None:
+    """Why the `format` file of a `model` camera cannot hold rays at or past 90 degrees off the
+    axis (the tool folds or drops them), or None where it can. `write_camera` refuses such a
+    camera that sees that far, unless `accept_fov`."""
+    return next((why for fmt, folding, why in _FOLDS_AT_90 if (fmt, folding) == (format, model)),
+                None)
+
+
 def write_camera(camera, path: str | Path, format: str, *, accept_fov: bool = False,
                  accept_skew: bool = False) -> Path:
     """Write one camera as the file another tool reads, atomically (module docstring).
@@ -171,7 +180,7 @@ def write_camera(camera, path: str | Path, format: str, *, accept_fov: bool = Fa
     """
     fmt = _check_format(format)
     if not all(hasattr(camera, a) for a in ("model", "params", "image_size", "batch_shape")):
-        raise TypeError(f"camera: expected an ot.Camera, got {type(camera).__name__}")
+        raise not_a_camera("camera", camera)
     if fmt == "json":
         return formats.save_json(camera, path)
     model = camera.model.name
@@ -198,9 +207,8 @@ def write_camera(camera, path: str | Path, format: str, *, accept_fov: bool = Fa
                              f"without the skew")
         notes.append(message)
     valid_angle = None
-    for target, folding, why in _FOLDS_AT_90:
-        if (fmt, model) != (target, folding):
-            continue
+    why = fold_limit(fmt, model)
+    if why is not None:
         angle = math.degrees(formats.farthest_angle(camera))
         if angle >= 90.0:
             message = f"the camera sees up to {angle:.2f} deg off its optical axis, but {why}"

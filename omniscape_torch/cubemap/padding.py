@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -133,8 +134,30 @@ def border_plan(
     return _border_plan(face_size, pad, mode, float(tol), max_iter)
 
 
-@functools.lru_cache(maxsize=32)
-def _border_plan(F: int, p: int, mode: str, tol: float, max_iter: int) -> BorderPlan:
+class BorderTaps(NamedTuple):
+    """The border texels of a padded cube and the bilinear taps of their rays (`border_taps`).
+
+    Attributes:
+        dst: `(N,)` int64 padded flat index of each border texel (`BorderPlan.dst_index`).
+        src_face: `(N,)` int64 the face its ray hits.
+        uv: `(N, 2)` float64 where, on that face (in `[-0.5, F - 0.5]`).
+        tap_col: `(N, 4)` int64 padded flat index of its four bilinear taps there.
+        tap_w: `(N, 4)` float64 their weights (rows sum to 1).
+        border_pos: `(6 (F + 2p)^2,)` int64 padded flat index -> position in `dst`, -1 for
+            interior texels.
+    """
+
+    dst: Tensor
+    src_face: Tensor
+    uv: Tensor
+    tap_col: Tensor
+    tap_w: Tensor
+    border_pos: Tensor
+
+
+def border_taps(F: int, p: int) -> BorderTaps:
+    """The border texels of a cube of face `F` padded by `p` and their bilinear taps: the
+    system `B = W_i X + W_b B` that `border_plan` solves (module docstring), float64."""
     n = F + 2 * p
     dtype = torch.float64
     t = torch.arange(n)
@@ -145,13 +168,6 @@ def _border_plan(F: int, p: int, mode: str, tol: float, max_iter: int) -> Border
 
     rays = face_rays(F, pad=p, dtype=dtype).reshape(-1, 3)[dst]  # [N, 3]
     src_face, uv = ray_to_face(rays, F)  # [N], [N, 2]
-
-    if mode == "nearest":
-        uv_int = torch.floor(uv + 0.5).long().clamp(0, F - 1)
-        src = (src_face * F + uv_int[:, 1]) * F + uv_int[:, 0]
-        return BorderPlan(
-            F, p, mode, dst, src.unsqueeze(1), torch.ones(num_border, 1, dtype=dtype), 0.0, 0
-        )
 
     # Bilinear taps on the source face's padded grid: uv in [-0.5, F - 0.5] reads texels
     # -1 .. F, which a padded face with p >= 1 holds.
@@ -170,12 +186,27 @@ def _border_plan(F: int, p: int, mode: str, tol: float, max_iter: int) -> Border
             wu = w[:, 0] if du else 1 - w[:, 0]
             wv = w[:, 1] if dv else 1 - w[:, 1]
             tap_w.append(wu * wv)
-    tap_col = torch.stack(tap_col, 1)  # [N, 4] padded flat index
-    tap_w = torch.stack(tap_w, 1)  # [N, 4]
 
     # Padded flat index -> position among border texels (-1 for interior texels).
     border_pos = torch.full((6 * n * n,), -1, dtype=torch.long)
     border_pos[dst] = torch.arange(num_border)
+    return BorderTaps(dst, src_face, uv, torch.stack(tap_col, 1), torch.stack(tap_w, 1),
+                      border_pos)
+
+
+@functools.lru_cache(maxsize=32)
+def _border_plan(F: int, p: int, mode: str, tol: float, max_iter: int) -> BorderPlan:
+    n = F + 2 * p
+    dtype = torch.float64
+    dst, src_face, uv, tap_col, tap_w, border_pos = border_taps(F, p)
+    num_border = dst.numel()
+
+    if mode == "nearest":
+        uv_int = torch.floor(uv + 0.5).long().clamp(0, F - 1)
+        src = (src_face * F + uv_int[:, 1]) * F + uv_int[:, 0]
+        return BorderPlan(
+            F, p, mode, dst, src.unsqueeze(1), torch.ones(num_border, 1, dtype=dtype), 0.0, 0
+        )
 
     # Entries (row, padded column, weight) of B = W_i X + W_b B, expanded until the weight on
     # border columns is below tol / 2 in every row. Weights below tol / 100 are dropped along

@@ -50,6 +50,7 @@ import torch
 
 from ..calibration import convert
 from ..cameras import Camera
+from ..cameras._checks import not_a_camera
 from ..cameras.formats import fit_invpol
 
 __all__ = ["DEGREES", "GRID", "INVPOL_PX", "TOLERANCE_PX", "PolynomialFit", "cached_record",
@@ -169,7 +170,7 @@ def fit_polynomial(camera: Camera, *, degrees: Sequence[int] = DEGREES,
         RuntimeError: no degree gave a polynomial camera covering the camera's valid area.
     """
     if not isinstance(camera, Camera):
-        raise TypeError(f"camera: expected an ot.Camera, got {type(camera).__name__}")
+        raise not_a_camera("camera", camera)
     if camera.batch_shape != ():
         raise ValueError(f"camera: expected one camera, got a batch of shape "
                          f"{tuple(camera.batch_shape)}")

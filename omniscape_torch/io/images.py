@@ -5,6 +5,7 @@ against OpenCV's wheel, 7 against 61 MB); the pixels are those OpenCV read and w
 from __future__ import annotations
 
 import io as _io
+import re
 from pathlib import Path
 
 import numpy as np
@@ -64,7 +65,10 @@ def decode_image(data: bytes, name: str = "image") -> np.ndarray:
                 return np.asarray(im.convert("L")).copy()
             return np.asarray(im.convert("RGB")).copy()   # alpha dropped, palette expanded
     except (OSError, SyntaxError, ValueError) as err:   # PIL.UnidentifiedImageError: OSError
-        raise ValueError(f"{name}: not an image Pillow can read ({err})") from None
+        # Pillow names the buffer it read (<_io.BytesIO object at 0x...>): the file is named
+        detail = re.sub(r"\s*<[^<>]* object at 0x[0-9a-fA-F]+>", "", str(err)).strip()
+        raise ValueError(f"{name}: not an image Pillow can read ({detail or 'corrupt?'})"
+                         ) from None
 
 
 def _decode_png48(data: bytes, name: str) -> np.ndarray:

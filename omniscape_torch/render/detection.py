@@ -45,6 +45,7 @@ import torch
 from torch import Tensor
 
 from ..cameras import Camera
+from ..cameras._checks import not_a_camera
 from ..cameras.registry import get_model
 from ..cubemap.faces import face_rotations
 from .kernels import boxes as boxes_kernels
@@ -664,7 +665,7 @@ def _change(src_camera: Camera | Tensor, dst_camera: Camera, rotation: Tensor | 
                             source_size)
     for name, cam in (("src_camera", src_camera), ("dst_camera", dst_camera)):
         if not isinstance(cam, Camera):
-            raise TypeError(f"{name}: expected an ot.Camera, got {type(cam).__name__}")
+            raise not_a_camera(name, cam)
         shape = tuple(cam.batch_shape)
         if shape not in ((), (batch,)):
             raise ValueError(f"{name}: a batch {shape} for {batch} samples")

@@ -34,6 +34,7 @@ from .kernels import cube as fastsample
 from .kernels import image as kimage
 from .kernels._backend import check_backend, resolve
 from ..cameras import Camera
+from ..cameras._checks import not_a_camera
 from ..cubemap.grid import rotated_rays_to_grid
 from .reference import check_out_dtype, from_float, warn_if_label_map
 
@@ -114,7 +115,7 @@ class OmniProjection(nn.Module):
                  fast: bool = True, backend: str = "auto") -> None:
         super().__init__()
         if not isinstance(camera, Camera):
-            raise TypeError(f"camera: expected an ot.Camera, got {type(camera).__name__}")
+            raise not_a_camera("camera", camera)
         if isinstance(face_size, bool) or not isinstance(face_size, int) or face_size < 1:
             raise ValueError(f"face_size: expected a positive int, got {face_size!r}")
         if interpolation not in INTERPOLATIONS:

@@ -19,6 +19,7 @@ from torch import Tensor
 
 from .. import cubemap as cm
 from ..cameras import Camera
+from ..cameras._checks import not_a_camera
 from ..io.labels import IGNORE_INDEX
 from .antialias import minified
 from .reference import (check_out_dtype, from_float, grid_sample, nearest_gather,
@@ -293,8 +294,10 @@ def reproject(image: Tensor, src_camera: Camera | Tensor, dst_camera: Camera, *,
         src_camera = Camera("pinhole", intrinsics_from_matrix(src_camera, "src_camera"),
                             tuple(image.shape[-2:]))
     elif not isinstance(src_camera, Camera):
-        raise TypeError(f"src_camera: expected an ot.Camera or a camera matrix K (3, 3) / "
-                        f"(B, 3, 3), got {type(src_camera).__name__}")
+        raise not_a_camera("src_camera", src_camera,
+                           "an ot.Camera or a camera matrix K (3, 3) / (B, 3, 3)")
+    if not isinstance(dst_camera, Camera):
+        raise not_a_camera("dst_camera", dst_camera)
     if len(src_camera.batch_shape) == 1:
         n = src_camera.batch_shape[0]
         if image.shape[0] not in (1, n):

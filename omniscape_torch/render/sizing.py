@@ -52,13 +52,14 @@ import torch
 from torch import Tensor
 
 from ..cameras._base import broadcast_shapes
+from ..cameras._checks import not_a_camera
 from ..cameras.camera import Camera
 from ..cubemap.faces import FACES, _check_face_size, _check_pad, face_axes, ray_to_face
-from ..cubemap.padding import border_plan
+from ..cubemap.padding import border_taps
 from ..cubemap.rotation import check_rotation
 
-__all__ = ["MEMORY_PER_PIXEL", "PROCESS_MEMORY", "available_memory", "face_size_map", "needed_face_names",
-           "required_face_size", "visible_faces"]
+__all__ = ["MEMORY_PER_PIXEL", "PROCESS_MEMORY", "available_memory", "face_size_map",
+           "needed_face_names", "required_face_size", "visible_faces"]
 
 CRITERIA = ("anisotropic", "isotropic")
 
@@ -76,8 +77,26 @@ PROCESS_MEMORY, MEMORY_PER_PIXEL = 700e6, 160
 
 def _check_camera(camera: object) -> Camera:
     if not isinstance(camera, Camera):
-        raise TypeError(f"camera: expected an omniscape_torch.Camera, got {type(camera).__name__}")
+        raise not_a_camera("camera", camera)
     return camera
+
+
+#: Peak bytes per camera pixel of `face_size_map` (its float64 rays, shifted rays and Jacobians;
+#: measured 725, `visible_faces` 480) and those it keeps per further camera of a batch.
+PLANNING_BYTES_PER_PIXEL, PLANNING_BYTES_KEPT = 800, 96
+
+
+def _check_planning_memory(camera: Camera) -> None:
+    """Refuse, before allocating, a camera whose per-pixel planning cannot fit in memory."""
+    h, w = camera.image_size
+    cameras = math.prod(camera.batch_shape)
+    need = h * w * (PLANNING_BYTES_PER_PIXEL + PLANNING_BYTES_KEPT * (cameras - 1))
+    available = available_memory()
+    if need > available:
+        raise MemoryError(
+            f"camera: image_size {tuple(camera.image_size)}: planning its cube faces needs about "
+            f"{need / 1e9:,.1f} GB (float64 rays and their Jacobians at each of its {h * w:,} "
+            f"pixels), {available / 1e9:,.1f} GB are available; use a smaller image_size")
 
 
 def _check_rotation(rotation: object) -> Tensor:
@@ -162,6 +181,7 @@ def face_size_map(camera: Camera, rotation: Tensor | None = None, *,
         ``+- step`` or ``+- 2 step``; or a singular Jacobian).
     """
     _check_camera(camera)
+    _check_planning_memory(camera)
     if criterion not in CRITERIA:
         raise ValueError(f"criterion: expected one of {CRITERIA}, got {criterion!r}")
     step = _check_positive_number(step, "step")
@@ -284,6 +304,8 @@ def required_face_size(camera: Camera, rotation: Tensor | None = None, *,
         TypeError: ``camera`` is not a ``Camera``; ``rotation`` not a floating tensor.
         ValueError: ``rotation`` not rotations of a broadcastable batch; no valid pixel;
             ``supersample``/``step``/``rtol`` out of range; unknown ``criterion``.
+        MemoryError: the camera's pixels cannot be planned in the memory available (the
+            message gives ``image_size`` and the memory needed), before anything is allocated.
     """
     supersample = _check_positive_number(supersample, "supersample")
     if isinstance(rtol, bool) or not isinstance(rtol, (int, float)) or not 0 <= rtol < 1:
@@ -341,6 +363,9 @@ def visible_faces(camera: Camera, rotation: Tensor | None = None, *, pad: int = 
         ``(*S, 6)`` bool, faces in ``FACES`` order; ``S`` the broadcast batch shape of the camera
         and the rotations (``(6,)`` for one camera and one rotation).
 
+    Raises:
+        MemoryError: as `required_face_size`, before anything is allocated.
+
     Examples:
         >>> import math, omniscape_torch as ot
         >>> from omniscape_torch.cameras.presets import fisheye
@@ -349,6 +374,7 @@ def visible_faces(camera: Camera, rotation: Tensor | None = None, *, pad: int = 
         ['front', 'left', 'right', 'up', 'down']
     """
     _check_camera(camera)
+    _check_planning_memory(camera)
     _check_pad(pad)
     if isinstance(eps, bool) or not isinstance(eps, (int, float)) or not 0 < eps < 0.5:
         raise ValueError(f"eps: expected a number in (0, 0.5), got {eps!r}")
@@ -366,11 +392,7 @@ def visible_faces(camera: Camera, rotation: Tensor | None = None, *, pad: int = 
 
     border_faces = None
     if pad > 0:
-        plan = border_plan(size, pad)
-        per_face = torch.zeros(plan.src_index.shape[0], 6, dtype=torch.float64)
-        per_face.scatter_add_(1, plan.src_index // (size * size), plan.weight.abs())
-        border_faces = per_face > eps  # [N, 6]
-        dst_index = plan.dst_index
+        dst_index, border_faces = _border_faces(size, pad, eps)  # [N], [N, 6]
 
     corner_grid = _pixel_grid(h + 1, w + 1, -0.5)  # [H + 1, W + 1, 2]
     cache: dict[int, tuple[Tensor, Tensor]] = {}
@@ -412,6 +434,35 @@ def visible_faces(camera: Camera, rotation: Tensor | None = None, *, pad: int = 
             needed[face[inside]] = True
         out.append(needed)
     return torch.stack(out).reshape(shape + (6,))
+
+
+def _border_faces(size: int, pad: int, eps: float, tol: float = 1e-12, max_iter: int = 200
+                  ) -> tuple[Tensor, Tensor]:
+    """The border texels of a cube padded by `pad` (`(N,)` padded flat indices, the border
+    plan's order) and the faces each reads with a weight above `eps` (`(N, 6)` bool).
+
+    The faces' weights of `border_plan(size, pad)`, from its own system `B = W_i X + W_b B`
+    solved per face rather than per texel: the face masses `M (N, 6)` are the fixed point of
+    `M = W_i onehot(face) + W_b M` (a few products of `(N, 4)` taps, where the plan's expansion
+    of every texel's weights takes seconds on a busy machine), normalised like the plan's rows.
+    """
+    taps = border_taps(size, pad)
+    n = size + 2 * pad
+    face = taps.tap_col // (n * n)  # [N, 4]
+    pos = taps.border_pos[taps.tap_col]  # [N, 4]: the tap's border texel, -1 inside
+    on_border = pos >= 0
+    zero = torch.zeros_like(taps.tap_w)
+    inner = torch.zeros(len(taps.dst), 6, dtype=torch.float64).scatter_add_(
+        1, face, torch.where(on_border, zero, taps.tap_w))  # [N, 6]
+    w_border, pos = torch.where(on_border, taps.tap_w, zero), pos.clamp(min=0)
+    mass = inner
+    for _ in range(max_iter):
+        step = inner + (w_border.unsqueeze(-1) * mass[pos]).sum(1)  # [N, 6]
+        done = float((step - mass).abs().max()) < tol if len(step) else True
+        mass = step
+        if done:
+            break
+    return taps.dst, mass / mass.sum(1, keepdim=True) > eps
 
 
 def needed_face_names(needed: Tensor) -> list[str]:

@@ -12,3 +12,14 @@ its own (`.weather`), in three street layouts (`LAYOUTS`, `.layout`), each with 
 from .town import CARLA_WEATHERS, CLASS_IDS, LAYOUTS, WEATHERS, Street, Town, Weather
 
 __all__ = ["CARLA_WEATHERS", "CLASS_IDS", "LAYOUTS", "Street", "Town", "WEATHERS", "Weather"]
+
+
+def __getattr__(name: str):
+    """A submodule on first use (``ot.scenes.ride`` without importing it first: the
+    package's top level loads lazily, so nothing else may have imported it)."""
+    import importlib
+    import importlib.util
+
+    if not name.startswith("_") and importlib.util.find_spec(f"{__name__}.{name}"):
+        return importlib.import_module(f".{name}", __name__)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
