@@ -56,12 +56,9 @@ frames into WebDataset shards (:mod:`.shards`), each by the task that rendered t
 
 from __future__ import annotations
 
-import csv
 import functools
-import io as _io
 import json
 import math
-import platform
 import signal
 import sys
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -76,18 +73,17 @@ import torch
 from ..scenes import ride as _ride
 from ..scenes import routes as _routes
 from ..cubemap.faces import FACES
-from ..io import (CLASSES, IGNORE_INDEX, atomic_write_bytes, atomic_write_text, colorize,
-                 read_image, write_exr, write_image)
+from ..io import atomic_write_bytes, atomic_write_text, colorize, write_exr, write_image
 from ..io.atomic import folder_lock, remove_stale_temporaries
 from . import distributed, shards
 from . import format as fmt
-from . import ocamcalib
+from .contact_sheet import SHEET_CELL, SHEET_COLUMNS, contact_sheet  # noqa: F401 (re-exported)
+from .run_files import write_run_files
 from .objects import (encode_objects, instance_image, instance_objects, pack_instances,
                       unpack_instances)
-from ..io.labels import PALETTE
-from ..io.images import encode_image, require_pillow
+from ..io.images import require_pillow
 from ..cameras.presets import catadioptric, fisheye
-from ..cubemap.faces import face_axes
+from ..cubemap.cone import camera_cone, cone_texels, grow_texels
 from ..render.layer import OmniProjection
 from ..render.reproject import equirectangular_camera
 from ..scenes.town import CARLA_PRESETS, LAYOUTS, WEATHERS, Town
@@ -304,6 +300,10 @@ class _Plan:
         self.panorama_size = (h, 2 * h)
         self.panorama_face = _panorama_face(config.max_face_size, h)
 
+    def weather(self, k: int) -> str:
+        """The weather of frame ``k``."""
+        return _frame_weather(self.config, k)
+
     def rotation(self, name: str, k: int) -> torch.Tensor:
         """Camera -> world (= cube) rotation of camera ``name`` at frame ``k``, float64."""
         return self.R_bike[k] @ self.cameras[name]["r_cam"]
@@ -323,8 +323,8 @@ class _Plan:
 
     def texels(self, name: str, k: int) -> torch.Tensor:
         """``(6, F, F)`` bool: the cube texels within camera ``name``'s cone of view at frame
-        ``k`` (:func:`camera_cone`, :func:`cone_texels`), a superset of those its layer reads
-        (the last one kept)."""
+        ``k`` (`cubemap.cone`: `camera_cone`, `cone_texels`), a superset of those its layer
+        reads (the last one kept)."""
         if self._texels is None or self._texels[0] != (name, k):
             c = self.cameras[name]
             if "cone" not in c:
@@ -362,12 +362,11 @@ class FrameRenderer:
     worker).
 
     Per camera, the town traces only the texels the layer reads: those within the camera's
-    cone of view (:func:`camera_cone`, :func:`cone_texels`; the layer's output is the same bit
-    for bit as from whole faces, tests/test_dataset.py), unless ``save_cubemaps`` asks for
-    whole faces. The cubes are rendered into buffers kept
-    from camera to camera and frame to frame, and each camera's images are converted,
-    encoded and written by ``writers`` threads while the next camera renders (a frame's
-    marker once all its files are written)."""
+    cone of view (`cubemap.cone`: `camera_cone`, `cone_texels`; the layer's output is the same
+    bit for bit as from whole faces, tests/test_dataset.py), unless ``save_cubemaps`` asks for
+    whole faces. The cubes are rendered into buffers kept from camera to camera and frame to
+    frame, and each camera's images are converted, encoded and written by ``writers`` threads
+    while the next camera renders (a frame's marker once all its files are written)."""
 
     def __init__(self, config: DatasetConfig, *, writers: int = 2) -> None:
         self.config = config
@@ -411,7 +410,7 @@ class FrameRenderer:
         if self.config.save_cubemaps:
             return None
         texels = self.plan.texels(name, k)
-        return texels if self.config.antialias == 1 else _grow(texels)
+        return texels if self.config.antialias == 1 else grow_texels(texels)
 
     def cubemap(self, name: str, k: int) -> dict[str, torch.Tensor]:
         """Camera ``name``'s cubemap of frame ``k`` (``Town.render_cubemap``: the faces and
@@ -481,57 +480,6 @@ class FrameRenderer:
         return k
 
 
-def camera_cone(camera, face_size: int) -> float:
-    """The half-angle (radians) of a cone around a camera's optical axis that holds every cube
-    texel its layer reads at ``face_size``: the camera's widest angle (``Camera.max_angle``,
-    its model's domain within its ``fov``, an upper bound of its valid pixels'), plus one and a
-    half times the largest angle between neighbouring pixels along the image's centre row and
-    column (a pixel's footprint, which ``sizing.visible_faces`` counts too, with room for the
-    diagonal and the tangential direction) and two and a half texels at a face's centre
-    (``2 / F`` radians each, the largest: the bilinear taps, within a texel of the ray, and the
-    atlas border, resampled from the next face's texels within a texel and a half of the
-    seam)."""
-    h, w = camera.image_size
-    cu, cv = (w - 1) / 2, (h - 1) / 2
-    u = torch.arange(w, dtype=torch.float64)
-    v = torch.arange(h, dtype=torch.float64)
-    step = 0.0
-    params = camera.params.detach().reshape(-1, camera.params.shape[-1])[0].double()
-    for pixels in (torch.stack([u, torch.full_like(u, cv)], -1),
-                   torch.stack([torch.full_like(v, cu), v], -1)):
-        rays, valid = camera.model.unproject(pixels, params)
-        rays = rays / rays.norm(dim=-1, keepdim=True)
-        both = valid[1:] & valid[:-1]
-        if both.any():
-            cos = (rays[1:] * rays[:-1]).sum(-1)[both].clamp(-1, 1)
-            step = max(step, float(torch.acos(cos).max()))
-    widest = float(camera.max_angle().detach().reshape(-1)[0])
-    return widest + 1.5 * step + 2.5 * (2.0 / face_size)
-
-
-def cone_texels(face_size: int, axis: torch.Tensor, half_angle: float) -> torch.Tensor:
-    """``(6, F, F)`` bool: the cube texels (cube axes = world) whose ray lies within
-    ``half_angle`` radians of the unit vector ``axis (3,)`` (float32: its rounding is far
-    below the margins of :func:`camera_cone`)."""
-    F = face_size
-    if half_angle >= math.pi:
-        return torch.ones(6, F, F, dtype=torch.bool)
-    f, c = F / 2, (F - 1) / 2
-    x = (torch.arange(F, dtype=torch.float32) - c) / f           # texel u (columns), v (rows)
-    norm = torch.sqrt(1 + x.view(1, F) ** 2 + x.view(F, 1) ** 2) * math.cos(half_angle)
-    axes = face_axes(torch.float64)                                # (6, [a, b, r], 3)
-    proj = (axes @ axis.to(torch.float64).reshape(3)).float()     # (6, 3): a.A, b.A, r.A
-    out = torch.empty(6, F, F, dtype=torch.bool)
-    for k in range(6):   # a face at a time: no (6, F, F) float temporaries
-        dot = proj[k, 2] * x.view(1, F) + proj[k, 1] * x.view(F, 1) + proj[k, 0]
-        torch.ge(dot, norm, out=out[k])
-    return out
-
-
-def _grow(texels: torch.Tensor) -> torch.Tensor:
-    """``texels (6, F, F)`` bool and their 8 neighbours on each face (a 3 x 3 dilation)."""
-    grown = torch.nn.functional.max_pool2d(texels[:, None].float(), 3, stride=1, padding=1)
-    return grown[:, 0] > 0
 
 
 def _cube_path(out: Path, name: str, k: int, face: str, modality: str) -> Path:
@@ -591,151 +539,6 @@ def _init_worker() -> None:
 def _to_uint8(rgb: torch.Tensor) -> np.ndarray:
     """``(3, H, W)`` float in [0, 1] -> ``(H, W, 3)`` uint8."""
     return (rgb.clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()
-
-
-# --------------------------------------------------------------------------------------------
-# Per-run files
-# --------------------------------------------------------------------------------------------
-
-def _write_if_changed(path: Path, text: str) -> None:
-    """Atomic write, skipped when the file already holds ``text`` (a rerun keeps its mtime)."""
-    try:
-        if path.read_text(encoding="utf-8") == text:
-            return
-    except (FileNotFoundError, UnicodeDecodeError):
-        pass
-    atomic_write_text(path, text)
-
-
-def _dumps(obj) -> str:
-    return json.dumps(obj, indent=2) + "\n"
-
-
-def _matrix(t: torch.Tensor) -> list:
-    return [[float(x) for x in row] for row in t.tolist()]
-
-
-def _pose(rotation: torch.Tensor, centre: torch.Tensor) -> list:
-    t = torch.eye(4, dtype=torch.float64)
-    t[:3, :3], t[:3, 3] = rotation, centre
-    return _matrix(t)
-
-
-def _versions() -> dict:
-    from importlib.metadata import PackageNotFoundError, version
-    try:
-        ours = version("omniscape_torch")
-    except PackageNotFoundError:  # pragma: no cover - run from a checkout never installed
-        ours = "unknown"
-    out = {"omniscape_torch": ours, "torch": torch.__version__, "numpy": np.__version__,
-           "python": platform.python_version()}
-    for name, module in (("pillow", "PIL"), ("opencv", "cv2")):   # cv2: optional
-        try:
-            out[name] = __import__(module).__version__
-        except ImportError:  # pragma: no cover
-            pass
-    return out
-
-
-def _dynamics_csv(recs: list[dict]) -> str:
-    columns = ["frame", "timestamp"]
-    for key in ("location", "velocity", "acceleration", "angular_velocity"):
-        columns += [f"{key}_{a}" for a in "xyz"]
-    columns += ["rotation_pitch", "rotation_yaw", "rotation_roll", "speed"]
-    buf = _io.StringIO()
-    writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(columns)
-    for r in recs:
-        row = [r["frame"], repr(r["timestamp"])]
-        for key in ("location", "velocity", "acceleration", "angular_velocity"):
-            row += [repr(r[key][a]) for a in "xyz"]
-        row += [repr(r["rotation"][a]) for a in ("pitch", "yaw", "roll")]
-        row.append(repr(r["speed"]))
-        writer.writerow(row)
-    return buf.getvalue()
-
-
-def _read_json(path: Path):
-    """The JSON in ``path``, or None when it is missing or unreadable (a file to rewrite)."""
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
-
-
-def _write_camera_files(name: str, camera, base: Path, fits: dict,
-                        log: Callable[[str], None]) -> None:
-    """``camera.json`` and ``calib_results.txt`` of one camera. The polynomial model is fitted
-    once per distinct camera of the run (``fits``: Camera JSON -> fit, shared by the stereo
-    pairs) and not at all when the folder already holds the file and its record for this
-    camera (a rerun); the file is written before the record that names it."""
-    data = camera.to_dict()
-    old = _read_json(base / fmt.CAMERA)
-    written = ({k: v for k, v in old.items() if k != "ocamcalib"}
-               if isinstance(old, dict) else None)
-    record = ocamcalib.cached_record(old.get("ocamcalib") if isinstance(old, dict) else None,
-                                     base / fmt.OCAMCALIB, data, written)
-    if record is None:
-        key = json.dumps(data, sort_keys=True)
-        if key not in fits:
-            fits[key] = ocamcalib.fit_polynomial(camera)
-        fit = fits[key]
-        record = ocamcalib.write_calib_results(fit, base / fmt.OCAMCALIB)
-        log(f"{name}: {fmt.OCAMCALIB}, polynomial of degree {fit.degree}, held-out error "
-            f"max {fit.max_px:.3f} px, RMS {fit.rms_px:.3f} px"
-            + ("" if fit.within_tolerance else
-               f" (above the {ocamcalib.TOLERANCE_PX} px aimed at: the best of degrees "
-               f"{list(ocamcalib.DEGREES)})"))
-    _write_if_changed(base / fmt.CAMERA, _dumps({**data, "ocamcalib": record}))
-
-
-def _write_run_files(plan: _Plan, out: Path,
-                     log: Callable[[str], None] = lambda msg: None) -> None:
-    config = plan.config
-    recs = _ride.records(plan.frames)
-    _write_if_changed(out / fmt.DYNAMICS, _dumps(recs))
-    _write_if_changed(out / fmt.DYNAMICS_CSV, _dynamics_csv(recs))
-    cameras = {}
-    fits: dict = {}
-    for name, c in plan.cameras.items():
-        base = out / name
-        base.mkdir(parents=True, exist_ok=True)
-        _write_camera_files(name, c["camera"], base, fits, log)
-        t_rig = _pose(c["r_cam"], c["position"])
-        poses = []
-        for k in range(config.frames):
-            poses.append({"frame": k,
-                          "T_world_camera": _pose(plan.rotation(name, k), plan.centre(name, k)),
-                          "faces": [f for f, v in zip(FACES, plan.faces(name, k).tolist())
-                                    if v]})
-        extr = {"frames": {"rig": "x right, y down, z forward (OpenCV), origin on the ground "
-                                  "under the motorcycle's reference point, metres",
-                           "world": "x east, y down, z north, metres (town frame; CARLA "
-                                    "location (x, y, z) = world (z, x, -y))",
-                           "camera": "OpenCV, x right, y down, z forward"},
-                "T_rig_camera": t_rig, "face_size": c["face_size"], "poses": poses}
-        _write_if_changed(base / "extrinsics.json", _dumps(extr))
-        cameras[name] = {"model": c["camera"].model.name,
-                         "image_size": list(config.image_size),
-                         "face_size": c["face_size"],
-                         "position_rig": list(RIG_POSITIONS[name]),
-                         "rotation_rig_camera": _matrix(c["r_cam"])}
-    manifest = {"format": fmt.FORMAT, "format_version": fmt.FORMAT_VERSION,
-                "config": config.to_dict(), "versions": _versions(),
-                "frames": config.frames, "cameras": cameras,
-                "classes": list(CLASSES), "ignore_index": IGNORE_INDEX,
-                "palette": PALETTE.tolist(),
-                "weather_per_frame": [_frame_weather(config, k) for k in range(config.frames)],
-                "layout": fmt.layout(config.save_cubemaps, config.save_panorama),
-                "conventions": {"depth": "range (Euclidean, along the ray), metres",
-                                "angles": "degrees in dynamics.json (CARLA)",
-                                "pixels": "(u, v) = (column, row), (0, 0) the centre of the "
-                                          "top-left pixel",
-                                "boxes": "objects/*.json: XYXY corners, pixel columns u0..u1 "
-                                         "and rows v0..v1 -> [u0, v0, u1 + 1, v1 + 1]",
-                                "instances": "16-bit ids, 0 none; the same object keeps its "
-                                             "id in every frame and camera"}}
-    _write_if_changed(out / fmt.MANIFEST, _dumps(manifest))
 
 
 # --------------------------------------------------------------------------------------------
@@ -848,7 +651,7 @@ def _generate(out: Path, config: DatasetConfig, workers: int, progress: bool | N
         log(f"removed {len(stale)} temporary file(s) of an interrupted run")
     renderer = FrameRenderer(config)
     plan = renderer.plan
-    _write_run_files(plan, out, log)
+    write_run_files(plan, out, log)
     s = frames_per_shard
     if s is None:
         units = [[k] for k in range(config.frames)]
@@ -991,115 +794,6 @@ def _sheet_frames(config: DatasetConfig, done: list[int] | None
         weathers.setdefault(_frame_weather(config, k), k)
     return frames[len(frames) // 2], weathers
 
-
-#: The size of one of the contact sheet's cells (pixels), and its columns.
-SHEET_CELL = 200
-SHEET_COLUMNS = ("rgb", "depth", "labels_color", "valid")
-
-
-#: OpenCV's ``COLORMAP_TURBO`` (Google's Turbo), 256 RGB colours as hex: the depth column's
-#: colour map, without OpenCV.
-_TURBO = np.frombuffer(bytes.fromhex(
-    "30123b32154333184a341b51351e5836215f37246638276d392a733a2d793b2f803c32863d358b3e38913f3b"
-    "973f3e9c4040a24143a74146ac4249b1424bb5434eba4451bf4454c34456c74559cb455ccf455ed34661d646"
-    "64da4666dd4669e0466be3476ee64771e94773eb4776ee4778f0477bf2467df44680f64682f84685fa4687fb"
-    "458afc458cfd448ffe4391fe4294ff4196ff4099ff3e9bfe3d9efe3ba0fd3aa3fc38a5fb37a8fa35abf833ad"
-    "f731aff52fb2f42eb4f22cb7f02ab9ee28bceb27bee925c0e723c3e422c5e220c7df1fc9dd1ecbda1ccdd81b"
-    "d0d51ad2d21ad4d019d5cd18d7ca18d9c818dbc518ddc218dec018e0bd19e2bb19e3b91ae4b61ce6b41de7b2"
-    "1fe9af20eaac22ebaa25eca727eea42aefa12cf09e2ff19b32f29835f39438f4913cf58e3ff68a43f78746f8"
-    "844af8804ef97d52fa7a55fa7659fb735dfc6f61fc6c65fd6969fd666dfe6271fe5f75fe5c79fe597dff5680"
-    "ff5384ff5188ff4e8bff4b8fff4992ff4796fe4499fe429cfe409ffd3fa1fd3da4fc3ca7fc3aa9fb39acfb38"
-    "affa37b1f936b4f836b7f735b9f635bcf534bef434c1f334c3f134c6f034c8ef34cbed34cdec34d0ea34d2e9"
-    "35d4e735d7e535d9e436dbe236dde037dfdf37e1dd37e3db38e5d938e7d739e9d539ebd339ecd13aeecf3aef"
-    "cd3af1cb3af2c93af4c73af5c53af6c33af7c13af8be39f9bc39faba39fbb838fbb637fcb336fcb136fdae35"
-    "fdac34fea933fea732fea431fea130fe9e2ffe9b2dfe992cfe962bfe932afe9029fd8d27fd8a26fc8725fc84"
-    "23fb8122fb7e21fa7b1ff9781ef9751df8721cf76f1af66c19f56918f46617f36315f26014f15d13f05b12ef"
-    "5811ed5510ec530feb500eea4e0de84b0ce7490ce5470be4450ae2430ae14109df3f08dd3d08dc3b07da3907"
-    "d83706d63506d43305d23105d02f05ce2d04cc2b04ca2a04c82803c52603c32503c12302be2102bc2002b91e"
-    "02b71d02b41b01b21a01af1801ac1701a91601a71401a41301a112019e10019b0f01980e01950d01920b018e"
-    "0a018b09028808028507028106027e05027a0403"), np.uint8).reshape(256, 3)
-
-
-def _resize_weights(src: int, dst: int) -> np.ndarray:
-    """``(dst, src)`` weights of an area resampling from ``src`` to ``dst < src`` samples: the
-    overlap of each source pixel with each output pixel's footprint (OpenCV's INTER_AREA)."""
-    scale = src / dst
-    lo = np.arange(dst)[:, None] * scale
-    s = np.arange(src)[None, :]
-    return np.clip(np.minimum(lo + scale, s + 1) - np.maximum(lo, s), 0, None) / scale
-
-
-def _resize(image: np.ndarray, height: int, width: int) -> np.ndarray:
-    """``image (H, W, C)`` uint8 resampled to ``height x width``: by area going down, nearest
-    going up (OpenCV's INTER_AREA and INTER_NEAREST, in numpy)."""
-    h, w = image.shape[:2]
-    if height < h or width < w:
-        out = np.tensordot(_resize_weights(h, height), image.astype(np.float64), axes=(1, 0))
-        out = np.tensordot(out, _resize_weights(w, width), axes=(1, 1))   # (height, C, width)
-        return np.clip(np.rint(out), 0, 255).astype(np.uint8).transpose(0, 2, 1)
-    rows = np.minimum(np.floor(np.arange(height) * (1.0 / (height / h))).astype(int), h - 1)
-    cols = np.minimum(np.floor(np.arange(width) * (1.0 / (width / w))).astype(int), w - 1)
-    return image[rows][:, cols]
-
-
-def _sheet_cell(image: np.ndarray, title: str) -> np.ndarray:
-    """``image (H, W, 3)`` uint8 RGB fitted into a ``SHEET_CELL`` square (aspect kept, black
-    margins), ``title`` written in its top-left corner (Pillow's default font)."""
-    from PIL import Image, ImageDraw, ImageFont
-
-    h, w = image.shape[:2]
-    scale = SHEET_CELL / max(h, w)
-    size = (max(1, round(w * scale)), max(1, round(h * scale)))
-    small = _resize(image, size[1], size[0]) if scale != 1 else image
-    cell = np.zeros((SHEET_CELL, SHEET_CELL, 3), np.uint8)
-    y0, x0 = (SHEET_CELL - size[1]) // 2, (SHEET_CELL - size[0]) // 2
-    cell[y0:y0 + size[1], x0:x0 + size[0]] = small
-    font = ImageFont.load_default()
-    _, _, right, bottom = ImageDraw.Draw(Image.new("L", (1, 1))).textbbox((4, 3), title,
-                                                                          font=font)
-    cell[:bottom + 3, :right + 4] //= 3          # a dark band under the title
-    canvas = Image.fromarray(cell)
-    ImageDraw.Draw(canvas).text((4, 3), title, fill=(255, 255, 255), font=font)
-    return np.asarray(canvas).copy()
-
-
-def contact_sheet(root: str | Path, cameras, frame: int,
-                  weathers: dict[str, int] | None = None) -> bytes:
-    """PNG bytes of frame ``frame`` of the dataset in ``root``: one row per camera of
-    ``cameras``, columns ``SHEET_COLUMNS`` (depth on a log colour map, black where not valid),
-    then, when ``weathers`` (weather name -> a finished frame in it) holds more than one, rows
-    of the first camera's RGB in each of them (``len(SHEET_COLUMNS)`` a row): the dataset's
-    variety at a glance. ``SHEET_CELL`` pixels square per cell, each titled."""
-    from ..io import read_exr
-
-    root = Path(root)
-
-    def image(name: str, modality: str, k: int) -> np.ndarray:
-        return read_image(root / fmt.frame_file(name, modality, k)).numpy()
-
-    rows = []
-    for name in cameras:
-        valid = image(name, "valid", frame) > 0
-        depth = read_exr(root / fmt.frame_file(name, "depth", frame)).numpy()
-        log_depth = np.log10(np.maximum(depth, 1e-3))
-        lo, hi = (float(log_depth[valid].min()), float(log_depth[valid].max())) \
-            if valid.any() else (0.0, 1.0)
-        scaled = np.clip((log_depth - lo) / max(hi - lo, 1e-6) * 255, 0, 255).astype(np.uint8)
-        turbo = _TURBO[scaled]
-        cells = {"rgb": image(name, "rgb", frame),
-                 "depth": np.where(valid[..., None], turbo, 0).astype(np.uint8),
-                 "labels_color": image(name, "labels_color", frame),
-                 "valid": np.repeat(valid[..., None].astype(np.uint8) * 255, 3, -1)}
-        titles = {"rgb": f"{name} {fmt.frame_name(frame)}", "depth": "depth (log)",
-                  "labels_color": "labels", "valid": "valid"}
-        rows.append(np.hstack([_sheet_cell(cells[m], titles[m]) for m in SHEET_COLUMNS]))
-    if weathers is not None and len(weathers) > 1:
-        cells = [_sheet_cell(image(cameras[0], "rgb", k), weather)
-                 for weather, k in weathers.items()]
-        per_row = len(SHEET_COLUMNS)
-        cells += [np.zeros_like(cells[0])] * (-len(cells) % per_row)
-        rows += [np.hstack(cells[i:i + per_row]) for i in range(0, len(cells), per_row)]
-    return encode_image(np.vstack(rows))
 
 
 # --------------------------------------------------------------------------------------------
