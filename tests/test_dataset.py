@@ -163,6 +163,29 @@ def test_rerun_is_noop_and_resume_completes(dataset, tmp_path):
     assert generate(out, _config(), workers=1, progress=False)["rendered"] == [0]
 
 
+def test_the_progress_bar_moves_per_frame(tmp_path, monkeypatch):
+    """One step of the bar per frame finished (not per chunk of frames), in this process; the
+    worker processes report each frame the same way (tests/test_processes.py)."""
+    import tqdm
+
+    steps = []
+
+    class Bar(tqdm.tqdm):
+        def __init__(self, *args, **kwargs):
+            self.counted = kwargs.get("desc") == "generate"   # not the camera fits' bars
+            super().__init__(*args, **kwargs)
+
+        def update(self, n=1):
+            if self.counted:
+                steps.append(n)
+            return super().update(n)
+
+    monkeypatch.setattr(tqdm, "tqdm", Bar)
+    config = _config(frames=3, image_size=(16, 16), max_face_size=16, cameras=(CAMERAS[0],))
+    assert generate(tmp_path / "bar", config, progress=False)["rendered"] == [0, 1, 2]
+    assert steps == [1, 1, 1]
+
+
 def test_instances_and_objects(dataset):
     """Each camera's instance ids (16-bit PNG, read back with Pillow) are the town's objects:
     an id on exactly the pixels of an instance class, of its object's class, 0 outside the

@@ -43,10 +43,13 @@ exist; a rerun with the same configuration skips finished frames (and leaves the
 the unchanged per-run files untouched), so an interrupted run resumes where it stopped. A rerun
 with another configuration in the same folder is refused (a manifest written before
 ``antialias`` existed is one of ``antialias=1``). Frames are independent: ``workers``
-processes render shares of the frames (:func:`render_frames`, a plain function of the
-configuration and the frame numbers); nothing uses a global random state (the weather of a frame,
-when several are given, is drawn from ``numpy.random.default_rng([seed, frame])``), so the
-files do not depend on the number of workers.
+processes take a frame (or a shard's frames) at a time and report each finished frame to the
+progress bar (`processes.run_in_processes`; the frames: `render_chunk`, a plain function of
+the configuration and the frame numbers); nothing uses a global random state (the weather of a
+frame, when several are given, is drawn from ``numpy.random.default_rng([seed, frame])``), so
+the files do not depend on the number of workers. Ctrl-C stops a run within 2 s with any
+number of workers (they finish the frame in flight or drop it: its files are whole or not
+there), raising `Interrupted` with the frames kept; the same call renders the rest.
 
 Past one machine (:mod:`.distributed`): ``ray`` runs chunks of frames as Ray tasks
 (:func:`render_task`), ``shard=(K, N)`` renders run ``K`` of ``N``'s share for schedulers
@@ -59,11 +62,8 @@ from __future__ import annotations
 import functools
 import json
 import math
-import signal
 import sys
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Callable
 
@@ -74,8 +74,9 @@ from ..scenes import ride as _ride
 from ..scenes import routes as _routes
 from ..cubemap.faces import FACES
 from ..io import atomic_write_bytes, atomic_write_text, colorize, write_exr, write_image
-from ..io.atomic import folder_lock, remove_stale_temporaries
+from ..io.atomic import folder_lock, remove_stale_temporaries, remove_temporaries
 from . import distributed, shards
+from .processes import run_in_processes
 from . import format as fmt
 from .contact_sheet import SHEET_CELL, SHEET_COLUMNS, contact_sheet  # noqa: F401 (re-exported)
 from .run_files import write_run_files
@@ -91,8 +92,8 @@ from ..render.sizing import (MEMORY_PER_PIXEL, PROCESS_MEMORY, available_memory,
                              required_face_size)
 
 __all__ = ["CAMERAS", "FORMATS", "RIG_POSITIONS", "DatasetConfig", "FrameRenderer",
-           "check_memory", "contact_sheet", "estimate_memory", "generate", "render_chunk",
-           "render_frame", "render_frames", "render_task"]
+           "Interrupted", "check_memory", "contact_sheet", "estimate_memory", "generate",
+           "render_chunk", "render_frame", "render_frames", "render_task"]
 
 #: The rig's cameras, in this order.
 CAMERAS = ("fisheye_left", "fisheye_right", "catadioptric_left", "catadioptric_right")
@@ -530,10 +531,45 @@ def render_frame(config: DatasetConfig, out: str | Path, k: int) -> int:
     return render_frames(config, out, [k])[0]
 
 
-def _init_worker() -> None:
-    # Ctrl-C reaches the whole process group: the main process stops the run and says so
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+def _worker_setup(config: DatasetConfig, out: str, frames_per_shard: int | None) -> Callable:
+    """A worker process's state (`processes.run_in_processes`): one thread for torch, a
+    renderer built once; returns the function that renders a unit of frames."""
     torch.set_num_threads(1)
+    return functools.partial(_render_unit, FrameRenderer(config), Path(out), frames_per_shard)
+
+
+def _render_unit(renderer: FrameRenderer, out: Path, frames_per_shard: int | None,
+                 frames: list[int], report: Callable[[int], None]) -> None:
+    render_chunk(renderer.config, out, frames, frames_per_shard, renderer=renderer,
+                 on_frame=report)
+
+
+def _frame_folders(plan: _Plan, out: Path) -> list[Path]:
+    """The folders a frame's files (and its marker, and a shard) are written in."""
+    config = plan.config
+    folders = [out, out / fmt.DONE, out / fmt.SHARDS]
+    for name in config.cameras:
+        folders += [out / name / m for m in fmt.MODALITIES]
+        if config.save_cubemaps:
+            folders += [out / name / "cubemap" / m for m in fmt.CUBE_MODALITIES]
+    if config.save_panorama:
+        folders += [out / "panorama" / m for m in fmt.CUBE_MODALITIES]
+    return folders
+
+
+class Interrupted(KeyboardInterrupt):
+    """``generate`` stopped by Ctrl-C (a `KeyboardInterrupt`), after its workers stopped:
+    what the folder keeps. The same call renders the rest.
+
+    Attributes:
+        kept: the frames of the run (of its share, with ``shard``) finished in the folder.
+        frames: the run's frames (of its share).
+        out: the dataset folder.
+    """
+
+    def __init__(self, kept: int, frames: int, out: Path):
+        super().__init__(f"interrupted: {kept} of {frames} frames kept in {out}")
+        self.kept, self.frames, self.out = kept, frames, out
 
 
 def _to_uint8(rgb: torch.Tensor) -> np.ndarray:
@@ -560,7 +596,8 @@ def generate(out: str | Path, config: DatasetConfig | None = None, *, workers: i
         out: the dataset folder (created). With ``ray`` or ``shard`` across machines, a
             folder every machine sees at the same path (shared storage).
         config: a :class:`DatasetConfig` (default: all defaults).
-        workers: processes rendering frames in parallel on this machine (1: in this process).
+        workers: processes rendering frames in parallel on this machine (1: in this process),
+            each taking the next frame (or shard) not taken yet.
         ray: chunks of frames as Ray tasks (:func:`.distributed.run_on_ray`): the address of a
             cluster (``"HOST:PORT"``, ``"auto"``), or True for ``$RAY_ADDRESS``, else the
             cluster of ``ray start`` on this machine, else a local cluster started for the run
@@ -592,6 +629,8 @@ def generate(out: str | Path, config: DatasetConfig | None = None, *, workers: i
         omniscape_torch.io.atomic.FolderBusyError: another run is writing ``out`` (or the same
             share of it).
         OSError: ``out`` cannot be written (the message names the path).
+        Interrupted: Ctrl-C (a `KeyboardInterrupt`), once the workers have stopped (within
+            2 s): how many frames the folder keeps; the same call renders the rest.
     """
     config = DatasetConfig() if config is None else config
     config.validate()
@@ -687,30 +726,22 @@ def _generate(out: Path, config: DatasetConfig, workers: int, progress: bool | N
         from tqdm import tqdm
         bar = tqdm(total=len(frames), initial=len(frames) - len(todo), disable=not progress,
                    file=sys.stderr, unit="frame", desc="generate")
+
+        def on_frame(k: int) -> None:   # the bar moves per frame, with any number of workers
+            rendered.append(k)
+            bar.update(1)
+
         try:
-            if s is not None:
-                chunks = todo_units
-            else:   # a few chunks of frames per worker: each task builds its renderer once
-                size = -(-len(todo) // (2 * workers))
-                chunks = [todo[i:i + size] for i in range(0, len(todo), size)]
-            if workers == 1 or len(chunks) <= 1:
-                for chunk in chunks:
-                    rendered += render_chunk(config, out, chunk, s, renderer=renderer)
-                    bar.update(len(chunk))
-            else:
-                with ProcessPoolExecutor(min(workers, len(chunks)),
-                                         mp_context=get_context("spawn"),
-                                         initializer=_init_worker) as pool:
-                    futures = {pool.submit(render_chunk, config, str(out), chunk, s): chunk
-                               for chunk in chunks}
-                    try:
-                        for fut in as_completed(futures):
-                            rendered += fut.result()
-                            bar.update(len(futures[fut]))
-                    except BaseException:
-                        for fut in futures:
-                            fut.cancel()
-                        raise
+            if workers == 1 or len(todo_units) <= 1:
+                for unit in todo_units:
+                    render_chunk(config, out, unit, s, renderer=renderer, on_frame=on_frame)
+            else:   # the workers take a unit (a frame, or a shard's frames) at a time
+                folders = _frame_folders(plan, out)
+                run_in_processes(_worker_setup, (config, str(out), s), todo_units, workers,
+                                 on_frame, cleanup=lambda pids: remove_temporaries(folders, pids))
+        except KeyboardInterrupt:
+            raise Interrupted(sum(plan.finished(out, k) for k in frames), len(frames),
+                              out) from None
         finally:
             bar.close()
     sheet = out / fmt.CONTACT_SHEET
@@ -729,18 +760,25 @@ def _generate(out: Path, config: DatasetConfig, workers: int, progress: bool | N
 
 def render_chunk(config: DatasetConfig, out: str | Path, frames: list[int],
                  frames_per_shard: int | None = None, *,
-                 renderer: FrameRenderer | None = None) -> list[int]:
+                 renderer: FrameRenderer | None = None,
+                 on_frame: Callable[[int], None] | None = None) -> list[int]:
     """Render the unfinished frames among ``frames`` of ``config`` into ``out`` and, with
     ``frames_per_shard``, pack each WebDataset shard of theirs whose frames are all finished
     and which is not there yet: a plain function of its arguments, which any process or
     scheduler can call for any share of the frames, as often as it likes (a repeated call
     finishes what an earlier one left). Stops at the first error. Returns the frames rendered.
 
-    ``renderer``: a :class:`FrameRenderer` of ``config`` to reuse (default: a new one).
+    ``renderer``: a `FrameRenderer` of ``config`` to reuse (default: a new one).
+    ``on_frame``: called with each frame's number once it is finished (a progress bar).
     """
     out = Path(out)
     renderer = FrameRenderer(config) if renderer is None else renderer
-    rendered = [renderer.render(out, k) for k in frames if not renderer.plan.finished(out, k)]
+    rendered = []
+    for k in frames:
+        if not renderer.plan.finished(out, k):
+            rendered.append(renderer.render(out, k))
+            if on_frame is not None:
+                on_frame(k)
     if frames_per_shard is not None:
         _pack_shards(renderer.plan, out, frames, frames_per_shard)
     return rendered

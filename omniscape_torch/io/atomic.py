@@ -71,6 +71,31 @@ def remove_stale_temporaries(root: str | os.PathLike) -> list[Path]:
     return removed
 
 
+def remove_temporaries(folders, pids) -> list[Path]:
+    """Remove the temporaries (named by `temporary_prefix`) of the processes ``pids``, which
+    must have ended, in ``folders`` (not below them: a quick look where they wrote, where
+    `remove_stale_temporaries` walks a whole tree). Returns the paths removed."""
+    pids = {int(p) for p in pids}
+    removed = []
+    for folder in folders:
+        try:
+            entries = list(os.scandir(folder))
+        except (FileNotFoundError, NotADirectoryError):
+            continue
+        for entry in entries:
+            match = _TEMPORARY.match(entry.name)
+            if match is None or int(match["pid"]) not in pids:
+                continue
+            path = Path(entry.path)
+            if entry.is_dir(follow_symlinks=False):
+                shutil.rmtree(path, ignore_errors=True)
+            else:
+                with contextlib.suppress(FileNotFoundError):
+                    path.unlink()
+            removed.append(path)
+    return removed
+
+
 @contextlib.contextmanager
 def folder_lock(folder: str | os.PathLike) -> Iterator[Path]:
     """Hold ``folder``'s lock for the ``with`` block (the folder is created).
