@@ -621,12 +621,18 @@ def test_a_run_removes_the_temporaries_of_ended_processes_only(tmp_path):
         live.wait()
 
 
-def test_frame_k_depends_on_the_seed_and_k_only(dataset, tmp_path):
+@pytest.fixture(scope="module")
+def longer(tmp_path_factory):
+    """The dataset of the module's settings with one more frame, written from scratch."""
+    out = tmp_path_factory.mktemp("longer") / "data"
+    generate(out, _config(frames=FRAMES + 1), progress=False)
+    return out
+
+
+def test_frame_k_depends_on_the_seed_and_k_only(dataset, longer):
     """A longer run extends a shorter one: frames 0 and 1 of a 3-frame run are those of the
     2-frame run byte for byte (ride noise, face sizes and weather do not depend on the frame
     count), and so are the cameras."""
-    longer = tmp_path / "longer"
-    generate(longer, _config(frames=FRAMES + 1), progress=False)
     short, long_ = _files(dataset), _files(longer)
     per_frame = [f for f in short if f.startswith(".done/") or f.split("/")[-1][:6].isdigit()]
     assert len(per_frame) > 10
@@ -635,6 +641,102 @@ def test_frame_k_depends_on_the_seed_and_k_only(dataset, tmp_path):
     for name in CAMERAS:
         assert (dataset / name / "camera.json").read_bytes() == \
             (longer / name / "camera.json").read_bytes()
+
+
+def test_a_larger_frames_extends_a_finished_dataset(dataset, longer, tmp_path):
+    """``--frames 3`` into a finished 2-frame folder of the same settings renders frame 2
+    only, keeps frames 0 and 1 untouched, and leaves the folder a 3-frame run writes, byte for
+    byte; fewer frames than the folder's are refused, naming the setting."""
+    out = tmp_path / "grown"
+    shutil.copytree(dataset, out)
+    before = {f: p.stat().st_mtime_ns for f, p in _files(out).items() if "00000" in f}
+    logged = []
+    result = generate(out, _config(frames=FRAMES + 1), progress=False, log=logged.append)
+    assert result["rendered"] == [FRAMES] and result["skipped"] == list(range(FRAMES))
+    assert any(f"from {FRAMES} to {FRAMES + 1} frames" in line for line in logged)
+    grown, fresh = _files(out), _files(longer)
+    assert set(grown) == set(fresh)
+    differ = [f for f in fresh if grown[f].read_bytes() != fresh[f].read_bytes()]
+    assert not differ, differ
+    assert {f: grown[f].stat().st_mtime_ns for f in before} == before
+    with pytest.raises(ValueError, match="--frames: the folder has 3, this run 2.*a larger "
+                                         "--frames extends it"):
+        generate(out, _config(), progress=False)
+
+
+def test_extending_repacks_the_short_last_shard(dataset, tmp_path):
+    from omniscape_torch.data.shards import pack
+
+    out = tmp_path / "grown"
+    shutil.copytree(dataset, out)
+    assert pack(out, frames_per_shard=4)["written"] == ["shard-000000.tar"]
+    generate(out, _config(frames=FRAMES + 1), format="webdataset", progress=False)
+    index = json.loads((out / "shards" / "index.json").read_text())
+    assert index["frames"] == FRAMES + 1 and index["shards"][0]["frames"] == [0, FRAMES]
+    import tarfile
+    with tarfile.open(out / "shards" / "shard-000000.tar") as tar:
+        frames = {int(n.split("_")[0]) for n in tar.getnames()}
+    assert frames == set(range(FRAMES + 1))
+
+
+def _cut(path, keep=0.5):
+    """Cut the file at ``path`` short (a copy stopped halfway)."""
+    data = path.read_bytes()
+    path.write_bytes(data[:int(len(data) * keep)])
+
+
+def test_the_integrity_check_finds_every_cut_and_no_whole_file(dataset, tmp_path):
+    from omniscape_torch.data.integrity import file_damage
+
+    files = [p for p in _files(dataset).values() if p.suffix in (".png", ".exr", ".json")]
+    assert {p.suffix for p in files} == {".png", ".exr", ".json"}
+    assert [p for p in files if file_damage(p) is not None] == []
+    for p in files:
+        if not p.name.startswith("000000"):
+            continue
+        data = p.read_bytes()
+        for cut in (1, 8, 40, len(data) // 2, len(data) - 13, len(data) - 2):
+            copy = tmp_path / p.name
+            copy.write_bytes(data[:cut])
+            assert file_damage(copy) is not None, (p, cut)
+    assert file_damage(tmp_path / "none.png") == "missing"
+
+
+def test_a_damaged_file_is_named_by_stats_and_rendered_again_by_generate(dataset, tmp_path,
+                                                                        capsys):
+    out = tmp_path / "damaged"
+    shutil.copytree(dataset, out)
+    rgb = f"{CAMERAS[2]}/rgb/000001.png"
+    _cut(out / rgb)
+    _cut(out / f"{CAMERAS[0]}/depth/000001.exr")
+    assert cli.main(["stats", str(out), "--no-plot"]) == 0
+    text = capsys.readouterr().out
+    assert f"skipped frame 000001: {CAMERAS[0]}/depth/000001.exr is damaged: cut short" in text
+    assert "(and 1 more file(s)); run generate again to render the frame anew" in text
+    assert f"the 1 finished of {FRAMES} frames" in text
+    recorded = json.loads((out / "stats.json").read_text())["damaged"]["000001"]
+    assert set(recorded) == {rgb, f"{CAMERAS[0]}/depth/000001.exr"}
+    logged = []
+    result = generate(out, _config(), progress=False, log=logged.append)
+    assert result["rendered"] == [1] and result["skipped"] == [0]
+    assert any(line.startswith("frame 000001: ") and "is damaged" in line for line in logged)
+    assert (out / rgb).read_bytes() == (dataset / rgb).read_bytes()
+
+
+def test_a_file_that_does_not_decode_is_named_by_stats(dataset, tmp_path, capsys):
+    """Damage past the structure the check reads (a flipped byte in the compressed pixels):
+    the decoding finds it, and stats names the file."""
+    out = tmp_path / "flipped"
+    shutil.copytree(dataset, out)
+    labels = out / CAMERAS[1] / "labels" / "000000.png"
+    data = bytearray(labels.read_bytes())
+    at = data.index(b"IDAT") + 20
+    data[at:at + 8] = bytes(8)
+    labels.write_bytes(bytes(data))
+    assert cli.main(["stats", str(out), "--no-plot"]) == 0
+    text = capsys.readouterr().out
+    assert (f"skipped frame 000000: {CAMERAS[1]}/labels/000000.png is damaged: cannot be "
+            "decoded") in text
 
 
 @pytest.mark.parametrize("kwargs, match", [

@@ -78,6 +78,8 @@ from ..io.atomic import folder_lock, remove_stale_temporaries, remove_temporarie
 from . import distributed, shards
 from .processes import run_in_processes
 from . import format as fmt
+from .resume import (config_changes, extend_shards, folder_frames,  # noqa: F401
+                     render_damaged_again)
 from .contact_sheet import SHEET_CELL, SHEET_COLUMNS, contact_sheet  # noqa: F401 (re-exported)
 from .run_files import write_run_files
 from .objects import (encode_objects, instance_image, instance_objects, pack_instances,
@@ -195,32 +197,6 @@ class DatasetConfig:
         d["cameras"] = list(self.cameras)
         d["weather"] = list(self.weather)
         return d
-
-
-def _setting(key: str, value) -> str:
-    """A configuration value as the command line writes it."""
-    if value is None:
-        return "the default"
-    if isinstance(value, bool):
-        return "on" if value else "off"
-    if key == "image_size" and isinstance(value, (list, tuple)) and len(value) == 2:
-        return str(value[0]) if value[0] == value[1] else f"{value[0]}x{value[1]}"
-    if isinstance(value, (list, tuple)):
-        return ",".join(map(str, value))
-    return str(value)
-
-
-def config_changes(old: object, new: dict) -> str:
-    """``": --image-size: the folder has 512, this run 256; ..."``: each setting of ``new`` (a
-    :meth:`DatasetConfig.to_dict`) that differs from a folder's ``old`` one, by its option
-    name, with both values; ``""`` when ``old`` is not a configuration (unreadable)."""
-    if not isinstance(old, dict):
-        return ""
-    changes = [f"--{key.replace('_', '-')}: the folder has "
-               f"{_setting(key, old[key]) if key in old else 'none'}, this run "
-               f"{_setting(key, new[key]) if key in new else 'none'}"
-               for key in dict.fromkeys([*new, *old]) if old.get(key) != new.get(key)]
-    return ": " + "; ".join(changes) if changes else ""
 
 
 #: Images of at most this many pixels are anti-aliased by default (:func:`default_antialias`).
@@ -668,19 +644,7 @@ def _generate(out: Path, config: DatasetConfig, workers: int, progress: bool | N
               shard: tuple[int, int] | None = None,
               frames_per_shard: int | None = None) -> dict:
     """``generate`` inside the folder's lock (``frames_per_shard``: WebDataset shards)."""
-    manifest = out / fmt.MANIFEST
-    if manifest.is_file():
-        try:
-            old = json.loads(manifest.read_text(encoding="utf-8")).get("config")
-        except (ValueError, AttributeError):
-            old = None
-        if isinstance(old, dict):   # written before antialias existed: one ray a texel
-            old.setdefault("antialias", 1)
-        if old != config.to_dict():
-            raise ValueError(f"{out} holds a dataset of another configuration ({manifest}"
-                             f"{config_changes(old, config.to_dict())}); rerun with the "
-                             f"folder's settings to complete it, or use another --out folder "
-                             f"or remove it")
+    old_frames = folder_frames(out, config)
     # A run killed mid-write leaves its temporaries (the finished files are whole: written by
     # rename); they carry their process id, and only those of ended processes are removed.
     # Not by a share of a run: the others may run on other machines, whose processes this one
@@ -688,6 +652,10 @@ def _generate(out: Path, config: DatasetConfig, workers: int, progress: bool | N
     stale = remove_stale_temporaries(out) if shard is None else []
     if stale:
         log(f"removed {len(stale)} temporary file(s) of an interrupted run")
+    if old_frames is not None and old_frames < config.frames:
+        log(f"extending the dataset in {out} from {old_frames} to {config.frames} frames (its "
+            f"frames are kept: frame k depends on the settings and k only)")
+        extend_shards(out, config)
     renderer = FrameRenderer(config)
     plan = renderer.plan
     write_run_files(plan, out, log)
@@ -698,6 +666,8 @@ def _generate(out: Path, config: DatasetConfig, workers: int, progress: bool | N
         shards.write_index(out, config.frames, config.cameras, s)
         units = shards.shard_groups(config.frames, s)
     units = distributed.shard_part(units, shard)
+
+    render_damaged_again(plan, out, [k for u in units for k in u], log)
 
     def finished(k: int) -> bool:
         return plan.finished(out, k) and (s is None or (out / fmt.shard_file(k // s)).is_file())
