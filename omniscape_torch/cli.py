@@ -184,7 +184,8 @@ def cmd_generate(args: argparse.Namespace) -> int:
                            cameras=tuple(dict.fromkeys(cameras)),
                            weather=tuple(dict.fromkeys(weather)), seed=args.seed,
                            save_cubemaps=args.save_cubemaps, save_panorama=args.save_panorama,
-                           town=args.town, antialias=args.antialias)
+                           town=args.town, antialias=args.antialias,
+                           min_object_pixels=args.min_object_pixels)
     check_writable(args.out)
     start = time.perf_counter()
     try:
@@ -641,6 +642,9 @@ def _add_convert_parser(sub) -> None:
     p.add_argument("--interpolation", choices=("nearest", "bilinear", "bicubic"),
                    default="bilinear", help="for rgb")
     p.add_argument("--device", default="cpu")
+    p.add_argument("--min-object-pixels", type=positive_int, default=1, metavar="N",
+                   help="with instance faces, the objects files list the objects of at least "
+                        "N pixels (default 1: all; the instance maps keep every id)")
     _add_ray_option(p, "captures")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_convert)
@@ -671,7 +675,8 @@ def cmd_convert(args: argparse.Namespace) -> int:
                                     else None),
             catadioptric_looking=args.cata_looking, depth_output=args.depth_output,
             interpolation=args.interpolation, unknown_label=args.unknown_label,
-            device=args.device, ray=args.ray, progress=None if not args.no_progress else False)
+            device=args.device, ray=args.ray, progress=None if not args.no_progress else False,
+            min_object_pixels=args.min_object_pixels)
     except ConvertError as err:
         results, failures = err.results, err.failures
     for capture, paths in results.items():
@@ -773,6 +778,11 @@ def build_parser() -> argparse.ArgumentParser:
                           "(default: 2 for images of at most 512 x 512 pixels, about 2x the "
                           "frame time at 256 for +4 dB RGB PSNR against the pixels' area; "
                           "else 1)")
+    gen.add_argument("--min-object-pixels", type=positive_int, default=1, metavar="N",
+                     help="the objects files (instance boxes) list the objects of at least N "
+                          "pixels (default 1: all; at the default settings 38 %% of the objects "
+                          "have 1-2 pixels, 57 %% fewer than 10; the instance maps "
+                          "keep every id)")
     gen.add_argument("--save-cubemaps", action="store_true", help="also write the cube faces "
                      "each camera rendered (only those it sees, at its own face size): to "
                      "inspect a frame, not a training source (full cubemaps for "

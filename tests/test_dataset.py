@@ -163,6 +163,49 @@ def test_rerun_is_noop_and_resume_completes(dataset, tmp_path):
     assert generate(out, _config(), workers=1, progress=False)["rendered"] == [0]
 
 
+def test_min_object_pixels_leaves_the_small_objects_out_of_the_lists(dataset, tmp_path):
+    """``min_object_pixels=N``: each objects file is the default one less its objects of
+    fewer than N pixels; the instance maps and the other files stay as they were."""
+    camera = CAMERAS[2]
+    out = tmp_path / "min"
+    generate(out, _config(frames=1, cameras=(camera,), min_object_pixels=10), progress=False)
+    every = json.loads((dataset / camera / "objects" / "000000.json").read_text())
+    kept = json.loads((out / camera / "objects" / "000000.json").read_text())
+    assert kept == [o for o in every if o["pixels"] >= 10]
+    assert 0 < len(kept) < len(every)
+    for m in ("instances", "labels", "rgb"):
+        f = f"{camera}/{m}/000000.png"
+        assert (out / f).read_bytes() == (dataset / f).read_bytes()
+    assert json.loads((out / "dataset.json").read_text())["config"]["min_object_pixels"] == 10
+    with pytest.raises(ValueError, match="min_object_pixels: expected an integer of at least 1"):
+        _config(min_object_pixels=0)
+    with pytest.raises(ValueError, match="min_pixels: expected a positive integer"):
+        ot.data.objects.instance_objects(torch.zeros(2, 2, dtype=torch.int64),
+                                         torch.zeros(2, 2, dtype=torch.int64), min_pixels=0)
+
+
+def test_a_dataset_from_before_min_object_pixels_lists_every_object(dataset, tmp_path):
+    out = tmp_path / "old"
+    shutil.copytree(dataset, out)
+    manifest = json.loads((out / "dataset.json").read_text())
+    del manifest["config"]["min_object_pixels"]
+    (out / "dataset.json").write_text(json.dumps(manifest))
+    assert generate(out, _config(), progress=False)["rendered"] == []
+    with pytest.raises(ValueError, match="--min-object-pixels: the folder has 1, this run 4"):
+        generate(out, _config(min_object_pixels=4), progress=False)
+
+
+def test_a_run_leaves_no_lock_in_its_folder(dataset, tmp_path):
+    """The folder lock's file goes when the run ends: finished, refused, or a share's run."""
+    assert not (dataset / LOCK_NAME).exists()
+    with pytest.raises(ValueError, match="another configuration"):
+        generate(dataset, _config(seed=1), progress=False)
+    assert not (dataset / LOCK_NAME).exists()
+    out = tmp_path / "shared"
+    generate(out, _config(frames=1, cameras=(CAMERAS[0],)), shard=(0, 2), progress=False)
+    assert not list(out.glob(".shard-*")) and not (out / LOCK_NAME).exists()
+
+
 def test_the_progress_bar_moves_per_frame(tmp_path, monkeypatch):
     """One step of the bar per frame finished (not per chunk of frames), in this process; the
     worker processes report each frame the same way (tests/test_processes.py)."""

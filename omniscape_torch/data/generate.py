@@ -59,6 +59,7 @@ frames into WebDataset shards (:mod:`.shards`), each by the task that rendered t
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import math
@@ -146,6 +147,7 @@ class DatasetConfig:
     save_panorama: bool = False
     town: int = 1                                 # the town's layout: scenes.town.LAYOUTS
     antialias: int | None = None                  # None: default_antialias(image_size)
+    min_object_pixels: int = 1                    # objects files: objects of this many pixels
 
     def __post_init__(self):
         self.image_size = tuple(int(s) for s in self.image_size)
@@ -162,6 +164,7 @@ class DatasetConfig:
                                  f"{value!r}")
         positive_int("frames", self.frames)
         positive_int("antialias", self.antialias)
+        positive_int("min_object_pixels", self.min_object_pixels)
         positive_int("max_face_size", self.max_face_size, MIN_FACE_SIZE, " texels")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f"seed: expected an integer >= 0, got {self.seed!r}")
@@ -425,7 +428,8 @@ class FrameRenderer:
                             rgb=cube["rgb"], depth=cube["depth"], labels=packed,
                             rotation=plan.rotation(name, k).float())
                         # res is this camera's own: its writers may run while the next renders
-                        pending.append(pool.submit(_write_camera, out, name, k, res))
+                        pending.append(pool.submit(_write_camera, out, name, k, res,
+                                                   config.min_object_pixels))
                         if config.save_cubemaps:
                             for i, (face, need) in enumerate(zip(FACES, faces.tolist())):
                                 if need:
@@ -467,9 +471,11 @@ def _panorama_path(out: Path, k: int, modality: str) -> Path:
     return out / fmt.panorama_file(modality, k)
 
 
-def _write_camera(out: Path, name: str, k: int, res: dict[str, torch.Tensor]) -> None:
+def _write_camera(out: Path, name: str, k: int, res: dict[str, torch.Tensor],
+                  min_object_pixels: int = 1) -> None:
     """Write one camera's images of frame ``k`` (``res``: the layer's outputs, its labels
-    packed with the instance ids: ``objects.pack_instances``)."""
+    packed with the instance ids: ``objects.pack_instances``; the objects file lists those
+    of at least ``min_object_pixels`` pixels)."""
     labels, instances = unpack_instances(res["labels"][0])
     valid = res["valid"][0, 0]
 
@@ -483,7 +489,8 @@ def _write_camera(out: Path, name: str, k: int, res: dict[str, torch.Tensor]) ->
     write_image(path("labels_color"), colorize(ids))
     write_image(path("valid"), (valid.to(torch.uint8) * 255).numpy())
     write_image(path("instances"), instance_image(instances))
-    atomic_write_text(path("objects"), encode_objects(instance_objects(instances, labels)))
+    atomic_write_text(path("objects"), encode_objects(
+        instance_objects(instances, labels, min_pixels=min_object_pixels)))
 
 
 def _write_modalities(path: Callable[[str], Path], rgb: torch.Tensor, depth: torch.Tensor,
@@ -632,11 +639,16 @@ def generate(out: str | Path, config: DatasetConfig | None = None, *, workers: i
         check_memory(config, workers)
     # runs of other shares of the frames may write the folder at the same time
     lock = out if shard is None else out / f".shard-{shard[0]}-of-{shard[1]}"
-    with folder_lock(lock):
-        return _generate(out, config, workers, progress, log, ray=ray if use_ray else None,
-                         shard=shard, frames_per_shard=(
-                             shards.resolve_frames_per_shard(out, frames_per_shard)
-                             if format == "webdataset" else None))
+    try:
+        with folder_lock(lock):   # its file removed when the run ends, however it ends
+            return _generate(out, config, workers, progress, log, ray=ray if use_ray else None,
+                             shard=shard, frames_per_shard=(
+                                 shards.resolve_frames_per_shard(out, frames_per_shard)
+                                 if format == "webdataset" else None))
+    finally:
+        if shard is not None:   # the share's lock folder, if empty (another run may hold it)
+            with contextlib.suppress(OSError):
+                lock.rmdir()
 
 
 def _generate(out: Path, config: DatasetConfig, workers: int, progress: bool | None,
