@@ -174,6 +174,7 @@ def cmd_generate(args: argparse.Namespace) -> int:
     import gc
     import time
     from .data.distributed import TaskErrors
+    from .data.format import CONTACT_SHEET
     from .data.generate import DatasetConfig, Interrupted, generate
     from .io.atomic import check_writable
 
@@ -209,8 +210,12 @@ def cmd_generate(args: argparse.Namespace) -> int:
         for frame, message in err.failures.items():
             print(f"  frame {frame}: {message}", file=sys.stderr)
         return 1
+    sheet = args.out / CONTACT_SHEET
     print(f"wrote {len(result['rendered'])} frame(s), skipped {len(result['skipped'])} "
-          f"finished, to {args.out} in {time.perf_counter() - start:.1f} s")
+          f"finished, to {args.out} in {time.perf_counter() - start:.1f} s"
+          + (f"; open {sheet} first: one frame of each camera (image, depth, labels, valid "
+             f"area), then 'omniscape-torch stats {args.out}' for the class shares"
+             if sheet.is_file() else ""))
     return 0
 
 

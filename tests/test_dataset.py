@@ -529,6 +529,7 @@ def test_stats(dataset, tmp_path, capsys):
         assert sum(result["class_share"][kind].values()) == pytest.approx(1.0)
         assert result["class_share"][kind]["Road"] > 0
     assert format_stats(result).splitlines()[0].startswith("Table I")
+    assert "Unlabeled (class 0) is the sky" in text   # said where the shares are
     # the shares count valid pixels only
     n_valid = sum(int((read_image(p) == 255).sum()) for cam in ("fisheye_left", "fisheye_right")
                   for p in (out / cam / "valid").glob("*.png"))
@@ -567,7 +568,13 @@ def test_cli_generate_and_stats_missing(tmp_path, capsys):
             "--face-size", "16", "--cameras", "fisheye_left", "catadioptric_left",
             "--no-progress"]
     assert cli.main(argv) == 0
-    assert "wrote 1 frame(s)" in capsys.readouterr().out
+    printed = capsys.readouterr()
+    last = printed.out.strip().splitlines()[-1]   # what to open first
+    assert last.startswith("wrote 1 frame(s)") and f"open {out / 'contact_sheet.png'} first" in last
+    # the camera fits said in plain words, once per camera, after what they are
+    lines = printed.err.splitlines()
+    fits = [i for i, line in enumerate(lines) if " a polynomial of degree " in line]
+    assert len(fits) == 2 and lines[fits[0] - 1].startswith("calib_results.txt: each camera")
     assert read_image(out / "catadioptric_left/rgb/000000.png").shape == (32, 40, 3)
     assert not (out / "fisheye_right").exists()
     assert cli.main(["stats", str(tmp_path / "nothing")]) == 2

@@ -325,11 +325,11 @@ def render_capture(cube: dict, cameras: dict[str, tuple], out_dir: str | Path, *
                    depth_output: str = "range", interpolation: str = "bilinear",
                    device: str | torch.device = "cpu", min_object_pixels: int = 1,
                    _layers: dict | None = None) -> list[Path]:
-    """Render the cubemaps of :func:`load_capture` through each camera and write the files
+    """Render the cubemaps of `load_capture` through each camera and write the files
     (layout in the module docstring) into ``out_dir``. Returns the paths written.
     ``min_object_pixels``: the objects files list the objects of at least so many pixels.
 
-    A ``uint8`` RGB cube (``load_capture(rgb_uint8=True)``, what :func:`convert_captures`
+    A ``uint8`` RGB cube (``load_capture(rgb_uint8=True)``, what `convert_captures`
     reads) is sampled as it is into the 8-bit image written (blended in float32, rounded to
     nearest, half up); a float cube in [0, 1] is rendered in floats and rounded after.
 
@@ -428,16 +428,16 @@ def convert_captures(cubemaps_dir: str | Path, out_dir: str | Path, *, label_set
                      min_object_pixels: int = 1) -> dict[str, list[Path]]:
     """Convert every capture under ``cubemaps_dir`` into omni images under ``out_dir``.
 
-    Angles are radians. Cameras come from :func:`omniscape_torch.cameras.presets.fisheye` (optical
-    axis forward) and :func:`~omniscape_torch.cameras.presets.catadioptric` (axis down or up); their
+    Angles are radians. Cameras come from `omniscape_torch.cameras.presets.fisheye` (optical
+    axis forward) and `omniscape_torch.cameras.presets.catadioptric` (axis down or up); their
     JSON and rotations go to ``out_dir/cameras.json``.
 
     A capture that fails (missing, corrupt or mismatched face, unknown tag, an error while
     rendering or writing) is skipped with nothing written for it, and the others are still
     converted; the failures are raised together at the end.
 
-    ``ray``: convert chunks of captures as Ray tasks (:func:`.distributed.run_on_ray`: the
-    address of a cluster, or True for the one :func:`.distributed.ray_cluster` finds or
+    ``ray``: convert chunks of captures as Ray tasks (`distributed.run_on_ray`: the
+    address of a cluster, or True for the one `distributed.ray_cluster` finds or
     starts; on CPUs, ``device="cpu"``), with the same files as without; ``cubemaps_dir`` and
     ``out_dir`` must be at the same path on every node. ``progress``: a tqdm bar over the
     captures on stderr (default: when stderr is a terminal). ``min_object_pixels``: with
@@ -530,12 +530,12 @@ def convert_chunk(out_dir: str | Path, cameras: dict[str, tuple], options: dict,
                   layers: dict | None = None) -> tuple[dict, dict]:
     """Convert ``captures`` (capture folders) into ``out_dir``, each on its own: a plain
     function of its arguments, which a local run and a Ray task
-    (:func:`.distributed.run_on_ray`) call alike.
+    (`distributed.run_on_ray`) call alike.
 
     Args:
-        cameras: :func:`build_cameras`' dict. options: ``label_set``, ``unknown_label``,
+        cameras: `build_cameras`' dict. options: ``label_set``, ``unknown_label``,
             ``depth_output``, ``interpolation``, ``min_object_pixels`` (as for
-            :func:`convert_captures`).
+            `convert_captures`).
         layers: a dict that keeps the layers across calls (default: this call's).
 
     Returns:

@@ -1,9 +1,10 @@
 """Write an OmniScape-like dataset: a motorcycle ride through the built-in town, seen by a rig of
 stereo fisheye and stereo catadioptric cameras, with range depth, labels, intrinsics (also as
-OCamCalib's ``calib_results.txt``, as the OmniScape dataset ships them: :mod:`.ocamcalib`, fitted
-once per run), extrinsics, vehicle dynamics, and the instance ids and 2D boxes of the town's
-vehicles, pedestrians, poles and traffic signs (:mod:`.objects`; ``omniscape-torch
-generate``; the files: :mod:`.format`).
+OCamCalib's ``calib_results.txt``, as the OmniScape dataset ships them: `data.ocamcalib`,
+fitted once per folder), extrinsics, vehicle dynamics, and the instance ids and 2D boxes of the
+town's vehicles, pedestrians, poles and traffic signs (`data.objects`; ``omniscape-torch
+generate``; the files: `data.format`, the per-run ones written by `data.run_files`, the
+contact sheet by `data.contact_sheet`).
 
 The rig
 -------
@@ -32,17 +33,19 @@ on the number of frames (a run of 12 frames extends a run of 8). The built-in to
 so the ride is made with ``town_route(seed, town)`` (S-bends between the lanes of the main
 street in town 1, right turns at the crossings of towns 2 and 3): pitch comes from the
 suspension only. The images are encoded and written by threads while the next camera renders
-(:class:`FrameRenderer`). With ``antialias=k`` > 1 (the default up to 512 x 512 pixels:
-:func:`default_antialias`) each cube texel on an edge is the mean of ``k x k`` rays over its
+(`FrameRenderer`). With ``antialias=k`` > 1 (the default up to 512 x 512 pixels:
+`default_antialias`) each cube texel on an edge is the mean of ``k x k`` rays over its
 footprint and each RGB pixel the mean of 2 x 2 rays over its own; labels and depth stay the
 texel and pixel centres' point samples.
 
 ``NNNNNN`` is the frame number (zero-padded to 6 digits). Every file is written atomically
 (temporary file + rename). A frame is finished when its ``.done`` marker and all its files
 exist; a rerun with the same configuration skips finished frames (and leaves their files and
-the unchanged per-run files untouched), so an interrupted run resumes where it stopped. A rerun
-with another configuration in the same folder is refused (a manifest written before
-``antialias`` existed is one of ``antialias=1``). Frames are independent: ``workers``
+the unchanged per-run files untouched), so an interrupted run resumes where it stopped; a
+rerun with more frames extends the dataset, and one with another configuration in the same
+folder is refused (`data.resume`; a manifest written before ``antialias`` existed is one of
+``antialias=1``). A rerun checks the files of the finished frames (`data.integrity`) and
+renders again those with a damaged file. Frames are independent: ``workers``
 processes take a frame (or a shard's frames) at a time and report each finished frame to the
 progress bar (`processes.run_in_processes`; the frames: `render_chunk`, a plain function of
 the configuration and the frame numbers); nothing uses a global random state (the weather of a
@@ -51,10 +54,10 @@ the files do not depend on the number of workers. Ctrl-C stops a run within 2 s 
 number of workers (they finish the frame in flight or drop it: its files are whole or not
 there), raising `Interrupted` with the frames kept; the same call renders the rest.
 
-Past one machine (:mod:`.distributed`): ``ray`` runs chunks of frames as Ray tasks
-(:func:`render_task`), ``shard=(K, N)`` renders run ``K`` of ``N``'s share for schedulers
+Past one machine (`data.distributed`): ``ray`` runs chunks of frames as Ray tasks
+(`render_task`), ``shard=(K, N)`` renders run ``K`` of ``N``'s share for schedulers
 without Ray; both write the same files as one process. ``format="webdataset"`` also packs the
-frames into WebDataset shards (:mod:`.shards`), each by the task that rendered them.
+frames into WebDataset shards (`data.shards`), each by the task that rendered them.
 """
 
 from __future__ import annotations
@@ -573,23 +576,23 @@ def generate(out: str | Path, config: DatasetConfig | None = None, *, workers: i
              ray: str | bool | None = None, shard: tuple[int, int] | None = None,
              format: str = "folder", frames_per_shard: int | None = None,
              progress: bool | None = None, log: Callable[[str], None] | None = None) -> dict:
-    """Write (or complete) the dataset of ``config`` in ``out``.
+    """Write (or complete, or extend to more frames) the dataset of ``config`` in ``out``.
 
     Args:
         out: the dataset folder (created). With ``ray`` or ``shard`` across machines, a
             folder every machine sees at the same path (shared storage).
-        config: a :class:`DatasetConfig` (default: all defaults).
+        config: a `DatasetConfig` (default: all defaults).
         workers: processes rendering frames in parallel on this machine (1: in this process),
             each taking the next frame (or shard) not taken yet.
-        ray: chunks of frames as Ray tasks (:func:`.distributed.run_on_ray`): the address of a
+        ray: chunks of frames as Ray tasks (`distributed.run_on_ray`): the address of a
             cluster (``"HOST:PORT"``, ``"auto"``), or True for ``$RAY_ADDRESS``, else the
             cluster of ``ray start`` on this machine, else a local cluster started for the run
-            (:func:`.distributed.ray_cluster`); None (default): no Ray. Not with ``workers``.
+            (`distributed.ray_cluster`); None (default): no Ray. Not with ``workers``.
         shard: ``(K, N)``: only run ``K`` of ``N``'s share, frames ``K, K + N, ...`` (with
             ``format="webdataset"``, the frames of shards ``K, K + N, ...``); ``N`` such runs,
             anywhere and at once, write the dataset one run writes. Each locks its own share.
         format: ``"folder"`` (default), or ``"webdataset"``: also pack the frames into
-            WebDataset shards of ``frames_per_shard`` frames (:mod:`.shards`), each by the
+            WebDataset shards of ``frames_per_shard`` frames (`data.shards`), each by the
             task that rendered them.
         frames_per_shard: default, that of the shards in ``out``, else
             ``shards.FRAMES_PER_SHARD``; only with ``format="webdataset"``.
@@ -602,10 +605,10 @@ def generate(out: str | Path, config: DatasetConfig | None = None, *, workers: i
 
     Raises:
         ValueError: bad configuration or argument, or ``out`` holds a dataset of another
-            configuration (or shards of another ``frames_per_shard``).
+            configuration or of more frames (or shards of another ``frames_per_shard``).
         ImportError: ``ray`` without Ray installed, or no Pillow to write the images with
             (at once).
-        MemoryError: the run would not fit in memory (:func:`check_memory`; with ``ray``, in
+        MemoryError: the run would not fit in memory (`check_memory`; with ``ray``, in
             any node of the cluster; before any work).
         omniscape_torch.data.distributed.TaskErrors: with ``ray``, frames that failed for good,
             each with its error; the others are written, and the same call renders the rest.

@@ -25,7 +25,7 @@ from ..scenes import ride as _ride
 from . import format as fmt
 from . import ocamcalib
 
-__all__ = ["write_run_files"]
+__all__ = ["FIT_INTRO", "write_run_files"]
 
 
 def _write_if_changed(path: Path, text: str) -> None:
@@ -94,47 +94,61 @@ def _read_json(path: Path):
         return None
 
 
-def _write_camera_files(name: str, camera, base: Path, fits: dict,
-                        log: Callable[[str], None]) -> None:
+#: Said once before the cameras whose OCamCalib model a run fits (the first run in a folder).
+FIT_INTRO = (f"{fmt.OCAMCALIB}: each camera written also as OCamCalib's polynomial model (the "
+             f"format the OmniScape dataset ships its cameras in; {fmt.CAMERA} holds the exact "
+             f"camera), fitted now and kept for later runs:")
+
+
+def _write_camera_files(name: str, camera, base: Path, fits: dict) -> str | None:
     """``camera.json`` and ``calib_results.txt`` of one camera. The polynomial model is fitted
     once per distinct camera of the run (``fits``: Camera JSON -> fit, shared by the stereo
     pairs) and not at all when the folder already holds the file and its record for this
-    camera (a rerun); the file is written before the record that names it."""
+    camera (a rerun); the file is written before the record that names it. Returns a line
+    saying how close the fitted model is to the camera, or None when none was fitted."""
     data = camera.to_dict()
     old = _read_json(base / fmt.CAMERA)
     written = ({k: v for k, v in old.items() if k != "ocamcalib"}
                if isinstance(old, dict) else None)
     record = ocamcalib.cached_record(old.get("ocamcalib") if isinstance(old, dict) else None,
                                      base / fmt.OCAMCALIB, data, written)
+    line = None
     if record is None:
         key = json.dumps(data, sort_keys=True)
         if key not in fits:
             fits[key] = ocamcalib.fit_polynomial(camera)
         fit = fits[key]
         record = ocamcalib.write_calib_results(fit, base / fmt.OCAMCALIB)
-        log(f"{name}: {fmt.OCAMCALIB}, polynomial of degree {fit.degree}, held-out error "
-            f"max {fit.max_px:.3f} px, RMS {fit.rms_px:.3f} px"
-            + ("" if fit.within_tolerance else
-               f" (above the {ocamcalib.TOLERANCE_PX} px aimed at: the best of degrees "
-               f"{list(ocamcalib.DEGREES)})"))
+        line = (f"  {name}: a polynomial of degree {fit.degree}, within {fit.max_px:.3f} px "
+                f"of the camera at the pixels the fit did not use (RMS {fit.rms_px:.3f} px)"
+                + ("" if fit.within_tolerance else
+                   f"; above the {ocamcalib.TOLERANCE_PX} px aimed at: the best of degrees "
+                   f"{list(ocamcalib.DEGREES)}"))
     _write_if_changed(base / fmt.CAMERA, _dumps({**data, "ocamcalib": record}))
+    return line
 
 
 def write_run_files(plan, out: Path,
                      log: Callable[[str], None] = lambda msg: None) -> None:
     """Write (or keep, when unchanged) the per-run files of ``plan`` (a ``generate`` plan: its
     configuration, ride, cameras, poses and faces) into ``out``; ``log`` gets a line per
-    camera whose OCamCalib model is fitted."""
+    camera whose OCamCalib model is fitted, after one saying what they are (`FIT_INTRO`)."""
     config = plan.config
     recs = _ride.records(plan.frames)
     _write_if_changed(out / fmt.DYNAMICS, _dumps(recs))
     _write_if_changed(out / fmt.DYNAMICS_CSV, _dynamics_csv(recs))
     cameras = {}
     fits: dict = {}
+    fitted = False
     for name, c in plan.cameras.items():
         base = out / name
         base.mkdir(parents=True, exist_ok=True)
-        _write_camera_files(name, c["camera"], base, fits, log)
+        line = _write_camera_files(name, c["camera"], base, fits)
+        if line is not None:
+            if not fitted:
+                log(FIT_INTRO)
+            fitted = True
+            log(line)
         t_rig = _pose(c["r_cam"], c["position"])
         poses = []
         for k in range(config.frames):

@@ -17,7 +17,7 @@ from . import format as fmt
 from .integrity import damaged_files
 from .readers import has_modality, list_cameras, read_dynamics
 
-__all__ = ["PLOT_INSTALL", "format_stats", "plot_available", "stats"]
+__all__ = ["PLOT_INSTALL", "SKY_NOTE", "format_stats", "plot_available", "stats"]
 
 #: What installs the chart's library (matplotlib, optional: the ``plot`` extra).
 PLOT_INSTALL = 'pip install "omniscape_torch[plot]"'
@@ -37,7 +37,7 @@ def stats(root: str | Path, *, plot: bool = True) -> dict:
     of the fisheye and catadioptric images of the dataset in ``root``, over its finished
     frames (``.done`` marker and every camera's files; an interrupted run's dataset has fewer
     than planned); writes ``root/stats.json`` and (``plot``) the bar chart ``root/stats.png``
-    (``plot`` needs matplotlib, an optional dependency: :func:`plot_available`).
+    (``plot`` needs matplotlib, an optional dependency: `plot_available`).
 
     Returns:
         ``{"table_one": {angle: {mean, std, min, median, max}}, "class_share": {kind:
@@ -46,9 +46,9 @@ def stats(root: str | Path, *, plot: bool = True) -> dict:
         "damaged": {"NNNNNN": {file: what is wrong}}}``: a frame without its ``.done`` marker
         is not finished; one with it but without a file lost that file; one with a damaged
         file (cut short, or not decoding: `integrity.damaged_files`) is left out and named
-        (``generate`` renders it again). Where the dataset has ``objects`` (written since ``generate`` writes
-        them), also ``"objects": {kind: {"images": N, "per_image": mean number of objects
-        in an image, "classes": {class: objects}}}`` over the same frames.
+        (``generate`` renders it again). Where the dataset has ``objects`` (written since
+        ``generate`` writes them), also ``"objects": {kind: {"images": N, "per_image": mean
+        number of objects in an image, "classes": {class: objects}}}`` over the same frames.
 
     Raises:
         FileNotFoundError: ``root`` holds no dataset.
@@ -179,6 +179,11 @@ def _plot(result: dict, path: Path) -> None:
     atomic_write_bytes(path, buf.getvalue())
 
 
+#: Under the class shares: what ``Unlabeled`` counts.
+SKY_NOTE = ("Unlabeled (class 0) is the sky: the 13 CARLA classes the dataset uses (as the "
+            "OmniScape dataset does) have no sky class; nothing else in the built-in town is "
+            "unlabeled")
+
 #: Skipped frames named one a line before the tables (the others counted).
 SHOWN_SKIPPED = 5
 
@@ -231,6 +236,7 @@ def format_stats(result: dict) -> str:
         lines.append(f"{c:14}" + "".join(f"{100 * result['class_share'][k][c]:14.2f}"
                                          for k in kinds))
     lines.append(f"{'valid pixels':14}" + "".join(f"{result['pixels'][k]:14d}" for k in kinds))
+    lines.append(SKY_NOTE)
     objects = result.get("objects")
     if objects:
         kinds = list(objects)

@@ -3,8 +3,8 @@
 A file is written to a hidden temporary in the target's folder, then renamed onto it
 (``os.replace``): an interrupted run leaves either the old file or the new one, never half of
 one. A temporary's name carries its owner's process id, ``.<name>.<pid>.<random><suffix>``, so
-that :func:`remove_stale_temporaries` removes only those whose process is gone, never a file
-another live run is writing. :func:`folder_lock` keeps a second run out of a folder that a run
+that `remove_stale_temporaries` removes only those whose process is gone, never a file
+another live run is writing. `folder_lock` keeps a second run out of a folder that a run
 is writing (``fcntl.flock`` on ``<folder>/.lock``; released by the kernel when the process
 ends, however it ends; the file is removed when the ``with`` block ends).
 """
