@@ -39,8 +39,8 @@ def _config(**kw):
 
 
 def _files(root):
-    """The dataset's files; not the lock (``.lock`` holds the id of the last process that wrote
-    the folder, not data)."""
+    """The dataset's files; not a lock (a run removes its ``.lock`` when it ends; a killed one
+    leaves it, holding the id of its process, not data)."""
     return {p.relative_to(root).as_posix(): p for p in sorted(root.rglob("*"))
             if p.is_file() and p.name != LOCK_NAME}
 

@@ -82,8 +82,8 @@ from ..io.atomic import folder_lock, remove_stale_temporaries, remove_temporarie
 from . import distributed, shards
 from .processes import run_in_processes
 from . import format as fmt
-from .resume import (config_changes, extend_shards, folder_frames,  # noqa: F401
-                     render_damaged_again)
+from .resume import config_changes  # noqa: F401 (re-exported)
+from .resume import extend_shards, folder_frames, render_damaged_again
 from .contact_sheet import SHEET_CELL, SHEET_COLUMNS, contact_sheet  # noqa: F401 (re-exported)
 from .run_files import write_run_files
 from .objects import (encode_objects, instance_image, instance_objects, pack_instances,
@@ -464,8 +464,6 @@ class FrameRenderer:
         return k
 
 
-
-
 def _cube_path(out: Path, name: str, k: int, face: str, modality: str) -> Path:
     return out / fmt.cubemap_file(name, modality, k, face)
 
@@ -816,7 +814,6 @@ def _sheet_frames(config: DatasetConfig, done: list[int] | None
     for k in frames:
         weathers.setdefault(_frame_weather(config, k), k)
     return frames[len(frames) // 2], weathers
-
 
 
 # --------------------------------------------------------------------------------------------

@@ -74,9 +74,8 @@ def stats(root: str | Path, *, plot: bool = True) -> dict:
         if k not in done:
             continue
         bad = damaged_files(root, [fmt.frame_file(c, m, k) for c in cameras for m in modalities])
-        if not bad:
-            frame_counts = _class_counts(root, cameras, k, bad)   # adds a file that won't decode
-        if bad:
+        frame_counts = {} if bad else _class_counts(root, cameras, k, bad)
+        if bad:   # cut short, or (found by _class_counts) not decoding
             damaged[k] = bad
             continue
         for name, v in frame_counts.items():
