@@ -354,6 +354,16 @@ def test_convert_writes_instances_and_objects_from_carla_instance_faces(tmp_path
         rows, cols = np.nonzero(ids == o["instance_id"])
         assert o["box"] == [cols.min(), rows.min(), cols.max() + 1, rows.max() + 1]
         assert o["pixels"] == rows.size
+    # convert --min-object-pixels: the objects of fewer pixels left out, the map as it was
+    small, big = sorted(o["pixels"] for o in objects)
+    assert small < big
+    fewer = tmp_path / "out" / "fewer"
+    render_capture(load_capture(folder, label_set="new", rgb_uint8=True), cameras, fewer,
+                   min_object_pixels=small + 1)
+    assert json.loads((fewer / "fisheye_objects.json").read_text()) == \
+        [o for o in objects if o["pixels"] == big]
+    assert (fewer / "fisheye_instances.png").read_bytes() == \
+        (cap / "fisheye_instances.png").read_bytes()
 
 
 def test_unknown_tag_names_the_file(capture_root):

@@ -269,9 +269,15 @@ def test_traceback_keeps_the_exit_code_of_bad_input(tmp_path, capsys):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("workers", [1, 2])
-def test_ctrl_c_says_the_same_command_resumes_and_it_does(tmp_path, workers):
+def test_ctrl_c_stops_within_2_s_says_what_is_kept_and_the_rerun_renders_the_rest(tmp_path,
+                                                                                 workers):
+    """Ctrl-C once a frame is finished: exit 130 within 2 s with any number of workers (the
+    workers finish or drop the frame in flight: no half-written file, no temporary left),
+    a line saying how many frames are kept, and the same command renders only the rest."""
+    import re
+
     out = tmp_path / "ds"
-    frames = 8
+    frames = 40
     argv = ["generate", "--out", str(out), "--frames", str(frames), "--image-size", "32",
             "--max-face-size", "32", "--cameras", "fisheye_left", "catadioptric_left",
             "--workers", str(workers), "--no-progress"]
@@ -282,25 +288,43 @@ def test_ctrl_c_says_the_same_command_resumes_and_it_does(tmp_path, workers):
                             text=True, env=env,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + 240
+
+    def markers() -> list[str]:
+        done = out / ".done"
+        return sorted(p.name for p in done.iterdir() if p.name.isdigit()) if done.is_dir() \
+            else []
+
+    sent = time.monotonic()
     while proc.poll() is None and time.monotonic() < deadline:
-        if (out / ".done").is_dir() and any((out / ".done").iterdir()):
+        if markers():
+            sent = time.monotonic()
             proc.send_signal(signal.SIGINT)
             break
         time.sleep(0.01)
-    _, err = proc.communicate(timeout=240)
-    finished = sorted(p.name for p in (out / ".done").iterdir())
+    proc.wait(timeout=240)
+    elapsed = time.monotonic() - sent
+    _, err = proc.communicate()
+    finished = markers()
     if len(finished) == frames:
         pytest.skip("the run finished before it could be interrupted")
     assert proc.returncode == 130, err
+    assert elapsed < 2.0, f"exit {elapsed:.2f} s after SIGINT"
     assert "Traceback" not in err
-    assert err.strip().splitlines()[-1] == ("omniscape-torch generate: interrupted; the "
-                                            "finished frames are kept; the same command "
-                                            "resumes the run")
+    line = err.strip().splitlines()[-1]
+    kept = re.fullmatch(rf"omniscape-torch generate: interrupted: (\d+) of {frames} frames "
+                        rf"kept in {re.escape(str(out))}; run the same command again to render "
+                        rf"the rest", line)
+    assert kept, line
+    assert int(kept[1]) == len(finished) >= 1
+    left = [p for p in out.rglob(".*") if p.is_file() and p.parent.name != ".done"]
+    assert not left, left                       # no temporary of the dropped frames, no lock
+    for png in out.rglob("*.png"):
+        ot.io.read_image(png)                   # every file there is whole
     again = subprocess.run(_command(*argv), capture_output=True, text=True, env=env,
                            timeout=300)
     assert again.returncode == 0, again.stderr
     assert f"skipped {len(finished)} finished" in again.stdout
-    assert len(list((out / ".done").iterdir())) == frames
+    assert len(markers()) == frames
 
 
 # --------------------------------------------------------------------------------------------

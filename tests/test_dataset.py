@@ -39,8 +39,8 @@ def _config(**kw):
 
 
 def _files(root):
-    """The dataset's files; not the lock (``.lock`` holds the id of the last process that wrote
-    the folder, not data)."""
+    """The dataset's files; not a lock (a run removes its ``.lock`` when it ends; a killed one
+    leaves it, holding the id of its process, not data)."""
     return {p.relative_to(root).as_posix(): p for p in sorted(root.rglob("*"))
             if p.is_file() and p.name != LOCK_NAME}
 
@@ -161,6 +161,72 @@ def test_rerun_is_noop_and_resume_completes(dataset, tmp_path):
     # a marker without its files is not a finished frame either
     (out / "fisheye_right" / "rgb" / "000000.png").unlink()
     assert generate(out, _config(), workers=1, progress=False)["rendered"] == [0]
+
+
+def test_min_object_pixels_leaves_the_small_objects_out_of_the_lists(dataset, tmp_path):
+    """``min_object_pixels=N``: each objects file is the default one less its objects of
+    fewer than N pixels; the instance maps and the other files stay as they were."""
+    camera = CAMERAS[2]
+    out = tmp_path / "min"
+    generate(out, _config(frames=1, cameras=(camera,), min_object_pixels=10), progress=False)
+    every = json.loads((dataset / camera / "objects" / "000000.json").read_text())
+    kept = json.loads((out / camera / "objects" / "000000.json").read_text())
+    assert kept == [o for o in every if o["pixels"] >= 10]
+    assert 0 < len(kept) < len(every)
+    for m in ("instances", "labels", "rgb"):
+        f = f"{camera}/{m}/000000.png"
+        assert (out / f).read_bytes() == (dataset / f).read_bytes()
+    assert json.loads((out / "dataset.json").read_text())["config"]["min_object_pixels"] == 10
+    with pytest.raises(ValueError, match="min_object_pixels: expected an integer of at least 1"):
+        _config(min_object_pixels=0)
+    with pytest.raises(ValueError, match="min_pixels: expected a positive integer"):
+        ot.data.objects.instance_objects(torch.zeros(2, 2, dtype=torch.int64),
+                                         torch.zeros(2, 2, dtype=torch.int64), min_pixels=0)
+
+
+def test_a_dataset_from_before_min_object_pixels_lists_every_object(dataset, tmp_path):
+    out = tmp_path / "old"
+    shutil.copytree(dataset, out)
+    manifest = json.loads((out / "dataset.json").read_text())
+    del manifest["config"]["min_object_pixels"]
+    (out / "dataset.json").write_text(json.dumps(manifest))
+    assert generate(out, _config(), progress=False)["rendered"] == []
+    with pytest.raises(ValueError, match="--min-object-pixels: the folder has 1, this run 4"):
+        generate(out, _config(min_object_pixels=4), progress=False)
+
+
+def test_a_run_leaves_no_lock_in_its_folder(dataset, tmp_path):
+    """The folder lock's file goes when the run ends: finished, refused, or a share's run."""
+    assert not (dataset / LOCK_NAME).exists()
+    with pytest.raises(ValueError, match="another configuration"):
+        generate(dataset, _config(seed=1), progress=False)
+    assert not (dataset / LOCK_NAME).exists()
+    out = tmp_path / "shared"
+    generate(out, _config(frames=1, cameras=(CAMERAS[0],)), shard=(0, 2), progress=False)
+    assert not list(out.glob(".shard-*")) and not (out / LOCK_NAME).exists()
+
+
+def test_the_progress_bar_moves_per_frame(tmp_path, monkeypatch):
+    """One step of the bar per frame finished (not per chunk of frames), in this process; the
+    worker processes report each frame the same way (tests/test_processes.py)."""
+    import tqdm
+
+    steps = []
+
+    class Bar(tqdm.tqdm):
+        def __init__(self, *args, **kwargs):
+            self.counted = kwargs.get("desc") == "generate"   # not the camera fits' bars
+            super().__init__(*args, **kwargs)
+
+        def update(self, n=1):
+            if self.counted:
+                steps.append(n)
+            return super().update(n)
+
+    monkeypatch.setattr(tqdm, "tqdm", Bar)
+    config = _config(frames=3, image_size=(16, 16), max_face_size=16, cameras=(CAMERAS[0],))
+    assert generate(tmp_path / "bar", config, progress=False)["rendered"] == [0, 1, 2]
+    assert steps == [1, 1, 1]
 
 
 def test_instances_and_objects(dataset):
@@ -463,6 +529,7 @@ def test_stats(dataset, tmp_path, capsys):
         assert sum(result["class_share"][kind].values()) == pytest.approx(1.0)
         assert result["class_share"][kind]["Road"] > 0
     assert format_stats(result).splitlines()[0].startswith("Table I")
+    assert "Unlabeled (class 0) is the sky" in text   # said where the shares are
     # the shares count valid pixels only
     n_valid = sum(int((read_image(p) == 255).sum()) for cam in ("fisheye_left", "fisheye_right")
                   for p in (out / cam / "valid").glob("*.png"))
@@ -501,7 +568,13 @@ def test_cli_generate_and_stats_missing(tmp_path, capsys):
             "--face-size", "16", "--cameras", "fisheye_left", "catadioptric_left",
             "--no-progress"]
     assert cli.main(argv) == 0
-    assert "wrote 1 frame(s)" in capsys.readouterr().out
+    printed = capsys.readouterr()
+    last = printed.out.strip().splitlines()[-1]   # what to open first
+    assert last.startswith("wrote 1 frame(s)") and f"open {out / 'contact_sheet.png'} first" in last
+    # the camera fits said in plain words, once per camera, after what they are
+    lines = printed.err.splitlines()
+    fits = [i for i, line in enumerate(lines) if " a polynomial of degree " in line]
+    assert len(fits) == 2 and lines[fits[0] - 1].startswith("calib_results.txt: each camera")
     assert read_image(out / "catadioptric_left/rgb/000000.png").shape == (32, 40, 3)
     assert not (out / "fisheye_right").exists()
     assert cli.main(["stats", str(tmp_path / "nothing")]) == 2
@@ -598,12 +671,18 @@ def test_a_run_removes_the_temporaries_of_ended_processes_only(tmp_path):
         live.wait()
 
 
-def test_frame_k_depends_on_the_seed_and_k_only(dataset, tmp_path):
+@pytest.fixture(scope="module")
+def longer(tmp_path_factory):
+    """The dataset of the module's settings with one more frame, written from scratch."""
+    out = tmp_path_factory.mktemp("longer") / "data"
+    generate(out, _config(frames=FRAMES + 1), progress=False)
+    return out
+
+
+def test_frame_k_depends_on_the_seed_and_k_only(dataset, longer):
     """A longer run extends a shorter one: frames 0 and 1 of a 3-frame run are those of the
     2-frame run byte for byte (ride noise, face sizes and weather do not depend on the frame
     count), and so are the cameras."""
-    longer = tmp_path / "longer"
-    generate(longer, _config(frames=FRAMES + 1), progress=False)
     short, long_ = _files(dataset), _files(longer)
     per_frame = [f for f in short if f.startswith(".done/") or f.split("/")[-1][:6].isdigit()]
     assert len(per_frame) > 10
@@ -612,6 +691,102 @@ def test_frame_k_depends_on_the_seed_and_k_only(dataset, tmp_path):
     for name in CAMERAS:
         assert (dataset / name / "camera.json").read_bytes() == \
             (longer / name / "camera.json").read_bytes()
+
+
+def test_a_larger_frames_extends_a_finished_dataset(dataset, longer, tmp_path):
+    """``--frames 3`` into a finished 2-frame folder of the same settings renders frame 2
+    only, keeps frames 0 and 1 untouched, and leaves the folder a 3-frame run writes, byte for
+    byte; fewer frames than the folder's are refused, naming the setting."""
+    out = tmp_path / "grown"
+    shutil.copytree(dataset, out)
+    before = {f: p.stat().st_mtime_ns for f, p in _files(out).items() if "00000" in f}
+    logged = []
+    result = generate(out, _config(frames=FRAMES + 1), progress=False, log=logged.append)
+    assert result["rendered"] == [FRAMES] and result["skipped"] == list(range(FRAMES))
+    assert any(f"from {FRAMES} to {FRAMES + 1} frames" in line for line in logged)
+    grown, fresh = _files(out), _files(longer)
+    assert set(grown) == set(fresh)
+    differ = [f for f in fresh if grown[f].read_bytes() != fresh[f].read_bytes()]
+    assert not differ, differ
+    assert {f: grown[f].stat().st_mtime_ns for f in before} == before
+    with pytest.raises(ValueError, match="--frames: the folder has 3, this run 2.*a larger "
+                                         "--frames extends it"):
+        generate(out, _config(), progress=False)
+
+
+def test_extending_repacks_the_short_last_shard(dataset, tmp_path):
+    from omniscape_torch.data.shards import pack
+
+    out = tmp_path / "grown"
+    shutil.copytree(dataset, out)
+    assert pack(out, frames_per_shard=4)["written"] == ["shard-000000.tar"]
+    generate(out, _config(frames=FRAMES + 1), format="webdataset", progress=False)
+    index = json.loads((out / "shards" / "index.json").read_text())
+    assert index["frames"] == FRAMES + 1 and index["shards"][0]["frames"] == [0, FRAMES]
+    import tarfile
+    with tarfile.open(out / "shards" / "shard-000000.tar") as tar:
+        frames = {int(n.split("_")[0]) for n in tar.getnames()}
+    assert frames == set(range(FRAMES + 1))
+
+
+def _cut(path, keep=0.5):
+    """Cut the file at ``path`` short (a copy stopped halfway)."""
+    data = path.read_bytes()
+    path.write_bytes(data[:int(len(data) * keep)])
+
+
+def test_the_integrity_check_finds_every_cut_and_no_whole_file(dataset, tmp_path):
+    from omniscape_torch.data.integrity import file_damage
+
+    files = [p for p in _files(dataset).values() if p.suffix in (".png", ".exr", ".json")]
+    assert {p.suffix for p in files} == {".png", ".exr", ".json"}
+    assert [p for p in files if file_damage(p) is not None] == []
+    for p in files:
+        if not p.name.startswith("000000"):
+            continue
+        data = p.read_bytes()
+        for cut in (1, 8, 40, len(data) // 2, len(data) - 13, len(data) - 2):
+            copy = tmp_path / p.name
+            copy.write_bytes(data[:cut])
+            assert file_damage(copy) is not None, (p, cut)
+    assert file_damage(tmp_path / "none.png") == "missing"
+
+
+def test_a_damaged_file_is_named_by_stats_and_rendered_again_by_generate(dataset, tmp_path,
+                                                                        capsys):
+    out = tmp_path / "damaged"
+    shutil.copytree(dataset, out)
+    rgb = f"{CAMERAS[2]}/rgb/000001.png"
+    _cut(out / rgb)
+    _cut(out / f"{CAMERAS[0]}/depth/000001.exr")
+    assert cli.main(["stats", str(out), "--no-plot"]) == 0
+    text = capsys.readouterr().out
+    assert f"skipped frame 000001: {CAMERAS[0]}/depth/000001.exr is damaged: cut short" in text
+    assert "(and 1 more file(s)); run generate again to render the frame anew" in text
+    assert f"the 1 finished of {FRAMES} frames" in text
+    recorded = json.loads((out / "stats.json").read_text())["damaged"]["000001"]
+    assert set(recorded) == {rgb, f"{CAMERAS[0]}/depth/000001.exr"}
+    logged = []
+    result = generate(out, _config(), progress=False, log=logged.append)
+    assert result["rendered"] == [1] and result["skipped"] == [0]
+    assert any(line.startswith("frame 000001: ") and "is damaged" in line for line in logged)
+    assert (out / rgb).read_bytes() == (dataset / rgb).read_bytes()
+
+
+def test_a_file_that_does_not_decode_is_named_by_stats(dataset, tmp_path, capsys):
+    """Damage past the structure the check reads (a flipped byte in the compressed pixels):
+    the decoding finds it, and stats names the file."""
+    out = tmp_path / "flipped"
+    shutil.copytree(dataset, out)
+    labels = out / CAMERAS[1] / "labels" / "000000.png"
+    data = bytearray(labels.read_bytes())
+    at = data.index(b"IDAT") + 20
+    data[at:at + 8] = bytes(8)
+    labels.write_bytes(bytes(data))
+    assert cli.main(["stats", str(out), "--no-plot"]) == 0
+    text = capsys.readouterr().out
+    assert (f"skipped frame 000000: {CAMERAS[1]}/labels/000000.png is damaged: cannot be "
+            "decoded") in text
 
 
 @pytest.mark.parametrize("kwargs, match", [

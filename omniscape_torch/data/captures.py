@@ -323,10 +323,11 @@ def build_cameras(cameras: Sequence[str] = CAMERAS, *, image_size: tuple[int, in
 
 def render_capture(cube: dict, cameras: dict[str, tuple], out_dir: str | Path, *,
                    depth_output: str = "range", interpolation: str = "bilinear",
-                   device: str | torch.device = "cpu",
+                   device: str | torch.device = "cpu", min_object_pixels: int = 1,
                    _layers: dict | None = None) -> list[Path]:
     """Render the cubemaps of `load_capture` through each camera and write the files
     (layout in the module docstring) into ``out_dir``. Returns the paths written.
+    ``min_object_pixels``: the objects files list the objects of at least so many pixels.
 
     A ``uint8`` RGB cube (``load_capture(rgb_uint8=True)``, what `convert_captures`
     reads) is sampled as it is into the 8-bit image written (blended in float32, rounded to
@@ -342,7 +343,8 @@ def render_capture(cube: dict, cameras: dict[str, tuple], out_dir: str | Path, *
                                     dir=out_dir.parent))
     try:
         staged = _render_into(cube, cameras, staging, depth_output=depth_output,
-                              interpolation=interpolation, device=device, _layers=_layers)
+                              interpolation=interpolation, device=device, _layers=_layers,
+                              min_object_pixels=min_object_pixels)
         out_dir.mkdir(parents=True, exist_ok=True)
         written = []
         for path in staged:
@@ -356,7 +358,7 @@ def render_capture(cube: dict, cameras: dict[str, tuple], out_dir: str | Path, *
 
 def _render_into(cube: dict, cameras: dict[str, tuple], out_dir: Path, *, depth_output: str,
                  interpolation: str, device: str | torch.device,
-                 _layers: dict | None) -> list[Path]:
+                 _layers: dict | None, min_object_pixels: int = 1) -> list[Path]:
     from ..render.layer import OmniProjection
 
     face_size = int(cube["face_size"])
@@ -403,7 +405,8 @@ def _render_into(cube: dict, cameras: dict[str, tuple], out_dir: Path, *, depth_
                 written.append(write_image(out_dir / f"{name}_instances.png",
                                            instance_image(instances)))
                 path = out_dir / f"{name}_objects.json"
-                atomic_write_text(path, encode_objects(instance_objects(instances, labels)))
+                atomic_write_text(path, encode_objects(
+                    instance_objects(instances, labels, min_pixels=min_object_pixels)))
                 written.append(path)
             written.append(write_image(out_dir / f"{name}_labels.png",
                                        labels.clamp(0, 255).to(torch.uint8)))
@@ -421,7 +424,8 @@ def convert_captures(cubemaps_dir: str | Path, out_dir: str | Path, *, label_set
                      catadioptric_looking: str = "down", depth_output: str = "range",
                      interpolation: str = "bilinear", unknown_label: int | None = None,
                      device: str | torch.device = "cpu", ray: str | bool | None = None,
-                     progress: bool | None = None) -> dict[str, list[Path]]:
+                     progress: bool | None = None,
+                     min_object_pixels: int = 1) -> dict[str, list[Path]]:
     """Convert every capture under ``cubemaps_dir`` into omni images under ``out_dir``.
 
     Angles are radians. Cameras come from `omniscape_torch.cameras.presets.fisheye` (optical
@@ -436,7 +440,9 @@ def convert_captures(cubemaps_dir: str | Path, out_dir: str | Path, *, label_set
     address of a cluster, or True for the one `distributed.ray_cluster` finds or
     starts; on CPUs, ``device="cpu"``), with the same files as without; ``cubemaps_dir`` and
     ``out_dir`` must be at the same path on every node. ``progress``: a tqdm bar over the
-    captures on stderr (default: when stderr is a terminal).
+    captures on stderr (default: when stderr is a terminal). ``min_object_pixels``: with
+    instance faces, the objects files list the objects of at least so many pixels (default 1:
+    all).
 
     Returns:
         ``{capture_id: [paths written]}``.
@@ -458,6 +464,10 @@ def convert_captures(cubemaps_dir: str | Path, out_dir: str | Path, *, label_set
         raise ValueError(f"depth_output: expected 'range' or 'z', got {depth_output!r}")
     if label_set not in LABEL_SETS:
         raise ValueError(f"label_set: expected one of {tuple(LABEL_SETS)}, got {label_set!r}")
+    if isinstance(min_object_pixels, bool) or not isinstance(min_object_pixels, int) or \
+            min_object_pixels < 1:
+        raise ValueError(f"min_object_pixels: expected a positive integer, got "
+                         f"{min_object_pixels!r}")
     captures = find_captures(cubemaps_dir)
     built = build_cameras(cameras, image_size=image_size, fisheye_model=fisheye_model,
                           fisheye_fov=fisheye_fov, catadioptric_xi=catadioptric_xi,
@@ -475,8 +485,9 @@ def convert_captures(cubemaps_dir: str | Path, out_dir: str | Path, *, label_set
     results: dict[str, list[Path]] = {}
     failures: dict[str, str] = {}
     options = {"label_set": label_set, "unknown_label": unknown_label,
-               "depth_output": depth_output, "interpolation": interpolation}
-    with folder_lock(out_dir) as lock:
+               "depth_output": depth_output, "interpolation": interpolation,
+               "min_object_pixels": min_object_pixels}
+    with folder_lock(out_dir):
         remove_stale_temporaries(out_dir)
         records, fits = _polynomial_models(built, meta, out_dir)
         if use_ray:
@@ -506,9 +517,7 @@ def convert_captures(cubemaps_dir: str | Path, out_dir: str | Path, *, label_set
             for name in meta:
                 meta[name]["ocamcalib"] = records[name]
             atomic_write_text(out_dir / "cameras.json", json.dumps(meta, indent=2) + "\n")
-        elif created:    # nothing converted: nothing left behind either
-            lock.unlink()
-    if created and not results:
+    if created and not results:   # nothing converted: nothing left behind either
         with contextlib.suppress(OSError):
             out_dir.rmdir()
     if failures:
@@ -525,7 +534,8 @@ def convert_chunk(out_dir: str | Path, cameras: dict[str, tuple], options: dict,
 
     Args:
         cameras: `build_cameras`' dict. options: ``label_set``, ``unknown_label``,
-            ``depth_output``, ``interpolation`` (as for `convert_captures`).
+            ``depth_output``, ``interpolation``, ``min_object_pixels`` (as for
+            `convert_captures`).
         layers: a dict that keeps the layers across calls (default: this call's).
 
     Returns:
@@ -543,7 +553,8 @@ def convert_chunk(out_dir: str | Path, cameras: dict[str, tuple], options: dict,
             done[capture] = render_capture(
                 cube, cameras, out_dir / Path(capture).name,
                 depth_output=options["depth_output"], interpolation=options["interpolation"],
-                device=device, _layers=layers)
+                device=device, min_object_pixels=options.get("min_object_pixels", 1),
+                _layers=layers)
         except Exception as err:   # noqa: BLE001 - reported per capture
             failures[capture] = distributed.describe_error(err)
     return done, failures

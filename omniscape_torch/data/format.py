@@ -57,8 +57,8 @@ Layout of ``DIR``
                                    camera's rgb at the first frame of each (four a row);
                                    200 x 200 pixels per cell; rewritten only when its bytes
                                    change
-      .lock                        held by the run writing the folder (``io.atomic``); a second
-                                   run into the folder stops
+      .lock                        while a run writes the folder (``io.atomic``; removed when
+                                   it ends): a second run into the folder stops
       stats.json, stats.png        written by ``omniscape-torch stats``
       shards/                      only with ``generate --format webdataset`` or ``pack``:
         index.json                 frames per shard, the files of a sample (instance ids

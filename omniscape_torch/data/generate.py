@@ -1,9 +1,10 @@
 """Write an OmniScape-like dataset: a motorcycle ride through the built-in town, seen by a rig of
 stereo fisheye and stereo catadioptric cameras, with range depth, labels, intrinsics (also as
-OCamCalib's ``calib_results.txt``, as the OmniScape dataset ships them: :mod:`.ocamcalib`, fitted
-once per run), extrinsics, vehicle dynamics, and the instance ids and 2D boxes of the town's
-vehicles, pedestrians, poles and traffic signs (:mod:`.objects`; ``omniscape-torch
-generate``; the files: :mod:`.format`).
+OCamCalib's ``calib_results.txt``, as the OmniScape dataset ships them: `data.ocamcalib`,
+fitted once per folder), extrinsics, vehicle dynamics, and the instance ids and 2D boxes of the
+town's vehicles, pedestrians, poles and traffic signs (`data.objects`; ``omniscape-torch
+generate``; the files: `data.format`, the per-run ones written by `data.run_files`, the
+contact sheet by `data.contact_sheet`).
 
 The rig
 -------
@@ -32,41 +33,41 @@ on the number of frames (a run of 12 frames extends a run of 8). The built-in to
 so the ride is made with ``town_route(seed, town)`` (S-bends between the lanes of the main
 street in town 1, right turns at the crossings of towns 2 and 3): pitch comes from the
 suspension only. The images are encoded and written by threads while the next camera renders
-(:class:`FrameRenderer`). With ``antialias=k`` > 1 (the default up to 512 x 512 pixels:
-:func:`default_antialias`) each cube texel on an edge is the mean of ``k x k`` rays over its
+(`FrameRenderer`). With ``antialias=k`` > 1 (the default up to 512 x 512 pixels:
+`default_antialias`) each cube texel on an edge is the mean of ``k x k`` rays over its
 footprint and each RGB pixel the mean of 2 x 2 rays over its own; labels and depth stay the
 texel and pixel centres' point samples.
 
 ``NNNNNN`` is the frame number (zero-padded to 6 digits). Every file is written atomically
 (temporary file + rename). A frame is finished when its ``.done`` marker and all its files
 exist; a rerun with the same configuration skips finished frames (and leaves their files and
-the unchanged per-run files untouched), so an interrupted run resumes where it stopped. A rerun
-with another configuration in the same folder is refused (a manifest written before
-``antialias`` existed is one of ``antialias=1``). Frames are independent: ``workers``
-processes render shares of the frames (:func:`render_frames`, a plain function of the
-configuration and the frame numbers); nothing uses a global random state (the weather of a frame,
-when several are given, is drawn from ``numpy.random.default_rng([seed, frame])``), so the
-files do not depend on the number of workers.
+the unchanged per-run files untouched), so an interrupted run resumes where it stopped; a
+rerun with more frames extends the dataset, and one with another configuration in the same
+folder is refused (`data.resume`; a manifest written before ``antialias`` existed is one of
+``antialias=1``). A rerun checks the files of the finished frames (`data.integrity`) and
+renders again those with a damaged file. Frames are independent: ``workers``
+processes take a frame (or a shard's frames) at a time and report each finished frame to the
+progress bar (`processes.run_in_processes`; the frames: `render_chunk`, a plain function of
+the configuration and the frame numbers); nothing uses a global random state (the weather of a
+frame, when several are given, is drawn from ``numpy.random.default_rng([seed, frame])``), so
+the files do not depend on the number of workers. Ctrl-C stops a run within 2 s with any
+number of workers (they finish the frame in flight or drop it: its files are whole or not
+there), raising `Interrupted` with the frames kept; the same call renders the rest.
 
-Past one machine (:mod:`.distributed`): ``ray`` runs chunks of frames as Ray tasks
-(:func:`render_task`), ``shard=(K, N)`` renders run ``K`` of ``N``'s share for schedulers
+Past one machine (`data.distributed`): ``ray`` runs chunks of frames as Ray tasks
+(`render_task`), ``shard=(K, N)`` renders run ``K`` of ``N``'s share for schedulers
 without Ray; both write the same files as one process. ``format="webdataset"`` also packs the
-frames into WebDataset shards (:mod:`.shards`), each by the task that rendered them.
+frames into WebDataset shards (`data.shards`), each by the task that rendered them.
 """
 
 from __future__ import annotations
 
-import csv
+import contextlib
 import functools
-import io as _io
 import json
 import math
-import platform
-import signal
 import sys
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Callable
 
@@ -76,18 +77,20 @@ import torch
 from ..scenes import ride as _ride
 from ..scenes import routes as _routes
 from ..cubemap.faces import FACES
-from ..io import (CLASSES, IGNORE_INDEX, atomic_write_bytes, atomic_write_text, colorize,
-                 read_image, write_exr, write_image)
-from ..io.atomic import folder_lock, remove_stale_temporaries
+from ..io import atomic_write_bytes, atomic_write_text, colorize, write_exr, write_image
+from ..io.atomic import folder_lock, remove_stale_temporaries, remove_temporaries
 from . import distributed, shards
+from .processes import run_in_processes
 from . import format as fmt
-from . import ocamcalib
+from .resume import config_changes  # noqa: F401 (re-exported)
+from .resume import extend_shards, folder_frames, render_damaged_again
+from .contact_sheet import SHEET_CELL, SHEET_COLUMNS, contact_sheet  # noqa: F401 (re-exported)
+from .run_files import write_run_files
 from .objects import (encode_objects, instance_image, instance_objects, pack_instances,
                       unpack_instances)
-from ..io.labels import PALETTE
-from ..io.images import encode_image, require_pillow
+from ..io.images import require_pillow
 from ..cameras.presets import catadioptric, fisheye
-from ..cubemap.faces import face_axes
+from ..cubemap.cone import camera_cone, cone_texels, grow_texels
 from ..render.layer import OmniProjection
 from ..render.reproject import equirectangular_camera
 from ..scenes.town import CARLA_PRESETS, LAYOUTS, WEATHERS, Town
@@ -95,8 +98,8 @@ from ..render.sizing import (MEMORY_PER_PIXEL, PROCESS_MEMORY, available_memory,
                              required_face_size)
 
 __all__ = ["CAMERAS", "FORMATS", "RIG_POSITIONS", "DatasetConfig", "FrameRenderer",
-           "check_memory", "contact_sheet", "estimate_memory", "generate", "render_chunk",
-           "render_frame", "render_frames", "render_task"]
+           "Interrupted", "check_memory", "contact_sheet", "estimate_memory", "generate",
+           "render_chunk", "render_frame", "render_frames", "render_task"]
 
 #: The rig's cameras, in this order.
 CAMERAS = ("fisheye_left", "fisheye_right", "catadioptric_left", "catadioptric_right")
@@ -147,6 +150,7 @@ class DatasetConfig:
     save_panorama: bool = False
     town: int = 1                                 # the town's layout: scenes.town.LAYOUTS
     antialias: int | None = None                  # None: default_antialias(image_size)
+    min_object_pixels: int = 1                    # objects files: objects of this many pixels
 
     def __post_init__(self):
         self.image_size = tuple(int(s) for s in self.image_size)
@@ -163,6 +167,7 @@ class DatasetConfig:
                                  f"{value!r}")
         positive_int("frames", self.frames)
         positive_int("antialias", self.antialias)
+        positive_int("min_object_pixels", self.min_object_pixels)
         positive_int("max_face_size", self.max_face_size, MIN_FACE_SIZE, " texels")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f"seed: expected an integer >= 0, got {self.seed!r}")
@@ -198,32 +203,6 @@ class DatasetConfig:
         d["cameras"] = list(self.cameras)
         d["weather"] = list(self.weather)
         return d
-
-
-def _setting(key: str, value) -> str:
-    """A configuration value as the command line writes it."""
-    if value is None:
-        return "the default"
-    if isinstance(value, bool):
-        return "on" if value else "off"
-    if key == "image_size" and isinstance(value, (list, tuple)) and len(value) == 2:
-        return str(value[0]) if value[0] == value[1] else f"{value[0]}x{value[1]}"
-    if isinstance(value, (list, tuple)):
-        return ",".join(map(str, value))
-    return str(value)
-
-
-def config_changes(old: object, new: dict) -> str:
-    """``": --image-size: the folder has 512, this run 256; ..."``: each setting of ``new`` (a
-    :meth:`DatasetConfig.to_dict`) that differs from a folder's ``old`` one, by its option
-    name, with both values; ``""`` when ``old`` is not a configuration (unreadable)."""
-    if not isinstance(old, dict):
-        return ""
-    changes = [f"--{key.replace('_', '-')}: the folder has "
-               f"{_setting(key, old[key]) if key in old else 'none'}, this run "
-               f"{_setting(key, new[key]) if key in new else 'none'}"
-               for key in dict.fromkeys([*new, *old]) if old.get(key) != new.get(key)]
-    return ": " + "; ".join(changes) if changes else ""
 
 
 #: Images of at most this many pixels are anti-aliased by default (:func:`default_antialias`).
@@ -304,6 +283,10 @@ class _Plan:
         self.panorama_size = (h, 2 * h)
         self.panorama_face = _panorama_face(config.max_face_size, h)
 
+    def weather(self, k: int) -> str:
+        """The weather of frame ``k``."""
+        return _frame_weather(self.config, k)
+
     def rotation(self, name: str, k: int) -> torch.Tensor:
         """Camera -> world (= cube) rotation of camera ``name`` at frame ``k``, float64."""
         return self.R_bike[k] @ self.cameras[name]["r_cam"]
@@ -323,8 +306,8 @@ class _Plan:
 
     def texels(self, name: str, k: int) -> torch.Tensor:
         """``(6, F, F)`` bool: the cube texels within camera ``name``'s cone of view at frame
-        ``k`` (:func:`camera_cone`, :func:`cone_texels`), a superset of those its layer reads
-        (the last one kept)."""
+        ``k`` (`cubemap.cone`: `camera_cone`, `cone_texels`), a superset of those its layer
+        reads (the last one kept)."""
         if self._texels is None or self._texels[0] != (name, k):
             c = self.cameras[name]
             if "cone" not in c:
@@ -362,12 +345,11 @@ class FrameRenderer:
     worker).
 
     Per camera, the town traces only the texels the layer reads: those within the camera's
-    cone of view (:func:`camera_cone`, :func:`cone_texels`; the layer's output is the same bit
-    for bit as from whole faces, tests/test_dataset.py), unless ``save_cubemaps`` asks for
-    whole faces. The cubes are rendered into buffers kept
-    from camera to camera and frame to frame, and each camera's images are converted,
-    encoded and written by ``writers`` threads while the next camera renders (a frame's
-    marker once all its files are written)."""
+    cone of view (`cubemap.cone`: `camera_cone`, `cone_texels`; the layer's output is the same
+    bit for bit as from whole faces, tests/test_dataset.py), unless ``save_cubemaps`` asks for
+    whole faces. The cubes are rendered into buffers kept from camera to camera and frame to
+    frame, and each camera's images are converted, encoded and written by ``writers`` threads
+    while the next camera renders (a frame's marker once all its files are written)."""
 
     def __init__(self, config: DatasetConfig, *, writers: int = 2) -> None:
         self.config = config
@@ -411,7 +393,7 @@ class FrameRenderer:
         if self.config.save_cubemaps:
             return None
         texels = self.plan.texels(name, k)
-        return texels if self.config.antialias == 1 else _grow(texels)
+        return texels if self.config.antialias == 1 else grow_texels(texels)
 
     def cubemap(self, name: str, k: int) -> dict[str, torch.Tensor]:
         """Camera ``name``'s cubemap of frame ``k`` (``Town.render_cubemap``: the faces and
@@ -449,7 +431,8 @@ class FrameRenderer:
                             rgb=cube["rgb"], depth=cube["depth"], labels=packed,
                             rotation=plan.rotation(name, k).float())
                         # res is this camera's own: its writers may run while the next renders
-                        pending.append(pool.submit(_write_camera, out, name, k, res))
+                        pending.append(pool.submit(_write_camera, out, name, k, res,
+                                                   config.min_object_pixels))
                         if config.save_cubemaps:
                             for i, (face, need) in enumerate(zip(FACES, faces.tolist())):
                                 if need:
@@ -481,59 +464,6 @@ class FrameRenderer:
         return k
 
 
-def camera_cone(camera, face_size: int) -> float:
-    """The half-angle (radians) of a cone around a camera's optical axis that holds every cube
-    texel its layer reads at ``face_size``: the camera's widest angle (``Camera.max_angle``,
-    its model's domain within its ``fov``, an upper bound of its valid pixels'), plus one and a
-    half times the largest angle between neighbouring pixels along the image's centre row and
-    column (a pixel's footprint, which ``sizing.visible_faces`` counts too, with room for the
-    diagonal and the tangential direction) and two and a half texels at a face's centre
-    (``2 / F`` radians each, the largest: the bilinear taps, within a texel of the ray, and the
-    atlas border, resampled from the next face's texels within a texel and a half of the
-    seam)."""
-    h, w = camera.image_size
-    cu, cv = (w - 1) / 2, (h - 1) / 2
-    u = torch.arange(w, dtype=torch.float64)
-    v = torch.arange(h, dtype=torch.float64)
-    step = 0.0
-    params = camera.params.detach().reshape(-1, camera.params.shape[-1])[0].double()
-    for pixels in (torch.stack([u, torch.full_like(u, cv)], -1),
-                   torch.stack([torch.full_like(v, cu), v], -1)):
-        rays, valid = camera.model.unproject(pixels, params)
-        rays = rays / rays.norm(dim=-1, keepdim=True)
-        both = valid[1:] & valid[:-1]
-        if both.any():
-            cos = (rays[1:] * rays[:-1]).sum(-1)[both].clamp(-1, 1)
-            step = max(step, float(torch.acos(cos).max()))
-    widest = float(camera.max_angle().detach().reshape(-1)[0])
-    return widest + 1.5 * step + 2.5 * (2.0 / face_size)
-
-
-def cone_texels(face_size: int, axis: torch.Tensor, half_angle: float) -> torch.Tensor:
-    """``(6, F, F)`` bool: the cube texels (cube axes = world) whose ray lies within
-    ``half_angle`` radians of the unit vector ``axis (3,)`` (float32: its rounding is far
-    below the margins of :func:`camera_cone`)."""
-    F = face_size
-    if half_angle >= math.pi:
-        return torch.ones(6, F, F, dtype=torch.bool)
-    f, c = F / 2, (F - 1) / 2
-    x = (torch.arange(F, dtype=torch.float32) - c) / f           # texel u (columns), v (rows)
-    norm = torch.sqrt(1 + x.view(1, F) ** 2 + x.view(F, 1) ** 2) * math.cos(half_angle)
-    axes = face_axes(torch.float64)                                # (6, [a, b, r], 3)
-    proj = (axes @ axis.to(torch.float64).reshape(3)).float()     # (6, 3): a.A, b.A, r.A
-    out = torch.empty(6, F, F, dtype=torch.bool)
-    for k in range(6):   # a face at a time: no (6, F, F) float temporaries
-        dot = proj[k, 2] * x.view(1, F) + proj[k, 1] * x.view(F, 1) + proj[k, 0]
-        torch.ge(dot, norm, out=out[k])
-    return out
-
-
-def _grow(texels: torch.Tensor) -> torch.Tensor:
-    """``texels (6, F, F)`` bool and their 8 neighbours on each face (a 3 x 3 dilation)."""
-    grown = torch.nn.functional.max_pool2d(texels[:, None].float(), 3, stride=1, padding=1)
-    return grown[:, 0] > 0
-
-
 def _cube_path(out: Path, name: str, k: int, face: str, modality: str) -> Path:
     return out / fmt.cubemap_file(name, modality, k, face)
 
@@ -542,9 +472,11 @@ def _panorama_path(out: Path, k: int, modality: str) -> Path:
     return out / fmt.panorama_file(modality, k)
 
 
-def _write_camera(out: Path, name: str, k: int, res: dict[str, torch.Tensor]) -> None:
+def _write_camera(out: Path, name: str, k: int, res: dict[str, torch.Tensor],
+                  min_object_pixels: int = 1) -> None:
     """Write one camera's images of frame ``k`` (``res``: the layer's outputs, its labels
-    packed with the instance ids: ``objects.pack_instances``)."""
+    packed with the instance ids: ``objects.pack_instances``; the objects file lists those
+    of at least ``min_object_pixels`` pixels)."""
     labels, instances = unpack_instances(res["labels"][0])
     valid = res["valid"][0, 0]
 
@@ -558,7 +490,8 @@ def _write_camera(out: Path, name: str, k: int, res: dict[str, torch.Tensor]) ->
     write_image(path("labels_color"), colorize(ids))
     write_image(path("valid"), (valid.to(torch.uint8) * 255).numpy())
     write_image(path("instances"), instance_image(instances))
-    atomic_write_text(path("objects"), encode_objects(instance_objects(instances, labels)))
+    atomic_write_text(path("objects"), encode_objects(
+        instance_objects(instances, labels, min_pixels=min_object_pixels)))
 
 
 def _write_modalities(path: Callable[[str], Path], rgb: torch.Tensor, depth: torch.Tensor,
@@ -582,160 +515,50 @@ def render_frame(config: DatasetConfig, out: str | Path, k: int) -> int:
     return render_frames(config, out, [k])[0]
 
 
-def _init_worker() -> None:
-    # Ctrl-C reaches the whole process group: the main process stops the run and says so
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+def _worker_setup(config: DatasetConfig, out: str, frames_per_shard: int | None) -> Callable:
+    """A worker process's state (`processes.run_in_processes`): one thread for torch, a
+    renderer built once; returns the function that renders a unit of frames."""
     torch.set_num_threads(1)
+    return functools.partial(_render_unit, FrameRenderer(config), Path(out), frames_per_shard)
+
+
+def _render_unit(renderer: FrameRenderer, out: Path, frames_per_shard: int | None,
+                 frames: list[int], report: Callable[[int], None]) -> None:
+    render_chunk(renderer.config, out, frames, frames_per_shard, renderer=renderer,
+                 on_frame=report)
+
+
+def _frame_folders(plan: _Plan, out: Path) -> list[Path]:
+    """The folders a frame's files (and its marker, and a shard) are written in."""
+    config = plan.config
+    folders = [out, out / fmt.DONE, out / fmt.SHARDS]
+    for name in config.cameras:
+        folders += [out / name / m for m in fmt.MODALITIES]
+        if config.save_cubemaps:
+            folders += [out / name / "cubemap" / m for m in fmt.CUBE_MODALITIES]
+    if config.save_panorama:
+        folders += [out / "panorama" / m for m in fmt.CUBE_MODALITIES]
+    return folders
+
+
+class Interrupted(KeyboardInterrupt):
+    """``generate`` stopped by Ctrl-C (a `KeyboardInterrupt`), after its workers stopped:
+    what the folder keeps. The same call renders the rest.
+
+    Attributes:
+        kept: the frames of the run (of its share, with ``shard``) finished in the folder.
+        frames: the run's frames (of its share).
+        out: the dataset folder.
+    """
+
+    def __init__(self, kept: int, frames: int, out: Path):
+        super().__init__(f"interrupted: {kept} of {frames} frames kept in {out}")
+        self.kept, self.frames, self.out = kept, frames, out
 
 
 def _to_uint8(rgb: torch.Tensor) -> np.ndarray:
     """``(3, H, W)`` float in [0, 1] -> ``(H, W, 3)`` uint8."""
     return (rgb.clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()
-
-
-# --------------------------------------------------------------------------------------------
-# Per-run files
-# --------------------------------------------------------------------------------------------
-
-def _write_if_changed(path: Path, text: str) -> None:
-    """Atomic write, skipped when the file already holds ``text`` (a rerun keeps its mtime)."""
-    try:
-        if path.read_text(encoding="utf-8") == text:
-            return
-    except (FileNotFoundError, UnicodeDecodeError):
-        pass
-    atomic_write_text(path, text)
-
-
-def _dumps(obj) -> str:
-    return json.dumps(obj, indent=2) + "\n"
-
-
-def _matrix(t: torch.Tensor) -> list:
-    return [[float(x) for x in row] for row in t.tolist()]
-
-
-def _pose(rotation: torch.Tensor, centre: torch.Tensor) -> list:
-    t = torch.eye(4, dtype=torch.float64)
-    t[:3, :3], t[:3, 3] = rotation, centre
-    return _matrix(t)
-
-
-def _versions() -> dict:
-    from importlib.metadata import PackageNotFoundError, version
-    try:
-        ours = version("omniscape_torch")
-    except PackageNotFoundError:  # pragma: no cover - run from a checkout never installed
-        ours = "unknown"
-    out = {"omniscape_torch": ours, "torch": torch.__version__, "numpy": np.__version__,
-           "python": platform.python_version()}
-    for name, module in (("pillow", "PIL"), ("opencv", "cv2")):   # cv2: optional
-        try:
-            out[name] = __import__(module).__version__
-        except ImportError:  # pragma: no cover
-            pass
-    return out
-
-
-def _dynamics_csv(recs: list[dict]) -> str:
-    columns = ["frame", "timestamp"]
-    for key in ("location", "velocity", "acceleration", "angular_velocity"):
-        columns += [f"{key}_{a}" for a in "xyz"]
-    columns += ["rotation_pitch", "rotation_yaw", "rotation_roll", "speed"]
-    buf = _io.StringIO()
-    writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(columns)
-    for r in recs:
-        row = [r["frame"], repr(r["timestamp"])]
-        for key in ("location", "velocity", "acceleration", "angular_velocity"):
-            row += [repr(r[key][a]) for a in "xyz"]
-        row += [repr(r["rotation"][a]) for a in ("pitch", "yaw", "roll")]
-        row.append(repr(r["speed"]))
-        writer.writerow(row)
-    return buf.getvalue()
-
-
-def _read_json(path: Path):
-    """The JSON in ``path``, or None when it is missing or unreadable (a file to rewrite)."""
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
-
-
-def _write_camera_files(name: str, camera, base: Path, fits: dict,
-                        log: Callable[[str], None]) -> None:
-    """``camera.json`` and ``calib_results.txt`` of one camera. The polynomial model is fitted
-    once per distinct camera of the run (``fits``: Camera JSON -> fit, shared by the stereo
-    pairs) and not at all when the folder already holds the file and its record for this
-    camera (a rerun); the file is written before the record that names it."""
-    data = camera.to_dict()
-    old = _read_json(base / fmt.CAMERA)
-    written = ({k: v for k, v in old.items() if k != "ocamcalib"}
-               if isinstance(old, dict) else None)
-    record = ocamcalib.cached_record(old.get("ocamcalib") if isinstance(old, dict) else None,
-                                     base / fmt.OCAMCALIB, data, written)
-    if record is None:
-        key = json.dumps(data, sort_keys=True)
-        if key not in fits:
-            fits[key] = ocamcalib.fit_polynomial(camera)
-        fit = fits[key]
-        record = ocamcalib.write_calib_results(fit, base / fmt.OCAMCALIB)
-        log(f"{name}: {fmt.OCAMCALIB}, polynomial of degree {fit.degree}, held-out error "
-            f"max {fit.max_px:.3f} px, RMS {fit.rms_px:.3f} px"
-            + ("" if fit.within_tolerance else
-               f" (above the {ocamcalib.TOLERANCE_PX} px aimed at: the best of degrees "
-               f"{list(ocamcalib.DEGREES)})"))
-    _write_if_changed(base / fmt.CAMERA, _dumps({**data, "ocamcalib": record}))
-
-
-def _write_run_files(plan: _Plan, out: Path,
-                     log: Callable[[str], None] = lambda msg: None) -> None:
-    config = plan.config
-    recs = _ride.records(plan.frames)
-    _write_if_changed(out / fmt.DYNAMICS, _dumps(recs))
-    _write_if_changed(out / fmt.DYNAMICS_CSV, _dynamics_csv(recs))
-    cameras = {}
-    fits: dict = {}
-    for name, c in plan.cameras.items():
-        base = out / name
-        base.mkdir(parents=True, exist_ok=True)
-        _write_camera_files(name, c["camera"], base, fits, log)
-        t_rig = _pose(c["r_cam"], c["position"])
-        poses = []
-        for k in range(config.frames):
-            poses.append({"frame": k,
-                          "T_world_camera": _pose(plan.rotation(name, k), plan.centre(name, k)),
-                          "faces": [f for f, v in zip(FACES, plan.faces(name, k).tolist())
-                                    if v]})
-        extr = {"frames": {"rig": "x right, y down, z forward (OpenCV), origin on the ground "
-                                  "under the motorcycle's reference point, metres",
-                           "world": "x east, y down, z north, metres (town frame; CARLA "
-                                    "location (x, y, z) = world (z, x, -y))",
-                           "camera": "OpenCV, x right, y down, z forward"},
-                "T_rig_camera": t_rig, "face_size": c["face_size"], "poses": poses}
-        _write_if_changed(base / "extrinsics.json", _dumps(extr))
-        cameras[name] = {"model": c["camera"].model.name,
-                         "image_size": list(config.image_size),
-                         "face_size": c["face_size"],
-                         "position_rig": list(RIG_POSITIONS[name]),
-                         "rotation_rig_camera": _matrix(c["r_cam"])}
-    manifest = {"format": fmt.FORMAT, "format_version": fmt.FORMAT_VERSION,
-                "config": config.to_dict(), "versions": _versions(),
-                "frames": config.frames, "cameras": cameras,
-                "classes": list(CLASSES), "ignore_index": IGNORE_INDEX,
-                "palette": PALETTE.tolist(),
-                "weather_per_frame": [_frame_weather(config, k) for k in range(config.frames)],
-                "layout": fmt.layout(config.save_cubemaps, config.save_panorama),
-                "conventions": {"depth": "range (Euclidean, along the ray), metres",
-                                "angles": "degrees in dynamics.json (CARLA)",
-                                "pixels": "(u, v) = (column, row), (0, 0) the centre of the "
-                                          "top-left pixel",
-                                "boxes": "objects/*.json: XYXY corners, pixel columns u0..u1 "
-                                         "and rows v0..v1 -> [u0, v0, u1 + 1, v1 + 1]",
-                                "instances": "16-bit ids, 0 none; the same object keeps its "
-                                             "id in every frame and camera"}}
-    _write_if_changed(out / fmt.MANIFEST, _dumps(manifest))
 
 
 # --------------------------------------------------------------------------------------------
@@ -751,22 +574,23 @@ def generate(out: str | Path, config: DatasetConfig | None = None, *, workers: i
              ray: str | bool | None = None, shard: tuple[int, int] | None = None,
              format: str = "folder", frames_per_shard: int | None = None,
              progress: bool | None = None, log: Callable[[str], None] | None = None) -> dict:
-    """Write (or complete) the dataset of ``config`` in ``out``.
+    """Write (or complete, or extend to more frames) the dataset of ``config`` in ``out``.
 
     Args:
         out: the dataset folder (created). With ``ray`` or ``shard`` across machines, a
             folder every machine sees at the same path (shared storage).
-        config: a :class:`DatasetConfig` (default: all defaults).
-        workers: processes rendering frames in parallel on this machine (1: in this process).
-        ray: chunks of frames as Ray tasks (:func:`.distributed.run_on_ray`): the address of a
+        config: a `DatasetConfig` (default: all defaults).
+        workers: processes rendering frames in parallel on this machine (1: in this process),
+            each taking the next frame (or shard) not taken yet.
+        ray: chunks of frames as Ray tasks (`distributed.run_on_ray`): the address of a
             cluster (``"HOST:PORT"``, ``"auto"``), or True for ``$RAY_ADDRESS``, else the
             cluster of ``ray start`` on this machine, else a local cluster started for the run
-            (:func:`.distributed.ray_cluster`); None (default): no Ray. Not with ``workers``.
+            (`distributed.ray_cluster`); None (default): no Ray. Not with ``workers``.
         shard: ``(K, N)``: only run ``K`` of ``N``'s share, frames ``K, K + N, ...`` (with
             ``format="webdataset"``, the frames of shards ``K, K + N, ...``); ``N`` such runs,
             anywhere and at once, write the dataset one run writes. Each locks its own share.
         format: ``"folder"`` (default), or ``"webdataset"``: also pack the frames into
-            WebDataset shards of ``frames_per_shard`` frames (:mod:`.shards`), each by the
+            WebDataset shards of ``frames_per_shard`` frames (`data.shards`), each by the
             task that rendered them.
         frames_per_shard: default, that of the shards in ``out``, else
             ``shards.FRAMES_PER_SHARD``; only with ``format="webdataset"``.
@@ -779,16 +603,18 @@ def generate(out: str | Path, config: DatasetConfig | None = None, *, workers: i
 
     Raises:
         ValueError: bad configuration or argument, or ``out`` holds a dataset of another
-            configuration (or shards of another ``frames_per_shard``).
+            configuration or of more frames (or shards of another ``frames_per_shard``).
         ImportError: ``ray`` without Ray installed, or no Pillow to write the images with
             (at once).
-        MemoryError: the run would not fit in memory (:func:`check_memory`; with ``ray``, in
+        MemoryError: the run would not fit in memory (`check_memory`; with ``ray``, in
             any node of the cluster; before any work).
         omniscape_torch.data.distributed.TaskErrors: with ``ray``, frames that failed for good,
             each with its error; the others are written, and the same call renders the rest.
         omniscape_torch.io.atomic.FolderBusyError: another run is writing ``out`` (or the same
             share of it).
         OSError: ``out`` cannot be written (the message names the path).
+        Interrupted: Ctrl-C (a `KeyboardInterrupt`), once the workers have stopped (within
+            2 s): how many frames the folder keeps; the same call renders the rest.
     """
     config = DatasetConfig() if config is None else config
     config.validate()
@@ -814,11 +640,16 @@ def generate(out: str | Path, config: DatasetConfig | None = None, *, workers: i
         check_memory(config, workers)
     # runs of other shares of the frames may write the folder at the same time
     lock = out if shard is None else out / f".shard-{shard[0]}-of-{shard[1]}"
-    with folder_lock(lock):
-        return _generate(out, config, workers, progress, log, ray=ray if use_ray else None,
-                         shard=shard, frames_per_shard=(
-                             shards.resolve_frames_per_shard(out, frames_per_shard)
-                             if format == "webdataset" else None))
+    try:
+        with folder_lock(lock):   # its file removed when the run ends, however it ends
+            return _generate(out, config, workers, progress, log, ray=ray if use_ray else None,
+                             shard=shard, frames_per_shard=(
+                                 shards.resolve_frames_per_shard(out, frames_per_shard)
+                                 if format == "webdataset" else None))
+    finally:
+        if shard is not None:   # the share's lock folder, if empty (another run may hold it)
+            with contextlib.suppress(OSError):
+                lock.rmdir()
 
 
 def _generate(out: Path, config: DatasetConfig, workers: int, progress: bool | None,
@@ -826,19 +657,7 @@ def _generate(out: Path, config: DatasetConfig, workers: int, progress: bool | N
               shard: tuple[int, int] | None = None,
               frames_per_shard: int | None = None) -> dict:
     """``generate`` inside the folder's lock (``frames_per_shard``: WebDataset shards)."""
-    manifest = out / fmt.MANIFEST
-    if manifest.is_file():
-        try:
-            old = json.loads(manifest.read_text(encoding="utf-8")).get("config")
-        except (ValueError, AttributeError):
-            old = None
-        if isinstance(old, dict):   # written before antialias existed: one ray a texel
-            old.setdefault("antialias", 1)
-        if old != config.to_dict():
-            raise ValueError(f"{out} holds a dataset of another configuration ({manifest}"
-                             f"{config_changes(old, config.to_dict())}); rerun with the "
-                             f"folder's settings to complete it, or use another --out folder "
-                             f"or remove it")
+    old_frames = folder_frames(out, config)
     # A run killed mid-write leaves its temporaries (the finished files are whole: written by
     # rename); they carry their process id, and only those of ended processes are removed.
     # Not by a share of a run: the others may run on other machines, whose processes this one
@@ -846,9 +665,13 @@ def _generate(out: Path, config: DatasetConfig, workers: int, progress: bool | N
     stale = remove_stale_temporaries(out) if shard is None else []
     if stale:
         log(f"removed {len(stale)} temporary file(s) of an interrupted run")
+    if old_frames is not None and old_frames < config.frames:
+        log(f"extending the dataset in {out} from {old_frames} to {config.frames} frames (its "
+            f"frames are kept: frame k depends on the settings and k only)")
+        extend_shards(out, config)
     renderer = FrameRenderer(config)
     plan = renderer.plan
-    _write_run_files(plan, out, log)
+    write_run_files(plan, out, log)
     s = frames_per_shard
     if s is None:
         units = [[k] for k in range(config.frames)]
@@ -856,6 +679,8 @@ def _generate(out: Path, config: DatasetConfig, workers: int, progress: bool | N
         shards.write_index(out, config.frames, config.cameras, s)
         units = shards.shard_groups(config.frames, s)
     units = distributed.shard_part(units, shard)
+
+    render_damaged_again(plan, out, [k for u in units for k in u], log)
 
     def finished(k: int) -> bool:
         return plan.finished(out, k) and (s is None or (out / fmt.shard_file(k // s)).is_file())
@@ -884,30 +709,22 @@ def _generate(out: Path, config: DatasetConfig, workers: int, progress: bool | N
         from tqdm import tqdm
         bar = tqdm(total=len(frames), initial=len(frames) - len(todo), disable=not progress,
                    file=sys.stderr, unit="frame", desc="generate")
+
+        def on_frame(k: int) -> None:   # the bar moves per frame, with any number of workers
+            rendered.append(k)
+            bar.update(1)
+
         try:
-            if s is not None:
-                chunks = todo_units
-            else:   # a few chunks of frames per worker: each task builds its renderer once
-                size = -(-len(todo) // (2 * workers))
-                chunks = [todo[i:i + size] for i in range(0, len(todo), size)]
-            if workers == 1 or len(chunks) <= 1:
-                for chunk in chunks:
-                    rendered += render_chunk(config, out, chunk, s, renderer=renderer)
-                    bar.update(len(chunk))
-            else:
-                with ProcessPoolExecutor(min(workers, len(chunks)),
-                                         mp_context=get_context("spawn"),
-                                         initializer=_init_worker) as pool:
-                    futures = {pool.submit(render_chunk, config, str(out), chunk, s): chunk
-                               for chunk in chunks}
-                    try:
-                        for fut in as_completed(futures):
-                            rendered += fut.result()
-                            bar.update(len(futures[fut]))
-                    except BaseException:
-                        for fut in futures:
-                            fut.cancel()
-                        raise
+            if workers == 1 or len(todo_units) <= 1:
+                for unit in todo_units:
+                    render_chunk(config, out, unit, s, renderer=renderer, on_frame=on_frame)
+            else:   # the workers take a unit (a frame, or a shard's frames) at a time
+                folders = _frame_folders(plan, out)
+                run_in_processes(_worker_setup, (config, str(out), s), todo_units, workers,
+                                 on_frame, cleanup=lambda pids: remove_temporaries(folders, pids))
+        except KeyboardInterrupt:
+            raise Interrupted(sum(plan.finished(out, k) for k in frames), len(frames),
+                              out) from None
         finally:
             bar.close()
     sheet = out / fmt.CONTACT_SHEET
@@ -926,18 +743,25 @@ def _generate(out: Path, config: DatasetConfig, workers: int, progress: bool | N
 
 def render_chunk(config: DatasetConfig, out: str | Path, frames: list[int],
                  frames_per_shard: int | None = None, *,
-                 renderer: FrameRenderer | None = None) -> list[int]:
+                 renderer: FrameRenderer | None = None,
+                 on_frame: Callable[[int], None] | None = None) -> list[int]:
     """Render the unfinished frames among ``frames`` of ``config`` into ``out`` and, with
     ``frames_per_shard``, pack each WebDataset shard of theirs whose frames are all finished
     and which is not there yet: a plain function of its arguments, which any process or
     scheduler can call for any share of the frames, as often as it likes (a repeated call
     finishes what an earlier one left). Stops at the first error. Returns the frames rendered.
 
-    ``renderer``: a :class:`FrameRenderer` of ``config`` to reuse (default: a new one).
+    ``renderer``: a `FrameRenderer` of ``config`` to reuse (default: a new one).
+    ``on_frame``: called with each frame's number once it is finished (a progress bar).
     """
     out = Path(out)
     renderer = FrameRenderer(config) if renderer is None else renderer
-    rendered = [renderer.render(out, k) for k in frames if not renderer.plan.finished(out, k)]
+    rendered = []
+    for k in frames:
+        if not renderer.plan.finished(out, k):
+            rendered.append(renderer.render(out, k))
+            if on_frame is not None:
+                on_frame(k)
     if frames_per_shard is not None:
         _pack_shards(renderer.plan, out, frames, frames_per_shard)
     return rendered
@@ -990,116 +814,6 @@ def _sheet_frames(config: DatasetConfig, done: list[int] | None
     for k in frames:
         weathers.setdefault(_frame_weather(config, k), k)
     return frames[len(frames) // 2], weathers
-
-
-#: The size of one of the contact sheet's cells (pixels), and its columns.
-SHEET_CELL = 200
-SHEET_COLUMNS = ("rgb", "depth", "labels_color", "valid")
-
-
-#: OpenCV's ``COLORMAP_TURBO`` (Google's Turbo), 256 RGB colours as hex: the depth column's
-#: colour map, without OpenCV.
-_TURBO = np.frombuffer(bytes.fromhex(
-    "30123b32154333184a341b51351e5836215f37246638276d392a733a2d793b2f803c32863d358b3e38913f3b"
-    "973f3e9c4040a24143a74146ac4249b1424bb5434eba4451bf4454c34456c74559cb455ccf455ed34661d646"
-    "64da4666dd4669e0466be3476ee64771e94773eb4776ee4778f0477bf2467df44680f64682f84685fa4687fb"
-    "458afc458cfd448ffe4391fe4294ff4196ff4099ff3e9bfe3d9efe3ba0fd3aa3fc38a5fb37a8fa35abf833ad"
-    "f731aff52fb2f42eb4f22cb7f02ab9ee28bceb27bee925c0e723c3e422c5e220c7df1fc9dd1ecbda1ccdd81b"
-    "d0d51ad2d21ad4d019d5cd18d7ca18d9c818dbc518ddc218dec018e0bd19e2bb19e3b91ae4b61ce6b41de7b2"
-    "1fe9af20eaac22ebaa25eca727eea42aefa12cf09e2ff19b32f29835f39438f4913cf58e3ff68a43f78746f8"
-    "844af8804ef97d52fa7a55fa7659fb735dfc6f61fc6c65fd6969fd666dfe6271fe5f75fe5c79fe597dff5680"
-    "ff5384ff5188ff4e8bff4b8fff4992ff4796fe4499fe429cfe409ffd3fa1fd3da4fc3ca7fc3aa9fb39acfb38"
-    "affa37b1f936b4f836b7f735b9f635bcf534bef434c1f334c3f134c6f034c8ef34cbed34cdec34d0ea34d2e9"
-    "35d4e735d7e535d9e436dbe236dde037dfdf37e1dd37e3db38e5d938e7d739e9d539ebd339ecd13aeecf3aef"
-    "cd3af1cb3af2c93af4c73af5c53af6c33af7c13af8be39f9bc39faba39fbb838fbb637fcb336fcb136fdae35"
-    "fdac34fea933fea732fea431fea130fe9e2ffe9b2dfe992cfe962bfe932afe9029fd8d27fd8a26fc8725fc84"
-    "23fb8122fb7e21fa7b1ff9781ef9751df8721cf76f1af66c19f56918f46617f36315f26014f15d13f05b12ef"
-    "5811ed5510ec530feb500eea4e0de84b0ce7490ce5470be4450ae2430ae14109df3f08dd3d08dc3b07da3907"
-    "d83706d63506d43305d23105d02f05ce2d04cc2b04ca2a04c82803c52603c32503c12302be2102bc2002b91e"
-    "02b71d02b41b01b21a01af1801ac1701a91601a71401a41301a112019e10019b0f01980e01950d01920b018e"
-    "0a018b09028808028507028106027e05027a0403"), np.uint8).reshape(256, 3)
-
-
-def _resize_weights(src: int, dst: int) -> np.ndarray:
-    """``(dst, src)`` weights of an area resampling from ``src`` to ``dst < src`` samples: the
-    overlap of each source pixel with each output pixel's footprint (OpenCV's INTER_AREA)."""
-    scale = src / dst
-    lo = np.arange(dst)[:, None] * scale
-    s = np.arange(src)[None, :]
-    return np.clip(np.minimum(lo + scale, s + 1) - np.maximum(lo, s), 0, None) / scale
-
-
-def _resize(image: np.ndarray, height: int, width: int) -> np.ndarray:
-    """``image (H, W, C)`` uint8 resampled to ``height x width``: by area going down, nearest
-    going up (OpenCV's INTER_AREA and INTER_NEAREST, in numpy)."""
-    h, w = image.shape[:2]
-    if height < h or width < w:
-        out = np.tensordot(_resize_weights(h, height), image.astype(np.float64), axes=(1, 0))
-        out = np.tensordot(out, _resize_weights(w, width), axes=(1, 1))   # (height, C, width)
-        return np.clip(np.rint(out), 0, 255).astype(np.uint8).transpose(0, 2, 1)
-    rows = np.minimum(np.floor(np.arange(height) * (1.0 / (height / h))).astype(int), h - 1)
-    cols = np.minimum(np.floor(np.arange(width) * (1.0 / (width / w))).astype(int), w - 1)
-    return image[rows][:, cols]
-
-
-def _sheet_cell(image: np.ndarray, title: str) -> np.ndarray:
-    """``image (H, W, 3)`` uint8 RGB fitted into a ``SHEET_CELL`` square (aspect kept, black
-    margins), ``title`` written in its top-left corner (Pillow's default font)."""
-    from PIL import Image, ImageDraw, ImageFont
-
-    h, w = image.shape[:2]
-    scale = SHEET_CELL / max(h, w)
-    size = (max(1, round(w * scale)), max(1, round(h * scale)))
-    small = _resize(image, size[1], size[0]) if scale != 1 else image
-    cell = np.zeros((SHEET_CELL, SHEET_CELL, 3), np.uint8)
-    y0, x0 = (SHEET_CELL - size[1]) // 2, (SHEET_CELL - size[0]) // 2
-    cell[y0:y0 + size[1], x0:x0 + size[0]] = small
-    font = ImageFont.load_default()
-    _, _, right, bottom = ImageDraw.Draw(Image.new("L", (1, 1))).textbbox((4, 3), title,
-                                                                          font=font)
-    cell[:bottom + 3, :right + 4] //= 3          # a dark band under the title
-    canvas = Image.fromarray(cell)
-    ImageDraw.Draw(canvas).text((4, 3), title, fill=(255, 255, 255), font=font)
-    return np.asarray(canvas).copy()
-
-
-def contact_sheet(root: str | Path, cameras, frame: int,
-                  weathers: dict[str, int] | None = None) -> bytes:
-    """PNG bytes of frame ``frame`` of the dataset in ``root``: one row per camera of
-    ``cameras``, columns ``SHEET_COLUMNS`` (depth on a log colour map, black where not valid),
-    then, when ``weathers`` (weather name -> a finished frame in it) holds more than one, rows
-    of the first camera's RGB in each of them (``len(SHEET_COLUMNS)`` a row): the dataset's
-    variety at a glance. ``SHEET_CELL`` pixels square per cell, each titled."""
-    from ..io import read_exr
-
-    root = Path(root)
-
-    def image(name: str, modality: str, k: int) -> np.ndarray:
-        return read_image(root / fmt.frame_file(name, modality, k)).numpy()
-
-    rows = []
-    for name in cameras:
-        valid = image(name, "valid", frame) > 0
-        depth = read_exr(root / fmt.frame_file(name, "depth", frame)).numpy()
-        log_depth = np.log10(np.maximum(depth, 1e-3))
-        lo, hi = (float(log_depth[valid].min()), float(log_depth[valid].max())) \
-            if valid.any() else (0.0, 1.0)
-        scaled = np.clip((log_depth - lo) / max(hi - lo, 1e-6) * 255, 0, 255).astype(np.uint8)
-        turbo = _TURBO[scaled]
-        cells = {"rgb": image(name, "rgb", frame),
-                 "depth": np.where(valid[..., None], turbo, 0).astype(np.uint8),
-                 "labels_color": image(name, "labels_color", frame),
-                 "valid": np.repeat(valid[..., None].astype(np.uint8) * 255, 3, -1)}
-        titles = {"rgb": f"{name} {fmt.frame_name(frame)}", "depth": "depth (log)",
-                  "labels_color": "labels", "valid": "valid"}
-        rows.append(np.hstack([_sheet_cell(cells[m], titles[m]) for m in SHEET_COLUMNS]))
-    if weathers is not None and len(weathers) > 1:
-        cells = [_sheet_cell(image(cameras[0], "rgb", k), weather)
-                 for weather, k in weathers.items()]
-        per_row = len(SHEET_COLUMNS)
-        cells += [np.zeros_like(cells[0])] * (-len(cells) % per_row)
-        rows += [np.hstack(cells[i:i + per_row]) for i in range(0, len(cells), per_row)]
-    return encode_image(np.vstack(rows))
 
 
 # --------------------------------------------------------------------------------------------

@@ -51,12 +51,14 @@ INSTANCE_SHIFT = 256
 _LABEL_RANGE = 256
 
 
-def instance_objects(instances: Tensor, labels: Tensor) -> list[dict]:
+def instance_objects(instances: Tensor, labels: Tensor, *, min_pixels: int = 1) -> list[dict]:
     """The objects of an instance map.
 
     Args:
         instances: ``(H, W)`` integer instance ids, 0 for none.
         labels: ``(H, W)`` integer class ids (0..12; values outside 0..255 count as 255).
+        min_pixels: objects of fewer pixels are left out (their ids stay in the map); 1, the
+            default: every object.
 
     Returns:
         A list sorted by instance id of ``{"instance_id", "label", "class", "box": [x0, y0,
@@ -66,8 +68,10 @@ def instance_objects(instances: Tensor, labels: Tensor) -> list[dict]:
 
     Raises:
         TypeError: not integer maps. ValueError: shapes that are not one ``(H, W)``, or
-            negative ids.
+            negative ids, or ``min_pixels`` not a positive integer.
     """
+    if isinstance(min_pixels, bool) or not isinstance(min_pixels, int) or min_pixels < 1:
+        raise ValueError(f"min_pixels: expected a positive integer, got {min_pixels!r}")
     for name, t in (("instances", instances), ("labels", labels)):
         if not isinstance(t, Tensor) or t.is_floating_point() or t.is_complex() or \
                 t.dtype == torch.bool:
@@ -97,7 +101,7 @@ def instance_objects(instances: Tensor, labels: Tensor) -> list[dict]:
              "class": CLASSES[c] if c < len(CLASSES) else "unknown",
              "box": [int(x) for x in box], "pixels": int(p)}
             for i, c, box, p in zip(unique.tolist(), label.tolist(), boxes.tolist(),
-                                    pixels.tolist())]
+                                    pixels.tolist()) if p >= min_pixels]
 
 
 def pack_instances(labels: Tensor, instances: Tensor, out: Tensor | None = None) -> Tensor:

@@ -14,9 +14,10 @@ import torch
 from ..io import CLASSES, atomic_write_bytes, atomic_write_text, read_image
 from ..scenes import ride as _ride
 from . import format as fmt
+from .integrity import damaged_files
 from .readers import has_modality, list_cameras, read_dynamics
 
-__all__ = ["PLOT_INSTALL", "format_stats", "plot_available", "stats"]
+__all__ = ["PLOT_INSTALL", "SKY_NOTE", "format_stats", "plot_available", "stats"]
 
 #: What installs the chart's library (matplotlib, optional: the ``plot`` extra).
 PLOT_INSTALL = 'pip install "omniscape_torch[plot]"'
@@ -36,20 +37,22 @@ def stats(root: str | Path, *, plot: bool = True) -> dict:
     of the fisheye and catadioptric images of the dataset in ``root``, over its finished
     frames (``.done`` marker and every camera's files; an interrupted run's dataset has fewer
     than planned); writes ``root/stats.json`` and (``plot``) the bar chart ``root/stats.png``
-    (``plot`` needs matplotlib, an optional dependency: :func:`plot_available`).
+    (``plot`` needs matplotlib, an optional dependency: `plot_available`).
 
     Returns:
         ``{"table_one": {angle: {mean, std, min, median, max}}, "class_share": {kind:
         {class: share}}, "pixels": {kind: valid pixel count}, "frames": finished frames,
-        "frames_planned": N, "skipped": {"NNNNNN": [the files it lacks, relative paths]}}``:
-        a frame without its ``.done`` marker is not finished; one with it but without a file
-        lost that file. Where the dataset has ``objects`` (written since ``generate`` writes
-        them), also ``"objects": {kind: {"images": N, "per_image": mean number of objects
-        in an image, "classes": {class: objects}}}`` over the same frames.
+        "frames_planned": N, "skipped": {"NNNNNN": [the files it lacks, relative paths]},
+        "damaged": {"NNNNNN": {file: what is wrong}}}``: a frame without its ``.done`` marker
+        is not finished; one with it but without a file lost that file; one with a damaged
+        file (cut short, or not decoding: `integrity.damaged_files`) is left out and named
+        (``generate`` renders it again). Where the dataset has ``objects`` (written since
+        ``generate`` writes them), also ``"objects": {kind: {"images": N, "per_image": mean
+        number of objects in an image, "classes": {class: objects}}}`` over the same frames.
 
     Raises:
         FileNotFoundError: ``root`` holds no dataset.
-        ValueError: no frame is finished yet.
+        ValueError: no frame is finished (and whole) yet.
         ImportError: ``plot`` without matplotlib (``stats.json`` is written first).
     """
     root = Path(root)
@@ -59,35 +62,68 @@ def stats(root: str | Path, *, plot: bool = True) -> dict:
     cameras = list_cameras(root)
     recs = read_dynamics(root)
     done = set(fmt.finished_frames(root, cameras))
-    finished = [recs[k] for k in sorted(recs) if k in done]
     # each frame left out, and the file it lacks (the marker: not finished; else a file lost)
     skipped = {k: fmt.missing_files(root, cameras, k) for k in sorted(recs) if k not in done}
+    modalities = [m for m in fmt.MODALITIES
+                  if m in fmt.CORE_MODALITIES or has_modality(root, m, cameras)]
+    # a finished frame with a damaged file (cut short by a copy, say) is named and left out
+    damaged = {}
+    counts = {name.split("_")[0]: np.zeros(len(CLASSES), dtype=np.int64) for name in cameras}
+    finished = []
+    for k in sorted(recs):
+        if k not in done:
+            continue
+        bad = damaged_files(root, [fmt.frame_file(c, m, k) for c in cameras for m in modalities])
+        frame_counts = {} if bad else _class_counts(root, cameras, k, bad)
+        if bad:   # cut short, or (found by _class_counts) not decoding
+            damaged[k] = bad
+            continue
+        for name, v in frame_counts.items():
+            counts[name.split("_")[0]] += v
+        finished.append(recs[k])
     if not finished:
+        if damaged:
+            k, bad = next(iter(damaged.items()))
+            raise ValueError(f"{root}: each of its finished frames has a damaged file (frame "
+                             f"{fmt.frame_name(k)}: {_damage(bad)}); run 'omniscape-torch "
+                             f"generate' with the same options to render them again")
         raise ValueError(f"{root}: none of its {len(recs)} frames is finished yet; run "
                          f"'omniscape-torch generate' with the same options to finish them")
     rotation = torch.tensor([[r["rotation"]["roll"], r["rotation"]["pitch"],
                               r["rotation"]["yaw"]] for r in finished], dtype=torch.float64)
     table = _ride.table_one(rotation)
-    counts = {}
-    for name in cameras:
-        kind = name.split("_")[0]
-        acc = counts.setdefault(kind, np.zeros(len(CLASSES), dtype=np.int64))
-        for r in finished:
-            labels = read_image(root / fmt.frame_file(name, "labels", r["frame"])).numpy()
-            valid = read_image(root / fmt.frame_file(name, "valid", r["frame"])).numpy() > 0
-            ids = labels[valid & (labels < len(CLASSES))]
-            acc += np.bincount(ids.astype(np.int64), minlength=len(CLASSES))
     share = {kind: {c: (float(v[i]) / float(v.sum()) if v.sum() else 0.0)
                     for i, c in enumerate(CLASSES)} for kind, v in counts.items()}
     result = {"frames": len(finished), "frames_planned": len(recs), "table_one": table,
               "class_share": share, "pixels": {kind: int(v.sum()) for kind, v in counts.items()},
-              "skipped": {fmt.frame_name(k): files for k, files in skipped.items()}}
-    if has_modality(root, "objects", cameras):
+              "skipped": {fmt.frame_name(k): files for k, files in skipped.items()},
+              "damaged": {fmt.frame_name(k): bad for k, bad in damaged.items()}}
+    if "objects" in modalities:
         result["objects"] = _objects(root, cameras, [r["frame"] for r in finished])
     atomic_write_text(root / fmt.STATS, json.dumps(result, indent=2) + "\n")
     if plot:
         _plot(result, root / fmt.STATS_PLOT)
     return result
+
+
+def _class_counts(root: Path, cameras: list[str], k: int, bad: dict) -> dict:
+    """Per camera, the valid pixels of each class at frame ``k``; a file that does not decode
+    (damaged inside, past what `damaged_files` looks at) is added to ``bad`` with the reason,
+    and nothing is returned for the frame."""
+    out = {}
+    for name in cameras:
+        images = {}
+        for m in ("labels", "valid"):
+            file = fmt.frame_file(name, m, k)
+            try:
+                images[m] = read_image(root / file).numpy()
+            except (ValueError, OSError):
+                bad[file] = "cannot be decoded"
+                return {}
+        labels, valid = images["labels"], images["valid"] > 0
+        ids = labels[valid & (labels < len(CLASSES))]
+        out[name] = np.bincount(ids.astype(np.int64), minlength=len(CLASSES))
+    return out
 
 
 def _objects(root: Path, cameras: list[str], frames: list[int]) -> dict:
@@ -142,8 +178,20 @@ def _plot(result: dict, path: Path) -> None:
     atomic_write_bytes(path, buf.getvalue())
 
 
+#: Under the class shares: what ``Unlabeled`` counts.
+SKY_NOTE = ("Unlabeled (class 0) is the sky: the 13 CARLA classes the dataset uses (as the "
+            "OmniScape dataset does) have no sky class; nothing else in the built-in town is "
+            "unlabeled")
+
 #: Skipped frames named one a line before the tables (the others counted).
 SHOWN_SKIPPED = 5
+
+
+def _damage(bad: dict[str, str]) -> str:
+    """A damaged frame's first damaged file and what is wrong with it, in words."""
+    file, why = next(iter(bad.items()))
+    return f"{file} is damaged: {why}" + (f" (and {len(bad) - 1} more file(s))"
+                                          if len(bad) > 1 else "")
 
 
 def _lacks(files: list[str]) -> str:
@@ -164,13 +212,15 @@ def format_stats(result: dict) -> str:
     over = f"{done} frames" if done == planned else (
         f"the {done} finished of {planned} frames; run generate again to finish the others")
     lines = []
-    skipped = result.get("skipped") or {}
-    for i, (name, files) in enumerate(skipped.items()):
+    reasons = {name: _lacks(files) for name, files in (result.get("skipped") or {}).items()}
+    reasons.update({name: f"{_damage(bad)}; run generate again to render the frame anew"
+                    for name, bad in (result.get("damaged") or {}).items()})
+    for i, name in enumerate(sorted(reasons)):
         if i == SHOWN_SKIPPED:
-            lines.append(f"skipped {len(skipped) - i} more unfinished frame(s) (stats.json "
-                         f"lists them)")
+            lines.append(f"skipped {len(reasons) - i} more unfinished or damaged frame(s) "
+                         f"(stats.json lists them)")
             break
-        lines.append(f"skipped frame {name}: {_lacks(files)}")
+        lines.append(f"skipped frame {name}: {reasons[name]}")
     lines += [f"Table I: vehicle attitude over {over} (degrees)",
              f"{'':8}{'mean':>10}{'std':>10}{'min':>10}{'median':>10}{'max':>10}"]
     for name in ("yaw", "pitch", "roll"):
@@ -185,6 +235,7 @@ def format_stats(result: dict) -> str:
         lines.append(f"{c:14}" + "".join(f"{100 * result['class_share'][k][c]:14.2f}"
                                          for k in kinds))
     lines.append(f"{'valid pixels':14}" + "".join(f"{result['pixels'][k]:14d}" for k in kinds))
+    lines.append(SKY_NOTE)
     objects = result.get("objects")
     if objects:
         kinds = list(objects)

@@ -6,7 +6,7 @@ one. A temporary's name carries its owner's process id, ``.<name>.<pid>.<random>
 that `remove_stale_temporaries` removes only those whose process is gone, never a file
 another live run is writing. `folder_lock` keeps a second run out of a folder that a run
 is writing (``fcntl.flock`` on ``<folder>/.lock``; released by the kernel when the process
-ends, however it ends).
+ends, however it ends; the file is removed when the ``with`` block ends).
 """
 
 from __future__ import annotations
@@ -71,31 +71,91 @@ def remove_stale_temporaries(root: str | os.PathLike) -> list[Path]:
     return removed
 
 
+def remove_temporaries(folders, pids) -> list[Path]:
+    """Remove the temporaries (named by `temporary_prefix`) of the processes ``pids``, which
+    must have ended, in ``folders`` (not below them: a quick look where they wrote, where
+    `remove_stale_temporaries` walks a whole tree). Returns the paths removed."""
+    pids = {int(p) for p in pids}
+    removed = []
+    for folder in folders:
+        try:
+            entries = list(os.scandir(folder))
+        except (FileNotFoundError, NotADirectoryError):
+            continue
+        for entry in entries:
+            match = _TEMPORARY.match(entry.name)
+            if match is None or int(match["pid"]) not in pids:
+                continue
+            path = Path(entry.path)
+            if entry.is_dir(follow_symlinks=False):
+                shutil.rmtree(path, ignore_errors=True)
+            else:
+                with contextlib.suppress(FileNotFoundError):
+                    path.unlink()
+            removed.append(path)
+    return removed
+
+
 @contextlib.contextmanager
 def folder_lock(folder: str | os.PathLike) -> Iterator[Path]:
-    """Hold ``folder``'s lock for the ``with`` block (the folder is created).
+    """Hold ``folder``'s lock for the ``with`` block (the folder is created). The lock file is
+    removed when the block ends, however it ends (an error, Ctrl-C); a killed process leaves
+    it, and the next run takes it over (the kernel released the lock) and removes it in turn.
+
+    The holder removes the file before it lets the lock go, and a process that locked a file
+    since removed tries again on the new one, so that two processes never both hold a
+    folder's lock.
 
     Raises:
         FolderBusyError: another process holds it; the message names the process.
     """
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
     path = folder / LOCK_NAME
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+    while True:
+        folder.mkdir(parents=True, exist_ok=True)
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+        except FileNotFoundError:   # the folder was removed in between: create it again
+            continue
+        if fcntl is None or _lock(fd, folder, path):
+            break
+        os.close(fd)   # locked a file its holder had removed: lock the new one
     try:
         if fcntl is not None:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                owner = os.pread(fd, 32, 0).decode("ascii", "replace").strip() or "unknown"
-                raise FolderBusyError(
-                    f"{folder}: another run (process {owner}) is writing this folder; wait "
-                    f"for it to finish, or write to another folder") from None
             os.ftruncate(fd, 0)
             os.pwrite(fd, f"{os.getpid()}\n".encode("ascii"), 0)
         yield path
     finally:
+        if fcntl is not None:
+            with contextlib.suppress(OSError):
+                if os.stat(path).st_ino == os.fstat(fd).st_ino:
+                    os.unlink(path)   # still holding it: no one else can have it yet
+            os.close(fd)
+        else:   # pragma: no cover - Windows: no lock, and an open file cannot be removed
+            os.close(fd)
+            with contextlib.suppress(OSError):
+                os.unlink(path)
+
+
+def _lock(fd: int, folder: Path, path: Path) -> bool:
+    """Lock the open lock file ``fd``: True once held and still the file at ``path``, False
+    when the file was removed (by the holder letting it go) before it was locked.
+
+    Raises:
+        FolderBusyError: another process holds it.
+    """
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        owner = os.pread(fd, 32, 0).decode("ascii", "replace").strip() or "unknown"
         os.close(fd)
+        raise FolderBusyError(
+            f"{folder}: another run (process {owner}) is writing this folder; wait "
+            f"for it to finish, or write to another folder") from None
+    try:
+        return os.stat(path).st_ino == os.fstat(fd).st_ino
+    except FileNotFoundError:
+        return False
 
 
 def check_writable(path: str | os.PathLike) -> None:
