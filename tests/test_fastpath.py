@@ -258,9 +258,11 @@ def test_reference_path_without_a_compiler(monkeypatch, tmp_path, mode):
     (key, why), = kernels.compile_failures().items()
     assert key == ("extension", "fastsample") and "no-such-compiler-here" in why
     assert not kernels.available() and kernels.unavailable_reason() == why
-    assert not fastsample.reads_rays(f32, f32)
-    with pytest.raises(RuntimeError, match="fast sampler is unavailable"):
-        fastsample.sample_cube(cube, make_grid(1), mode, pad=1)
+    with pytest.raises(RuntimeError, match="backend='cpp', but the C.. kernels are unavailable"):
+        fastsample.sample_cube(cube, make_grid(1), mode, pad=1, backend="cpp")
+    twin = fastsample.sample_cube(cube, make_grid(1), mode, pad=1)   # "auto": the torch twin
+    assert torch.equal(twin, fastsample.sample_cube(cube, make_grid(1), mode, pad=1,
+                                                    backend="torch"))
     reference = run(False)
     for k, (got, ref, fast) in enumerate(zip(without, reference * 2, compiled * 2)):
         assert set(got) == set(ref) == set(fast)
