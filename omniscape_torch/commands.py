@@ -283,28 +283,29 @@ def cmd_fit(args: argparse.Namespace) -> int:
     for line in warnings:
         print(f"omniscape-torch fit: warning: {line}", file=sys.stderr)
     report = Path(args.out) / "report.md"
+    refuse = None   # why the views leave the camera poorly constrained, if they do
     if run.near_degenerate:
-        print(f"omniscape-torch fit: near-degenerate: {run.correlated}: these views leave a "
-              f"combination of them undetermined (see {report}); add views, freeze one "
-              f"(--freeze), or pass --strict to refuse such a fit", file=sys.stderr)
-        return EXIT_POORLY_CONSTRAINED
-    if args.accept_coverage:
+        refuse = (f"near-degenerate: {run.correlated}: these views leave a combination of them "
+                  f"undetermined (see {report}); add views, freeze one (--freeze), or pass "
+                  f"--strict to refuse such a fit")
+    elif args.accept_coverage:
         return 0
-    if run.poorly_covered:
-        print(f"omniscape-torch fit: poorly constrained: the views do not pin the camera down "
-              f"over the image (see {report} and uncertainty.png); add views, or pass "
-              f"--accept-coverage to accept it", file=sys.stderr)
-        return EXIT_POORLY_CONSTRAINED
-    if run.poorly_resampled:
+    elif run.poorly_covered:
+        refuse = (f"poorly constrained: the views do not pin the camera down over the image "
+                  f"(see {report} and uncertainty.png); add views, or pass --accept-coverage "
+                  f"to accept it")
+    elif run.poorly_resampled:
         # the views judged by their refits, not the noise model alone (on real photographs the
         # refits move 2 to 5 times more than the residuals predict)
-        print(f"omniscape-torch fit: poorly constrained: refits without each view move the "
-              f"projections by {run.resampling.pixel_error:.3g} px (jackknife RMS where the "
-              f"corners reach), above {run.resampling_limit:g} px, though the residuals "
-              f"predict {coverage.pixel_rms:.3g} px; add views, or pass --accept-coverage to "
-              f"accept it", file=sys.stderr)
-        return EXIT_POORLY_CONSTRAINED
-    return 0
+        refuse = (f"poorly constrained: refits without each view move the projections by "
+                  f"{run.resampling.pixel_error:.3g} px (jackknife RMS where the corners "
+                  f"reach), above {run.resampling_limit:g} px, though the residuals predict "
+                  f"{coverage.pixel_rms:.3g} px; add views, or pass --accept-coverage to "
+                  f"accept it")
+    if refuse is None:
+        return 0
+    print(f"omniscape-torch fit: {refuse}", file=sys.stderr)
+    return EXIT_POORLY_CONSTRAINED
 
 
 def _conversion_area(args: argparse.Namespace, camera) -> dict:

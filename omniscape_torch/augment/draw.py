@@ -6,19 +6,19 @@ from __future__ import annotations
 import math
 import os
 from types import MappingProxyType
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 import torch
 from torch import Tensor, nn
 
 from ..cameras import Camera
-from ..cameras._checks import not_a_camera
+from ..cameras._checks import check_one_camera
 from ..cameras.camera import _check_image_size
 from ..cameras.registry import get_model
 from ..render import detection
-from ..render.kernels import draw as kdraw
 from ..render.kernels import check_backend
+from ..render.kernels import draw as kdraw
 from .targets import _on_batch
 
 #: The fisheye lenses drawn (`fisheye_models`): the models of the registry that say how
@@ -91,6 +91,20 @@ def _check_range(value, name: str, low: float = -math.inf, high: float = math.in
 
 
 
+#: The constructor arguments both modules hand to `_RandomCameras` as they are given.
+SHARED_ARGUMENTS = ("fisheye_models", "fov_range", "kb_distortion", "unified_xi_range",
+                    "eucm_alpha_range", "eucm_beta_range", "ds_xi_range", "ds_alpha_range",
+                    "focal_scale_range", "center_jitter", "roll_range", "pitch_range",
+                    "yaw_range", "p", "same_on_batch", "interpolation", "depth_output",
+                    "ignore_index", "seed", "channels_last", "out_dtype", "backend", "camera",
+                    "focal_jitter")
+
+
+def shared_arguments(arguments: Mapping[str, object]) -> dict:
+    """The `SHARED_ARGUMENTS` among a module constructor's `locals()`."""
+    return {name: arguments[name] for name in SHARED_ARGUMENTS}
+
+
 def _target_camera(camera: object) -> Camera | None:
     """The modules' `camera`: one `ot.Camera` (a batch shape of `()`), a calibration file that
     `Camera.load` reads, or None."""
@@ -98,11 +112,7 @@ def _target_camera(camera: object) -> Camera | None:
         return None
     if isinstance(camera, (str, os.PathLike)):
         camera = Camera.load(camera)
-    if not isinstance(camera, Camera):
-        raise not_a_camera("camera", camera)
-    if len(camera.batch_shape) != 0:
-        raise ValueError(f"camera: expected one camera, got a batch "
-                         f"{tuple(camera.batch_shape)}")
+    check_one_camera(camera)
     return camera
 
 

@@ -25,6 +25,7 @@ from .draw import (
     MODES,
     _check_range,
     _RandomCameras,
+    shared_arguments,
 )
 from .targets import (
     _check_batches,
@@ -193,16 +194,7 @@ class RandomOmniCamera(_RandomCameras):
                  channels_last: bool = False, out_dtype: torch.dtype | None = None,
                  label_keys: Mapping[str, int] | None = None, backend: str = "auto",
                  camera: object = None, focal_jitter: float = 0.0) -> None:
-        super().__init__(
-            image_size, fisheye_models=fisheye_models, fov_range=fov_range,
-            kb_distortion=kb_distortion, unified_xi_range=unified_xi_range,
-            eucm_alpha_range=eucm_alpha_range, eucm_beta_range=eucm_beta_range,
-            ds_xi_range=ds_xi_range, ds_alpha_range=ds_alpha_range,
-            focal_scale_range=focal_scale_range, center_jitter=center_jitter,
-            roll_range=roll_range, pitch_range=pitch_range, yaw_range=yaw_range, p=p,
-            same_on_batch=same_on_batch, interpolation=interpolation, depth_output=depth_output,
-            ignore_index=ignore_index, seed=seed, channels_last=channels_last,
-            out_dtype=out_dtype, backend=backend, camera=camera, focal_jitter=focal_jitter)
+        super().__init__(image_size, **shared_arguments(locals()))
         if isinstance(face_size, bool) or not isinstance(face_size, int) or face_size < 1:
             raise ValueError(f"face_size: expected a positive int, got {face_size!r}")
         if mode not in MODES:

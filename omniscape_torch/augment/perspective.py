@@ -25,6 +25,7 @@ from .draw import (
     DEFAULT_COVERAGE,
     _check_range,
     _RandomCameras,
+    shared_arguments,
 )
 from .routes import _Routes
 from .targets import (
@@ -203,16 +204,7 @@ class RandomReproject(_Routes, _RandomCameras):
         if not isinstance(antialias, bool):
             raise TypeError(f"antialias: expected a bool, got {antialias!r}")
         focal_scale_range = (1.0, 1.0) if focal_scale_range is None else focal_scale_range
-        super().__init__(
-            image_size, fisheye_models=fisheye_models, fov_range=fov_range,
-            kb_distortion=kb_distortion, unified_xi_range=unified_xi_range,
-            eucm_alpha_range=eucm_alpha_range, eucm_beta_range=eucm_beta_range,
-            ds_xi_range=ds_xi_range, ds_alpha_range=ds_alpha_range,
-            focal_scale_range=focal_scale_range, center_jitter=center_jitter,
-            roll_range=roll_range, pitch_range=pitch_range, yaw_range=yaw_range, p=p,
-            same_on_batch=same_on_batch, interpolation=interpolation, depth_output=depth_output,
-            ignore_index=ignore_index, seed=seed, channels_last=channels_last,
-            out_dtype=out_dtype, backend=backend, camera=camera, focal_jitter=focal_jitter)
+        super().__init__(image_size, **shared_arguments(locals()))
         if source_fov is not None and not (isinstance(source_fov, (int, float)) and not
                                            isinstance(source_fov, bool) and
                                            0 < source_fov < math.pi):

@@ -59,7 +59,7 @@ import torch
 from torch import Tensor
 
 from ..cameras import Camera, CameraModel, get_model
-from ..cameras._checks import not_a_camera
+from ..cameras._checks import check_one_camera
 from .fit import FitResult, solve
 from .params import IntrinsicsMap, axis_angle_to_matrix, frozen_indices
 from .problem import Problem
@@ -355,11 +355,7 @@ def convert(camera: Camera, to_model: str | CameraModel, *, degree: int = 4, gri
     Raises:
         ValueError, TypeError: not one camera, unknown model, too few valid samples.
     """
-    if not isinstance(camera, Camera):
-        raise not_a_camera("camera", camera)
-    if camera.batch_shape != ():
-        raise ValueError(f"camera: expected one camera, got a batch of shape "
-                         f"{tuple(camera.batch_shape)}")
+    check_one_camera(camera)
     target = get_model(to_model)
     if target.name == "equirectangular":
         raise ValueError("to_model: equirectangular is a panorama projection, not a lens model")

@@ -22,7 +22,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ..cameras import Camera
-from ..cameras._checks import not_a_camera
+from ..cameras._checks import check_one_camera
 from ..cubemap import check_cubemap
 from ..render.layer import OmniProjection
 
@@ -347,11 +347,7 @@ def _evaluate(camera_init: Camera, cube: Tensor, target: Tensor, mask: Tensor,
 
 def _check_inputs(cubemap, target, camera, rotation, mask, levels):
     """Validate and normalise the inputs of :func:`fit_photometric`."""
-    if not isinstance(camera, Camera):
-        raise not_a_camera("camera_init", camera)
-    if camera.batch_shape != ():
-        raise ValueError(f"camera_init: expected one camera, got a batch of shape "
-                         f"{tuple(camera.batch_shape)}")
+    check_one_camera(camera, "camera_init")
     if camera.param_names[:4] != ("fx", "fy", "cx", "cy"):
         raise ValueError(f"camera_init: the {camera.model.name!r} model's parameters do not "
                          f"start with fx, fy, cx, cy")

@@ -1,4 +1,5 @@
-"""The error every function that takes a camera raises for a value that is not one."""
+"""The checks every function that takes a camera makes: the error for a value that is not one
+(`not_a_camera`), and one camera, not a batch (`check_one_camera`)."""
 
 from __future__ import annotations
 
@@ -24,3 +25,13 @@ def _is_camera(value: object) -> bool:
     """An `ot.Camera` by its attributes (this module imports none, so that `camera.py`'s own
     imports may use it)."""
     return all(hasattr(value, a) for a in ("model", "params", "image_size", "batch_shape"))
+
+
+def check_one_camera(value: object, name: str = "camera") -> None:
+    """Refuse what is not one camera (an `ot.Camera` whose batch shape is `()`), naming `name`:
+    `not_a_camera`'s `TypeError`, or a `ValueError` for a batch."""
+    if not _is_camera(value):
+        raise not_a_camera(name, value)
+    if tuple(value.batch_shape) != ():
+        raise ValueError(f"{name}: expected one camera, got a batch of shape "
+                         f"{tuple(value.batch_shape)}")

@@ -46,6 +46,7 @@ import numpy as np
 import torch
 
 from ..io.atomic import atomic_write_text
+from ._checks import check_one_camera
 
 #: WoodScape's translation key, and SynWoodScape's (in CARLA's frame).
 TRANSLATION_KEY = "translation"
@@ -256,9 +257,7 @@ def write_woodscape(path: str | Path, camera, T, name: str) -> Path:
         raise ValueError(f"camera: WoodScape's files hold the woodscape model, got {model}; "
                          f"convert it first (ot.calibration.convert(camera, 'woodscape'), "
                          f"omniscape-torch convert-model --to woodscape)")
-    if camera.batch_shape != ():
-        raise ValueError(f"camera: expected one camera, got a batch of shape "
-                         f"{tuple(camera.batch_shape)}")
+    check_one_camera(camera)
     if not isinstance(name, str) or not name:
         raise ValueError(f"name: expected the camera's name (e.g. FV, MVL, MVR, RV), got "
                          f"{name!r}")

@@ -50,7 +50,7 @@ import torch
 
 from ..calibration import convert
 from ..cameras import Camera
-from ..cameras._checks import not_a_camera
+from ..cameras._checks import check_one_camera
 from ..cameras.formats import fit_invpol
 
 __all__ = ["DEGREES", "GRID", "INVPOL_PX", "TOLERANCE_PX", "PolynomialFit", "cached_record",
@@ -169,11 +169,7 @@ def fit_polynomial(camera: Camera, *, degrees: Sequence[int] = DEGREES,
         TypeError, ValueError: not one camera, bad settings, too few valid pixels.
         RuntimeError: no degree gave a polynomial camera covering the camera's valid area.
     """
-    if not isinstance(camera, Camera):
-        raise not_a_camera("camera", camera)
-    if camera.batch_shape != ():
-        raise ValueError(f"camera: expected one camera, got a batch of shape "
-                         f"{tuple(camera.batch_shape)}")
+    check_one_camera(camera)
     degrees = tuple(degrees)
     if not degrees or any(isinstance(d, bool) or not isinstance(d, int) or d < 2
                           for d in degrees):

@@ -62,13 +62,18 @@ def remove_stale_temporaries(root: str | os.PathLike) -> list[Path]:
         match = _TEMPORARY.match(path.name)
         if match is None or _alive(int(match["pid"])) or not path.exists():
             continue
-        if path.is_dir() and not path.is_symlink():
-            shutil.rmtree(path, ignore_errors=True)
-        else:
-            with contextlib.suppress(FileNotFoundError):
-                path.unlink()
+        _remove(path, path.is_dir() and not path.is_symlink())
         removed.append(path)
     return removed
+
+
+def _remove(path: Path, folder: bool) -> None:
+    """Remove a temporary file or folder, gone already or not."""
+    if folder:
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        with contextlib.suppress(FileNotFoundError):
+            path.unlink()
 
 
 def remove_temporaries(folders, pids) -> list[Path]:
@@ -87,11 +92,7 @@ def remove_temporaries(folders, pids) -> list[Path]:
             if match is None or int(match["pid"]) not in pids:
                 continue
             path = Path(entry.path)
-            if entry.is_dir(follow_symlinks=False):
-                shutil.rmtree(path, ignore_errors=True)
-            else:
-                with contextlib.suppress(FileNotFoundError):
-                    path.unlink()
+            _remove(path, entry.is_dir(follow_symlinks=False))
             removed.append(path)
     return removed
 
