@@ -71,20 +71,21 @@ def _signed_axes() -> tuple[tuple[int, ...], ...]:
 _R_B_AXES = _signed_axes()
 
 
+def _check_int(value: int, name: str, minimum: int) -> int:
+    """`value`, an int of at least `minimum`; a `TypeError` or `ValueError` naming `name`."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise TypeError(f"{name} must be an int, got {type(value).__name__}")
+    if value < minimum:
+        raise ValueError(f"{name} must be >= {minimum}, got {value}")
+    return value
+
+
 def _check_face_size(face_size: int, name: str = "face_size") -> int:
-    if isinstance(face_size, bool) or not isinstance(face_size, int):
-        raise TypeError(f"{name} must be an int, got {type(face_size).__name__}")
-    if face_size < 1:
-        raise ValueError(f"{name} must be >= 1, got {face_size}")
-    return face_size
+    return _check_int(face_size, name, 1)
 
 
 def _check_pad(pad: int, name: str = "pad") -> int:
-    if isinstance(pad, bool) or not isinstance(pad, int):
-        raise TypeError(f"{name} must be an int, got {type(pad).__name__}")
-    if pad < 0:
-        raise ValueError(f"{name} must be >= 0, got {pad}")
-    return pad
+    return _check_int(pad, name, 0)
 
 
 def _check_float_tensor(x: object, name: str, last: int | None = None) -> Tensor:

@@ -68,9 +68,7 @@ void sample_image_op(const at::Tensor& image, const at::Tensor& rays,
                     rays.size(2), "), got ", valid_out->scalar_type(), " ", valid_out->sizes());
     }
     dispatch(image, out, rays.scalar_type(), [&](auto t, auto o, auto g) {
-        using T = decltype(t);
-        using O = decltype(o);
-        using G = decltype(g);
+        OS_DISPATCHED_TYPES;
         sample_image<T, O, G>(elements<T>(image), elements<G>(rays), batch_stride(rays),
                               rotation.has_value() ? elements<G>(*rotation) : nullptr,
                               batch_stride(rotation), elements<G>(intrinsics),
@@ -110,9 +108,7 @@ void mip_image_op(const at::Tensor& image, const at::Tensor& rays,
     check_valid(op, valid, image.size(0), rays.size(1), rays.size(2));
     const Planes S = planes(cube, out);
     dispatch(image, out, rays.scalar_type(), [&](auto t, auto o, auto g) {
-        using T = decltype(t);
-        using O = decltype(o);
-        using G = decltype(g);
+        OS_DISPATCHED_TYPES;
         if constexpr (std::is_same_v<T, uint8_t> || std::is_same_v<T, float> ||
                       std::is_same_v<T, double>) {
             if constexpr (!std::is_same_v<O, int64_t>) {

@@ -59,9 +59,7 @@ void sample_lut_op(const at::Tensor& cube, const at::Tensor& table, const at::Te
     check_out(op, out, cube, out.size(2), out.size(3), bilinear);
     check_ring(op, ring_src, ring_weight, cube, pad);
     dispatch(cube, out, grid.scalar_type(), [&](auto t, auto o, auto g) {
-        using T = decltype(t);
-        using O = decltype(o);
-        using G = decltype(g);
+        OS_DISPATCHED_TYPES;
         sample_lut<T, O, G>(elements<T>(cube),
                             static_cast<const Entry<G>*>(table.const_data_ptr()),
                             elements<G>(grid), table.size(0) == 1 ? 0 : table.size(1),
@@ -83,9 +81,7 @@ void sample_grid_op(const at::Tensor& cube, const at::Tensor& grid,
     check_valid(op, valid, cube.size(0), grid.size(1), grid.size(2));
     check_ring(op, ring_src, ring_weight, cube, pad);
     dispatch(cube, out, grid.scalar_type(), [&](auto t, auto o, auto g) {
-        using T = decltype(t);
-        using O = decltype(o);
-        using G = decltype(g);
+        OS_DISPATCHED_TYPES;
         sample_grid<T, O, G>(elements<T>(cube), elements<G>(grid), batch_stride(grid),
                              mask(valid), batch_stride(valid), ring<T>(ring_src, ring_weight, L),
                              L, bilinear, fill_value<O>(fill), planes(cube, out),
@@ -114,9 +110,7 @@ void sample_rays_op(const at::Tensor& cube, const at::Tensor& rays,
     check_valid(op, valid, cube.size(0), rays.size(1), rays.size(2));
     check_ring(op, ring_src, ring_weight, cube, pad);
     dispatch(cube, out, rays.scalar_type(), [&](auto t, auto o, auto g) {
-        using T = decltype(t);
-        using O = decltype(o);
-        using G = decltype(g);
+        OS_DISPATCHED_TYPES;
         sample_rays<T, O, G>(elements<T>(cube), elements<G>(rays), batch_stride(rays),
                              rotation.has_value() ? elements<G>(*rotation) : nullptr,
                              batch_stride(rotation), mask(valid), batch_stride(valid),

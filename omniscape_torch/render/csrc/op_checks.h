@@ -32,6 +32,11 @@ at::ScalarType work_dtype(const at::Tensor& cube) {
 }
 
 // Calls fn(T{}, O{}, G{}) with T the cube's element type, O the output's and G the grid's.
+// A lambda `[&](auto t, auto o, auto g)` names them with OS_DISPATCHED_TYPES.
+#define OS_DISPATCHED_TYPES  \
+    using T = decltype(t);   \
+    using O = decltype(o);   \
+    using G = decltype(g)
 template <typename Fn>
 void dispatch(const at::Tensor& cube, const at::Tensor& out, at::ScalarType grid, Fn fn) {
     const bool to_float = out.scalar_type() == at::kFloat;
