@@ -1,21 +1,21 @@
 """Calibration by least squares over the differentiable camera models.
 
-* :func:`fit`: intrinsics and per-view poses from target points and their pixels
+* `fit`: intrinsics and per-view poses from target points and their pixels
   (Levenberg-Marquardt, L-BFGS, Adam, or OCamCalib's linear solution), robust losses, frozen
   parameter groups, constraints by reparametrisation, covariance of the result.
-* :func:`convert`: a camera of another model (or polynomial degree) fitted to an existing one
+* `convert`: a camera of another model (or polynomial degree) fitted to an existing one
   over its valid area, with held-out pixel and angular errors.
-* :func:`select_model`: the fewest parameters whose held-out error is within a tolerance.
-* :func:`fit_photometric`: intrinsics (and attitude) from a target image, by rendering a cubemap
+* `select_model`: the fewest parameters whose held-out error is within a tolerance.
+* `fit_photometric`: intrinsics (and attitude) from a target image, by rendering a cubemap
   through the camera and matching the target, coarse to fine.
-* :func:`read_correspondences` / :func:`write_correspondences`: the text format of
+* `read_correspondences` / `write_correspondences`: the text format of
   ``omniscape-torch fit``.
-* :func:`checkerboard` / :func:`random_views`: synthetic data of a known camera.
-* :func:`detect_corners`: a board's corners in images (OpenCV, optional), :class:`Board` the
-  boards of ``fit --board``, :func:`render_board` images of a board through a known camera.
-* :func:`assess_coverage`: where the corners lie and the predicted error over the image;
-  :func:`leave_one_out` the same error by refitting without each view;
-  :func:`write_fit_files`: everything ``omniscape-torch fit`` writes (report, plots).
+* `checkerboard` / `random_views`: synthetic data of a known camera.
+* `detect_corners`: a board's corners in images (OpenCV, optional), `Board` the
+  boards of ``fit --board``, `render_board` images of a board through a known camera.
+* `assess_coverage`: where the corners lie and the predicted error over the image;
+  `leave_one_out` the same error by refitting without each view;
+  `write_fit_files`: everything ``omniscape-torch fit`` writes (report, plots).
 * `calibrate`: all of ``omniscape-torch fit`` as one function (the fit, the area the lens sees,
   the coverage and predicted error over it, the blind cone, the verdict), a `Calibration`
   whose `write` writes the files.

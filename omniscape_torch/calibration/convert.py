@@ -1,10 +1,10 @@
 """Model conversion: a camera of another model (or polynomial degree) fitted to an existing one.
 
-:func:`convert` samples the area the source camera images on a regular pixel grid (its valid
+`convert` samples the area the source camera images on a regular pixel grid (its valid
 pixels, within its field of view: ``fov``, by default the source's own, and within ``mask``, e.g.
-the image circle :func:`image_circle` finds in a photograph), unprojects them with the source,
+the image circle `image_circle` finds in a photograph), unprojects them with the source,
 and fits the target's parameters so that ``target.project(R ray)`` lands on the source pixel
-(Levenberg-Marquardt, :mod:`omniscape_torch.calibration.fit`). A second grid offset by half a step
+(Levenberg-Marquardt, `omniscape_torch.calibration.fit`). A second grid offset by half a step
 is held out: the reported errors are measured on it, as pixel distance
 ``|target.project(R ray) - pixel|`` (RMS: the root of the mean squared distance, and maximum)
 and as the angle between the source's ray and ``R^T target.unproject(pixel)``.
@@ -92,13 +92,13 @@ ASYMMETRIC = {"opencv": ("p1", "p2", "s1", "s2", "s3", "s4"),
 
 @dataclass
 class ConversionResult:
-    """Outcome of :func:`convert`. Errors are measured on the held-out grid, in pixels and
+    """Outcome of `convert`. Errors are measured on the held-out grid, in pixels and
     radians, over the samples the target represents.
 
     Attributes:
         camera: the target camera (None when the fit left the model's range), its ``fov`` the
             converted area's (without one, twice the largest angle of its samples).
-        fit: the :class:`FitResult` of the final fit (``converged``, ``reason``, ``std``...;
+        fit: the `FitResult` of the final fit (``converged``, ``reason``, ``std``...;
             after ``minimax`` rounds, of the weighted problem: its ``rms`` is weighted).
         max_px, rms_px: largest and RMS pixel distance (RMS: root of the mean squared distance).
         max_angle, rms_angle: largest and RMS angle between source and target rays, radians.
@@ -162,7 +162,7 @@ def sample_pixels(camera: Camera, grid: int, offset: float, *, max_field: float 
 
 
 def _rings(image, camera: Camera) -> tuple[Tensor, int, Tensor, Tensor]:
-    """What :func:`image_circle` and :func:`blind_cone` read of ``image``: its grey levels
+    """What `image_circle` and `blind_cone` read of ``image``: its grey levels
     after a 5 x 5 box blur ``(H, W)``, the step of the pixels whose rays they ring (every
     step-th: about 200k, as a fisheye's ray grid is their cost), and those pixels' rays and
     validity through ``camera``."""
@@ -231,7 +231,7 @@ def blind_cone(image, camera: Camera) -> float:
     the optical axis where the camera sees its own reflection in the mirror.
 
     Over rings of 1 degree about the axis (``camera``'s valid pixels, every step-th as in
-    :func:`image_circle`, after a 5 x 5 box blur), the cone ends at the first ring whose median
+    `image_circle`, after a 5 x 5 box blur), the cone ends at the first ring whose median
     is above halfway from the innermost ring's median to the lit level (the 90th percentile of
     the rings' medians). ``0`` where the innermost ring is itself lit (a fisheye) or no ring is.
     Give it the mean of several views (``fit --images`` does), so that a dark square of the
@@ -336,7 +336,7 @@ def convert(camera: Camera, to_model: str | CameraModel, *, degree: int = 4, gri
         degree: polynomial degree of a ``scaramuzza`` target.
         grid: samples per image side of the fitted grid (and of the held-out grid).
         fov: full field of view of the converted area, radians (default: the source's
-            ``fov``, else its whole valid area); :func:`image_circle` measures a photograph's.
+            ``fov``, else its whole valid area); `image_circle` measures a photograph's.
         mask: ``(H, W)`` bool, the pixels to convert (e.g. inside the image circle).
         rotation: fit the rotation between the camera frames (None: where the source has an
             affine term and the target is not ``scaramuzza``).
@@ -350,7 +350,7 @@ def convert(camera: Camera, to_model: str | CameraModel, *, degree: int = 4, gri
         progress: show a tqdm bar (``None``: when stderr is a terminal).
 
     Returns:
-        A :class:`ConversionResult`; check ``converged``.
+        A `ConversionResult`; check ``converged``.
 
     Raises:
         ValueError, TypeError: not one camera, unknown model, too few valid samples.
@@ -450,7 +450,7 @@ def _same_model(camera: Camera, target: CameraModel, degree: int) -> bool:
 
 
 def _unchanged(camera: Camera) -> FitResult:
-    """The :class:`FitResult` of a conversion to the source's own model: nothing fitted."""
+    """The `FitResult` of a conversion to the source's own model: nothing fitted."""
     p = camera.params.shape[-1]
     zeros = torch.zeros(p, p, dtype=torch.float64)
     return FitResult(camera, camera.params, camera.param_names, (), torch.zeros(0, 6,
@@ -461,7 +461,7 @@ def _unchanged(camera: Camera) -> FitResult:
 
 def _held_out(out: Camera | None, result: FitResult, held_pixels: Tensor, held_rays: Tensor,
               num_samples: int, turn: Tensor) -> ConversionResult:
-    """The :class:`ConversionResult` of ``out``: its errors on the held-out grid."""
+    """The `ConversionResult` of ``out``: its errors on the held-out grid."""
     nan = math.nan
     max_field = float(torch.acos(held_rays[:, 2].clamp(-1, 1)).max()) if len(held_rays) else nan
     if out is None:

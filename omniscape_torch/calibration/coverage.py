@@ -2,7 +2,7 @@
 
 A fit can reach the noise floor on its own corners and still be pixels off elsewhere: with a
 few views the corners cover a small part of the image, and the lens is extrapolated beyond
-them. :func:`assess_coverage` measures three things over the **calibrated area** (the pixels
+them. `assess_coverage` measures three things over the **calibrated area** (the pixels
 whose fitted ray is valid, inside the image and within ``fov``, e.g. the image circle of a
 fisheye photograph):
 
@@ -19,7 +19,7 @@ fisheye photograph):
   (``FitResult.covariance``: the block of the intrinsics in the inverse of the full normal
   matrix, i.e. with the poses marginalised, times the noise ``sigma^2 = sum r^2 / (2 M - n)``
   that the residuals show), so ``e^2`` is a weighted sum of chi-square variables:
-  ``pixel_error`` is its median's root (:func:`predicted_error`), ``pixel_rms`` the root of its
+  ``pixel_error`` is its median's root (`predicted_error`), ``pixel_rms`` the root of its
   mean (the RMS of the per-pixel std ``sqrt(trace(J C J^T))``, whose map ``uncertainty.png``
   draws). The median is the figure tested: a single fit's true error falls below it half the
   time (with few views one direction of the intrinsics dominates, ``e`` is then nearly
@@ -32,7 +32,7 @@ Validation (``benchmarks/calibration_uncertainty.py``, ``benchmarks/results/
 calibration_uncertainty.md``): synthetic views of a 9 x 6 board by a Kannala-Brandt 190-degree
 and a unified 230-degree lens on 1280 x 1024, 3, 8 and 21 views, 0.1-0.5 px of noise: the
 median over seeds of ``pixel_error`` / true error is within [0.7, 1.4] in every case (table
-there). On real photographs :func:`leave_one_out` refits without each view (the jackknife):
+there). On real photographs `leave_one_out` refits without each view (the jackknife):
 on synthetic views it gives 1.0-1.3 times ``pixel_rms``; where it is far above (5 times on
 the real photographs of ``tests/data/ocamcalib_fisheye2``: 0.39 against 0.084 px),
 the residuals are not independent per corner (a lens the model does not quite fit, corners
@@ -81,7 +81,7 @@ STD_GRID = 48
 
 @dataclass
 class Coverage:
-    """Outcome of :func:`assess_coverage` (module docstring).
+    """Outcome of `assess_coverage` (module docstring).
 
     Attributes:
         cells: share of the calibrated area's cells holding a corner, in [0, 1].
@@ -90,10 +90,10 @@ class Coverage:
         half_fov: largest angle off the axis of the calibrated area, radians.
         pixel_error: the predicted pixel error of the calibration over the area no farther
             off axis than the corners reach: the median of its RMS distance from the truth
-            there (:func:`predicted_error`; the figure tested), pixels (inf when the
+            there (`predicted_error`; the figure tested), pixels (inf when the
             covariance is not available: degenerate data).
         pixel_rms: the root of that RMS distance's mean square (the RMS of the predicted
-            pixel std over the area), pixels; :func:`leave_one_out` estimates the same.
+            pixel std over the area), pixels; `leave_one_out` estimates the same.
         max_pixel_std: largest predicted pixel std over that area, pixels (reported).
         median_pixel_std: its median, pixels.
         max_pixel_std_fov: largest over the whole area (beyond the corners too), pixels.
@@ -240,7 +240,7 @@ def covered_rays(camera: Camera, image_points: Sequence[Tensor], *, fov: float |
 
 @dataclass
 class Resampling:
-    """Outcome of :func:`leave_one_out`.
+    """Outcome of `leave_one_out`.
 
     Attributes:
         pixel_error: the jackknife estimate of the calibration's pixel error over the area the
@@ -267,12 +267,12 @@ def leave_one_out(result, object_points, image_points, *, fov: float | None = No
     """Resampling check of a fit's predicted error (``Coverage.pixel_error``): refit without
     each view in turn (from the fit's own intrinsics and poses, the same frozen parameters) and
     measure how far the projections of fixed rays over the area the corners reach move (the
-    jackknife; :class:`Resampling`). Where the views are alike and the residuals independent it
+    jackknife; `Resampling`). Where the views are alike and the residuals independent it
     agrees with the prediction; on real photographs it also sees what the noise model does not
     (corners biased per view, a lens the model does not quite fit).
 
     Args:
-        result: the :class:`~omniscape_torch.calibration.FitResult` of ``fit`` on these views
+        result: the `FitResult` of ``fit`` on these views
             (not a conversion), at least 3 views.
         object_points: the target points given to ``fit``.
         image_points: the pixels given to ``fit`` (per view).
@@ -280,7 +280,7 @@ def leave_one_out(result, object_points, image_points, *, fov: float | None = No
         std_grid: grid samples along the longer image side.
 
     Returns:
-        A :class:`Resampling`.
+        A `Resampling`.
     """
     from .fit import fit, prepare_views
 
@@ -360,7 +360,7 @@ def assess_coverage(camera: Camera, covariance: Tensor, image_points: Sequence[T
         std_grid: std map samples along the longer image side.
 
     Returns:
-        A :class:`Coverage`.
+        A `Coverage`.
     """
     limits = {**THRESHOLDS, **(thresholds or {})}
     unknown = set(limits) - set(THRESHOLDS)

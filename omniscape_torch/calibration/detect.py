@@ -1,15 +1,15 @@
 """Corners of calibration boards in images, with OpenCV (an optional dependency:
 ``pip install opencv-contrib-python-headless``).
 
-:func:`detect_corners` reads the images, finds the board of ``--board``
-(:class:`~omniscape_torch.calibration.targets.Board`) in each and returns the correspondences
+`detect_corners` reads the images, finds the board of ``--board``
+(`Board`) in each and returns the correspondences
 of ``omniscape-torch fit``: per image where the board was found, its target points and their
 pixels; the images where it was not are listed with the reason.
 
 * checkerboard: the classic ``cv2.findChessboardCorners`` (fast), else
   ``cv2.findChessboardCornersSB`` (the sector-based detector, robust to strong distortion, in
   its exhaustive mode); the corners are then refined with ``cv2.cornerSubPix`` in a window per
-  corner that follows the corners' spacing about it (:func:`refine_windows`: up to 11 x 11, as
+  corner that follows the corners' spacing about it (`refine_windows`: up to 11 x 11, as
   OpenCV's calibration samples use, stopping short of the next grid lines). On
   boards rendered through a fisheye (``tests/test_calibration_images.py``) the refined corners
   lie 0.064 px RMS from the truth (0.26 px at worst); the sector-based detector's own corners,
@@ -39,10 +39,10 @@ from torch import Tensor
 from .files import Correspondences
 from .targets import Board, _aruco, charuco_board, require_cv2
 
-#: Image files :func:`detect_corners` reads from a folder.
+#: Image files `detect_corners` reads from a folder.
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp")
 
-#: Fewest views :func:`detect_corners` accepts (the fit accepts fewer; Zhang's planar
+#: Fewest views `detect_corners` accepts (the fit accepts fewer; Zhang's planar
 #: calibration needs three for a general pinhole camera, and a lens has more parameters).
 MIN_VIEWS = 3
 
@@ -52,7 +52,7 @@ MAX_REFINE_WINDOW = 5
 
 @dataclass
 class Detection(Correspondences):
-    """:class:`Correspondences` of the images where the board was found, and the others.
+    """`Correspondences` of the images where the board was found, and the others.
 
     Attributes:
         skipped: image name -> why it was not used (board not found, too few corners).
@@ -134,7 +134,7 @@ def _grey(cv2, image, name: str) -> np.ndarray | str:
 
 
 #: ``cornerSubPix``'s half window as a share of the distance to the corner's closest neighbour
-#: (:func:`refine_windows`).
+#: (`refine_windows`).
 REFINE_SHARE = 0.6
 
 
@@ -217,7 +217,7 @@ def detect_corners(images: str | Path | Sequence, board: Board | str, *,
     Args:
         images: a folder (its ``IMAGE_SUFFIXES`` files, by name), or a sequence of image paths
             or of ``(H, W)`` / ``(H, W, 3)`` uint8 arrays or tensors (RGB).
-        board: a :class:`Board` or its ``--board`` text (``checkerboard:9x6:0.03``).
+        board: a `Board` or its ``--board`` text (``checkerboard:9x6:0.03``).
         names: view names (default: file names without suffix, or ``image_000``, ...); names
             are made unique and space-free for the correspondence file.
         min_views: fewest images with the board, else ValueError.
@@ -226,7 +226,7 @@ def detect_corners(images: str | Path | Sequence, board: Board | str, *,
         workers: threads (OpenCV releases the GIL; default: up to 4, the CPU count).
 
     Returns:
-        A :class:`Detection`: per view ``(N_i, 3)`` target points (``board.object_points()``
+        A `Detection`: per view ``(N_i, 3)`` target points (``board.object_points()``
         rows) and ``(N_i, 2)`` pixels, float64; the image size ``(H, W)``; view names; the
         skipped images and why.
 
@@ -328,7 +328,7 @@ def nearby_boards(board: Board) -> list[Board]:
 
 def _seen_instead(cv2, images: list, board: Board, workers: int | None) -> str:
     """One line for the images where ``board`` was not found: how many, and the nearby size
-    (:func:`nearby_boards`) seen in them, if any: tried on up to three of them, then counted
+    (`nearby_boards`) seen in them, if any: tried on up to three of them, then counted
     over all. Only checkerboards (a ChArUco board's markers name its size)."""
     line = f"no {board} in {len(images)} of them"
     if board.kind != "checkerboard":

@@ -1,7 +1,7 @@
 """Calibration from correspondences: intrinsics and per-view poses by least squares.
 
 Given target points ``X`` (checkerboard corners or any known points, in the target's frame)
-and their detected pixels in several views, :func:`fit` minimises the reprojection error
+and their detected pixels in several views, `fit` minimises the reprojection error
 
     sum_views sum_points rho(|project(R_v X + t_v, params) - pixels|^2 / scale^2)
 
@@ -10,8 +10,8 @@ differentiable ``project`` as the residual function. Jacobians come from autogra
 every observation gets its own copy of the parameters and of its view's pose, so two backward
 passes (one per pixel coordinate) give the whole ``(M, 2, n)`` Jacobian, whatever ``n``
 (observations are independent given the parameters). Free variables, constraints and the
-normalised polynomial radius are described in :mod:`omniscape_torch.calibration.params`, the
-damping in :mod:`omniscape_torch.calibration.lm`.
+normalised polynomial radius are described in `omniscape_torch.calibration.params`, the
+damping in `omniscape_torch.calibration.lm`.
 
 Initialisation (`omniscape_torch.calibration.starts`): OCamCalib's linear solution for
 ``scaramuzza``; for the other models several starts (the linear solution converted, and
@@ -41,7 +41,7 @@ them per view. A clean observation is marked with the probability of that event 
 Methods: Levenberg-Marquardt is the method for correspondences (a small dense least-squares
 problem whose Jacobian is at hand: it converges in tens of iterations where the scaled
 condition number of ``J^T J`` reaches 1e7). L-BFGS and Adam are first-order methods, for losses
-without a least-squares Jacobian (photometric fitting: :func:`fit_photometric` uses Adam);
+without a least-squares Jacobian (photometric fitting: `fit_photometric` uses Adam);
 here they serve as a cross-check of the LM minimum on well-conditioned problems, and
 ``benchmarks/calibration_stability.py`` shows them not converging within their budgets on a
 real lens: use them on points only to compare.
@@ -79,7 +79,7 @@ from .params import IntrinsicsMap, frozen_indices, transform
 from .problem import COST_FLOOR, Problem, view_index
 from .starts import default_fov, default_intrinsics, default_starts, initial_poses, rank_starts
 
-#: Optimisation methods of :func:`fit`.
+#: Optimisation methods of `fit`.
 METHODS = ("lm", "lbfgs", "adam", "linear")
 
 #: Parameters held by default: OCamCalib's ``a1 = 0`` (``f'(0) = 0``); for ``opencv``, as
@@ -114,7 +114,7 @@ OUTLIER_FLOOR = 1e-6
 
 @dataclass
 class FitResult:
-    """Outcome of :func:`fit` (also of a model conversion's fit).
+    """Outcome of `fit` (also of a model conversion's fit).
 
     Attributes:
         camera: the fitted ``ot.Camera`` (None only when the parameters left the model's range,
@@ -426,7 +426,7 @@ def fit(object_points, image_points, model: str | CameraModel, image_size: tuple
         progress: show a tqdm bar (``None``: when stderr is a terminal).
 
     Returns:
-        A :class:`FitResult`; check ``converged``.
+        A `FitResult`; check ``converged``.
 
     Raises:
         ValueError, TypeError: bad input (shapes, NaN, fewer observations than free
@@ -523,7 +523,7 @@ def fit(object_points, image_points, model: str | CameraModel, image_size: tuple
 
 
 def _rank(result: FitResult) -> tuple[bool, bool, float]:
-    """Which of two fits of the same data :func:`fit` keeps: a converged one, else one whose
+    """Which of two fits of the same data `fit` keeps: a converged one, else one whose
     only failed check is the near-degenerate one (a minimum, written by ``omniscape-torch
     fit`` with exit 3), else the lower cost."""
     return result.converged, result.only_near_degenerate, -result.cost
@@ -652,7 +652,7 @@ def _solve(problem: Problem, method: str, *, loss: str, loss_scale: float,
            max_iterations: int | None, optimality_tol: float, max_condition: float,
            max_std: float, progress, sizes: list[int], image_size: tuple[int, int]
            ) -> tuple[FitResult, bool]:
-    """:func:`solve`, and whether the method itself stopped on a convergence test (rather than
+    """`solve`, and whether the method itself stopped on a convergence test (rather than
     on its budget, or on data that do not determine the parameters)."""
     def determined(z: Tensor) -> bool:
         condition, _, std_free = _uncertainty(problem, z, loss, loss_scale, max_condition,

@@ -2,7 +2,7 @@
 
 Both take a planar target: points ``(X, Y, 0)`` in the target's frame.
 
-* :func:`scaramuzza_linear`: Scaramuzza, Martinelli and Siegwart, "A toolbox for easily
+* `scaramuzza_linear`: Scaramuzza, Martinelli and Siegwart, "A toolbox for easily
   calibrating omnidirectional cameras", IROS 2006, section IV (OCamCalib's ``calibrate``).
   A pixel's sensor point ``(pu, pv)`` (centre removed, affine part identity) sees the ray
   ``(pu, pv, g(rho))`` with ``g = -f``, parallel to ``P = R X + t = X r1 + Y r2 + t``. The third
@@ -14,7 +14,7 @@ Both take a planar target: points ``(X, Y, 0)`` in the target's frame.
   ``a1 = 0`` (``f'(0) = 0``) and the polynomial is solved in the normalised radius ``rho / s``.
   Each view leaves a mirror ambiguity (the sign of ``(r31, r32)``); the candidate whose
   single-view solve fits better is kept.
-* :func:`planar_pose`: the pose of a planar target from unit rays (any central camera whose
+* `planar_pose`: the pose of a planar target from unit rays (any central camera whose
   rays are known): the homography ``ray ~ H (X, Y, 1)`` by DLT on Hartley-normalised target
   coordinates, ``H = lambda [r1 r2 t]``, ``R`` the nearest rotation to ``[r1 r2 r1 x r2]``.
 """

@@ -63,7 +63,7 @@ def robust_cost(residuals: Tensor, loss: str, scale: float) -> tuple[Tensor, Ten
 
 @dataclass
 class LMState:
-    """Outcome of :func:`levenberg_marquardt`.
+    """Outcome of `levenberg_marquardt`.
 
     Attributes:
         z: ``(n,)`` final free vector.
@@ -109,7 +109,7 @@ def levenberg_marquardt(evaluate: Evaluate, z0: Tensor, *, loss: str = "linear",
         progress: show a tqdm bar (``None``: when stderr is a terminal).
 
     Returns:
-        An :class:`LMState`.
+        An `LMState`.
     """
     from tqdm import tqdm
 

@@ -28,7 +28,7 @@ from ..render.layer import OmniProjection
 
 __all__ = ["PHOTOMETRIC_LOSSES", "PhotometricResult", "fit_photometric", "photometric_error"]
 
-#: Loss choices of :func:`fit_photometric`.
+#: Loss choices of `fit_photometric`.
 PHOTOMETRIC_LOSSES = ("charbonnier", "l2", "zncc")
 #: Width of the Charbonnier loss, in intensity units (images in [0, 1]).
 CHARBONNIER_EPS = 0.01
@@ -38,7 +38,7 @@ STATIONARY_WINDOW = 10
 
 @dataclass
 class PhotometricResult:
-    """Outcome of :func:`fit_photometric`.
+    """Outcome of `fit_photometric`.
 
     Attributes:
         camera: the fitted camera (fixed, not learnable), with ``camera_init``'s model, image size,
@@ -51,7 +51,7 @@ class PhotometricResult:
             parameters drift by at most ``step_tol`` pixels, and the camera covers the compared
             area.
         reason: why ``converged`` is what it is, in words.
-        error: final photometric error at full resolution (:func:`photometric_error`).
+        error: final photometric error at full resolution (`photometric_error`).
         initial_error: the same for the initial guess.
         coverage: fraction of the compared pixels that the fitted camera sees.
         drift: largest difference between the mean parameters of the last two windows of
@@ -178,7 +178,7 @@ def fit_photometric(cubemap: Tensor, target: Tensor, camera_init: Camera, *,
     * **Loss.** ``"charbonnier"`` (default): ``sqrt(r^2 + eps^2) - eps`` with ``eps = 0.01``, a
       smooth L1 that does not let the few aliased pixels of an exact ray cast (thin poles, lane
       markings) dominate the way ``"l2"`` does; ``"zncc"``: ``1 - ZNCC`` per channel
-      (:func:`photometric_error`), invariant to gain and offset, for a target with another
+      (`photometric_error`), invariant to gain and offset, for a target with another
       exposure than the cube's. Measured (128 x 128 targets, faces of 64, guesses 20 % and
       15 px off): median final focal error 0.17 % / 0.07 % (fisheye / catadioptric) with
       Charbonnier, 0.36 % / 0.31 % with L2, 0.22 % / 0.17 % with ZNCC; L2 also ends
@@ -218,7 +218,7 @@ def fit_photometric(cubemap: Tensor, target: Tensor, camera_init: Camera, *,
         mask: ``(H, W)``, ``(1, H, W)`` or ``(1, 1, H, W)`` bool: the target's valid pixels
             (default all).
         levels: pyramid levels; ``H``, ``W`` and ``F`` must be divisible by ``2^(levels - 1)``.
-        loss: one of :data:`PHOTOMETRIC_LOSSES`.
+        loss: one of `PHOTOMETRIC_LOSSES`.
         steps: Adam steps of the finest level (``steps * 2^l`` at level ``l``), at least
             ``2 * STATIONARY_WINDOW``.
         lr: Adam learning rate, in pixels of the current level.
@@ -227,7 +227,7 @@ def fit_photometric(cubemap: Tensor, target: Tensor, camera_init: Camera, *,
         progress: show a tqdm progress bar over all steps.
 
     Returns:
-        A :class:`PhotometricResult`.
+        A `PhotometricResult`.
 
     Raises:
         TypeError: a wrong type or dtype. ValueError: a wrong shape, size or option.
@@ -346,7 +346,7 @@ def _evaluate(camera_init: Camera, cube: Tensor, target: Tensor, mask: Tensor,
 
 
 def _check_inputs(cubemap, target, camera, rotation, mask, levels):
-    """Validate and normalise the inputs of :func:`fit_photometric`."""
+    """Validate and normalise the inputs of `fit_photometric`."""
     check_one_camera(camera, "camera_init")
     if camera.param_names[:4] != ("fx", "fy", "cx", "cy"):
         raise ValueError(f"camera_init: the {camera.model.name!r} model's parameters do not "

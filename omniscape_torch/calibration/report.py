@@ -1,21 +1,21 @@
 """What ``omniscape-torch fit`` writes beside the fitted camera: a report and its plots.
 
-:func:`write_fit_files` writes every file of a fit into one folder (the command line's staging
+`write_fit_files` writes every file of a fit into one folder (the command line's staging
 folder, published all at once by ``omniscape_torch.io.atomic.publish``):
 
 * ``camera.json``: the camera (``Camera.load_json`` reads it), with the fit's summary under
   ``"fit"`` and the coverage figures under ``"coverage"``;
-* ``calib_results.txt`` for ``scaramuzza``: OCamCalib's file (:func:`write_ocamcalib_file`);
-* ``report.json``: :func:`fit_report`: per view its RMS and largest error (pixels, over the
+* ``calib_results.txt`` for ``scaramuzza``: OCamCalib's file (`write_ocamcalib_file`);
+* ``report.json``: `fit_report`: per view its RMS and largest error (pixels, over the
   corners the fit kept) and the corners dropped as outliers, the parameters with their standard
   deviations, the convergence reason, the coverage figures and warnings, skipped images;
 * ``report.md``: the same, short, for people;
 * ``residuals.png``: residual vectors over the image (scaled to be seen) and a histogram of
   their lengths;
 * ``uncertainty.png``: the predicted pixel error over the image
-  (:mod:`omniscape_torch.calibration.coverage`), with the corners;
+  (`omniscape_torch.calibration.coverage`), with the corners;
 * ``correspondences.txt`` when the corners came from images: the detected corners in the
-  format of :mod:`omniscape_torch.calibration.files` (a later ``fit`` can read them).
+  format of `omniscape_torch.calibration.files` (a later ``fit`` can read them).
 
 The plots need matplotlib (drawn with its Agg canvas, no global backend is set); without it
 they are left out and the report says so.
@@ -81,7 +81,7 @@ def fit_report(result, names: Sequence[str], image_size: tuple[int, int], *,
         result: a ``FitResult``.
         names: view names, in the fit's order.
         image_size: ``(H, W)``.
-        coverage: :func:`~omniscape_torch.calibration.coverage.assess_coverage`'s result.
+        coverage: `assess_coverage`'s result.
         model: the model name (default: the fitted camera's).
         source: where the correspondences came from (a file, a folder of images).
         board: the board (``--board`` text) when detected in images.
@@ -90,7 +90,7 @@ def fit_report(result, names: Sequence[str], image_size: tuple[int, int], *,
         fov_source: where the field of view the coverage is judged over came from:
             ``"image circle"``, ``"corners' reach"``, ``"whole sensor"`` or ``"--fov"``.
         fov_note: why the image circle was not used, when it could not be measured.
-        resampling: :func:`~omniscape_torch.calibration.coverage.leave_one_out`'s result.
+        resampling: `leave_one_out`'s result.
     """
     sizes = [len(r) for r in result.residuals]
     views = [{"name": n, **row} for n, row in zip(names, view_errors(result, sizes))]
@@ -124,7 +124,7 @@ def _px(value) -> str:
 
 
 def report_markdown(report: dict) -> str:
-    """A short Markdown page of :func:`fit_report`'s report."""
+    """A short Markdown page of `fit_report`'s report."""
     h, w = report["image_size"]
     lines = [f"# Calibration: {report['model']}", "",
              f"- source: {report['source'] or '-'}" + (f" (board {report['board']})"
@@ -313,7 +313,7 @@ def uncertainty_map(coverage: Coverage, camera=None) -> tuple[Tensor, float]:
 def plot_uncertainty(coverage: Coverage, image_points: Sequence[Tensor],
                      image_size: tuple[int, int], path: str | Path, *, camera=None) -> Path:
     """``uncertainty.png``: the predicted pixel error over the calibrated area (colour, scaled
-    to the area the corners reach, :func:`uncertainty_map`; grey where the camera sees
+    to the area the corners reach, `uncertainty_map`; grey where the camera sees
     nothing: outside its image circle, inside ``camera.blind_fov``), the limit's contour,
     the corners (dots) and the coverage figures in the title."""
     h, w = image_size
@@ -369,14 +369,14 @@ def write_fit_files(folder: str | Path, result, data: Correspondences, *,
         result: the converged ``FitResult``.
         data: the correspondences it was fitted to.
         coverage: the coverage figures (``assess_coverage``).
-        source: for the report (:func:`fit_report`).
-        board: for the report (:func:`fit_report`).
-        skipped: for the report (:func:`fit_report`).
+        source: for the report (`fit_report`).
+        board: for the report (`fit_report`).
+        skipped: for the report (`fit_report`).
         write_points: also write ``correspondences.txt`` (corners detected in images).
         plots: draw ``residuals.png`` and ``uncertainty.png`` (skipped without matplotlib).
-        fov_source: for the report (:func:`fit_report`).
-        fov_note: for the report (:func:`fit_report`).
-        resampling: for the report (:func:`fit_report`).
+        fov_source: for the report (`fit_report`).
+        fov_note: for the report (`fit_report`).
+        resampling: for the report (`fit_report`).
 
     Returns:
         The paths written, and the report (with ``"plots"`` and ``"warnings"``: lines to show).

@@ -3,14 +3,14 @@
 Every candidate (a model, and a degree for ``scaramuzza``) is fitted on one set of points and
 judged on another it never saw:
 
-* from a camera (``ot.Camera``): :func:`~omniscape_torch.calibration.convert.convert`, fitted on
+* from a camera (``ot.Camera``): `convert`, fitted on
   one pixel grid, judged on the grid offset by half a step;
 * from correspondences (``(object_points, image_points)``): every ``holdout``-th point of each
-  view is held out, the rest fitted by :func:`~omniscape_torch.calibration.fit.fit`; the held-out
+  view is held out, the rest fitted by `fit`; the held-out
   points are projected with the fitted intrinsics and poses.
 
 Errors are pixel distances: their RMS (the root of the mean squared distance, as
-``FitResult.rms`` and :class:`~omniscape_torch.calibration.convert.ConversionResult`; with
+``FitResult.rms`` and `ConversionResult`; with
 Gaussian noise of ``sigma`` per coordinate it tends to ``sigma sqrt 2``, so a tolerance must sit
 above that) and their maximum. The selected candidate is the converged one with the fewest free
 parameters whose held-out RMS is within ``tolerance`` and, if ``max_tolerance`` is given,
@@ -63,7 +63,7 @@ class Candidate:
 
 @dataclass
 class Selection:
-    """Outcome of :func:`select_model`.
+    """Outcome of `select_model`.
 
     Attributes:
         best: the selected row, or None when no candidate is within the tolerance.
@@ -105,7 +105,7 @@ def select_model(source, tolerance: float, *, max_tolerance: float | None = None
 
     Args:
         source: an ``ot.Camera`` (conversion), or ``(object_points, image_points)`` as
-            :func:`~omniscape_torch.calibration.fit.fit` takes them (calibration).
+            `fit` takes them (calibration).
         tolerance: largest held-out RMS pixel distance.
         max_tolerance: largest held-out pixel distance (None: no bound on the worst case).
         image_size: ``(H, W)``, for correspondences.
@@ -116,7 +116,7 @@ def select_model(source, tolerance: float, *, max_tolerance: float | None = None
             to ``convert`` for a camera (``grid``, ``fov``, ``mask``...).
 
     Returns:
-        A :class:`Selection` with the table of all candidates.
+        A `Selection` with the table of all candidates.
     """
     from tqdm import tqdm
 

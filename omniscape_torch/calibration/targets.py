@@ -1,6 +1,6 @@
 """Calibration targets: what ``--board`` names, their corners, and images of them.
 
-A :class:`Board` is parsed from the text of ``omniscape-torch fit --board``:
+A `Board` is parsed from the text of ``omniscape-torch fit --board``:
 
 =============================================== ===============================================
 ``checkerboard:COLSxROWS:SQUARE``               inner corners along a row x along a column,
@@ -17,12 +17,12 @@ its tags but, on fisheye renders, places their corners 1-3 px off (the black squ
 the tags merge with the tags' borders) and misses tags; detect AprilGrids with Kalibr and give
 the corners to ``fit`` as a correspondence file.
 
-Every corner of a board has an id (its row in :meth:`Board.object_points`); a detection gives
+Every corner of a board has an id (its row in `Board.object_points`); a detection gives
 the ids it found with their pixels. The target points of a plane are fixed up to a rigid motion
 of the plane (and a mirror image: seen from behind), which the poses of a fit absorb; only the
 distances between corners matter to the intrinsics.
 
-:func:`render_board` draws a board seen by a known camera (for tests and demos where the truth
+`render_board` draws a board seen by a known camera (for tests and demos where the truth
 must be known): every pixel is the mean of ``supersample x supersample`` samples, each coloured
 by the board's pattern where its ray meets the board's plane (rays are unprojected with the
 camera on a grid of ``step`` pixels and the plane points interpolated in between, which is
@@ -44,7 +44,7 @@ from ..cameras import Camera
 from .params import axis_angle_to_matrix
 from .synthetic import checkerboard
 
-#: Board kinds of :class:`Board`.
+#: Board kinds of `Board`.
 BOARD_KINDS = ("checkerboard", "charuco")
 
 #: Default ArUco dictionary of ChArUco boards (OpenCV's name without ``DICT_``).
@@ -156,7 +156,7 @@ class Board:
 
     @property
     def num_corners(self) -> int:
-        """Corners with an id: the rows of :meth:`object_points`."""
+        """Corners with an id: the rows of `object_points`."""
         if self.kind == "checkerboard":
             return self.cols * self.rows
         return (self.cols - 1) * (self.rows - 1)
@@ -164,7 +164,7 @@ class Board:
     def object_points(self, dtype: torch.dtype = torch.float64) -> Tensor:
         """``(num_corners, 3)`` corners ``(X, Y, 0)`` in metres, row ``i`` the corner of id ``i``.
 
-        checkerboard: :func:`~omniscape_torch.calibration.checkerboard` (row-major, centred),
+        checkerboard: `checkerboard` (row-major, centred),
         the order of ``cv2.findChessboardCorners`` with ``patternSize = (cols, rows)``;
         charuco: OpenCV's ``CharucoBoard.getChessboardCorners()`` (ids row-major from the
         corner at one square from the board's top-left, x along a row, y down a column).
@@ -178,7 +178,7 @@ class Board:
 
     def extent(self) -> tuple[float, float, float, float]:
         """``(x0, y0, x1, y1)``: the printed pattern with its white margin (``MARGIN``), in the
-        frame of :meth:`object_points`, metres."""
+        frame of `object_points`, metres."""
         s = self.square
         if self.kind == "checkerboard":
             hx, hy = (self.cols + 1) / 2 * s + MARGIN * s, (self.rows + 1) / 2 * s + MARGIN * s
@@ -186,7 +186,7 @@ class Board:
         return -MARGIN * s, -MARGIN * s, (self.cols + MARGIN) * s, (self.rows + MARGIN) * s
 
     def outline(self, per_side: int = 32, dtype: torch.dtype = torch.float64) -> Tensor:
-        """``(4 per_side, 3)`` points along the edge of :meth:`extent`."""
+        """``(4 per_side, 3)`` points along the edge of `extent`."""
         x0, y0, x1, y1 = self.extent()
         t = torch.arange(per_side, dtype=dtype) / per_side
         xs = torch.cat((x0 + (x1 - x0) * t, torch.full_like(t, x1), x1 - (x1 - x0) * t,
@@ -198,8 +198,8 @@ class Board:
     def texture(self, pixels_per_square: int = 64) -> tuple[np.ndarray, float]:
         """The printed board (margin included) as a float image in [0, 1] and its resolution
         in pixels per metre; texel ``(i, j)`` covers ``x0 + j / res``..., ``y0 + i / res``...
-        of :meth:`extent`. ChArUco only: checkerboards are drawn analytically
-        (:func:`board_intensity`)."""
+        of `extent`. ChArUco only: checkerboards are drawn analytically
+        (`board_intensity`)."""
         if self.kind != "charuco":
             raise ValueError(f"board: a {self.kind} has no texture (drawn analytically)")
         res = pixels_per_square / self.square
@@ -213,7 +213,7 @@ class Board:
 
 
 def charuco_board(board: Board):
-    """The OpenCV ``CharucoBoard`` of a ``charuco`` :class:`Board`."""
+    """The OpenCV ``CharucoBoard`` of a ``charuco`` `Board`."""
     cv2 = require_cv2()
     aruco = _aruco(cv2)
     name = f"DICT_{board.dictionary}"

@@ -53,7 +53,7 @@ FISHEYE_DEFAULTS: dict[str, tuple[float, ...]] = {
     "eucm": (0.6, 1.1),
 }
 
-#: Default mirror parameter of :func:`catadioptric`: a hyperbolic mirror (0 < xi < 1; xi = 1
+#: Default mirror parameter of `catadioptric`: a hyperbolic mirror (0 < xi < 1; xi = 1
 #: is parabolic).
 CATADIOPTRIC_XI = 0.9
 
@@ -118,7 +118,7 @@ def yaw_pitch_roll_to_matrix(yaw: float | Tensor, pitch: float | Tensor,
 
 
 def rotation_rows(cy, sy, cp, sp, cr, sr) -> tuple:
-    """The entries of :func:`yaw_pitch_roll_to_matrix`'s ``R``, row by row, from the cosines and
+    """The entries of `yaw_pitch_roll_to_matrix`'s ``R``, row by row, from the cosines and
     sines of yaw, pitch and roll: tensors or NumPy arrays (``augment.RandomReproject`` draws its
     attitudes in NumPy: on a few samples, torch's dispatch costs more than the arithmetic)."""
     return ((cy * cr + sy * sp * sr, sy * sp * cr - cy * sr, sy * cp),
@@ -128,7 +128,7 @@ def rotation_rows(cy, sy, cp, sp, cr, sr) -> tuple:
 
 def matrix_to_yaw_pitch_roll(rotation: Tensor, *, eps: float | None = None
                              ) -> tuple[Tensor, Tensor, Tensor]:
-    """Inverse of :func:`yaw_pitch_roll_to_matrix`.
+    """Inverse of `yaw_pitch_roll_to_matrix`.
 
     ``pitch = atan2(-R[1, 2], hypot(R[0, 2], R[2, 2]))`` in ``[-pi/2, pi/2]``,
     ``yaw = atan2(R[0, 2], R[2, 2])`` and ``roll = atan2(R[1, 0], R[1, 1])`` in ``(-pi, pi]``.
@@ -215,7 +215,7 @@ def fisheye(image_size: tuple[int, int], *, fov: float = math.radians(190),
         model: ``"equidistant"``, ``"equisolid"``, ``"stereographic"``, ``"orthographic"``
             (fov <= 180 deg), ``"kannala_brandt"``, ``"double_sphere"`` or ``"eucm"``.
         distortion: the model's parameters after (fx, fy, cx, cy): k1..k4, (xi, alpha) or
-            (alpha, beta); default :data:`FISHEYE_DEFAULTS`.
+            (alpha, beta); default `FISHEYE_DEFAULTS`.
         dtype: floating dtype of the camera's parameters.
 
     Returns:

@@ -5,15 +5,15 @@ of items (frame numbers, capture folders) that writes its files and returns what
 function is the same one a local run calls, so a task writes the same bytes wherever and
 however often it runs.
 
-* :func:`run_on_ray`: each chunk becomes a Ray task (one CPU, and the memory the caller
+* `run_on_ray`: each chunk becomes a Ray task (one CPU, and the memory the caller
   estimates, so that Ray places no more tasks on a node than fit) on an existing cluster
   (``address``; ``$RAY_ADDRESS``; one ``ray start`` started on this machine) or on a local one
   started for the run and stopped after it.
-  A task whose worker dies or whose body raises is run again by Ray (:data:`RETRIES` times);
+  A task whose worker dies or whose body raises is run again by Ray (`RETRIES` times);
   one that still fails has each of its items reported with the error, while the other tasks
   finish. A progress bar counts the items of each task as it completes. Ray is an optional
-  dependency (:data:`RAY_INSTALL`); without it :func:`import_ray` says how to install it.
-* :func:`shard_part`: ``--shard K/N`` for schedulers without Ray (Slurm arrays, Kubernetes
+  dependency (`RAY_INSTALL`); without it `import_ray` says how to install it.
+* `shard_part`: ``--shard K/N`` for schedulers without Ray (Slurm arrays, Kubernetes
   indexed jobs, a shell loop): run ``K`` of ``N`` takes items ``K, K + N, K + 2 N, ...``, so
   the ``N`` runs take disjoint sets that together are all of them, and a longer run (more
   frames) keeps every earlier item in the same run.
@@ -43,7 +43,7 @@ RAY_INSTALL = 'pip install -e ".[ray]"'
 #: escaping the task's function) before its items are reported as failed.
 RETRIES = 2
 
-#: The most items one task takes when the caller leaves the chunking to :func:`split_chunks`:
+#: The most items one task takes when the caller leaves the chunking to `split_chunks`:
 #: small enough that the progress bar moves and a lost task costs little, large enough that
 #: a task's start-up (Ray's dispatch, the task building its renderer) stays a small share.
 MAX_CHUNK = 8
@@ -132,7 +132,7 @@ def import_ray():
     """The ``ray`` module.
 
     Raises:
-        ImportError: Ray is not installed; the message names :data:`RAY_INSTALL`.
+        ImportError: Ray is not installed; the message names `RAY_INSTALL`.
     """
     try:
         import ray
@@ -210,15 +210,15 @@ def run_on_ray(fn: Callable, args: tuple, items: Sequence, *, address: str | boo
     ``fn`` must be importable (a module-level function of an installed package: the workers
     import it) and return ``(done, failures)``: ``{item: result}`` of the items it did and
     ``{item: message}`` of those that failed, having tried every item of its chunk. Ray
-    retries a task whose worker dies or whose ``fn`` raises (:data:`RETRIES` times); after
+    retries a task whose worker dies or whose ``fn`` raises (`RETRIES` times); after
     that every item of its chunk is a failure with the error's message.
 
     Args:
         fn: the task's function (pickled to the workers).
         args: its leading arguments (pickled to the workers).
-        items: what to do; cut by :func:`split_chunks` over the cluster's CPUs, unless
+        items: what to do; cut by `split_chunks` over the cluster's CPUs, unless
             ``chunks`` gives the chunks.
-        address: the cluster (:func:`ray_cluster`).
+        address: the cluster (`ray_cluster`).
         memory: bytes one task needs at its peak (Ray's ``memory`` resource), or None.
         progress: a tqdm bar on stderr (default: when stderr is a terminal), of ``total``
             items (default ``len(items)``) from ``initial``; each completed task adds its
@@ -229,7 +229,7 @@ def run_on_ray(fn: Callable, args: tuple, items: Sequence, *, address: str | boo
         ``(done, failures)``: the union of the tasks' results.
 
     Raises:
-        ImportError: Ray is not installed (:data:`RAY_INSTALL`). MemoryError: ``memory`` is
+        ImportError: Ray is not installed (`RAY_INSTALL`). MemoryError: ``memory`` is
         more than any node offers. KeyboardInterrupt: the tasks still running are cancelled.
     """
     from tqdm import tqdm

@@ -3,7 +3,7 @@
 Both answers come from the camera's rays in the cube frame, ``ray_cube = R @ ray_cam``
 (``DESIGN.md``: ``R = I`` is a camera looking forward, along the "front" face).
 
-Face size (:func:`required_face_size`). A face is a pinhole with ``f = F / 2`` texels per unit
+Face size (`required_face_size`). A face is a pinhole with ``f = F / 2`` texels per unit
 of its normalised image plane: a cube-frame direction ``d`` lands at
 ``(x, y) = ((r . d) / (a . d), (b . d) / (a . d))``, texel ``(u, v) = c + f (x, y)``, on the face
 whose axis ``a`` is its dominant signed axis (``r``, ``b`` the face's image right and down).
@@ -19,7 +19,7 @@ the face's texels are no coarser than the camera's pixels *in every direction* i
 
     F >= 2 / sigma_min(G)                                   (criterion="anisotropic", default)
 
-at every valid pixel; :func:`required_face_size` returns the ceiling of its maximum. A pinhole
+at every valid pixel; `required_face_size` returns the ceiling of its maximum. A pinhole
 camera identical to a face gives ``G = I / f`` everywhere and needs exactly that face's ``F``.
 
 A simpler, isotropic bound compares the face's coarsest density with the camera's finest one.
@@ -34,7 +34,7 @@ Since ``sigma_min(G) >= s_min(J) / cos(phi)``, the isotropic bound is never belo
 one, and at most ``1 / cos phi <= sqrt(3)`` times it (it asks for ``F / cos phi`` at the corners of
 a camera identical to a face).
 
-Visible faces (:func:`visible_faces`): the faces whose texels the layer reads (bilinear sampling
+Visible faces (`visible_faces`): the faces whose texels the layer reads (bilinear sampling
 of the padded atlas at the pixel centres, the border resampled from the neighbours through the
 border plan), plus the faces the pixels' footprints enter between centres (their corners).
 
@@ -101,7 +101,7 @@ def _check_planning_memory(camera: Camera) -> None:
 
 def _check_rotation(rotation: object) -> Tensor:
     """``rotation`` as a float64 ``(*Br, 3, 3)`` CPU tensor (identity for None), checked by
-    :func:`~omniscape_torch.cubemap.check_rotation`."""
+    `check_rotation`."""
     if rotation is None:
         return torch.eye(3, dtype=torch.float64)
     return check_rotation(rotation).detach().to(device="cpu", dtype=torch.float64)
@@ -290,7 +290,7 @@ def required_face_size(camera: Camera, rotation: Tensor | None = None, *,
             ``(*Br, 3, 3)`` of camera-to-cube rotations ``ray_cube = R @ ray_cam``, broadcasting
             with the camera batch (the maximum over all); or ``"any"``, the maximum over every
             attitude (twice the camera's finest pixels per radian: a size that holds whatever
-            the ride, :func:`face_size_map`).
+            the ride, `face_size_map`).
         supersample: texels per camera pixel to ask for (> 0), e.g. 2 for 2x supersampling.
         criterion: ``"anisotropic"`` (default) or ``"isotropic"``.
         step: finite-difference step of the Jacobian, in pixels.
@@ -467,7 +467,7 @@ def _border_faces(size: int, pad: int, eps: float, tol: float = 1e-12, max_iter:
 
 def needed_face_names(needed: Tensor) -> list[str]:
     """Names (``FACES`` order) of the True entries of one ``(6,)`` mask from
-    :func:`visible_faces`."""
+    `visible_faces`."""
     if not isinstance(needed, Tensor) or needed.shape != (6,):
         raise ValueError(f"needed: expected a (6,) tensor, got {getattr(needed, 'shape', needed)}")
     return [name for name, flag in zip(FACES, needed.tolist()) if flag]
