@@ -276,19 +276,19 @@ class _RandomCameras(nn.Module):
     # ---------------------------------------------------------------------------------------
     def _spec(self) -> kdraw.DrawSpec:
         """The arguments the draw depends on (`kernels.draw.DrawSpec`), read as they are now."""
+        d = self.__dict__   # (plain attributes: no nn.Module lookups on the per-call path)
         return kdraw.DrawSpec(
             self.image_size, self.fisheye_models, self.fov_range, self.kb_distortion,
-            {m: tuple(getattr(self, a) for a in attrs) for m, attrs in _LENS_RANGES.items()},
+            {m: tuple(d[a] for a in attrs) for m, attrs in _LENS_RANGES.items()},
             self.focal_scale_range, self.center_jitter, self.yaw_range, self.pitch_range,
-            self.roll_range, self.p, getattr(self, "coverage_range", None),
-            getattr(self, "mode", "fisheye"), getattr(self, "cata_fov_range", (0.0, 0.0)),
-            getattr(self, "xi_range", (0.0, 0.0)), getattr(self, "blind_fov", None),
-            getattr(self, "looking", "down"), getattr(self, "catadioptric_prob", 0.0),
-            self._camera_spec(), getattr(self, "focal_jitter", 0.0))
+            self.roll_range, self.p, d.get("coverage_range"), d.get("mode", "fisheye"),
+            d.get("cata_fov_range", (0.0, 0.0)), d.get("xi_range", (0.0, 0.0)),
+            d.get("blind_fov"), d.get("looking", "down"), d.get("catadioptric_prob", 0.0),
+            self._camera_spec(), d.get("focal_jitter", 0.0))
 
     def _camera_spec(self) -> tuple | None:
         """The fixed target camera as `DrawSpec.camera` reads it, or None."""
-        camera = getattr(self, "camera", None)
+        camera = self._modules.get("camera") or self.__dict__.get("camera")
         if camera is None:
             return None
         fov = None if camera.fov is None else float(torch.as_tensor(camera.fov))

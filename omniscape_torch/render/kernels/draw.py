@@ -31,7 +31,6 @@ offsets generated from `STREAM` into the build (`layout.layout_header`), and com
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Mapping, NamedTuple
 
 import numpy as np
@@ -65,8 +64,7 @@ CATADIOPTRIC = "catadioptric"
 #: Angles of a lens's radius at focal 1 in `unit_lens` (linear between them: within 1e-9 of the
 #: model's radius, relative, out to 200 degrees).
 UNIT_ANGLES = 16384
-@dataclass(frozen=True)
-class DrawSpec:
+class DrawSpec(NamedTuple):
     """What a draw depends on: the augmentation module's arguments (their docs are the
     modules'), angles in radians.
 
@@ -268,10 +266,11 @@ def _draw_one_lens(spec: DrawSpec, ops, u: Tensor, n: int, source: Tensor,
     name = spec.fisheye_models[0]
     unit = unit_lens(name, spec.fov_range[1], spec.image_size, cache)
     h, w = spec.image_size
-    values = (*(v for field in SPEC_RANGES for v in getattr(spec, field)), spec.p)
-    key = ("spec", values)
+    key = ("spec", spec.fov_range, spec.yaw_range, spec.pitch_range, spec.roll_range,
+           spec.coverage_range, spec.p)
     spec_t = cache.get(key)
     if spec_t is None:   # the ranges and p as the op reads them
+        values = [v for field in SPEC_RANGES for v in getattr(spec, field)] + [spec.p]
         spec_t = cache[key] = torch.tensor(values, dtype=torch.float64)
     centre = _centres(spec, u.numpy(), n, cache)
     edges = torch.from_numpy(to_edge(spec, centre, cache))
