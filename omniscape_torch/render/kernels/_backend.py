@@ -38,11 +38,12 @@ def check_backend(backend: object, name: str = "backend") -> str:
 
 def _runs_on_cpu(tensors: tuple) -> tuple[bool, bool]:
     """(every tensor on the CPU, none requiring a gradient) of the tensors among `tensors`."""
+    grad = torch.is_grad_enabled()
     cpu, no_grad = True, True
     for t in tensors:
         if isinstance(t, torch.Tensor):
             cpu = cpu and t.device.type == "cpu"
-            no_grad = no_grad and not (t.requires_grad and torch.is_grad_enabled())
+            no_grad = no_grad and not (grad and t.requires_grad)
     return cpu, no_grad
 
 

@@ -13,6 +13,7 @@ from torch import Tensor
 
 from ...cubemap.grid import rotated_rays_to_grid
 from ..antialias import MINIFIES
+from . import build
 from ._backend import choose
 from .cube import (BLENDED, _check_fill, _check_mode, _check_out, _out_dtype, _samples,
                    work_dtype)
@@ -285,11 +286,11 @@ def reproject_image(image: Tensor | None, labels: Tensor | None, affine: Tensor,
     Raises:
         TypeError, ValueError: naming the argument that is not as above.
     """
-    ops = choose("cpp", affine, what="reproject_image")
-    if trusted:
-        ops.reproject_image(image, labels, affine, limits, table, rotation, intrinsics, bilinear,
+    if trusted:   # (the caller chose the C++ route for these inputs: kernels.resolve)
+        build.ops().reproject_image(image, labels, affine, limits, table, rotation, intrinsics, bilinear,
                             minifies, fill, out, out_labels, valid)
         return
+    ops = choose("cpp", affine, what="reproject_image")
     if image is None and labels is None:
         raise ValueError("image, labels: pass at least one")
     if (image is None) != (out is None) or (labels is None) != (out_labels is None):
