@@ -41,6 +41,7 @@ from __future__ import annotations
 import math
 from typing import NamedTuple, Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -688,26 +689,27 @@ class Targets:
         boxes, index = out["boxes"][i], out["box_index"][i]
         if boxes is None:
             boxes, index = torch.zeros(0, 4, dtype=dtype), torch.zeros(0, dtype=torch.long)
-        owner = self.polygon_box[i][torch.from_numpy(which)] if len(rings) else None
-        extra, number = [], []
+        extra = torch.zeros(0, 4, dtype=torch.float64)
+        number = torch.zeros(0, dtype=torch.long)
         if len(rings):
+            owner = self.polygon_box[i][torch.from_numpy(which)].numpy()
+            count = int(owner.max()) + 1
+            lo = np.full((count, 2), np.inf)
+            hi = np.full((count, 2), -np.inf)
+            np.minimum.at(lo, owner, np.stack([r.min(0) for r in rings]))
+            np.maximum.at(hi, owner, np.stack([r.max(0) for r in rings]))
             h, w = size
-            lo = torch.stack([torch.from_numpy(r.min(0)) for r in rings])
-            hi = torch.stack([torch.from_numpy(r.max(0)) for r in rings])
-            for j in torch.unique(owner).tolist():
-                at = owner == j
-                box = torch.cat((lo[at].amin(0).clamp(min=0), torch.minimum(
-                    hi[at].amax(0), torch.tensor([float(w), float(h)], dtype=torch.float64))))
-                if bool((box[2:] > box[:2]).all()):
-                    extra.append(box)
-                    number.append(j)
-        if extra:
-            boxes = torch.cat((boxes, torch.stack(extra).to(dtype)))
-            index = torch.cat((index, torch.tensor(number, dtype=torch.long)))
+            box = torch.from_numpy(np.concatenate((np.maximum(lo, 0.0),
+                                                   np.minimum(hi, [float(w), float(h)])), 1))
+            kept = torch.isfinite(box).all(-1) & (box[:, 2:] > box[:, :2]).all(-1)
+            extra, number = box[kept], kept.nonzero()[:, 0]
+        if len(extra):
+            boxes = torch.cat((boxes, extra.to(dtype)))
+            index = torch.cat((index, number))
         order = torch.argsort(index)
         visible = torch.cat((out["box_visible"][i] if out["box_visible"][i] is not None else
                              torch.zeros(0, dtype=torch.bool),
-                             torch.ones(len(extra), dtype=torch.bool)))
+                             torch.ones(len(number), dtype=torch.bool)))
         out["boxes"][i], out["box_index"][i], out["box_visible"][i] = (
             boxes[order], index[order], visible[order])
 

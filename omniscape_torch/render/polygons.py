@@ -16,13 +16,13 @@ How a ring is mapped:
   The mapped ring thus follows the curved image of every edge within 0.05 px.
 * **Cut** where it leaves the valid area (the source's image and cones, the output's image,
   field of view and blind cone: what `Change.forward` sees): the points where an edge crosses
-  the valid area's border are found by bisection along the source edge (to 1e-8 of the piece's
+  the valid area's border are found by bisection along the source edge (to 1e-6 of the piece's
   length), and between the point where the ring leaves the valid area and the next point where
   it enters it again, the clipped ring follows the border of the valid area itself.
 * **The border of the valid area** is traced by marching squares on the validity of the output
   pixel centres (the renderer's `valid` mask where it is given, else `Change.backward`'s), one
   pixel of padding outside the image, each vertex of the parts used moved onto the border by
-  bisection along its grid edge (to 1/16384 px). Its vertices lie on the border; between two of
+  bisection along its grid edge (to 1/1024 px). Its vertices lie on the border; between two of
   them (at most one pixel apart) a chord misses a curved border by its sagitta (under 0.01 px
   for curvature radii over 12 px) and cuts a corner where two curved parts of the border meet
   (two cameras' edges) by at most about a pixel; the image's own corners are kept exactly.
@@ -52,10 +52,10 @@ __all__ = ["RING_TOLERANCE", "check_polygons", "map_rings"]
 RING_TOLERANCE = 0.05
 #: Most halvings of an edge (a piece of 1/65536 of the edge).
 _ROUNDS = 16
-#: Bisection steps of a crossing along the source edge, and of a border vertex along its grid
-#: edge (one pixel: 1/16384 px).
-_CROSSING_STEPS = 30
-_BORDER_STEPS = 14
+#: Bisection steps of a crossing along the source edge (of at most OUTLINE_STEP output px:
+#: to 2e-5 px), and of a border vertex along its grid edge (one pixel: to 1/1024 px).
+_CROSSING_STEPS = 20
+_BORDER_STEPS = 10
 #: Crossings closer than this along the border (in border vertices, about a pixel each) whose
 #: order the chords may have swapped: the one just behind is taken, with no border between.
 _BEHIND = 0.02
@@ -328,7 +328,7 @@ class _Border:
         self.points = 0.5 * (first + second)
         self.refined = np.zeros(len(ids), dtype=bool)
         self.contours = []
-        seen = np.zeros(len(ids), dtype=bool)
+        seen = [False] * len(ids)
         follow = nxt.tolist()
         for start in range(len(ids)):
             if seen[start]:
@@ -340,6 +340,51 @@ class _Border:
                 k = follow[k]
             self.contours.append(np.asarray(loop, dtype=np.int64))
         self.size = (h, w)
+        # the segments (each contour vertex to the next), bucketed by the pixel of their start
+        lengths = [len(c) for c in self.contours]
+        self.seg_start = np.concatenate(self.contours)
+        self.seg_owner = np.repeat(np.arange(len(lengths)), lengths)
+        self.seg_pos = np.concatenate([np.arange(n) for n in lengths])
+        self.seg_end = np.concatenate([np.roll(c, -1) for c in self.contours])
+        key = self._key(self.points[self.seg_start])[:, 0]
+        self.seg_order = np.argsort(key, kind="stable")
+        self.seg_keys = key[self.seg_order]
+
+    def _key(self, points: np.ndarray, reach: int = 0) -> np.ndarray:
+        """Bucket keys ``(Q, (2 reach + 1)^2)`` of output points ``(Q, 2)``: the pixel each
+        lies in and those up to ``reach`` pixels around it."""
+        w = self.size[1] + 8
+        shift = np.arange(-reach, reach + 1)
+        u = np.floor(points[:, 0]).astype(np.int64)[:, None] + 3 + shift
+        v = np.floor(points[:, 1]).astype(np.int64)[:, None] + 3 + shift
+        u = np.clip(u, 0, w - 1)
+        return (v[:, :, None] * w + u[:, None, :]).reshape(len(points), -1)
+
+    def locate(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per point of ``points (Q, 2)`` (each within a pixel or so of the border) the nearest
+        segment of the contours: contour ``(Q,)``, position of its start ``(Q,)`` and the
+        fraction along it ``(Q,)``; segments starting within two pixels are looked at, all of
+        them for a point with none there."""
+        q = len(points)
+        key = self._key(points, 2).ravel()
+        lo = np.searchsorted(self.seg_keys, key, "left")
+        counts = np.searchsorted(self.seg_keys, key, "right") - lo
+        query = np.repeat(np.repeat(np.arange(q), 25), counts)
+        offset = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+        cand = self.seg_order[np.repeat(lo, counts) + offset]
+        lonely = np.setdiff1d(np.arange(q), query)
+        if len(lonely):   # far from every bucketed segment: all of them
+            query = np.concatenate((query, np.repeat(lonely, len(self.seg_start))))
+            cand = np.concatenate((cand, np.tile(np.arange(len(self.seg_start)), len(lonely))))
+        a, b = self.points[self.seg_start[cand]], self.points[self.seg_end[cand]]
+        d = b - a
+        x = points[query]
+        t = np.clip(((x - a) * d).sum(-1) / np.maximum((d * d).sum(-1), 1e-30), 0.0, 1.0)
+        dist = ((x - a - t[:, None] * d) ** 2).sum(-1)
+        order = np.lexsort((dist, query))
+        first = order[np.r_[True, query[order][1:] != query[order][:-1]]]
+        best = cand[first]
+        return self.seg_owner[best], self.seg_pos[best], t[first]
 
     def path(self, index: int, vertices: np.ndarray, start: np.ndarray | None = None,
              end: np.ndarray | None = None, closed: bool = False) -> np.ndarray:
@@ -355,7 +400,7 @@ class _Border:
             return pts
         h, w = self.size
         lines = np.array([-0.5, -0.5, w - 0.5, h - 0.5])
-        on = np.abs(pts[:, [0, 1, 0, 1]] - lines) < 1e-3              # (n, 4): on each edge
+        on = np.abs(pts[:, [0, 1, 0, 1]] - lines) < 2e-3              # (n, 4): on each edge
         upright = on[:, 0] | on[:, 2]
         level = on[:, 1] | on[:, 3]
         nxt = np.roll(np.arange(len(pts)), -1)
@@ -439,27 +484,6 @@ def _area(ring: np.ndarray) -> float:
     """Shoelace area of ``ring (N, 2)``: positive where its inside lies on its left."""
     x, y = ring[:, 0], ring[:, 1]
     return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y))
-
-
-def _locate(border: _Border, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per point of ``points (Q, 2)`` the nearest segment of the border's contours: contour
-    ``(Q,)``, segment start position ``(Q,)`` and the fraction along it ``(Q,)``."""
-    starts, ends, owner, pos = [], [], [], []
-    for c, loop in enumerate(border.contours):
-        p = border.points[loop]
-        starts.append(p)
-        ends.append(np.roll(p, -1, axis=0))
-        owner.append(np.full(len(loop), c))
-        pos.append(np.arange(len(loop)))
-    a, b = np.concatenate(starts), np.concatenate(ends)
-    owner, pos = np.concatenate(owner), np.concatenate(pos)
-    d = b - a
-    length2 = np.maximum((d * d).sum(-1), 1e-30)
-    t = np.clip(((points[:, None] - a[None]) * d[None]).sum(-1) / length2[None], 0.0, 1.0)
-    foot = a[None] + t[..., None] * d[None]
-    best = ((points[:, None] - foot) ** 2).sum(-1).argmin(-1)
-    rows = np.arange(len(points))
-    return owner[best], pos[best], t[rows, best]
 
 
 def _bridge(outer: np.ndarray, hole: np.ndarray) -> np.ndarray | None:
@@ -635,7 +659,7 @@ def _clip(change: "Change", dense: _Dense, parts: list, flat: list[Tensor], wher
     for r in slow:
         plan, border = plans[r], borders[where[r][0]]
         if len(plan["at"]):
-            contour, pos, _ = _locate(border, plan["pix"][plan["at"]])
+            contour, pos, _ = border.locate(plan["pix"][plan["at"]])
             for c, p in zip(contour.tolist(), pos.tolist()):
                 loop = border.contours[c]
                 near = np.arange(p - 2, p + 4) % len(loop)
@@ -659,7 +683,7 @@ def _clip(change: "Change", dense: _Dense, parts: list, flat: list[Tensor], wher
         plan["links"], plan["islands"] = {}, []
         touched = set()
         if len(plan["at"]):
-            contour, pos, frac = _locate(border, plan["pix"][plan["at"]])
+            contour, pos, frac = border.locate(plan["pix"][plan["at"]])
             s = pos + frac
             touched = set(contour.tolist())
             links = _link(plan["kind"], contour, s, [len(c) for c in border.contours])
