@@ -127,8 +127,8 @@ def scenario(name: str, aug, source_camera, centre_ok, images: int, seed: int) -
         params = exact["params"]
         out_inst = exact["instances"][0].numpy()
         outline = aug({"rgb": rgb, "boxes": [boxes]}, params=params, **extra)
-        poly = aug({"rgb": rgb, "boxes": [boxes], "polygons": [[torch.from_numpy(r) for r in rings]]},
-                   params=params, **extra)
+        poly = aug({"rgb": rgb, "boxes": [boxes],
+                    "polygons": [[torch.from_numpy(r) for r in rings]]}, params=params, **extra)
         for mode, out in (("outline", outline), ("polygons", poly)):
             got = {int(j): b.double().numpy() for b, j in zip(out["boxes"][0], out["box_index"][0])}
             visible = {int(j): bool(v) for v, j in zip(out["box_visible"][0], out["box_index"][0])}
@@ -144,7 +144,7 @@ def scenario(name: str, aug, source_camera, centre_ok, images: int, seed: int) -
                 if truth is None or j not in got:
                     continue
                 box = got[j]
-                past = max(truth[0] - box[0], truth[1] - box[1], box[2] - truth[2], box[3] - truth[3])
+                past = max(*(truth[:2] - box[:2]), *(box[2:] - truth[2:]))
                 rows[mode].append(dict(past=float(past), diff=float(np.abs(box - truth).max()),
                                        pixels=int((out_inst == i).sum()),
                                        iou=iou(box, truth),
@@ -207,7 +207,8 @@ def main() -> None:
                          f"({s['past_median']:.2f}) | {100 * s['within_1px_of_exact']:.1f} % "
                          f"({100 * s['within_1px_16']:.1f} %) | "
                          f"{s['diff_median']:.2f} ({s['diff_max']:.2f}) "
-                         f"| {s['iou_median']:.3f} ({s['iou_min']:.3f}) | {100 * s['holds']:.0f} % |")
+                         f"| {s['iou_median']:.3f} ({s['iou_min']:.3f}) "
+                         f"| {100 * s['holds']:.0f} % |")
     lines.append("")
     lines.append("| source | outline boxes | of an object with no output pixel | of those flagged "
                  "`box_visible` False | visible objects flagged |")

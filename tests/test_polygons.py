@@ -290,8 +290,10 @@ def test_bad_polygons_name_the_ring():
     rgb = torch.rand(2, 3, 24, 32)
     tri = [[1.0, 1], [5, 1], [3, 4]]
     for rings, match, err in (
-            ([[tri], [tri, [[1.0, 1], [2, 2]]]], r"polygons\[1\]\[1\].*at least 3 points", ValueError),
-            ([[tri], [[[1.0, math.nan], [2, 2], [3, 1]]]], r"polygons\[1\]\[0\].*finite", ValueError),
+            ([[tri], [tri, [[1.0, 1], [2, 2]]]], r"polygons\[1\]\[1\].*at least 3 points",
+             ValueError),
+            ([[tri], [[[1.0, math.nan], [2, 2], [3, 1]]]], r"polygons\[1\]\[0\].*finite",
+             ValueError),
             ([[torch.zeros(4, 3)], [tri]], r"polygons\[0\]\[0\].*\(N, 2\)", ValueError),
             ([[[1.0, 2, 3, 4, 5]], [tri]], r"polygons\[0\]\[0\].*odd", ValueError),
             ([[tri], [["a", "b", "c"]]], r"polygons\[1\]\[0\]", TypeError),

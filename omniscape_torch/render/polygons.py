@@ -39,7 +39,7 @@ the midpoint inside too) is missed; it is shallower than the samples' sagitta (a
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from typing import Protocol, Sequence
 
 import numpy as np
 import torch
@@ -59,6 +59,20 @@ _BORDER_STEPS = 10
 #: Crossings closer than this along the border (in border vertices, about a pixel each) whose
 #: order the chords may have swapped: the one just behind is taken, with no border between.
 _BEHIND = 0.02
+
+
+class _Change(Protocol):
+    """What the rings need of a camera change (`render.detection.Change`): ``forward`` (source
+    pixel centres -> output ones and where both cameras see them), ``backward``, the
+    ``rotation (n, 3, 3)`` and the two sides."""
+
+    rotation: Tensor
+    source: object
+    output: object
+
+    def forward(self, points: Tensor, sample: Tensor, domain: bool = False) -> tuple: ...
+
+    def backward(self, pixels: Tensor, sample: Tensor) -> tuple[Tensor, Tensor]: ...
 
 
 # -------------------------------------------------------------------------------------------
@@ -163,7 +177,7 @@ class _Dense:
     parameter, with their source ``src``, output ``pix``, ``ok`` (seen by both cameras) and
     ``cross`` (a crossing of the valid area's border, inserted on the seen side)."""
 
-    def __init__(self, change: "Change", rings: list[Tensor], sample: Tensor, step: float):
+    def __init__(self, change: _Change, rings: list[Tensor], sample: Tensor, step: float):
         size = change.output.image_size
         counts = torch.tensor([len(r) for r in rings])
         a = torch.cat(rings)                                          # (E, 2) edge starts
@@ -421,7 +435,7 @@ class _Border:
         return np.asarray(out)
 
 
-def _valid_grid(change: "Change", sample: int, valid: Tensor | None) -> np.ndarray:
+def _valid_grid(change: _Change, sample: int, valid: Tensor | None) -> np.ndarray:
     """``(H, W)`` bool: where the output pixel centres of ``sample`` are valid (``valid``, the
     renderer's mask of that sample, else ``change.backward``'s)."""
     if valid is not None:
@@ -434,7 +448,7 @@ def _valid_grid(change: "Change", sample: int, valid: Tensor | None) -> np.ndarr
     return ok.reshape(h, w).numpy()
 
 
-def _refine(change: "Change", borders: dict[int, _Border], wanted: dict[int, list]) -> None:
+def _refine(change: _Change, borders: dict[int, _Border], wanted: dict[int, list]) -> None:
     """Move the border vertices ``wanted[sample]`` (lists of arrays of grid edge indices) onto
     the border, every sample's in one bisection."""
     samples, vertices = [], []
@@ -525,7 +539,7 @@ def _with_holes(rings: list[np.ndarray]) -> list[np.ndarray]:
     return outers
 
 
-def _axes(change: "Change", n: int) -> tuple[Tensor, Tensor]:
+def _axes(change: _Change, n: int) -> tuple[Tensor, Tensor]:
     """Per sample the source pixels ``(n, 3, 2)`` (and where seen ``(n, 3)``) of the directions
     around which the valid area may have a hole that a ring's inside holds: the output's blind
     cone axis (its +z), its back (-z, which it cannot map) and the source's blind cone axis."""
@@ -546,7 +560,7 @@ def _axes(change: "Change", n: int) -> tuple[Tensor, Tensor]:
     return torch.cat((pixels, p[:, None]), 1), torch.cat((seen, s[:, None]), 1)
 
 
-def map_rings(change: "Change", rings: Sequence[Sequence[Tensor]], step: float,
+def map_rings(change: _Change, rings: Sequence[Sequence[Tensor]], step: float,
               valid: Tensor | None = None) -> tuple[list[list[np.ndarray]], list[np.ndarray]]:
     """Rings of the ``n`` samples of ``change`` through it, clipped to the valid area (module
     docstring).
@@ -611,7 +625,7 @@ def map_rings(change: "Change", rings: Sequence[Sequence[Tensor]], step: float,
             [np.asarray(ix, dtype=np.int64) for ix in index])
 
 
-def _centre_validity(change: "Change", sample: int):
+def _centre_validity(change: _Change, sample: int):
     """A function: output points ``(Q, 2)`` (numpy) -> where ``sample`` sees them."""
     def valid_at(points: np.ndarray) -> np.ndarray:
         pts = torch.from_numpy(np.ascontiguousarray(points, dtype=np.float64))
@@ -620,7 +634,7 @@ def _centre_validity(change: "Change", sample: int):
     return valid_at
 
 
-def _orientations(change: "Change", dense: _Dense, parts: list, slow: list[int],
+def _orientations(change: _Change, dense: _Dense, parts: list, slow: list[int],
                   flat: list[Tensor]) -> dict[int, bool]:
     """Per slow ring with a seen point: whether its mapped ring has its inside on its right
     (then it is walked backwards): the sign of its source area times that of the change's
@@ -641,7 +655,7 @@ def _orientations(change: "Change", dense: _Dense, parts: list, slow: list[int],
     return {r: _area(flat[r].numpy()) * float(d) < 0 for r, d in zip(rings, det.tolist())}
 
 
-def _clip(change: "Change", dense: _Dense, parts: list, flat: list[Tensor], where: list,
+def _clip(change: _Change, dense: _Dense, parts: list, flat: list[Tensor], where: list,
           slow: list[int], borders: dict[int, _Border], out: list, index: list) -> None:
     """The rings ``slow`` (cut by the valid area's border, or holding a part of it) clipped:
     their seen runs joined along the border, and the parts of the border inside them."""
@@ -654,7 +668,7 @@ def _clip(change: "Change", dense: _Dense, parts: list, flat: list[Tensor], wher
             pix, ok, cross = pix[::-1].copy(), ok[::-1].copy(), cross[::-1].copy()
         at = np.nonzero(cross)[0]
         kind = np.where(ok[(at + 1) % len(ok)], 1, -1)              # +1 entry, -1 exit
-        plans[r] = dict(pix=pix, ok=ok, at=at, kind=kind)
+        plans[r] = {"pix": pix, "ok": ok, "at": at, "kind": kind}
     wanted: dict[int, list] = {}
     for r in slow:
         plan, border = plans[r], borders[where[r][0]]
@@ -690,7 +704,7 @@ def _clip(change: "Change", dense: _Dense, parts: list, flat: list[Tensor], wher
             if links is None:   # the border's order contradicts itself: chords between runs
                 links = _chords(plan["kind"])
             plan["links"] = links
-            for x, (y, c, verts) in links.items():
+            for _, c, verts in links.values():
                 if len(verts):
                     wanted.setdefault(i, []).append(border.contours[c][verts])
         for c, loop in enumerate(border.contours):
@@ -733,7 +747,7 @@ def _link(kind: np.ndarray, contour: np.ndarray, s: np.ndarray, lengths: list[in
             verts = np.zeros(0, dtype=np.int64)
         else:
             y = int(same[ahead.argmin()])
-            start, stop = int(math.floor(s[x])), int(math.floor(s[y]))
+            start, stop = math.floor(s[x]), math.floor(s[y])
             count = (stop - start) % n
             if count == 0 and s[y] < s[x]:
                 count = n
