@@ -1,6 +1,6 @@
 """Adapters that put the augmentation modules into other libraries' pipelines.
 
-:func:`to_albumentations` makes a :class:`~omniscape_torch.augment.RandomReproject` an
+`to_albumentations` makes a `omniscape_torch.augment.RandomReproject` an
 albumentations transform (``A.Compose([...])``), with its image, mask, masks, bboxes and
 keypoints targets in albumentations' conventions. albumentations is an optional dependency,
 imported only when an adapter is made: the adapter's class derives from the
@@ -66,7 +66,7 @@ def to_albumentations(module: nn.Module, *, intrinsics: Tensor | None = None, p:
     workers.
 
     Args:
-        module: a :class:`~omniscape_torch.augment.RandomReproject` whose source camera is set
+        module: a `omniscape_torch.augment.RandomReproject` whose source camera is set
             (``source_fov`` or ``source_camera``), or given here as ``intrinsics``.
         intrinsics: the images' pinhole ``fx, fy, cx, cy`` ``(4,)`` or ``K (3, 3)``, shared by
             every sample (None: the module's source camera).
@@ -105,7 +105,7 @@ def to_albumentations(module: nn.Module, *, intrinsics: Tensor | None = None, p:
 
 def _adapter_class(base: type) -> type:
     """The adapter's class on albumentations' ``DualTransform`` ``base`` (made per call of
-    :func:`to_albumentations`; an instance pickles as that call). The draw is albumentations
+    `to_albumentations`; an instance pickles as that call). The draw is albumentations
     2's ``get_params`` or AlbumentationsX's ``sample_parameters``, whichever ``base`` has
     (AlbumentationsX refuses a subclass that defines the former)."""
 
@@ -220,7 +220,7 @@ def _exact_boxes(self, data: dict, out: dict, valid: dict, kinds: dict) -> np.nd
 
 def _rebuild(module: nn.Module, intrinsics: Tensor | None, p: float,
              boxes_from: str | None = None, instance_field: str | None = None):
-    """An unpickled adapter: :func:`to_albumentations` again, on the albumentations there."""
+    """An unpickled adapter: `to_albumentations` again, on the albumentations there."""
     return to_albumentations(module, intrinsics=intrinsics, p=p, boxes_from=boxes_from,
                              instance_field=instance_field)
 

@@ -501,7 +501,7 @@ class Outline:
 
     def result(self, dtype: torch.dtype = torch.float64, visible: bool = False) -> tuple:
         """Per sample the output boxes in ``dtype`` and ``box_index (M_i,)``, the cut boxes
-        not scanned yet mapped back here (:func:`_scan_back`); ``visible``: and per sample
+        not scanned yet mapped back here (`_scan_back`); ``visible``: and per sample
         ``box_visible (M_i,)`` bool, True where one side of the box is seen whole in the
         output (its object, which touches every side of its tight box, then has a point in
         view), False where none is (the object may lie wholly outside the valid area while
@@ -595,7 +595,7 @@ class Targets:
     """Keypoints, boxes and polygons of a batch through its camera changes, one per group of
     samples ``(sample indices (n,), change)`` (e.g. one per drawn model): the keypoints and the
     boxes' outlines on construction, the cut boxes' pixels from a renderer's rays
-    (:meth:`scan`, optional), then :meth:`result` (the polygons there, clipped to the valid
+    (`scan`, optional), then `result` (the polygons there, clipped to the valid
     mask the renderer made). A box with rings in ``polygons`` (``polygon_box`` says whose) is
     the tight box of its mapped rings; the others come from their outlines."""
 
@@ -635,7 +635,7 @@ class Targets:
     def scan(self, index: Tensor, rays: Tensor, rotation: Tensor | None, k: Tensor,
              valid: Tensor | None) -> None:
         """The cut boxes' pixels of the samples ``index (m,)`` of one change (all drawn with
-        one model) from the rays a renderer samples them along (:meth:`Outline.scan`)."""
+        one model) from the rays a renderer samples them along (`Outline.scan`)."""
         index = index.tolist()
         for part, _, outline, _ in self.parts:
             if outline is None:
@@ -651,7 +651,7 @@ class Targets:
         in ``box_dtype``, ``box_index`` and ``box_visible``, ``polygons`` (per sample a list of
         rings in ``polygon_dtype``) and ``polygon_index`` (per sample lists), those given.
         ``valid``: ``(B, H, W)`` bool, the renderer's valid mask that the polygons are clipped
-        to (None: made here, ``polygons.map_rings``)."""
+        to (None: made here, `polygons.map_rings`)."""
         out = {}
         if self.keypoints is not None:
             k = self.keypoints.shape[1]
@@ -842,7 +842,7 @@ def reproject_polygons(polygons: Sequence[Sequence[object]], src_camera: Camera 
                        dst_camera: Camera, *, rotation: Tensor | None = None,
                        source_size: tuple[int, int] | None = None
                        ) -> tuple[list[list[Tensor]], list[Tensor]]:
-    """Polygons of an image of ``src_camera`` as :func:`~omniscape_torch.reproject`'s image in
+    """Polygons of an image of ``src_camera`` as `omniscape_torch.reproject`'s image in
     ``dst_camera`` (same arguments) shows them: each ring densified, mapped and clipped to the
     valid area (module docstring for the bounds).
 

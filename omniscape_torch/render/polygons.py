@@ -303,7 +303,7 @@ _TABLE = _segment_table()
 class _Border:
     """The valid area's border of one sample: closed contours of grid edges (marching squares),
     the valid area on their left, each vertex at first its grid edge's midpoint and moved onto
-    the border (bisection) when asked for (:func:`_refine`)."""
+    the border (bisection) when asked for (`_refine`)."""
 
     def __init__(self, valid: np.ndarray, centre_valid):
         h, w = valid.shape
@@ -761,7 +761,7 @@ def _link(kind: np.ndarray, contour: np.ndarray, s: np.ndarray, lengths: list[in
 
 def _chords(kind: np.ndarray) -> dict:
     """Each exit joined straight to the next entry along the ring (the fallback of
-    :func:`_link`)."""
+    `_link`)."""
     n = len(kind)
     links = {}
     for x in np.nonzero(kind < 0)[0].tolist():
