@@ -337,3 +337,61 @@ def test_albumentations_boxes_and_keypoints(fmt):
     np.testing.assert_allclose(_pascal_voc(out["bboxes"][0], fmt), tight, atol=1.0)
     assert list(out["cls"]) == [3]
     np.testing.assert_allclose(out["keypoints"][0], [cols.mean(), rows.mean()], atol=0.75)
+
+
+@needs_boxes
+def test_albumentations_exact_boxes_and_polygons():
+    """The adapter's exact mode: from ``masks`` (bbox j the box of masks[j]) and from an
+    instance ``mask`` with each bbox's id in a label field, every box equals the tight box of
+    its object's output pixels (the square's, read off the image, nearest); from ``polygons``
+    (a custom key), within a pixel of it, with the rings and ``polygon_index`` back; bad
+    pairings raise naming what is wrong."""
+    A = _albumentations()
+    aug = ot.augment.RandomReproject(OUT, source_fov=90 * DEG, interpolation="nearest",
+                                     fov_range=(120 * DEG, 140 * DEG))
+    image = np.zeros((*SRC, 3), np.uint8)
+    square = np.zeros(SRC, np.uint8)
+    square[8:14, 10:18] = 1                                    # rows 8..13, columns 10..17
+    image[square > 0] = 255
+    other = np.zeros(SRC, np.uint8)
+    other[2:6, 2:12] = 1
+    ids = (square.astype(np.uint16) * 300 + other * 7)
+    boxes, labels = [[10, 8, 18, 14], [2, 2, 12, 6]], dict(cls=["car", "bus"], iid=[300, 7])
+    params = A.BboxParams("pascal_voc", label_fields=["cls", "iid"])
+    runs = {
+        "masks": (dict(boxes_from="masks"), dict(masks=[square, other])),
+        "mask": (dict(boxes_from="mask", instance_field="iid"), dict(mask=ids)),
+        "polygons": ({}, dict(polygons=[[10, 8, 18, 8, 18, 14, 10, 14],
+                                        [[2.0, 2], [12, 2], [12, 6], [2, 6]]])),
+    }
+    for name, (options, targets) in runs.items():
+        compose = A.Compose([ot.augment.to_albumentations(aug, **options)], seed=1,
+                            bbox_params=params)
+        out = compose(image=image, bboxes=boxes, **labels, **targets)
+        rows, cols = np.nonzero(out["image"][..., 0] > 127)
+        tight = np.array([cols.min(), rows.min(), cols.max() + 1, rows.max() + 1], float)
+        assert list(out["cls"]) == ["car", "bus"]
+        if name == "polygons":
+            np.testing.assert_allclose(out["bboxes"][0], tight, atol=1.0)
+            assert out["polygon_index"].tolist() == [0, 1] and len(out["polygons"]) == 2
+            ring = out["polygons"][0]
+            np.testing.assert_allclose(out["bboxes"][0], np.r_[ring.min(0), ring.max(0)],
+                                       atol=1e-4)
+        else:
+            np.testing.assert_array_equal(out["bboxes"][0], tight)
+    with pytest.raises(ValueError, match=r"2 bboxes and 1 masks"):
+        A.Compose([ot.augment.to_albumentations(aug, boxes_from="masks")],
+                  bbox_params=params)(image=image, bboxes=boxes, **labels, masks=[square])
+    with pytest.raises(ValueError, match=r"instance_field: 'id' is not a label field"):
+        A.Compose([ot.augment.to_albumentations(aug, boxes_from="mask", instance_field="id")],
+                  bbox_params=params)(image=image, bboxes=boxes, **labels, mask=ids)
+    with pytest.raises(ValueError, match=r"bboxes\[1\]: its object has no pixel"):
+        A.Compose([ot.augment.to_albumentations(aug, boxes_from="mask", instance_field="iid")],
+                  bbox_params=params)(image=image, bboxes=boxes, cls=["car", "bus"],
+                                      iid=[300, 8], mask=ids)
+    with pytest.raises(ValueError, match="instance_field"):
+        ot.augment.to_albumentations(aug, boxes_from="mask")
+    with pytest.raises(ValueError, match="boxes_from"):
+        ot.augment.to_albumentations(aug, boxes_from="instances")
+    copy = pickle.loads(pickle.dumps(ot.augment.to_albumentations(aug, boxes_from="masks")))
+    assert copy.boxes_from == "masks"

@@ -31,7 +31,7 @@ from torch import Tensor
 #: ``(3, 3)`` and a ``source_camera`` are shared by the batch already).
 _SHARED = ("intrinsics", "source_camera")
 #: Keys holding one value per sample (a list of B): an unbatched sample's is put in a list.
-_PER_SAMPLE = ("boxes", "box_instance_ids")
+_PER_SAMPLE = ("boxes", "box_instance_ids", "polygons", "polygon_box")
 #: Label-like keys: the class of the first given as a tensor subclass is ``valid``'s.
 _MASKS = ("labels", "instances")
 #: Box formats of torchvision's ``BoundingBoxFormat`` read and written here.

@@ -307,8 +307,9 @@ class RandomReproject(_Routes, _RandomCameras):
                source_camera: Camera | None = None, instances: Tensor | None = None,
                boxes: Sequence[Tensor] | None = None,
                box_instance_ids: Sequence[Tensor] | None = None,
-               keypoints: Tensor | None = None, label_maps: Mapping[str, Tensor] | None = None
-               ) -> dict:
+               keypoints: Tensor | None = None, label_maps: Mapping[str, Tensor] | None = None,
+               polygons: Sequence[Sequence[Tensor]] | None = None,
+               polygon_box: Sequence[Tensor] | None = None) -> dict:
         """Reproject the modalities and the detection targets through the cameras and
         rotations of ``params``.
 
@@ -325,6 +326,9 @@ class RandomReproject(_Routes, _RandomCameras):
                 ``instances``: the exact mode).
             keypoints: ``(B, K, 2)`` corner coordinates (NaN: missing).
             label_maps: the declared label keys' maps (``label_keys``), by key.
+            polygons: per sample a list of rings ``(N_k, 2)`` corner coordinates (or COCO's
+                flat lists).
+            polygon_box: per sample ``(R_i,)`` the box of each ring (default: ring k, box k).
 
         Returns:
             the dict of ``forward``: ``params`` with the ``intrinsics (B, 4)`` of a pinhole
@@ -335,15 +339,17 @@ class RandomReproject(_Routes, _RandomCameras):
         return self._render(image, params, None, labels=labels, depth=depth,
                             intrinsics=intrinsics, source_camera=source_camera,
                             instances=instances, boxes=boxes, box_instance_ids=box_instance_ids,
-                            keypoints=keypoints, label_maps=label_maps)
+                            keypoints=keypoints, label_maps=label_maps, polygons=polygons,
+                            polygon_box=polygon_box)
 
     def _render(self, image: Tensor | None, params: dict, drawn: tuple | None, *,
                 labels: Tensor | None = None, depth: Tensor | None = None,
                 intrinsics: Tensor | None = None, source_camera: Camera | None = None,
                 instances: Tensor | None = None, boxes: Sequence[Tensor] | None = None,
                 box_instance_ids: Sequence[Tensor] | None = None,
-                keypoints: Tensor | None = None, label_maps: Mapping[str, Tensor] | None = None
-                ) -> dict:
+                keypoints: Tensor | None = None, label_maps: Mapping[str, Tensor] | None = None,
+                polygons: Sequence[Sequence[Tensor]] | None = None,
+                polygon_box: Sequence[Tensor] | None = None) -> dict:
         """:meth:`render`; ``drawn``: where ``forward`` drew ``params`` itself in this call,
         the source ``(k, camera)`` of :meth:`_source` (checked) for images of ``(Hs, Ws)``
         that it drew them for, else None. Drawn params are not checked again (their rotations,
@@ -355,7 +361,7 @@ class RandomReproject(_Routes, _RandomCameras):
             size = tuple(next(iter(maps.values()))[0].shape[-2:])
         batch = _check_batches(params, **dict(
             (key, t) for key, (t, _) in maps.items()), box_instance_ids=box_instance_ids,
-            keypoints=keypoints, boxes=boxes)
+            keypoints=keypoints, boxes=boxes, polygons=polygons)
         kp_dtype = torch.float32
         if keypoints is not None:
             kp_dtype = _float(torch.as_tensor(keypoints).dtype)
@@ -371,9 +377,16 @@ class RandomReproject(_Routes, _RandomCameras):
                 raise ValueError("box_instance_ids: needs instances (the exact mode boxes the "
                                  "output pixels of each box's instance id)")
             ids = detection.check_box_ids(box_instance_ids, boxes, batch)
+        ring_dtype = torch.float32
+        if polygons is not None:
+            ring_dtype = next((_float(r.dtype) for p in polygons for r in p
+                               if isinstance(r, Tensor)), ring_dtype)
+            polygons, polygon_box = detection.check_polygons(polygons, batch, boxes, polygon_box)
+        elif polygon_box is not None:
+            raise ValueError("polygon_box: needs polygons (the box of each ring)")
         sources = dict(intrinsics=intrinsics, source_camera=source_camera)
         targets = None
-        if keypoints is not None or (boxes is not None and ids is None):
+        if keypoints is not None or polygons is not None or (boxes is not None and ids is None):
             # mapped before the maps are rendered: the boxes that the valid area cuts read
             # their pixels from the rays the maps are sampled along (Targets.scan)
             k, camera = (drawn[:2] if drawn is not None and drawn[2] == size else
@@ -382,7 +395,8 @@ class RandomReproject(_Routes, _RandomCameras):
                       else detection.Side.of(camera, batch))
             targets = detection.Targets(
                 self._changes(params, source), batch, keypoints=keypoints,
-                boxes=None if ids is not None else boxes, source_size=size)
+                boxes=None if ids is not None else boxes, source_size=size,
+                polygons=polygons, polygon_box=polygon_box)
         result = {}
         if any(t is not None for t in (image, labels, depth)):
             result = self._render_maps(image, params, labels=labels, depth=depth,
@@ -394,7 +408,8 @@ class RandomReproject(_Routes, _RandomCameras):
             result.update(detection.boxes_of_instances(result["instances"], ids,
                                                        _plain(instances), box_dtype))
         if targets is not None:
-            result.update(targets.result(kp_dtype, box_dtype))
+            valid = result["valid"][:, 0] if "valid" in result else None
+            result.update(targets.result(kp_dtype, box_dtype, valid, ring_dtype))
         return result
 
     def _render_maps(self, image: Tensor | None, params: dict, *, labels: Tensor | None = None,
@@ -589,8 +604,10 @@ class RandomReproject(_Routes, _RandomCameras):
                 perspective images, or a dict with the keys ``rgb`` and optionally ``labels``,
                 ``depth``, ``intrinsics`` and ``source_camera``, the detection keys
                 ``instances`` ``(B, H, W)``, ``boxes`` (per sample ``(N_i, 4)`` XYXY corner
-                coordinates), ``box_instance_ids`` (per sample ``(N_i,)``: the exact mode) and
-                ``keypoints`` ``(B, K, 2)``, and the keys of ``label_keys``
+                coordinates), ``box_instance_ids`` (per sample ``(N_i,)``: the exact mode),
+                ``keypoints`` ``(B, K, 2)``, ``polygons`` (per sample a list of rings
+                ``(N_k, 2)`` corner coordinates or COCO's flat lists) with ``polygon_box``
+                (per sample ``(R_i,)``: the box of each ring), and the keys of ``label_keys``
                 (``docs/detection.md``); ``tv_tensors.Image`` /
                 ``tv_tensors.Mask``
                 are taken as the tensors they hold, and their outputs come back in their
@@ -613,9 +630,12 @@ class RandomReproject(_Routes, _RandomCameras):
             dict ``rgb``, ``labels``, ``depth``, ``instances`` and the declared label keys
             (those given), ``valid`` and ``params``; with ``boxes``: ``boxes`` (the same
             structure, each the tight box of its object in the output, clipped to the valid
-            area) and ``box_index`` (per sample ``(M_i,)`` int64: the input box of each);
-            with ``keypoints``: ``keypoints (B, K, 2)`` (NaN where invalid) and
-            ``keypoints_valid (B, K)``.
+            area), ``box_index`` (per sample ``(M_i,)`` int64: the input box of each) and
+            ``box_visible`` (per sample ``(M_i,)`` bool: False where an outline box's object
+            may be out of view); with ``keypoints``: ``keypoints (B, K, 2)`` (NaN where
+            invalid) and ``keypoints_valid (B, K)``; with ``polygons``: ``polygons`` (per
+            sample a list of rings ``(M_j, 2)``, clipped to the valid area) and
+            ``polygon_index`` (per sample ``(M,)`` int64: the input ring of each).
         """
         image, labels, depth, params, wrapping = containers.enter(
             image, labels, depth, params, batch_dims=_IMAGE_DIMS, owner=self)

@@ -14,10 +14,12 @@ from ..cameras._checks import not_a_camera
 from ..render.kernels.image import CameraGrid
 
 #: The detection keys of the modules' dicts (beside rgb, labels, depth and the declared label
-#: keys); a cubemap takes no boxes (its boxes come from its instance ids).
-_TARGET_KEYS = ("instances", "boxes", "box_instance_ids", "keypoints")
+#: keys); a cubemap takes no boxes nor polygons (its boxes come from its instance ids).
+_TARGET_KEYS = ("instances", "boxes", "box_instance_ids", "keypoints", "polygons",
+                "polygon_box")
 _BUILT_IN_KEYS = ("rgb", "labels", "depth", "valid", "params", "intrinsics", "source_camera",
-                  "keypoints_valid", "box_index", *_TARGET_KEYS)
+                  "keypoints_valid", "box_index", "box_visible", "polygon_index",
+                  *_TARGET_KEYS)
 
 
 def _check_label_keys(label_keys: object) -> dict[str, int]:
@@ -48,9 +50,11 @@ def _targets(inputs: object, label_keys: Mapping[str, int], cube: bool) -> dict:
     arguments (``label_maps``: the declared keys' maps)."""
     if not isinstance(inputs, dict):
         return {}
-    if cube and "boxes" in inputs:
-        raise ValueError("boxes: a cubemap has no 2D boxes; pass instances (B, 6, F, F) and "
-                         "box_instance_ids: the boxes come from the output's instance ids")
+    for key in ("boxes", "polygons", "polygon_box"):
+        if cube and key in inputs:
+            raise ValueError(f"{key}: a cubemap has no 2D boxes or polygons; pass instances "
+                             f"(B, 6, F, F) and box_instance_ids: the boxes come from the "
+                             f"output's instance ids")
     out = {key: inputs[key] for key in _TARGET_KEYS if key in inputs}
     maps = {key: inputs[key] for key in label_keys if key in inputs}
     if maps:

@@ -41,6 +41,7 @@ from __future__ import annotations
 import math
 from typing import NamedTuple, Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -48,11 +49,13 @@ from ..cameras import Camera
 from ..cameras._checks import not_a_camera
 from ..cameras.registry import get_model
 from ..cubemap.faces import face_rotations
+from . import polygons as polygon_rings
 from .kernels import boxes as boxes_kernels
 from .kernels.boxes import extent
+from .polygons import check_polygons
 
-__all__ = ["instance_boxes", "reproject_boxes", "reproject_keypoints", "OUTLINE_STEP",
-           "FIRST_STEP"]
+__all__ = ["instance_boxes", "reproject_boxes", "reproject_keypoints", "reproject_polygons",
+           "OUTLINE_STEP", "FIRST_STEP"]
 
 #: Largest spacing, in output pixels, of the samples of a box's outline near the image.
 OUTLINE_STEP = 16.0
@@ -383,7 +386,8 @@ def _outlines(change: Change, rects: Tensor, counts: Tensor, owner: Tensor,
     m = len(rects)
     if columns == 0:
         return (torch.full((m, 8), math.inf, dtype=torch.float64),
-                torch.zeros(m, dtype=torch.float64), torch.zeros(m, dtype=torch.long), None)
+                torch.zeros(m, dtype=torch.float64), torch.zeros(m, dtype=torch.long), None,
+                torch.zeros(m, dtype=torch.bool))
     padded = torch.zeros(n, columns, 2, dtype=torch.float64)
     if k:
         padded[:, :k] = extra
@@ -391,7 +395,24 @@ def _outlines(change: Change, rects: Tensor, counts: Tensor, owner: Tensor,
         rects, counts, owner, padded, k, lambda points: change.forward(points, None, domain=True),
         change.output.image_size, OUTLINE_STEP, backend=backend)
     mapped_extra = None if not k else (pix[:, :k].reshape(-1, 2), ok[:, :k].reshape(-1))
-    return extents, longest, flags, mapped_extra
+    slots = torch.arange(columns)[None]
+    slots = (slots >= k) & (slots < k + sizes[:, None])
+    return extents, longest, flags, mapped_extra, _a_side_seen(ok[slots], counts)
+
+
+def _a_side_seen(seen: Tensor, counts: Tensor) -> Tensor:
+    """``(m,)`` True where one side of a box's outline is seen whole: its samples and the
+    corner it ends at. ``seen``: the outline points of the ``m`` boxes in their layout
+    (``kernels.boxes.outline``: per box its top, right, bottom and left edges, ``counts``
+    points each from the edge's first corner)."""
+    m = len(counts)
+    which = torch.arange(m).repeat_interleave(4 * counts)
+    pos = torch.arange(len(which)) - (torch.cumsum(4 * counts, 0) - 4 * counts)[which]
+    side = pos // counts[which]
+    missed = torch.zeros(4 * m, dtype=torch.long).index_add_(0, 4 * which + side,
+                                                             (~seen).long())
+    corner = seen[pos % counts[which] == 0].reshape(m, 4)         # each side's first corner
+    return ((missed.reshape(m, 4) == 0) & corner.roll(-1, 1)).any(-1)
 
 
 class Outline:
@@ -428,8 +449,8 @@ class Outline:
         # again that much finer (a few boxes, where the camera magnifies)
         src_len = (rects[:, 2:] - rects[:, :2]).amax(-1)
         counts = (src_len / FIRST_STEP).ceil().clamp(_FEWEST, _MAX_PER_EDGE).long()
-        extents, longest, flags, self.mapped = _outlines(change, rects, counts, owner, extra,
-                                                         backend)
+        extents, longest, flags, self.mapped, self.visible = _outlines(
+            change, rects, counts, owner, extra, backend)
         for _ in range(3):
             redo = (longest > OUTLINE_STEP) & (counts < _MAX_PER_EDGE)
             if not bool(redo.any()):
@@ -437,7 +458,7 @@ class Outline:
             sub = redo.nonzero()[:, 0]
             counts[sub] = (counts[sub] * longest[sub] / OUTLINE_STEP).ceil().clamp(
                 max=_MAX_PER_EDGE).long()
-            extents[sub], longest[sub], flags[sub], _ = _outlines(
+            extents[sub], longest[sub], flags[sub], _, self.visible[sub] = _outlines(
                 change, rects[sub], counts[sub], owner[sub], None, backend)
         self.box, span = extents[:, :4], extents[:, 4:]
         if r == 0:
@@ -479,9 +500,13 @@ class Outline:
             rays, rotation, k, valid, samples, self.windows[rows], self.rects[rows],
             backend=self.backend)
 
-    def result(self, dtype: torch.dtype = torch.float64) -> tuple[list[Tensor], list[Tensor]]:
+    def result(self, dtype: torch.dtype = torch.float64, visible: bool = False) -> tuple:
         """Per sample the output boxes in ``dtype`` and ``box_index (M_i,)``, the cut boxes
-        not scanned yet mapped back here (:func:`_scan_back`)."""
+        not scanned yet mapped back here (`_scan_back`); ``visible``: and per sample
+        ``box_visible (M_i,)`` bool, True where one side of the box is seen whole in the
+        output (its object, which touches every side of its tight box, then has a point in
+        view), False where none is (the object may lie wholly outside the valid area while
+        the box frames the part of the box's region that is seen)."""
         if self.waiting:
             rows, samples = (torch.tensor(t) for t in zip(*self.waiting))
             self.pixels[rows] = _scan_back(self.change, samples, self.windows[rows],
@@ -502,8 +527,8 @@ class Outline:
         box = torch.cat((lo, hi), -1)
         kept = torch.isfinite(box).all(-1) & (box[:, 2:] > box[:, :2]).all(-1)
         sizes = torch.bincount(self.owner[kept], minlength=self.n).tolist()   # owner sorted
-        return (list(box[kept].to(dtype).split(sizes)),
-                list(self.number[kept].split(sizes)))
+        out = (list(box[kept].to(dtype).split(sizes)), list(self.number[kept].split(sizes)))
+        return (*out, list(self.visible[kept].split(sizes))) if visible else out
 
 
 # -------------------------------------------------------------------------------------------
@@ -568,16 +593,30 @@ def instance_boxes(instances: Tensor, ids: Sequence[Tensor]) -> tuple[list[Tenso
 
 
 class Targets:
-    """Keypoints and boxes of a batch through its camera changes, one per group of samples
-    ``(sample indices (n,), change)`` (e.g. one per drawn model): the keypoints and the
+    """Keypoints, boxes and polygons of a batch through its camera changes, one per group of
+    samples ``(sample indices (n,), change)`` (e.g. one per drawn model): the keypoints and the
     boxes' outlines on construction, the cut boxes' pixels from a renderer's rays
-    (:meth:`scan`, optional), then :meth:`result`."""
+    (`scan`, optional), then `result` (the polygons there, clipped to the valid
+    mask the renderer made). A box with rings in ``polygons`` (``polygon_box`` says whose) is
+    the tight box of its mapped rings; the others come from their outlines."""
 
     def __init__(self, changes: Sequence[tuple[Tensor, Change]], batch: int, *,
                  keypoints: Tensor | None = None, boxes: list[Tensor] | None = None,
-                 source_size: tuple[int, int] | None = None, backend: str = "auto"):
+                 source_size: tuple[int, int] | None = None, backend: str = "auto",
+                 polygons: list[list[Tensor]] | None = None,
+                 polygon_box: list[Tensor] | None = None):
         self.batch, self.keypoints = batch, keypoints
-        self.parts = []   # (sample indices, Outline or None, keypoints or None)
+        self.polygons, self.polygon_box = polygons, polygon_box
+        self.has_boxes = boxes is not None
+        self.outlined = None   # per sample, the input index of each box mapped by its outline
+        if boxes is not None and polygons is not None:
+            self.outlined = []
+            for i, b in enumerate(boxes):
+                alone = torch.ones(len(b), dtype=torch.bool)
+                alone[polygon_box[i]] = False
+                self.outlined.append(alone.nonzero()[:, 0])
+            boxes = [b[rows] for b, rows in zip(boxes, self.outlined)]
+        self.parts = []   # (sample indices, change, Outline or None, keypoints or None)
         for index, change in changes:
             points = outline = mapped = None
             if keypoints is not None:
@@ -592,14 +631,14 @@ class Targets:
                 pixels, ok = mapped if mapped is not None else (
                     t.reshape(-1, *t.shape[2:]) for t in change.forward(rows, None))
                 kp = _keypoint_result(pixels, ok, given, (len(index), keypoints.shape[1]))
-            self.parts.append((index, outline, kp))
+            self.parts.append((index, change, outline, kp))
 
     def scan(self, index: Tensor, rays: Tensor, rotation: Tensor | None, k: Tensor,
              valid: Tensor | None) -> None:
         """The cut boxes' pixels of the samples ``index (m,)`` of one change (all drawn with
-        one model) from the rays a renderer samples them along (:meth:`Outline.scan`)."""
+        one model) from the rays a renderer samples them along (`Outline.scan`)."""
         index = index.tolist()
-        for part, outline, _ in self.parts:
+        for part, _, outline, _ in self.parts:
             if outline is None:
                 continue
             at = {sample: i for i, sample in enumerate(part.tolist())}
@@ -607,24 +646,73 @@ class Targets:
                 outline.scan([at[sample] for sample in index], rays, rotation, k, valid)
 
     def result(self, dtype: torch.dtype = torch.float32,
-               box_dtype: torch.dtype = torch.float32) -> dict:
+               box_dtype: torch.dtype = torch.float32, valid: Tensor | None = None,
+               polygon_dtype: torch.dtype = torch.float32) -> dict:
         """A dict ``keypoints (B, K, 2)`` in ``dtype``, ``keypoints_valid (B, K)``, ``boxes``
-        in ``box_dtype`` and ``box_index`` (per sample lists), those given."""
+        in ``box_dtype``, ``box_index`` and ``box_visible``, ``polygons`` (per sample a list of
+        rings in ``polygon_dtype``) and ``polygon_index`` (per sample lists), those given.
+        ``valid``: ``(B, H, W)`` bool, the renderer's valid mask that the polygons are clipped
+        to (None: made here, `polygons.map_rings`)."""
         out = {}
         if self.keypoints is not None:
             k = self.keypoints.shape[1]
             out["keypoints"] = torch.full((self.batch, k, 2), math.nan, dtype=dtype)
             out["keypoints_valid"] = torch.zeros(self.batch, k, dtype=torch.bool)
-        if any(outline is not None for _, outline, _ in self.parts):
-            out["boxes"], out["box_index"] = [None] * self.batch, [None] * self.batch
-        for index, outline, kp in self.parts:
+        if self.has_boxes:
+            for key in ("boxes", "box_index", "box_visible"):
+                out[key] = [None] * self.batch
+        if self.polygons is not None:
+            out["polygons"], out["polygon_index"] = [None] * self.batch, [None] * self.batch
+        for index, change, outline, kp in self.parts:
             if outline is not None:
-                got, which = outline.result(box_dtype)
-                for i, b, w in zip(index.tolist(), got, which):
-                    out["boxes"][i], out["box_index"][i] = b, w
+                got, which, seen = outline.result(box_dtype, visible=True)
+                for i, b, w, v in zip(index.tolist(), got, which, seen):
+                    if self.outlined is not None:
+                        w = self.outlined[i][w]
+                    out["boxes"][i], out["box_index"][i], out["box_visible"][i] = b, w, v
             if kp is not None:
                 out["keypoints"][index], out["keypoints_valid"][index] = kp[0].to(dtype), kp[1]
+            if self.polygons is not None:
+                rings, which = polygon_rings.map_rings(
+                    change, [self.polygons[i] for i in index.tolist()], OUTLINE_STEP,
+                    None if valid is None else valid[index.to(valid.device)])
+                for i, r, w in zip(index.tolist(), rings, which):
+                    out["polygons"][i] = [torch.from_numpy(ring).to(polygon_dtype) for ring in r]
+                    out["polygon_index"][i] = torch.from_numpy(w)
+                    if self.has_boxes:
+                        self._ring_boxes(out, i, r, w, change.output.image_size, box_dtype)
         return out
+
+    def _ring_boxes(self, out: dict, i: int, rings: list, which, size: tuple[int, int],
+                    dtype: torch.dtype) -> None:
+        """Sample ``i``'s boxes with rings: the tight box of their mapped rings (clipped to the
+        image), merged into ``out``'s outline boxes in the order of the input boxes."""
+        boxes, index = out["boxes"][i], out["box_index"][i]
+        if boxes is None:
+            boxes, index = torch.zeros(0, 4, dtype=dtype), torch.zeros(0, dtype=torch.long)
+        extra = torch.zeros(0, 4, dtype=torch.float64)
+        number = torch.zeros(0, dtype=torch.long)
+        if len(rings):
+            owner = self.polygon_box[i][torch.from_numpy(which)].numpy()
+            count = int(owner.max()) + 1
+            lo = np.full((count, 2), np.inf)
+            hi = np.full((count, 2), -np.inf)
+            np.minimum.at(lo, owner, np.stack([r.min(0) for r in rings]))
+            np.maximum.at(hi, owner, np.stack([r.max(0) for r in rings]))
+            h, w = size
+            box = torch.from_numpy(np.concatenate((np.maximum(lo, 0.0),
+                                                   np.minimum(hi, [float(w), float(h)])), 1))
+            kept = torch.isfinite(box).all(-1) & (box[:, 2:] > box[:, :2]).all(-1)
+            extra, number = box[kept], kept.nonzero()[:, 0]
+        if len(extra):
+            boxes = torch.cat((boxes, extra.to(dtype)))
+            index = torch.cat((index, number))
+        order = torch.argsort(index)
+        visible = torch.cat((out["box_visible"][i] if out["box_visible"][i] is not None else
+                             torch.zeros(0, dtype=torch.bool),
+                             torch.ones(len(number), dtype=torch.bool)))
+        out["boxes"][i], out["box_index"][i], out["box_visible"][i] = (
+            boxes[order], index[order], visible[order])
 
 
 def map_targets(changes: Sequence[tuple[Tensor, Change]], batch: int, *,
@@ -648,7 +736,8 @@ def boxes_of_instances(instances: Tensor, ids: list[Tensor], source: Tensor,
         lost[kept] = False
         missing.append(t[lost])
     check_ids_present(source, missing)
-    return {"boxes": [b.to(dtype) for b in boxes], "box_index": index}
+    return {"boxes": [b.to(dtype) for b in boxes], "box_index": index,
+            "box_visible": [torch.ones(len(t), dtype=torch.bool) for t in index]}
 
 
 # -------------------------------------------------------------------------------------------
@@ -748,3 +837,43 @@ def reproject_boxes(boxes: Sequence[Tensor] | Tensor, src_camera: Camera | Tenso
     boxes = check_boxes(boxes, batch)
     change, size = _change(src_camera, dst_camera, rotation, batch, source_size)
     return Outline(change, boxes, size).result()
+
+
+def reproject_polygons(polygons: Sequence[Sequence[object]], src_camera: Camera | Tensor,
+                       dst_camera: Camera, *, rotation: Tensor | None = None,
+                       source_size: tuple[int, int] | None = None
+                       ) -> tuple[list[list[Tensor]], list[Tensor]]:
+    """Polygons of an image of ``src_camera`` as `omniscape_torch.reproject`'s image in
+    ``dst_camera`` (same arguments) shows them: each ring densified, mapped and clipped to the
+    valid area (module docstring for the bounds).
+
+    Args:
+        polygons: per sample a list of rings, each ``(N_k, 2)`` corner coordinates ``(x, y)``
+            or COCO's flat ``[x0, y0, x1, y1, ...]`` list (a list of B).
+        src_camera: as for ``ot.reproject`` (a camera matrix ``K`` needs ``source_size``).
+        dst_camera: as for ``ot.reproject``.
+        rotation: as for ``ot.reproject``: ``ray_src = R @ ray_dst``.
+        source_size: ``(H, W)`` of the source image, for a camera matrix ``K``.
+
+    Returns:
+        per sample the output rings ``(M_j, 2)`` float64 corner coordinates (none where a ring
+        leaves the view, several where the valid area's border cuts it apart) and
+        ``polygon_index (M,)`` int64: the input ring of each.
+
+    Examples:
+        >>> src = Camera("pinhole", [32.0, 32.0, 31.5, 31.5], (64, 64))
+        >>> fish = Camera("equidistant", [20.0, 20.0, 31.5, 31.5], (64, 64))
+        >>> square = [[24.0, 24.0], [40.0, 24.0], [40.0, 40.0], [24.0, 40.0]]
+        >>> rings, index = reproject_polygons([[square]], src, fish)
+        >>> len(rings[0][0]) > 4, index[0].tolist()   # the edges bent: more points
+        (True, [0])
+    """
+    if not isinstance(polygons, (list, tuple)):
+        raise TypeError(f"polygons: expected per sample a list of rings, got "
+                        f"{type(polygons).__name__}")
+    batch = len(polygons)
+    rings, _ = check_polygons(polygons, batch)
+    change, _ = _change(src_camera, dst_camera, rotation, batch, source_size)
+    got, index = polygon_rings.map_rings(change, rings, OUTLINE_STEP)
+    return ([[torch.from_numpy(r) for r in rs] for rs in got],
+            [torch.from_numpy(i) for i in index])
