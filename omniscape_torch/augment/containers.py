@@ -41,7 +41,7 @@ _KORNIA_DEPTH = 8
 
 
 class Wrapping(NamedTuple):
-    """What :func:`enter` read, for :func:`leave`: whether the sample was unbatched, the
+    """What `enter` read, for `leave`: whether the sample was unbatched, the
     tensor-subclass input of each key (``boxes``: one per sample, or None), and the class of
     ``valid`` (None: a plain tensor)."""
 
@@ -65,7 +65,7 @@ def enter(image: object, labels: object, depth: object, params: dict | None, *,
 
     Returns:
         ``(image, labels, depth, params, wrapping)``: the same structure, plain and batched,
-        and the :class:`Wrapping` that :func:`leave` needs.
+        and the `Wrapping` that `leave` needs.
     """
     if isinstance(image, Tensor):
         _refuse_kornia_container(owner)
@@ -94,7 +94,7 @@ def enter(image: object, labels: object, depth: object, params: dict | None, *,
 
 
 def leave(out: dict, wrapping: Wrapping) -> dict:
-    """The outputs of ``forward`` in the containers :func:`enter` read: unbatched again
+    """The outputs of ``forward`` in the containers `enter` read: unbatched again
     (``params`` as per-sample values) and in the inputs' tensor classes, ``valid`` in
     ``wrapping.mask_class``."""
     out = dict(out)
@@ -270,7 +270,7 @@ def to_xyxy(boxes: Tensor, fmt: str) -> Tensor:
 
 
 def from_xyxy(boxes: Tensor, fmt: str) -> Tensor:
-    """The inverse of :func:`to_xyxy`."""
+    """The inverse of `to_xyxy`."""
     a, b = boxes[..., :2], boxes[..., 2:]
     if fmt == "XYWH":
         return torch.cat((a, b - a), -1)

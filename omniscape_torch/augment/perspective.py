@@ -54,7 +54,7 @@ class RandomReproject(_Routes, _RandomCameras):
 
     For the segmentation datasets of perspective images (Cityscapes, BDD100K, Mapillary, the
     built-in town's pinhole views): each image, with its pinhole intrinsics, is reprojected
-    into a fisheye camera drawn as :class:`RandomOmniCamera` draws its fisheyes (``mode=
+    into a fisheye camera drawn as `RandomOmniCamera` draws its fisheyes (``mode=
     "fisheye"``: a model among ``fisheye_models``, the image circle of a field of view drawn in
     ``fov_range`` inscribed in the image, the lens parameters in their ranges), turned by a
     drawn attitude (``R = yaw_pitch_roll_to_matrix(yaw, pitch, roll)`` maps the fisheye's rays
@@ -81,8 +81,8 @@ class RandomReproject(_Routes, _RandomCameras):
 
     Attitude defaults: roll +-25 deg (the OmniScape paper's Table I), pitch and yaw +-10 deg
     (a perspective image holds a narrow cone: a larger turn leaves the fisheye mostly empty).
-    ``p``, ``same_on_batch``, ``seed``, :meth:`reseed` and the randomness across epochs and
-    ``DataLoader`` workers: as :class:`RandomOmniCamera`'s.
+    ``p``, ``same_on_batch``, ``seed``, `reseed` and the randomness across epochs and
+    ``DataLoader`` workers: as `RandomOmniCamera`'s.
 
     On the CPU without gradients (the fast path, as ``OmniProjection``'s), every pixel's ray
     comes from a table per camera (``kernels.radial_table``) and the image is sampled by the C++
@@ -90,33 +90,33 @@ class RandomReproject(_Routes, _RandomCameras):
     up, or scaled to [0, 1] by a floating ``out_dtype``), channels-last images read without a
     copy (``channels_last``), labels written as int64 in the same pass. Elsewhere (another
     device, a gradient asked for, ``bicubic``) the exact chain: ``Camera.ray_grid`` and
-    :func:`~omniscape_torch.render.reproject.sample_camera` (``grid_sample``).
+    `sample_camera` (``grid_sample``).
 
     Args:
         image_size: ``(H, W)`` of the output.
         source_fov: the horizontal field of view of the perspective images (radians), used
             where no ``intrinsics`` are passed; None: they must be passed.
-        source_camera: one :class:`~omniscape_torch.Camera` (any model, ``image_size`` the
+        source_camera: one `Camera` (any model, ``image_size`` the
             images') used where neither ``intrinsics`` nor ``source_camera`` are passed; not
             with ``source_fov``.
-        fisheye_models: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
-        fov_range: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
-        kb_distortion: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
-        unified_xi_range: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
-        eucm_alpha_range: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
-        eucm_beta_range: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
-        ds_xi_range: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
-        ds_alpha_range: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
+        fisheye_models: the lens, as for `RandomOmniCamera` (``mode="fisheye"``).
+        fov_range: the lens, as for `RandomOmniCamera` (``mode="fisheye"``).
+        kb_distortion: the lens, as for `RandomOmniCamera` (``mode="fisheye"``).
+        unified_xi_range: the lens, as for `RandomOmniCamera` (``mode="fisheye"``).
+        eucm_alpha_range: the lens, as for `RandomOmniCamera` (``mode="fisheye"``).
+        eucm_beta_range: the lens, as for `RandomOmniCamera` (``mode="fisheye"``).
+        ds_xi_range: the lens, as for `RandomOmniCamera` (``mode="fisheye"``).
+        ds_alpha_range: the lens, as for `RandomOmniCamera` (``mode="fisheye"``).
         focal_scale_range: the focal as a multiple of the one that inscribes the drawn image
-            circle (as for :class:`RandomOmniCamera`); not with ``coverage_range``. Given
+            circle (as for `RandomOmniCamera`); not with ``coverage_range``. Given
             alone, it replaces the default framing (the behaviour before it).
         coverage_range: ``(min, max)`` share of the output's pixels the source fills (valid),
             drawn per sample; the focal is solved for it from the source pinhole, the drawn
-            lens and attitude (:mod:`~omniscape_torch.render.framing`; ``params["coverage"]``).
+            lens and attitude (`framing`; ``params["coverage"]``).
             Default, when neither it nor ``focal_scale_range`` is given: ``(0.5, 0.9)``
             (``DEFAULT_COVERAGE``). Sources other than a pinhole, and
             ``forward_parameters`` without ``source_size``, use ``focal_scale_range``.
-        center_jitter: the lens, as for :class:`RandomOmniCamera` (``mode="fisheye"``).
+        center_jitter: the lens, as for `RandomOmniCamera` (``mode="fisheye"``).
         roll_range: ``(min, max)`` radians.
         pitch_range: ``(min, max)`` radians.
         yaw_range: ``(min, max)`` radians.
@@ -131,12 +131,12 @@ class RandomReproject(_Routes, _RandomCameras):
         out_dtype: dtype of ``rgb``: None for the image's, or a floating dtype (``uint8``
             scaled to [0, 1]).
         label_keys: ``{key: ignore value}``: more label-like keys the dicts may hold, as for
-            :class:`RandomOmniCamera`.
+            `RandomOmniCamera`.
         antialias: prefilter ``rgb`` where the fisheye minifies the source (an output pixel
             covering more than one source pixel): the mean of taps over each pixel's
             footprint through a mip pyramid. On the CPU fast path (``uint8``, float32 and
-            float64 images, no gradient) the C++ op :func:`~omniscape_torch.render.kernels.image.
-            mip_image`; elsewhere :mod:`~omniscape_torch.render.antialias` (the same rule,
+            float64 images, no gradient) the C++ op `
+            mip_image`; elsewhere `antialias` (the same rule,
             differentiable). Pixels that do not minify are as with
             ``antialias=False`` (point samples), bit for bit; ``labels``, ``depth`` and
             ``valid`` are the same either way (nearest texel at the pixel centre, never
@@ -161,7 +161,7 @@ class RandomReproject(_Routes, _RandomCameras):
         ``labels (B, Hs, Ws)`` integer, ``depth (B, Hs, Ws)`` or ``(B, 1, Hs, Ws)`` planar ->
         ``rgb (B, C, H, W)`` (``(B, H, W, C)``), ``labels (B, H, W)`` int64,
         ``depth (B, 1, H, W)``, ``valid (B, 1, H, W)`` bool; ``params`` as
-        :meth:`forward_parameters` returns them, with the ``intrinsics (B, 4)`` of a pinhole
+        `forward_parameters` returns them, with the ``intrinsics (B, 4)`` of a pinhole
         source, or the record of the ``source_camera`` used (``model``, ``params (B, P)``
         float64 on the CPU: plain values that ``default_collate`` stacks).
 
@@ -272,7 +272,7 @@ class RandomReproject(_Routes, _RandomCameras):
             ``blind_fov (B,)`` (radians; 0), ``yaw``, ``pitch``, ``roll (B,)``, ``applied (B,)``,
             ``rotation (B, 3, 3)`` fisheye -> source camera frame, and with ``coverage_range``
             and a pinhole source ``coverage (B,)``: the share of the output drawn (the focal
-            solved for it, :mod:`~omniscape_torch.render.framing`).
+            solved for it, `framing`).
 
         Raises:
             ValueError: ``source_size`` with ``coverage_range`` but neither ``intrinsics`` nor
@@ -350,8 +350,8 @@ class RandomReproject(_Routes, _RandomCameras):
                 keypoints: Tensor | None = None, label_maps: Mapping[str, Tensor] | None = None,
                 polygons: Sequence[Sequence[Tensor]] | None = None,
                 polygon_box: Sequence[Tensor] | None = None) -> dict:
-        """:meth:`render`; ``drawn``: where ``forward`` drew ``params`` itself in this call,
-        the source ``(k, camera)`` of :meth:`_source` (checked) for images of ``(Hs, Ws)``
+        """`render`; ``drawn``: where ``forward`` drew ``params`` itself in this call,
+        the source ``(k, camera)`` of `_source` (checked) for images of ``(Hs, Ws)``
         that it drew them for, else None. Drawn params are not checked again (their rotations,
         cameras and batch are the module's own) nor is their source made again (for inputs of
         that size)."""
@@ -416,10 +416,10 @@ class RandomReproject(_Routes, _RandomCameras):
                      depth: Tensor | None = None, intrinsics: Tensor | None = None,
                      source_camera: Camera | None = None, scan: Callable | None = None,
                      drawn: tuple | None = None) -> dict:
-        """:meth:`render` of the modalities alone (``valid``, ``rgb``, ``labels``, ``depth``,
+        """`render` of the modalities alone (``valid``, ``rgb``, ``labels``, ``depth``,
         ``params`` with the source camera's record); ``scan``: called on the fast path with
         each chunk's samples and the rays they are sampled along (``detection.Targets.scan``);
-        ``drawn``: as for :meth:`_render`."""
+        ``drawn``: as for `_render`."""
         image, labels, depth, size = self._check_inputs(image, labels, depth)
         batch = next(t for t in (image, labels, depth) if t is not None).shape[0]
         if drawn is None or drawn[2] != size:
@@ -484,7 +484,7 @@ class RandomReproject(_Routes, _RandomCameras):
               generator: torch.Generator | None) -> tuple[dict, tuple]:
         """``forward_parameters`` for the inputs of ``forward`` (``ref``: the first given; ``ids``:
         it is labels or depth, never channels-last), framed to their source where it is a
-        pinhole (``coverage_range``), and that source as :meth:`_render` takes it: ``(k,
+        pinhole (``coverage_range``), and that source as `_render` takes it: ``(k,
         camera, (Hs, Ws))``."""
         if isinstance(ref, bool) or not isinstance(ref, Tensor) or ref.dim() < 3:
             raise ValueError(f"image: expected (B, C, H, W) (labels, depth: (B, H, W)), got "
@@ -613,14 +613,14 @@ class RandomReproject(_Routes, _RandomCameras):
                 are taken as the tensors they hold, and their outputs come back in their
                 classes (``valid`` as a ``Mask``); an unbatched sample ``(C, H, W)``,
                 ``(H, W)`` comes back unbatched, ``params`` per sample
-                (:mod:`~omniscape_torch.augment.containers`).
+                (`containers`).
             labels: ``(B, H, W)`` integer class ids.
             depth: planar depth ``(B, H, W)``.
             intrinsics: ``(B, 4)`` or ``(4,)`` pinhole ``fx, fy, cx, cy`` of the images, or a
                 camera matrix ``K (B, 3, 3)`` or ``(3, 3)`` (zero skew; else ``source_camera``,
                 the module's ``source_camera`` or ``source_fov``).
             source_camera: the images' camera, any model of the registry: one
-                :class:`~omniscape_torch.Camera` shared by the batch, or a batch ``(B,)`` of one
+                `Camera` shared by the batch, or a batch ``(B,)`` of one
                 model (e.g. ``Camera.load`` of an Aria calibration, or an ``opencv`` camera
                 with its distortion).
             params: parameters from ``forward_parameters`` or a previous output, to replay.

@@ -200,7 +200,7 @@ def _camera_record(camera: Camera) -> dict:
 
 
 def _recorded_camera(record: dict, size: tuple[int, int]) -> Camera:
-    """The camera of :func:`_camera_record`'s ``record`` for images of ``size``, also after
+    """The camera of `_camera_record`'s ``record`` for images of ``size``, also after
     ``default_collate`` of per-sample records (the names listed, the rows stacked)."""
     def one(name: str):
         value = record.get(name)
@@ -222,7 +222,7 @@ def _recorded_camera(record: dict, size: tuple[int, int]) -> Camera:
 
 
 def _check_source_camera(camera: object) -> None:
-    """Refuse what is not one :class:`Camera` (a batch of one model) naming ``source_camera``."""
+    """Refuse what is not one `Camera` (a batch of one model) naming ``source_camera``."""
     pair = isinstance(camera, tuple) and len(camera) == 2 and isinstance(camera[1], Tensor)
     if isinstance(camera, (list, tuple)) and not pair:   # a pair: not_a_camera's hint
         raise TypeError("source_camera: expected one ot.Camera (shared, or a batch (B,) of one "
@@ -241,7 +241,7 @@ def _rows(camera: Camera, index: Tensor) -> Camera:
                   blind_fov=camera.blind_fov)
 
 
-#: Angles of a lens's radius at focal 1 in :meth:`RandomReproject._unit_lens` (linear between
+#: Angles of a lens's radius at focal 1 in `RandomReproject._unit_lens` (linear between
 
 
 

@@ -1,8 +1,8 @@
 """Detection targets through a camera change: keypoints, boxes, and boxes of instance maps.
 
-The geometry that :class:`~omniscape_torch.augment.RandomReproject`,
-:class:`~omniscape_torch.augment.RandomOmniCamera` and :func:`reproject_boxes` /
-:func:`reproject_keypoints` (next to :func:`~omniscape_torch.reproject`) share. Coordinates
+The geometry that `RandomReproject`,
+`RandomOmniCamera` and `reproject_boxes` /
+`reproject_keypoints` (next to `reproject`) share. Coordinates
 follow torchvision's XYXY convention for boxes and keypoints: corner coordinates, the pixel of
 centre ``(u, v)`` spans ``[u, u + 1] x [v, v + 1]`` (the package's pixel-centre coordinates
 plus 0.5, converted here and only here).
@@ -13,8 +13,8 @@ plus 0.5, converted here and only here).
   and outside its blind cone), else its coordinates are NaN.
 * A box from its outline (``reproject_boxes``): the box region is mapped through the cameras
   and its tight box in the output is taken, clipped to the output's valid area. The outline is
-  sampled every :data:`FIRST_STEP` source pixels and mapped; a box whose mapped samples near
-  the output image lie more than :data:`OUTLINE_STEP` output pixels apart (a camera that
+  sampled every `FIRST_STEP` source pixels and mapped; a box whose mapped samples near
+  the output image lie more than `OUTLINE_STEP` output pixels apart (a camera that
   magnifies it more than twice) is sampled again that much finer, so a straight edge's curved
   image is missed by at most its sagitta, ``OUTLINE_STEP**2 / (8 rho)`` for a curvature radius
   ``rho`` (against a sampling every 0.25 px: at most 0.018 px over 2303 boxes of 8 to 300 px
@@ -32,7 +32,7 @@ plus 0.5, converted here and only here).
   inside the mapped region) differs from the continuous box by up to half a pixel per side, a
   little more at a sharp corner or for an object thinner than a pixel; tests hold boxes within
   1 px of their objects' pixels.
-* A box from an instance map (:func:`instance_boxes`): the tight box of the output pixels of
+* A box from an instance map (`instance_boxes`): the tight box of the output pixels of
   its instance id, exact.
 """
 
@@ -81,7 +81,7 @@ class Side(NamedTuple):
 
     @staticmethod
     def of(camera: Camera, n: int) -> "Side":
-        """A :class:`~omniscape_torch.Camera` (one, or a batch ``(n,)``) for ``n`` samples."""
+        """A `Camera` (one, or a batch ``(n,)``) for ``n`` samples."""
         params = camera.params.detach().to("cpu", torch.float64)
         params = params.reshape(-1, params.shape[-1]).expand(n, -1)
         cone = (lambda a: None if a is None else torch.full((n,), float(a), dtype=torch.float64))
@@ -174,7 +174,7 @@ def _turn(rays: Tensor, rotation: Tensor, sample: Tensor | None, back: bool = Fa
 
 
 def _cube_rays(points: Tensor) -> tuple[Tensor, Tensor]:
-    """``(..., 3)`` rows ``(face, x, y)`` of :func:`cube_points` (``x = (u - c) / f``) -> unit
+    """``(..., 3)`` rows ``(face, x, y)`` of `cube_points` (``x = (u - c) / f``) -> unit
     rays in the cube frame, and where the point lies on its face."""
     face = points[..., 0].long()
     local = torch.cat((points[..., 1:], torch.ones_like(points[..., :1])), -1)
@@ -185,7 +185,7 @@ def _cube_rays(points: Tensor) -> tuple[Tensor, Tensor]:
 
 def cube_points(keypoints: Tensor, face_size: int) -> Tensor:
     """Cube keypoints ``(..., 3)`` rows ``(face, x, y)`` in corner coordinates of a face of
-    ``face_size`` -> rows ``(face, (u - c) / f, (v - c) / f)`` that :class:`Side` reads (NaN
+    ``face_size`` -> rows ``(face, (u - c) / f, (v - c) / f)`` that `Side` reads (NaN
     rows and faces outside 0..5 are left to the caller's checks)."""
     f, c = face_size / 2, (face_size - 1) / 2
     return torch.cat((keypoints[..., :1], (keypoints[..., 1:] - 0.5 - c) / f), -1)
@@ -289,7 +289,7 @@ def check_ids_present(instances: Tensor, ids: list[Tensor], key: str = "box_inst
 # -------------------------------------------------------------------------------------------
 def _keypoint_points(keypoints: Tensor, source_size: tuple[int, int] | None
                      ) -> tuple[Tensor, Tensor, Tensor]:
-    """Keypoints ``(n, K, 2)`` (cube: ``(n, K, 3)`` from :func:`cube_points`), corner
+    """Keypoints ``(n, K, 2)`` (cube: ``(n, K, 3)`` from `cube_points`), corner
     coordinates -> the source points to map ``(n K, 2 or 3)`` (pixel centres), their samples
     ``(n K,)`` and where they are given and in the source image ``[0, W] x [0, H]``
     (``source_size``; None for a cube)."""
@@ -317,7 +317,7 @@ def _keypoint_result(pixels: Tensor, ok: Tensor, given: Tensor, shape: tuple[int
 
 def map_keypoints(change: Change, keypoints: Tensor, source_size: tuple[int, int] | None
                   ) -> tuple[Tensor, Tensor]:
-    """Keypoints ``(n, K, 2)`` (cube: ``(n, K, 3)`` from :func:`cube_points`) of the ``n``
+    """Keypoints ``(n, K, 2)`` (cube: ``(n, K, 3)`` from `cube_points`) of the ``n``
     samples of ``change``, corner coordinates -> ``(n, K, 2)`` corner coordinates (NaN where
     invalid) and ``valid (n, K)``. ``source_size``: the source image's ``(H, W)`` (corner
     coordinates in ``[0, W] x [0, H]``), None for a cube."""
@@ -338,12 +338,12 @@ def _in_rects(points: Tensor, rects: Tensor) -> Tensor:
 #: Pixels a window reaches past the extent of its box's mapped outline samples (which miss the
 #: mapped outline's extreme by its sagitta between two samples, far below a pixel).
 _MARGIN = 1.0
-#: Most pixels mapped back in one call of the scans in torch (:func:`_scan_back`).
+#: Most pixels mapped back in one call of the scans in torch (`_scan_back`).
 _SCAN_CHUNK = 1 << 20
 
 
 def _scan_back(change: Change, sample: Tensor, windows: Tensor, rects: Tensor) -> Tensor:
-    """The pixel scan of :class:`Outline` in torch: per box the extent ``(m, 4)`` (min column,
+    """The pixel scan of `Outline` in torch: per box the extent ``(m, 4)`` (min column,
     min row, max column, max row; -1 where none) of the output pixels of ``windows (m, 4)``
     (inclusive) of its ``sample`` that ``change.backward`` maps, valid, into its source
     ``rects (m, 4)`` (pixel centres)."""
@@ -375,7 +375,7 @@ def _outlines(change: Change, rects: Tensor, counts: Tensor, owner: Tensor,
     extent of its seen points within the output's outer pixel centres, then of its mapped
     points (both models map them, seen or not; inf where none); ``longest (m,)``: the longest
     step between consecutive mapped points of its closed outline of which one lies within
-    :data:`OUTLINE_STEP` pixels of those centres; ``flags (m,)``: 1 where a point is not seen
+    `OUTLINE_STEP` pixels of those centres; ``flags (m,)``: 1 where a point is not seen
     within them, 2 where one is not mapped; and ``extra``'s output pixels and where seen
     ``(n K, 2), (n K,)`` (None without). ``kernels.boxes.outlines``: the C++ ops or their
     torch twin, by ``backend``."""
@@ -416,10 +416,10 @@ def _a_side_seen(seen: Tensor, counts: Tensor) -> Tensor:
 
 
 class Outline:
-    """Boxes of the ``n`` samples of a :class:`Change` mapped by their outlines (module
+    """Boxes of the ``n`` samples of a `Change` mapped by their outlines (module
     docstring), in two steps: the outlines (on construction), then the pixels of the boxes that
-    the valid area cuts, read from the rays a renderer samples along (:meth:`scan`) or mapped
-    back here (:meth:`result`).
+    the valid area cuts, read from the rays a renderer samples along (`scan`) or mapped
+    back here (`result`).
 
     ``boxes``: per sample ``(N_i, 4)`` XYXY corner coordinates, clipped to the source image
     ``source_size`` first (none left: dropped); ``extra``: points ``(n, K, 2)`` mapped by
@@ -719,7 +719,7 @@ def map_targets(changes: Sequence[tuple[Tensor, Change]], batch: int, *,
                 keypoints: Tensor | None = None, boxes: list[Tensor] | None = None,
                 source_size: tuple[int, int] | None = None, dtype: torch.dtype = torch.float32,
                 box_dtype: torch.dtype = torch.float32) -> dict:
-    """:class:`Targets`' result, every cut box's pixels mapped back here."""
+    """`Targets`' result, every cut box's pixels mapped back here."""
     return Targets(changes, batch, keypoints=keypoints, boxes=boxes,
                    source_size=source_size).result(dtype, box_dtype)
 
@@ -727,7 +727,7 @@ def map_targets(changes: Sequence[tuple[Tensor, Change]], batch: int, *,
 def boxes_of_instances(instances: Tensor, ids: list[Tensor], source: Tensor,
                        dtype: torch.dtype = torch.float32) -> dict:
     """``boxes`` and ``box_index`` (per sample lists) of the ids ``ids`` in the output instance
-    map ``instances (B, H, W)`` (:func:`instance_boxes`), boxes in ``dtype``; raises where an
+    map ``instances (B, H, W)`` (`instance_boxes`), boxes in ``dtype``; raises where an
     id the output lacks has no pixel in the ``source`` instance map either."""
     boxes, index = instance_boxes(instances, ids)
     missing = []
@@ -745,7 +745,7 @@ def boxes_of_instances(instances: Tensor, ids: list[Tensor], source: Tensor,
 # -------------------------------------------------------------------------------------------
 def _change(src_camera: Camera | Tensor, dst_camera: Camera, rotation: Tensor | None,
             batch: int, source_size: tuple[int, int] | None) -> tuple[Change, tuple[int, int]]:
-    """The :class:`Change` of ``ot.reproject``'s arguments for ``batch`` samples."""
+    """The `Change` of ``ot.reproject``'s arguments for ``batch`` samples."""
     from .reproject import intrinsics_from_matrix
     if isinstance(src_camera, Tensor):
         if source_size is None:
@@ -773,7 +773,7 @@ def _change(src_camera: Camera | Tensor, dst_camera: Camera, rotation: Tensor | 
 def reproject_keypoints(keypoints: Tensor, src_camera: Camera | Tensor, dst_camera: Camera, *,
                         rotation: Tensor | None = None,
                         source_size: tuple[int, int] | None = None) -> tuple[Tensor, Tensor]:
-    """Keypoints of an image of ``src_camera`` where :func:`~omniscape_torch.reproject`'s image
+    """Keypoints of an image of ``src_camera`` where `reproject`'s image
     in ``dst_camera`` (same arguments) shows them.
 
     Args:
@@ -809,7 +809,7 @@ def reproject_boxes(boxes: Sequence[Tensor] | Tensor, src_camera: Camera | Tenso
                     dst_camera: Camera, *, rotation: Tensor | None = None,
                     source_size: tuple[int, int] | None = None
                     ) -> tuple[list[Tensor], list[Tensor]]:
-    """Boxes of an image of ``src_camera`` as :func:`~omniscape_torch.reproject`'s image in
+    """Boxes of an image of ``src_camera`` as `reproject`'s image in
     ``dst_camera`` (same arguments) shows them: the tight box of each box's region mapped
     through the cameras (its outline, sampled densely), clipped to the valid area (module
     docstring for the bounds).
