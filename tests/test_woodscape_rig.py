@@ -478,3 +478,27 @@ def test_omnidet_loader_reads_the_folder(folder, tmp_path, monkeypatch):
             boxes += len(targets)
         assert float(loader.get_displacements_from_speed(frame, cam)) >= 0
     assert boxes > 0
+
+
+def test_the_folder_reads_back_as_tensors(folder):
+    from omniscape_torch.data.datasets import collate
+
+    dataset = woodscape.WoodScapeDataset(folder)
+    assert [(f, c) for f, c in dataset.items] == [(f, c) for f in _frames() for c in NAMES]
+    for item in dataset:
+        f, c = item["frame"], item["camera"]
+        assert item["rgb"].shape == item["previous"].shape == (3, H, W)
+        gt = _image(folder / f"semantic_annotations/gtLabels/{f}_{c}.png", "L")
+        assert np.array_equal(item["labels"].numpy(), gt)
+        assert torch.equal(item["valid"][0], item["depth"] > 0)
+        rows = np.loadtxt(folder / f"box_2d_annotations/{f}_{c}.txt", delimiter=",",
+                          usecols=(1, 2, 3, 4, 5), ndmin=2) if os.stat(
+            folder / f"box_2d_annotations/{f}_{c}.txt").st_size else np.zeros((0, 5))
+        assert np.array_equal(item["box_labels"].numpy(), rows[:, 0])
+        assert np.array_equal(item["boxes"].numpy(), rows[:, 1:] + [0, 0, 1, 1])
+        camera, T = woodscape.rig_camera(c, (H, W))
+        assert torch.allclose(item["intrinsics"], camera.params)
+        assert torch.allclose(item["T_vehicle_camera"], T)
+        assert item["vehicle"]["timestamp"] > item["vehicle_previous"]["timestamp"]
+    batch = collate([dataset[0], dataset[1]])
+    assert batch["rgb"].shape == (2, 3, H, W) and isinstance(batch["boxes"], list)

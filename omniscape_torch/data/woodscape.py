@@ -114,6 +114,7 @@ places the cameras as ``generate``'s rig does (rig frame: the vehicle frame in O
 from __future__ import annotations
 
 import csv
+import functools
 import io as _io
 import json
 import math
@@ -138,8 +139,8 @@ __all__ = ["BOX_CLASSES", "BOX_PALETTE", "CALIBRATION", "CAMERAS", "DYNAMICS_PRE
            "PREVIOUS_INTERVAL", "SEMANTIC_CLASSES", "SEMANTIC_PALETTE", "TOWN_TO_SEMANTIC",
            "box_rows", "calibration", "contact_sheet", "drive", "file", "frame_files",
            "frame_folders", "frame_name", "instance_annotations", "min_box_area", "read_boxes",
-           "require_opencv", "rig_camera", "rig_pose", "semantic_labels", "write_camera",
-           "write_previous", "write_run_files"]
+           "require_opencv", "rig_camera", "rig_pose", "semantic_labels", "WoodScapeDataset",
+           "write_camera", "write_previous", "write_run_files"]
 
 #: WoodScape's cameras, in this order.
 CAMERAS = ("FV", "MVL", "MVR", "RV")
@@ -549,3 +550,97 @@ def contact_sheet(root: str | Path, cameras: Sequence[str] = CAMERAS, frame: int
                  (read_image(root / file("previous", name, frame)).numpy(), "previous")]
         rows.append(np.hstack([_sheet_cell(image, title) for image, title in cells]))
     return encode_image(np.vstack(rows))
+
+
+# --------------------------------------------------------------------------------------------
+# Reading it back
+# --------------------------------------------------------------------------------------------
+
+class WoodScapeDataset(torch.utils.data.Dataset):
+    """A folder in WoodScape's layout (``generate --rig woodscape``'s, or WoodScape's own: the
+    files it has), one item per image ``FFFFF_CAM`` of ``rgb_images/``: with ``.done/``
+    markers (a generated folder), the finished frames only. Each item is a dict::
+
+        frame          str, "FFFFF"
+        camera         str, FV, MVL, MVR or RV
+        rgb            (3, H, W) float32 in [0, 1]
+        previous       (3, H, W) float32, previous_images' (where there)
+        labels         (H, W) int64, gtLabels' WoodScape ids 0..9 (where there)
+        depth          (H, W) float32, distance_maps' range along the ray, metres, 0 not
+                       valid; valid (1, H, W) bool: depth > 0 (where there)
+        boxes          (N, 4) float32, the 2D boxes as XYXY corners (columns x_min..x_max
+                       give x_min, x_max + 1: the augmentation's convention); box_labels
+                       (N,) int64, their BOX_CLASSES ids (where there)
+        model, intrinsics, image_size, T_vehicle_camera
+                       "woodscape", (7,) float64 params, (2,) int64 (H, W), (4, 4) float64
+                       camera -> vehicle (ISO 8855), from calibration_data (where there)
+        vehicle, vehicle_previous
+                       the vehicle data's dicts (timestamp in microseconds, ego_speed in
+                       km/h), where there
+
+    Items with boxes need ``collate_fn=omniscape_torch.data.datasets.collate``. Plain data
+    only: it pickles, for ``DataLoader(num_workers=N)``.
+
+    Args:
+        root: the folder.
+        cameras: the cameras to serve (default: all four).
+
+    Raises:
+        ValueError: no ``rgb_images/`` images (of these cameras) in ``root``.
+    """
+
+    def __init__(self, root: str | Path, cameras: Sequence[str] = CAMERAS):
+        self.root = Path(root)
+        self.cameras = tuple(cameras)
+        for c in self.cameras:
+            if c not in CAMERAS:
+                raise ValueError(f"cameras: expected some of {CAMERAS}, got {c!r}")
+        done = self.root / fmt.DONE
+        finished = ({int(p.name) for p in done.iterdir() if p.name.isdigit()}
+                    if done.is_dir() else None)
+        self.items = []
+        for p in sorted((self.root / LAYOUT["rgb"][0]).glob("*.png")):
+            frame, _, camera = p.stem.partition("_")
+            if camera in self.cameras and frame.isdigit() and (
+                    finished is None or int(frame) in finished):
+                self.items.append((frame, camera))
+        if not self.items:
+            raise ValueError(f"root: no {LAYOUT['rgb'][0]}/FFFFF_CAM.png images of "
+                             f"{', '.join(self.cameras)} in {self.root}")
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def _path(self, kind: str, frame: str, camera: str) -> Path:
+        folder, suffix = LAYOUT[kind]
+        return self.root / folder / f"{frame}_{camera}{suffix}"
+
+    def __getitem__(self, index: int) -> dict:
+        from ..cameras.woodscape_files import read as read_calibration
+        from ..io import read_exr, read_image, to_float
+
+        frame, camera = self.items[index]
+        item: dict = {"frame": frame, "camera": camera}
+        path = functools.partial(self._path, frame=frame, camera=camera)
+        item["rgb"] = to_float(read_image(path("rgb")))
+        if path("previous").is_file():
+            item["previous"] = to_float(read_image(path("previous")))
+        if path("gt_labels").is_file():
+            item["labels"] = read_image(path("gt_labels")).to(torch.int64)
+        if path("distance").is_file():
+            item["depth"] = read_exr(path("distance"))
+            item["valid"] = (item["depth"] > 0)[None]
+        if path("boxes").is_file():
+            rows = read_boxes(path("boxes"))
+            item["boxes"] = torch.tensor([[x0, y0, x1 + 1, y1 + 1] for _, _, x0, y0, x1, y1
+                                          in rows], dtype=torch.float32).reshape(-1, 4)
+            item["box_labels"] = torch.tensor([r[1] for r in rows], dtype=torch.int64)
+        if path("calibration").is_file():
+            cam, T, _ = read_calibration(Camera, path("calibration"))
+            item.update(model=cam.model.name, intrinsics=cam.params.detach().clone(),
+                        image_size=torch.tensor(cam.image_size, dtype=torch.int64),
+                        T_vehicle_camera=T)
+        for kind, key in (("vehicle", "vehicle"), ("vehicle_previous", "vehicle_previous")):
+            if path(kind).is_file():
+                item[key] = json.loads(path(kind).read_text(encoding="utf-8"))
+        return item
