@@ -58,6 +58,10 @@ Past one machine (`data.distributed`): ``ray`` runs chunks of frames as Ray task
 (`render_task`), ``shard=(K, N)`` renders run ``K`` of ``N``'s share for schedulers
 without Ray; both write the same files as one process. ``format="webdataset"`` also packs the
 frames into WebDataset shards (`data.shards`), each by the task that rendered them.
+
+``rig="woodscape"`` (``generate --rig woodscape``) renders WoodScape's four cameras on a car
+instead, with their previous images, through the same frame loop, and writes WoodScape's
+layout (`data.woodscape`: the cameras, the car's drive, the files).
 """
 
 from __future__ import annotations
@@ -162,12 +166,10 @@ class DatasetConfig:
     rig: str = "omniscape"                        # RIGS: the vehicle, cameras and layout
 
     def __post_init__(self):
-        if self.rig not in RIGS:
-            raise ValueError(f"rig: expected one of {RIGS}, got {self.rig!r}")
-        if self.image_size is None:
-            self.image_size = _RIG_IMAGE_SIZE[self.rig]
+        if self.image_size is None:   # an unknown rig: validate names it
+            self.image_size = _RIG_IMAGE_SIZE.get(self.rig, _RIG_IMAGE_SIZE["omniscape"])
         if self.cameras is None:
-            self.cameras = _RIG_CAMERAS[self.rig]
+            self.cameras = _RIG_CAMERAS.get(self.rig, CAMERAS)
         self.image_size = tuple(int(s) for s in self.image_size)
         self.cameras = tuple(self.cameras)
         self.weather = tuple(self.weather)
@@ -180,6 +182,8 @@ class DatasetConfig:
             if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
                 raise ValueError(f"{name}: expected an integer of at least {minimum}{unit}, got "
                                  f"{value!r}")
+        if self.rig not in RIGS:
+            raise ValueError(f"rig: expected one of {RIGS}, got {self.rig!r}")
         positive_int("frames", self.frames)
         positive_int("antialias", self.antialias)
         positive_int("min_object_pixels", self.min_object_pixels)
@@ -199,8 +203,6 @@ class DatasetConfig:
                              f"pixels, got {self.image_size!r}")
         if not self.cameras:
             raise ValueError("cameras: expected at least one camera")
-        if self.rig not in RIGS:
-            raise ValueError(f"rig: expected one of {RIGS}, got {self.rig!r}")
         for name in self.cameras:
             if name not in _RIG_CAMERAS[self.rig]:
                 raise ValueError(f"cameras: unknown camera {name!r} of the {self.rig} rig; "
@@ -508,7 +510,6 @@ class FrameRenderer:
         atomic_write_text(out / fmt.marker(k), json.dumps({"frame": k, "weather": weather})
                           + "\n")
         return k
-
 
     def _woodscape_camera(self, pool, out: Path, name: str, k: int,
                           res: dict[str, torch.Tensor]) -> list:

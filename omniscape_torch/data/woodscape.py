@@ -31,9 +31,13 @@ FV, MVL, MVR, RV)::
                                                    circle; the sky at the town's far plane
                                                    (>= 1000 m)
       dataset.json                                 manifest: configuration, cameras, tables
-      dynamics.json, dynamics_previous.json        the car's state at each frame and previous
+      dynamics.json (and .csv), dynamics_previous.json
+                                                   the car's state at each frame and previous
                                                    image (``ride.records``: CARLA's frame)
+      contact_sheet.png                            the middle frame at a glance (`contact_sheet`)
       .done/NNNNNN                                 a frame's marker, written last
+
+`WoodScapeDataset` reads such a folder (or WoodScape's own) back as tensors.
 
 Where WoodScape's README and OmniDet's loader (and WoodScape's own scripts) disagree, the
 loader is followed: the README puts the calibration files in ``calibration_data/`` and the
@@ -92,10 +96,11 @@ MVL, MVR and RV are WoodScape's calibration files of its images 00165_MVL, 00166
 ``calibrations/original/``, commit 20be84e8a413f04fe42ac1c8c69560b39a0c8a47, Apache-2.0: "the
 example data (images & calibrations) are from the public dataset WoodScape"), each its own
 lens: 1280 x 966 pixels, the image circle 190 degrees across (``fov``; WoodScape's cameras
-are 190-degree fisheyes: past it their images are dark, the lens's own barrel), vehicle frame
-ISO 8855 (x forward, y left, z up, the origin on the ground below the rear axle). Positions
-(metres) and optical axes as those files give them (two cars' files: the front camera's from
-another car than the others', so the rig is WoodScape's to a few centimetres)::
+are 190-degree fisheyes: past it their images are dark), vehicle frame ISO 8855 (x forward,
+y left, z up, the origin on the ground below the rear axle). Positions (metres) and optical
+axes as those files give them (two calibrations, front.json's and those of images 00165-00167,
+so the rig is WoodScape's to a few centimetres: WoodScape's FV of image 00164 sits 2 cm higher
+than front.json's)::
 
     camera  position (x, y, z)        optical axis: azimuth (0 forward, 90 left), below
                                       the horizon, degrees
