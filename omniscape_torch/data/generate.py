@@ -670,7 +670,7 @@ def generate(out: str | Path, config: DatasetConfig | None = None, *, workers: i
         ValueError: bad configuration or argument, or ``out`` holds a dataset of another
             configuration or of more frames (or shards of another ``frames_per_shard``).
         ImportError: ``ray`` without Ray installed, or no Pillow to write the images with
-            (at once).
+            (or OpenCV, with ``rig="woodscape"``: its polygons), at once.
         MemoryError: the run would not fit in memory (`check_memory`; with ``ray``, in
             any node of the cluster; before any work).
         omniscape_torch.data.distributed.TaskErrors: with ``ray``, frames that failed for good,

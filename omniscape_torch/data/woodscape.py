@@ -23,7 +23,8 @@ FV, MVL, MVR, RV)::
       instance_annotations/FFFFF_CAM.json          the objects as polygons (below)
       box_2d_annotations/FFFFF_CAM.txt             2D boxes, one object a line (below)
       calibration_data/calibration/FFFFF_CAM.json  the camera (ot.cameras.write_woodscape)
-      vehicle_data/rgb_images/FFFFF_CAM.json       {"timestamp": microseconds, "ego_speed": km/h}
+      vehicle_data/rgb_images/FFFFF_CAM.json       {"timestamp": microseconds since the
+                                                   drive's start, "ego_speed": km/h}
       vehicle_data/previous_images/FFFFF_CAM.json  the same at the previous image
       distance_maps/FFFFF_CAM.exr                  the distance along each pixel's ray (what
                                                    OmniDet's distance task estimates), float32
@@ -621,7 +622,7 @@ class WoodScapeDataset(torch.utils.data.Dataset):
         return self.root / folder / f"{frame}_{camera}{suffix}"
 
     def __getitem__(self, index: int) -> dict:
-        from ..cameras.woodscape_files import read as read_calibration
+        from ..cameras import read_woodscape
         from ..io import read_exr, read_image, to_float
 
         frame, camera = self.items[index]
@@ -641,7 +642,7 @@ class WoodScapeDataset(torch.utils.data.Dataset):
                                           in rows], dtype=torch.float32).reshape(-1, 4)
             item["box_labels"] = torch.tensor([r[1] for r in rows], dtype=torch.int64)
         if path("calibration").is_file():
-            cam, T, _ = read_calibration(Camera, path("calibration"))
+            cam, T, _ = read_woodscape(path("calibration"))
             item.update(model=cam.model.name, intrinsics=cam.params.detach().clone(),
                         image_size=torch.tensor(cam.image_size, dtype=torch.int64),
                         T_vehicle_camera=T)
