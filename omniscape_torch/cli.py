@@ -58,6 +58,10 @@ FIT_METHODS = ("lm", "lbfgs", "adam", "linear")
 FIT_LOSSES = ("linear", "huber", "cauchy")
 #: `data.generate.CAMERAS`.
 RIG_CAMERAS = ("fisheye_left", "fisheye_right", "catadioptric_left", "catadioptric_right")
+#: `data.generate.RIGS`.
+RIGS = ("omniscape", "woodscape")
+#: `data.woodscape.CAMERAS`.
+WOODSCAPE_CAMERAS = ("FV", "MVL", "MVR", "RV")
 #: `data.generate.FORMATS`.
 DATASET_FORMATS = ("folder", "webdataset")
 #: `data.captures.CAMERAS`.
@@ -308,26 +312,34 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _add_generate_parser(sub) -> None:
-    gen = sub.add_parser("generate", help="write an OmniScape-like dataset from the built-in "
-                                          "town",
+    gen = sub.add_parser("generate", help="write an OmniScape-like (or WoodScape-like) dataset "
+                                          "from the built-in town",
                          description="Render an OmniScape-like dataset (fisheye and "
                                      "catadioptric images with depth, labels, instances and "
-                                     "the vehicle's dynamics) from the built-in town. Its "
-                                     "layout and options: docs/datasets.md.")
+                                     "the vehicle's dynamics) from the built-in town; with "
+                                     "--rig woodscape, WoodScape's four fisheye cameras on a "
+                                     "car, in WoodScape's layout. Its layout and options: "
+                                     "docs/datasets.md.")
     gen.add_argument("--out", type=Path, required=True, help="dataset folder (created; a "
                      "rerun completes an interrupted run)")
     gen.add_argument("--frames", type=positive_int, default=8, help="frames (default 8)")
     gen.add_argument("--fps", type=_positive_float, default=2.0, help="frames per second "
                      "(default 2)")
-    gen.add_argument("--image-size", type=_image_size, default=(256, 256), metavar="N|HxW",
-                     help="image size in pixels (default 256)")
+    gen.add_argument("--rig", choices=RIGS, default="omniscape",
+                     help="omniscape: a motorcycle with stereo fisheye and catadioptric cameras, "
+                          "OmniScape's layout; woodscape: a car with WoodScape's cameras FV, "
+                          "MVL, MVR, RV, WoodScape's layout (rgb_images/, semantic_annotations/, "
+                          "box_2d_annotations/, ...; needs OpenCV); default omniscape")
+    gen.add_argument("--image-size", type=_image_size, default=None, metavar="N|HxW",
+                     help="image size in pixels (default 256; 966x1280 with --rig woodscape)")
     gen.add_argument("--face-size", type=positive_int, default=None, help="cube face size "
                      "for every camera (default: each camera's required_face_size)")
     gen.add_argument("--max-face-size", type=positive_int, default=1024,
                      help="cap on the default face sizes (default 1024)")
-    gen.add_argument("--cameras", type=_names(RIG_CAMERAS, "camera"), nargs="+",
-                     default=[list(RIG_CAMERAS)], metavar="NAME[,NAME]",
-                     help=f"cameras to render (default all: {', '.join(RIG_CAMERAS)})")
+    gen.add_argument("--cameras", type=_names(RIG_CAMERAS + WOODSCAPE_CAMERAS, "camera"),
+                     nargs="+", default=None, metavar="NAME[,NAME]",
+                     help=f"cameras to render (default all the rig's: {', '.join(RIG_CAMERAS)}; "
+                          f"with --rig woodscape {', '.join(WOODSCAPE_CAMERAS)})")
     gen.add_argument("--weather", type=_names(WEATHERS, "weather"), nargs="+",
                      default=[list(CARLA_PRESETS)], metavar="NAME[,NAME]",
                      help=f"weather preset(s), one drawn per frame when several "

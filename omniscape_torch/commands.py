@@ -107,11 +107,12 @@ def cmd_generate(args: argparse.Namespace) -> int:
     from .data.generate import DatasetConfig, Interrupted, generate
     from .io.atomic import check_writable
 
-    cameras = [n for group in args.cameras for n in group]
+    cameras = (None if args.cameras is None else
+               tuple(dict.fromkeys(n for group in args.cameras for n in group)))
     weather = [n for group in args.weather for n in group]
     config = DatasetConfig(frames=args.frames, fps=args.fps, image_size=args.image_size,
                            face_size=args.face_size, max_face_size=args.max_face_size,
-                           cameras=tuple(dict.fromkeys(cameras)),
+                           cameras=cameras, rig=args.rig,
                            weather=tuple(dict.fromkeys(weather)), seed=args.seed,
                            save_cubemaps=args.save_cubemaps, save_panorama=args.save_panorama,
                            town=args.town, antialias=args.antialias,
@@ -142,9 +143,12 @@ def cmd_generate(args: argparse.Namespace) -> int:
     sheet = args.out / CONTACT_SHEET
     print(f"wrote {len(result['rendered'])} frame(s), skipped {len(result['skipped'])} "
           f"finished, to {args.out} in {time.perf_counter() - start:.1f} s"
-          + (f"; open {sheet} first: one frame of each camera (image, depth, labels, valid "
-             f"area), then 'omniscape-torch stats {args.out}' for the class shares"
-             if sheet.is_file() else ""))
+          + ("" if not sheet.is_file() else
+             f"; open {sheet} first: one frame of each camera (image and boxes, labels, "
+             f"distance, previous image), in WoodScape's layout (docs/datasets.md)"
+             if config.rig == "woodscape" else
+             f"; open {sheet} first: one frame of each camera (image, depth, labels, valid "
+             f"area), then 'omniscape-torch stats {args.out}' for the class shares"))
     return 0
 
 

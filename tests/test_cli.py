@@ -526,7 +526,7 @@ def test_the_parser_tables_are_the_packages():
     from omniscape_torch.calibration import LOSSES, METHODS
     from omniscape_torch.cameras import MODELS, READ_FORMATS
     from omniscape_torch.cameras.export import FORMATS, supported_models
-    from omniscape_torch.data import captures, generate
+    from omniscape_torch.data import captures, generate, woodscape
     from omniscape_torch.io.carla import LABEL_SETS
     from omniscape_torch.scenes import town
 
@@ -537,6 +537,8 @@ def test_the_parser_tables_are_the_packages():
     assert all(cli.WRITE_FORMATS[f] == supported_models(f) for f in FORMATS if f != "json")
     assert cli.FIT_METHODS == tuple(METHODS) and cli.FIT_LOSSES == tuple(LOSSES)
     assert cli.RIG_CAMERAS == tuple(generate.CAMERAS)
+    assert cli.RIGS == tuple(generate.RIGS)
+    assert cli.WOODSCAPE_CAMERAS == tuple(woodscape.CAMERAS)
     assert cli.DATASET_FORMATS == tuple(generate.FORMATS)
     assert cli.CAPTURE_CAMERAS == tuple(captures.CAMERAS)
     assert cli.CARLA_PRESETS == tuple(town.CARLA_PRESETS)

@@ -58,6 +58,10 @@ Past one machine (`data.distributed`): ``ray`` runs chunks of frames as Ray task
 (`render_task`), ``shard=(K, N)`` renders run ``K`` of ``N``'s share for schedulers
 without Ray; both write the same files as one process. ``format="webdataset"`` also packs the
 frames into WebDataset shards (`data.shards`), each by the task that rendered them.
+
+``rig="woodscape"`` (``generate --rig woodscape``) renders WoodScape's four cameras on a car
+instead, with their previous images, through the same frame loop, and writes WoodScape's
+layout (`data.woodscape`: the cameras, the car's drive, the files).
 """
 
 from __future__ import annotations
@@ -82,6 +86,7 @@ from ..io.atomic import folder_lock, remove_stale_temporaries, remove_temporarie
 from . import distributed, shards
 from .processes import run_in_processes
 from . import format as fmt
+from . import woodscape
 from .resume import config_changes  # noqa: F401 (re-exported)
 from .resume import extend_shards, folder_frames, render_damaged_again
 from .contact_sheet import SHEET_CELL, SHEET_COLUMNS, contact_sheet  # noqa: F401 (re-exported)
@@ -97,7 +102,7 @@ from ..scenes.town import CARLA_PRESETS, LAYOUTS, WEATHERS, Town
 from ..render.sizing import (MEMORY_PER_PIXEL, PROCESS_MEMORY, available_memory,
                              required_face_size)
 
-__all__ = ["CAMERAS", "FORMATS", "RIG_POSITIONS", "DatasetConfig", "FrameRenderer",
+__all__ = ["CAMERAS", "FORMATS", "RIGS", "RIG_POSITIONS", "DatasetConfig", "FrameRenderer",
            "Interrupted", "check_memory", "contact_sheet", "estimate_memory", "generate",
            "render_chunk", "render_frame", "render_frames", "render_task"]
 
@@ -111,6 +116,13 @@ RIG_POSITIONS = {
     "catadioptric_left": (-0.4, -1.0, 0.4),
     "catadioptric_right": (0.4, -1.0, 0.4),
 }
+
+#: The rigs ``generate`` renders: OmniScape's motorcycle (this module's docstring; its layout
+#: `data.format`) and WoodScape's car (`data.woodscape`: its cameras, drive and layout).
+RIGS = ("omniscape", "woodscape")
+#: Each rig's cameras and default image size ``(H, W)``.
+_RIG_CAMERAS = {"omniscape": CAMERAS, "woodscape": woodscape.CAMERAS}
+_RIG_IMAGE_SIZE = {"omniscape": (256, 256), "woodscape": woodscape.IMAGE_SIZE}
 
 #: Centre of the panorama in the rig frame, metres.
 PANORAMA_POSITION = (0.0, -0.9, 0.0)
@@ -140,10 +152,10 @@ class DatasetConfig:
 
     frames: int = 8
     fps: float = 2.0
-    image_size: tuple[int, int] = (256, 256)      # (H, W)
+    image_size: tuple[int, int] | None = None     # (H, W); None: the rig's (256 or 966x1280)
     face_size: int | None = None                  # None: per camera, required_face_size
     max_face_size: int = 1024
-    cameras: tuple[str, ...] = CAMERAS
+    cameras: tuple[str, ...] | None = None        # None: all the rig's
     weather: tuple[str, ...] = CARLA_PRESETS    # one drawn per frame when several
     seed: int = 0
     save_cubemaps: bool = False
@@ -151,8 +163,13 @@ class DatasetConfig:
     town: int = 1                                 # the town's layout: scenes.town.LAYOUTS
     antialias: int | None = None                  # None: default_antialias(image_size)
     min_object_pixels: int = 1                    # objects files: objects of this many pixels
+    rig: str = "omniscape"                        # RIGS: the vehicle, cameras and layout
 
     def __post_init__(self):
+        if self.image_size is None:   # an unknown rig: validate names it
+            self.image_size = _RIG_IMAGE_SIZE.get(self.rig, _RIG_IMAGE_SIZE["omniscape"])
+        if self.cameras is None:
+            self.cameras = _RIG_CAMERAS.get(self.rig, CAMERAS)
         self.image_size = tuple(int(s) for s in self.image_size)
         self.cameras = tuple(self.cameras)
         self.weather = tuple(self.weather)
@@ -165,6 +182,8 @@ class DatasetConfig:
             if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
                 raise ValueError(f"{name}: expected an integer of at least {minimum}{unit}, got "
                                  f"{value!r}")
+        if self.rig not in RIGS:
+            raise ValueError(f"rig: expected one of {RIGS}, got {self.rig!r}")
         positive_int("frames", self.frames)
         positive_int("antialias", self.antialias)
         positive_int("min_object_pixels", self.min_object_pixels)
@@ -185,9 +204,12 @@ class DatasetConfig:
         if not self.cameras:
             raise ValueError("cameras: expected at least one camera")
         for name in self.cameras:
-            if name not in CAMERAS:
-                raise ValueError(f"cameras: unknown camera {name!r}; expected some of "
-                                 f"{', '.join(CAMERAS)}")
+            if name not in _RIG_CAMERAS[self.rig]:
+                raise ValueError(f"cameras: unknown camera {name!r} of the {self.rig} rig; "
+                                 f"expected some of {', '.join(_RIG_CAMERAS[self.rig])}")
+        if self.rig == "woodscape" and (self.save_cubemaps or self.save_panorama):
+            raise ValueError("save_cubemaps, save_panorama: not with rig='woodscape' (its "
+                             "layout is WoodScape's)")
         if len(set(self.cameras)) != len(self.cameras):
             raise ValueError(f"cameras: duplicates in {self.cameras}")
         if not self.weather:
@@ -232,6 +254,10 @@ def default_antialias(image_size: tuple[int, ...]) -> int:
 # --------------------------------------------------------------------------------------------
 
 def _make_camera(name: str, image_size: tuple[int, int]):
+    """Camera ``name`` at ``image_size`` and its rotation camera -> rig."""
+    if name in woodscape.CAMERAS:
+        camera, T = woodscape.rig_camera(name, image_size)
+        return camera, woodscape.rig_pose(T)[0]
     if name.startswith("fisheye"):
         return fisheye(image_size), torch.eye(3)
     return catadioptric(image_size, looking="down")
@@ -266,19 +292,31 @@ class _Plan:
 
     def __init__(self, config: DatasetConfig):
         self.config = config
-        self.frames = _make_ride(config)
-        self.R_bike = _ride.camera_rotation(self.frames).double()          # (N, 3, 3)
-        self.location = _ride.carla_to_world(self.frames["location"]).double()  # (N, 3)
+        # WoodScape's car: its previous images' states too (woodscape.drive)
+        self.frames, self.previous = (
+            woodscape.drive(town_route(config.seed, config.town), float(config.fps),
+                            config.frames, config.seed)
+            if config.rig == "woodscape" else (_make_ride(config), None))
+        self._poses = {}   # previous -> (R_bike (N, 3, 3) rig -> world, location (N, 3))
+        for previous, states in ((False, self.frames), (True, self.previous)):
+            if states is not None:
+                self._poses[previous] = (_ride.camera_rotation(states).double(),
+                                         _ride.carla_to_world(states["location"]).double())
+        self.R_bike, self.location = self._poses[False]
         self.cameras = {}
-        self._faces: dict[tuple[str, int], torch.Tensor] = {}
-        self._texels: tuple[tuple[str, int], torch.Tensor] | None = None
+        self._faces: dict[tuple[str, int, bool], torch.Tensor] = {}
+        self._texels: tuple[tuple[str, int, bool], torch.Tensor] | None = None
         sizes = _face_sizes(config)
         for name in config.cameras:
-            camera, r_cam = _make_camera(name, config.image_size)
-            r_cam = r_cam.double()
-            self.cameras[name] = dict(camera=camera, r_cam=r_cam, face_size=int(sizes[name]),
-                                      position=torch.tensor(RIG_POSITIONS[name],
-                                                            dtype=torch.float64))
+            extra = {}
+            if config.rig == "woodscape":   # T_vehicle: camera -> vehicle (ISO 8855)
+                camera, extra["T_vehicle"] = woodscape.rig_camera(name, config.image_size)
+                r_cam, position = woodscape.rig_pose(extra["T_vehicle"])
+            else:
+                camera, r_cam = _make_camera(name, config.image_size)
+                position = torch.tensor(RIG_POSITIONS[name], dtype=torch.float64)
+            self.cameras[name] = dict(camera=camera, r_cam=r_cam.double(),
+                                      face_size=int(sizes[name]), position=position, **extra)
         h = config.image_size[0]
         self.panorama_size = (h, 2 * h)
         self.panorama_face = _panorama_face(config.max_face_size, h)
@@ -287,37 +325,42 @@ class _Plan:
         """The weather of frame ``k``."""
         return _frame_weather(self.config, k)
 
-    def rotation(self, name: str, k: int) -> torch.Tensor:
-        """Camera -> world (= cube) rotation of camera ``name`` at frame ``k``, float64."""
-        return self.R_bike[k] @ self.cameras[name]["r_cam"]
+    def rotation(self, name: str, k: int, previous: bool = False) -> torch.Tensor:
+        """Camera -> world (= cube) rotation of camera ``name`` at frame ``k`` (``previous``:
+        at its previous image, rig woodscape), float64."""
+        return self._poses[previous][0][k] @ self.cameras[name]["r_cam"]
 
-    def centre(self, name: str, k: int) -> torch.Tensor:
-        return self.location[k] + self.R_bike[k] @ self.cameras[name]["position"]
+    def centre(self, name: str, k: int, previous: bool = False) -> torch.Tensor:
+        r_bike, location = self._poses[previous]
+        return location[k] + r_bike[k] @ self.cameras[name]["position"]
 
-    def faces(self, name: str, k: int) -> torch.Tensor:
+    def faces(self, name: str, k: int, previous: bool = False) -> torch.Tensor:
         """``(6,)`` bool: the faces camera ``name`` reads at frame ``k``: those with a texel in
         its cone of view (:meth:`texels`; cached). A superset of ``sizing.visible_faces``'
         exact answer, which costs seconds per camera and frame at 1024 x 1024 (measured: the
         same faces on the default ride at 256 x 256; at 48 x 48 and on the turns of towns 2
         and 3, now and then one more face, of which a few texels are traced)."""
-        if (name, k) not in self._faces:
-            self._faces[name, k] = self.texels(name, k).flatten(1).any(1)
-        return self._faces[name, k]
+        if (name, k, previous) not in self._faces:
+            self._faces[name, k, previous] = self.texels(name, k, previous).flatten(1).any(1)
+        return self._faces[name, k, previous]
 
-    def texels(self, name: str, k: int) -> torch.Tensor:
+    def texels(self, name: str, k: int, previous: bool = False) -> torch.Tensor:
         """``(6, F, F)`` bool: the cube texels within camera ``name``'s cone of view at frame
         ``k`` (`cubemap.cone`: `camera_cone`, `cone_texels`), a superset of those its layer
         reads (the last one kept)."""
-        if self._texels is None or self._texels[0] != (name, k):
+        if self._texels is None or self._texels[0] != (name, k, previous):
             c = self.cameras[name]
             if "cone" not in c:
                 c["cone"] = camera_cone(c["camera"], c["face_size"])
-            axis = self.rotation(name, k)[:, 2]   # the optical axis, in the world (cube) frame
-            self._texels = ((name, k), cone_texels(c["face_size"], axis, c["cone"]))
+            # the optical axis, in the world (cube) frame
+            axis = self.rotation(name, k, previous)[:, 2]
+            self._texels = ((name, k, previous), cone_texels(c["face_size"], axis, c["cone"]))
         return self._texels[1]
 
     def files(self, k: int) -> list[str]:
         """Relative paths of every file of frame ``k`` (the marker excluded)."""
+        if self.config.rig == "woodscape":
+            return woodscape.frame_files(self.config.cameras, k)
         out = []
         for name in self.config.cameras:
             out += [fmt.frame_file(name, m, k) for m in fmt.MODALITIES]
@@ -384,7 +427,7 @@ class FrameRenderer:
                               "packed": torch.empty(1, 6, F, F, dtype=torch.int64)}
         return self._cubes[face_size]
 
-    def texels(self, name: str, k: int) -> torch.Tensor | None:
+    def texels(self, name: str, k: int, previous: bool = False) -> torch.Tensor | None:
         """``(6, F, F)`` bool: the texels camera ``name`` reads at frame ``k`` (a superset:
         ``_Plan.texels``), or None with ``save_cubemaps`` (whole faces). With ``antialias``,
         grown by a texel on each face: a texel's anti-aliasing compares it with its 8
@@ -392,18 +435,20 @@ class FrameRenderer:
         rendered, as with whole faces."""
         if self.config.save_cubemaps:
             return None
-        texels = self.plan.texels(name, k)
+        texels = self.plan.texels(name, k, previous)
         return texels if self.config.antialias == 1 else grow_texels(texels)
 
-    def cubemap(self, name: str, k: int) -> dict[str, torch.Tensor]:
+    def cubemap(self, name: str, k: int, previous: bool = False) -> dict[str, torch.Tensor]:
         """Camera ``name``'s cubemap of frame ``k`` (``Town.render_cubemap``: the faces and
         texels it reads, in the frame's weather, with the configuration's ``antialias``), in
-        this renderer's buffers: valid until the next cubemap of the same face size."""
+        this renderer's buffers: valid until the next cubemap of the same face size.
+        ``previous``: at the frame's previous image (rig woodscape)."""
         config, plan = self.config, self.plan
         F = plan.cameras[name]["face_size"]
+        states = plan.previous if previous else plan.frames
         return self.town.render_cubemap(
-            plan.centre(name, k).float(), None, F, faces=plan.faces(name, k),
-            texels=self.texels(name, k), t=float(plan.frames["time"][k]),
+            plan.centre(name, k, previous).float(), None, F, faces=plan.faces(name, k, previous),
+            texels=self.texels(name, k, previous), t=float(states["time"][k]),
             weather=_frame_weather(config, k), out=self._cube_buffers(F),
             antialias=config.antialias)
 
@@ -431,8 +476,11 @@ class FrameRenderer:
                             rgb=cube["rgb"], depth=cube["depth"], labels=packed,
                             rotation=plan.rotation(name, k).float())
                         # res is this camera's own: its writers may run while the next renders
-                        pending.append(pool.submit(_write_camera, out, name, k, res,
-                                                   config.min_object_pixels))
+                        if config.rig == "woodscape":
+                            pending += self._woodscape_camera(pool, out, name, k, res)
+                        else:
+                            pending.append(pool.submit(_write_camera, out, name, k, res,
+                                                       config.min_object_pixels))
                         if config.save_cubemaps:
                             for i, (face, need) in enumerate(zip(FACES, faces.tolist())):
                                 if need:
@@ -462,6 +510,21 @@ class FrameRenderer:
         atomic_write_text(out / fmt.marker(k), json.dumps({"frame": k, "weather": weather})
                           + "\n")
         return k
+
+    def _woodscape_camera(self, pool, out: Path, name: str, k: int,
+                          res: dict[str, torch.Tensor]) -> list:
+        """Write camera ``name``'s files of frame ``k`` in WoodScape's layout (``res``: its
+        render), then render its previous image and write it: the writers' jobs."""
+        plan, c = self.plan, self.plan.cameras[name]
+        jobs = [pool.submit(lambda: woodscape.write_camera(
+            out, name, k, _to_uint8(res["rgb"][0]), res, c["camera"], c["T_vehicle"],
+            plan.frames, self.config.min_object_pixels))]
+        cube = self.cubemap(name, k, previous=True)
+        before = self._layer(name, c["camera"], c["face_size"]).render(
+            rgb=cube["rgb"], rotation=plan.rotation(name, k, previous=True).float())
+        jobs.append(pool.submit(lambda: woodscape.write_previous(
+            out, name, k, _to_uint8(before["rgb"][0]), plan.previous)))
+        return jobs
 
 
 def _cube_path(out: Path, name: str, k: int, face: str, modality: str) -> Path:
@@ -531,6 +594,8 @@ def _render_unit(renderer: FrameRenderer, out: Path, frames_per_shard: int | Non
 def _frame_folders(plan: _Plan, out: Path) -> list[Path]:
     """The folders a frame's files (and its marker, and a shard) are written in."""
     config = plan.config
+    if config.rig == "woodscape":
+        return woodscape.frame_folders(out)
     folders = [out, out / fmt.DONE, out / fmt.SHARDS]
     for name in config.cameras:
         folders += [out / name / m for m in fmt.MODALITIES]
@@ -605,7 +670,7 @@ def generate(out: str | Path, config: DatasetConfig | None = None, *, workers: i
         ValueError: bad configuration or argument, or ``out`` holds a dataset of another
             configuration or of more frames (or shards of another ``frames_per_shard``).
         ImportError: ``ray`` without Ray installed, or no Pillow to write the images with
-            (at once).
+            (or OpenCV, with ``rig="woodscape"``: its polygons), at once.
         MemoryError: the run would not fit in memory (`check_memory`; with ``ray``, in
             any node of the cluster; before any work).
         omniscape_torch.data.distributed.TaskErrors: with ``ray``, frames that failed for good,
@@ -629,6 +694,10 @@ def generate(out: str | Path, config: DatasetConfig | None = None, *, workers: i
         distributed.import_ray()
     if format not in FORMATS:
         raise ValueError(f"format: expected one of {FORMATS}, got {format!r}")
+    if config.rig == "woodscape":
+        if format != "folder":
+            raise ValueError(f"format: WoodScape's layout is a folder, got {format!r}")
+        woodscape.require_opencv()   # its polygons: say so before any work
     if frames_per_shard is not None:
         shards.check_frames_per_shard(frames_per_shard)
         if format != "webdataset":
@@ -671,7 +740,7 @@ def _generate(out: Path, config: DatasetConfig, workers: int, progress: bool | N
         extend_shards(out, config)
     renderer = FrameRenderer(config)
     plan = renderer.plan
-    write_run_files(plan, out, log)
+    (woodscape.write_run_files if config.rig == "woodscape" else write_run_files)(plan, out, log)
     s = frames_per_shard
     if s is None:
         units = [[k] for k in range(config.frames)]
@@ -733,7 +802,8 @@ def _generate(out: Path, config: DatasetConfig, workers: int, progress: bool | N
                               if shard is None else None)
         if shown is not None and all(plan.finished(out, k)
                                      for k in (shown[0], *shown[1].values())):
-            data = contact_sheet(out, config.cameras, *shown)
+            data = (woodscape.contact_sheet(out, config.cameras, shown[0])
+                    if config.rig == "woodscape" else contact_sheet(out, config.cameras, *shown))
             if not sheet.is_file() or sheet.read_bytes() != data:
                 atomic_write_bytes(sheet, data)
     if failures:

@@ -126,9 +126,9 @@ def file_damage(path: str | os.PathLike) -> str | None:
     try:
         with open(path, "rb") as f:
             size = os.fstat(f.fileno()).st_size
-            if size == 0:
-                return "empty"
             suffix = path.suffix.lower()
+            if size == 0 and suffix in (".png", ".exr", ".json"):
+                return "empty"   # other files may be (WoodScape's box files with no box)
             if suffix == ".png":
                 return _png_damage(f, size)
             if suffix == ".exr":

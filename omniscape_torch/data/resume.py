@@ -63,6 +63,7 @@ def folder_frames(out: Path, config) -> int | None:
     if isinstance(old, dict):
         old.setdefault("antialias", 1)   # written before antialias existed: one ray a texel
         old.setdefault("min_object_pixels", 1)   # before it existed: every object listed
+        old.setdefault("rig", "omniscape")   # before WoodScape's: the motorcycle's
         frames = old.get("frames")
         if isinstance(frames, int) and 0 < frames <= config.frames and \
                 {**old, "frames": config.frames} == new:

@@ -1,4 +1,5 @@
-"""A motorcycle ride: a route, a speed profile and a plausible attitude (lean, pitch, yaw).
+"""A motorcycle ride (or a car's drive): a route, a speed profile and a plausible attitude
+(lean or body roll, pitch, yaw).
 
 The OmniScape dataset mounts its cameras on a motorcycle and reports, per frame, the vehicle's
 location, rotation, velocity, angular velocity and acceleration, with the statistics of yaw,
@@ -22,6 +23,12 @@ pitch and roll in the paper's Table I. This module makes such a ride without a s
   band-limited noise (road roughness, rider motion; ``roll_noise``, ``pitch_noise`` degrees,
   reproducible by ``seed`` or ``generator``) is added to the lag targets, so the attitude stays
   smooth.
+* a car (``simulate(..., vehicle="car")``; `CAR` holds a town car's settings): no lean, the
+  body rolls out of the turn instead, ``roll_gain_deg`` degrees per m/s^2 of lateral
+  acceleration (its roll gradient: 0.5 deg per m/s^2 is about 5 degrees per g, a passenger
+  car's), through the same lag; the lateral acceleration is limited by
+  ``max_lateral_acceleration`` alone (no lean limit). Pitch, yaw and the speed profile are
+  the motorcycle's, with the car's numbers.
 
 Frames and units
 ----------------
@@ -50,6 +57,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import Sequence
 
 import numpy as np
@@ -59,8 +67,10 @@ from torch import Tensor
 from ..cameras.presets import yaw_pitch_roll_to_matrix
 
 __all__ = [
+    "CAR",
     "GRAVITY",
     "ROTATION_ORDER",
+    "VEHICLES",
     "Route",
     "Segment",
     "arc",
@@ -76,6 +86,18 @@ __all__ = [
 
 #: Standard gravity, m/s^2.
 GRAVITY = 9.81
+
+#: ``simulate``'s settings for a car in town (``simulate(route, fps, **CAR)``): 36 km/h at
+#: most, 2 m/s^2 speeding up and 3 m/s^2 braking, at most 2.5 m/s^2 of lateral acceleration
+#: (a comfortable drive), body roll 0.5 deg and suspension pitch 0.2 deg per m/s^2 (a
+#: passenger car: about 5 and 2 degrees per g), road roughness 0.1 deg on each.
+CAR = MappingProxyType({
+    "vehicle": "car", "max_speed": 10.0, "acceleration": 2.0, "deceleration": 3.0,
+    "max_lateral_acceleration": 2.5, "roll_gain_deg": 0.5, "roll_frequency": 1.5,
+    "pitch_gain_deg": 0.2, "roll_noise_deg": 0.1, "pitch_noise_deg": 0.1})
+
+#: The vehicles `simulate` knows.
+VEHICLES = ("motorcycle", "car")
 
 #: Order of the three angles in ``simulate(...)["rotation"]`` and ``["rotation_rate"]``.
 ROTATION_ORDER = ("roll", "pitch", "yaw")
@@ -414,8 +436,10 @@ def simulate(route: Route, fps: float = 10.0, duration: float | None = None, *,
              pitch_damping: float = 0.7, pitch_gain_deg: float = 0.4,
              roll_noise_deg: float = 0.3, pitch_noise_deg: float = 0.15,
              noise_correlation: float = 0.5, substeps: int | None = None,
+             vehicle: str = "motorcycle", roll_gain_deg: float = 0.5,
              dtype: torch.dtype = torch.float64) -> dict[str, Tensor]:
-    """Ride ``route`` and return the per-frame state, in CARLA's API frame and units.
+    """Ride ``route`` (or drive it: ``vehicle="car"``) and return the per-frame state, in
+    CARLA's API frame and units.
 
     Args:
         route: the `Route`.
@@ -428,12 +452,13 @@ def simulate(route: Route, fps: float = 10.0, duration: float | None = None, *,
         max_speed: cruising speed, m/s.
         acceleration: longitudinal limit when speeding up, m/s^2 (a positive number).
         deceleration: longitudinal limit when slowing down, m/s^2 (a positive number).
-        max_lateral_acceleration: limit on ``v^2 |kappa|``, m/s^2; also capped at
-            ``g tan(max_lean_deg)``.
+        max_lateral_acceleration: limit on ``v^2 |kappa|``, m/s^2; a motorcycle's also capped
+            at ``g tan(max_lean_deg)``.
         start_speed: speed at the start, m/s (0: from rest).
         end_speed: speed at the route's end (0: stop there; None: no constraint; past the end
             it stays there).
-        roll_frequency: natural frequency (Hz) of the critically damped lean lag.
+        roll_frequency: natural frequency (Hz) of the critically damped lean (or body roll)
+            lag.
         pitch_frequency: the suspension pitch lag's natural frequency, Hz.
         pitch_damping: the suspension pitch lag's damping ratio.
         pitch_gain_deg: suspension pitch per m/s^2 of longitudinal acceleration, degrees
@@ -442,6 +467,10 @@ def simulate(route: Route, fps: float = 10.0, duration: float | None = None, *,
         pitch_noise_deg: standard deviation of the noise on the pitch target, degrees.
         noise_correlation: the noise's correlation time, s.
         substeps: integration steps per frame for the lags (default: steps of at most 1 ms).
+        vehicle: ``"motorcycle"`` (leans into the turns) or ``"car"`` (its body rolls out of
+            them, ``roll_gain_deg``; module docstring). `CAR` holds a car's settings.
+        roll_gain_deg: a car's body roll per m/s^2 of lateral acceleration, degrees (positive:
+            outwards, the left side down in a right turn); not used for a motorcycle.
         dtype: floating dtype of the returned tensors.
 
     Returns:
@@ -463,13 +492,19 @@ def simulate(route: Route, fps: float = 10.0, duration: float | None = None, *,
                     deceleration=deceleration, max_lateral_acceleration=max_lateral_acceleration,
                     roll_frequency=roll_frequency, pitch_frequency=pitch_frequency,
                     pitch_damping=pitch_damping, noise_correlation=noise_correlation)
+    if vehicle not in VEHICLES:
+        raise ValueError(f"vehicle: expected one of {VEHICLES}, got {vehicle!r}")
+    if (isinstance(roll_gain_deg, bool) or not isinstance(roll_gain_deg, (int, float))
+            or not math.isfinite(roll_gain_deg) or roll_gain_deg < 0):
+        raise ValueError(f"roll_gain_deg: expected a finite number >= 0, got {roll_gain_deg!r}")
     if not 0 < max_lean_deg < 90:
         raise ValueError(f"max_lean_deg: expected in (0, 90), got {max_lean_deg}")
     if roll_noise_deg < 0 or pitch_noise_deg < 0:
         raise ValueError("roll_noise_deg, pitch_noise_deg: expected >= 0")
     if start_speed < 0 or (end_speed is not None and end_speed < 0):
         raise ValueError("start_speed, end_speed: expected >= 0")
-    max_lateral = min(max_lateral_acceleration, GRAVITY * math.tan(math.radians(max_lean_deg)))
+    max_lateral = (max_lateral_acceleration if vehicle == "car" else
+                   min(max_lateral_acceleration, GRAVITY * math.tan(math.radians(max_lean_deg))))
     profile = _speed_profile(route, max_speed=max_speed, acceleration=acceleration,
                              deceleration=deceleration, max_lateral=max_lateral,
                              start_speed=start_speed, end_speed=end_speed)
@@ -497,7 +532,10 @@ def simulate(route: Route, fps: float = 10.0, duration: float | None = None, *,
     kappa = route.curvature_at(s)
     grade = route.grade_at(s)
     a_lat = v * v * kappa * np.cos(grade)
-    lean_target = np.arctan(a_lat / GRAVITY)
+    if vehicle == "car":      # the body rolls out of the turn (CARLA: roll > 0 right side down)
+        lean_target = -math.radians(roll_gain_deg) * a_lat
+    else:                     # the steady-turn lean of a thin-tyre motorcycle
+        lean_target = np.arctan(a_lat / GRAVITY)
     white = _white_noise(n, generator)
     lean_target = lean_target + _noise(white[:, 0], h, math.radians(roll_noise_deg),
                                        noise_correlation)
