@@ -227,13 +227,13 @@ class DatasetConfig:
         return d
 
 
-#: Images of at most this many pixels are anti-aliased by default (:func:`default_antialias`).
+#: Images of at most this many pixels are anti-aliased by default (`default_antialias`).
 ANTIALIAS_PIXELS = 512 * 512
 
 
 def default_antialias(image_size: tuple[int, ...]) -> int:
     """``DatasetConfig.antialias`` when not given: 2 for images of at most
-    :data:`ANTIALIAS_PIXELS` pixels, else 1.
+    `ANTIALIAS_PIXELS` pixels, else 1.
 
     ``antialias=k`` renders each cube texel on an edge (``scenes.town.edge_texels``) as the mean
     of ``k x k`` rays over its footprint (``Town.render_cubemap``), and each RGB pixel as the
@@ -268,7 +268,7 @@ _TOWN_HALF_LENGTH = 80.0
 
 
 def town_route(seed: int, town: int = 1) -> _ride.Route:
-    """The ride through the built-in town's layout ``town`` (:func:`..scenes.routes.route`):
+    """The ride through the built-in town's layout ``town`` (`scenes.routes.route`):
     in town 1 it starts in the right-hand lane at the south end, heading north, and weaves
     between the lanes (S-bends of two opposite arcs, radius 60 to 120 m), about 140 m; in
     town 2 it turns right at the crossroads, in town 3 it goes round a block."""
@@ -336,7 +336,7 @@ class _Plan:
 
     def faces(self, name: str, k: int, previous: bool = False) -> torch.Tensor:
         """``(6,)`` bool: the faces camera ``name`` reads at frame ``k``: those with a texel in
-        its cone of view (:meth:`texels`; cached). A superset of ``sizing.visible_faces``'
+        its cone of view (`texels`; cached). A superset of ``sizing.visible_faces``'
         exact answer, which costs seconds per camera and frame at 1024 x 1024 (measured: the
         same faces on the default ride at 256 x 256; at 48 x 48 and on the turns of towns 2
         and 3, now and then one more face, of which a few texels are traced)."""
@@ -630,8 +630,8 @@ def _to_uint8(rgb: torch.Tensor) -> np.ndarray:
 # generate
 # --------------------------------------------------------------------------------------------
 
-#: ``generate``'s output formats: the folder (:mod:`.format`), and the folder with WebDataset
-#: shards (:mod:`.shards`).
+#: ``generate``'s output formats: the folder (`format`), and the folder with WebDataset
+#: shards (`shards`).
 FORMATS = ("folder", "webdataset")
 
 
@@ -839,7 +839,7 @@ def render_chunk(config: DatasetConfig, out: str | Path, frames: list[int],
 
 def render_task(config: DatasetConfig, out: str, frames_per_shard: int | None,
                 frames: list[int]) -> tuple[dict[int, str], dict[int, str]]:
-    """A Ray task of ``generate`` (:func:`.distributed.run_on_ray`): :func:`render_chunk`,
+    """A Ray task of ``generate`` (`distributed.run_on_ray`): `render_chunk`,
     frame by frame, an error stopping only its frame. Returns ``({frame: "rendered"}, {frame:
     error message})``."""
     renderer = FrameRenderer(config)
@@ -939,9 +939,9 @@ def _panorama_face(max_face_size: int, height: int) -> int:
 def estimate_memory(config: DatasetConfig, workers: int = 1, *,
                     image_size: tuple[int, int] | None = None, memo: dict | None = None) -> int:
     """Bytes ``generate(config, workers=workers)`` needs at its peak (for ``image_size``, by
-    default the configuration's): per rendering process :data:`PROCESS_MEMORY` plus the largest
-    cube's texels and the largest image's pixels at their rates (:data:`MEMORY_PER_TEXEL`,
-    :data:`MEMORY_PER_PIXEL`; cameras render one after the other), times the processes, plus
+    default the configuration's): per rendering process `PROCESS_MEMORY` plus the largest
+    cube's texels and the largest image's pixels at their rates (`MEMORY_PER_TEXEL`,
+    `MEMORY_PER_PIXEL`; cameras render one after the other), times the processes, plus
     the main process when workers render; with ``antialias`` > 1, 4 more times the pixels' rate
     (the layer's 2 x 2 rays a pixel: measured 683 bytes a pixel more at 512 x 512, a peak of
     958 MB against 779). ``memo``: as for ``_face_sizes``."""
@@ -957,8 +957,8 @@ def check_memory(config: DatasetConfig, workers: int = 1, available: int | None 
     """Refuse, before any work, a run that cannot fit in memory.
 
     Raises:
-        MemoryError: :func:`estimate_memory` exceeds ``available`` (default
-            :func:`available_memory`); the message gives both and the largest image size (and
+        MemoryError: `estimate_memory` exceeds ``available`` (default
+            `available_memory`); the message gives both and the largest image size (and
             worker count) that fits.
     """
     need = estimate_memory(config, workers)
