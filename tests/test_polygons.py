@@ -16,6 +16,7 @@ import pytest
 import torch
 
 import omniscape_torch as ot
+from test_detection import _repeat
 from omniscape_torch.render import detection
 
 Path = pytest.importorskip("matplotlib.path").Path
@@ -177,12 +178,6 @@ def test_a_ring_may_become_several_a_hole_or_none():
     _, valid = ot.reproject(torch.zeros(1, 1, 48, 64), SOURCE, CASES["field of view"][0])
     got = raster([r.numpy() for r in rings[0]], (64, 64))
     assert index[0].tolist() == [0] and (got ^ valid[0, 0].numpy()).sum() <= 4
-
-
-def _repeat(params: dict, n: int) -> dict:
-    return {key: (value * n if key == "model" else
-                  value.expand(n, *value.shape[1:]) if isinstance(value, torch.Tensor)
-                  else value) for key, value in params.items()}
 
 
 @pytest.mark.parametrize("models, options", [

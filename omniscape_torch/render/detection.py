@@ -52,7 +52,7 @@ from ..cubemap.faces import face_rotations
 from . import polygons as polygon_rings
 from .kernels import boxes as boxes_kernels
 from .kernels.boxes import extent
-from .polygons import check_polygons
+from .polygons import check_per_sample, check_polygons
 
 __all__ = ["instance_boxes", "reproject_boxes", "reproject_keypoints", "reproject_polygons",
            "OUTLINE_STEP", "FIRST_STEP"]
@@ -199,11 +199,7 @@ def check_boxes(boxes: object, batch: int, name: str = "boxes") -> list[Tensor]:
     as that list) -> the list as float64 on the CPU; raises naming the sample."""
     if isinstance(boxes, Tensor) and boxes.dim() == 3:
         boxes = list(boxes.detach().to("cpu", torch.float64))
-    if not isinstance(boxes, (list, tuple)):
-        raise TypeError(f"{name}: expected a list of B (N_i, 4) XYXY tensors, got "
-                        f"{type(boxes).__name__}")
-    if len(boxes) != batch:
-        raise ValueError(f"{name}: {len(boxes)} samples, the batch has {batch}")
+    check_per_sample(boxes, batch, name, "a list of B (N_i, 4) XYXY tensors")
     out = []
     for i, b in enumerate(boxes):
         b = torch.as_tensor(b)

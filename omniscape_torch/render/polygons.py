@@ -108,6 +108,14 @@ def _ring(value: object, where: str) -> Tensor:
     return ring
 
 
+def check_per_sample(value: object, batch: int, name: str, expected: str) -> None:
+    """A list (or tuple) of `batch` per-sample values, else an error naming `name`."""
+    if not isinstance(value, (list, tuple)):
+        raise TypeError(f"{name}: expected {expected}, got {type(value).__name__}")
+    if len(value) != batch:
+        raise ValueError(f"{name}: {len(value)} samples, the batch has {batch}")
+
+
 def check_polygons(polygons: object, batch: int, boxes: Sequence[Tensor] | None = None,
                    polygon_box: object = None, name: str = "polygons"
                    ) -> tuple[list[list[Tensor]], list[Tensor]]:
@@ -116,11 +124,7 @@ def check_polygons(polygons: object, batch: int, boxes: Sequence[Tensor] | None 
     (None: ring k belongs to box k) -> the rings as ``(N_k, 2)`` float64 CPU tensors and
     ``polygon_box`` as int64 tensors; raises naming ``polygons[i][k]`` or ``polygon_box[i]``.
     With ``boxes``, a ring's box must be one of its sample's."""
-    if not isinstance(polygons, (list, tuple)):
-        raise TypeError(f"{name}: expected per sample a list of rings (a list of {batch}), got "
-                        f"{type(polygons).__name__}")
-    if len(polygons) != batch:
-        raise ValueError(f"{name}: {len(polygons)} samples, the batch has {batch}")
+    check_per_sample(polygons, batch, name, f"per sample a list of rings (a list of {batch})")
     rings = []
     for i, sample in enumerate(polygons):
         if isinstance(sample, (Tensor, np.ndarray)) or not isinstance(sample, (list, tuple)):
