@@ -337,3 +337,20 @@ def test_bad_input(call, error, match):
     aug = ot.augment.RandomReproject(OUT, source_fov=90 * DEG, seed=0)
     with pytest.raises(error, match=match):
         call(aug)
+
+
+def test_one_intrinsics_row_serves_a_batch_of_uint8_images():
+    """A ``(4,)`` row of intrinsics (expanded over the batch, not copied) gives the images of
+    the same row repeated ``(B, 4)``: the fused C++ call once refused the expanded row (its
+    strides ``(0, 1)``), with RGB and labels both given."""
+    g = torch.Generator().manual_seed(5)
+    rgb = torch.randint(0, 256, (3, 3, *SRC), generator=g, dtype=torch.uint8)
+    labels = torch.randint(0, 19, (3, *SRC), generator=g, dtype=torch.uint8)
+    k = torch.tensor([40.0, 40.0, (SRC[1] - 1) / 2, (SRC[0] - 1) / 2], dtype=torch.float64)
+    module = augment.RandomReproject(OUT, seed=2)
+    one = module({"rgb": rgb, "labels": labels, "intrinsics": k})
+    rows = module({"rgb": rgb, "labels": labels, "intrinsics": k.repeat(3, 1)},
+                  params=one["params"])
+    assert one["valid"].any()
+    for key in ("rgb", "labels", "valid"):
+        assert torch.equal(one[key], rows[key]), key

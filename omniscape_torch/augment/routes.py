@@ -119,7 +119,7 @@ class _Routes:
         """`_render_fast` of the common case, one ``reproject_image`` call per run of
         consecutive samples."""
         affine, limits, table = self._tables(name, part.params, part.fov)
-        k = part.intrinsics.to(part.params.dtype)
+        k = part.intrinsics.to(part.params.dtype).contiguous()   # (an expanded (4,) row)
         minifies = (MINIFIES if image is not None and self.antialias and
                     self.interpolation != "nearest" else 0.0)
         rgb, ids, valid = result.get("rgb"), result.get("labels"), result["valid"][:, 0]
