@@ -339,12 +339,13 @@ def test_bad_input(call, error, match):
         call(aug)
 
 
-def test_one_intrinsics_row_serves_a_batch_of_uint8_images():
+@pytest.mark.parametrize("dtype", [torch.uint8, torch.float64])
+def test_one_intrinsics_row_serves_a_batch(dtype):
     """A ``(4,)`` row of intrinsics (expanded over the batch, not copied) gives the images of
     the same row repeated ``(B, 4)``: the fused C++ call once refused the expanded row (its
-    strides ``(0, 1)``), with RGB and labels both given."""
+    strides ``(0, 1)``) for float64 images with labels."""
     g = torch.Generator().manual_seed(5)
-    rgb = torch.randint(0, 256, (3, 3, *SRC), generator=g, dtype=torch.uint8)
+    rgb = torch.randint(0, 256, (3, 3, *SRC), generator=g, dtype=torch.uint8).to(dtype)
     labels = torch.randint(0, 19, (3, *SRC), generator=g, dtype=torch.uint8)
     k = torch.tensor([40.0, 40.0, (SRC[1] - 1) / 2, (SRC[0] - 1) / 2], dtype=torch.float64)
     module = augment.RandomReproject(OUT, seed=2)
