@@ -33,8 +33,8 @@
 // vector blends), sample_cube.h (the sampling pass, its threads, the samplers through a
 // table or a grid), sample_rays.h (rays to the atlas: the face table, sample_rays),
 // sample_image.h (perspective images), sample_mip.h (their antialiasing), camera_grid.h
-// (radial cameras straight to the atlas grid) and op_checks.h (the ops' checks and
-// dispatch). The ops are in fastsample.cpp (the cube's) and fastimage.cpp (the image's).
+// (radial cameras straight to the atlas grid), sample_reproject.h (radial cameras into a
+// pinhole image in one pass: reproject_image) and op_checks.h (the ops' checks and dispatch). The ops are in fastsample.cpp (the cube's) and fastimage.cpp (the image's).
 
 #include <ATen/Parallel.h>
 #include <ATen/core/Tensor.h>

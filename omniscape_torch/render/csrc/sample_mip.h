@@ -269,80 +269,25 @@ void mip_footprints(const G* __restrict us, const G* __restrict vs,
     }
 }
 
-// sample_image's pixels of images (B, C, H, W) along rays whose footprint minifies the image,
-// filtered (mip_footprints) through a mip pyramid built here, only the levels they read, per
-// sample (once for an image shared by the batch); out's other pixels are left as they are.
-template <typename T, typename O, typename G>
-void mip_image(const T* src, int64_t src_batch, int64_t src_chan, const G* rays,
-               int64_t rays_batch, const G* rot, int64_t rot_batch, const G* k, int64_t k_batch,
-               const uint8_t* valid, int64_t height, int64_t width, const Layout& L, G limit,
-               Planes S, O* out) {
-    using V = W<T>;
-    const int64_t h = S.pixels / S.width, w = S.width, chans = S.chans;
-    const int64_t segments = (w + kSegment - 1) / kSegment;
-    // positions and validity padded by one element at both ends
-    std::unique_ptr<G[]> u_mem(new G[S.pixels + 2]), v_mem(new G[S.pixels + 2]);
-    std::unique_ptr<uint8_t[]> ok_mem(new uint8_t[S.pixels + 2]);
-    G* us = u_mem.get() + 1;
-    G* vs = v_mem.get() + 1;
-    uint8_t* ok = ok_mem.get() + 1;
-    us[-1] = us[S.pixels] = vs[-1] = vs[S.pixels] = G(0);
-    ok[-1] = ok[S.pixels] = 0;
-    std::vector<int32_t> peaks(h * segments);
-    int32_t depth = 0;   // the deepest level of a full pyramid
+// The deepest level of a full pyramid of a height x width image (its 1 x 1 level).
+inline int32_t mip_depth(int64_t height, int64_t width) {
+    int32_t depth = 0;
     while ((int64_t(1) << depth) < std::max(height, width)) {
         ++depth;
     }
-    // an image of at most 4 texels an output pixel: its whole pyramid (at most 1/3 of its
-    // texels) costs less than the pass that finds the levels read (the footprints of every
-    // pixel once more), and the levels read are the same (clamped to the deepest either way)
-    const bool whole = height * width <= 4 * S.pixels;
+    return depth;
+}
+
+// The mip pyramid of one image sample: level 0 the image itself (its strides), the levels
+// below built as far as a call reads them (reach), kept while the image is the same.
+template <typename T>
+struct MipPyramid {
     std::vector<std::vector<T>> memory;
     std::vector<MipLevel<T>> levels;
     const T* built = nullptr;
-    for (int64_t b = 0; b < S.batch; ++b) {
-        const G* ray = rays + b * rays_batch;
-        const G* r = rot == nullptr ? nullptr : rot + b * rot_batch;
-        const G* kb = k + b * k_batch;
-        std::memcpy(ok, valid + b * S.pixels, S.pixels);
-        const G fx = kb[0], fy = kb[1], cx = kb[2], cy = kb[3];
-        // the pixels' image positions, as locate_pinhole computes them, and the deepest level
-        // each row segment reads
-        const auto first = [&](auto rotate_) {
-            constexpr bool R = decltype(rotate_)::value;
-            parallel_units(h, w, [&](int64_t i) {
-                for (int64_t p = i * w; p < (i + 1) * w; ++p) {
-                    G px, py, pz;
-                    rotate<G, R>(r, ray[3 * p], ray[3 * p + 1], ray[3 * p + 2], px, py, pz);
-                    const G z = pz > G(0) ? pz : G(1);
-                    us[p] = fx * (px / z) + cx;
-                    vs[p] = fy * (py / z) + cy;
-                }
-            });
-        };
-        r != nullptr ? first(std::true_type{}) : first(std::false_type{});
-        if (whole) {   // every level, every segment: no pass to find them
-            std::fill(peaks.begin(), peaks.end(), depth);
-        } else {
-            parallel_units(h, w, [&](int64_t i) {
-                int32_t level[kSegment];
-                for (int64_t s = 0; s < segments; ++s) {
-                    const int64_t lo = s * kSegment, m = std::min(kSegment, w - lo);
-                    mip_footprints<G>(us, vs, ok, i, lo, m, h, w, limit, depth, level, nullptr,
-                                      nullptr);
-                    int32_t peak = -1;
-                    for (int64_t p = 0; p < m; ++p) {
-                        peak = std::max(peak, level[p]);
-                    }
-                    peaks[i * segments + s] = peak;
-                }
-            });
-        }
-        const int32_t peak = *std::max_element(peaks.begin(), peaks.end());
-        if (peak < 0) {
-            continue;   // nothing minifies
-        }
-        const T* image = src + b * src_batch;
+
+    void reach(const T* image, int64_t height, int64_t width, const Layout& L, int64_t src_chan,
+               int64_t chans, int32_t peak) {
         if (image != built) {
             levels.assign(1, MipLevel<T>{image, height, width, L.row, L.texel, src_chan});
             memory.clear();
@@ -353,94 +298,220 @@ void mip_image(const T* src, int64_t src_batch, int64_t src_chan, const G* rays,
             memory.emplace_back(((top.height + 1) / 2) * ((top.width + 1) / 2) * chans);
             levels.push_back(mip_halve(top, chans, memory.back().data()));
         }
-        const int32_t last = peak;
-        O* o_b = out + b * S.out_batch;
+    }
+};
+
+// The deepest level each row segment of an h x w output reads (-1: none minifies) into peaks
+// (h x segments), and the deepest of all: mip_footprints' levels, or `depth` everywhere for
+// `whole` (an image of at most 4 texels an output pixel: its whole pyramid, at most 1/3 of its
+// texels, costs less than the pass that finds the levels read, the footprints of every pixel
+// once more, and the levels read are the same, clamped to the deepest either way).
+template <typename G>
+int32_t mip_peaks(const G* us, const G* vs, const uint8_t* ok, int64_t h, int64_t w, G limit,
+                  int32_t depth, bool whole, std::vector<int32_t>& peaks) {
+    const int64_t segments = (w + kSegment - 1) / kSegment;
+    peaks.resize(h * segments);
+    if (whole) {
+        std::fill(peaks.begin(), peaks.end(), depth);
+        return depth;
+    }
+    parallel_units(h, w, [&](int64_t i) {
+        int32_t level[kSegment];
+        for (int64_t s = 0; s < segments; ++s) {
+            const int64_t lo = s * kSegment, m = std::min(kSegment, w - lo);
+            mip_footprints<G>(us, vs, ok, i, lo, m, h, w, limit, depth, level, nullptr, nullptr);
+            int32_t peak = -1;
+            for (int64_t p = 0; p < m; ++p) {
+                peak = std::max(peak, level[p]);
+            }
+            peaks[i * segments + s] = peak;
+        }
+    });
+    return *std::max_element(peaks.begin(), peaks.end());
+}
+
+// How the filter reads a pyramid of `chans` channels to `last`: 8-bit images of 3 or 4
+// channels take the vector taps, channels-last (the pyramid's levels and a channels-last image)
+// or planes (a channels-first image's level 0); `safe`: per level the last offset a 4-byte
+// load of a texel may start at.
+template <typename T>
+struct MipReader {
+    int vector = 0;
+    bool planes = false;
+    int64_t safe[64] = {};
+
+    MipReader(const MipPyramid<T>& P, int64_t chans, int64_t src_chan, const Layout& L,
+              int32_t last) {
 #ifdef __SSE4_1__
-        // 8-bit images of 3 or 4 channels: the vector taps, channels-last (the pyramid's levels
-        // and a channels-last image) or planes (a channels-first image's level 0)
-        int vector = 0;
-        int64_t safe[64];
-        bool planes = false;
         if constexpr (std::is_same_v<T, uint8_t>) {
             if (chans == 3 || chans == 4) {
                 vector = int(chans);
                 planes = !(src_chan == 1 && L.texel == chans);
                 vector = planes && L.texel != 1 ? 0 : vector;
                 for (int32_t m = 0; m <= last; ++m) {
-                    const MipLevel<T>& M = levels[m];
+                    const MipLevel<T>& M = P.levels[m];
                     safe[m] = (M.height - 1) * M.row + (M.width - 1) * M.texel + chans - 4;
                 }
             }
         }
 #endif
+    }
+};
+
+// The pixels of the row segment [lo, lo + m) of row i of one sample's output o_b (w wide)
+// that minify (level >= 0; their taps' positions X, Y: mip_footprints') filtered through the
+// pyramid into o_b; the others are not written.
+template <typename T, typename O, typename G>
+void mip_filter(const MipPyramid<T>& P, const MipReader<T>& reader, const int32_t* level,
+                const G* X, const G* Y, int64_t i, int64_t lo, int64_t m, int64_t w,
+                const Planes& S, O* o_b) {
+    using V = W<T>;
+    const int64_t chans = S.chans;
+    std::vector<V> acc;   // the sums of a number of channels other than 1, 3 and 4
+    if (chans != 1 && chans != 3 && chans != 4) {
+        acc.resize(chans);
+    }
+    for (int64_t p = 0; p < m; ++p) {
+        if (level[p] < 0) {
+            continue;
+        }
+        const MipLevel<T>& M = P.levels[level[p]];
+        O* o = o_b + (i * w + lo + p) * S.out_pix;
+        const V weight = V(1) / V(kMipTaps);
+#ifdef __SSE4_1__
+        if constexpr (std::is_same_v<T, uint8_t>) {
+            if (reader.vector != 0) {
+                const int64_t sm = reader.safe[level[p]];
+                const bool plane = reader.planes && level[p] == 0;
+                const int vector = reader.vector;
+                __m128 sum = _mm_setzero_ps();
+                for (int t = 0; t < kMipTaps; ++t) {
+                    const float x = float(X[t * kSegment + p]);
+                    const float y = float(Y[t * kSegment + p]);
+                    sum = _mm_add_ps(
+                        sum, plane ? (vector == 3 ? mip_tap8_planes<3>(M, x, y)
+                                                  : mip_tap8_planes<4>(M, x, y))
+                                   : (vector == 3 ? mip_tap8<3>(M, sm, x, y)
+                                                  : mip_tap8<4>(M, sm, x, y)));
+                }
+                alignas(16) float v[4];
+                _mm_store_ps(v, _mm_mul_ps(sum, _mm_set1_ps(weight)));
+                for (int64_t c = 0; c < chans; ++c) {
+                    o[c * S.out_chan] = store<T, O>(v[c]);
+                }
+                continue;
+            }
+        }
+#endif
+        // the sums of N channels known at compile time in a local array (registers: through
+        // the heap vector each tap's sums went to memory and back, 1.1-1.4x the time), any
+        // other number in `acc`
+        const auto taps = [&](auto n_) {
+            constexpr int N = decltype(n_)::value;
+            V local[N > 0 ? N : 1] = {};
+            V* sums = N > 0 ? local : acc.data();
+            if (N == 0) {
+                std::fill(acc.begin(), acc.end(), V(0));
+            }
+            for (int t = 0; t < kMipTaps; ++t) {
+                mip_tap<N>(M, chans, V(X[t * kSegment + p]), V(Y[t * kSegment + p]), weight,
+                           sums);
+            }
+            for (int64_t c = 0; c < chans; ++c) {
+                o[c * S.out_chan] = store<T, O>(sums[c]);
+            }
+        };
+        if (chans == 3) {
+            taps(std::integral_constant<int, 3>{});
+        } else if (chans == 1) {
+            taps(std::integral_constant<int, 1>{});
+        } else if (chans == 4) {
+            taps(std::integral_constant<int, 4>{});
+        } else {
+            taps(std::integral_constant<int, 0>{});
+        }
+    }
+}
+
+// The row segment [lo, lo + m) of row i of one sample's output o_b: its footprints
+// (mip_footprints, levels clamped to `last`), and the pixels that minify filtered through the
+// pyramid (built to `last`) into o_b (mip_filter); the others are not written.
+template <typename T, typename O, typename G>
+void mip_segment(const MipPyramid<T>& P, const MipReader<T>& reader, const G* us, const G* vs,
+                 const uint8_t* ok, int64_t i, int64_t lo, int64_t m, int64_t h, int64_t w,
+                 G limit, int32_t last, const Planes& S, O* o_b) {
+    int32_t level[kSegment];
+    G X[kMipTaps * kSegment], Y[kMipTaps * kSegment];
+    mip_footprints<G>(us, vs, ok, i, lo, m, h, w, limit, last, level, X, Y);
+    mip_filter<T, O, G>(P, reader, level, X, Y, i, lo, m, w, S, o_b);
+}
+
+// Image positions and validity of an h x w output, padded by one element at both ends (index
+// -1 and h w are readable, ok 0 there), as mip_footprints reads them.
+template <typename G>
+struct MipPositions {
+    std::unique_ptr<G[]> u_mem, v_mem;
+    std::unique_ptr<uint8_t[]> ok_mem;
+    G *us, *vs;
+    uint8_t* ok;
+
+    explicit MipPositions(int64_t pixels)
+        : u_mem(new G[pixels + 2]), v_mem(new G[pixels + 2]), ok_mem(new uint8_t[pixels + 2]) {
+        us = u_mem.get() + 1;
+        vs = v_mem.get() + 1;
+        ok = ok_mem.get() + 1;
+        us[-1] = us[pixels] = vs[-1] = vs[pixels] = G(0);
+        ok[-1] = ok[pixels] = 0;
+    }
+};
+
+// sample_image's pixels of images (B, C, H, W) along rays whose footprint minifies the image,
+// filtered (mip_footprints) through a mip pyramid built here, only the levels they read, per
+// sample (once for an image shared by the batch); out's other pixels are left as they are.
+template <typename T, typename O, typename G>
+void mip_image(const T* src, int64_t src_batch, int64_t src_chan, const G* rays,
+               int64_t rays_batch, const G* rot, int64_t rot_batch, const G* k, int64_t k_batch,
+               const uint8_t* valid, int64_t height, int64_t width, const Layout& L, G limit,
+               Planes S, O* out) {
+    const int64_t h = S.pixels / S.width, w = S.width;
+    const int64_t segments = (w + kSegment - 1) / kSegment;
+    MipPositions<G> at(S.pixels);
+    std::vector<int32_t> peaks;
+    const int32_t depth = mip_depth(height, width);
+    const bool whole = height * width <= 4 * S.pixels;
+    MipPyramid<T> pyramid;
+    for (int64_t b = 0; b < S.batch; ++b) {
+        const G* ray = rays + b * rays_batch;
+        const G* r = rot == nullptr ? nullptr : rot + b * rot_batch;
+        const G* kb = k + b * k_batch;
+        std::memcpy(at.ok, valid + b * S.pixels, S.pixels);
+        const G fx = kb[0], fy = kb[1], cx = kb[2], cy = kb[3];
+        // the pixels' image positions, as locate_pinhole computes them
+        const auto first = [&](auto rotate_) {
+            constexpr bool R = decltype(rotate_)::value;
+            parallel_units(h, w, [&](int64_t i) {
+                for (int64_t p = i * w; p < (i + 1) * w; ++p) {
+                    G px, py, pz;
+                    rotate<G, R>(r, ray[3 * p], ray[3 * p + 1], ray[3 * p + 2], px, py, pz);
+                    const G z = pz > G(0) ? pz : G(1);
+                    at.us[p] = fx * (px / z) + cx;
+                    at.vs[p] = fy * (py / z) + cy;
+                }
+            });
+        };
+        r != nullptr ? first(std::true_type{}) : first(std::false_type{});
+        const int32_t last = mip_peaks<G>(at.us, at.vs, at.ok, h, w, limit, depth, whole, peaks);
+        if (last < 0) {
+            continue;   // nothing minifies
+        }
+        pyramid.reach(src + b * src_batch, height, width, L, src_chan, S.chans, last);
+        const MipReader<T> reader(pyramid, S.chans, src_chan, L, last);
+        O* o_b = out + b * S.out_batch;
         parallel_units(h * segments, std::min(kSegment, w), [&](int64_t index) {
             const int64_t i = index / segments, lo = (index % segments) * kSegment;
-            const int64_t m = std::min(kSegment, w - lo);
-            if (peaks[index] < 0) {
-                return;
-            }
-            int32_t level[kSegment];
-            G X[kMipTaps * kSegment], Y[kMipTaps * kSegment];
-            mip_footprints<G>(us, vs, ok, i, lo, m, h, w, limit, last, level, X, Y);
-            std::vector<V> acc(chans);
-            for (int64_t p = 0; p < m; ++p) {
-                if (level[p] < 0) {
-                    continue;
-                }
-                const MipLevel<T>& M = levels[level[p]];
-                O* o = o_b + (i * w + lo + p) * S.out_pix;
-                const V weight = V(1) / V(kMipTaps);
-#ifdef __SSE4_1__
-                if constexpr (std::is_same_v<T, uint8_t>) {
-                    if (vector != 0) {
-                        const int64_t sm = safe[level[p]];
-                        const bool plane = planes && level[p] == 0;
-                        __m128 sum = _mm_setzero_ps();
-                        for (int t = 0; t < kMipTaps; ++t) {
-                            const float x = float(X[t * kSegment + p]);
-                            const float y = float(Y[t * kSegment + p]);
-                            sum = _mm_add_ps(
-                                sum, plane ? (vector == 3 ? mip_tap8_planes<3>(M, x, y)
-                                                          : mip_tap8_planes<4>(M, x, y))
-                                           : (vector == 3 ? mip_tap8<3>(M, sm, x, y)
-                                                          : mip_tap8<4>(M, sm, x, y)));
-                        }
-                        alignas(16) float v[4];
-                        _mm_store_ps(v, _mm_mul_ps(sum, _mm_set1_ps(weight)));
-                        for (int64_t c = 0; c < chans; ++c) {
-                            o[c * S.out_chan] = store<T, O>(v[c]);
-                        }
-                        continue;
-                    }
-                }
-#endif
-                // the sums of N channels known at compile time in a local array (registers:
-                // through the heap vector each tap's sums went to memory and back, 1.1-1.4x
-                // the time), any other number in `acc`
-                const auto taps = [&](auto n_) {
-                    constexpr int N = decltype(n_)::value;
-                    V local[N > 0 ? N : 1] = {};
-                    V* sums = N > 0 ? local : acc.data();
-                    if (N == 0) {
-                        std::fill(acc.begin(), acc.end(), V(0));
-                    }
-                    for (int t = 0; t < kMipTaps; ++t) {
-                        mip_tap<N>(M, chans, V(X[t * kSegment + p]), V(Y[t * kSegment + p]),
-                                   weight, sums);
-                    }
-                    for (int64_t c = 0; c < chans; ++c) {
-                        o[c * S.out_chan] = store<T, O>(sums[c]);
-                    }
-                };
-                if (chans == 3) {
-                    taps(std::integral_constant<int, 3>{});
-                } else if (chans == 1) {
-                    taps(std::integral_constant<int, 1>{});
-                } else if (chans == 4) {
-                    taps(std::integral_constant<int, 4>{});
-                } else {
-                    taps(std::integral_constant<int, 0>{});
-                }
+            if (peaks[index] >= 0) {
+                mip_segment<T, O, G>(pyramid, reader, at.us, at.vs, at.ok, i, lo,
+                                     std::min(kSegment, w - lo), h, w, limit, last, S, o_b);
             }
         });
     }

@@ -97,7 +97,7 @@ __all__ = ["load", "ops", "unavailable_reason", "name", "face_case_flags", "CFLA
 #: copied into the build folder, where the ``.cpp`` files are compiled.
 SOURCES = tuple(Path(__file__).parent.parent / "csrc" / file for file in (
     "sample_base.h", "sample_taps.h", "sample_simd.h", "sample_cube.h", "sample_rays.h",
-    "sample_image.h", "sample_mip.h", "camera_grid.h", "op_checks.h",
+    "sample_image.h", "sample_mip.h", "camera_grid.h", "sample_reproject.h", "op_checks.h",
     "fastsample.cpp", "fastimage.cpp", "town_shade.cpp"))
 NAMESPACE = "omniscape_torch"
 OPS = ("build_lut", "sample_lut", "sample_grid", "sample_rays", "camera_grid", "camera_rays",
