@@ -456,7 +456,8 @@ def write_camera(out: Path, name: str, k: int, rgb: np.ndarray, res: dict[str, T
         rgb: ``(H, W, 3)`` uint8, the image.
         res: the layer's outputs: ``depth (1, 1, H, W)`` the range, ``labels (1, 1, H, W)``
             the labels packed with the instance ids (``objects.pack_instances``).
-        camera, T: the camera and its camera -> vehicle transform (`rig_camera`).
+        camera: the camera (`rig_camera`).
+        T: its camera -> vehicle transform (`rig_camera`).
         states: the drive's frames (`drive`).
         min_pixels: the instance annotations' smallest object, pixels.
     """

@@ -201,7 +201,8 @@ def export_samples(format: str, samples: Iterable[dict], out: str | Path, *,
             classes for ``coco`` and ``yolo``, all for ``mmseg`` and ``cityscapes``).
         class_names: the name of each class id (default CARLA's 13).
         palette: ``(C, 3)`` uint8 colours of the classes (``mmseg``'s metadata).
-        val_fraction, seed: the split (above).
+        val_fraction: the share of the samples in the validation split (above).
+        seed: the seed of the split (above).
         progress: a progress bar on stderr. log: called with a line when done.
 
     Returns:

@@ -59,7 +59,9 @@ def outlines(rects: Tensor, counts: Tensor, owner: Tensor, padded: Tensor, extra
     their first `extra` points and mapped by `forward` in one call.
 
     Args:
-        rects, counts, owner: the boxes.
+        rects: `(m, 4)` the boxes (pixel centres).
+        counts: `(m,)` points per edge.
+        owner: `(m,)` the sample of each box (sorted).
         padded: `(n, columns, 2)` float64: each sample's `extra` points first; the outline
             points are written after them (the rest stays 0).
         extra: the points per row before the outlines.

@@ -16,7 +16,7 @@ more than Embree's tracing (0.25); one C++ loop over the rays does it in registe
 The ops, ``torch.ops.omniscape_torch.*`` (`OPS`; schemas in the sources): the samplers
 ``build_lut, sample_lut, sample_grid, sample_rays, camera_grid, camera_rays, sample_image``,
 its antialiasing ``mip_image``, the framing's ``framing_reach, framing_focal``
-([framing][omniscape_torch.render.framing]), the detection boxes' ``box_pixels, outline_points,
+([framing][omniscape_torch.render.kernels.framing]), the detection boxes' ``box_pixels, outline_points,
 outline_reduce`` (``detection``) and the town's ``town_backfaces, town_prepare, town_shade,
 town_store`` (their schemas, fakes and wrappers in `omniscape_torch.render.kernels.town`; the
 C++ source only implements them). Each checks its arguments
