@@ -124,9 +124,14 @@ def _shard(text: str) -> tuple[int, int]:
         raise argparse.ArgumentTypeError(str(err).removeprefix("shard: ")) from None
 
 
+def _comma_list(text: str) -> list[str]:
+    """``argparse`` type: ``NAME[,NAME]``, the non-empty names."""
+    return [n.strip() for n in text.split(",") if n.strip()]
+
+
 def _names(choices, what: str):
     def parse(text: str) -> list[str]:
-        names = [n.strip() for n in text.split(",") if n.strip()]
+        names = _comma_list(text)
         bad = [n for n in names if n not in choices]
         if bad or not names:
             shown = ", ".join(map(repr, bad)) if bad else repr(text)
@@ -153,9 +158,10 @@ EXPORT_FORMATS = ("coco", "mmseg", "cityscapes", "yolo")
 
 
 def _add_export_parser(sub) -> None:
-    ex = sub.add_parser(
-        "export", help="write a generated dataset in a training tool's format (COCO, "
-                       "mmsegmentation, Cityscapes, YOLO)",
+    ex = _command(
+        sub, "export", cmd_export,
+        help="write a generated dataset in a training tool's format (COCO, "
+             "mmsegmentation, Cityscapes, YOLO)",
         description="Export a generated dataset's finished frames: coco (instances JSON with "
                     "RLE masks), mmseg (img_dir/ann_dir, metainfo.json), cityscapes "
                     "(leftImg8bit/gtFine in Cityscapes' label ids) or yolo (images/labels, "
@@ -164,8 +170,7 @@ def _add_export_parser(sub) -> None:
     ex.add_argument("format", choices=EXPORT_FORMATS, help="the format to write")
     ex.add_argument("dataset", type=Path, help="dataset folder (written by generate)")
     ex.add_argument("--out", type=Path, required=True, help="export folder (created)")
-    ex.add_argument("--classes", type=lambda t: [n.strip() for n in t.split(",") if n.strip()],
-                    default=None, metavar="NAME[,NAME]",
+    ex.add_argument("--classes", type=_comma_list, default=None, metavar="NAME[,NAME]",
                     help="the classes to export, names or ids (default: the instance classes "
                          "Pedestrian, Pole, Vehicle, TrafficSign for coco and yolo; all 13 "
                          "for mmseg and cityscapes); the others are left out (mmseg: 255, "
@@ -174,17 +179,16 @@ def _add_export_parser(sub) -> None:
                     help="share of the frames in the val split, in [0, 1) (default 0.1; at "
                          "least one frame when above 0 and the dataset has two)")
     ex.add_argument("--seed", type=int, default=0, help="seed of the split (default 0)")
-    ex.add_argument("--cameras", type=lambda t: [n.strip() for n in t.split(",") if n.strip()],
-                    default=None, metavar="NAME[,NAME]",
+    ex.add_argument("--cameras", type=_comma_list, default=None, metavar="NAME[,NAME]",
                     help="the cameras to export (default all)")
-    ex.add_argument("--no-progress", action="store_true", help="no progress bar")
-    ex.set_defaults(func=cmd_export)
+    _add_progress_option(ex)
 
 
 def _add_convert_parser(sub) -> None:
     """`convert` (angles in degrees)."""
-    p = sub.add_parser(
-        "convert", help="render simulator cubemap captures into fisheye / catadioptric images",
+    p = _command(
+        sub, "convert", cmd_convert,
+        help="render simulator cubemap captures into fisheye / catadioptric images",
         description="Read DIR/<capture>/{front,back,left,right,up,down}_{rgb,depth,labels}.png "
                     "(CARLA raw depth and semantic images) and write fisheye and catadioptric "
                     "renderings (rgb png, depth exr, labels png) per capture. Guide: "
@@ -223,8 +227,19 @@ def _add_convert_parser(sub) -> None:
                    help="with instance faces, the objects files list the objects of at least "
                         "N pixels (default 1: all; the instance maps keep every id)")
     _add_ray_option(p, "captures")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(func=cmd_convert)
+    _add_progress_option(p)
+
+
+def _command(sub, name: str, func, **kwargs) -> argparse.ArgumentParser:
+    """The parser of sub-command ``name`` (``help``, ``description``: ``kwargs``), which runs
+    ``func(args)``."""
+    parser = sub.add_parser(name, **kwargs)
+    parser.set_defaults(func=func)
+    return parser
+
+
+def _add_progress_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def _add_ray_option(p: argparse.ArgumentParser, what: str) -> None:
@@ -295,11 +310,11 @@ def build_parser() -> argparse.ArgumentParser:
                         help="on an error, also show the Python traceback (same exit code)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND",
                                 title="commands (omniscape-torch COMMAND --help for each)")
-    info = sub.add_parser("info", help="field of view and angular resolution of a camera",
-                          description="Print a camera's model, parameters, field of view and "
-                                      "angular resolution. Guide: docs/cameras.md.")
+    info = _command(sub, "info", cmd_info,
+                    help="field of view and angular resolution of a camera",
+                    description="Print a camera's model, parameters, field of view and "
+                                "angular resolution. Guide: docs/cameras.md.")
     _add_camera_source(info)
-    info.set_defaults(func=cmd_info)
     _add_generate_parser(sub)
     _add_pack_parser(sub)
     _add_stats_parser(sub)
@@ -312,14 +327,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _add_generate_parser(sub) -> None:
-    gen = sub.add_parser("generate", help="write an OmniScape-like (or WoodScape-like) dataset "
-                                          "from the built-in town",
-                         description="Render an OmniScape-like dataset (fisheye and "
-                                     "catadioptric images with depth, labels, instances and "
-                                     "the vehicle's dynamics) from the built-in town; with "
-                                     "--rig woodscape, WoodScape's four fisheye cameras on a "
-                                     "car, in WoodScape's layout. Its layout and options: "
-                                     "docs/datasets.md.")
+    gen = _command(sub, "generate", cmd_generate,
+                   help="write an OmniScape-like (or WoodScape-like) dataset "
+                        "from the built-in town",
+                   description="Render an OmniScape-like dataset (fisheye and "
+                               "catadioptric images with depth, labels, instances and "
+                               "the vehicle's dynamics) from the built-in town; with "
+                               "--rig woodscape, WoodScape's four fisheye cameras on a "
+                               "car, in WoodScape's layout. Its layout and options: "
+                               "docs/datasets.md.")
     gen.add_argument("--out", type=Path, required=True, help="dataset folder (created; a "
                      "rerun completes an interrupted run)")
     gen.add_argument("--frames", type=positive_int, default=8, help="frames (default 8)")
@@ -381,37 +397,37 @@ def _add_generate_parser(sub) -> None:
                      "RandomOmniCamera: ot.scenes' Town.render_cubemap, as in notebooks/02)")
     gen.add_argument("--save-panorama", action="store_true", help="also write an "
                      "equirectangular panorama per frame")
-    gen.add_argument("--no-progress", action="store_true", help="no progress bar")
-    gen.set_defaults(func=cmd_generate)
+    _add_progress_option(gen)
 
 
 def _add_pack_parser(sub) -> None:
-    pk = sub.add_parser("pack", help="pack a generated dataset into WebDataset tar shards "
-                                     "(DIR/shards/shard-NNNNNN.tar) for streaming into training",
-                        description="Pack a generated dataset into WebDataset tar shards. "
-                                    "Guide: docs/distributed.md.")
+    pk = _command(sub, "pack", cmd_pack,
+                  help="pack a generated dataset into WebDataset tar shards "
+                       "(DIR/shards/shard-NNNNNN.tar) for streaming into training",
+                  description="Pack a generated dataset into WebDataset tar shards. "
+                              "Guide: docs/distributed.md.")
     pk.add_argument("dir", type=Path, help="dataset folder")
     pk.add_argument("--frames-per-shard", type=positive_int, default=None, metavar="N",
                     help="frames per shard (default 16)")
-    pk.add_argument("--no-progress", action="store_true", help="no progress bar")
-    pk.set_defaults(func=cmd_pack)
+    _add_progress_option(pk)
 
 
 def _add_stats_parser(sub) -> None:
-    st = sub.add_parser("stats", help="Table I and class shares of a generated dataset",
-                        description="The paper's Table I (the vehicle's attitude) and the "
-                                    "class shares of a generated dataset, written to "
-                                    "DIR/stats.json and DIR/stats.png. Guide: "
-                                    "docs/datasets.md.")
+    st = _command(sub, "stats", cmd_stats,
+                  help="Table I and class shares of a generated dataset",
+                  description="The paper's Table I (the vehicle's attitude) and the "
+                              "class shares of a generated dataset, written to "
+                              "DIR/stats.json and DIR/stats.png. Guide: "
+                              "docs/datasets.md.")
     st.add_argument("dir", type=Path, help="dataset folder")
     st.add_argument("--no-plot", action="store_true", help="do not write stats.png")
-    st.set_defaults(func=cmd_stats)
 
 
 def _add_fit_parser(sub) -> None:
-    fit = sub.add_parser(
-        "fit", help="calibrate a camera from images of a board, or from target points and "
-                    "their pixels",
+    fit = _command(
+        sub, "fit", cmd_fit,
+        help="calibrate a camera from images of a board, or from target points and "
+             "their pixels",
         description="Fit a camera model to a board's corners: detected in --images (OpenCV) or "
                     "read from a correspondence file (its format: docs/calibration.md). Writes "
                     "camera.json, report.json, report.md, residuals.png, uncertainty.png (and "
@@ -446,7 +462,7 @@ def _add_fit_parser(sub) -> None:
                           "report.json)")
     fit.add_argument("--outlier-threshold", type=_positive_float, default=3.0,
                      help="with --reject-outliers: the threshold in sigmas (default 3)")
-    fit.add_argument("--freeze", type=lambda t: [n.strip() for n in t.split(",") if n.strip()],
+    fit.add_argument("--freeze", type=_comma_list,
                      default=None, metavar="NAME[,NAME]", help="parameter groups (focal, center, "
                      "distortion, affine) or names to hold at their start")
     fit.add_argument("--fov", type=_positive_float, default=None,
@@ -469,16 +485,16 @@ def _add_fit_parser(sub) -> None:
                           "rounds of 100 while the cost still falls, at most 1000; lbfgs 500, "
                           "adam 3000); a fit stopped there has not converged: exit 1")
     fit.add_argument("--out", type=Path, required=True, help="output folder")
-    fit.add_argument("--no-progress", action="store_true", help="no progress bar")
-    fit.set_defaults(func=cmd_fit)
+    _add_progress_option(fit)
 
 
 def _add_convert_model_parser(sub) -> None:
-    conv = sub.add_parser("convert-model", help="fit cameras of other models to a camera",
-                          description="Fit cameras of other models to a camera over its valid "
-                                      "area and print their held-out errors; write them as "
-                                      "JSON or as another tool's file (--format). Guide: "
-                                      "docs/calibration.md.")
+    conv = _command(sub, "convert-model", cmd_convert_model,
+                    help="fit cameras of other models to a camera",
+                    description="Fit cameras of other models to a camera over its valid "
+                                "area and print their held-out errors; write them as "
+                                "JSON or as another tool's file (--format). Guide: "
+                                "docs/calibration.md.")
     _add_camera_source(conv)
     conv.add_argument("--to", type=_names(LENS_MODELS, "model"), required=True,
                       metavar="MODEL[,MODEL]", help=f"target models ({', '.join(LENS_MODELS)})")
@@ -505,15 +521,15 @@ def _add_convert_model_parser(sub) -> None:
                       "past 90 deg into a format that folds there (the file records it)")
     conv.add_argument("--accept-skew", action="store_true", help="write a camera with a skew "
                       "into a format without one, dropping it (the error is printed)")
-    conv.set_defaults(func=cmd_convert_model)
 
 
 def _add_select_model_parser(sub) -> None:
-    sel = sub.add_parser("select-model", help="the model with the fewest parameters that "
-                                              "reproduces a camera within tolerances",
-                         description="Convert a camera to each candidate model and select the "
-                                     "one with the fewest parameters whose held-out error is "
-                                     "within the tolerances. Guide: docs/calibration.md.")
+    sel = _command(sub, "select-model", cmd_select_model,
+                   help="the model with the fewest parameters that "
+                        "reproduces a camera within tolerances",
+                   description="Convert a camera to each candidate model and select the "
+                               "one with the fewest parameters whose held-out error is "
+                               "within the tolerances. Guide: docs/calibration.md.")
     _add_camera_source(sel)
     sel.add_argument("--models", type=_names(LENS_MODELS, "model"), default=None,
                      metavar="MODEL[,MODEL]", help="candidates (default: all lens models; "
@@ -529,8 +545,7 @@ def _add_select_model_parser(sub) -> None:
     sel.add_argument("--grid", type=positive_int, default=32,
                      help="samples per image side (default 32)")
     sel.add_argument("--out", type=Path, default=None, help="write the selected camera as JSON")
-    sel.add_argument("--no-progress", action="store_true", help="no progress bar")
-    sel.set_defaults(func=cmd_select_model)
+    _add_progress_option(sel)
 
 
 def main(argv: list[str] | None = None) -> int:

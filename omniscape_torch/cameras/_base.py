@@ -405,6 +405,30 @@ def _complex_step(distort: Callable, mx: Tensor, my: Tensor, coeffs: Tensor):
     return x1.real, y1.real, x1.imag / h, x2.imag / h, y1.imag / h, y2.imag / h
 
 
+def newton_step_2d(mx: Tensor, my: Tensor, rx: Tensor, ry: Tensor, a: Tensor, b: Tensor,
+                   c: Tensor, e: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """One 2-D Newton step ``m - J^-1 r`` with ``J = [[a, b], [c, e]]`` and the residual
+    ``r = (rx, ry)``: ``(mx, my, ok)``, ``ok`` where ``J`` is invertible (elsewhere the step
+    is 0, with a finite gradient)."""
+    det = a * e - b * c
+    ok = det.abs() > torch.finfo(det.dtype).tiny
+    return mx - safe_div(e * rx - b * ry, det, ok), my - safe_div(a * ry - c * rx, det, ok), ok
+
+
+def fold_guarded_step(mx: Tensor, my: Tensor, rx: Tensor, ry: Tensor, a: Tensor, b: Tensor,
+                      c: Tensor, e: Tensor, t_fold: Tensor) -> tuple[Tensor, Tensor]:
+    """`newton_step_2d` from ``(mx, my)``, shortened where it would cross the fold
+    (``mx^2 + my^2 >= t_fold``) to land halfway to it, so that the iteration stays on the
+    sheet where the distortion is invertible."""
+    nx, ny, _ = newton_step_2d(mx, my, rx, ry, a, b, c, e)
+    r2_old, r2_new = mx * mx + my * my, nx * nx + ny * ny
+    crossed = r2_new >= t_fold
+    shrink = torch.sqrt(torch.where(
+        crossed, 0.5 * (r2_old + t_fold) / torch.where(crossed, r2_new, torch.ones_like(r2_new)),
+        torch.ones_like(r2_new)))
+    return nx * shrink, ny * shrink
+
+
 def undistort_2d(xd: Tensor, yd: Tensor, coeffs: Tensor, distort: Callable, radial: Callable,
                  t_limit: Tensor, iterations: int, jacobian: Callable | None = None
                  ) -> tuple[Tensor, Tensor, Tensor]:
@@ -473,17 +497,7 @@ def undistort_2d(xd: Tensor, yd: Tensor, coeffs: Tensor, distort: Callable, radi
             if stalled >= 3:
                 break
             previous = res
-            det = a * e - b * cc
-            ok = det.abs() > torch.finfo(det.dtype).tiny
-            nx = mx - safe_div(e * rx - b * ry, det, ok)
-            ny = my - safe_div(a * ry - cc * rx, det, ok)
-            r2_old, r2_new = mx * mx + my * my, nx * nx + ny * ny
-            crossed = r2_new >= t_limit
-            shrink = torch.sqrt(torch.where(
-                crossed, 0.5 * (r2_old + t_limit) / torch.where(crossed, r2_new,
-                                                                  torch.ones_like(r2_new)),
-                torch.ones_like(r2_new)))
-            mx, my = nx * shrink, ny * shrink
+            mx, my = fold_guarded_step(mx, my, rx, ry, a, b, cc, e, t_limit)
             fx, fy, a, b, cc, e = jacobian(mx, my, c)
         converged = ((fx - tx).abs() + (fy - ty).abs()) <= loose
         converged = converged & torch.isfinite(mx) & torch.isfinite(my)
@@ -492,12 +506,9 @@ def undistort_2d(xd: Tensor, yd: Tensor, coeffs: Tensor, distort: Callable, radi
         mx, my = torch.where(converged, mx, zero), torch.where(converged, my, zero)
         a, e = torch.where(converged, a, one), torch.where(converged, e, one)
         b, cc = torch.where(converged, b, zero), torch.where(converged, cc, zero)
-        det = a * e - b * cc
-        ok = det.abs() > torch.finfo(det.dtype).tiny
     fx, fy = distort(mx, my, coeffs)
     rx, ry = fx - xd, fy - yd
     rx = torch.where(converged, rx, torch.zeros_like(rx))
     ry = torch.where(converged, ry, torch.zeros_like(ry))
-    mx = mx - safe_div(e * rx - b * ry, det, ok)
-    my = my - safe_div(a * ry - cc * rx, det, ok)
+    mx, my, ok = newton_step_2d(mx, my, rx, ry, a, b, cc, e)
     return mx, my, converged & ok

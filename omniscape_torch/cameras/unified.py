@@ -29,8 +29,8 @@ import math
 import torch
 from torch import Tensor
 
-from ._base import (CameraModel, FisheyeDraw, check_inputs, check_positive, check_range, safe_div,
-                    safe_sqrt, smallest_positive_root)
+from ._base import (CameraModel, FisheyeDraw, check_inputs, check_positive, check_range,
+                    fold_guarded_step, newton_step_2d, safe_div, safe_sqrt, smallest_positive_root)
 
 #: Default maximum number of Newton iterations when undistorting the unified model's
 #: radial-tangential distortion: 2-D Newton converges quadratically inside the fold and about
@@ -163,29 +163,15 @@ def _undistort(xd: Tensor, yd: Tensor, params: Tensor, iterations: int
             rx, ry = fx - tx, fy - ty
             if bool(((rx.abs() + ry.abs()) <= bound).all()):
                 break
-            a, b, c, e = _distort_jacobian(mx, my, *kd)
-            det = a * e - b * c
-            ok = det.abs() > torch.finfo(det.dtype).tiny
-            nx = mx - safe_div(e * rx - b * ry, det, ok)
-            ny = my - safe_div(a * ry - c * rx, det, ok)
-            r2_old, r2_new = mx * mx + my * my, nx * nx + ny * ny
-            crossed = r2_new >= t_fold
-            shrink = torch.sqrt(torch.where(crossed, 0.5 * (r2_old + t_fold) /
-                                            torch.where(crossed, r2_new, torch.ones_like(r2_new)),
-                                            torch.ones_like(r2_new)))
-            mx, my = nx * shrink, ny * shrink
+            mx, my = fold_guarded_step(mx, my, rx, ry, *_distort_jacobian(mx, my, *kd), t_fold)
         fx, fy = _distort(mx, my, *kd)
         converged = ((fx - tx).abs() + (fy - ty).abs()) <= bound
         converged = converged & torch.isfinite(mx) & torch.isfinite(my)
         mx = torch.where(converged, mx, torch.zeros_like(mx))
         my = torch.where(converged, my, torch.zeros_like(my))
-        a, b, c, e = _distort_jacobian(mx, my, *kd)
-        det = a * e - b * c
-        ok = det.abs() > torch.finfo(det.dtype).tiny
+        jac = _distort_jacobian(mx, my, *kd)
     fx, fy = _distort(mx, my, k1, k2, p1, p2)
-    rx, ry = fx - xd, fy - yd
-    mx = mx - safe_div(e * rx - b * ry, det, ok)
-    my = my - safe_div(a * ry - c * rx, det, ok)
+    mx, my, ok = newton_step_2d(mx, my, fx - xd, fy - yd, *jac)
     return mx, my, converged & ok
 
 

@@ -81,58 +81,54 @@ NEW_CLASSES = ("None", "Roads", "Sidewalks", "Buildings", "Walls", "Fences", "Po
                "Dynamic", "Other", "Water", "RoadLines", "Ground", "Bridge", "RailTrack",
                "GuardRail")
 
-#: Recent CARLA tags (``ObjectLabel.h``) -> the 13 classes. The choice for each id:
-NEW_TO_13: dict[int, int] = {
-    0: _C["Unlabeled"],     # None
-    1: _C["Road"],          # Roads
-    2: _C["Sidewalk"],      # Sidewalks
-    3: _C["Building"],      # Buildings
-    4: _C["Wall"],          # Walls
-    5: _C["Fence"],         # Fences
-    6: _C["Pole"],          # Poles
-    7: _C["TrafficSign"],   # TrafficLight: the 13-class set has no traffic light; a signal
-    #                         like a sign (0.9.10 split TrafficLight out of it)
-    8: _C["TrafficSign"],   # TrafficSigns
-    9: _C["Vegetation"],    # Vegetation
-    10: _C["Vegetation"],   # Terrain: grass and soil, Cityscapes' "nature" group with vegetation
-    11: _C["Unlabeled"],    # Sky: the old set has no sky; it rendered as Unlabeled there
-    12: _C["Pedestrian"],   # Pedestrians
-    13: _C["Pedestrian"],   # Rider: a person (the old set has no rider)
-    14: _C["Vehicle"],      # Car
-    15: _C["Vehicle"],      # Truck
-    16: _C["Vehicle"],      # Bus
-    17: _C["Vehicle"],      # Train
-    18: _C["Vehicle"],      # Motorcycle
-    19: _C["Vehicle"],      # Bicycle
-    20: _C["Other"],        # Static: props, the old set's "Other"
-    21: _C["Other"],        # Dynamic: movable props
-    22: _C["Other"],        # Other
-    23: _C["Other"],        # Water
-    24: _C["RoadLine"],     # RoadLines
-    25: _C["Other"],        # Ground: horizontal ground that is neither road nor sidewalk
-    26: _C["Building"],     # Bridge: a construction (Cityscapes' "construction" group)
-    27: _C["Other"],        # RailTrack
-    28: _C["Fence"],        # GuardRail: a roadside barrier, like a fence
+#: CARLA tag names -> the 13-class name each becomes, one choice per tag name for both later
+#: tag sets (``"23"`` and ``"new"`` name their shared tags alike); a tag whose name is a class
+#: of the 13 (``Vegetation``, ``Other``, and ids 0..12 of ``"23"``) is that class.
+_TAG_CHOICES: dict[str, tuple[str, ...]] = {
+    "Unlabeled": ("None",
+                  "Sky"),           # the old set has no sky; it rendered as Unlabeled there
+    "Road": ("Roads",),
+    "Sidewalk": ("Sidewalks",),
+    "Building": ("Buildings",
+                 "Bridge"),         # a construction (Cityscapes' "construction" group)
+    "Wall": ("Walls",),
+    "Fence": ("Fences",
+              "GuardRail"),         # a roadside barrier, like a fence
+    "Pole": ("Poles",),
+    # TrafficLight: the 13-class set has no traffic light; a signal like a sign (0.9.10 split
+    # TrafficLight out of it)
+    "TrafficSign": ("TrafficSigns", "TrafficLight"),
+    "Vegetation": ("Terrain",),     # grass and soil, Cityscapes' "nature" group with vegetation
+    "Pedestrian": ("Pedestrians",
+                   "Rider"),        # a person (the old set has no rider)
+    "Vehicle": ("Car", "Truck", "Bus", "Train", "Motorcycle", "Bicycle"),
+    "RoadLine": ("RoadLines",),
+    "Other": ("Static",             # props, the old set's "Other"
+              "Dynamic",            # movable props
+              "Water",
+              "Ground",             # horizontal ground that is neither road nor sidewalk
+              "RailTrack"),
 }
+_TAG_TO_CLASS = {tag: _C[cls] for cls, tags in _TAG_CHOICES.items() for tag in tags}
+
+
+def _tags_to_13(names: tuple[str, ...]) -> dict[int, int]:
+    """``{tag id: class id}`` of a tag set given by its tag names in id order."""
+    return {i: _C[name] if name in _C else _TAG_TO_CLASS[name] for i, name in enumerate(names)}
+
+
+#: Recent CARLA tags (``ObjectLabel.h``) -> the 13 classes (the choice for each tag name:
+#: ``_TAG_CHOICES``).
+NEW_TO_13: dict[int, int] = _tags_to_13(NEW_CLASSES)
 
 #: CARLA 0.9.10-0.9.13 tags (ids 0..12 as the 13-class set, 13..22 appended) -> the 13 classes.
-EXT23_TO_13: dict[int, int] = {
-    **{i: i for i in range(13)},
-    13: _C["Unlabeled"],    # Sky
-    14: _C["Other"],        # Ground
-    15: _C["Building"],     # Bridge
-    16: _C["Other"],        # RailTrack
-    17: _C["Fence"],        # GuardRail
-    18: _C["TrafficSign"],  # TrafficLight
-    19: _C["Other"],        # Static
-    20: _C["Other"],        # Dynamic
-    21: _C["Other"],        # Water
-    22: _C["Vegetation"],   # Terrain
-}
+EXT23_TO_13: dict[int, int] = _tags_to_13(
+    CLASSES + ("Sky", "Ground", "Bridge", "RailTrack", "GuardRail", "TrafficLight", "Static",
+               "Dynamic", "Water", "Terrain"))
 
 #: ``label_set`` name -> mapping to the 13 classes.
 LABEL_SETS: dict[str, dict[int, int]] = {
-    "13": {i: i for i in range(13)},
+    "13": _tags_to_13(CLASSES),
     "23": EXT23_TO_13,
     "new": NEW_TO_13,
 }

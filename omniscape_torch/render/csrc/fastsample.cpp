@@ -8,6 +8,27 @@
 
 namespace {
 
+// What the cube samplers check first: the cube, then its points (B', ..., last), `dim`
+// dimensions, named `name`; the cube's layout.
+Layout check_cube_points(const char* op, const at::Tensor& cube, const char* name,
+                         const at::Tensor& points, int64_t dim, int64_t last, bool bilinear,
+                         int64_t pad) {
+    const Layout L = check_cube(op, cube, bilinear, pad);
+    check_points(op, name, points, cube, bilinear, dim, last);
+    return L;
+}
+
+// What they check last: out (B, C, height, width), valid (1 or B, height, width) or none, and
+// the ring.
+void check_sampled(const char* op, const at::Tensor& out, const at::Tensor& cube,
+                   int64_t height, int64_t width, bool bilinear,
+                   const std::optional<at::Tensor>& valid, const at::Tensor& ring_src,
+                   const std::optional<at::Tensor>& ring_weight, int64_t pad) {
+    check_out(op, out, cube, height, width, bilinear);
+    check_valid(op, valid, cube.size(0), height, width);
+    check_ring(op, ring_src, ring_weight, cube, pad);
+}
+
 // build_lut: the entries (code, fraction bits) of grid (B', P, 2) into table (B', P, 3), int32
 // for a float32 grid, int64 for a float64 one, for cubes of faces `face` with the strides
 // (face, row, texel) of one channel.
@@ -47,8 +68,7 @@ void sample_lut_op(const at::Tensor& cube, const at::Tensor& table, const at::Te
                    int64_t pad, at::IntArrayRef strides, bool bilinear, int64_t fill,
                    const at::Tensor& out) {
     const char* op = "omniscape_torch::sample_lut";
-    const Layout L = check_cube(op, cube, bilinear, pad);
-    check_points(op, "grid", grid, cube, bilinear, 3, 2);
+    const Layout L = check_cube_points(op, cube, "grid", grid, 3, 2, bilinear, pad);
     check_table(op, table, grid);
     TORCH_CHECK(strides.size() == 3 && strides[0] == L.face_stride && strides[1] == L.row &&
                     strides[2] == L.texel,
@@ -56,8 +76,8 @@ void sample_lut_op(const at::Tensor& cube, const at::Tensor& table, const at::Te
                 ", the cube's are (", L.face_stride, ", ", L.row, ", ", L.texel, ")");
     TORCH_CHECK(out.dim() == 4 && out.size(2) * out.size(3) == grid.size(1), op,
                 ": out: expected H W = ", grid.size(1), " pixels, got shape ", out.sizes());
-    check_out(op, out, cube, out.size(2), out.size(3), bilinear);
-    check_ring(op, ring_src, ring_weight, cube, pad);
+    check_sampled(op, out, cube, out.size(2), out.size(3), bilinear, std::nullopt, ring_src,
+                  ring_weight, pad);
     dispatch(cube, out, grid.scalar_type(), [&](auto t, auto o, auto g) {
         OS_DISPATCHED_TYPES;
         sample_lut<T, O, G>(elements<T>(cube),
@@ -75,11 +95,9 @@ void sample_grid_op(const at::Tensor& cube, const at::Tensor& grid,
                     const std::optional<at::Tensor>& ring_weight, int64_t pad, bool bilinear,
                     int64_t fill, const at::Tensor& out) {
     const char* op = "omniscape_torch::sample_grid";
-    const Layout L = check_cube(op, cube, bilinear, pad);
-    check_points(op, "grid", grid, cube, bilinear, 4, 2);
-    check_out(op, out, cube, grid.size(1), grid.size(2), bilinear);
-    check_valid(op, valid, cube.size(0), grid.size(1), grid.size(2));
-    check_ring(op, ring_src, ring_weight, cube, pad);
+    const Layout L = check_cube_points(op, cube, "grid", grid, 4, 2, bilinear, pad);
+    check_sampled(op, out, cube, grid.size(1), grid.size(2), bilinear, valid, ring_src,
+                  ring_weight, pad);
     dispatch(cube, out, grid.scalar_type(), [&](auto t, auto o, auto g) {
         OS_DISPATCHED_TYPES;
         sample_grid<T, O, G>(elements<T>(cube), elements<G>(grid), batch_stride(grid),
@@ -98,17 +116,15 @@ void sample_rays_op(const at::Tensor& cube, const at::Tensor& rays,
                     const std::optional<at::Tensor>& ring_weight, int64_t pad, bool bilinear,
                     int64_t fill, const at::Tensor& out) {
     const char* op = "omniscape_torch::sample_rays";
-    const Layout L = check_cube(op, cube, bilinear, pad);
-    check_points(op, "rays", rays, cube, bilinear, 4, 3);
+    const Layout L = check_cube_points(op, cube, "rays", rays, 4, 3, bilinear, pad);
     if (rotation.has_value()) {
         check_points(op, "rotation", *rotation, cube, bilinear, 3, 3);
         TORCH_CHECK(rotation->size(1) == 3 && rotation->scalar_type() == rays.scalar_type(), op,
                     ": rotation: expected (1 or B, 3, 3) in the rays' dtype ", rays.scalar_type(),
                     ", got ", rotation->scalar_type(), " ", rotation->sizes());
     }
-    check_out(op, out, cube, rays.size(1), rays.size(2), bilinear);
-    check_valid(op, valid, cube.size(0), rays.size(1), rays.size(2));
-    check_ring(op, ring_src, ring_weight, cube, pad);
+    check_sampled(op, out, cube, rays.size(1), rays.size(2), bilinear, valid, ring_src,
+                  ring_weight, pad);
     dispatch(cube, out, rays.scalar_type(), [&](auto t, auto o, auto g) {
         OS_DISPATCHED_TYPES;
         sample_rays<T, O, G>(elements<T>(cube), elements<G>(rays), batch_stride(rays),

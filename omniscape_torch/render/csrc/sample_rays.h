@@ -86,6 +86,29 @@ __attribute__((always_inline)) inline void major_axis(G px, G py, G pz, bool& us
     comp = use_x ? px : (use_y ? py : pz);
 }
 
+// A row-major 3 x 3 rotation copied onto the stack (its entries in registers in the loops
+// over rays, apart from the arrays they read and write), none without Rotate.
+template <typename G, bool Rotate>
+struct LocalRotation {
+    G r[9];
+    explicit LocalRotation(const G* rot) {
+        if (Rotate) {
+            std::copy(rot, rot + 9, r);
+        }
+    }
+};
+
+// Ray p of rays (x, y, z at rays[3 p ..]) rotated (rotate) and the axis of its cube face
+// (major_axis): how ray_grid and locate_rays start on each ray.
+template <typename G, bool Rotate>
+__attribute__((always_inline)) inline void rotated_ray(const G* __restrict rays, int64_t p,
+                                                       const LocalRotation<G, Rotate>& R, G& px,
+                                                       G& py, G& pz, bool& use_x, bool& use_y,
+                                                       G& comp) {
+    rotate<G, Rotate>(R.r, rays[3 * p], rays[3 * p + 1], rays[3 * p + 2], px, py, pz);
+    major_axis(px, py, pz, use_x, use_y, comp);
+}
+
 // The atlas grid of `count` rays (x, y, z at rays[3 p ..]) rotated by `rot` (row-major 3 x 3,
 // null: none), into grid[2 p], grid[2 p + 1]: cubemap.grid.rotated_grid_xy and grid_xy, the same
 // operations in the same order (so the grid is inductor's, bit for bit).
@@ -94,17 +117,11 @@ void ray_grid(const G* __restrict rays, const G* __restrict rot, int64_t count,
               const Layout& L, G* __restrict grid) {
     const G f = G(L.face) / G(2), c = G(L.face - 1) / G(2), n = G(L.n), pad = G(L.pad);
     const G n6 = G(6 * L.n);
-    G r[9];
-    if (Rotate) {
-        std::copy(rot, rot + 9, r);
-    }
+    const LocalRotation<G, Rotate> R(rot);
     for (int64_t p = 0; p < count; ++p) {
-        const G x = rays[3 * p], y = rays[3 * p + 1], z = rays[3 * p + 2];
-        G px, py, pz;
-        rotate<G, Rotate>(r, x, y, z, px, py, pz);
+        G px, py, pz, comp;
         bool use_x, use_y;
-        G comp;
-        major_axis(px, py, pz, use_x, use_y, comp);
+        rotated_ray<G, Rotate>(rays, p, R, px, py, pz, use_x, use_y, comp);
         const bool neg = comp < 0, zero = comp == 0;
         const G num_r = pick<G, 1>(use_x, use_y, neg, zero, px, py, pz);
         const G num_b = pick<G, 3>(use_x, use_y, neg, zero, px, py, pz);
@@ -164,17 +181,11 @@ void locate_rays(const G* __restrict rays, const G* __restrict rot, int64_t coun
     const int32_t face = static_cast<int32_t>(L.face), pad = static_cast<int32_t>(L.pad);
     const uint32_t stride = static_cast<uint32_t>(L.face_stride);
     const uint32_t row = static_cast<uint32_t>(L.row), texel = static_cast<uint32_t>(L.texel);
-    G r[9];
-    if (Rotate) {
-        std::copy(rot, rot + 9, r);
-    }
+    const LocalRotation<G, Rotate> R(rot);
     for (int64_t p = 0; p < count; ++p) {
-        const G x = rays[3 * p], y = rays[3 * p + 1], z = rays[3 * p + 2];
-        G px, py, pz;
-        rotate<G, Rotate>(r, x, y, z, px, py, pz);
+        G px, py, pz, comp;
         bool use_x, use_y;
-        G comp;
-        major_axis(px, py, pz, use_x, use_y, comp);
+        rotated_ray<G, Rotate>(rays, p, R, px, py, pz, use_x, use_y, comp);
         const G depth = std::fabs(comp);
         const bool neg = comp < 0, zero = depth == 0;
         // every case computed, then selected: no branch, so the loop vectorises
