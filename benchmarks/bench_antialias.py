@@ -560,6 +560,27 @@ def frontier(rows: list[dict]) -> list[dict]:
     return out
 
 
+def _place_labels(ax, labels: list) -> None:
+    """Each point's short name to its right, moved down past the names already placed that it
+    would overlap (top to bottom; display units, the axes' limits set)."""
+    placed = []   # (x, y) of the names' anchors, display pixels
+    for xi, yi, r, colour in sorted(labels, key=lambda t: -t[1]):
+        px, py = ax.transData.transform((xi, yi))
+        text = r["short"] + (" (default)" if r["default"] else "")
+        width = 4.3 * len(text)   # ~pixels of a 7.5-point name
+        dy = 0.0
+        while any(abs(px - qx) < max(width, qw) and abs(py - dy - qy) < 10
+                  for qx, qy, qw in placed):
+            dy += 10
+        placed.append((px, py - dy, width))
+        ax.annotate(text, (xi, yi), textcoords="offset pixels",
+                    xytext=(14 if r["default"] else 8, 2 - dy),
+                    fontsize=7.5, color=colour, va="center",
+                    fontweight="bold" if r["default"] else "normal",
+                    arrowprops=dict(arrowstyle="-", color=colour, lw=0.5, alpha=0.6)
+                    if dy else None)
+
+
 def chart(result: dict, path: Path) -> None:
     """``path`` (PNG): mean PSNR (the draws' range as a bar) against ms an image (log), one
     panel per output size (a shared PSNR axis), one marker and colour per family, each point
@@ -571,9 +592,10 @@ def chart(result: dict, path: Path) -> None:
     sizes = result["setup"]["sizes"]
     fig = Figure(figsize=(7.5 * len(sizes), 7.5), layout="constrained")
     axes = fig.subplots(1, len(sizes), squeeze=False, sharey=True)[0]
+    top = max(max(r["psnr_db"]) for r in result["rows"]) + 3   # (dB: the shared axis)
     for ax, size in zip(axes, sizes):
         rows = [r for r in result["rows"] if r["size"] == size]
-        front = frontier(rows)
+        front, labels = frontier(rows), []
         ax.step([1e3 * r["median_s"] for r in front], [r["mean_psnr_db"] for r in front],
                 where="post", color="black", linewidth=0.8, alpha=0.6,
                 label="frontier (no setting faster and better)", zorder=2)
@@ -587,20 +609,19 @@ def chart(result: dict, path: Path) -> None:
                    [max(r["psnr_db"]) - r["mean_psnr_db"] for r in mine]]
             ax.errorbar(x, y, yerr=err, fmt=marker, color=colour, ms=7, capsize=2,
                         elinewidth=0.8, label=family, zorder=3)
-            for i, (r, xi, yi) in enumerate(zip(mine, x, y)):
+            for r, xi, yi in zip(mine, x, y):
                 if r["default"]:
                     ax.scatter([xi], [yi], s=260, facecolors="none", edgecolors="black",
                                linewidths=1.5, zorder=4,
                                label="a default" if family == "ours" else None)
-                ax.annotate(r["short"] + (" (default)" if r["default"] else ""), (xi, yi),
-                            textcoords="offset points", xytext=(7, 4 if i % 2 else -9),
-                            fontsize=7.5, color=colour,
-                            fontweight="bold" if r["default"] else "normal")
+                labels.append((xi, yi, r, colour))
         ax.axhline(TARGET_DB, color="gray", linestyle=":", linewidth=1,
                    label=f"{TARGET_DB:g} dB (issue 36's target)")
         ax.set_xscale("log")
         lo, hi = ax.get_xlim()
         ax.set_xlim(lo, hi * 3)   # room for the labels of the slowest points
+        ax.set_ylim(0, top)
+        _place_labels(ax, labels)
         ax.set_xlabel("ms an image (median; 1 thread; uint8 RGB in, batch 1; log scale)")
         src = result["setup"]["source"]
         ax.set_title(f"{src[1]} x {src[0]} line grid -> {size} x {size} "
