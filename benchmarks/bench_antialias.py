@@ -36,7 +36,7 @@ OpenCV threads, the median of ``--repeats`` rounds over every setting of a size
 
 Usage::
 
-    python benchmarks/bench_antialias.py            # S = 512, 1024 (~3 min on 2 cores)
+    python benchmarks/bench_antialias.py            # S = 512, 1024 (2-4 min on 2 cores)
     python benchmarks/bench_antialias.py --quick    # 256 x 512 -> 64, 128; seconds
 
 Results: markdown on stdout, JSON (``--out``, default ``benchmarks/results/antialias.json``;
@@ -327,7 +327,8 @@ def _ours(size: int, frame: torch.Tensor, k: torch.Tensor, draws: dict) -> list[
                          plain(module(s * size, antialias=False)), scale=s)
                  for s in SUPERSAMPLE]
         point = module(antialias=False)
-        rows += [setting(f"area x{factor:g} first, bilinear", f"area x{factor:g} \u2192 bilinear",
+        rows += [setting(f"area x{factor:g} first, bilinear",
+                         f"area x{factor:g} \u2192 bilinear",
                          area_call(point, frame, k, factor)) for factor in AREA_FACTORS]
     return rows
 
@@ -362,7 +363,8 @@ def _albumentations(size: int, frame: torch.Tensor) -> list[dict]:
             name = f"Resize {resize}, then fisheye {distort}"
         else:
             name, steps = f"fisheye {distort} at full size, then Resize {resize}", steps[::-1]
-        rows.append({"name": name, "short": " \u2192 ".join(steps), "family": "albumentations", "geometry": f"album {first}",
+        rows.append({"name": name, "short": " \u2192 ".join(steps),
+                     "family": "albumentations", "geometry": f"album {first}",
                      "default": (first, resize, distort) == ("resize", "linear", "linear"),
                      "call": call})
     return rows
@@ -392,7 +394,8 @@ def _kornia(size: int, frame: torch.Tensor) -> list[dict]:
                 f"RandomFisheye at full size, then Resize {resample.lower()}{aa}")
         steps = (f"resize {resample.lower()}{'+aa' if smooth else ''}", "fisheye")
         short = " \u2192 ".join(steps if first == "resize" else steps[::-1])
-        rows.append({"name": name, "short": short, "family": "kornia", "geometry": f"kornia {first}",
+        rows.append({"name": name, "short": short, "family": "kornia",
+                     "geometry": f"kornia {first}",
                      "default": (first, resample, smooth) == ("resize", "BILINEAR", False),
                      "call": call})
     return rows
@@ -472,7 +475,6 @@ def run_size(size: int, source_shape: tuple[int, int, float], args: argparse.Nam
             "draws": {"ours_coverage": draws["ours"]["coverage"].tolist(),
                       "albumentations_k": draws.get("albumentations"),
                       "kornia_cx_cy_gamma": draws.get("kornia")}}
-
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -563,7 +565,7 @@ def frontier(rows: list[dict]) -> list[dict]:
 def _place_labels(ax, labels: list) -> None:
     """Each point's short name to its right, moved down past the names already placed that it
     would overlap (top to bottom; display units, the axes' limits set)."""
-    placed = []   # (x, y) of the names' anchors, display pixels
+    placed = []   # (x, y, width) of the names placed, display pixels
     for xi, yi, r, colour in sorted(labels, key=lambda t: -t[1]):
         px, py = ax.transData.transform((xi, yi))
         text = r["short"] + (" (default)" if r["default"] else "")
@@ -592,7 +594,7 @@ def chart(result: dict, path: Path) -> None:
     sizes = result["setup"]["sizes"]
     fig = Figure(figsize=(7.5 * len(sizes), 7.5), layout="constrained")
     axes = fig.subplots(1, len(sizes), squeeze=False, sharey=True)[0]
-    top = max(max(r["psnr_db"]) for r in result["rows"]) + 3   # (dB: the shared axis)
+    top = max(v for r in result["rows"] for v in r["psnr_db"] if math.isfinite(v)) + 3
     for ax, size in zip(axes, sizes):
         rows = [r for r in result["rows"] if r["size"] == size]
         front, labels = frontier(rows), []
@@ -622,7 +624,8 @@ def chart(result: dict, path: Path) -> None:
         ax.set_xlim(lo, hi * 3)   # room for the labels of the slowest points
         ax.set_ylim(0, top)
         _place_labels(ax, labels)
-        ax.set_xlabel("ms an image (median; 1 thread; uint8 RGB in, batch 1; log scale)")
+        threads = f"{result['threads']} thread{'s' if result['threads'] > 1 else ''}"
+        ax.set_xlabel(f"ms an image (median; {threads}; uint8 RGB in, batch 1; log scale)")
         src = result["setup"]["source"]
         ax.set_title(f"{src[1]} x {src[0]} line grid -> {size} x {size} "
                      "(upper left is better)", fontsize=10)
