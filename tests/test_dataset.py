@@ -440,9 +440,9 @@ def test_workers_give_identical_files(dataset, tmp_path):
 @pytest.mark.parametrize("antialias", [1, 2])
 @pytest.mark.parametrize("image_size", [(40, 72)])
 def test_the_texels_a_camera_reads_give_the_same_images(image_size, antialias):
-    """Tracing only the texels in a camera's cone (``FrameRenderer.texels``) leaves its images
-    bit for bit as with whole faces, and traces fewer texels; anti-aliased too (the cone grown
-    by the texel whose colour step to a neighbour decides its supersampling)."""
+    """Tracing only the texels a camera's layer reads (``FrameRenderer.texels``) leaves its
+    images bit for bit as with whole faces, and traces fewer texels; anti-aliased too (the set
+    grown by the texel whose colour step to a neighbour decides its supersampling)."""
     from omniscape_torch.data.generate import FrameRenderer
     renderer = FrameRenderer(_config(image_size=image_size, max_face_size=64, frames=3,
                                      antialias=antialias))
@@ -469,8 +469,8 @@ def test_the_texels_a_camera_reads_give_the_same_images(image_size, antialias):
     assert compared == 12
     if antialias > 1:
         return
-    # at full size the cone leaves out a fifth to a third of its faces' texels (its margins are
-    # a few texels and a pixel wide: most of the faces at these small sizes)
+    # at full size the read texels leave out a fifth to a third of their faces' texels (at these
+    # small sizes the taps of the pixels cover most of the faces)
     big = FrameRenderer(_config(image_size=(512, 512), face_size=512, frames=1))
     for name in ("fisheye_left", "catadioptric_left"):
         faces, texels = big.plan.faces(name, 0), big.texels(name, 0)

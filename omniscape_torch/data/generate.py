@@ -26,9 +26,9 @@ cameras 1.0 m. Each frame, the motorcycle's attitude ``R_bike`` (rig -> world,
 ``ride.camera_rotation``: yaw, pitch, lean) places and turns every camera: camera centre
 ``c = location + R_bike @ position``, and its rays go to the world by ``R_bike @ R_cam``. Each
 camera gets its own cubemap rendered at ``c`` with the cube axes along the world axes (x east,
-y down, z north), only the texels it reads (those in its cone of view), at the face size it needs
-(``sizing.required_face_size`` over every attitude, capped by ``max_face_size``; or
-``face_size`` for all), so that frame ``k`` depends on the configuration and ``k`` only, not
+y down, z north), only the texels its layer reads (``cubemap.cone.read_texels``), at the face
+size it needs (``sizing.required_face_size`` over every attitude, capped by ``max_face_size``;
+or ``face_size`` for all), so that frame ``k`` depends on the configuration and ``k`` only, not
 on the number of frames (a run of 12 frames extends a run of 8). The built-in town is flat,
 so the ride is made with ``town_route(seed, town)`` (S-bends between the lanes of the main
 street in town 1, right turns at the crossings of towns 2 and 3): pitch comes from the
@@ -95,7 +95,7 @@ from .objects import (encode_objects, instance_image, instance_objects, pack_ins
                       unpack_instances)
 from ..io.images import require_pillow
 from ..cameras.presets import catadioptric, fisheye
-from ..cubemap.cone import camera_cone, cone_texels, grow_texels
+from ..cubemap.cone import camera_cone, cone_texels, grow_texels, read_texels
 from ..render.layer import OmniProjection
 from ..render.reproject import equirectangular_camera
 from ..scenes.town import CARLA_PRESETS, LAYOUTS, WEATHERS, Town
@@ -387,12 +387,13 @@ class FrameRenderer:
     once and kept for every frame it renders (in the main process, or in one task of a
     worker).
 
-    Per camera, the town traces only the texels the layer reads: those within the camera's
-    cone of view (`cubemap.cone`: `camera_cone`, `cone_texels`; the layer's output is the same
-    bit for bit as from whole faces, tests/test_dataset.py), unless ``save_cubemaps`` asks for
-    whole faces. The cubes are rendered into buffers kept from camera to camera and frame to
-    frame, and each camera's images are converted, encoded and written by ``writers`` threads
-    while the next camera renders (a frame's marker once all its files are written)."""
+    Per camera, the town traces only the texels the layer reads: its taps' under the frame's
+    attitude (`cubemap.cone.read_texels`, within the cone of `camera_cone`; the layer's
+    output is the same bit for bit as from whole faces, tests/test_dataset.py), unless
+    ``save_cubemaps`` asks for whole faces. The cubes are rendered into buffers kept from
+    camera to camera and frame to frame, and each camera's images are converted, encoded and
+    written by ``writers`` threads while the next camera renders (a frame's marker once all its
+    files are written)."""
 
     def __init__(self, config: DatasetConfig, *, writers: int = 2) -> None:
         self.config = config
@@ -428,14 +429,20 @@ class FrameRenderer:
         return self._cubes[face_size]
 
     def texels(self, name: str, k: int, previous: bool = False) -> torch.Tensor | None:
-        """``(6, F, F)`` bool: the texels camera ``name`` reads at frame ``k`` (a superset:
-        ``_Plan.texels``), or None with ``save_cubemaps`` (whole faces). With ``antialias``,
-        grown by a texel on each face: a texel's anti-aliasing compares it with its 8
-        neighbours on the face (``scenes.town.edge_texels``), so every texel read has them all
-        rendered, as with whole faces."""
+        """``(6, F, F)`` bool: the texels camera ``name``'s layer reads at frame ``k``
+        (``cubemap.cone.read_texels`` of its rays; within ``_Plan.texels``' cone), or None with
+        ``save_cubemaps`` (whole faces). With ``antialias``, grown by a texel on each face: a
+        texel's anti-aliasing compares it with its 8 neighbours on the face
+        (``scenes.town.edge_texels``), so every texel read has them all rendered, as with whole
+        faces."""
         if self.config.save_cubemaps:
             return None
-        texels = self.plan.texels(name, k, previous)
+        c, rotation = self.plan.cameras[name], self.plan.rotation(name, k, previous).float()
+        layer = self._layer(name, c["camera"], c["face_size"])
+        rays_s, valid_s, rays_c, valid_c = layer.camera_rays()
+        texels = read_texels(rays_s, valid_s, rotation, c["face_size"], layer.pad)
+        if layer.supersample > 1:   # depth and labels: the pixel centres' rays
+            texels |= read_texels(rays_c, valid_c, rotation, c["face_size"], layer.pad)
         return texels if self.config.antialias == 1 else grow_texels(texels)
 
     def cubemap(self, name: str, k: int, previous: bool = False) -> dict[str, torch.Tensor]:
