@@ -12,7 +12,10 @@ warm-up frame (``benchmarks/common.py``'s conventions: medians, IQR, the load be
 * ``cubemaps`` (per antialias): the four cubemaps alone (``Town.render_cubemap`` of the same
   texels, in the frame's weather: the share of texels anti-aliasing supersamples depends on it);
 * ``direct``: the peer, the ground truth: every valid pixel's own ray traced and shaded
-  (``Town.render_rays``), no cube, no files.
+  (``Town.render_rays``), no cube, no files;
+* ``embree floor`` (antialias 1, frame 1): the trace-only floor of the cubemaps, Embree's own
+  calls on the same rays (`embree_floor`: every closest-hit, back-face and shadow query of the
+  frame's cubemaps, replayed with nothing else).
 
 Each row also records the process's CPU time per frame (all threads): on a shared machine the
 wall time depends on the other loads, the CPU time much less (on 2 free cores the wall time
@@ -53,6 +56,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 import torch.nn.functional as nnf
 
@@ -129,7 +133,7 @@ def speed(args) -> list[dict]:
         stats = measure([with_cpu(key, fns[key[0]](key[1]) if key[1] is not None else direct)
                          for key in keys], args.repeats, 1, progress=True)
         shutil.rmtree(out, ignore_errors=True)
-        texels = sum(int(plan.texels(n, 0).sum()) for n in plan.cameras)
+        texels = sum(int(renderer.texels(n, 0).sum()) for n in plan.cameras)
         pixels = sum(int(layers[n].camera_rays()[3].sum()) for n in plan.cameras)
         for (name, aa), s in zip(keys, stats):
             timed_cpu = cpu[name, aa][1:]   # the warm-up call first
@@ -143,7 +147,67 @@ def speed(args) -> list[dict]:
             print(f"{size:5d} px  {label:14s} {s['median_s']:7.2f} s/frame (IQR "
                   f"{s['iqr_s']:.2f}, CPU {rows[-1]['cpu_median_s']:.2f} s)  "
                   f"{1 / s['median_s']:6.2f} frames/s", flush=True)
+        rows.append(embree_floor(renderer, 1, args.repeats, size))
     return rows
+
+
+def embree_floor(renderer: FrameRenderer, k: int, repeats: int, size: int) -> dict:
+    """The trace-only floor of frame ``k``'s cubemaps: every Embree query the town makes for
+    them (closest hits, the back-face passes, the shadow rays; recorded during one untimed
+    ``cubemaps`` pass), replayed as Embree's own calls (``embreex``'s ``run``) on the town's
+    threads, in the same batches, with nothing else: no shading, no gathers, no files. The
+    median of ``repeats`` replays, wall and process CPU time."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    plan, town = renderer.plan, renderer.town
+    scene = town.scene(float(plan.frames["time"][k]))
+    calls = []
+
+    def recorder(name):
+        method = getattr(type(scene), name)
+
+        def record(o, d, tfar=1e37):
+            n = d.shape[0]
+            dists = np.array(np.broadcast_to(np.float32(tfar), (n,)) if np.ndim(tfar) == 0
+                             else tfar, np.float32)
+            calls.append((name, np.ascontiguousarray(np.broadcast_to(o, (n, 3)), np.float32),
+                          np.ascontiguousarray(d, np.float32), dists))
+            return method(scene, o, d, tfar)
+        return record
+
+    scene.intersect, scene.occluded = recorder("intersect"), recorder("occluded")
+    try:
+        for name in plan.cameras:
+            renderer.cubemap(name, k)
+    finally:
+        del scene.intersect, scene.occluded
+
+    def replay(call):
+        name, o, d, dists = call
+        if name == "intersect":
+            scene._scene.run(o, d, dists=dists.copy(), output=True)
+        else:
+            scene._scene.run(o, d, dists=dists.copy(), query="OCCLUDED")
+
+    walls, cpus = [], []
+    threads = town.threads or torch.get_num_threads()
+    for _ in range(repeats + 1):   # the first: a warm-up
+        start, cpu = time.perf_counter(), time.process_time()
+        with ThreadPoolExecutor(threads) as pool:
+            list(pool.map(replay, calls))
+        walls.append(time.perf_counter() - start)
+        cpus.append(time.process_time() - cpu)
+    primary = sum(c[2].shape[0] for c in calls if c[0] == "intersect")
+    shadow = sum(c[2].shape[0] for c in calls if c[0] == "occluded")
+    row = {"name": "embree floor", "antialias": 1, "image_size": size, "frame": k,
+           "primary_rays": primary, "shadow_rays": shadow, "queries": len(calls),
+           "median_s": statistics.median(walls[1:]), "times_s": walls[1:],
+           "cpu_median_s": statistics.median(cpus[1:]), "cpu_s": cpus[1:]}
+    row["frames_per_s"] = 1.0 / row["median_s"]
+    print(f"{size:5d} px  {'embree floor':14s} {row['median_s']:7.2f} s/frame (CPU "
+          f"{row['cpu_median_s']:.2f} s; {primary / 1e6:.2f} M closest-hit, {shadow / 1e6:.2f} M "
+          "shadow rays)", flush=True)
+    return row
 
 
 def _edges(labels: torch.Tensor, rng: torch.Tensor) -> torch.Tensor:
