@@ -72,10 +72,10 @@ Layout check_sample_image(const char* op, const at::Tensor& image, const at::Ten
     return L;
 }
 
-// The Planes of sample_image: an image (B, C, H, W) into out (B, C, h, w), any strides.
+// The Planes of sample_image: an image (B, C, H, W) into out (B, C, h, w), any strides (the
+// image as a cube of one face: planes').
 Planes image_planes(const at::Tensor& image, const at::Tensor& out) {
-    return Planes{out.size(0), out.size(1), out.size(2) * out.size(3), out.size(3),
-                  image.stride(0), image.stride(1), out.stride(0), out.stride(1), out.stride(3)};
+    return planes(image.unsqueeze(1), out);
 }
 
 // sample_image: a perspective image (B, C, H, W), any strides, along rays (1 or B, h, w, 3)
