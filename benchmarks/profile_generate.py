@@ -15,12 +15,14 @@ Stages:
   (``casting``);
 * ``cubemap (rest)``: the rest of ``Town.render_cubemap`` (rays, tiles, assembling the faces);
 * ``projection``: ``OmniProjection.render`` (the cubemap -> camera layer);
-* ``png encode``: ``cv2.imencode``; ``exr encode + write``: ``write_exr``;
+* ``png encode``: ``omniscape_torch.io.images.encode_image`` (Pillow); ``exr encode + write``:
+  ``write_exr``;
 * ``write``: ``atomic_write_bytes`` / ``atomic_write_text`` (temporary file + rename);
 * ``scene build``: Embree's scene of the meshes at a frame's time (``Town.scene``; Embree's
   own build threads count in ``other``); ``texels in view``: the texels each camera reads
-  (``_Plan.texels``); ``image conversion``: the images to bytes' types before encoding
-  (``_write_camera`` less its encoding and writing);
+  (``_Plan.texels``, ``FrameRenderer.texels``); ``image conversion``: the images to bytes'
+  types before encoding (``_write_camera`` less its encoding and writing) and the labels
+  packed with the instance ids before the layer (``pack_instances``);
 * per run: ``town build`` (``Town.__init__``), ``face sizes``, ``calibration files`` (the
   OCamCalib polynomial fit, and the faces of every frame), ``contact sheet``;
 * ``other``: the process's CPU time not inside any stage (and the threads torch and OpenCV
@@ -69,7 +71,7 @@ TARGETS = [
     ("shading", "omniscape_torch.scenes.town", "Town._shade"),
     ("cubemap (rest)", "omniscape_torch.scenes.town", "Town.render_cubemap"),
     ("projection", "omniscape_torch.render.layer", "OmniProjection.render"),
-    ("png encode", "cv2", "imencode"),
+    ("png encode", "omniscape_torch.io.images", "encode_image"),
     ("exr encode + write", "omniscape_torch.io.exr", "write_exr"),
     ("exr encode + write", "omniscape_torch.io", "write_exr"),
     ("exr encode + write", "omniscape_torch.data.generate", "write_exr"),
@@ -80,6 +82,8 @@ TARGETS = [
     ("write", "omniscape_torch.data.generate", "atomic_write_bytes"),
     ("scene build", "omniscape_torch.scenes.town", "Town.scene"),
     ("texels in view", "omniscape_torch.data.generate", "_Plan.texels"),
+    ("texels in view", "omniscape_torch.data.generate", "FrameRenderer.texels"),
+    ("image conversion", "omniscape_torch.data.generate", "pack_instances"),
     ("image conversion", "omniscape_torch.data.generate", "_write_camera"),
     ("town build", "omniscape_torch.scenes.town", "Town.__init__"),
     ("face sizes", "omniscape_torch.data.generate", "_face_sizes"),

@@ -29,6 +29,7 @@ import omniscape_torch as ot
 from omniscape_torch.render.kernels import build as extension, camera as kernels, cube as fastsample
 from omniscape_torch.render.kernels import image as kimage
 from omniscape_torch.render.kernels._backend import available, compile_failures
+from omniscape_torch.render.kernels import cone as cone_kernels
 from omniscape_torch.render.kernels import town as town_kernels
 from omniscape_torch.scenes import Town
 
@@ -100,13 +101,14 @@ def test_ops_are_registered_after_a_render():
     assert available() and compile_failures() == {}
     for name in extension.OPS:
         assert hasattr(torch.ops.omniscape_torch, name), name
-    # every op the sources (or the town's kernels, in Python) define is listed and has a fake
-    # implementation (torch.compile)
+    # every op the sources (or the town's and the cone's kernels, in Python) define is listed
+    # and has a fake implementation (torch.compile)
     in_cpp = {m for path in extension.SOURCES
               for m in re.findall(r'm\.def\("(\w+)\(', path.read_text(encoding="utf-8"))}
-    assert not in_cpp & set(town_kernels.OPS)
-    defined = in_cpp | set(town_kernels.OPS)
-    fakes = set(extension._FAKES) | set(town_kernels._FAKES)
+    in_python = set(town_kernels.OPS) | set(cone_kernels.OPS)
+    assert not in_cpp & in_python
+    defined = in_cpp | in_python
+    fakes = set(extension._FAKES) | set(town_kernels._FAKES) | set(cone_kernels._FAKES)
     assert defined == set(extension.OPS) == fakes, (defined ^ set(extension.OPS), defined ^ fakes)
 
 

@@ -1,30 +1,28 @@
 """The cube texels a camera reads: a cone around its optical axis that holds every texel its
-layer reads (`camera_cone`), the texels of the cube within a cone (`cone_texels`), the
-texels a layer's taps read for given rays and attitude (`read_texels`, a subset of the cone's),
-and texels grown by their neighbours on each face (`grow_texels`).
+layer reads (`camera_cone`), the texels of the cube within a cone (`cone_texels`) and texels
+grown by their neighbours on each face (`grow_texels`); the margins (`TAP_MARGIN`,
+`SEAM_MARGIN`) of the texels a layer's taps read for given rays and attitude
+(`omniscape_torch.render.kernels.cone.read_texels`, a subset of the cone's).
 
-`omniscape_torch.data.generate` renders only the texels each camera's layer reads
-(`read_texels`; the layer's output is the same bit for bit as from whole faces:
-tests/test_dataset.py, tests/test_cone.py).
+`omniscape_torch.data.generate` renders only the texels each camera's layer reads (the layer's
+output is the same bit for bit as from whole faces: tests/test_dataset.py, tests/test_cone.py).
 """
 
 from __future__ import annotations
 
 import math
 
-import numpy as np
 import torch
 
 from .faces import face_axes
-from .padding import border_plan
 
-__all__ = ["camera_cone", "cone_texels", "grow_texels", "read_texels"]
+__all__ = ["SEAM_MARGIN", "TAP_MARGIN", "camera_cone", "cone_texels", "grow_texels"]
 
-#: `read_texels`: a tap coordinate within this many texels of a texel boundary reads the texels
-#: on both sides (the layer computes its taps in float32, `read_texels` in float64: their
-#: coordinates differ by about 1e-4 texels at F = 1024), and a ray whose second largest
-#: component is within this share of its largest is looked up on both faces (the layer's choice
-#: of face at a seam may differ by a rounding).
+#: ``render.kernels.cone.read_texels``: a tap coordinate within this many texels of a texel
+#: boundary reads the texels on both sides (the layer computes its taps in float32,
+#: ``read_texels`` in float64: their coordinates differ by about 1e-4 texels at F = 1024), and
+#: a ray whose second largest component is within this share of its largest is looked up on
+#: both faces (the layer's choice of face at a seam may differ by a rounding).
 TAP_MARGIN, SEAM_MARGIN = 1e-3, 1e-5
 
 
@@ -79,79 +77,3 @@ def grow_texels(texels: torch.Tensor) -> torch.Tensor:
     """``texels (6, F, F)`` bool and their 8 neighbours on each face (a 3 x 3 dilation)."""
     grown = torch.nn.functional.max_pool2d(texels[:, None].float(), 3, stride=1, padding=1)
     return grown[:, 0] > 0
-
-
-def read_texels(rays: torch.Tensor, valid: torch.Tensor, rotation: torch.Tensor | None,
-                face_size: int, pad: int = 1) -> torch.Tensor:
-    """``(6, F, F)`` bool: the cube texels that an ``OmniProjection`` of ``face_size`` and atlas
-    border ``pad`` (``layer.pad``; bilinear RGB, nearest depth and labels, the border resampled
-    from the next faces) reads for the camera-frame ``rays`` under ``rotation``: a superset of
-    every texel the output depends on, so a cube rendered only there gives the layer's output
-    bit for bit (the other texels may hold anything finite).
-
-    Per valid ray: its face (both faces within `SEAM_MARGIN` of a seam) and face pixel
-    ``(u, v)`` as the layer finds them (in float64), then the bilinear taps ``floor(u)``,
-    ``floor(u) + 1`` (and the neighbour across a texel boundary within `TAP_MARGIN`), rows
-    likewise; the nearest texel is one of them. A tap on the atlas border reads the texels its
-    border texel is resampled from (``padding.border_plan``, bilinear and nearest). Far fewer
-    texels than `cone_texels` where the cube is finer than the image (a texel read by no
-    pixel's taps is not rendered): 22 % fewer for the rig's fisheyes at 1024 x 1024, 47 % for
-    its catadioptric cameras.
-
-    Args:
-        rays: ``(..., 3)`` camera-frame directions (``layer.camera_rays()``: the sub-pixel
-            rays, and the centre rays where they differ; call once per set and combine).
-        valid: ``(...)`` bool, the rays the layer samples.
-        rotation: ``(3, 3)`` camera -> cube frame (the layer's ``rotation``), or None.
-        face_size: ``F``.
-        pad: the layer's atlas border (0: no border).
-    """
-    F, p = int(face_size), int(pad)
-    n = F + 2 * p
-    # numpy, one thread: torch's elementwise kernels split over OpenMP threads, which a busy
-    # machine makes many times slower (a camera at 1024 x 1024: 0.1 s quiet, 1.5 s at load 6)
-    d = rays.detach().reshape(-1, 3)[valid.reshape(-1)].double().numpy()
-    x, y, z = (np.ascontiguousarray(d[:, i]) for i in range(3))
-    if rotation is not None:   # the rotation's float values, as the layer reads them
-        r = torch.as_tensor(rotation).detach().double().reshape(3, 3).tolist()
-        x, y, z = (r[i][0] * x + r[i][1] * y + r[i][2] * z for i in range(3))
-    comps = (x, y, z)
-    top = np.maximum(np.maximum(np.abs(x), np.abs(y)), np.abs(z))
-    # the face table's axes are signed coordinate axes: a . p, r . p, b . p are components
-    axes = face_axes(torch.float64).numpy()            # (6, [a, b, r], 3)
-
-    def component(axis: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
-        i = int(np.abs(axis).argmax())
-        value = comps[i] if rows is None else comps[i][rows]
-        return value if axis[i] > 0 else -value
-
-    # taps into faces padded by one more texel (m = n + 2, offset 1): no clipping
-    m = n + 2
-    padded = np.zeros(6 * m * m, dtype=bool)
-    f, c = F / 2.0, (F - 1) / 2.0 + p + 1
-    for k in range(6):
-        # the rays of face k, and those within SEAM_MARGIN of it at a seam
-        a = component(axes[k, 0])
-        rays_k = np.flatnonzero((a >= top * (1 - SEAM_MARGIN)) & (a > 0))
-        a = a[rays_k]
-        u = c + f * component(axes[k, 2], rays_k) / a   # padded face pixel, offset 1
-        v = c + f * component(axes[k, 1], rays_k) / a
-        j_lo, i_lo = np.floor(u - TAP_MARGIN), np.floor(v - TAP_MARGIN)
-        base = ((k * m + i_lo.astype(np.int64)) * m + j_lo.astype(np.int64))
-        for step in (0, 1, m, m + 1):                 # the bilinear taps
-            padded[base + step] = True
-        # a third column or row where a tap coordinate lies within TAP_MARGIN of a boundary
-        wide_j = np.floor(u + TAP_MARGIN) > j_lo
-        wide_i = np.floor(v + TAP_MARGIN) > i_lo
-        for step, wide in ((2, wide_j), (m + 2, wide_j), (2 * m, wide_i), (2 * m + 1, wide_i),
-                           (2 * m + 2, wide_i & wide_j)):
-            padded[base[wide] + step] = True
-    padded = np.ascontiguousarray(padded.reshape(6, m, m)[:, 1:-1, 1:-1])
-    out = padded[:, p:p + F, p:p + F].copy().reshape(-1)
-    if p > 0:
-        for mode in ("bilinear", "nearest"):
-            plan = border_plan(F, p, mode)
-            rows = padded.reshape(-1)[plan.dst_index.numpy()]
-            src, weight = plan.src_index.numpy()[rows], plan.weight.numpy()[rows]
-            out[src[weight != 0]] = True
-    return torch.from_numpy(out.reshape(6, F, F))

@@ -26,8 +26,8 @@ cameras 1.0 m. Each frame, the motorcycle's attitude ``R_bike`` (rig -> world,
 ``ride.camera_rotation``: yaw, pitch, lean) places and turns every camera: camera centre
 ``c = location + R_bike @ position``, and its rays go to the world by ``R_bike @ R_cam``. Each
 camera gets its own cubemap rendered at ``c`` with the cube axes along the world axes (x east,
-y down, z north), only the texels its layer reads (``cubemap.cone.read_texels``), at the face
-size it needs (``sizing.required_face_size`` over every attitude, capped by ``max_face_size``;
+y down, z north), only the texels its layer reads (``render.kernels.cone.read_texels``), at the
+face size it needs (``sizing.required_face_size`` over every attitude, capped by ``max_face_size``;
 or ``face_size`` for all), so that frame ``k`` depends on the configuration and ``k`` only, not
 on the number of frames (a run of 12 frames extends a run of 8). The built-in town is flat,
 so the ride is made with ``town_route(seed, town)`` (S-bends between the lanes of the main
@@ -95,7 +95,8 @@ from .objects import (encode_objects, instance_image, instance_objects, pack_ins
                       unpack_instances)
 from ..io.images import require_pillow
 from ..cameras.presets import catadioptric, fisheye
-from ..cubemap.cone import camera_cone, cone_texels, grow_texels, read_texels
+from ..cubemap.cone import camera_cone, cone_texels, grow_texels
+from ..render.kernels.cone import read_texels
 from ..render.layer import OmniProjection
 from ..render.reproject import equirectangular_camera
 from ..scenes.town import CARLA_PRESETS, LAYOUTS, WEATHERS, Town
@@ -388,7 +389,7 @@ class FrameRenderer:
     worker).
 
     Per camera, the town traces only the texels the layer reads: its taps' under the frame's
-    attitude (`cubemap.cone.read_texels`, within the cone of `camera_cone`; the layer's
+    attitude (`render.kernels.cone.read_texels`, within the cone of `camera_cone`; the layer's
     output is the same bit for bit as from whole faces, tests/test_dataset.py), unless
     ``save_cubemaps`` asks for whole faces. The cubes are rendered into buffers kept from
     camera to camera and frame to frame, and each camera's images are converted, encoded and
@@ -430,8 +431,8 @@ class FrameRenderer:
 
     def texels(self, name: str, k: int, previous: bool = False) -> torch.Tensor | None:
         """``(6, F, F)`` bool: the texels camera ``name``'s layer reads at frame ``k``
-        (``cubemap.cone.read_texels`` of its rays; within ``_Plan.texels``' cone), or None with
-        ``save_cubemaps`` (whole faces). With ``antialias``, grown by a texel on each face: a
+        (``render.kernels.cone.read_texels`` of its rays; within ``_Plan.texels``' cone), or
+        None with ``save_cubemaps`` (whole faces). With ``antialias``, grown by a texel on each face: a
         texel's anti-aliasing compares it with its 8 neighbours on the face
         (``scenes.town.edge_texels``), so every texel read has them all rendered, as with whole
         faces."""

@@ -135,6 +135,112 @@ void sample_rays_op(const at::Tensor& cube, const at::Tensor& rays,
     });
 }
 
+// cone_taps (kernels/cone.py): the texels that the bilinear taps of rays (n, 3) touch, marked
+// in padded (6, m, m) bool, m = F + 2 pad + 2 (faces padded by the atlas border and one texel
+// more). The same float64 operations, in the same order, as the NumPy twin's.
+template <typename G>
+void cone_taps(const G* rays, const uint8_t* valid, int64_t n, const double* r,
+               const int64_t* faces, int64_t F, int64_t p, double margin, double near,
+               uint8_t* padded) {
+    const int64_t m = F + 2 * p + 2, size = 6 * m * m;
+    const double f = static_cast<double>(F) / 2.0,
+                 c = static_cast<double>(F - 1) / 2.0 + static_cast<double>(p) + 1.0;
+    const auto mark = [&](int64_t index) {
+        if (index >= 0 && index < size) padded[index] = 1;
+    };
+    for (int64_t i = 0; i < n; i++) {
+        if (valid && !valid[i]) continue;
+        double q[3] = {static_cast<double>(rays[3 * i]), static_cast<double>(rays[3 * i + 1]),
+                       static_cast<double>(rays[3 * i + 2])};
+        if (r) {
+            const double x = q[0], y = q[1], z = q[2];
+            for (int k = 0; k < 3; k++) q[k] = (r[3 * k] * x + r[3 * k + 1] * y) + r[3 * k + 2] * z;
+        }
+        if (!std::isfinite(q[0]) || !std::isfinite(q[1]) || !std::isfinite(q[2])) continue;
+        const double top = std::max(std::max(std::abs(q[0]), std::abs(q[1])), std::abs(q[2]));
+        const auto component = [&](int64_t code) {
+            return code > 0 ? q[code - 1] : -q[-code - 1];
+        };
+        for (int64_t k = 0; k < 6; k++) {
+            const double a = component(faces[3 * k]);
+            if (!(a >= top * near) || !(a > 0)) continue;
+            const double u = c + f * component(faces[3 * k + 2]) / a;
+            const double v = c + f * component(faces[3 * k + 1]) / a;
+            const double j_lo = std::floor(u - margin), i_lo = std::floor(v - margin);
+            const int64_t base = (k * m + static_cast<int64_t>(i_lo)) * m +
+                                 static_cast<int64_t>(j_lo);
+            mark(base);
+            mark(base + 1);
+            mark(base + m);
+            mark(base + m + 1);
+            const bool wide_j = std::floor(u + margin) > j_lo,
+                       wide_i = std::floor(v + margin) > i_lo;
+            if (wide_j) {
+                mark(base + 2);
+                mark(base + m + 2);
+            }
+            if (wide_i) {
+                mark(base + 2 * m);
+                mark(base + 2 * m + 1);
+            }
+            if (wide_i && wide_j) mark(base + 2 * m + 2);
+        }
+    }
+}
+
+void cone_taps_op(const at::Tensor& rays, const std::optional<at::Tensor>& valid,
+                  const std::optional<at::Tensor>& rotation, const at::Tensor& faces,
+                  int64_t face_size, int64_t pad, double tap_margin, double near,
+                  const at::Tensor& padded) {
+    const char* op = "omniscape_torch::cone_taps";
+    check_contiguous(op, "rays", rays);
+    TORCH_CHECK(rays.scalar_type() == at::kFloat || rays.scalar_type() == at::kDouble, op,
+                ": rays: expected float32 or float64, got ", rays.scalar_type());
+    TORCH_CHECK(rays.dim() == 2 && rays.size(1) == 3, op, ": rays: expected (n, 3), got ",
+                rays.sizes());
+    const int64_t n = rays.size(0);
+    if (valid.has_value()) {
+        check_contiguous(op, "valid", *valid);
+        TORCH_CHECK(valid->scalar_type() == at::kBool && valid->dim() == 1 &&
+                    valid->size(0) == n, op, ": valid: expected (", n, ") bool, got ",
+                    valid->scalar_type(), " ", valid->sizes());
+    }
+    if (rotation.has_value()) {
+        check_contiguous(op, "rotation", *rotation);
+        TORCH_CHECK(rotation->scalar_type() == at::kDouble && rotation->dim() == 2 &&
+                    rotation->size(0) == 3 && rotation->size(1) == 3, op,
+                    ": rotation: expected (3, 3) float64, got ", rotation->scalar_type(), " ",
+                    rotation->sizes());
+    }
+    check_contiguous(op, "faces", faces);
+    TORCH_CHECK(faces.scalar_type() == at::kLong && faces.dim() == 2 && faces.size(0) == 6 &&
+                faces.size(1) == 3, op, ": faces: expected (6, 3) int64, got ",
+                faces.scalar_type(), " ", faces.sizes());
+    const int64_t* codes = faces.const_data_ptr<int64_t>();
+    for (int64_t k = 0; k < 18; k++)
+        TORCH_CHECK(codes[k] != 0 && codes[k] >= -3 && codes[k] <= 3, op,
+                    ": faces: expected signed axis codes in -3..-1, 1..3, got ", codes[k]);
+    TORCH_CHECK(face_size >= 1 && pad >= 0, op, ": expected face_size >= 1 and pad >= 0, got ",
+                face_size, " and ", pad);
+    const int64_t m = face_size + 2 * pad + 2;
+    check_contiguous(op, "padded", padded);
+    TORCH_CHECK(padded.scalar_type() == at::kBool && padded.dim() == 3 && padded.size(0) == 6 &&
+                padded.size(1) == m && padded.size(2) == m, op, ": padded: expected (6, ", m,
+                ", ", m, ") bool, got ", padded.scalar_type(), " ", padded.sizes());
+    const uint8_t* v = valid.has_value()
+                           ? reinterpret_cast<const uint8_t*>(valid->const_data_ptr<bool>())
+                           : nullptr;
+    const double* r = rotation.has_value() ? rotation->const_data_ptr<double>() : nullptr;
+    uint8_t* out = reinterpret_cast<uint8_t*>(padded.mutable_data_ptr<bool>());
+    if (rays.scalar_type() == at::kFloat) {
+        cone_taps(rays.const_data_ptr<float>(), v, n, r, codes, face_size, pad, tap_margin,
+                  near, out);
+    } else {
+        cone_taps(rays.const_data_ptr<double>(), v, n, r, codes, face_size, pad, tap_margin,
+                  near, out);
+    }
+}
+
 }  // namespace
 
 TORCH_LIBRARY(omniscape_torch, m) {
@@ -184,4 +290,5 @@ TORCH_LIBRARY_IMPL(omniscape_torch, CPU, m) {
     m.impl("sample_lut", &sample_lut_op);
     m.impl("sample_grid", &sample_grid_op);
     m.impl("sample_rays", &sample_rays_op);
+    m.impl("cone_taps", &cone_taps_op);
 }

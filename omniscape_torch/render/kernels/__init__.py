@@ -14,6 +14,7 @@ never ask whether the C++ ops exist.
   labels (`reproject_image`); the rays of whole cameras from their radius tables.
 - `camera`: pixel centres -> rays -> atlas grid of whole cameras (`camera_grid`,
   `camera_rays`, `radial_table`: the C++ tables or compiled torch).
+- `cone`: the cube texels a layer's bilinear taps touch (`omniscape_torch.cubemap.cone`).
 - `framing`: the focal at which a perspective source fills a share of a fisheye.
 - `draw`: the augmentation's draw of cameras and attitudes (one stream layout) and its C++ twin.
 - `town`: the built-in town's shading (`omniscape_torch.scenes.Town`): back faces, shading
@@ -23,10 +24,10 @@ On a GPU (or any device but the CPU) every function takes its torch route: the C
 CPU-only and forward-only.
 """
 
-from . import build, camera, cube, draw, framing, image, town
+from . import build, camera, cone, cube, draw, framing, image, town
 from ._backend import (BACKENDS, available, check_backend, choose, compile_failures, resolve,
                        unavailable_reason)
 
-__all__ = ["BACKENDS", "available", "build", "camera", "check_backend", "choose",
+__all__ = ["BACKENDS", "available", "build", "camera", "check_backend", "choose", "cone",
            "compile_failures", "cube", "draw", "framing", "image", "resolve", "town",
            "unavailable_reason"]

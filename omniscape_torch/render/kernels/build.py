@@ -17,7 +17,8 @@ The ops, ``torch.ops.omniscape_torch.*`` (`OPS`; schemas in the sources): the sa
 ``build_lut, sample_lut, sample_grid, sample_rays, camera_grid, camera_rays, sample_image``,
 its antialiasing ``mip_image``, the framing's ``framing_reach, framing_focal``
 ([framing][omniscape_torch.render.kernels.framing]), the detection boxes' ``box_pixels, outline_points,
-outline_reduce`` (``detection``) and the town's ``town_backfaces, town_prepare, town_shade,
+outline_reduce`` (``detection``), the cube texels a layer's taps touch, ``cone_taps``
+(its schema, fake and wrapper in `omniscape_torch.render.kernels.cone`) and the town's ``town_backfaces, town_prepare, town_shade,
 town_store`` (their schemas, fakes and wrappers in `omniscape_torch.render.kernels.town`; the
 C++ source only implements them). Each checks its arguments
 (device, dtype, shape, contiguity, index ranges) before it reads any, raising a RuntimeError
@@ -102,7 +103,7 @@ SOURCES = tuple(Path(__file__).parent.parent / "csrc" / file for file in (
 NAMESPACE = "omniscape_torch"
 OPS = ("build_lut", "sample_lut", "sample_grid", "sample_rays", "camera_grid", "camera_rays",
        "sample_image", "mip_image", "reproject_image", "framing_reach", "framing_focal",
-       "frame_lens", "box_pixels", "outline_points", "outline_reduce",
+       "frame_lens", "box_pixels", "outline_points", "outline_reduce", "cone_taps",
        "town_backfaces", "town_prepare", "town_shade", "town_store")
 #: ``-march=native``: the library is built for this machine's CPU (its flags are in the name);
 #: ``-fno-trapping-math``: float comparisons may be evaluated speculatively, so the tap
