@@ -21,7 +21,7 @@ Stages:
 * ``scene build``: Embree's scene of the meshes at a frame's time (``Town.scene``; Embree's
   own build threads count in ``other``); ``texels in view``: the texels each camera reads
   (``_Plan.texels``, ``FrameRenderer.texels``); ``image conversion``: the images to bytes'
-  types before encoding (``_write_camera`` less its encoding and writing) and the labels
+  types before encoding (``_to_uint8``, ``_write_labels`` less its encoding and writing) and the labels
   packed with the instance ids before the layer (``pack_instances``);
 * per run: ``town build`` (``Town.__init__``), ``face sizes``, ``calibration files`` (the
   OCamCalib polynomial fit, and the faces of every frame), ``contact sheet``;
@@ -84,7 +84,8 @@ TARGETS = [
     ("texels in view", "omniscape_torch.data.generate", "_Plan.texels"),
     ("texels in view", "omniscape_torch.data.generate", "FrameRenderer.texels"),
     ("image conversion", "omniscape_torch.data.generate", "pack_instances"),
-    ("image conversion", "omniscape_torch.data.generate", "_write_camera"),
+    ("image conversion", "omniscape_torch.data.generate", "_write_labels"),
+    ("image conversion", "omniscape_torch.data.generate", "_to_uint8"),
     ("town build", "omniscape_torch.scenes.town", "Town.__init__"),
     ("face sizes", "omniscape_torch.data.generate", "_face_sizes"),
     ("calibration files", "omniscape_torch.data.generate", "_write_run_files"),

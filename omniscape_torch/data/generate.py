@@ -487,8 +487,8 @@ class FrameRenderer:
                         if config.rig == "woodscape":
                             pending += self._woodscape_camera(pool, out, name, k, res)
                         else:
-                            pending.append(pool.submit(_write_camera, out, name, k, res,
-                                                       config.min_object_pixels))
+                            pending += [pool.submit(job) for job in _camera_writes(
+                                out, name, k, res, config.min_object_pixels)]
                         if config.save_cubemaps:
                             for i, (face, need) in enumerate(zip(FACES, faces.tolist())):
                                 if need:
@@ -543,19 +543,33 @@ def _panorama_path(out: Path, k: int, modality: str) -> Path:
     return out / fmt.panorama_file(modality, k)
 
 
-def _write_camera(out: Path, name: str, k: int, res: dict[str, torch.Tensor],
-                  min_object_pixels: int = 1) -> None:
-    """Write one camera's images of frame ``k`` (``res``: the layer's outputs, its labels
-    packed with the instance ids: ``objects.pack_instances``; the objects file lists those
-    of at least ``min_object_pixels`` pixels)."""
-    labels, instances = unpack_instances(res["labels"][0])
-    valid = res["valid"][0, 0]
+def _camera_writes(out: Path, name: str, k: int, res: dict[str, torch.Tensor],
+                   min_object_pixels: int = 1) -> list[Callable[[], None]]:
+    """The jobs that write one camera's images of frame ``k`` (``res``: the layer's outputs,
+    its labels packed with the instance ids: ``objects.pack_instances``; the objects file lists
+    those of at least ``min_object_pixels`` pixels): three, so that the writer threads share a
+    camera's encoding (the RGB PNG alone is about a third of it)."""
 
     def path(modality: str) -> Path:
         return out / fmt.frame_file(name, modality, k)
 
-    write_image(path("rgb"), _to_uint8(res["rgb"][0]))
-    write_exr(path("depth"), res["depth"][0, 0].float())
+    def rgb() -> None:
+        write_image(path("rgb"), _to_uint8(res["rgb"][0]))
+
+    def depth() -> None:
+        write_exr(path("depth"), res["depth"][0, 0].float())
+
+    def labels() -> None:
+        _write_labels(path, res, min_object_pixels)
+
+    return [rgb, depth, labels]
+
+
+def _write_labels(path: Callable[[str], Path], res: dict[str, torch.Tensor],
+                  min_object_pixels: int) -> None:
+    """A camera's label, colour-label, validity and instance images and its objects file."""
+    labels, instances = unpack_instances(res["labels"][0])
+    valid = res["valid"][0, 0]
     ids = labels.to(torch.uint8).numpy()   # 0..12 and 255 (IGNORE_INDEX)
     write_image(path("labels"), ids)
     write_image(path("labels_color"), colorize(ids))
