@@ -336,6 +336,10 @@ def figure(speed_rows: list[dict], accuracy_rows: list[dict], path: Path) -> Non
                 ax.plot([x["image_size"] for x in r], [x["frames_per_s"] for x in r], style,
                         color=f"C{i}" if aa is not None else "k",
                         label=label if aa is None else f"{label}, antialias {aa}")
+    floor = [x for x in speed_rows if x["name"] == "embree floor"]
+    if floor:
+        ax.plot([x["image_size"] for x in floor], [1.0 / x["median_s"] for x in floor], "x-.",
+                color="0.45", label="Embree floor (the frame's queries alone), antialias 1")
     ax.set_xscale("log", base=2)
     ax.set_yscale("log")
     ax.set_xlabel("image size (pixels, square)")

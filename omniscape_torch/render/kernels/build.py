@@ -89,8 +89,8 @@ import torch
 from ...io.atomic import atomic_path
 from . import layout
 
-__all__ = ["load", "ops", "unavailable_reason", "name", "face_case_flags", "CFLAGS", "LDFLAGS",
-           "NAMESPACE", "OPS", "SOURCES"]
+__all__ = ["define", "load", "ops", "unavailable_reason", "name", "face_case_flags", "CFLAGS",
+           "LDFLAGS", "NAMESPACE", "OPS", "SOURCES"]
 
 #: The sources of the one library: the samplers' kernels (headers, one an idea, in the order
 #: they include each other; their map in ``sample_base.h``), their ops (the cube's, which
@@ -485,6 +485,19 @@ _FAKES = {"build_lut": _fake_build_lut, "sample_lut": _fake_sample_lut,
           "framing_reach": _fake_framing_reach, "framing_focal": _fake_framing_focal,
           "box_pixels": _fake_box_pixels, "outline_points": _fake_outline_points,
           "outline_reduce": _fake_outline_reduce}
+
+
+def define(schemas: dict[str, str], fakes: dict) -> torch.library.Library:
+    """Ops whose schemas live in Python beside their wrappers (the town's, the cone's): each
+    ``name + schema`` of ``schemas`` defined in the package's namespace with its fake
+    implementation ``fakes[name]`` (for ``torch.compile``), once, at their module's import;
+    the C++ library implements them for the CPU when it is loaded. Returns the registration's
+    handle: the ops live while it does."""
+    lib = torch.library.Library(NAMESPACE, "FRAGMENT")
+    for name, schema in schemas.items():
+        lib.define(name + schema)
+        torch.library.register_fake(f"{NAMESPACE}::{name}", fakes[name], lib=lib)
+    return lib
 
 
 def _register_fakes() -> None:

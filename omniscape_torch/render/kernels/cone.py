@@ -47,18 +47,7 @@ def _fake_cone_taps(rays, valid, rotation, faces, face_size, pad, tap_margin, ne
 
 #: The op's fake implementation (for ``torch.compile``), registered with its schema.
 _FAKES = {"cone_taps": _fake_cone_taps}
-
-
-def _define() -> torch.library.Library:
-    """The op's schema and fake, registered once, at import (as `kernels.town`'s)."""
-    lib = torch.library.Library(build.NAMESPACE, "FRAGMENT")
-    for name, schema in OPS.items():
-        lib.define(name + schema)
-        torch.library.register_fake(f"{build.NAMESPACE}::{name}", _FAKES[name], lib=lib)
-    return lib
-
-
-_LIBRARY = _define()   # the registration's handle: the op lives while it does
+_LIBRARY = build.define(OPS, _FAKES)   # the registration's handle: the op lives while it does
 
 
 def read_texels(rays: Tensor, valid: Tensor, rotation: Tensor | None, face_size: int,

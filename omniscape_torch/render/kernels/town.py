@@ -181,19 +181,7 @@ def _fake_town_store(d, index, start, rgb, range_, labels, hit, axis, far, rgb_o
 #: The ops' fake implementations (for ``torch.compile``), registered with their schemas.
 _FAKES = {"town_backfaces": _fake_town_backfaces, "town_prepare": _fake_town_prepare,
          "town_shade": _fake_town_shade, "town_store": _fake_town_store}
-
-
-def _define() -> torch.library.Library:
-    """The ops' schemas and fakes, registered in the package's namespace once, at import: the
-    C++ library (`build.load`) implements them for the CPU when it is loaded."""
-    lib = torch.library.Library(build.NAMESPACE, "FRAGMENT")
-    for name, schema in OPS.items():
-        lib.define(name + schema)
-        torch.library.register_fake(f"{build.NAMESPACE}::{name}", _FAKES[name], lib=lib)
-    return lib
-
-
-_LIBRARY = _define()   # the registration's handle: the ops live while it does
+_LIBRARY = build.define(OPS, _FAKES)   # the registration's handle: the ops live while it does
 
 
 # ------------------------------------------------------------------------------------------
