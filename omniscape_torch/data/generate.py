@@ -26,8 +26,8 @@ cameras 1.0 m. Each frame, the motorcycle's attitude ``R_bike`` (rig -> world,
 ``ride.camera_rotation``: yaw, pitch, lean) places and turns every camera: camera centre
 ``c = location + R_bike @ position``, and its rays go to the world by ``R_bike @ R_cam``. Each
 camera gets its own cubemap rendered at ``c`` with the cube axes along the world axes (x east,
-y down, z north), only the texels its layer reads (``render.kernels.cone.read_texels``), at the
-face size it needs (``sizing.required_face_size`` over every attitude, capped by ``max_face_size``;
+y down, z north), only the texels its layer reads (``read_texels``, a kernel), at the face
+size it needs (``sizing.required_face_size`` over every attitude, capped by ``max_face_size``;
 or ``face_size`` for all), so that frame ``k`` depends on the configuration and ``k`` only, not
 on the number of frames (a run of 12 frames extends a run of 8). The built-in town is flat,
 so the ride is made with ``town_route(seed, town)`` (S-bends between the lanes of the main
@@ -432,10 +432,9 @@ class FrameRenderer:
     def texels(self, name: str, k: int, previous: bool = False) -> torch.Tensor | None:
         """``(6, F, F)`` bool: the texels camera ``name``'s layer reads at frame ``k``
         (``render.kernels.cone.read_texels`` of its rays; within ``_Plan.texels``' cone), or
-        None with ``save_cubemaps`` (whole faces). With ``antialias``, grown by a texel on each face: a
-        texel's anti-aliasing compares it with its 8 neighbours on the face
-        (``scenes.town.edge_texels``), so every texel read has them all rendered, as with whole
-        faces."""
+        None with ``save_cubemaps`` (whole faces). With ``antialias``, grown by a texel on each
+        face: a texel's anti-aliasing compares it with its 8 neighbours on the face
+        (``scenes.town.edge_texels``), so every texel read has them all rendered."""
         if self.config.save_cubemaps:
             return None
         c, rotation = self.plan.cameras[name], self.plan.rotation(name, k, previous).float()
@@ -545,24 +544,15 @@ def _panorama_path(out: Path, k: int, modality: str) -> Path:
 
 def _camera_writes(out: Path, name: str, k: int, res: dict[str, torch.Tensor],
                    min_object_pixels: int = 1) -> list[Callable[[], None]]:
-    """The jobs that write one camera's images of frame ``k`` (``res``: the layer's outputs,
-    its labels packed with the instance ids: ``objects.pack_instances``; the objects file lists
-    those of at least ``min_object_pixels`` pixels): three, so that the writer threads share a
-    camera's encoding (the RGB PNG alone is about a third of it)."""
-
+    """The jobs writing camera ``name``'s files of frame ``k`` (``res``: the layer's outputs,
+    labels packed with instance ids; objects of at least ``min_object_pixels`` pixels): three,
+    so the writer threads share a camera's encoding (the RGB PNG is about a third of it)."""
     def path(modality: str) -> Path:
         return out / fmt.frame_file(name, modality, k)
 
-    def rgb() -> None:
-        write_image(path("rgb"), _to_uint8(res["rgb"][0]))
-
-    def depth() -> None:
-        write_exr(path("depth"), res["depth"][0, 0].float())
-
-    def labels() -> None:
-        _write_labels(path, res, min_object_pixels)
-
-    return [rgb, depth, labels]
+    return [lambda: write_image(path("rgb"), _to_uint8(res["rgb"][0])),
+            lambda: write_exr(path("depth"), res["depth"][0, 0].float()),
+            lambda: _write_labels(path, res, min_object_pixels)]
 
 
 def _write_labels(path: Callable[[str], Path], res: dict[str, torch.Tensor],
