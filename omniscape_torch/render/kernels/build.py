@@ -248,11 +248,13 @@ def _report(folder: Path, pending: dict[str, str], start: float, stop: threading
     """Say on stderr what the build in ``folder`` compiles as it goes, until ``stop``: a line
     as each source of ``pending`` (``{object: source}``) is compiled, as ninja's log records it
     (the log is the build's, also where another process builds and this one waits for it), and
-    every `_HEARTBEAT_S` the time so far and what is still compiling (or linking)."""
+    every `_HEARTBEAT_S` the time so far and what is still compiling (or linking); once more
+    after ``stop``, so that a source compiled in the last moments is said too."""
     log = folder / ".ninja_log"
     seen, total = _log_entries(log), len(pending)
     beat = start + _HEARTBEAT_S
-    while not stop.wait(min(1.0, _HEARTBEAT_S / 4)):
+
+    def compiled() -> None:
         for entry in sorted(_log_entries(log) - seen):
             seen.add(entry)
             fields = entry.split("\t")
@@ -262,11 +264,15 @@ def _report(folder: Path, pending: dict[str, str], start: float, stop: threading
                     took = f" in {(int(fields[1]) - int(fields[0])) / 1000:.0f} s"
                 _say(f"compiled {pending.pop(fields[3])}{took} ({total - len(pending)} of "
                      f"{total})")
+
+    while not stop.wait(min(1.0, _HEARTBEAT_S / 4)):
+        compiled()
         now = time.perf_counter()
         if now >= beat:
             beat = now + _HEARTBEAT_S
             doing = f"still compiling {', '.join(pending.values())}" if pending else "linking"
             _say(f"{now - start:.0f} s: {doing} ...")
+    compiled()
 
 
 @contextlib.contextmanager
