@@ -123,6 +123,8 @@ def test_opcheck_cone_taps():
     (dict(rays=torch.zeros(4, 3, dtype=torch.int64)), "rays: expected"),
     (dict(valid=torch.ones(3, dtype=torch.bool)), "valid: expected a bool tensor of shape (4,)"),
     (dict(valid=torch.ones(4)), "valid: expected a bool tensor"),
+    (dict(rotation=torch.eye(4)), "rotation: expected a (3, 3) floating tensor or None"),
+    (dict(rotation=torch.eye(3, dtype=torch.int64)), "rotation: expected a (3, 3) floating"),
     (dict(face_size=0), "face_size: expected an integer >= 1"),
     (dict(pad=-1), "pad: expected an integer >= 0"),
     (dict(tap_margin=0.7), "tap_margin: expected a value in [0, 0.5)"),

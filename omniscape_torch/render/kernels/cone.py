@@ -127,7 +127,11 @@ def cone_taps(rays: Tensor, valid: Tensor | None, rotation: Tensor | None, face_
                          f"got {getattr(valid, 'dtype', type(valid).__name__)} "
                          f"{tuple(getattr(valid, 'shape', ()))}")
     if rotation is not None:
-        rotation = torch.as_tensor(rotation).detach().double().reshape(3, 3).cpu()
+        rotation = torch.as_tensor(rotation).detach()
+        if rotation.shape != (3, 3) or not rotation.is_floating_point():
+            raise ValueError(f"rotation: expected a (3, 3) floating tensor or None, got "
+                             f"{rotation.dtype} {tuple(rotation.shape)}")
+        rotation = rotation.double().cpu()
     for name, value, low in (("face_size", face_size, 1), ("pad", pad, 0)):
         if isinstance(value, bool) or not isinstance(value, int) or value < low:
             raise ValueError(f"{name}: expected an integer >= {low}, got {value!r}")
